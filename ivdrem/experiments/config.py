@@ -1,0 +1,485 @@
+"""Configuration of the paper experiment: embedded default, loading, validation.
+
+The default configuration (SPEC section 8) is the package data file
+``ivdrem/experiments/default.toml``.  :func:`load_config` deep-merges a user TOML
+file (and optional overrides) over it and validates the result *before* anything is
+simulated; every problem is reported as a :class:`ConfigError` naming the key.
+
+:func:`closed_loop_kwargs` maps a validated configuration to the keyword arguments of
+``ivdrem.diagrams.closed_loop(law, model, **kwargs)``, :func:`solver_kwargs` to those
+of the simulator.
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+import re
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+__all__ = [
+    "ConfigError",
+    "LAWS",
+    "SOLVER_METHODS",
+    "OBSERVER_VARIANTS",
+    "default_config",
+    "load_config",
+    "validate_config",
+    "model_dims",
+    "closed_loop_kwargs",
+    "solver_kwargs",
+    "dump_toml",
+]
+
+#: Adaptation laws known to the closed-loop diagrams.
+LAWS = ("iv-drem", "composite-learning", "drem", "sigma-modification", "none")
+#: Integration methods of ivdrem's simulator.
+SOLVER_METHODS = ("dp45", "rk4")
+#: Variants of the Φ_Mf filter gain (erratum E1).
+OBSERVER_VARIANTS = ("corrected", "literal")
+
+
+class ConfigError(ValueError):
+    """An invalid experiment configuration (raised before any simulation)."""
+
+
+# --------------------------------------------------------------------------- schema
+@dataclass(frozen=True)
+class _Key:
+    kind: str  # "float", "str", "strlist", "vec", "float_or_vec"
+    length: str | None = None  # "n" or "ntheta" for vectors
+    check: Callable[[float], bool] | None = None  # applied to every number
+    requirement: str = ""  # text of the check, for messages
+    choices: tuple[str, ...] | None = None
+
+
+def _positive(x: float) -> bool:
+    return x > 0
+
+
+def _nonneg(x: float) -> bool:
+    return x >= 0
+
+
+_POS = dict(check=_positive, requirement="> 0")
+_NONNEG = dict(check=_nonneg, requirement=">= 0")
+
+SCHEMA: dict[str, dict[str, _Key]] = {
+    "experiment": {
+        "t_end": _Key("float", **_POS),
+        "laws": _Key("strlist", choices=LAWS),
+        "dt_out": _Key("float", **_POS),
+    },
+    "model": {
+        "name": _Key("str"),
+        "theta": _Key("vec", "ntheta"),
+        "g": _Key("float"),
+    },
+    "initial": {
+        "q0": _Key("vec", "n"),
+        "dq0": _Key("vec", "n"),
+        "theta_hat0": _Key("vec", "ntheta"),
+    },
+    "controller": {
+        "alpha": _Key("float", **_POS),
+        "K": _Key("vec", "n", **_POS),
+        "delta_mu": _Key("float", check=lambda x: 0 < x < 1, requirement="in (0, 1)"),
+        "Gamma": _Key("float_or_vec", "ntheta", **_POS),
+        "mu0": _Key("float", **_NONNEG),
+        "mu1": _Key("float", **_POS),
+        "observer_variant": _Key("str", choices=OBSERVER_VARIANTS),
+    },
+    "filters": {
+        "l": _Key("float", **_POS),
+    },
+    "iv_drem": {
+        "T": _Key("float", **_POS),
+        "p": _Key("float", check=lambda x: x >= 1, requirement=">= 1"),
+        "F0": _Key("float", **_POS),
+        "gamma": _Key("float", **_POS),
+    },
+    "composite_learning": {
+        "T": _Key("float", **_POS),
+        "gamma": _Key("float", **_POS),
+        "epsilon": _Key("float", **_POS),
+    },
+    "sigma_modification": {
+        "sigma": _Key("float", **_NONNEG),
+        "theta_star": _Key("vec", "ntheta"),
+    },
+    "trajectory": {
+        "amplitude": _Key("vec", "n"),
+        "omega": _Key("vec", "n"),
+        "phase": _Key("vec", "n"),
+        "offset": _Key("vec", "n"),
+    },
+    "disturbance": {
+        "amplitude": _Key("vec", "n"),
+        "omega": _Key("vec", "n"),
+        "phase": _Key("vec", "n"),
+        "offset": _Key("vec", "n"),
+    },
+    "solver": {
+        "method": _Key("str", choices=SOLVER_METHODS),
+        "rtol": _Key("float", **_POS),
+        "atol": _Key("float", **_POS),
+        "h": _Key("float", **_POS),
+        "h_max": _Key("float", **_POS),
+    },
+}
+
+#: Models whose dimensions are known here: name -> (n, nθ).
+_KNOWN_MODELS = {"two-link": (2, 5)}
+_PLANAR = re.compile(r"^planar-(\d+)$")
+
+
+def model_dims(name: str) -> tuple[int, int | None]:
+    """(n, nθ) of a model name; nθ is None when only the models package knows it.
+
+    "two-link" is the paper's arm (n = 2, nθ = 5); "planar-N" is an N-link planar arm
+    (n = N).  Vector lengths against nθ are checked only where nθ is known here.
+    """
+    if name in _KNOWN_MODELS:
+        return _KNOWN_MODELS[name]
+    m = _PLANAR.match(name)
+    if m and int(m.group(1)) >= 1:
+        return int(m.group(1)), None
+    raise ConfigError(
+        f"config key 'model.name' = {name!r} is not a known model"
+        + _suggest(name, ["two-link", "planar-2", "planar-3"])
+        + "; valid: 'two-link', 'planar-N' (an N-link planar arm, N >= 1, e.g. 'planar-3')"
+    )
+
+
+# --------------------------------------------------------------------------- loading
+def default_config() -> dict:
+    """A fresh copy of the embedded default configuration (SPEC section 8)."""
+    return copy.deepcopy(_default_raw())
+
+
+_DEFAULT_CACHE: dict | None = None
+
+
+def _default_raw() -> dict:
+    global _DEFAULT_CACHE
+    if _DEFAULT_CACHE is None:
+        text = resources.files("ivdrem.experiments").joinpath("default.toml").read_text("utf-8")
+        _DEFAULT_CACHE = validate_config(tomllib.loads(text))
+    return _DEFAULT_CACHE
+
+
+def load_config(path: str | Path | None = None, overrides: Mapping | None = None) -> dict:
+    """Load the experiment configuration.
+
+    The user TOML file at ``path`` (if any) and then ``overrides`` (a nested mapping
+    ``{"experiment": {"t_end": 10.0}}`` or dotted keys ``{"experiment.t_end": 10.0}``)
+    are merged key by key over the embedded default; the result is validated and
+    returned as a plain dict (floats as ``float``, vectors as lists of ``float``).
+    Raises :class:`ConfigError` for any invalid or unknown entry.
+    """
+    cfg = default_config()
+    if path is not None:
+        p = Path(path)
+        try:
+            text = p.read_text("utf-8")
+        except FileNotFoundError:
+            raise ConfigError(f"config file '{p}' not found") from None
+        except OSError as exc:
+            raise ConfigError(f"config file '{p}' cannot be read: {exc}") from None
+        try:
+            user = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"config file '{p}' is not valid TOML: {exc}") from None
+        _merge(cfg, user, where=str(p))
+    if overrides:
+        _merge(cfg, _undot(overrides), where="overrides")
+    return validate_config(cfg)
+
+
+def _undot(overrides: Mapping) -> dict:
+    out: dict = {}
+    for key, value in overrides.items():
+        if isinstance(key, str) and "." in key:
+            section, _, name = key.partition(".")
+            out.setdefault(section, {})
+            if not isinstance(out[section], dict):
+                raise ConfigError(f"override '{key}' conflicts with override '{section}'")
+            out[section][name] = value
+        elif isinstance(value, Mapping):
+            out.setdefault(key, {})
+            out[key].update(value)
+        else:
+            raise ConfigError(
+                f"override {key!r} must be a section table or a dotted key 'section.key'"
+            )
+    return out
+
+
+def _merge(cfg: dict, user: Mapping, where: str) -> None:
+    for section, table in user.items():
+        _check_section(section)
+        if not isinstance(table, Mapping):
+            raise ConfigError(
+                f"config section '{section}' must be a table ([{section}]), "
+                f"got {type(table).__name__} (in {where})"
+            )
+        for key, value in table.items():
+            _check_key(section, key)
+            cfg[section][key] = copy.deepcopy(value)
+
+
+def _suggest(word: str, valid, prefix=" (did you mean ", suffix="?)") -> str:
+    close = difflib.get_close_matches(word, list(valid), n=1, cutoff=0.5)
+    if not close:
+        # case-insensitive second chance ("kp" vs "K")
+        lower = {v.lower(): v for v in valid}
+        close = [lower[c] for c in difflib.get_close_matches(word.lower(), list(lower), n=1, cutoff=0.5)]
+    return f"{prefix}'{close[0]}'{suffix}" if close else ""
+
+
+def _check_section(section: str) -> None:
+    if section not in SCHEMA:
+        raise ConfigError(
+            f"config section '{section}' is not known"
+            + _suggest(section, SCHEMA)
+            + "; valid sections: "
+            + ", ".join(SCHEMA)
+        )
+
+
+def _check_key(section: str, key: str) -> None:
+    valid = SCHEMA[section]
+    if key not in valid:
+        full = [f"{section}.{k}" for k in valid]
+        raise ConfigError(
+            f"config key '{section}.{key}' is not known"
+            + _suggest(f"{section}.{key}", full)
+            + f"; valid keys in [{section}]: "
+            + ", ".join(valid)
+        )
+
+
+# --------------------------------------------------------------------------- validation
+def _number(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(
+            f"config key '{name}' must be a number, got {type(value).__name__} {value!r}"
+        )
+    x = float(value)
+    if not math.isfinite(x):
+        raise ConfigError(f"config key '{name}' must be finite, got {value!r}")
+    return x
+
+
+def validate_config(cfg: Mapping) -> dict:
+    """Check a complete configuration dict; return a normalized deep copy.
+
+    Every section and key of the schema must be present (use :func:`load_config`
+    to fill missing ones from the default).  Raises :class:`ConfigError`.
+    """
+    if not isinstance(cfg, Mapping):
+        raise ConfigError(f"configuration must be a table, got {type(cfg).__name__}")
+    out: dict = {}
+    for section in cfg:
+        _check_section(section)
+        if not isinstance(cfg[section], Mapping):
+            raise ConfigError(f"config section '{section}' must be a table ([{section}])")
+        for key in cfg[section]:
+            _check_key(section, key)
+    for section, keys in SCHEMA.items():
+        if section not in cfg:
+            raise ConfigError(f"config section '{section}' is missing")
+        out[section] = {}
+        for key, spec in keys.items():
+            if key not in cfg[section]:
+                raise ConfigError(f"config key '{section}.{key}' is missing")
+            out[section][key] = _validate_value(f"{section}.{key}", spec, cfg[section][key])
+
+    n, ntheta = model_dims(out["model"]["name"])
+    dims = {"n": n, "ntheta": ntheta}
+    for section, keys in SCHEMA.items():
+        for key, spec in keys.items():
+            value = out[section][key]
+            if spec.length is None or not isinstance(value, list):
+                continue
+            want = dims[spec.length]
+            if want is None:
+                continue  # nθ of this model is known only to ivdrem.models
+            if len(value) != want:
+                what = "n" if spec.length == "n" else "nθ"
+                raise ConfigError(
+                    f"config key '{section}.{key}' must have {want} entries "
+                    f"(model '{out['model']['name']}' has {what} = {want}), got {len(value)}"
+                )
+    if ntheta is None:
+        # lengths against nθ cannot be checked here; at least they must agree
+        lengths = {
+            f"{s}.{k}": len(out[s][k])
+            for s, keys in SCHEMA.items()
+            for k, spec in keys.items()
+            if spec.length == "ntheta" and isinstance(out[s][k], list)
+        }
+        ref = len(out["model"]["theta"])
+        for name, length in lengths.items():
+            if length != ref:
+                raise ConfigError(
+                    f"config key '{name}' has {length} entries but model.theta has {ref}"
+                )
+    exp = out["experiment"]
+    if exp["dt_out"] > exp["t_end"]:
+        raise ConfigError(
+            f"config key 'experiment.dt_out' = {exp['dt_out']} exceeds experiment.t_end = {exp['t_end']}"
+        )
+    if len(set(exp["laws"])) != len(exp["laws"]):
+        raise ConfigError(f"config key 'experiment.laws' lists a law twice: {exp['laws']}")
+    return out
+
+
+def _validate_value(name: str, spec: _Key, value: Any):
+    if spec.kind == "str":
+        if not isinstance(value, str):
+            raise ConfigError(f"config key '{name}' must be a string, got {type(value).__name__} {value!r}")
+        if spec.choices is not None and value not in spec.choices:
+            raise ConfigError(
+                f"config key '{name}' = {value!r} is not valid" + _suggest(value, spec.choices)
+                + "; valid: " + ", ".join(repr(c) for c in spec.choices)
+            )
+        return value
+    if spec.kind == "strlist":
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"config key '{name}' must be a list of strings, got {value!r}")
+        if not value:
+            raise ConfigError(f"config key '{name}' must name at least one law")
+        for v in value:
+            if spec.choices is not None and v not in spec.choices:
+                raise ConfigError(
+                    f"config key '{name}': law {v!r} is not known" + _suggest(v, spec.choices)
+                    + "; valid laws: " + ", ".join(repr(c) for c in spec.choices)
+                )
+        return list(value)
+    if spec.kind == "float" or (spec.kind == "float_or_vec" and not isinstance(value, list)):
+        x = _number(name, value)
+        if spec.check is not None and not spec.check(x):
+            raise ConfigError(f"config key '{name}' must be {spec.requirement}, got {value!r}")
+        return x
+    if spec.kind in ("vec", "float_or_vec"):
+        if not isinstance(value, list):
+            raise ConfigError(
+                f"config key '{name}' must be a list of numbers, got {type(value).__name__} {value!r}"
+            )
+        xs = [_number(f"{name}[{i}]", v) for i, v in enumerate(value)]
+        if not xs:
+            raise ConfigError(f"config key '{name}' must not be empty")
+        if spec.check is not None:
+            for i, x in enumerate(xs):
+                if not spec.check(x):
+                    raise ConfigError(
+                        f"config key '{name}' entries must be {spec.requirement}, "
+                        f"got {name}[{i}] = {value[i]!r}"
+                    )
+        return xs
+    raise AssertionError(spec.kind)  # pragma: no cover
+
+
+# --------------------------------------------------------------------------- mapping
+_TRAJ_KEYS = ("amplitude", "omega", "phase", "offset")
+
+
+def closed_loop_kwargs(config: Mapping, law: str) -> dict:
+    """Keyword arguments of ``ivdrem.diagrams.closed_loop(law, model, **kwargs)``.
+
+    Common keys: alpha, K (n×n), delta_mu, Gamma (nθ×nθ), mu0, mu1, observer_variant,
+    l, theta_hat0, q0, dq0, theta, trajectory, disturbance.  Law-specific keys:
+    "iv-drem"/"drem": T, p, F0, gamma of [iv_drem]; "composite-learning": T, gamma,
+    epsilon of [composite_learning]; "sigma-modification": T, p, F0 of [iv_drem] and
+    sigma, theta_star; "none": T, p, F0 of [iv_drem].
+    """
+    if law not in LAWS:
+        raise ConfigError(f"law {law!r} is not known" + _suggest(law, LAWS) + "; valid laws: " + ", ".join(LAWS))
+    c = config
+    ctl = c["controller"]
+    theta = np.asarray(c["model"]["theta"], dtype=float)
+    ntheta = theta.size
+    gam = ctl["Gamma"]
+    if isinstance(gam, (list, tuple, np.ndarray)):
+        Gamma = np.diag(np.asarray(gam, dtype=float))
+    else:
+        Gamma = float(gam) * np.eye(ntheta)
+    kw: dict[str, Any] = {
+        "alpha": float(ctl["alpha"]),
+        "K": np.diag(np.asarray(ctl["K"], dtype=float)),
+        "delta_mu": float(ctl["delta_mu"]),
+        "Gamma": Gamma,
+        "mu0": float(ctl["mu0"]),
+        "mu1": float(ctl["mu1"]),
+        "observer_variant": ctl["observer_variant"],
+        "l": float(c["filters"]["l"]),
+    }
+    ivd = c["iv_drem"]
+    if law in ("iv-drem", "drem"):
+        kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]), gamma=float(ivd["gamma"]))
+    elif law == "composite-learning":
+        cl = c["composite_learning"]
+        kw.update(T=float(cl["T"]), gamma=float(cl["gamma"]), epsilon=float(cl["epsilon"]))
+    else:
+        kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]))
+        if law == "sigma-modification":
+            sm = c["sigma_modification"]
+            kw.update(sigma=float(sm["sigma"]), theta_star=np.asarray(sm["theta_star"], dtype=float))
+    kw.update(
+        theta_hat0=np.asarray(c["initial"]["theta_hat0"], dtype=float),
+        q0=np.asarray(c["initial"]["q0"], dtype=float),
+        dq0=np.asarray(c["initial"]["dq0"], dtype=float),
+        theta=theta,
+        trajectory={k: np.asarray(c["trajectory"][k], dtype=float) for k in _TRAJ_KEYS},
+        disturbance={k: np.asarray(c["disturbance"][k], dtype=float) for k in _TRAJ_KEYS},
+    )
+    return kw
+
+
+def solver_kwargs(config: Mapping) -> dict:
+    """Keyword arguments of the simulator: method, rtol, atol, h, h_max."""
+    s = config["solver"]
+    return {
+        "method": s["method"],
+        "rtol": float(s["rtol"]),
+        "atol": float(s["atol"]),
+        "h": float(s["h"]),
+        "h_max": float(s["h_max"]),
+    }
+
+
+# --------------------------------------------------------------------------- writing
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (int, float, np.floating, np.integer)):
+        return repr(float(v))
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} as TOML")
+
+
+def dump_toml(config: Mapping) -> str:
+    """TOML text of a configuration; ``load_config`` of it gives the same dict."""
+    lines = []
+    for section, table in config.items():
+        lines.append(f"[{section}]")
+        for key, value in table.items():
+            lines.append(f"{key} = {_toml_value(value)}")
+        lines.append("")
+    return "\n".join(lines)

@@ -1,0 +1,223 @@
+"""Tests of the experiment configuration (ivdrem.experiments.config)."""
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ivdrem.experiments.config import (
+    LAWS,
+    SCHEMA,
+    ConfigError,
+    closed_loop_kwargs,
+    default_config,
+    dump_toml,
+    load_config,
+    solver_kwargs,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+PI = math.pi
+
+
+def write(tmp_path, text, name="user.toml"):
+    p = tmp_path / name
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def test_default_is_section_8_of_spec():
+    c = load_config()
+    assert c["experiment"] == {"t_end": 300.0, "laws": ["iv-drem", "composite-learning"], "dt_out": 0.01}
+    assert c["model"] == {"name": "two-link", "theta": [1.3, 0.28, 0.32, 0.4, 1.4], "g": 9.81}
+    assert c["initial"]["q0"] == [0.0, pytest.approx(0.3 * PI, abs=1e-15)]
+    assert c["initial"]["dq0"] == [0.0, 0.0]
+    assert c["initial"]["theta_hat0"] == [0.0] * 5
+    assert c["controller"] == {
+        "alpha": 1.0, "K": [2.0, 2.0], "delta_mu": 0.8, "Gamma": 0.01,
+        "mu0": 1.0, "mu1": 15.0, "observer_variant": "corrected",
+    }
+    assert c["filters"] == {"l": 50.0}
+    assert c["iv_drem"] == {"T": 20.0, "p": 2.0, "F0": 1.0, "gamma": 1e10}
+    assert c["composite_learning"] == {"T": 20.0, "gamma": 1.0, "epsilon": 1e-9}
+    assert c["sigma_modification"] == {"sigma": 0.1, "theta_star": [1.0, 0.2, 0.3, 0.3, 1.0]}
+    tr = c["trajectory"]
+    np.testing.assert_allclose(tr["amplitude"], [0.4 * PI, 0.3 * PI], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(tr["omega"], [2.0, 0.3])
+    np.testing.assert_allclose(tr["phase"], [0.0, PI / 2], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(tr["offset"], [0.2 * PI, 0.3 * PI], rtol=0, atol=1e-15)
+    d = c["disturbance"]
+    np.testing.assert_allclose(d["amplitude"], [7.5, 1.5])
+    np.testing.assert_allclose(d["omega"], [0.5 * PI, 0.05 * PI], rtol=0, atol=1e-15)
+    assert d["phase"] == [0.0, 0.0] and d["offset"] == [0.0, 0.0]
+    assert c["solver"] == {"method": "dp45", "rtol": 1e-6, "atol": 1e-8, "h": 1e-3, "h_max": 0.01}
+    assert list(c) == list(SCHEMA)
+    for s in SCHEMA:
+        assert list(c[s]) == list(SCHEMA[s])
+
+
+def test_default_is_a_fresh_copy():
+    a = load_config()
+    a["controller"]["K"][0] = 99.0
+    assert load_config()["controller"]["K"] == [2.0, 2.0]
+    assert default_config()["controller"]["K"] == [2.0, 2.0]
+
+
+def test_example_paper_toml_loads_and_equals_default():
+    example = ROOT / "examples" / "paper.toml"
+    assert load_config(example) == load_config()
+    # and it really sets every key (it is the documented full example)
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    raw = tomllib.loads(example.read_text("utf-8"))
+    assert {s: set(t) for s, t in raw.items()} == {s: set(t) for s, t in SCHEMA.items()}
+
+
+def test_user_file_is_merged_key_by_key(tmp_path):
+    p = write(tmp_path, "[experiment]\nt_end = 60\n[controller]\nK = [3, 4]\nGamma = [0.1, 0.2, 0.3, 0.4, 0.5]\n")
+    c = load_config(p)
+    assert c["experiment"]["t_end"] == 60.0 and isinstance(c["experiment"]["t_end"], float)
+    assert c["experiment"]["laws"] == ["iv-drem", "composite-learning"]
+    assert c["controller"]["K"] == [3.0, 4.0]
+    assert c["controller"]["alpha"] == 1.0
+    kw = closed_loop_kwargs(c, "iv-drem")
+    np.testing.assert_array_equal(kw["K"], np.diag([3.0, 4.0]))
+    np.testing.assert_array_equal(kw["Gamma"], np.diag([0.1, 0.2, 0.3, 0.4, 0.5]))
+
+
+def test_overrides_nested_and_dotted(tmp_path):
+    p = write(tmp_path, "[experiment]\nt_end = 60\n")
+    c = load_config(p, overrides={"experiment": {"t_end": 5.0}, "experiment.laws": ["drem"]})
+    assert c["experiment"]["t_end"] == 5.0
+    assert c["experiment"]["laws"] == ["drem"]
+
+
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("[controller]\nKp = [1, 1]\n", "config key 'controller.Kp' is not known (did you mean 'controller.K'?)"),
+        ("[contoller]\nK = [1, 1]\n", "config section 'contoller' is not known (did you mean 'controller'?)"),
+        ("[iv_drem]\ngama = 1.0\n", "did you mean 'iv_drem.gamma'?"),
+        ("[controller]\nalpha = 'big'\n", "'controller.alpha' must be a number"),
+        ("[controller]\nalpha = true\n", "'controller.alpha' must be a number"),
+        ("[controller]\nK = 2.0\n", "'controller.K' must be a list of numbers"),
+        ("[controller]\nK = [2.0, 2.0, 2.0]\n", "'controller.K' must have 2 entries"),
+        ("[initial]\ntheta_hat0 = [0, 0]\n", "'initial.theta_hat0' must have 5 entries"),
+        ("[controller]\nGamma = [1, 1]\n", "'controller.Gamma' must have 5 entries"),
+        ("[trajectory]\nomega = [1.0]\n", "'trajectory.omega' must have 2 entries"),
+        ("[controller]\nalpha = 0\n", "'controller.alpha' must be > 0"),
+        ("[controller]\nK = [2.0, -1.0]\n", "'controller.K' entries must be > 0"),
+        ("[controller]\nGamma = 0\n", "'controller.Gamma' must be > 0"),
+        ("[controller]\nGamma = [1, 1, 0, 1, 1]\n", "'controller.Gamma' entries must be > 0"),
+        ("[controller]\nmu1 = 0\n", "'controller.mu1' must be > 0"),
+        ("[controller]\nmu0 = -0.5\n", "'controller.mu0' must be >= 0"),
+        ("[controller]\ndelta_mu = 1.0\n", "'controller.delta_mu' must be in (0, 1)"),
+        ("[controller]\ndelta_mu = 0\n", "'controller.delta_mu' must be in (0, 1)"),
+        ("[controller]\nobserver_variant = 'literally'\n", "'controller.observer_variant'"),
+        ("[filters]\nl = -50\n", "'filters.l' must be > 0"),
+        ("[iv_drem]\nT = 0\n", "'iv_drem.T' must be > 0"),
+        ("[iv_drem]\np = 0.5\n", "'iv_drem.p' must be >= 1"),
+        ("[iv_drem]\nF0 = 0\n", "'iv_drem.F0' must be > 0"),
+        ("[iv_drem]\ngamma = -1e10\n", "'iv_drem.gamma' must be > 0"),
+        ("[composite_learning]\nT = -20\n", "'composite_learning.T' must be > 0"),
+        ("[composite_learning]\ngamma = 0\n", "'composite_learning.gamma' must be > 0"),
+        ("[experiment]\nlaws = ['iv-drem', 'composit-learning']\n", "did you mean 'composite-learning'?"),
+        ("[experiment]\nlaws = []\n", "at least one law"),
+        ("[experiment]\nlaws = ['drem', 'drem']\n", "lists a law twice"),
+        ("[solver]\nmethod = 'rk45'\n", "'solver.method' = 'rk45' is not valid"),
+        ("[solver]\nrtol = 0\n", "'solver.rtol' must be > 0"),
+        ("[experiment]\nt_end = 0\n", "'experiment.t_end' must be > 0"),
+        ("[experiment]\nt_end = -3\n", "'experiment.t_end' must be > 0"),
+        ("[experiment]\ndt_out = 0\n", "'experiment.dt_out' must be > 0"),
+        ("[experiment]\nt_end = inf\n", "must be finite"),
+        ("[model]\nname = 'tow-link'\n", "did you mean 'two-link'?"),
+        ("experiment = 3\n", "config section 'experiment' must be a table"),
+    ],
+)
+def test_bad_configs_are_rejected(tmp_path, text, fragment):
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as exc:
+        load_config(p)
+    assert fragment in str(exc.value)
+    assert isinstance(exc.value, ValueError)
+
+
+def test_unknown_key_lists_valid_keys(tmp_path):
+    with pytest.raises(ConfigError) as exc:
+        load_config(write(tmp_path, "[controller]\nKp = 1\n"))
+    for key in SCHEMA["controller"]:
+        assert key in str(exc.value)
+
+
+def test_missing_file_and_bad_toml(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.toml")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(write(tmp_path, "[experiment\nt_end = 1\n"))
+
+
+def test_planar_model_checks_n_but_not_ntheta():
+    vec3 = [0.0, 0.0, 0.0]
+    with pytest.raises(ConfigError, match="'initial.q0' must have 3 entries"):
+        load_config(overrides={"model": {"name": "planar-3"}})
+    ov = {
+        "model": {"name": "planar-3", "theta": [1.0] * 9},
+        "initial": {"q0": vec3, "dq0": vec3, "theta_hat0": [0.0] * 9},
+        "controller": {"K": [1.0, 1.0, 1.0]},
+        "sigma_modification": {"theta_star": [1.0] * 9},
+        "trajectory": {k: vec3 for k in ("amplitude", "omega", "phase", "offset")},
+        "disturbance": {k: vec3 for k in ("amplitude", "omega", "phase", "offset")},
+    }
+    c = load_config(overrides=ov)
+    assert c["model"]["name"] == "planar-3"
+    kw = closed_loop_kwargs(c, "iv-drem")
+    assert kw["K"].shape == (3, 3) and kw["Gamma"].shape == (9, 9)
+    # nθ-vectors must at least agree with each other
+    ov["initial"] = dict(ov["initial"], theta_hat0=[0.0] * 4)
+    with pytest.raises(ConfigError, match="'initial.theta_hat0' has 4 entries but model.theta has 9"):
+        load_config(overrides=ov)
+
+
+def test_closed_loop_kwargs_per_law():
+    c = load_config()
+    common = {"alpha", "K", "delta_mu", "Gamma", "mu0", "mu1", "observer_variant", "l",
+              "theta_hat0", "q0", "dq0", "theta", "trajectory", "disturbance"}
+    expect = {
+        "iv-drem": common | {"T", "p", "F0", "gamma"},
+        "drem": common | {"T", "p", "F0", "gamma"},
+        "composite-learning": common | {"T", "gamma", "epsilon"},
+        "sigma-modification": common | {"T", "p", "F0", "sigma", "theta_star"},
+        "none": common | {"T", "p", "F0"},
+    }
+    assert set(expect) == set(LAWS)
+    for law, keys in expect.items():
+        kw = closed_loop_kwargs(c, law)
+        assert set(kw) == keys, law
+    iv = closed_loop_kwargs(c, "iv-drem")
+    cl = closed_loop_kwargs(c, "composite-learning")
+    assert iv["gamma"] == 1e10 and cl["gamma"] == 1.0 and cl["epsilon"] == 1e-9
+    assert iv["T"] == 20.0 and iv["p"] == 2.0 and iv["F0"] == 1.0
+    np.testing.assert_array_equal(iv["K"], 2.0 * np.eye(2))
+    np.testing.assert_array_equal(iv["Gamma"], 0.01 * np.eye(5))
+    np.testing.assert_array_equal(iv["theta"], [1.3, 0.28, 0.32, 0.4, 1.4])
+    np.testing.assert_allclose(iv["q0"], [0.0, 0.3 * PI])
+    assert set(iv["trajectory"]) == {"amplitude", "omega", "phase", "offset"}
+    assert isinstance(iv["trajectory"]["omega"], np.ndarray)
+    np.testing.assert_allclose(iv["disturbance"]["omega"], [0.5 * PI, 0.05 * PI])
+    sm = closed_loop_kwargs(c, "sigma-modification")
+    assert sm["sigma"] == 0.1
+    np.testing.assert_array_equal(sm["theta_star"], [1.0, 0.2, 0.3, 0.3, 1.0])
+    with pytest.raises(ConfigError, match="did you mean 'iv-drem'"):
+        closed_loop_kwargs(c, "ivdrem")
+
+
+def test_solver_kwargs():
+    assert solver_kwargs(load_config()) == {"method": "dp45", "rtol": 1e-6, "atol": 1e-8, "h": 1e-3, "h_max": 0.01}
+
+
+def test_dump_toml_round_trip(tmp_path):
+    c = load_config(overrides={"controller": {"Gamma": [0.1, 0.2, 0.3, 0.4, 0.5]}, "experiment": {"laws": ["drem"]}})
+    p = write(tmp_path, dump_toml(c))
+    assert load_config(p) == c
