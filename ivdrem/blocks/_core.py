@@ -1,0 +1,190 @@
+"""The block framework: one kernel pair per subsystem, two ways to run it.
+
+A block is declared once, Drake style: its input, output and state ports with their sizes,
+its parameters, and two *kernels*, plain functions written in the numba-compatible subset
+of Python::
+
+    update(t, x, u, dx, *params)   # writes dx/dt into dx        (blocks with states)
+    output(t, x, u, y, *params)    # writes the outputs into y   (pure, cheap)
+
+``x``, ``u``, ``dx`` and ``y`` are flat float64 vectors; matrix-valued signals are stored
+row-major (SPEC section 3).  The kernels hold no state of their own: the state lives in
+the simulator.  Kernels that need the robot model call it through the global name
+``model`` (``model.Phi_M(q, a, out)``, see :mod:`ivdrem.models`).
+
+:func:`make_block` wraps a declaration as a python-control ``NonlinearIOSystem`` (the
+reference path: python-control evaluates the kernels in Python), and attaches the
+declaration as ``sys.ivdrem`` so that :mod:`ivdrem.sim.compiled` can generate one
+numba function for a whole diagram from the same kernels (the compiled path).
+
+Two special kinds of block are fed by the simulator rather than by their kernels:
+``delay`` (a transport delay, output = input T seconds ago, from the simulator's dense
+history) and ``maxhold`` (output = input at the accepted step that maximised a score).
+python-control cannot simulate them; their nlsys output functions say so.
+"""
+from __future__ import annotations
+
+import threading
+import types
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import control as ct
+
+__all__ = ["BlockSpec", "make_block", "kernel_args", "bind_model", "ParameterError",
+           "active_feeds"]
+
+
+class ParameterError(ValueError):
+    """A block parameter has a bad value or shape; the message names it."""
+
+
+@dataclass
+class BlockSpec:
+    """Declaration of one block: ports, state, parameters and kernels."""
+    name: str
+    inputs: list            # [(signal name, size)], in kernel order
+    outputs: list           # [(signal name, size)]
+    states: list            # [(state name, size)]
+    x0: np.ndarray
+    param_names: tuple      # kernel parameter order (after the fixed arguments)
+    output: Callable | None
+    update: Callable | None = None
+    direct: tuple = ()      # input ports the outputs depend on (direct feedthrough)
+    model: object = None    # EulerLagrangeModel whose functions the kernels call
+    kind: str = "ode"       # "ode", "delay" or "maxhold"
+    validate: Callable | None = None   # params dict -> normalised params dict
+    info: dict = field(default_factory=dict)  # kind-specific data (delay T, ...)
+
+    @property
+    def ninputs(self):
+        return sum(s for _, s in self.inputs)
+
+    @property
+    def noutputs(self):
+        return sum(s for _, s in self.outputs)
+
+    @property
+    def nstates(self):
+        return sum(s for _, s in self.states)
+
+    def port_slices(self, which):
+        """{port name: slice} into the flat input ("inputs") or output vector."""
+        out, i = {}, 0
+        for name, size in getattr(self, which):
+            out[name] = slice(i, i + size)
+            i += size
+        return out
+
+
+def _labels(ports):
+    labels = []
+    for name, size in ports:
+        labels += [f"{name}[{i}]" for i in range(size)]
+    return labels
+
+
+def kernel_args(spec: BlockSpec, params: dict) -> tuple:
+    """The kernel's parameter arguments from a python-control params dict.
+
+    Floats become Python floats, integer-valued ints stay ints, arrays become
+    C-contiguous float64 arrays, so that the compiled path sees stable numba types.
+    """
+    args = []
+    for name in spec.param_names:
+        if name not in params:
+            raise ParameterError(f"block '{spec.name}': parameter '{name}' is missing")
+        v = params[name]
+        if isinstance(v, (bool, np.bool_)):
+            raise ParameterError(f"block '{spec.name}': parameter '{name}' must be a number")
+        if isinstance(v, (int, np.integer)) and name in spec.info.get("int_params", ()):
+            args.append(int(v))
+        elif np.ndim(v) == 0:
+            args.append(float(v))
+        else:
+            args.append(np.ascontiguousarray(v, dtype=np.float64))
+    return tuple(args)
+
+
+def bind_model(fn, model):
+    """Return ``fn`` with its global name ``model`` bound to the model's functions."""
+    if fn is None or model is None:
+        return fn
+    g = dict(fn.__globals__)
+    g["model"] = model.functions
+    return types.FunctionType(fn.__code__, g, fn.__name__, fn.__defaults__, fn.__closure__)
+
+
+# Feeds for delay / max-hold blocks during a reference-path simulation: the simulator
+# registers, per block spec id, a callable t -> output vector.  Thread-local so that two
+# simulations in two threads do not see each other's history.
+_feeds = threading.local()
+
+
+def active_feeds() -> dict:
+    if not hasattr(_feeds, "d"):
+        _feeds.d = {}
+    return _feeds.d
+
+
+def make_block(spec: BlockSpec, params: dict | None = None) -> ct.NonlinearIOSystem:
+    """Wrap a block declaration as a python-control nonlinear I/O system."""
+    params = dict(params or {})
+    if spec.validate is not None:
+        params = spec.validate(params)
+    kernel_args(spec, params)          # fail now, not inside a simulation
+    x0 = np.asarray(spec.x0, dtype=float).reshape(-1)
+    if x0.size != spec.nstates:
+        raise ParameterError(f"block '{spec.name}': initial state has {x0.size} entries, "
+                             f"expected {spec.nstates}")
+    spec.x0 = x0
+
+    upd_k = bind_model(spec.update, spec.model)
+    out_k = bind_model(spec.output, spec.model)
+    nx, ny = spec.nstates, spec.noutputs
+    # python-control passes the merged (system + diagram + call) params; re-validate only
+    # when they differ from the block's own, so the common case stays cheap.
+    cache = {"params": None, "args": None}
+
+    def args_of(p):
+        if p is not cache["params"]:
+            if spec.validate is not None and p is not params:
+                p2 = spec.validate(dict(p))
+            else:
+                p2 = p
+            cache["args"] = kernel_args(spec, p2)
+            cache["params"] = p
+        return cache["args"]
+
+    if spec.kind == "ode":
+        def updfcn(t, x, u, p):
+            dx = np.zeros(nx)
+            upd_k(t, np.ascontiguousarray(x, float), np.ascontiguousarray(u, float), dx,
+                  *args_of(p))
+            return dx
+
+        def outfcn(t, x, u, p):
+            y = np.zeros(ny)
+            out_k(t, np.ascontiguousarray(x, float), np.ascontiguousarray(u, float), y,
+                  *args_of(p))
+            return y
+        upd = updfcn if nx else None
+    else:
+        sid = id(spec)
+
+        def outfcn(t, x, u, p):
+            feed = active_feeds().get(sid)
+            if feed is None:
+                raise RuntimeError(
+                    f"block '{spec.name}' is a {'TransportDelay' if spec.kind == 'delay' else 'MaxHold'}:"
+                    " python-control cannot simulate it (it needs the simulator's history of "
+                    "accepted steps). Use ivdrem.sim.simulate(diagram, t_end) instead of "
+                    "ct.input_output_response.")
+            return feed(t)
+        upd = None
+
+    sys = ct.nlsys(upd, outfcn, inputs=_labels(spec.inputs), outputs=_labels(spec.outputs),
+                   states=_labels(spec.states) if nx else None, params=params, name=spec.name)
+    sys.ivdrem = spec
+    return sys

@@ -1,0 +1,90 @@
+"""Small numeric helpers that block kernels call (numba-compiled, cached on disk).
+
+Kept free of Python objects so that the same call works from a kernel running in plain
+Python (reference path) and from generated numba code (compiled path).
+"""
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def matT_vec(A, x, out):
+    """out = A^T x for A (m, k): used for Pi r and zeta z (the paper's nθ x n forms)."""
+    m, k = A.shape
+    for j in range(k):
+        s = 0.0
+        for i in range(m):
+            s += A[i, j] * x[i]
+        out[j] = s
+
+
+@njit(cache=True)
+def mat_vec(A, x, out):
+    m, k = A.shape
+    for i in range(m):
+        s = 0.0
+        for j in range(k):
+            s += A[i, j] * x[j]
+        out[i] = s
+
+
+@njit(cache=True)
+def matT_mat(A, B, out):
+    """out = A^T B for A (m, k), B (m, l): zeta phi^T from the stored n x nθ forms."""
+    m, k = A.shape
+    l = B.shape[1]
+    for a in range(k):
+        for b in range(l):
+            s = 0.0
+            for i in range(m):
+                s += A[i, a] * B[i, b]
+            out[a, b] = s
+
+
+@njit(cache=True)
+def det_adj(A, adj):
+    """det(A) and adj(A) by the Faddeev-LeVerrier recursion; returns det(A).
+
+    A polynomial identity, so it is exact in exact arithmetic for singular A too (the
+    mixing step (17) meets a singular Psi at the start of every run); adj(A) A = det(A) I.
+    """
+    n = A.shape[0]
+    Mk = np.zeros((n, n))      # M_1 = I
+    tmp = np.zeros((n, n))
+    AM = np.zeros((n, n))
+    for i in range(n):
+        Mk[i, i] = 1.0
+    c = 1.0
+    for k in range(1, n + 1):
+        # AM = A M_k ; c_{n-k} = -tr(AM)/k ; M_{k+1} = AM + c I
+        for i in range(n):
+            for j in range(n):
+                s = 0.0
+                for l in range(n):
+                    s += A[i, l] * Mk[l, j]
+                AM[i, j] = s
+        tr = 0.0
+        for i in range(n):
+            tr += AM[i, i]
+        c = -tr / k
+        if k < n:
+            for i in range(n):
+                for j in range(n):
+                    tmp[i, j] = AM[i, j]
+                tmp[i, i] += c
+            for i in range(n):
+                for j in range(n):
+                    Mk[i, j] = tmp[i, j]
+    # p(A) = 0 gives A M_n = -c_0 I, so adj(A) = (-1)^(n+1) M_n and det(A) = (-1)^n c_0.
+    sign = 1.0 if (n % 2 == 1) else -1.0
+    for i in range(n):
+        for j in range(n):
+            adj[i, j] = sign * Mk[i, j]
+    return -sign * c
+
+
+@njit(cache=True)
+def lambda_min_sym(A):
+    """Smallest eigenvalue of the symmetric part of A."""
+    S = 0.5 * (A + A.T)
+    return np.linalg.eigvalsh(S)[0]

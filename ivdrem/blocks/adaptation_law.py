@@ -1,0 +1,55 @@
+"""Composite adaptation law, paper eq. (11): dtheta_hat = Gamma (Pi r + vartheta_c)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ._core import BlockSpec, make_block
+from . import _validate as V
+from ._kernels import matT_vec
+
+
+def adaptation_law_update(t, x, u, dx, Gamma):
+    # states   x = theta_hat (nθ)
+    # inputs   u = [Pi^T (n*nθ), r (n), theta_c (nθ)]
+    # params   Gamma (nθ x nθ, positive definite)
+    nth = x.shape[0]
+    n = (u.shape[0] - nth) // (nth + 1)
+    Pi = u[0:n * nth].reshape((n, nth))
+    r = u[n * nth:n * nth + n]
+    tc = u[n * nth + n:]
+    g = np.empty(nth)
+    matT_vec(Pi, r, g)          # Pi r, Pi = (Pi^T)^T  (the paper's "Pi^T r" is a typo)
+    for i in range(nth):
+        g[i] += tc[i]
+    for i in range(nth):
+        s = 0.0
+        for j in range(nth):
+            s += Gamma[i, j] * g[j]
+        dx[i] = s
+
+
+def adaptation_law_output(t, x, u, y, Gamma):
+    # outputs  y = theta_hat
+    y[:] = x
+
+
+def adaptation_law(n, ntheta, Gamma=0.01, theta_hat0=None, *, name="adaptation_law"):
+    """theta_hat' = Gamma (Pi r + vartheta_c), theta_hat(t0) = theta_hat0   (eq. 11).
+
+    ======  ==========================================================
+    states  theta_hat[nθ]
+    inputs  Pi[n*nθ], r[n], theta_c[nθ] (the composite term vartheta_c)
+    output  theta_hat[nθ]
+    params  Gamma (nθ x nθ, symmetric positive definite; scalar or diagonal accepted)
+    ======  ==========================================================
+    """
+    th0 = np.zeros(ntheta) if theta_hat0 is None else V.vector(name, "theta_hat0",
+                                                               theta_hat0, ntheta)
+
+    def validate(p):
+        return {**p, "Gamma": V.square(name, "Gamma", p["Gamma"], ntheta, pd=True)}
+    spec = BlockSpec(name=name, inputs=[("Pi", n * ntheta), ("r", n), ("theta_c", ntheta)],
+                     outputs=[("theta_hat", ntheta)], states=[("theta_hat", ntheta)], x0=th0,
+                     param_names=("Gamma",), update=adaptation_law_update,
+                     output=adaptation_law_output, direct=(), validate=validate)
+    return make_block(spec, {"Gamma": Gamma})

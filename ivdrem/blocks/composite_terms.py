@@ -1,0 +1,112 @@
+"""Composite terms vartheta_c of the adaptation law (11)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ._core import BlockSpec, make_block
+from . import _validate as V
+
+
+def drem_term_output(t, x, u, y, gamma):
+    # inputs   u = [Delta, calY (nθ), theta_hat (nθ)]
+    # outputs  y = theta_c = gamma Delta (calY - Delta theta_hat)            (eq. 21)
+    nth = y.shape[0]
+    D = u[0]
+    for i in range(nth):
+        y[i] = gamma * D * (u[1 + i] - D * u[1 + nth + i])
+
+
+def drem_term(ntheta, gamma=1e10, *, name="drem_term"):
+    """IV-DREM (or plain DREM) composite term, eq. (21).
+
+    ======  ==========================================================
+    states  none
+    inputs  Delta, calY[nθ], theta_hat[nθ]
+    output  theta_c[nθ]
+    params  gamma > 0
+    ======  ==========================================================
+    """
+    def validate(p):
+        return {**p, "gamma": V.scalar(name, "gamma", p["gamma"], positive=True)}
+    spec = BlockSpec(name=name, inputs=[("Delta", 1), ("calY", ntheta), ("theta_hat", ntheta)],
+                     outputs=[("theta_c", ntheta)], states=[], x0=np.zeros(0),
+                     param_names=("gamma",), output=drem_term_output,
+                     direct=("Delta", "calY", "theta_hat"), validate=validate)
+    return make_block(spec, {"gamma": gamma})
+
+
+def composite_learning_term_output(t, x, u, y, gamma):
+    # inputs   u = [Y_b(t_e) (nθ), Psi_b(t_e) (nθ*nθ), theta_hat (nθ)]
+    # outputs  y = theta_c = gamma (Y_b(t_e) - Psi_b(t_e) theta_hat)         (eq. 35)
+    nth = y.shape[0]
+    Psi = u[nth:nth + nth * nth].reshape((nth, nth))
+    th = u[nth + nth * nth:]
+    for i in range(nth):
+        s = u[i]
+        for j in range(nth):
+            s -= Psi[i, j] * th[j]
+        y[i] = gamma * s
+
+
+def composite_learning_term(ntheta, gamma=1.0, *, input="held", name="composite_learning_term"):
+    """Composite-learning term of Pan & Yu, eq. (35), on the max-held (Y_b, Psi_b).
+
+    ======  ==========================================================
+    states  none
+    inputs  <input>[nθ + nθ*nθ] = [Y_b(t_e), Psi_b(t_e)], theta_hat[nθ]
+    output  theta_c[nθ]
+    params  gamma > 0
+    ======  ==========================================================
+    """
+    def validate(p):
+        return {**p, "gamma": V.scalar(name, "gamma", p["gamma"], positive=True)}
+    spec = BlockSpec(name=name, inputs=[(input, ntheta + ntheta * ntheta), ("theta_hat", ntheta)],
+                     outputs=[("theta_c", ntheta)], states=[], x0=np.zeros(0),
+                     param_names=("gamma",), output=composite_learning_term_output,
+                     direct=(input, "theta_hat"), validate=validate)
+    return make_block(spec, {"gamma": gamma})
+
+
+def sigma_modification_output(t, x, u, y, sigma, theta_star):
+    # inputs   u = theta_hat ; outputs y = sigma (theta_star - theta_hat)  (erratum E5)
+    for i in range(y.shape[0]):
+        y[i] = sigma * (theta_star[i] - u[i])
+
+
+def sigma_modification_term(ntheta, sigma=0.1, theta_star=None, *,
+                            name="sigma_modification_term"):
+    """Leakage toward a prior guess theta*: sigma (theta* - theta_hat) (erratum E5).
+
+    ======  ==========================================================
+    states  none
+    inputs  theta_hat[nθ]
+    output  theta_c[nθ]
+    params  sigma > 0, theta_star[nθ]
+    ======  ==========================================================
+    """
+    def validate(p):
+        return {**p, "sigma": V.scalar(name, "sigma", p["sigma"], positive=True),
+                "theta_star": V.vector(name, "theta_star", p["theta_star"], ntheta)}
+    ts = np.zeros(ntheta) if theta_star is None else theta_star
+    spec = BlockSpec(name=name, inputs=[("theta_hat", ntheta)], outputs=[("theta_c", ntheta)],
+                     states=[], x0=np.zeros(0), param_names=("sigma", "theta_star"),
+                     output=sigma_modification_output, direct=("theta_hat",), validate=validate)
+    return make_block(spec, {"sigma": sigma, "theta_star": ts})
+
+
+def zero_output(t, x, u, y):
+    # outputs  y = 0
+    y[:] = 0.0
+
+
+def zero_term(ntheta, *, name="zero_term"):
+    """vartheta_c = 0: plain disturbance-rejection adaptive control.
+
+    ======  ======================
+    states  none;  inputs none
+    output  theta_c[nθ]
+    ======  ======================
+    """
+    spec = BlockSpec(name=name, inputs=[], outputs=[("theta_c", ntheta)], states=[],
+                     x0=np.zeros(0), param_names=(), output=zero_output)
+    return make_block(spec, {})

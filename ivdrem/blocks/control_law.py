@@ -1,0 +1,50 @@
+"""Disturbance-rejection control law, paper eq. (9)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ._core import BlockSpec, make_block
+from . import _validate as V
+
+
+def control_law_output(t, x, u, y, K, delta_mu, ntheta):
+    # inputs   u = [r (n), mu, Pi^T (n*nθ), theta_hat (nθ), u_f (n)]
+    # outputs  y = tau = (K + delta_mu mu) r + Pi^T theta_hat - u_f
+    # params   K (n x n, positive definite), delta_mu in (0, 1), ntheta
+    n = K.shape[0]
+    r = u[0:n]
+    mu = u[n]
+    Pi = u[n + 1:n + 1 + n * ntheta].reshape((n, ntheta))
+    th = u[n + 1 + n * ntheta:n + 1 + n * ntheta + ntheta]
+    u_f = u[n + 1 + n * ntheta + ntheta:]
+    for i in range(n):
+        s = delta_mu * mu * r[i] - u_f[i]
+        for j in range(n):
+            s += K[i, j] * r[j]
+        for j in range(ntheta):
+            s += Pi[i, j] * th[j]
+        y[i] = s
+
+
+def control_law(n, ntheta, K=2.0, delta_mu=0.8, *, name="control_law"):
+    """tau = (K + delta_mu mu(t)) r + Pi^T theta_hat - u_f   (eq. 9).
+
+    ======  ==========================================================
+    states  none
+    inputs  r[n], mu, Pi[n*nθ], theta_hat[nθ], u_f[n]
+    output  tau[n]
+    params  K (n x n positive definite; scalar or diagonal accepted), delta_mu in (0, 1)
+    ======  ==========================================================
+    """
+    def validate(p):
+        p = dict(p)
+        p["K"] = V.square(name, "K", p["K"], n, pd=True)
+        p["delta_mu"] = V.scalar(name, "delta_mu", p["delta_mu"], lo=0.0, hi=1.0)
+        return p
+    spec = BlockSpec(name=name, inputs=[("r", n), ("mu", 1), ("Pi", n * ntheta),
+                                        ("theta_hat", ntheta), ("u_f", n)],
+                     outputs=[("tau", n)], states=[], x0=np.zeros(0),
+                     param_names=("K", "delta_mu", "ntheta"), output=control_law_output,
+                     direct=("r", "mu", "Pi", "theta_hat", "u_f"), validate=validate,
+                     info={"int_params": ("ntheta",)})
+    return make_block(spec, {"K": K, "delta_mu": delta_mu, "ntheta": ntheta})

@@ -1,0 +1,45 @@
+"""Mixing step, paper eq. (17) with erratum E4.
+
+s = 1 + ||Psi||_F, Psi_n = Psi/s, Delta = det Psi_n, calY = adj(Psi_n) Y / s, so that
+calY_i = Delta theta_i + calW_i with calW = adj(Psi_n) W / s.  The adjugate is used, never
+an inverse: Psi is singular at the start of every run.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ._core import BlockSpec, make_block
+from ._kernels import det_adj
+
+
+def mixing_output(t, x, u, y, ntheta):
+    # inputs   u = [Y (nθ), Psi (nθ*nθ row-major)]
+    # outputs  y = [Delta, calY (nθ)]
+    Y = u[0:ntheta]
+    Psi = u[ntheta:ntheta + ntheta * ntheta].reshape((ntheta, ntheta))
+    s = 1.0 + np.sqrt(np.sum(Psi * Psi))
+    Pn = Psi / s
+    adj = np.empty((ntheta, ntheta))
+    y[0] = det_adj(Pn, adj)
+    for i in range(ntheta):
+        acc = 0.0
+        for j in range(ntheta):
+            acc += adj[i, j] * Y[j]
+        y[1 + i] = acc / s
+
+
+def mixing(ntheta, *, input="avg", name="mixing"):
+    """Determinant/adjugate mixing (17): nθ scalar regressions calY_i = Delta theta_i + calW_i.
+
+    ======  ==========================================================
+    states  none
+    inputs  <input>[nθ + nθ*nθ] = [Y, Psi]
+    output  Delta, calY[nθ]
+    params  none
+    ======  ==========================================================
+    """
+    spec = BlockSpec(name=name, inputs=[(input, ntheta + ntheta * ntheta)],
+                     outputs=[("Delta", 1), ("calY", ntheta)], states=[], x0=np.zeros(0),
+                     param_names=("ntheta",), output=mixing_output, direct=(input,),
+                     info={"int_params": ("ntheta",)})
+    return make_block(spec, {"ntheta": ntheta})

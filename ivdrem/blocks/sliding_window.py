@@ -1,0 +1,81 @@
+"""Sliding-window integral y(t) = int_{t-T}^{t} g ds, eq. (15a), drift-free.
+
+The window keeps I(t) = int_{t0}^{t} g ds as a state and forms y = I(t) - I(t - T) with
+a TransportDelay block (SPEC section 6), not dy = g(t) - g(t - T), which would drift.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ._core import BlockSpec, make_block
+from . import _validate as V
+
+
+def sliding_window_update(t, x, u, dx):
+    # states   x = I (m) ;  inputs u = [g (m), I(t-T) (m)] ;  dI = g
+    m = x.shape[0]
+    dx[:] = u[0:m]
+
+
+def sliding_window_output(t, x, u, y):
+    # outputs  y = [I (m), dI = g (m), y = I - I(t-T) (m)]
+    m = x.shape[0]
+    y[0:m] = x
+    y[m:2 * m] = u[0:m]
+    y[2 * m:3 * m] = x - u[m:2 * m]
+
+
+def sliding_window(size, *, input="ext_g", prefix="window", name="sliding_window"):
+    """The integrator half of a sliding window; pair it with transport_delay.
+
+    ======  ==========================================================
+    states  <prefix>_I[m]
+    inputs  <input>[m] (integrand g), <prefix>_I_delayed[m] (I(t - T))
+    output  <prefix>_I[m], <prefix>_dI[m] (= g), <prefix>_y[m] (window integral)
+    params  none
+    ======  ==========================================================
+    """
+    spec = BlockSpec(name=name, inputs=[(input, size), (f"{prefix}_I_delayed", size)],
+                     outputs=[(f"{prefix}_I", size), (f"{prefix}_dI", size),
+                              (f"{prefix}_y", size)],
+                     states=[(f"{prefix}_I", size)], x0=np.zeros(size), param_names=(),
+                     update=sliding_window_update, output=sliding_window_output,
+                     direct=(input, f"{prefix}_I_delayed"))
+    return make_block(spec, {})
+
+
+def transport_delay(size, T, *, input, output, derivative=None, name="transport_delay"):
+    """Transport delay y(t) = u(t - T); u(t - T) := u(t0) for t - T < t0.
+
+    Fed by the simulator from its dense history of accepted steps: cubic Hermite
+    interpolation when the derivative of u is wired to the ``derivative`` input (as the
+    sliding window does), otherwise Hermite with slopes from a quadratic through the last
+    three accepted points (third order).  python-control cannot simulate this block.
+
+    ======  ==========================================================
+    states  none (the history lives in the simulator)
+    inputs  <input>[m], and <derivative>[m] if given
+    output  <output>[m]
+    params  T > 0 (s)
+    ======  ==========================================================
+    """
+    T = V.scalar(name, "T", T, positive=True)
+    inputs = [(input, size)] + ([(derivative, size)] if derivative else [])
+    spec = BlockSpec(name=name, inputs=inputs, outputs=[(output, size)], states=[],
+                     x0=np.zeros(0), param_names=("T",), output=None, kind="delay",
+                     info={"T": T, "hermite": derivative is not None, "size": size})
+
+    def validate(p):
+        v = V.scalar(name, "T", p["T"], positive=True)
+        spec.info["T"] = v
+        return {**p, "T": v}
+    spec.validate = validate
+    return make_block(spec, {"T": T})
+
+
+def windowed_integral(size, T, *, input="ext_g", prefix="window"):
+    """The pair (sliding_window, transport_delay) that computes int_{t-T}^{t} input."""
+    win = sliding_window(size, input=input, prefix=prefix, name=f"{prefix}_integrator")
+    dly = transport_delay(size, T, input=f"{prefix}_I", derivative=f"{prefix}_dI",
+                          output=f"{prefix}_I_delayed", name=f"{prefix}_delay")
+    return win, dly

@@ -1,0 +1,97 @@
+"""Exogenous signals: reference trajectory, external torque, and the mu(t) schedule."""
+from __future__ import annotations
+
+import numpy as np
+
+from ._core import BlockSpec, make_block
+from . import _validate as V
+
+
+def sinusoid_trajectory_output(t, x, u, y, amplitude, omega, phase, offset):
+    # outputs  y = [q_d (n), dq_d (n), ddq_d (n)]
+    # params   q_d,i = A_i sin(w_i t + phi_i) + c_i
+    n = amplitude.shape[0]
+    for i in range(n):
+        s = np.sin(omega[i] * t + phase[i])
+        c = np.cos(omega[i] * t + phase[i])
+        y[i] = amplitude[i] * s + offset[i]
+        y[n + i] = amplitude[i] * omega[i] * c
+        y[2 * n + i] = -amplitude[i] * omega[i] * omega[i] * s
+
+
+def sinusoid_output(t, x, u, y, amplitude, omega, phase, offset):
+    # outputs  y = A_i sin(w_i t + phi_i) + c_i
+    for i in range(amplitude.shape[0]):
+        y[i] = amplitude[i] * np.sin(omega[i] * t + phase[i]) + offset[i]
+
+
+def _sine_params(name, n, amplitude, omega, phase, offset):
+    return {"amplitude": V.vector(name, "amplitude", amplitude, n),
+            "omega": V.vector(name, "omega", omega, n),
+            "phase": V.vector(name, "phase", np.zeros(n) if phase is None else phase, n),
+            "offset": V.vector(name, "offset", np.zeros(n) if offset is None else offset, n)}
+
+
+def trajectory(n, amplitude, omega, phase=None, offset=None, *, name="trajectory"):
+    """Desired joint trajectory q_d(t) = A sin(w t + phi) + c, with its derivatives.
+
+    ======  =============================================
+    states  none
+    inputs  none
+    output  q_d[n], dq_d[n], ddq_d[n]
+    params  amplitude[n], omega[n] (rad/s), phase[n], offset[n]
+    ======  =============================================
+    """
+    p = _sine_params(name, n, amplitude, omega, phase, offset)
+    spec = BlockSpec(name=name, inputs=[], outputs=[("q_d", n), ("dq_d", n), ("ddq_d", n)],
+                     states=[], x0=np.zeros(0), param_names=tuple(p),
+                     output=sinusoid_trajectory_output,
+                     validate=lambda q: {**q, **_sine_params(name, n, q["amplitude"], q["omega"],
+                                                           q["phase"], q["offset"])})
+    return make_block(spec, p)
+
+
+def disturbance(n, amplitude, omega, phase=None, offset=None, *, name="disturbance",
+                signal="tau_d"):
+    """External torque tau_d(t) = A sin(w t + phi) + c (paper Section 4).
+
+    ======  =============================================
+    states  none
+    inputs  none
+    output  tau_d[n]
+    params  amplitude[n] (N m), omega[n] (rad/s), phase[n], offset[n]
+    ======  =============================================
+    """
+    p = _sine_params(name, n, amplitude, omega, phase, offset)
+    spec = BlockSpec(name=name, inputs=[], outputs=[(signal, n)], states=[], x0=np.zeros(0),
+                     param_names=tuple(p), output=sinusoid_output,
+                     validate=lambda q: {**q, **_sine_params(name, n, q["amplitude"], q["omega"],
+                                                           q["phase"], q["offset"])})
+    return make_block(spec, p)
+
+
+def mu_schedule_output(t, x, u, y, mu0, mu1):
+    # outputs  y = [mu, dmu]: mu(t) = mu0 t + mu1 (Remark 1), dmu = mu0
+    y[0] = mu0 * t + mu1
+    y[1] = mu0
+
+
+def mu_schedule(mu0=1.0, mu1=15.0, *, name="mu_schedule"):
+    """Observer gain mu(t) = mu0 t + mu1 > 0 of Property 4 (default t + 15).
+
+    ======  =============================================
+    states  none
+    inputs  none
+    output  mu, dmu
+    params  mu0 >= 0, mu1 > 0
+    ======  =============================================
+    """
+    def validate(p):
+        p = dict(p)
+        p["mu0"] = V.scalar(name, "mu0", p["mu0"], nonneg=True)
+        p["mu1"] = V.scalar(name, "mu1", p["mu1"], positive=True)
+        return p
+    spec = BlockSpec(name=name, inputs=[], outputs=[("mu", 1), ("dmu", 1)], states=[],
+                     x0=np.zeros(0), param_names=("mu0", "mu1"), output=mu_schedule_output,
+                     validate=validate)
+    return make_block(spec, {"mu0": mu0, "mu1": mu1})

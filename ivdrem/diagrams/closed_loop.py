@@ -1,0 +1,137 @@
+"""Closed loops of the paper assembled with ct.interconnect, signals connected by name."""
+from __future__ import annotations
+
+import numpy as np
+import control as ct
+
+from .. import blocks as B
+from ..blocks._core import ParameterError
+
+__all__ = ["closed_loop", "LAWS", "assemble", "check_connected"]
+
+#: Composite terms vartheta_c: "iv-drem" (proposed, eq. 21), "composite-learning" (eq. 35,
+#: Pan & Yu), "drem" (DREM with phi in place of the instrument), "sigma-modification"
+#: (erratum E5), "none" (plain disturbance-rejection adaptive control).
+LAWS = ("iv-drem", "composite-learning", "drem", "sigma-modification", "none")
+
+_DEFAULT_GAMMA = {"iv-drem": 1e10, "drem": 1e10, "composite-learning": 1.0}
+
+PAPER_TRAJECTORY = dict(amplitude=[0.4 * np.pi, 0.3 * np.pi], omega=[2.0, 0.3],
+                        phase=[0.0, np.pi / 2], offset=[0.2 * np.pi, 0.3 * np.pi])
+PAPER_DISTURBANCE = dict(amplitude=[7.5, 1.5], omega=[0.5 * np.pi, 0.05 * np.pi],
+                         phase=[0.0, 0.0], offset=[0.0, 0.0])
+
+
+def check_connected(diagram):
+    """Raise if any subsystem input is left unconnected (python-control would feed 0)."""
+    rows = np.flatnonzero(~np.any(diagram.connect_map != 0, axis=1)
+                          & ~np.any(diagram.input_map != 0, axis=1))
+    if rows.size:
+        labels = []
+        for sys in diagram.syslist:
+            labels += [f"{sys.name}.{lab}" for lab in sys.input_labels]
+        missing = sorted({labels[i].split("[")[0] for i in rows})
+        raise ValueError("unconnected block inputs: " + ", ".join(missing) +
+                         ". Give each an output of the same name, or connect it explicitly.")
+
+
+def assemble(blocks, outputs, name="closed_loop", connections=None):
+    """ct.interconnect of `blocks` (connected by signal name) with a connectivity check."""
+    names = [b.name for b in blocks]
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        raise ValueError(f"duplicate block names in diagram: {sorted(dup)}")
+    kw = {} if connections is None else {"connections": connections}
+    diagram = ct.interconnect(blocks, inputs=[], outputs=outputs, name=name,
+                              check_unused=False, **kw)
+    check_connected(diagram)
+    return diagram
+
+
+def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Gamma=0.01,
+                mu0=1.0, mu1=15.0, observer_variant="corrected", l=50.0, T=20.0, p=2.0,
+                F0=1.0, gamma=None, epsilon=1e-9, sigma=0.1, theta_star=None,
+                theta_hat0=None, q0=None, dq0=None, theta=None, trajectory=None,
+                disturbance=None, replace=None):
+    """The paper's closed loop with composite term `law`, as one InterconnectedSystem.
+
+    Parameters follow SPEC section 8 (defaults are the paper's experiment).  `trajectory`
+    and `disturbance` are either dicts of sinusoid parameters (amplitude, omega, phase,
+    offset) or ready nlsys blocks with outputs (q_d, dq_d, ddq_d) and (tau_d).  `replace`
+    maps block names to user blocks with the same signal names, e.g.
+    ``replace={"disturbance": my_block}``.
+
+    Outputs: q, dq, q_d, e, r, tau, tau_d, tau_d_hat, theta_hat, mu; plus Delta and calY
+    for "iv-drem"/"drem", lambda_min_held for "composite-learning".
+    """
+    if law not in LAWS:
+        raise ValueError(f"unknown law {law!r}; choose one of {', '.join(LAWS)}")
+    if model is None:
+        from ..models import two_link
+        model = two_link()
+    n, nth = model.n, model.ntheta
+    if gamma is None:
+        gamma = _DEFAULT_GAMMA.get(law, 1.0)
+    if model.name == "two-link" and n == 2:
+        trajectory = PAPER_TRAJECTORY if trajectory is None else trajectory
+        disturbance = PAPER_DISTURBANCE if disturbance is None else disturbance
+        q0 = [0.0, 0.3 * np.pi] if q0 is None else q0
+    elif trajectory is None or disturbance is None:
+        raise ValueError(f"model {model.name!r}: give `trajectory` and `disturbance` "
+                         "(the paper's defaults are for the 2-link arm)")
+
+    def source(spec, factory):
+        if isinstance(spec, ct.NonlinearIOSystem):
+            return spec
+        if not isinstance(spec, dict):
+            raise TypeError(f"expected a dict of sinusoid parameters or an nlsys, got {spec!r}")
+        unknown = set(spec) - {"amplitude", "omega", "phase", "offset"}
+        if unknown:
+            raise ValueError(f"unknown sinusoid parameter(s) {sorted(unknown)}")
+        return factory(n, **spec)
+
+    blocks = [
+        B.plant(model, theta=theta, q0=q0, dq0=dq0),
+        source(trajectory, B.trajectory),
+        source(disturbance, B.disturbance),
+        B.mu_schedule(mu0, mu1),
+        B.tracking_error(n, alpha),
+        B.torque_observer(model, variant=observer_variant),
+        B.control_law(n, nth, K=K, delta_mu=delta_mu),
+        B.adaptation_law(n, nth, Gamma=Gamma, theta_hat0=theta_hat0),
+    ]
+    outputs = ["q", "dq", "q_d", "e", "r", "tau", "tau_d", "tau_d_hat", "theta_hat", "mu"]
+    m = nth + nth * nth
+    if law in ("iv-drem", "drem"):
+        iv = law == "iv-drem"
+        blocks += [B.regression_filter(model, l)]
+        if iv:
+            blocks += [B.instrument(model, l)]
+        blocks += [B.extension(n, nth, instrument=iv),
+                   *B.windowed_integral(m, T),
+                   B.averaging(m, p, F0),
+                   B.mixing(nth),
+                   B.drem_term(nth, gamma)]
+        outputs += ["Delta", "calY"]
+    elif law == "composite-learning":
+        blocks += [B.regression_filter(model, l),
+                   B.extension(n, nth, instrument=False),
+                   *B.windowed_integral(m, T),
+                   B.max_hold(nth, nth, epsilon),
+                   B.composite_learning_term(nth, gamma)]
+        outputs += ["lambda_min_held"]
+    elif law == "sigma-modification":
+        ts = model.theta_values if theta_star is None else theta_star
+        blocks += [B.sigma_modification_term(nth, sigma, ts)]
+    else:
+        blocks += [B.zero_term(nth)]
+
+    if replace:
+        names = {b.name: i for i, b in enumerate(blocks)}
+        for key, blk in replace.items():
+            if key not in names:
+                raise ValueError(f"replace: no block named {key!r}; blocks are {sorted(names)}")
+            if not isinstance(blk, ct.InputOutputSystem):
+                raise TypeError(f"replace[{key!r}] must be a python-control system")
+            blocks[names[key]] = blk
+    return assemble(blocks, outputs, name=f"closed_loop[{law}]")
