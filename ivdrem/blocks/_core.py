@@ -56,6 +56,9 @@ class BlockSpec:
     kind: str = "ode"       # "ode", "delay" or "maxhold"
     validate: Callable | None = None   # params dict -> normalised params dict
     info: dict = field(default_factory=dict)  # kind-specific data (delay T, ...)
+    # structural constants passed to the kernels like parameters (sizes, flags); not
+    # python-control params, which share one namespace across a whole diagram
+    constants: dict = field(default_factory=dict)
 
     @property
     def ninputs(self):
@@ -93,18 +96,29 @@ def kernel_args(spec: BlockSpec, params: dict) -> tuple:
     """
     args = []
     for name in spec.param_names:
+        if name in spec.constants:
+            args.append(spec.constants[name])
+            continue
         if name not in params:
             raise ParameterError(f"block '{spec.name}': parameter '{name}' is missing")
         v = params[name]
         if isinstance(v, (bool, np.bool_)):
             raise ParameterError(f"block '{spec.name}': parameter '{name}' must be a number")
-        if isinstance(v, (int, np.integer)) and name in spec.info.get("int_params", ()):
-            args.append(int(v))
-        elif np.ndim(v) == 0:
+        if np.ndim(v) == 0:
             args.append(float(v))
         else:
             args.append(np.ascontiguousarray(v, dtype=np.float64))
     return tuple(args)
+
+
+def effective_params(sys, diagram=None, params=None) -> dict:
+    """The params a block sees in a diagram (python-control's merge order)."""
+    local = dict(sys.params)
+    if diagram is not None:
+        local.update(diagram.params)
+    if params:
+        local.update(params)
+    return local
 
 
 def bind_model(fn, model):

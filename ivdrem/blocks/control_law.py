@@ -46,5 +46,5 @@ def control_law(n, ntheta, K=2.0, delta_mu=0.8, *, name="control_law"):
                      outputs=[("tau", n)], states=[], x0=np.zeros(0),
                      param_names=("K", "delta_mu", "ntheta"), output=control_law_output,
                      direct=("r", "mu", "Pi", "theta_hat", "u_f"), validate=validate,
-                     info={"int_params": ("ntheta",)})
-    return make_block(spec, {"K": K, "delta_mu": delta_mu, "ntheta": ntheta})
+                     constants={"ntheta": ntheta})
+    return make_block(spec, {"K": K, "delta_mu": delta_mu})

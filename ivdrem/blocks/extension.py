@@ -40,5 +40,5 @@ def extension(n, ntheta, *, instrument=True, output="ext_g", name="extension"):
     spec = BlockSpec(name=name, inputs=inputs, outputs=[(output, ntheta + ntheta * ntheta)],
                      states=[], x0=np.zeros(0), param_names=("n", "ntheta", "has_instrument"),
                      output=extension_output, direct=tuple(p for p, _ in inputs),
-                     info={"int_params": ("n", "ntheta", "has_instrument")})
-    return make_block(spec, {"n": n, "ntheta": ntheta, "has_instrument": int(instrument)})
+                     constants={"n": n, "ntheta": ntheta, "has_instrument": int(instrument)})
+    return make_block(spec, {})

@@ -29,9 +29,6 @@ def max_hold(nvec, nmat, epsilon=1e-9, *, input="window_y", output="held",
                      kind="maxhold", info={"epsilon": eps, "nvec": nvec, "nmat": nmat,
                                            "size": size})
 
-    def validate(p):
-        v = V.scalar(name, "epsilon", p["epsilon"], positive=True)
-        spec.info["epsilon"] = v
-        return {**p, "epsilon": v}
-    spec.validate = validate
+    spec.validate = lambda p: {**p, "epsilon": V.scalar(name, "epsilon", p["epsilon"],
+                                                         positive=True)}
     return make_block(spec, {"epsilon": eps})

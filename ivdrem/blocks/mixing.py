@@ -41,5 +41,5 @@ def mixing(ntheta, *, input="avg", name="mixing"):
     spec = BlockSpec(name=name, inputs=[(input, ntheta + ntheta * ntheta)],
                      outputs=[("Delta", 1), ("calY", ntheta)], states=[], x0=np.zeros(0),
                      param_names=("ntheta",), output=mixing_output, direct=(input,),
-                     info={"int_params": ("ntheta",)})
-    return make_block(spec, {"ntheta": ntheta})
+                     constants={"ntheta": ntheta})
+    return make_block(spec, {})

@@ -73,5 +73,5 @@ def regression_filter(model, l=50.0, *, name="regression_filter"):
                      x0=np.zeros(n + 2 * n * nth), param_names=("l", "ntheta"),
                      update=regression_filter_update, output=regression_filter_output,
                      direct=("q", "dq"), model=model, validate=validate,
-                     info={"int_params": ("ntheta",)})
-    return make_block(spec, {"l": l, "ntheta": nth})
+                     constants={"ntheta": nth})
+    return make_block(spec, {"l": l})

@@ -65,11 +65,7 @@ def transport_delay(size, T, *, input, output, derivative=None, name="transport_
                      x0=np.zeros(0), param_names=("T",), output=None, kind="delay",
                      info={"T": T, "hermite": derivative is not None, "size": size})
 
-    def validate(p):
-        v = V.scalar(name, "T", p["T"], positive=True)
-        spec.info["T"] = v
-        return {**p, "T": v}
-    spec.validate = validate
+    spec.validate = lambda p: {**p, "T": V.scalar(name, "T", p["T"], positive=True)}
     return make_block(spec, {"T": T})
 
 

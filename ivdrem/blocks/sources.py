@@ -25,11 +25,21 @@ def sinusoid_output(t, x, u, y, amplitude, omega, phase, offset):
         y[i] = amplitude[i] * np.sin(omega[i] * t + phase[i]) + offset[i]
 
 
-def _sine_params(name, n, amplitude, omega, phase, offset):
-    return {"amplitude": V.vector(name, "amplitude", amplitude, n),
-            "omega": V.vector(name, "omega", omega, n),
-            "phase": V.vector(name, "phase", np.zeros(n) if phase is None else phase, n),
-            "offset": V.vector(name, "offset", np.zeros(n) if offset is None else offset, n)}
+_SINE = ("amplitude", "omega", "phase", "offset")
+
+
+def _sine_params(name, n, prefix, amplitude, omega, phase, offset):
+    # python-control params share one namespace per diagram: prefix them by the signal
+    vals = {"amplitude": amplitude, "omega": omega,
+            "phase": np.zeros(n) if phase is None else phase,
+            "offset": np.zeros(n) if offset is None else offset}
+    return {f"{prefix}_{k}": V.vector(name, f"{prefix}_{k}", v, n) for k, v in vals.items()}
+
+
+def _sine_validate(name, n, prefix):
+    def validate(q):
+        return {**q, **_sine_params(name, n, prefix, *(q[f"{prefix}_{k}"] for k in _SINE))}
+    return validate
 
 
 def trajectory(n, amplitude, omega, phase=None, offset=None, *, name="trajectory"):
@@ -39,15 +49,13 @@ def trajectory(n, amplitude, omega, phase=None, offset=None, *, name="trajectory
     states  none
     inputs  none
     output  q_d[n], dq_d[n], ddq_d[n]
-    params  amplitude[n], omega[n] (rad/s), phase[n], offset[n]
+    params  q_d_amplitude[n], q_d_omega[n] (rad/s), q_d_phase[n], q_d_offset[n]
     ======  =============================================
     """
-    p = _sine_params(name, n, amplitude, omega, phase, offset)
+    p = _sine_params(name, n, "q_d", amplitude, omega, phase, offset)
     spec = BlockSpec(name=name, inputs=[], outputs=[("q_d", n), ("dq_d", n), ("ddq_d", n)],
                      states=[], x0=np.zeros(0), param_names=tuple(p),
-                     output=sinusoid_trajectory_output,
-                     validate=lambda q: {**q, **_sine_params(name, n, q["amplitude"], q["omega"],
-                                                           q["phase"], q["offset"])})
+                     output=sinusoid_trajectory_output, validate=_sine_validate(name, n, "q_d"))
     return make_block(spec, p)
 
 
@@ -59,14 +67,13 @@ def disturbance(n, amplitude, omega, phase=None, offset=None, *, name="disturban
     states  none
     inputs  none
     output  tau_d[n]
-    params  amplitude[n] (N m), omega[n] (rad/s), phase[n], offset[n]
+    params  tau_d_amplitude[n] (N m), tau_d_omega[n] (rad/s), tau_d_phase[n], tau_d_offset[n]
     ======  =============================================
     """
-    p = _sine_params(name, n, amplitude, omega, phase, offset)
+    p = _sine_params(name, n, signal, amplitude, omega, phase, offset)
     spec = BlockSpec(name=name, inputs=[], outputs=[(signal, n)], states=[], x0=np.zeros(0),
                      param_names=tuple(p), output=sinusoid_output,
-                     validate=lambda q: {**q, **_sine_params(name, n, q["amplitude"], q["omega"],
-                                                           q["phase"], q["offset"])})
+                     validate=_sine_validate(name, n, signal))
     return make_block(spec, p)
 
 

@@ -102,5 +102,5 @@ def torque_observer(model, *, variant="corrected", name="torque_observer"):
         param_names=("n", "ntheta", "literal_e1"),
         update=torque_observer_update, output=torque_observer_output,
         direct=("q", "dq", "r", "v", "dv", "mu", "theta_hat"), model=model,
-        info={"int_params": ("n", "ntheta")})
-    return make_block(spec, {"n": n, "ntheta": nth, "literal_e1": 1.0 - _VARIANTS[variant]})
+        constants={"n": n, "ntheta": nth, "literal_e1": 1.0 - _VARIANTS[variant]})
+    return make_block(spec, {})

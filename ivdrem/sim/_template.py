@@ -139,6 +139,16 @@ def hold_update(W, k, off, size, nvec, nmat, u, epsilon):
     return 0
 
 
+def emit(t, x, P, W, out_y, out_x, io):
+    """Record the diagram outputs (and, if out_x has columns, the state) as row io[0]."""
+    k = io[0]
+    record(t, x, P, W, out_y[k])
+    if out_x.shape[1] == x.shape[0]:
+        for i in range(x.shape[0]):
+            out_x[k, i] = x[i]
+    io[0] = k + 1
+
+
 def check_state(x, x_limit):
     """Index of the first non-finite or exploding state, or -1."""
     for i in range(x.shape[0]):
@@ -148,7 +158,7 @@ def check_state(x, x_limit):
     return -1
 
 
-def rk4_chunk(tf, t_stop, x, P, W, out_t, out_y, io, stats, x_limit):
+def rk4_chunk(tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, x_limit):
     """Fixed-step classical RK4 from tf[0] to t_stop with step tf[1].
 
     Time is t0 + k h (no accumulated rounding); outputs are recorded at the first step at
@@ -192,12 +202,11 @@ def rk4_chunk(tf, t_stop, x, P, W, out_t, out_y, io, stats, x_limit):
             return HISTORY_FULL
         while io[0] < io[1] and out_t[io[0]] <= t + 1e-9 * h:
             out_t[io[0]] = t
-            record(t, x, P, W, out_y[io[0]])
-            io[0] += 1
+            emit(t, x, P, W, out_y, out_x, io)
     return OK
 
 
-def dp45_chunk(tf, t_stop, x, P, W, out_t, out_y, io, stats, x_limit, rtol, atol,
+def dp45_chunk(tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, x_limit, rtol, atol,
                h_max, max_steps):
     """Dormand-Prince 5(4) with error control, from tf[0] to t_stop; tf[1] is the step.
 
@@ -235,8 +244,7 @@ def dp45_chunk(tf, t_stop, x, P, W, out_t, out_y, io, stats, x_limit, rtol, atol
         if h_use < 1e-13 * max(1.0, abs(t)):
             # an output time that coincides with t (within rounding): record it
             if landing and io[0] < io[1] and t_target == out_t[io[0]]:
-                record(t, x, P, W, out_y[io[0]])
-                io[0] += 1
+                emit(t, x, P, W, out_y, out_x, io)
                 continue
             stats[3] = -1
             tf[0] = t
@@ -307,8 +315,7 @@ def dp45_chunk(tf, t_stop, x, P, W, out_t, out_y, io, stats, x_limit, rtol, atol
             rhs(t, x, P, W, k1)        # the held values changed: k1 (FSAL) is stale
             stats[2] += 1
         while io[0] < io[1] and out_t[io[0]] <= t + 1e-12 * max(1.0, abs(t)):
-            record(t, x, P, W, out_y[io[0]])
-            io[0] += 1
+            emit(t, x, P, W, out_y, out_x, io)
         if not landing or h_use >= h:
             fac = 5.0 if err == 0.0 else min(fac_max, max(0.2, 0.9 * err ** -0.2))
             h = h_use * fac
