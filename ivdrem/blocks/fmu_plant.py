@@ -38,6 +38,7 @@ class FmuPlantInfo:
     x0: np.ndarray              # [q0, dq0] as set on the FMU
     parameters: dict            # FMU parameter name -> value used
     messages: list              # FMU log messages (last 100)
+    unzipdir: str | None        # temporary extraction, removed with the system
 
 
 def _read(path: Path):
@@ -251,7 +252,7 @@ def fmu_plant(path, name="plant", q0=None, dq0=None, params=None):
     sys = ct.nlsys(updfcn, outfcn, inputs=inputs, outputs=want, states=want, name=name)
     used = {v.name: float(values.get(v.name, v.start)) for v in fmu_params}
     sys.fmu = FmuPlantInfo(path=path, model_description=md, n=n, x0=x0, parameters=used,
-                           messages=messages)
+                           messages=messages, unzipdir=unzipdir if path.is_file() else None)
     # free the instance and the extracted files with the system
     weakref.finalize(sys, _release, fmu, unzipdir if path.is_file() else None, callbacks)
     return sys
