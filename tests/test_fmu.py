@@ -193,7 +193,7 @@ def test_model_description(case):
     for g, e in zip(got, expect):
         if e[3] is not None:
             assert g[3] == e[3], g
-    assert dict(got_unit for got_unit in ((g[0], g[3]) for g in got))["g"] == "m/s2"
+    assert dict((g[0], g[3]) for g in got)["g"] == "m/s2"
     assert [v.valueReference for v in md.modelVariables] == list(range(len(expect)))
     starts = {v.name: float(v.start) for v in md.modelVariables if v.start is not None}
     for k, nm in enumerate(param_names(model)):
@@ -707,3 +707,29 @@ def test_fmpy_compile_rebuilds_from_sources(fmus, tmp_path):
     a = _cosim(path, tmp_path, model, U, 1e-3, name="orig")
     b = _cosim(src_only, tmp_path, model, U, 1e-3, name="rebuilt")
     assert np.max(np.abs(a - b)) <= 1e-12 * np.max(np.abs(a))
+
+
+@pytest.mark.parametrize("make", [lambda: planar_arm(1),
+                                  lambda: planar_arm(2, friction=True, parameters="full")],
+                         ids=["planar-1", "planar-2-friction-full"])
+def test_other_models(make, tmp_path):
+    """Edge cases of the code generation: n = 1 (constant M), friction F(dq), full parameters."""
+    model = make()
+    n = model.n
+    path = export_fmu(model, tmp_path / "m.fmu", q0=np.full(n, 0.1))
+    assert validate_fmu(str(path)) == []
+    fmu, V = load(path, "me", tmp_path)
+    fmu.enterInitializationMode()
+    fmu.exitInitializationMode()
+    fmu.enterContinuousTimeMode()
+    rng = np.random.default_rng(2)
+    dx = (ctypes.c_double * (2 * n))()
+    for _ in range(30):
+        q, dq, tau = rng.uniform(-3, 3, n), rng.uniform(-3, 3, n), rng.uniform(-9, 9, n)
+        fmu.setContinuousStates((ctypes.c_double * (2 * n))(*q, *dq), 2 * n)
+        fmu.setReal(V.vec("tau"), list(tau))
+        fmu.getDerivatives(dx, 2 * n)
+        ref = fd(model, q, dq, tau, model.theta_values)
+        assert np.max(np.abs(np.array(dx[n:]) - ref)) <= 1e-12 * np.max(np.abs(ref))
+    fmu.terminate()
+    fmu.freeInstance()

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import ctypes
 import shutil
-import tempfile
 import weakref
 import zipfile
 from dataclasses import dataclass

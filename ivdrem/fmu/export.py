@@ -56,6 +56,7 @@ import subprocess
 import sys
 import tempfile
 import uuid
+import warnings
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -660,7 +661,10 @@ def export_fmu(model, path, *, q0=None, dq0=None, substep=DEFAULT_SUBSTEP, cc=No
             plat, ext = _platform()
             bdir = root / "binaries" / plat
             bdir.mkdir(parents=True)
-            compile_binary(root / "sources", bdir / (ident + ext), cc=cc)
+            msgs = compile_binary(root / "sources", bdir / (ident + ext), cc=cc)
+            if msgs.strip():
+                warnings.warn(f"C compiler messages while building {path.name}:\n{msgs}",
+                              stacklevel=2)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp_zip = path.with_name(path.name + ".part")
         with zipfile.ZipFile(tmp_zip, "w", zipfile.ZIP_DEFLATED) as zf:
