@@ -114,6 +114,19 @@ def test_parameters_and_recovery(fmus):
         fmu_plant(path, q0=[1.0, 2.0, 3.0])
 
 
+def test_wrong_guid(fmus, tmp_path):
+    _, path = fmus["two-link"]
+    bad = tmp_path / "bad_guid.fmu"
+    with zipfile.ZipFile(path) as zi, zipfile.ZipFile(bad, "w") as zo:
+        for item in zi.infolist():
+            data = zi.read(item.filename)
+            if item.filename == "modelDescription.xml":
+                data = data.replace(b'guid="{', b'guid="{0')
+            zo.writestr(item, data)
+    with pytest.raises(ValueError, match="bad_guid.fmu: fmi2Instantiate failed.*wrong GUID"):
+        fmu_plant(bad)
+
+
 def test_missing_or_foreign_files(tmp_path):
     missing = tmp_path / "nope.fmu"
     with pytest.raises(FileNotFoundError, match="nope.fmu"):

@@ -177,7 +177,13 @@ def fmu_plant(path, name="plant", q0=None, dq0=None, params=None):
         if path.is_file():
             shutil.rmtree(unzipdir, ignore_errors=True)
         raise ValueError(f"{path}: cannot load the FMU binary: {exc}") from None
-    fmu.instantiate(callbacks=callbacks)
+    try:
+        fmu.instantiate(callbacks=callbacks)
+    except Exception as exc:
+        fmu.freeLibrary()
+        if path.is_file():
+            shutil.rmtree(unzipdir, ignore_errors=True)
+        raise ValueError(f"{path}: fmi2Instantiate failed: {' '.join(messages) or exc}") from None
 
     set_vrs = [variables[k].valueReference for k in values] + [variables[k].valueReference for k in start]
     set_vals = list(values.values()) + list(start.values())

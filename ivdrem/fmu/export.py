@@ -569,13 +569,14 @@ def generate_sources(model, *, q0=None, dq0=None, substep=DEFAULT_SUBSTEP,
     dcomment = _deps_comment(model, lay, deps)
     framework = (_HERE / "fmi2_plant.c").read_text()
     # the GUID identifies the generated code and interface: hash of everything but itself
-    _, src0 = _model_code(model, lay, "", dcomment)
-    xml0 = _model_description(model, lay, "", ident, deps)
-    digest = hashlib.sha256("\0".join([framework, src0, xml0]).encode()).hexdigest()
+    mark = "@GUID@"
+    header, source = _model_code(model, lay, mark, dcomment)
+    xml = _model_description(model, lay, mark, ident, deps)
+    digest = hashlib.sha256("\0".join([framework, header, source, xml]).encode()).hexdigest()
     guid = "{" + str(uuid.uuid5(uuid.NAMESPACE_URL, "ivdrem-fmu:" + digest)) + "}"
-    header, source = _model_code(model, lay, guid, dcomment)
+    header, xml = header.replace(mark, guid), xml.replace(mark, guid)
     files = {
-        "modelDescription.xml": _model_description(model, lay, guid, ident, deps),
+        "modelDescription.xml": xml,
         "sources/fmi2_plant.c": framework,
         "sources/plant_model.h": header,
         "sources/plant_model.c": source,
