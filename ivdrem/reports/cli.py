@@ -1,0 +1,79 @@
+"""The ``ivdrem report`` command: run the paper experiment and write the report.
+
+``ivdrem.cli`` wires it as a subcommand::
+
+    p = sub.add_parser("report", help="run the paper experiment and write the PDF/HTML report")
+    add_report_arguments(p)
+    p.set_defaults(func=run_report_command)
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..experiments.config import LAWS, ConfigError, load_config
+
+__all__ = ["add_report_arguments", "run_report_command", "config_from_args"]
+
+
+def add_report_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the options of ``ivdrem report`` to ``parser``."""
+    parser.add_argument("--config", metavar="FILE.toml", default=None,
+                        help="experiment configuration merged over the embedded default "
+                             "(see examples/paper.toml)")
+    parser.add_argument("--out", metavar="DIR", default="reports",
+                        help="output directory of ivdrem-paper.html and ivdrem-paper.pdf (default: reports)")
+    parser.add_argument("--t-end", metavar="SECONDS", type=float, default=None, dest="t_end",
+                        help="simulated horizon, overrides experiment.t_end")
+    parser.add_argument("--laws", metavar="NAME", nargs="+", default=None,
+                        help="adaptation laws to run, overrides experiment.laws; one of: " + ", ".join(LAWS))
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--engine", choices=("compiled", "reference"), default="compiled",
+                        help="compiled (numba, default) or reference (python-control) evaluation")
+    return parser
+
+
+def config_from_args(args) -> dict:
+    """The validated configuration of the command line (raises ConfigError)."""
+    overrides: dict = {}
+    if getattr(args, "t_end", None) is not None:
+        overrides["experiment.t_end"] = args.t_end
+    if getattr(args, "laws", None):
+        overrides["experiment.laws"] = list(args.laws)
+    return load_config(getattr(args, "config", None), overrides or None)
+
+
+def run_report_command(args) -> int:
+    """Validate the configuration, run the experiment, write the report; exit status."""
+    try:
+        config = config_from_args(args)
+    except ConfigError as exc:
+        print(f"ivdrem report: error: {exc}", file=sys.stderr)
+        return 2
+
+    from ..experiments.metrics import conclusions, format_conclusions
+    from .report import ReportError, report_paths, write_report
+
+    try:  # refuse an unusable output directory before minutes of simulation
+        report_paths(args.out)
+    except (ReportError, ValueError) as exc:
+        print(f"ivdrem report: error: {exc}", file=sys.stderr)
+        return 2
+
+    from ..experiments.paper import run_paper
+
+    run = run_paper(config, progress=not args.quiet, engine=args.engine)
+    html_path, pdf_path = write_report(run, args.out)
+    print(f"HTML report: {html_path}")
+    print(f"PDF report:  {pdf_path}")
+    print(format_conclusions(conclusions(run)))
+    return 0
+
+
+def main(argv=None) -> int:  # pragma: no cover - convenience for `python -m ivdrem.reports.cli`
+    parser = add_report_arguments(argparse.ArgumentParser(prog="ivdrem report"))
+    return run_report_command(parser.parse_args(argv))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,251 @@
+"""The text content of a report (tables), shared by the HTML and PDF writers."""
+from __future__ import annotations
+
+import datetime as _dt
+import platform
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..experiments import metrics as M
+
+__all__ = ["Table", "ReportContent", "build_content", "versions", "git_commit", "fmt"]
+
+
+@dataclass
+class Table:
+    key: str  # html id
+    title: str
+    header: list[str]
+    rows: list[list[str]]
+    widths: list[float]  # relative column widths (PDF)
+    note: str = ""
+    verdict_col: int | None = None  # column holding PASS/FAIL (coloured)
+
+
+@dataclass
+class ReportContent:
+    title: str
+    subtitle: str
+    meta: list[tuple[str, str]]  # (label, value) lines of the title page
+    conclusions: list[dict]
+    tables: list[Table] = field(default_factory=list)
+    config_toml: str = ""
+    synthetic: bool = False
+
+
+# --------------------------------------------------------------------------- formatting
+def fmt(v: Any) -> str:
+    """Compact text of a number, vector or string."""
+    if v is None:
+        return "–"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        x = float(v)
+        if x == 0:
+            return "0"
+        if not np.isfinite(x):
+            return str(x)
+        a = abs(x)
+        if 1e-3 <= a < 1e5:
+            s = f"{x:.6g}"
+        else:
+            s = f"{x:.4g}"
+        return s
+    if isinstance(v, str):
+        return v
+    if isinstance(v, Mapping):
+        return ", ".join(f"{k} = {fmt(x)}" for k, x in v.items())
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(fmt(x) for x in v) + "]"
+    return str(v)
+
+
+# --------------------------------------------------------------------------- environment
+_PACKAGES = ["numpy", "scipy", "control", "numba", "sympy", "matplotlib"]
+
+
+def versions() -> list[tuple[str, str]]:
+    """(name, version) of python, the libraries the results depend on, and ivdrem."""
+    from .. import __version__
+
+    out = [("python", platform.python_version())]
+    for name in _PACKAGES:
+        try:
+            out.append((name, metadata.version(name)))
+        except metadata.PackageNotFoundError:
+            mod = sys.modules.get(name)
+            out.append((name, getattr(mod, "__version__", "not installed")))
+    out.append(("ivdrem", __version__))
+    return out
+
+
+def git_commit() -> str:
+    """``git rev-parse HEAD`` of the checkout holding this ivdrem, else "unknown".
+
+    " (modified)" is appended when tracked files differ from that commit.
+    """
+    pkg = Path(__file__).resolve().parents[1]
+    try:
+        top = subprocess.run(["git", "rev-parse", "--show-toplevel"], cwd=pkg, capture_output=True,
+                             text=True, timeout=10)
+        if top.returncode != 0 or not (Path(top.stdout.strip()) / "ivdrem" / "__init__.py").exists():
+            return "unknown"
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=pkg, capture_output=True, text=True,
+                              timeout=10)
+        if head.returncode != 0:
+            return "unknown"
+        commit = head.stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=pkg,
+                               capture_output=True, text=True, timeout=10)
+        if dirty.returncode == 0 and dirty.stdout.strip():
+            commit += " (modified)"
+        return commit
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+# --------------------------------------------------------------------------- tables
+def _errata(cfg: Mapping, laws: list[str]) -> Table:
+    ctl, ivd = cfg["controller"], cfg["iv_drem"]
+    uses_iv = any(law in laws for law in ("iv-drem", "drem", "sigma-modification", "none"))
+    sm = cfg["sigma_modification"]
+    obs = ctl["observer_variant"]
+    rows = [
+        ["E1", "The paper filters Φ_Mf with gain μ, but its proof needs ẋ_f = (μ + μ̇/μ)(x − x_f).",
+         f"observer_variant = \"{obs}\": "
+         + ("gain μ + μ̇/μ (corrected)." if obs == "corrected" else "gain μ (literal paper).")],
+        ["E2", "Section 4 writes the filters as 1/(ls + 1); with l = 50 that breaks z = φᵀθ + w.",
+         f"Read as H(s) = l/(s + l), the filter of eq. (13), with l = {fmt(cfg['filters']['l'])}."],
+        ["E3", "F₀ ≥ t₀ᵖ with t₀ = 0 allows F₀ = 0, which makes Ḟ/F singular at t₀.",
+         f"F₀ > 0 required; F₀ = {fmt(ivd['F0'])}, p = {fmt(ivd['p'])}"
+         + ("." if uses_iv else " (no law of this run uses it).")],
+        ["E4", "Multiplying (16) by adj(Ψ_n) yields Δθ only if Y is divided by the same 1 + ‖Ψ‖.",
+         "Ψ_n = Ψ/s, 𝒴 = adj(Ψ_n) Y/s with s = 1 + ‖Ψ‖_F; adjugate, never an inverse."],
+        ["E5", "The σ-modification example ϑ_c = σ(θ̂ − θ*) drives θ̂ away from θ*.",
+         f"Leakage form ϑ_c = σ(θ* − θ̂), σ = {fmt(sm['sigma'])}, θ* = {fmt(sm['theta_star'])}"
+         + ("." if "sigma-modification" in laws else " (law not run).")],
+        ["–", "Unstated in the paper.",
+         f"θ̂(0) = {fmt(cfg['initial']['theta_hat0'])}, q̇(0) = {fmt(cfg['initial']['dq0'])}, "
+         f"Frobenius norm in the mixing, horizon t_end = {fmt(cfg['experiment']['t_end'])} s."],
+        ["–", "The paper's Πᵀr in eqs. (11) and (35) is a typo.", "Π r (an nθ-vector) is used."],
+    ]
+    return Table("errata", "Errata and choices (SPEC section 7)", ["", "issue in the paper", "what this run uses"],
+                 rows, [0.06, 0.47, 0.47])
+
+
+def _parameters(cfg: Mapping) -> Table:
+    rows = []
+    for section, table in cfg.items():
+        for key, value in table.items():
+            rows.append([f"[{section}]", key, fmt(value)])
+    return Table("parameters", "Parameters of this run (configuration)", ["section", "key", "value"],
+                 rows, [0.25, 0.2, 0.55],
+                 note="Vectors are per joint (n entries) or per parameter (nθ entries). "
+                      "The full TOML is in the HTML report.")
+
+
+_STATS = ["method", "steps", "rejected", "rhs_calls", "wall_s", "rtol", "atol", "h"]
+
+
+def _solver(run) -> Table:
+    rows = []
+    for law, lr in run.runs.items():
+        st = dict(getattr(lr, "stats", None) or {})
+        rows.append([law] + [fmt(st.get(k)) for k in _STATS])
+    return Table("solver", "Solver statistics per law", ["law"] + ["wall time (s)" if k == "wall_s" else k for k in _STATS],
+                 rows, [0.2, 0.08, 0.1, 0.1, 0.11, 0.11, 0.1, 0.1, 0.1])
+
+
+def _summary(run) -> Table:
+    theta = np.asarray(run.theta, dtype=float)
+    rows = []
+    for law, lr in run.runs.items():
+        s = M.summary(lr, theta)
+        rows.append([law, fmt(s["t_end"]), fmt(s["theta_err_norm"]), fmt(s["e_max_last20"]),
+                     fmt(s["tau_d_err_rms_last20"]), fmt(s["theta_hat"])])
+    return Table("summary", "Final values per law",
+                 ["law", "t_end (s)", "‖θ̃(t_end)‖", "max ‖e‖, last 20 % (rad)", "RMS ‖τ̃_d‖, last 20 % (N·m)", "θ̂(t_end)"],
+                 rows, [0.2, 0.07, 0.11, 0.15, 0.16, 0.31],
+                 note=f"True θ = {fmt(list(theta))}.")
+
+
+def _fmu(fmu_check: Any) -> Table:
+    """A table from a dict of numbers, a dict of dicts (rows), or a list of dicts."""
+    if isinstance(fmu_check, Mapping) and fmu_check and all(isinstance(v, Mapping) for v in fmu_check.values()):
+        cols: list[str] = []
+        for row in fmu_check.values():
+            cols += [c for c in row if c not in cols]
+        rows = [[str(name)] + [fmt(row.get(c)) for c in cols] for name, row in fmu_check.items()]
+        header = [""] + cols
+    elif isinstance(fmu_check, Mapping):
+        header = ["quantity", "value"]
+        rows = [[str(k), fmt(v)] for k, v in fmu_check.items()]
+    else:
+        items = list(fmu_check)
+        cols = []
+        for row in items:
+            cols += [c for c in row if c not in cols]
+        header = cols
+        rows = [[fmt(row.get(c)) for c in cols] for row in items]
+    ncol = max(len(header), 1)
+    return Table("fmu", "FMU check", header, rows, [1.0 / ncol] * ncol)
+
+
+def _conclusions_table(concl: list[dict]) -> Table:
+    rows = []
+    for c in concl:
+        rows.append([c["id"], c["statement"] + "\nCriterion: " + c["criterion"], M.key_numbers(c),
+                     M.verdict_text(c["verdict"])])
+    return Table("conclusions", "Conclusions C1-C3 of the paper, measured", ["", "statement and criterion",
+                 "measured", "verdict"], rows, [0.05, 0.43, 0.4, 0.12], verdict_col=3)
+
+
+def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
+    from ..experiments.config import dump_toml
+
+    cfg = run.config
+    laws = list(run.runs)
+    concl = M.conclusions(run)
+    when = generated or _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    t_end = max(float(np.asarray(lr.response.time)[-1]) for lr in run.runs.values())
+    synthetic = bool(getattr(run, "synthetic", False))
+    commit = git_commit()
+    meta = [
+        ("generated", when),
+        ("git commit", commit),
+        ("model", f"{cfg['model']['name']}, θ = {fmt(cfg['model']['theta'])}"),
+        ("laws", ", ".join(laws)),
+        ("simulated horizon", f"{fmt(t_end)} s"),
+        ("engine", str(getattr(run, "engine", "–"))),
+    ]
+    if synthetic:
+        meta.append(("DATA", "SYNTHETIC (made-up curves for testing the report, not a simulation)"))
+    tables = [
+        _conclusions_table(concl),
+        _summary(run),
+        _parameters(cfg),
+        _errata(cfg, laws),
+        _solver(run),
+        Table("versions", "Software versions", ["package", "version"],
+              [[a, b] for a, b in versions()] + [["git commit", commit]], [0.3, 0.7]),
+    ]
+    if fmu_check is not None:
+        tables.append(_fmu(fmu_check))
+    return ReportContent(
+        title="ivdrem: the paper experiment",
+        subtitle="Composite Adaptive Disturbance Rejection in Robotics via Instrumental Variables based DREM",
+        meta=meta,
+        conclusions=concl,
+        tables=tables,
+        config_toml=dump_toml(cfg),
+        synthetic=synthetic,
+    )

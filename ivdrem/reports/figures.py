@@ -1,0 +1,373 @@
+"""Figures of the paper experiment (matplotlib, no pyplot: safe in any backend).
+
+Each builder takes a PaperRun and returns a :class:`FigureSpec` (or None when the
+run has nothing to show for it).  Figures 1-4 are the paper's; the others show the
+estimates, the control torque and the auxiliary signals.  Every law keeps one colour
+in every figure.
+"""
+from __future__ import annotations
+
+import io
+import math
+import re
+import textwrap
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+
+from ..experiments import metrics as M
+
+__all__ = ["FigureSpec", "FIGURES", "LAW_STYLE", "law_label", "law_color", "iter_figures",
+           "figure_to_svg", "decimate", "RC"]
+
+#: matplotlib settings of every report figure (used with ``rc_context``).
+RC = {
+    "text.usetex": False,
+    "font.family": "DejaVu Sans",
+    "mathtext.fontset": "dejavusans",
+    "font.size": 9,
+    "axes.titlesize": 9,
+    "axes.labelsize": 9,
+    "legend.fontsize": 8,
+    "xtick.labelsize": 8,
+    "ytick.labelsize": 8,
+    "axes.grid": True,
+    "grid.alpha": 0.3,
+    "lines.linewidth": 1.0,
+    "pdf.fonttype": 42,  # TrueType: text stays selectable and searchable
+    "svg.fonttype": "path",  # glyphs as paths: same look in every browser, no font needed
+    "svg.hashsalt": "ivdrem",  # deterministic ids
+    "figure.dpi": 100,
+    "axes.linewidth": 0.6,
+    "axes.edgecolor": "#444444",
+}
+
+#: colour and legend label of each law (Okabe-Ito palette, colour-blind safe).
+LAW_STYLE = {
+    "iv-drem": ("#0072B2", "IV-DREM, (11)+(21)"),
+    "composite-learning": ("#E69F00", "composite learning, (35)"),
+    "drem": ("#009E73", "DREM without IV"),
+    "sigma-modification": ("#CC79A7", "σ-modification"),
+    "none": ("#7F7F7F", "no composite term"),
+}
+_EXTRA_COLORS = ["#D55E00", "#56B4E9", "#000000", "#F0E442"]
+
+WIDTH = 8.27  # inches: A4 width, so that PDF pages of figures and text line up
+PANEL_H = 2.05
+DECADES_FOR_LOG = 2.0
+
+
+def law_color(law: str, order: int = 0) -> str:
+    return LAW_STYLE.get(law, (_EXTRA_COLORS[order % len(_EXTRA_COLORS)], law))[0]
+
+
+def law_label(law: str) -> str:
+    return LAW_STYLE.get(law, (None, law))[1]
+
+
+@dataclass
+class FigureSpec:
+    key: str  # html id, e.g. "fig1"
+    title: str  # e.g. "Figure 1. Regressor Δ(t) and disturbance 𝒲(t)"
+    caption: str
+    figure: Figure
+
+
+# --------------------------------------------------------------------------- helpers
+def decimate(t: np.ndarray, y: np.ndarray, buckets: int = 1200):
+    """Min-max decimation: keeps the envelope of fast oscillations with few points."""
+    t = np.asarray(t)
+    y = np.asarray(y)
+    n = t.size
+    if n <= 2 * buckets:
+        return t, y
+    size = int(math.ceil(n / buckets))
+    m = (n // size) * size
+    yb = y[:m].reshape(-1, size)
+    finite = np.isfinite(yb)
+    lo = np.where(finite, yb, np.inf).argmin(axis=1)
+    hi = np.where(finite, yb, -np.inf).argmax(axis=1)
+    base = np.arange(yb.shape[0]) * size
+    first = np.minimum(lo, hi) + base
+    second = np.maximum(lo, hi) + base
+    idx = np.empty(2 * first.size, dtype=int)
+    idx[0::2] = first
+    idx[1::2] = second
+    tail = []
+    if m < n:  # the last, shorter bucket
+        yt = y[m:]
+        ft = np.isfinite(yt)
+        if ft.any():
+            tail = [m + int(np.where(ft, yt, np.inf).argmin()), m + int(np.where(ft, yt, -np.inf).argmax())]
+    idx = np.concatenate([[0], idx, tail, [n - 1]]).astype(int)
+    idx = np.unique(idx)
+    return t[idx], y[idx]
+
+
+def _spans_decades(y: np.ndarray, t: np.ndarray) -> bool:
+    """True when |y| spans more than DECADES_FOR_LOG decades after the first 2 % of the run."""
+    a = np.abs(np.asarray(y, dtype=float))
+    late = t >= t[0] + 0.02 * (t[-1] - t[0])
+    a = a[late & np.isfinite(a) & (a > 0)]
+    if a.size < 2:
+        return False
+    lo, hi = np.percentile(a, 1), np.max(a)
+    return lo > 0 and math.log10(hi / lo) > DECADES_FOR_LOG
+
+
+def _plot(ax, t, y, law, order, *, log=False, label=None, **kw):
+    y = np.asarray(y, dtype=float)
+    if log:
+        y = np.abs(y)
+        y = np.where(y > 0, y, np.nan)
+    td, yd = decimate(t, y)
+    kw.setdefault("color", law_color(law, order))
+    ax.plot(td, yd, label=label, **kw)
+    if log:
+        ax.set_yscale("log")
+
+
+# layout in inches (fixed margins: faster and steadier than constrained layout)
+_LEFT, _RIGHT, _TOP, _AX_H, _GAP, _WGAP = 0.85, 0.2, 0.78, 1.55, 0.5, 0.95
+_CAPTION_LINE = 0.14
+
+
+def _grid(k: int, *, cols: int | None = None, titles: bool = False, caption_lines: int = 1):
+    cols = cols or (2 if k > 3 else 1)
+    rows = int(math.ceil(k / cols))
+    gap = _GAP + (0.22 if titles else 0.0)
+    top = _TOP + (0.22 if titles else 0.0)
+    bottom = 0.5 + caption_lines * _CAPTION_LINE + 0.08
+    h = top + bottom + rows * _AX_H + (rows - 1) * gap
+    fig = Figure(figsize=(WIDTH, h))
+    ax_w = (WIDTH - _LEFT - _RIGHT - (cols - 1) * _WGAP) / cols
+    fig.subplots_adjust(left=_LEFT / WIDTH, right=1 - _RIGHT / WIDTH, bottom=bottom / h,
+                        top=1 - top / h, hspace=gap / _AX_H, wspace=_WGAP / ax_w)
+    axes = fig.subplots(rows, cols, sharex=True, squeeze=False)
+    flat = list(axes.ravel())
+    for ax in flat[k:]:
+        ax.remove()
+    for ax in flat[:k]:
+        ax.xaxis.set_tick_params(labelbottom=True)
+        ax.set_xlabel("t (s)", labelpad=1)
+    return fig, flat[:k]
+
+
+def _caption_lines(caption: str) -> list[str]:
+    return textwrap.wrap(caption, 150)
+
+
+def _finish(fig, axes, title, caption, laws, run, *, extra_handles=()):
+    h = fig.get_figheight()
+    times = [_t(lr) for lr in run.runs.values()]
+    t0, t1 = min(t[0] for t in times), max(t[-1] for t in times)
+    if t1 > t0:
+        for ax in axes:
+            ax.set_xlim(t0, t1)
+    handles = [Line2D([], [], color=law_color(law, i), label=law_label(law)) for i, law in enumerate(laws)]
+    handles += list(extra_handles)
+    if handles:
+        fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 1 - 0.36 / h),
+                   ncols=min(len(handles), 4), frameon=False, borderaxespad=0.0)
+    fig.text(0.5, 1 - 0.12 / h, _mathify(title), ha="center", va="top", fontsize=11,
+             fontweight="bold")
+    fig.text(0.5, 0.08 / h, _mathify("\n".join(_caption_lines(caption))), ha="center",
+             va="bottom", fontsize=7.5, color="#333333")
+
+
+# Unicode the DejaVu fonts lack, as mathtext
+_MATH = [("𝒲", r"$\mathcal{W}$"), ("𝒴", r"$\mathcal{Y}$")]
+
+
+def _mathify(s: str) -> str:
+    for a, b in _MATH:
+        s = s.replace(a, b)
+    return s
+
+
+def _laws(run, need=None):
+    out = []
+    for law, lr in run.runs.items():
+        if need is None or need in M.signal_names(lr.response):
+            out.append(law)
+    return out
+
+
+def _t(lr):
+    return np.asarray(lr.response.time, dtype=float)
+
+
+def _norm_panel(ax, run, laws, fn, ylabel):
+    """‖x‖ per law; log axis when it spans decades."""
+    data = [(law, _t(run.runs[law]), M.norm(fn(run.runs[law]))) for law in laws]
+    log = any(_spans_decades(y, t) for _, t, y in data)
+    for i, (law, t, y) in enumerate(data):
+        _plot(ax, t, y, law, list(run.runs).index(law), log=log)
+    ax.set_ylabel(ylabel + (" (log)" if log else ""))
+
+
+# --------------------------------------------------------------------------- figures
+def fig_delta_W(run):
+    laws = _laws(run, "Delta")
+    if not laws:
+        return None
+    theta = np.asarray(run.theta, dtype=float)
+    title = "Figure 1. Regressor Δ(t) and disturbance 𝒲(t)"
+    caption = ("Log scale of the magnitudes. Δ = 0 and 𝒲 = 0 during the first window T of the "
+               "extension (15a) and are not drawn there. 𝒴_i = Δθ_i + 𝒲_i (erratum E4); "
+               "the paper's condition: Δ vanishes slower than 𝒲.")
+    fig, axes = _grid(3, cols=1, titles=True, caption_lines=len(_caption_lines(caption)))
+    order = list(run.runs)
+    for law in laws:
+        lr = run.runs[law]
+        t = _t(lr)
+        D = M.signal(lr, "Delta")
+        W = M.norm(M.calW(lr, theta))
+        k = order.index(law)
+        _plot(axes[0], t, D, law, k, log=True)
+        _plot(axes[1], t, W, law, k, log=True)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(np.abs(D) > 0, W / np.abs(D), np.nan)
+        _plot(axes[2], t, ratio, law, k, log=True)
+    axes[0].set_ylabel(r"$|\Delta(t)|$")
+    axes[1].set_ylabel(r"$\|\mathcal{W}(t)\|$")
+    axes[2].set_ylabel(r"$\|\mathcal{W}\| \,/\, |\Delta|$")
+    axes[0].set_title("regressor of the mixed regression (17): determinant of the normalized Ψ")
+    axes[1].set_title(r"disturbance of the mixed regression, $\mathcal{W} = \mathcal{Y} - \Delta\theta$")
+    axes[2].set_title(r"ratio: decreasing when $\Delta$ vanishes slower than $\mathcal{W}$")
+    _finish(fig, axes, title, caption, laws, run)
+    return FigureSpec("fig1", title, caption, fig)
+
+
+def _component_figure(run, key, title, caption, fn, comp_label, norm_label, unit, *, truth=None):
+    laws = list(run.runs)
+    first = run.runs[laws[0]]
+    k = fn(first).shape[0]
+    panels = k + (1 if norm_label else 0)
+    fig, axes = _grid(panels, caption_lines=len(_caption_lines(caption)))
+    for i, law in enumerate(laws):
+        lr = run.runs[law]
+        x = fn(lr)
+        t = _t(lr)
+        for j in range(k):
+            _plot(axes[j], t, x[j], law, i)
+    for j in range(k):
+        axes[j].set_ylabel(comp_label(j) + f" ({unit})" if unit else comp_label(j))
+        if truth is not None:
+            tt = _t(first)
+            axes[j].plot([tt[0], tt[-1]], [truth[j], truth[j]], color="black", ls="--", lw=1.0)
+    extra = []
+    if truth is not None:
+        extra.append(Line2D([], [], color="black", ls="--", label="true θ"))
+    if norm_label:
+        _norm_panel(axes[k], run, laws, fn, norm_label + (f" ({unit})" if unit else ""))
+    _finish(fig, axes, title, caption, laws, run, extra_handles=extra)
+    return FigureSpec(key, title, caption, fig)
+
+
+def fig_tracking_error(run):
+    return _component_figure(
+        run, "fig2", "Figure 2. Tracking error e(t)",
+        "e = q_d − q for each joint; the last panel is ‖e‖ (log scale when it spans decades).",
+        lambda lr: M.signal(lr, "e"), lambda j: rf"$e_{{{j + 1}}}$", r"$\|e\|$", "rad")
+
+
+def fig_theta_error(run):
+    theta = np.asarray(run.theta, dtype=float)
+    return _component_figure(
+        run, "fig3", "Figure 3. Parameter error θ̃(t)",
+        "θ̃ = θ − θ̂ for each parameter; the last panel is ‖θ̃‖ (log scale when it spans decades).",
+        lambda lr: M.theta_error(lr, theta), lambda j: rf"$\tilde\theta_{{{j + 1}}}$",
+        r"$\|\tilde\theta\|$", "")
+
+
+def fig_tau_d_error(run):
+    return _component_figure(
+        run, "fig4", "Figure 4. Disturbance estimation error τ̃_d(t)",
+        "τ̃_d = τ_d − τ̂_d, τ̂_d extracted from the control signal (9); the last panel is ‖τ̃_d‖.",
+        lambda lr: M.tau_d_error(lr), lambda j: rf"$\tilde\tau_{{d,{j + 1}}}$",
+        r"$\|\tilde\tau_d\|$", "N·m")
+
+
+def fig_theta_hat(run):
+    theta = np.asarray(run.theta, dtype=float)
+    return _component_figure(
+        run, "fig5", "Figure 5. Parameter estimates θ̂(t) and true θ",
+        "Each estimate θ̂_j against the true value θ_j (dashed).",
+        lambda lr: M.signal(lr, "theta_hat"), lambda j: rf"$\hat\theta_{{{j + 1}}}$", None, "",
+        truth=theta)
+
+
+def fig_torque(run):
+    return _component_figure(
+        run, "fig6", "Figure 6. Control torque τ(t)",
+        "τ = (K + δ_μ μ) r + Πᵀθ̂ − u_f, eq. (9).",
+        lambda lr: M.signal(lr, "tau"), lambda j: rf"$\tau_{{{j + 1}}}$", None, "N·m")
+
+
+def fig_auxiliary(run):
+    cl = _laws(run, "lambda_min_held")
+    title = "Figure 7. Excitation of composite learning and observer weight μ(t)"
+    caption = ("λ_min of Ψ_b at the time t_e held by the max-hold of the baseline (35), which uses "
+               "the data (Y_b, Ψ_b) of t_e only; μ(t) of the high-gain torque observer.")
+    fig, axes = _grid(2 if cl else 1, cols=1, titles=True, caption_lines=len(_caption_lines(caption)))
+    order = list(run.runs)
+    ax = axes[0]
+    if cl:
+        for law in cl:
+            lr = run.runs[law]
+            t = _t(lr)
+            lam = M.signal(lr, "lambda_min_held")
+            _plot(ax, t, lam, law, order.index(law), log=_spans_decades(lam, t))
+        ax.set_ylabel(r"$\lambda_{\min}(\Psi_b(t_e))$")
+        ax.set_title(r"smallest eigenvalue of the held $\Psi_b$ of composite learning (35)")
+        ax = axes[1]
+    lr = run.runs[order[0]]
+    ax.plot(*decimate(_t(lr), M.signal(lr, "mu")), color="#333333")
+    ax.set_ylabel(r"$\mu(t)$")
+    ax.set_title(r"weight $\mu(t) = \mu_0 t + \mu_1$ of the torque observer (same for every law)")
+    laws = cl
+    _finish(fig, axes, title, caption, laws, run)
+    return FigureSpec("fig7", title, caption, fig)
+
+
+#: builders in report order (names, looked up at call time)
+FIGURES = ["fig_delta_W", "fig_tracking_error", "fig_theta_error", "fig_tau_d_error",
+           "fig_theta_hat", "fig_torque", "fig_auxiliary"]
+
+
+def iter_figures(run):
+    """Yield the FigureSpecs of a run, built one at a time."""
+    import sys
+    mod = sys.modules[__name__]
+    for name in FIGURES:
+        spec = getattr(mod, name)(run)
+        if spec is not None:
+            yield spec
+
+
+# --------------------------------------------------------------------------- svg
+_ID = re.compile(r'\bid="([^"]+)"')
+
+
+def figure_to_svg(fig: Figure, prefix: str) -> str:
+    """Inline SVG text of a figure: no XML prolog, DOCTYPE or metadata, ids prefixed."""
+    buf = io.StringIO()
+    fig.savefig(buf, format="svg", metadata={"Date": None})
+    svg = buf.getvalue()
+    svg = re.sub(r"<\?xml[^>]*\?>\s*", "", svg)
+    svg = re.sub(r"<!DOCTYPE[^>]*>\s*", "", svg, flags=re.S)
+    svg = re.sub(r"<metadata>.*?</metadata>\s*", "", svg, flags=re.S)
+    ids = set(_ID.findall(svg))
+    if ids:
+        def fix_ref(m):
+            ident = m.group(2)
+            return m.group(1) + (prefix + ident if ident in ids else ident)
+        svg = _ID.sub(lambda m: f'id="{prefix}{m.group(1)}"', svg)
+        svg = re.sub(r'((?:xlink:)?href="#)([^"]+)', fix_ref, svg)
+        svg = re.sub(r"(url\(#)([^)]+)", fix_ref, svg)
+    # scale with the page
+    svg = re.sub(r'<svg ([^>]*?)width="[^"]*" height="[^"]*"', r'<svg \1', svg, count=1)
+    return svg.strip()

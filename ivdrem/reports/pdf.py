@@ -1,0 +1,193 @@
+"""PDF report with matplotlib's PdfPages: text pages laid out by hand, then the figures.
+
+No TeX: text is drawn with matplotlib's own fonts (TrueType, pdf.fonttype 42), so it
+stays selectable and searchable.
+"""
+from __future__ import annotations
+
+import textwrap
+
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Rectangle
+
+from .content import ReportContent, Table
+
+__all__ = ["TextPages", "write_text_pages", "PAGE_W", "PAGE_H"]
+
+PAGE_W, PAGE_H = 8.27, 11.69  # A4, inches
+MARGIN_X, MARGIN_TOP, MARGIN_BOTTOM = 0.7, 0.75, 0.75
+EM = 0.56  # average glyph width of DejaVu Sans in em (a slight over-estimate)
+
+_VERDICT_COLORS = {"PASS": ("#dff3e0", "#1b5e20"), "FAIL": ("#fde0dc", "#b71c1c")}
+_MATH = [("𝒲", r"$\mathcal{W}$"), ("𝒴", r"$\mathcal{Y}$")]
+
+
+def _tex(s: str) -> str:
+    """Make text safe for matplotlib (mathtext only where DejaVu lacks the glyph)."""
+    s = s.replace("$", r"\$")
+    for a, b in _MATH:
+        s = s.replace(a, b)
+    return s
+
+
+def _wrap(text: str, width_in: float, size: float) -> list[str]:
+    chars = max(int(width_in * 72.0 / (EM * size)), 4)
+    lines: list[str] = []
+    for para in str(text).split("\n"):
+        lines += textwrap.wrap(para, chars, break_long_words=True, break_on_hyphens=False) or [""]
+    return lines
+
+
+class TextPages:
+    """Flowing text and tables on A4 pages of a PdfPages document."""
+
+    def __init__(self, pdf, footer: str = ""):
+        self.pdf = pdf
+        self.footer = footer
+        self.fig: Figure | None = None
+        self.y = 0.0
+        self.pages = 0
+
+    # page handling
+    def new_page(self):
+        self.flush()
+        self.fig = Figure(figsize=(PAGE_W, PAGE_H))
+        self.y = PAGE_H - MARGIN_TOP
+        self.pages += 1
+
+    def flush(self):
+        if self.fig is not None:
+            if self.footer:
+                self._text(MARGIN_X, MARGIN_BOTTOM * 0.5, self.footer, 7, color="#777777")
+            self.pdf.savefig(self.fig)
+            self.fig = None
+
+    def _ensure(self, height: float):
+        if self.fig is None or self.y - height < MARGIN_BOTTOM:
+            self.new_page()
+
+    def _text(self, x, y, s, size, **kw):
+        self.fig.text(x, y, _tex(s), fontsize=size, transform=self.fig.dpi_scale_trans,
+                      va="top", ha="left", **kw)
+
+    @staticmethod
+    def _lh(size: float) -> float:
+        return size * 1.32 / 72.0
+
+    # content
+    def space(self, inches: float):
+        self.y -= inches
+
+    def heading(self, text: str, size: float = 13):
+        self._ensure(self._lh(size) * 3)  # keep with what follows
+        self.y -= 0.08
+        self._text(MARGIN_X, self.y, text, size, fontweight="bold")
+        self.y -= self._lh(size) + 0.06
+
+    def paragraph(self, text: str, size: float = 9, **kw):
+        width = PAGE_W - 2 * MARGIN_X
+        for line in _wrap(text, width, size):
+            self._ensure(self._lh(size))
+            self._text(MARGIN_X, self.y, line, size, **kw)
+            self.y -= self._lh(size)
+        self.y -= 0.05
+
+    def table(self, t: Table, size: float = 8):
+        width = PAGE_W - 2 * MARGIN_X
+        total = sum(t.widths)
+        colw = [w / total * width for w in t.widths]
+        lh = self._lh(size)
+        pad = 0.04
+
+        def row_lines(cells):
+            return [_wrap(c, w - 2 * pad, size) for c, w in zip(cells, colw)]
+
+        def draw_row(cells, *, bold=False, shade=None):
+            lines = row_lines(cells)
+            h = max(len(x) for x in lines) * lh + 2 * pad
+            x = MARGIN_X
+            if shade:
+                self.fig.add_artist(Rectangle((MARGIN_X, self.y - h), width, h, facecolor=shade,
+                                              edgecolor="none", transform=self.fig.dpi_scale_trans))
+            for j, (cell_lines, w) in enumerate(zip(lines, colw)):
+                kw = {"fontweight": "bold"} if bold else {}
+                if t.verdict_col == j and not bold:
+                    bg, fg = _VERDICT_COLORS.get(cells[j], ("#eeeeee", "#444444"))
+                    self.fig.add_artist(Rectangle((x, self.y - h), w, h, facecolor=bg, edgecolor="none",
+                                                  transform=self.fig.dpi_scale_trans))
+                    kw = {"fontweight": "bold", "color": fg}
+                yy = self.y - pad
+                for line in cell_lines:
+                    self._text(x + pad, yy, line, size, **kw)
+                    yy -= lh
+                x += w
+            self.y -= h
+            self.fig.add_artist(Line2D([MARGIN_X, MARGIN_X + width], [self.y, self.y], lw=0.4,
+                                       color="#bbbbbb", transform=self.fig.dpi_scale_trans))
+
+        def header():
+            self.fig.add_artist(Line2D([MARGIN_X, MARGIN_X + width], [self.y, self.y], lw=0.8,
+                                       color="#555555", transform=self.fig.dpi_scale_trans))
+            draw_row(t.header, bold=True, shade="#eeeeee")
+
+        head_h = max(len(x) for x in row_lines(t.header)) * lh + 2 * pad
+        first = True
+        for row in t.rows:
+            h = max(len(x) for x in row_lines(row)) * lh + 2 * pad
+            if first:
+                self.heading(t.title, 11)
+                self._ensure(head_h + h)
+                header()
+                first = False
+            elif self.y - h < MARGIN_BOTTOM:
+                self.new_page()
+                self._text(MARGIN_X, self.y, t.title + " (continued)", 9, fontstyle="italic")
+                self.y -= self._lh(9) + 0.04
+                header()
+            draw_row(row)
+        if first:  # empty table
+            self.heading(t.title, 11)
+            self.paragraph("(no rows)")
+        if t.note:
+            self.y -= 0.04
+            self.paragraph(t.note, 7.5, color="#555555")
+        self.y -= 0.12
+
+
+def write_text_pages(pdf, content: ReportContent, figure_titles: list[str]) -> int:
+    """Title page with the conclusions, then the other tables; returns the page count."""
+    c = content
+    tp = TextPages(pdf, footer=f"{c.title}  ·  {dict(c.meta).get('generated', '')}")
+    tp.new_page()
+    tp.space(0.3)
+    tp._text(MARGIN_X, tp.y, c.title, 20, fontweight="bold")
+    tp.y -= tp._lh(20) + 0.05
+    tp.paragraph(c.subtitle, 10.5, fontstyle="italic")
+    tp.space(0.1)
+    if c.synthetic:
+        tp.paragraph("SYNTHETIC DATA: the curves of this report are made up to test its layout; "
+                     "they are not simulation results.", 10, color="#b71c1c", fontweight="bold")
+    for label, value in c.meta:
+        if label == "DATA":
+            continue
+        tp._ensure(tp._lh(9))
+        tp._text(MARGIN_X, tp.y, label, 9, color="#555555")
+        for k, line in enumerate(_wrap(value, PAGE_W - 2 * MARGIN_X - 1.7, 9)):
+            tp._text(MARGIN_X + 1.6, tp.y, line, 9)
+            tp.y -= tp._lh(9)
+    tp.space(0.15)
+    tables = {t.key: t for t in c.tables}
+    order = ["conclusions", "summary"] + [t.key for t in c.tables if t.key not in ("conclusions", "summary")]
+    for i, key in enumerate(order):
+        if key not in tables:
+            continue
+        if key == "parameters":
+            tp.new_page()
+        tp.table(tables[key])
+        if key == "summary" and figure_titles:
+            tp.heading("Figures", 11)
+            for title in figure_titles:
+                tp.paragraph(title, 9)
+    tp.flush()
+    return tp.pages

@@ -1,0 +1,154 @@
+"""write_report: the PDF and HTML report of a paper run, written atomically."""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import matplotlib as mpl
+from matplotlib.backends.backend_pdf import PdfPages
+
+from . import figures as F
+from .content import build_content
+from .html import GENERATOR, render_html
+from .pdf import write_text_pages
+
+__all__ = ["write_report", "report_paths", "ReportError"]
+
+
+class ReportError(FileExistsError):
+    """The report would overwrite a file that ivdrem did not write."""
+
+
+def _is_ours(path: Path, kind: str) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except OSError:
+        return False
+    if kind == "html":
+        return f'<meta name="generator" content="{GENERATOR}">'.encode() in data[:4096]
+    return data.startswith(b"%PDF") and GENERATOR.encode() in data
+
+
+def _check_target(path: Path, kind: str, overwrite: bool) -> None:
+    if not os.path.lexists(path):
+        return
+    if path.is_dir():
+        raise ReportError(f"cannot write the report to {path}: it is a directory")
+    if not overwrite and not _is_ours(path, kind):
+        raise ReportError(
+            f"refusing to overwrite {path}: it was not written by ivdrem's report; "
+            "move it, choose another output directory or basename, or pass overwrite=True"
+        )
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _tempfile(outdir: Path, name: str) -> Path:
+    """A new hidden file next to the target, with the mode a plain open() would give."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=outdir)
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())
+    except (AttributeError, OSError):  # pragma: no cover - platforms without fchmod
+        pass
+    os.close(fd)
+    return Path(tmp)
+
+
+def report_paths(outdir, basename="ivdrem-paper", *, overwrite=False) -> tuple[Path, Path]:
+    """The two report paths; raises before any work if writing them would be refused.
+
+    ValueError for a basename that is not a plain file name, :class:`ReportError` when a
+    target exists and is a directory or a file that ivdrem's report did not write.
+    """
+    if not basename or any(sep in basename for sep in ("/", "\\", os.sep)) or basename in (".", ".."):
+        raise ValueError(f"basename must be a plain file name without extension, got {basename!r}")
+    outdir = Path(outdir)
+    if outdir.exists() and not outdir.is_dir():
+        raise ReportError(f"cannot write the report into {outdir}: it is not a directory")
+    html_path = outdir / f"{basename}.html"
+    pdf_path = outdir / f"{basename}.pdf"
+    _check_target(html_path, "html", overwrite)
+    _check_target(pdf_path, "pdf", overwrite)
+    return html_path, pdf_path
+
+
+def write_report(run, outdir, *, fmu_check=None, basename="ivdrem-paper", overwrite=False):
+    """Write ``outdir/basename.html`` and ``outdir/basename.pdf``; return their paths.
+
+    ``run`` is a PaperRun (``ivdrem.experiments.paper``): figures 1-4 of the paper plus
+    estimates, torque and auxiliary signals, the conclusions C1-C3 with their numbers,
+    the parameters, the errata of SPEC section 7, solver statistics, versions and the
+    git commit.  ``fmu_check`` (optional) is a dict of numbers (or of rows) rendered as
+    a table.
+
+    Both files are first written to temporary files in ``outdir`` and then moved into
+    place with ``os.replace``: an exception leaves any previous report untouched and no
+    partial file.  Only the two target names are ever replaced, and only when they are
+    previous ivdrem reports (or ``overwrite=True``): an unrelated user file of the same
+    name raises :class:`ReportError` before anything is computed.
+    """
+    html_path, pdf_path = report_paths(outdir, basename, overwrite=overwrite)
+    outdir = html_path.parent
+    outdir.mkdir(parents=True, exist_ok=True)
+
+    temps: list[Path] = []
+    try:
+        html_tmp = _tempfile(outdir, html_path.name)
+        temps.append(html_tmp)
+        pdf_tmp = _tempfile(outdir, pdf_path.name)
+        temps.append(pdf_tmp)
+        with mpl.rc_context(F.RC):
+            content = build_content(run, fmu_check=fmu_check)
+            specs = []
+            for spec in F.iter_figures(run):
+                specs.append(spec)
+            svgs = [(s.key, s.title, F.figure_to_svg(s.figure, f"{s.key}-")) for s in specs]
+            meta = {
+                "Title": content.title,
+                "Subject": content.subtitle,
+                "Creator": f"{GENERATOR} (ivdrem {_version()})",
+                "Keywords": "ivdrem, IV-DREM, composite adaptive control",
+            }
+            with PdfPages(pdf_tmp, metadata=meta) as pdf:
+                write_text_pages(pdf, content, [s.title for s in specs])
+                for s in specs:
+                    pdf.savefig(s.figure)
+            html_tmp.write_text(render_html(content, svgs), encoding="utf-8")
+        for tmp in temps:
+            _fsync(tmp)
+        os.replace(html_tmp, html_path)
+        temps.remove(html_tmp)
+        os.replace(pdf_tmp, pdf_path)
+        temps.remove(pdf_tmp)
+    finally:
+        for tmp in temps:
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+    return html_path, pdf_path
+
+
+def _fsync(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _version() -> str:
+    from .. import __version__
+
+    return __version__
