@@ -30,7 +30,8 @@ def adaptation_law_update(t, x, u, dx, Gamma):
 
 def adaptation_law_output(t, x, u, y, Gamma):
     # outputs  y = theta_hat
-    y[:] = x
+    for i in range(x.shape[0]):
+        y[i] = x[i]
 
 
 def adaptation_law(n, ntheta, Gamma=0.01, theta_hat0=None, *, name="adaptation_law"):

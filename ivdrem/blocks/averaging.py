@@ -24,7 +24,8 @@ def averaging_update(t, x, u, dx, p, F0):
 
 def averaging_output(t, x, u, y, p, F0):
     # outputs  y = Y
-    y[:] = x
+    for i in range(x.shape[0]):
+        y[i] = x[i]
 
 
 def averaging(size, p=2.0, F0=1.0, *, input="window_y", output="avg", name="averaging"):

@@ -13,14 +13,18 @@ def instrument_update(t, x, u, dx, l):
     # params   l > 0
     n = u.shape[0] // 3
     m = x.shape[0]
-    A = np.empty((n, m // n))
+    nth = m // n
+    A = np.empty((n, nth))
     model.Phi(u[0:n], u[n:2 * n], u[n:2 * n], u[2 * n:3 * n], A)
-    dx[:] = l * (A.reshape(m) - x)
+    for i in range(n):
+        for j in range(nth):
+            dx[i * nth + j] = l * (A[i, j] - x[i * nth + j])
 
 
 def instrument_output(t, x, u, y, l):
     # outputs  y = zeta^T (n*nθ, row-major)
-    y[:] = x
+    for i in range(x.shape[0]):
+        y[i] = x[i]
 
 
 def instrument(model, l=50.0, *, name="instrument"):

@@ -6,6 +6,8 @@ an inverse: Psi is singular at the start of every run.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ._core import BlockSpec, make_block
@@ -15,16 +17,21 @@ from ._kernels import det_adj
 def mixing_output(t, x, u, y, ntheta):
     # inputs   u = [Y (nθ), Psi (nθ*nθ row-major)]
     # outputs  y = [Delta, calY (nθ)]
-    Y = u[0:ntheta]
-    Psi = u[ntheta:ntheta + ntheta * ntheta].reshape((ntheta, ntheta))
-    s = 1.0 + np.sqrt(np.sum(Psi * Psi))
-    Pn = Psi / s
+    nn = ntheta * ntheta
+    ss = 0.0
+    for k in range(nn):
+        ss += u[ntheta + k] * u[ntheta + k]
+    s = 1.0 + math.sqrt(ss)                              # 1 + ||Psi||_F
+    Pn = np.empty((ntheta, ntheta))
+    for i in range(ntheta):
+        for j in range(ntheta):
+            Pn[i, j] = u[ntheta + i * ntheta + j] / s
     adj = np.empty((ntheta, ntheta))
     y[0] = det_adj(Pn, adj)
     for i in range(ntheta):
         acc = 0.0
         for j in range(ntheta):
-            acc += adj[i, j] * Y[j]
+            acc += adj[i, j] * u[j]
         y[1 + i] = acc / s
 
 

@@ -12,16 +12,17 @@ def plant_update(t, x, u, dx, theta):
     # inputs   u = [tau (n), tau_d (n)]
     # params   theta (nθ): the true parameters
     n = x.shape[0] // 2
-    q = x[:n]
-    dq = x[n:]
-    tau = u[:n] + u[n:2 * n]
-    dx[:n] = dq
-    model.forward_dynamics(q, dq, tau, theta, dx[n:])
+    tau = np.empty(n)
+    for i in range(n):
+        tau[i] = u[i] + u[n + i]
+        dx[i] = x[n + i]
+    model.forward_dynamics(x[:n], x[n:], tau, theta, dx[n:])
 
 
 def plant_output(t, x, u, y, theta):
     # outputs  y = [q (n), dq (n)] (positions and velocities are measured)
-    y[:] = x
+    for i in range(x.shape[0]):
+        y[i] = x[i]
 
 
 def plant(model, *, theta=None, q0=None, dq0=None, name="plant"):

@@ -16,41 +16,41 @@ def regression_filter_update(t, x, u, dx, l, ntheta):
     # params   l > 0, ntheta
     n = u.shape[0] // 3
     m = n * ntheta
-    tau = u[0:n]
     q = u[n:2 * n]
     dq = u[2 * n:3 * n]
-    z = x[0:n]
-    xi = x[n:n + m].reshape((n, ntheta))
-    eta = x[n + m:n + 2 * m].reshape((n, ntheta))
     for i in range(n):
-        dx[i] = l * (tau[i] - z[i])                       # dz = l (tau - z)
+        dx[i] = l * (u[i] - x[i])                         # dz = l (tau - z)
     A = np.empty((n, ntheta))
     B = np.empty((n, ntheta))
+    C = np.empty((n, ntheta))
+    D = np.empty((n, ntheta))
     model.Phi_M(q, dq, A)
-    dx[n:n + m] = (l * (A - xi)).reshape(m)               # dxi = l (Phi_M^T(q,dq) - xi)
+    for i in range(n):
+        for j in range(ntheta):
+            k = n + i * ntheta + j
+            dx[k] = l * (A[i, j] - x[k])                  # dxi = l (Phi_M^T(q,dq) - xi)
     # deta = l (-Phi_dM^T(q,dq,dq) + Phi_C^T(q,dq,dq) + Phi_F^T + Phi_G^T - eta)
     model.Phi_C(q, dq, dq, A)
     model.Phi_dM(q, dq, dq, B)
-    A -= B
-    model.Phi_F(dq, B)
-    A += B
-    model.Phi_G(q, B)
-    A += B
-    dx[n + m:n + 2 * m] = (l * (A - eta)).reshape(m)
+    model.Phi_F(dq, C)
+    model.Phi_G(q, D)
+    for i in range(n):
+        for j in range(ntheta):
+            k = n + m + i * ntheta + j
+            dx[k] = l * (A[i, j] - B[i, j] + C[i, j] + D[i, j] - x[k])
 
 
 def regression_filter_output(t, x, u, y, l, ntheta):
     # outputs  y = [z (n), phi^T (n*nθ)],  phi^T = l (Phi_M^T(q,dq) - xi) + eta
     n = u.shape[0] // 3
     m = n * ntheta
-    q = u[n:2 * n]
-    dq = u[2 * n:3 * n]
-    xi = x[n:n + m].reshape((n, ntheta))
-    eta = x[n + m:n + 2 * m].reshape((n, ntheta))
     A = np.empty((n, ntheta))
-    model.Phi_M(q, dq, A)
-    y[0:n] = x[0:n]
-    y[n:n + m] = (l * (A - xi) + eta).reshape(m)
+    model.Phi_M(u[n:2 * n], u[2 * n:3 * n], A)
+    for i in range(n):
+        y[i] = x[i]
+        for j in range(ntheta):
+            k = i * ntheta + j
+            y[n + k] = l * (A[i, j] - x[n + k]) + x[n + m + k]
 
 
 def regression_filter(model, l=50.0, *, name="regression_filter"):

@@ -13,16 +13,17 @@ from . import _validate as V
 
 def sliding_window_update(t, x, u, dx):
     # states   x = I (m) ;  inputs u = [g (m), I(t-T) (m)] ;  dI = g
-    m = x.shape[0]
-    dx[:] = u[0:m]
+    for i in range(x.shape[0]):
+        dx[i] = u[i]
 
 
 def sliding_window_output(t, x, u, y):
     # outputs  y = [I (m), dI = g (m), y = I - I(t-T) (m)]
     m = x.shape[0]
-    y[0:m] = x
-    y[m:2 * m] = u[0:m]
-    y[2 * m:3 * m] = x - u[m:2 * m]
+    for i in range(m):
+        y[i] = x[i]
+        y[m + i] = u[i]
+        y[2 * m + i] = x[i] - u[m + i]
 
 
 def sliding_window(size, *, input="ext_g", prefix="window", name="sliding_window"):

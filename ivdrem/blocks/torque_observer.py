@@ -25,26 +25,27 @@ def torque_observer_update(t, x, u, dx, n, ntheta, literal_e1):
     dv = u[4 * n:5 * n]
     mu = u[5 * n]
     dmu = u[5 * n + 1]
-    tau = u[5 * n + 2:6 * n + 2]
-    Phi_f = x[0:m].reshape((n, ntheta))
-    Phi_Mf = x[m:2 * m].reshape((n, ntheta))
-    u_f = x[2 * m:2 * m + n]
     A = np.empty((n, ntheta))
     B = np.empty((n, ntheta))
+    C = np.empty((n, ntheta))
     model.Phi(q, dq, v, dv, A)
     model.Phi_C(q, dq, r, B)
-    A -= B
-    model.Phi_dM(q, dq, r, B)
-    A += B
+    model.Phi_dM(q, dq, r, C)
     # dPhi_f = mu (Phi^T(q,dq,v,dv) - Phi_C^T(q,dq,r) + Phi_dM^T(q,dq,r) - Phi_f)
-    dx[0:m] = (mu * (A - Phi_f)).reshape(m)
+    for i in range(n):
+        for j in range(ntheta):
+            k = i * ntheta + j
+            dx[k] = mu * (A[i, j] - B[i, j] + C[i, j] - x[k])
     # dPhi_Mf = (mu + dmu/mu) (Phi_M^T(q,r) - Phi_Mf)   (E1; literal: gain mu)
-    model.Phi_M(q, r, B)
+    model.Phi_M(q, r, A)
     g = mu + (1.0 - literal_e1) * dmu / mu
-    dx[m:2 * m] = (g * (B - Phi_Mf)).reshape(m)
+    for i in range(n):
+        for j in range(ntheta):
+            k = i * ntheta + j
+            dx[m + k] = g * (A[i, j] - x[m + k])
     # du_f = mu (u - u_f), u = -tau
     for i in range(n):
-        dx[2 * m + i] = mu * (-tau[i] - u_f[i])
+        dx[2 * m + i] = mu * (-u[5 * n + 2 + i] - x[2 * m + i])
 
 
 def torque_observer_output(t, x, u, y, n, ntheta, literal_e1):
@@ -58,24 +59,20 @@ def torque_observer_output(t, x, u, y, n, ntheta, literal_e1):
     v = u[3 * n:4 * n]
     dv = u[4 * n:5 * n]
     mu = u[5 * n]
-    theta_hat = u[6 * n + 2:6 * n + 2 + ntheta]
-    Phi_f = x[0:m].reshape((n, ntheta))
-    Phi_Mf = x[m:2 * m].reshape((n, ntheta))
-    u_f = x[2 * m:2 * m + n]
+    th0 = 6 * n + 2
     PM = np.empty((n, ntheta))
     P = np.empty((n, ntheta))
     model.Phi_M(q, r, PM)
     model.Phi(q, dq, v, dv, P)
-    D = mu * (PM - Phi_Mf)
-    Pi = D + P - Phi_f
-    y[0:m] = Pi.reshape(m)
-    y[m:m + n] = u_f
-    E = D - Phi_f
     for i in range(n):
         s = 0.0
         for j in range(ntheta):
-            s += E[i, j] * theta_hat[j]
-        y[m + n + i] = -s + u_f[i]
+            k = i * ntheta + j
+            e = mu * (PM[i, j] - x[m + k]) - x[k]
+            y[k] = e + P[i, j]
+            s += e * u[th0 + j]
+        y[m + i] = x[2 * m + i]
+        y[m + n + i] = -s + x[2 * m + i]
 
 
 def torque_observer(model, *, variant="corrected", name="torque_observer"):

@@ -23,6 +23,12 @@ STEP_TOO_SMALL = 4
 MAX_STEPS = 5
 
 
+def copy_into(dst, d0, src, s0, n):
+    """dst[d0:d0+n] = src[s0:s0+n] without slice objects (smaller code for numba)."""
+    for i in range(n):
+        dst[d0 + i] = src[s0 + i]
+
+
 def hist_index(meta, i):
     return (meta[0] + i) % meta[2]
 
@@ -34,15 +40,30 @@ def hist_push(W, t, v, d, estimate_slope):
     hv = W[1]
     hd = W[2]
     meta = W[3]
+    nd = v.shape[0]
+    if meta[1] > 0 and t <= ht[hist_index(meta, meta[1] - 1)]:
+        # the same accepted point again (e.g. re-pushed after the buffer grew): replace it
+        k = hist_index(meta, meta[1] - 1)
+        for j in range(nd):
+            hv[k, j] = v[j]
+            if estimate_slope[j] == 0:
+                hd[k, j] = d[j]
+        return OK
     if meta[1] >= meta[2]:
         return HISTORY_FULL
     k = hist_index(meta, meta[1])
     ht[k] = t
-    nd = v.shape[0]
     for j in range(nd):
         hv[k, j] = v[j]
         hd[k, j] = d[j]
     cnt = meta[1] + 1
+    any_est = False
+    for j in range(nd):
+        if estimate_slope[j] == 1:
+            any_est = True
+    if not any_est:
+        meta[1] = cnt
+        return OK
     if cnt >= 3:
         k1 = hist_index(meta, cnt - 2)
         k2 = hist_index(meta, cnt - 3)
