@@ -35,14 +35,14 @@ def check_connected(diagram):
                          ". Give each an output of the same name, or connect it explicitly.")
 
 
-def assemble(blocks, outputs, name="closed_loop", connections=None):
+def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
     """ct.interconnect of `blocks` (connected by signal name) with a connectivity check."""
     names = [b.name for b in blocks]
     dup = {n for n in names if names.count(n) > 1}
     if dup:
         raise ValueError(f"duplicate block names in diagram: {sorted(dup)}")
     kw = {} if connections is None else {"connections": connections}
-    diagram = ct.interconnect(blocks, inputs=[], outputs=outputs, name=name,
+    diagram = ct.interconnect(blocks, inputs=list(inputs), outputs=outputs, name=name,
                               check_unused=False, **kw)
     check_connected(diagram)
     return diagram
@@ -52,7 +52,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
                 mu0=1.0, mu1=15.0, observer_variant="corrected", l=50.0, T=20.0, p=2.0,
                 F0=1.0, gamma=None, epsilon=1e-9, sigma=0.1, theta_star=None,
                 theta_hat0=None, q0=None, dq0=None, theta=None, trajectory=None,
-                disturbance=None, replace=None):
+                disturbance=None, replace=None, external_plant=False):
     """The paper's closed loop with composite term `law`, as one InterconnectedSystem.
 
     Parameters follow SPEC section 8 (defaults are the paper's experiment).  `trajectory`
@@ -63,6 +63,10 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
 
     Outputs: q, dq, q_d, e, r, tau, tau_d, tau_d_hat, theta_hat, mu; plus Delta and calY
     for "iv-drem"/"drem", lambda_min_held for "composite-learning".
+
+    With ``external_plant=True`` the plant block is left out: the diagram has inputs q, dq
+    (measured by an external plant, e.g. an FMU) and the same outputs less q, dq (tau and
+    tau_d are what the plant receives).
     """
     if law not in LAWS:
         raise ValueError(f"unknown law {law!r}; choose one of {', '.join(LAWS)}")
@@ -90,8 +94,8 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
             raise ValueError(f"unknown sinusoid parameter(s) {sorted(unknown)}")
         return factory(n, **spec)
 
-    blocks = [
-        B.plant(model, theta=theta, q0=q0, dq0=dq0),
+    blocks = [] if external_plant else [B.plant(model, theta=theta, q0=q0, dq0=dq0)]
+    blocks += [
         source(trajectory, B.trajectory),
         source(disturbance, B.disturbance),
         B.mu_schedule(mu0, mu1),
@@ -134,4 +138,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
             if not isinstance(blk, ct.InputOutputSystem):
                 raise TypeError(f"replace[{key!r}] must be a python-control system")
             blocks[names[key]] = blk
+    if external_plant:
+        outputs = [o for o in outputs if o not in ("q", "dq")]
+        return assemble(blocks, outputs, name=f"controller[{law}]", inputs=["q", "dq"])
     return assemble(blocks, outputs, name=f"closed_loop[{law}]")
