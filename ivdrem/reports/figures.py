@@ -124,6 +124,7 @@ def _plot(ax, t, y, law, order, *, log=False, label=None, **kw):
         y = np.where(y > 0, y, np.nan)
     td, yd = decimate(t, y)
     kw.setdefault("color", law_color(law, order))
+    kw.setdefault("zorder", 2.5 if law == "iv-drem" else 2.0)  # the proposed law on top
     ax.plot(td, yd, label=label, **kw)
     if log:
         ax.set_yscale("log")
@@ -155,6 +156,30 @@ def _grid(k: int, *, cols: int | None = None, titles: bool = False, caption_line
     return fig, flat[:k]
 
 
+def _tidy_log(ax, t_from: float, decades: float = 1.0) -> None:
+    """Lower y limit of a log axis from the data after the start-up (first 2 % of the run).
+
+    Magnitudes that start at exactly 0 (Δ, 𝒲, λ_min) would otherwise stretch the axis
+    over dozens of empty decades; values below the limit are clipped by the axes.
+    """
+    vals, peak = [], 0.0
+    for line in ax.get_lines():
+        x = np.asarray(line.get_xdata(), dtype=float)
+        y = np.asarray(line.get_ydata(), dtype=float)
+        pos = np.isfinite(y) & (y > 0)
+        if pos.any():
+            peak = max(peak, float(np.max(y[pos])))
+        vals.append(y[pos & (x >= t_from)])
+    vals = np.concatenate(vals) if vals else np.array([])
+    if vals.size == 0 or peak <= 0:
+        return
+    low = 10.0 ** (math.floor(math.log10(np.percentile(vals, 0.5))) - decades)
+    if low >= peak:
+        return
+    span = math.log10(peak / low)
+    ax.set_ylim(low, peak * 10.0 ** (0.05 * span))
+
+
 def _caption_lines(caption: str) -> list[str]:
     return textwrap.wrap(caption, 150)
 
@@ -166,6 +191,9 @@ def _finish(fig, axes, title, caption, laws, run, *, extra_handles=()):
     if t1 > t0:
         for ax in axes:
             ax.set_xlim(t0, t1)
+    for ax in axes:
+        if ax.get_yscale() == "log":
+            _tidy_log(ax, t0 + 0.02 * (t1 - t0))
     handles = [Line2D([], [], color=law_color(law, i), label=law_label(law)) for i, law in enumerate(laws)]
     handles += list(extra_handles)
     if handles:
@@ -177,8 +205,16 @@ def _finish(fig, axes, title, caption, laws, run, *, extra_handles=()):
              va="bottom", fontsize=7.5, color="#333333")
 
 
-# Unicode the DejaVu fonts lack, as mathtext
-_MATH = [("𝒲", r"$\mathcal{W}$"), ("𝒴", r"$\mathcal{Y}$")]
+# Unicode with sub/superscripts, and glyphs the DejaVu fonts lack, as mathtext (figures only)
+_MATH = [
+    ("Πᵀθ̂", r"$\Pi^\top\hat{\theta}$"), ("τ̃_d", r"$\tilde{\tau}_d$"), ("τ̂_d", r"$\hat{\tau}_d$"), ("τ_d", r"$\tau_d$"),
+    ("θ̂_j", r"$\hat{\theta}_j$"), ("θ_j", r"$\theta_j$"), ("Δθ_i", r"$\Delta\theta_i$"),
+    ("𝒴_i", r"$\mathcal{Y}_i$"), ("𝒲_i", r"$\mathcal{W}_i$"), ("𝒲", r"$\mathcal{W}$"),
+    ("𝒴", r"$\mathcal{Y}$"), ("θ̃", r"$\tilde{\theta}$"), ("θ̂", r"$\hat{\theta}$"),
+    ("Ψ_b", r"$\Psi_b$"), ("Y_b", r"$Y_b$"),
+    ("λ_min", r"$\lambda_{\min}$"), ("t_e", r"$t_e$"), ("δ_μ", r"$\delta_\mu$"),
+    ("u_f", r"$u_f$"), ("q_d", r"$q_d$"),
+]
 
 
 def _mathify(s: str) -> str:
@@ -215,9 +251,9 @@ def fig_delta_W(run):
         return None
     theta = np.asarray(run.theta, dtype=float)
     title = "Figure 1. Regressor Δ(t) and disturbance 𝒲(t)"
-    caption = ("Log scale of the magnitudes. Δ = 0 and 𝒲 = 0 during the first window T of the "
-               "extension (15a) and are not drawn there. 𝒴_i = Δθ_i + 𝒲_i (erratum E4); "
-               "the paper's condition: Δ vanishes slower than 𝒲.")
+    caption = ("Log scale of the magnitudes (Ψ is singular at t = 0, so Δ and 𝒲 start from 0; the "
+               "start-up below the axis is clipped). 𝒴_i = Δθ_i + 𝒲_i (erratum E4). The paper's "
+               "condition for convergence: Δ vanishes slower than 𝒲, i.e. the ratio decreases.")
     fig, axes = _grid(3, cols=1, titles=True, caption_lines=len(_caption_lines(caption)))
     order = list(run.runs)
     for law in laws:
