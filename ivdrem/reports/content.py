@@ -209,6 +209,15 @@ def _conclusions_table(concl: list[dict]) -> Table:
                  "measured", "verdict"], rows, [0.05, 0.43, 0.4, 0.12], verdict_col=3)
 
 
+def _engine(run) -> str:
+    engine = getattr(run, "engine", None)
+    if engine:
+        return str(engine)
+    seen = {str((getattr(lr, "stats", None) or {}).get("engine")) for lr in run.runs.values()}
+    seen.discard("None")
+    return ", ".join(sorted(seen)) or "–"
+
+
 def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
     from ..experiments.config import dump_toml
 
@@ -225,7 +234,7 @@ def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
         ("model", f"{cfg['model']['name']}, θ = {fmt(cfg['model']['theta'])}"),
         ("laws", ", ".join(laws)),
         ("simulated horizon", f"{fmt(t_end)} s"),
-        ("engine", str(getattr(run, "engine", "–"))),
+        ("engine", _engine(run)),
     ]
     if synthetic:
         meta.append(("DATA", "SYNTHETIC (made-up curves for testing the report, not a simulation)"))
