@@ -1,9 +1,10 @@
 """Stepping code shared verbatim by both engines.
 
-Written in the numba-compatible subset of Python.  The functions call four globals that
-each engine supplies: ``rhs(t, x, P, W, dx)``, ``after_step(t, x, P, W)`` (pushes the
-delay history and updates max-holds after an accepted step; returns a status),
-``record(t, x, P, W, row)`` (the diagram outputs) and nothing else.  The reference engine
+Written in the numba-compatible subset of Python.  The functions call one global that
+each engine supplies, ``diagram_eval(mode, t, x, P, W, out)``: mode RHS writes dx/dt
+into out; mode AFTER_STEP pushes the delay history and updates max-holds after an
+accepted step and returns a status; mode RECORD writes the diagram outputs into out.
+(One function rather than three keeps numba from optimising the diagram code thrice.)  The reference engine
 runs these functions in Python with python-control behind ``rhs``; the compiled engine
 pastes this source into the generated module and numba compiles it with the generated
 ``rhs``.  Same code, same semantics.
@@ -13,6 +14,11 @@ Workspace ``W`` (a tuple): 0 hist_t[cap], 1 hist_v[cap, nd], 2 hist_d[cap, nd],
 6 ys (block outputs), 7 us (block inputs), 8 u_ext (diagram inputs, held constant).
 """
 import numpy as np
+
+# modes of diagram_eval
+RHS = 0
+AFTER_STEP = 1
+RECORD = 2
 
 # status codes returned by the chunk functions
 OK = 0
@@ -163,7 +169,7 @@ def hold_update(W, k, off, size, nvec, nmat, u, epsilon):
 def emit(t, x, P, W, out_y, out_x, io):
     """Record the diagram outputs (and, if out_x has columns, the state) as row io[0]."""
     k = io[0]
-    record(t, x, P, W, out_y[k])
+    diagram_eval(RECORD, t, x, P, W, out_y[k])
     if out_x.shape[1] == x.shape[0]:
         for i in range(x.shape[0]):
             out_x[k, i] = x[i]
@@ -198,16 +204,16 @@ def rk4_chunk(tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, x_limit):
         t = t0 + kstep * h
         if t >= t_stop - 1e-9 * h:
             break
-        rhs(t, x, P, W, k1)
+        diagram_eval(RHS, t, x, P, W, k1)
         for i in range(n):
             xt[i] = x[i] + 0.5 * h * k1[i]
-        rhs(t + 0.5 * h, xt, P, W, k2)
+        diagram_eval(RHS, t + 0.5 * h, xt, P, W, k2)
         for i in range(n):
             xt[i] = x[i] + 0.5 * h * k2[i]
-        rhs(t + 0.5 * h, xt, P, W, k3)
+        diagram_eval(RHS, t + 0.5 * h, xt, P, W, k3)
         for i in range(n):
             xt[i] = x[i] + h * k3[i]
-        rhs(t + h, xt, P, W, k4)
+        diagram_eval(RHS, t + h, xt, P, W, k4)
         for i in range(n):
             x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
         stats[0] = kstep + 1
@@ -218,7 +224,7 @@ def rk4_chunk(tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, x_limit):
         if bad >= 0:
             stats[3] = bad
             return DIVERGED
-        st = after_step(t, x, P, W)
+        st = diagram_eval(AFTER_STEP, t, x, P, W, x)
         if st == HISTORY_FULL:
             return HISTORY_FULL
         while io[0] < io[1] and out_t[io[0]] <= t + 1e-9 * h:
@@ -246,7 +252,7 @@ def dp45_chunk(tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, x_limit, rto
     xn = np.empty(n)
     t = tf[0]
     h = tf[1]
-    rhs(t, x, P, W, k1)
+    diagram_eval(RHS, t, x, P, W, k1)
     stats[2] += 1
     fac_max = 5.0
     while t < t_stop - 1e-12 * max(1.0, abs(t)):
@@ -272,28 +278,28 @@ def dp45_chunk(tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, x_limit, rto
             return STEP_TOO_SMALL
         for i in range(n):
             xt[i] = x[i] + h_use * (0.2 * k1[i])
-        rhs(t + 0.2 * h_use, xt, P, W, k2)
+        diagram_eval(RHS, t + 0.2 * h_use, xt, P, W, k2)
         for i in range(n):
             xt[i] = x[i] + h_use * (3.0 / 40.0 * k1[i] + 9.0 / 40.0 * k2[i])
-        rhs(t + 0.3 * h_use, xt, P, W, k3)
+        diagram_eval(RHS, t + 0.3 * h_use, xt, P, W, k3)
         for i in range(n):
             xt[i] = x[i] + h_use * (44.0 / 45.0 * k1[i] - 56.0 / 15.0 * k2[i]
                                     + 32.0 / 9.0 * k3[i])
-        rhs(t + 0.8 * h_use, xt, P, W, k4)
+        diagram_eval(RHS, t + 0.8 * h_use, xt, P, W, k4)
         for i in range(n):
             xt[i] = x[i] + h_use * (19372.0 / 6561.0 * k1[i] - 25360.0 / 2187.0 * k2[i]
                                     + 64448.0 / 6561.0 * k3[i] - 212.0 / 729.0 * k4[i])
-        rhs(t + 8.0 / 9.0 * h_use, xt, P, W, k5)
+        diagram_eval(RHS, t + 8.0 / 9.0 * h_use, xt, P, W, k5)
         for i in range(n):
             xt[i] = x[i] + h_use * (9017.0 / 3168.0 * k1[i] - 355.0 / 33.0 * k2[i]
                                     + 46732.0 / 5247.0 * k3[i] + 49.0 / 176.0 * k4[i]
                                     - 5103.0 / 18656.0 * k5[i])
-        rhs(t + h_use, xt, P, W, k6)
+        diagram_eval(RHS, t + h_use, xt, P, W, k6)
         for i in range(n):
             xn[i] = x[i] + h_use * (35.0 / 384.0 * k1[i] + 500.0 / 1113.0 * k3[i]
                                     + 125.0 / 192.0 * k4[i] - 2187.0 / 6784.0 * k5[i]
                                     + 11.0 / 84.0 * k6[i])
-        rhs(t + h_use, xn, P, W, k7)
+        diagram_eval(RHS, t + h_use, xn, P, W, k7)
         stats[2] += 6
         err = 0.0
         for i in range(n):
@@ -328,12 +334,12 @@ def dp45_chunk(tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, x_limit, rto
         if bad >= 0:
             stats[3] = bad
             return DIVERGED
-        st = after_step(t, x, P, W)
+        st = diagram_eval(AFTER_STEP, t, x, P, W, x)
         if st == HISTORY_FULL:
             tf[1] = h
             return HISTORY_FULL
         if st == HOLD_UPDATED:
-            rhs(t, x, P, W, k1)        # the held values changed: k1 (FSAL) is stale
+            diagram_eval(RHS, t, x, P, W, k1)        # the held values changed: k1 (FSAL) is stale
             stats[2] += 1
         while io[0] < io[1] and out_t[io[0]] <= t + 1e-12 * max(1.0, abs(t)):
             emit(t, x, P, W, out_y, out_x, io)

@@ -6,9 +6,10 @@ The generator reads the diagram's subsystem list and connection map (through
 * the robot models' functions (``model.source(prefix)``, generated from sympy),
 * every block's own kernels (their source, renamed, with ``model.f`` -> ``m<k>_f``),
 * the stepping template ``_template.py`` verbatim (the same code the reference path runs),
-* ``signals`` / ``rhs`` / ``after_step`` / ``record``: block outputs in topological order
-  of direct feedthrough, inputs gathered from the connection map, delay outputs from the
-  history, max-hold outputs from the held values.
+* ``diagram_eval``: block outputs in topological order of direct feedthrough, inputs
+  gathered from the connection map, delay outputs from the history, max-hold outputs from
+  the held values; then, by mode, the state derivatives, the after-step update of the
+  history and holds, or the diagram outputs.
 
 Nothing is fused by hand: a rewired diagram, another law or another robot model compiles
 the same way.  A block without kernels (a plain nlsys) cannot be compiled; the error says
@@ -170,8 +171,10 @@ def generate_source(plan):
     def sl(s):
         return f"{s.start}:{s.stop}"
 
-    # signals: outputs in topological order, then the remaining inputs
-    lines = ["def signals(t, x, P, W):", "    ys = W[6]", "    us = W[7]", "    ue = W[8]"]
+    # one function for the three modes (see _template): signals first, in topological order
+    # of direct feedthrough, then the mode's work
+    lines = ["def diagram_eval(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
+             "    ue = W[8]"]
     filled = set()
     for k in plan.order:
         b = plan.blocks[k]
@@ -193,50 +196,53 @@ def generate_source(plan):
             lines.append(f"    ys[{y0 + hd['size']}] = W[5][{hd['k']}]")
     rest = [i for b in plan.blocks for i in range(b.u.start, b.u.stop) if i not in filled]
     _fill_inputs(plan, rest, ny, lines)
-    out.append("\n".join(lines) + "\n")
 
-    lines = ["def rhs(t, x, P, W, dx):", "    signals(t, x, P, W)", "    us = W[7]"]
+    # mode RHS: state derivatives into out
+    lines.append("    if mode == RHS:")
+    n_upd = 0
     for b in plan.blocks:
         if b.spec.kind == "ode" and b.spec.update is not None and b.sys.nstates:
-            lines.append(f"    {kname(b, 'update')}(t, x[{sl(b.x)}], us[{sl(b.u)}], "
-                         f"dx[{sl(b.x)}]{pargs(b)})")
-    out.append("\n".join(lines) + "\n")
+            lines.append(f"        {kname(b, 'update')}(t, x[{sl(b.x)}], us[{sl(b.u)}], "
+                         f"out[{sl(b.x)}]{pargs(b)})")
+            n_upd += 1
+    lines.append("        return OK")
 
-    lines = ["def after_step(t, x, P, W):", "    signals(t, x, P, W)", "    us = W[7]"]
+    # mode AFTER_STEP: push the delay history, update the max-holds
+    lines.append("    if mode == AFTER_STEP:")
     if plan.delays:
-        lines += [f"    v = np.empty({plan.nd})", f"    dv = np.zeros({plan.nd})",
-                  f"    est = np.zeros({plan.nd}, dtype=np.int64)"]
+        lines += [f"        v = np.empty({plan.nd})", f"        dv = np.zeros({plan.nd})",
+                  f"        est = np.zeros({plan.nd}, dtype=np.int64)"]
         tmax = []
         for dl in plan.delays:
             a, s = dl["off"], dl["size"]
-            lines.append(f"    copy_into(v, {a}, us, {dl['u']}, {s})")
+            lines.append(f"        copy_into(v, {a}, us, {dl['u']}, {s})")
             if dl["hermite"]:
-                lines.append(f"    copy_into(dv, {a}, us, {dl['du']}, {s})")
+                lines.append(f"        copy_into(dv, {a}, us, {dl['du']}, {s})")
             else:
-                lines.append(f"    for _i in range({a}, {a + s}):\n        est[_i] = 1")
+                lines.append(f"        for _i in range({a}, {a + s}):\n            est[_i] = 1")
             tmax.append(f"P[{dl['block']}][0]")
-        lines += ["    st = hist_push(W, t, v, dv, est)", "    if st != OK:", "        return st",
-                  f"    hist_trim(W, t - max({', '.join(tmax + ['0.0'])}))"]
-    lines.append("    upd = 0")
+        lines += ["        st = hist_push(W, t, v, dv, est)", "        if st != OK:",
+                  "            return st",
+                  f"        hist_trim(W, t - max({', '.join(tmax + ['0.0'])}))"]
+    lines.append("        upd = 0")
     for hd in plan.holds:
-        lines.append(f"    upd |= hold_update(W, {hd['k']}, {hd['off']}, {hd['size']}, "
+        lines.append(f"        upd |= hold_update(W, {hd['k']}, {hd['off']}, {hd['size']}, "
                      f"{hd['nvec']}, {hd['nmat']}, us[{hd['u']}:{hd['u'] + hd['size']}], "
                      f"P[{hd['block']}][0])")
-    lines.append("    return HOLD_UPDATED if upd else OK")
-    out.append("\n".join(lines) + "\n")
+    lines.append("        return HOLD_UPDATED if upd else OK")
 
+    # mode RECORD: diagram outputs (output_map over [block outputs, block inputs])
     Om = np.asarray(d.output_map)
-    lines = ["def record(t, x, P, W, row):", "    signals(t, x, P, W)", "    ys = W[6]",
-             "    us = W[7]"]
     for r in range(Om.shape[0]):
         terms = []
         for j in np.flatnonzero(Om[r]):
             src = f"ys[{j}]" if j < ny else f"us[{j - ny}]"
             g = float(Om[r, j])
             terms.append(src if g == 1.0 else f"{g!r} * {src}")
-        lines.append(f"    row[{r}] = " + (" + ".join(terms) if terms else "0.0"))
+        lines.append(f"    out[{r}] = " + (" + ".join(terms) if terms else "0.0"))
+    lines.append("    return OK")
     out.append("\n".join(lines) + "\n")
-    jit_names += ["signals", "rhs", "after_step", "record"]
+    jit_names += ["diagram_eval"]
 
     out.append("# ---- compile everything with numba, machine code cached beside this file")
     out.append(f"_JIT = {sorted(set(jit_names))!r}")
@@ -289,12 +295,12 @@ class CompiledEngine:
         return fn(*args)
 
     def after_step(self, t, x, W):
-        return self.module.after_step(t, x, self.P, W)
+        return self.module.diagram_eval(_template.AFTER_STEP, t, x, self.P, W, x)
 
     def record(self, t, x, W, row):
-        self.module.record(t, x, self.P, W, row)
+        self.module.diagram_eval(_template.RECORD, t, x, self.P, W, row)
 
     def rhs(self, t, x, W):
         dx = np.zeros_like(x)
-        self.module.rhs(t, x, self.P, W, dx)
+        self.module.diagram_eval(_template.RHS, t, x, self.P, W, dx)
         return dx

@@ -61,15 +61,22 @@ class ReferenceEngine:
         d._update_params(params or {})
         ns = {"__name__": "ivdrem_reference_template"}
         exec(compile(_TEMPLATE_PATH.read_text(), str(_TEMPLATE_PATH), "exec"), ns)
-        ns["rhs"] = self._rhs
-        ns["after_step"] = self._after_step
-        ns["record"] = self._record
+        ns["diagram_eval"] = self._eval
         self.ns = ns
         self.P = ()
         self._est = _slope_flags(plan)
         self._feeds = {}
 
-    # the three functions the template calls
+    def _eval(self, mode, t, x, P, W, out):
+        """The template's single entry point into the diagram (see _template)."""
+        if mode == T.RHS:
+            self._rhs(t, x, P, W, out)
+            return T.OK
+        if mode == T.AFTER_STEP:
+            return self._after_step(t, x, P, W)
+        self._record(t, x, P, W, out)
+        return T.OK
+
     def _rhs(self, t, x, P, W, dx):
         dx[:] = self.plan.diagram._rhs(t, x, W[8])
 
