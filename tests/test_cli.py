@@ -1,0 +1,56 @@
+"""Command line: ivdrem paper / report / fmu routing, errors before simulation."""
+import json
+import subprocess
+import sys
+
+import pytest
+
+from ivdrem.cli import main
+
+
+def test_paper_json_short(tmp_path, capsys):
+    out = tmp_path / "out.json"
+    assert main(["paper", "--t-end", "2", "--json", str(out), "--quiet"]) == 0
+    data = json.loads(out.read_text())
+    assert set(data) == {"iv-drem", "composite-learning"}
+    for law, s in data.items():
+        assert s["t_end"] == pytest.approx(2.0)
+        assert len(s["theta_hat"]) == 5
+        assert s["theta_err_norm"] > 0
+        assert s["wall_s"] > 0
+    assert "iv-drem" in capsys.readouterr().out
+
+
+def test_paper_single_law(tmp_path):
+    out = tmp_path / "o.json"
+    assert main(["paper", "--t-end", "1", "--law", "iv-drem", "--json", str(out), "--quiet"]) == 0
+    assert set(json.loads(out.read_text())) == {"iv-drem"}
+
+
+def test_bad_config_key_is_rejected_before_simulation(tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[controller]\nKp = [1.0, 1.0]\n")
+    assert main(["paper", "--config", str(cfg), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "controller.Kp" in err and "controller.K" in err
+
+
+def test_unknown_law_rejected(capsys):
+    assert main(["paper", "--law", "iv-dream", "--t-end", "1", "--quiet"]) == 2
+    assert "iv-dream" in capsys.readouterr().err
+
+
+def test_fmu_subcommand_is_routed(tmp_path):
+    fmu = tmp_path / "Arm.fmu"
+    assert main(["fmu", "export", "-o", str(fmu)]) == 0
+    assert fmu.exists() and fmu.stat().st_size > 1000
+
+
+def test_progress_is_silent_when_not_a_terminal(tmp_path):
+    """stderr is a pipe here: no progress bar characters may appear."""
+    out = tmp_path / "o.json"
+    p = subprocess.run([sys.executable, "-m", "ivdrem", "paper", "--t-end", "1",
+                        "--law", "iv-drem", "--json", str(out)],
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    assert "%|" not in p.stderr and "it/s" not in p.stderr
