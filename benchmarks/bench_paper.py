@@ -104,6 +104,25 @@ def warm_up():
     return time.perf_counter() - t0
 
 
+def _rhs_callable(sim, t, x, dx):
+    """A no-argument call of the engine's RHS alone, through whichever entry point exists
+    (generated module's diagram_eval(RHS, ...) or rhs(...), reference _rhs, engine.rhs)."""
+    from ivdrem.sim import _template as T
+    eng, P, W = sim.engine, sim.engine.P, sim.W
+    mod = getattr(eng, "module", None)
+    if mod is not None and hasattr(mod, "diagram_eval") and hasattr(T, "RHS"):
+        f, mode = mod.diagram_eval, T.RHS
+        return lambda: f(mode, t, x, P, W, dx)
+    if mod is not None and hasattr(mod, "rhs"):
+        f = mod.rhs
+        return lambda: f(t, x, P, W, dx)
+    if hasattr(eng, "_rhs"):
+        f = eng._rhs
+        return lambda: f(t, x, P, W, dx)
+    f = eng.rhs
+    return lambda: f(t, x, W)
+
+
 def rhs_speed(engine, t_sim, h=1e-3, n_iso=None):
     """RK4 run of the iv-drem diagram with one engine; in-loop and isolated us per RHS."""
     from ivdrem.diagrams import closed_loop
@@ -116,18 +135,8 @@ def rhs_speed(engine, t_sim, h=1e-3, n_iso=None):
         dx = np.zeros_like(sim.x)
         x = sim.x.copy()
         t = sim.t
-        if engine == "compiled":
-            mod, P, W = sim.engine.module, sim.engine.P, sim.W
-
-            def call():
-                mod.rhs(t, x, P, W, dx)
-            n = n_iso or 200_000
-        else:
-            eng, W = sim.engine, sim.W
-
-            def call():
-                eng._rhs(t, x, eng.P, W, dx)
-            n = n_iso or 300
+        call = _rhs_callable(sim, t, x, dx)
+        n = n_iso or (200_000 if engine == "compiled" else 300)
         call()
         t0 = time.perf_counter()
         for _ in range(n):
