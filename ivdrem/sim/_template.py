@@ -19,6 +19,7 @@ import numpy as np
 RHS = 0
 AFTER_STEP = 1
 RECORD = 2
+AFTER_STEP_EVALUATED = 3   # after_step when the last RHS call was at this (t, x) already
 
 # status codes returned by the chunk functions
 OK = 0
@@ -334,7 +335,8 @@ def dp45_chunk(tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, x_limit, rto
         if bad >= 0:
             stats[3] = bad
             return DIVERGED
-        st = diagram_eval(AFTER_STEP, t, x, P, W, x)
+        # the FSAL stage k7 evaluated the diagram at exactly this (t, x): reuse its signals
+        st = diagram_eval(AFTER_STEP_EVALUATED, t, x, P, W, x)
         if st == HISTORY_FULL:
             tf[1] = h
             return HISTORY_FULL

@@ -72,7 +72,7 @@ class ReferenceEngine:
         if mode == T.RHS:
             self._rhs(t, x, P, W, out)
             return T.OK
-        if mode == T.AFTER_STEP:
+        if mode == T.AFTER_STEP or mode == T.AFTER_STEP_EVALUATED:
             return self._after_step(t, x, P, W)
         self._record(t, x, P, W, out)
         return T.OK
