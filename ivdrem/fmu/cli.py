@@ -1,4 +1,4 @@
-"""``ivdrem fmu ...`` sub-commands (routed here by ivdrem.cli)."""
+"""``ivdrem fmu ...`` and ``ivdrem cosim ...`` sub-commands (routed here by ivdrem.cli)."""
 from __future__ import annotations
 
 import argparse
@@ -43,6 +43,104 @@ def main_fmu(argv=None) -> int:
         print(f"wrote {path} (model {model.name}, n = {model.n}, ntheta = {model.ntheta})")
         return 0
     return 2  # pragma: no cover  (argparse enforces the sub-command)
+
+
+# ----------------------------------------------------------------------------- cosim
+def _cosim_parser() -> argparse.ArgumentParser:
+    from ivdrem.diagrams import LAWS
+    p = argparse.ArgumentParser(
+        prog="ivdrem cosim",
+        description="Co-simulate the controller (ivdrem simulator) with the plant FMU "
+                    "(fmpy, co-simulation interface) at communication steps H, H/2, H/4, "
+                    "compare q, theta_hat and tau_d_hat with the all-Python closed loop and "
+                    "report the max errors and the observed order of convergence "
+                    "(sample-and-hold coupling: first order in H).")
+    p.add_argument("--t-end", type=float, default=40.0,
+                   help="horizon in s (default %(default)g); a multiple of the comm step")
+    p.add_argument("--law", default="iv-drem", choices=LAWS,
+                   help="composite term of the controller (default %(default)s)")
+    p.add_argument("--comm-step", type=float, default=1e-3, metavar="H",
+                   help="largest communication step H in s; also runs H/2 and H/4 "
+                        "(default %(default)g)")
+    p.add_argument("--fmu", default=None, metavar="FILE",
+                   help="plant FMU (default: export the 2-link arm to a temporary directory)")
+    p.add_argument("--engine", default="compiled", choices=("compiled", "reference"),
+                   help="controller / reference simulator engine (default %(default)s)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    return p
+
+
+def main_cosim(argv=None) -> int:
+    """Entry point of ``ivdrem cosim``; ``argv`` excludes the leading ``cosim``.
+
+    Exit codes: 0 the comparison ran and the observed orders are in the expected range;
+    1 it ran but the orders are outside it, or a run failed (divergence, FMU error);
+    2 bad input (arguments, missing or unsuitable FMU).
+    """
+    import math
+    import os
+    import tempfile
+    import time
+    import warnings
+    from pathlib import Path
+
+    try:
+        args = _cosim_parser().parse_args(argv)
+    except SystemExit as exc:           # --help (0) or an argparse error (2, already printed)
+        return int(exc.code or 0)
+    prog = "ivdrem cosim"
+    H = args.comm_step
+    if not (math.isfinite(args.t_end) and args.t_end > 0):
+        print(f"{prog}: error: --t-end must be a finite number > 0, got {args.t_end:g}",
+              file=sys.stderr)
+        return 2
+    if not (math.isfinite(H) and 0 < H <= args.t_end):
+        print(f"{prog}: error: --comm-step must be in (0, t_end], got {H:g}", file=sys.stderr)
+        return 2
+    progress = (not args.quiet) and sys.stderr.isatty() and not os.environ.get("CI")
+    from ivdrem.sim import SimulationError
+    from .cosim import CosimError, compare_to_python
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="ivdrem_cosim_") as tmp:
+        if args.fmu is None:
+            from ivdrem.models import two_link
+            from .export import export_fmu
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")   # compiler chatter; the FMU is tested
+                    fmu = export_fmu(two_link(), Path(tmp) / "two_link.fmu")
+            except (RuntimeError, NotImplementedError, FileNotFoundError) as exc:
+                print(f"{prog}: error: exporting the plant FMU failed: {exc}", file=sys.stderr)
+                return 2
+            origin = "2-link plant exported to a temporary FMU"
+        else:
+            fmu = Path(args.fmu)
+            origin = str(fmu)
+        steps = (H, H / 2, H / 4)
+        try:
+            cmp = compare_to_python(fmu, args.t_end, steps, law=args.law, engine=args.engine,
+                                    progress=progress)
+        except (FileNotFoundError, ValueError) as exc:
+            print(f"{prog}: error: {exc}", file=sys.stderr)
+            return 2
+        except (SimulationError, CosimError) as exc:
+            print(f"{prog}: run failed: {exc}", file=sys.stderr)
+            return 1
+    wall = time.perf_counter() - t0
+    print(f"Co-simulation: controller {args.law!r} (ivdrem simulator, {args.engine}) + plant FMU "
+          f"({origin}), t_end = {args.t_end:g} s")
+    print("Coupling: explicit (Jacobi) sample-and-hold at communication step H; reference: "
+          f"all-Python closed loop, RK4 at h = {min(steps):g} s")
+    print()
+    print(cmp.table())
+    print()
+    times = ", ".join(f"{k} {v:.1f} s" for k, v in cmp.wall.items())
+    per_step = ", ".join(f"H={r.stats['comm_step']:g}: {r.stats['us_per_step']:.0f} us"
+                         for r in cmp.results)
+    print(f"wall time {wall:.1f} s ({times}); per communication step {per_step}")
+    print(cmp.verdict())
+    return 0 if cmp.ok else 1
 
 
 if __name__ == "__main__":  # pragma: no cover

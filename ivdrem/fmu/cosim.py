@@ -1,0 +1,604 @@
+"""Co-simulation of ivdrem's controller with the plant FMU (issue 4 section 3).
+
+The controller (every block of :func:`ivdrem.diagrams.closed_loop` but the plant, built with
+``external_plant=True``) runs in ivdrem's :class:`~ivdrem.sim.Simulator`; the robot plant is
+the co-simulation interface of an FMU exported by :func:`ivdrem.fmu.export_fmu` (fmpy
+``FMU2Slave``).  The two are coupled at a fixed communication step ``H``.
+
+Coupling: explicit (Jacobi) sample-and-hold
+-------------------------------------------
+At the communication points ``t_k = k H`` (``k = 0 .. N``, ``N H = t_end``):
+
+1. the **plant** side is read: ``q(t_k), q'(t_k)`` are the FMU outputs after the previous
+   ``fmi2DoStep`` (at ``t_0``: after initialization with the start values ``q0, dq0``);
+2. the **controller** receives these as its diagram inputs ``q, dq`` and evaluates its outputs
+   at ``t_k`` from its own state ``x_c(t_k)`` and these inputs: ``tau(t_k)``,
+   ``tau_d(t_k)`` (the disturbance source is part of the controller diagram), and all the
+   recorded signals;
+3. both sides then advance over ``[t_k, t_k + H]`` *in parallel*, each holding the other's
+   values from ``t_k`` constant (zero-order hold):
+
+   * the controller integrates its states with ``q, q'`` held at ``q(t_k), q'(t_k)``
+     (``Simulator.advance``; fixed RK4 sub-steps of at most ``ctrl_step``, or DP45);
+   * the FMU receives ``tau(t_k)``, ``tau_d(t_k)`` (``fmi2SetReal``) and integrates with them
+     held (``fmi2DoStep(t_k, H)``: RK4 sub-steps of at most ``cs_substep <= H``).
+
+Neither side sees a value computed after ``t_k`` during the step (Jacobi, not Gauss-Seidel),
+so the order in which the two are advanced does not matter.  The recorded sample at ``t_k``
+is ``[q(t_k), q'(t_k)]`` from the FMU plus the controller outputs of step 2, i.e. exactly the
+values exchanged at ``t_k``.
+
+Accuracy: each side's inputs are off by ``O(H)`` during a step (a held value versus the true
+continuous signal), so the local error of one step is ``O(H^2)`` and the global error over a
+fixed horizon is ``O(H)``: **first order** in the communication step.  The integrators inside
+each side are fourth order with sub-steps ``<= H``, so their error is negligible against the
+coupling error (the FMU's RK4 at ``cs_substep = 1e-3`` is ~1e-9 over 2 s).  Halving ``H``
+should roughly halve the difference to the all-Python closed loop (observed order ~1, see
+:func:`compare_to_python`).
+
+Stability: the explicit coupling delays the feedback by up to one step, so ``H`` must stay
+well below the fastest closed-loop time constant, about ``m_min / (lambda_max(K) +
+delta_mu mu(t))`` (SPEC section 9).  For the paper's gains and ``mu = t + 15`` this is
+~2.4 ms at 40 s and ~0.43 ms at 300 s: ``H = 1e-3`` is fine for the 40 s runs here, long
+runs need a smaller ``H`` (the all-Python loop, with error-controlled steps, does not).
+Measured: the paper loop co-simulated at ``H = 1e-3`` diverges at t = 261 s
+(``mu = 276``, ``H (2 + 0.8 mu) / 0.11 = 2.0``); the error then says so.
+"""
+from __future__ import annotations
+
+import ctypes
+import math
+import os
+import shutil
+import sys
+import time as _time
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import control as ct
+
+__all__ = ["cosimulate", "compare_to_python", "CosimComparison", "CosimError",
+           "COMPARED_SIGNALS", "EXPECTED_ORDER"]
+
+#: Signals compared by :func:`compare_to_python` (q, theta_hat, tau_d_hat).
+COMPARED_SIGNALS = ("q", "theta_hat", "tau_d_hat")
+
+#: Range of the observed order of convergence accepted as "first order" (sample-and-hold).
+EXPECTED_ORDER = (0.7, 1.5)
+
+#: Default bound of the controller's RK4 sub-step inside one communication step (s).
+DEFAULT_CTRL_STEP = 1e-3
+
+
+class CosimError(RuntimeError):
+    """The FMU reported an error during the co-simulation (message from its logger)."""
+
+
+# ----------------------------------------------------------------------------- FMU side
+def _read_fmu(path: Path):
+    """Model description of a co-simulation FMU; clear errors for missing / unsuitable files."""
+    from fmpy import read_model_description
+    if not path.exists():
+        raise FileNotFoundError(f"FMU file not found: {path}")
+    if path.is_file():
+        if not zipfile.is_zipfile(path):
+            raise ValueError(f"{path} is not an FMU (not a zip archive)")
+        with zipfile.ZipFile(path) as zf:
+            if "modelDescription.xml" not in zf.namelist():
+                raise ValueError(f"{path} is not an FMU (no modelDescription.xml in the archive)")
+    elif not (path / "modelDescription.xml").is_file():
+        raise ValueError(f"{path} is not an FMU (no modelDescription.xml in the directory)")
+    try:
+        md = read_model_description(str(path))
+    except Exception as exc:
+        raise ValueError(f"{path}: invalid modelDescription.xml: {exc}") from None
+    if md.fmiVersion != "2.0":
+        raise ValueError(f"{path}: FMI version {md.fmiVersion}, expected 2.0")
+    if md.coSimulation is None:
+        raise ValueError(f"{path}: the FMU does not support co-simulation (model exchange "
+                         "only); export it with ivdrem.fmu.export_fmu, which provides both")
+    return md
+
+
+def _check_interface(path, md, model):
+    """Value references of q, dq (outputs), tau, tau_d (inputs) and the theta parameters."""
+    variables = {v.name: v for v in md.modelVariables}
+    n_fmu = 0
+    while f"q[{n_fmu}]" in variables:
+        n_fmu += 1
+    n = model.n
+    if n_fmu != n:
+        raise ValueError(f"{path}: the FMU's plant has n = {n_fmu} degrees of freedom "
+                         f"(outputs q[0..{n_fmu - 1}]), the model {model.name!r} has n = {n}")
+    for s in [f"q[{i}]" for i in range(n)] + [f"dq[{i}]" for i in range(n)]:
+        v = variables.get(s)
+        if v is None or v.causality != "output" or v.type != "Real":
+            raise ValueError(f"{path}: missing Real output {s}")
+    for s in [f"tau[{i}]" for i in range(n)] + [f"tau_d[{i}]" for i in range(n)]:
+        v = variables.get(s)
+        if v is None or v.causality != "input" or v.type != "Real":
+            raise ValueError(f"{path}: missing Real input {s}")
+    missing = [nm for nm in model.theta_names
+               if nm not in variables or variables[nm].causality != "parameter"]
+    if missing:
+        raise ValueError(f"{path}: the FMU has no parameter(s) {', '.join(missing)} of model "
+                         f"{model.name!r}; is it the plant of this model?")
+    return variables
+
+
+class _Slave:
+    """An instantiated, initialized FMU2Slave with preallocated ctypes buffers."""
+
+    def __init__(self, path: Path, md, variables, start: dict, in_names, out_names):
+        from fmpy import extract, calloc, free
+        from fmpy.fmi2 import (FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE,
+                               fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE)
+        self.path = path
+        self.messages = []
+        self.fmu = None
+        self._instantiated = False
+        self._unzipdir = extract(str(path)) if path.is_file() else None
+        try:
+            def log(env, instance, status, category, message):
+                self.messages.append(message.decode("utf-8", "replace"))
+                del self.messages[:-100]
+
+            cb = fmi2CallbackFunctions()
+            cb.logger = fmi2CallbackLoggerTYPE(log)
+            cb.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
+            cb.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
+            try:
+                from fmpy.logging import addLoggerProxy
+                addLoggerProxy(ctypes.byref(cb))    # formats printf-style messages
+            except Exception:  # pragma: no cover - ships with fmpy
+                pass
+            self._callbacks = (cb, log)             # keep alive while the FMU runs
+            try:
+                self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=self._unzipdir or str(path),
+                                     modelIdentifier=md.coSimulation.modelIdentifier,
+                                     instanceName="plant")
+            except Exception as exc:
+                raise ValueError(f"{path}: cannot load the FMU binary: {exc}") from None
+            try:
+                self.fmu.instantiate(callbacks=cb)
+            except Exception as exc:
+                raise ValueError(f"{path}: fmi2Instantiate failed: "
+                                 f"{' '.join(self.messages) or exc}") from None
+            self._instantiated = True
+            self._call("initialization", self._initialize, variables, start)
+            nin, nout = len(in_names), len(out_names)
+            self.in_vr = (ctypes.c_uint * nin)(*[variables[s].valueReference for s in in_names])
+            self.out_vr = (ctypes.c_uint * nout)(*[variables[s].valueReference for s in out_names])
+            self.in_buf = (ctypes.c_double * nin)()
+            self.out_buf = (ctypes.c_double * nout)()
+            self.nin, self.nout = nin, nout
+            # numpy views of the ctypes buffers (no copies in the stepping loop)
+            self.u = np.ctypeslib.as_array(self.in_buf)
+            self.y = np.ctypeslib.as_array(self.out_buf)
+        except BaseException:
+            self.close()
+            raise
+
+    def _initialize(self, variables, start):
+        fmu = self.fmu
+        fmu.setupExperiment(startTime=0.0)
+        if start:
+            fmu.setReal([variables[k].valueReference for k in start], list(start.values()))
+        fmu.enterInitializationMode()
+        fmu.exitInitializationMode()
+
+    def _call(self, what, fn, *args):
+        mark = len(self.messages)
+        try:
+            return fn(*args)
+        except Exception as exc:
+            new = self.messages[mark:] or self.messages[-1:]
+            raise CosimError(f"FMU {self.path.name}: {what} failed: "
+                             f"{' '.join(new) or 'no message from the FMU'} ({exc})") from None
+
+    def close(self):
+        fmu, self.fmu = self.fmu, None
+        if fmu is not None:
+            if self._instantiated:
+                try:
+                    fmu.terminate()
+                except Exception:
+                    pass
+                try:
+                    fmu.freeInstance()          # also unloads the library
+                except Exception:
+                    pass
+            else:
+                try:
+                    fmu.freeLibrary()
+                except Exception:
+                    pass
+        if self._unzipdir:
+            shutil.rmtree(self._unzipdir, ignore_errors=True)
+            self._unzipdir = None
+
+
+# ----------------------------------------------------------------------------- helpers
+def _steps(t_end, H, what="comm_step"):
+    t_end, H = float(t_end), float(H)
+    if not (math.isfinite(t_end) and t_end > 0):
+        raise ValueError(f"t_end must be a finite number > 0, got {t_end!r}")
+    if not (math.isfinite(H) and H > 0):
+        raise ValueError(f"{what} must be a finite number > 0, got {H!r}")
+    N = int(round(t_end / H))
+    if N < 1 or abs(N * H - t_end) > 1e-9 * max(1.0, t_end):
+        raise ValueError(f"t_end = {t_end:g} s must be a whole number of communication steps "
+                         f"{what} = {H:g} s (t_end / {what} = {t_end / H:.6g})")
+    return N
+
+
+def _initial_state(model, config):
+    """q0, dq0 of the Python plant of closed_loop(law, model, **config) (same defaults)."""
+    n = model.n
+    q0 = config.get("q0")
+    if q0 is None:
+        q0 = [0.0, 0.3 * np.pi] if (model.name == "two-link" and n == 2) else np.zeros(n)
+    dq0 = config.get("dq0")
+    dq0 = np.zeros(n) if dq0 is None else dq0
+    out = []
+    for name, v in (("q0", q0), ("dq0", dq0)):
+        a = np.asarray(v, dtype=float).reshape(-1)
+        if a.size != n or not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} must be {n} finite numbers, got {v!r}")
+        out.append(a)
+    return out
+
+
+def _want_progress(progress):
+    if progress is None:
+        return sys.stderr.isatty() and not os.environ.get("CI")
+    return bool(progress)
+
+
+# ----------------------------------------------------------------------------- cosimulate
+def cosimulate(fmu_path, t_end, *, law="iv-drem", comm_step=1e-3, model=None,
+               engine="compiled", method="rk4", ctrl_step=DEFAULT_CTRL_STEP, rtol=1e-8,
+               atol=1e-10, fmu_substep=None, progress=None, desc=None, **config):
+    """Co-simulate the controller of ``law`` (ivdrem Simulator) with the plant FMU at ``fmu_path``.
+
+    Parameters
+    ----------
+    fmu_path : path-like
+        FMI 2.0 co-simulation FMU of the plant, e.g. from :func:`ivdrem.fmu.export_fmu`
+        (variables ``q[i]``, ``dq[i]`` outputs, ``tau[i]``, ``tau_d[i]`` inputs, parameters
+        named like the model's theta).
+    t_end : float
+        Horizon (s); a whole number of communication steps.
+    law : str
+        Composite term, as for :func:`ivdrem.diagrams.closed_loop`.
+    comm_step : float
+        Communication step ``H`` (s).  Coupling: explicit (Jacobi) sample-and-hold, see the
+        module docstring; the error against the all-Python loop is first order in ``H``.
+    model : EulerLagrangeModel, optional
+        Robot model (default :func:`ivdrem.models.two_link`); the FMU must have its ``n``.
+    engine : "compiled" (default) or "reference"
+        Controller simulator engine.
+    method : "rk4" (default) or "dp45"
+        Controller integrator.  RK4 takes ``ceil(H / ctrl_step)`` equal sub-steps per
+        communication step; DP45 uses ``rtol``, ``atol`` and lands on every ``t_k``.
+    fmu_substep : float, optional
+        The FMU's ``cs_substep`` (RK4 sub-step bound in ``fmi2DoStep``); default
+        ``min(FMU start value, H)``.  Must be ``<= H``.
+    progress : bool, optional
+        tqdm progress bar on stderr; default when stderr is a terminal.
+    **config
+        Keyword arguments of :func:`~ivdrem.diagrams.closed_loop` (gains, ``theta_hat0``,
+        trajectory, disturbance ...).  ``q0``, ``dq0`` (default: the Python plant's, i.e.
+        the paper's ``q(0) = (0, 0.3 pi)``, ``q'(0) = 0`` for the 2-link arm) and ``theta``
+        (true parameters, default ``model.theta_values``) are set on the FMU as start values
+        before initialization.
+
+    Returns
+    -------
+    ct.TimeResponseData
+        Samples at every communication point ``t_k = k H`` (``k = 0 .. N``), with the output
+        names of the all-Python ``closed_loop(law)``: ``q, dq, q_d, e, r, tau, tau_d,
+        tau_d_hat, theta_hat, mu`` (+ ``Delta, calY`` or ``lambda_min_held``).  ``tau`` and
+        ``tau_d`` at ``t_k`` are the values the FMU holds over ``[t_k, t_k + H]``.
+        ``.stats``: comm_step, comm_steps, fmu_substep, controller (Simulator stats), wall_s
+        (total), wall_loop_s (stepping loop), us_per_step (per communication step, first
+        step excluded).
+
+    Raises
+    ------
+    FileNotFoundError  the FMU file does not exist.
+    ValueError         not an FMU, no co-simulation interface, ``n`` differs from the model,
+                       bad ``comm_step`` / ``t_end`` / ``fmu_substep``.
+    CosimError         the FMU returned an error during the run (with its log message).
+    ivdrem.sim.SimulationError  the controller diverged (e.g. ``H`` too large).
+    """
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import two_link
+    from ivdrem.sim import Simulator, SimulationError
+
+    wall0 = _time.perf_counter()
+    path = Path(fmu_path)
+    md = _read_fmu(path)
+    model = two_link() if model is None else model
+    variables = _check_interface(path, md, model)
+    H = float(comm_step)
+    N = _steps(t_end, H)
+    n = model.n
+
+    # start values of the FMU: the Python plant's initial state and true parameters
+    q0, dq0 = _initial_state(model, config)
+    theta = config.get("theta")
+    theta = model.theta_values if theta is None else theta
+    theta = np.asarray(theta, dtype=float).reshape(-1)
+    if theta.size != model.ntheta or not np.all(np.isfinite(theta)):
+        raise ValueError(f"theta must be {model.ntheta} finite numbers, got {config['theta']!r}")
+    start = {f"q[{i}]": float(q0[i]) for i in range(n)}
+    start.update({f"dq[{i}]": float(dq0[i]) for i in range(n)})
+    start.update({nm: float(v) for nm, v in zip(model.theta_names, theta)})
+    if "cs_substep" in variables:
+        s0 = float(variables["cs_substep"].start or H)
+        sub = min(s0, H) if fmu_substep is None else float(fmu_substep)
+        if not (math.isfinite(sub) and 0 < sub <= H * (1 + 1e-12)):
+            raise ValueError(f"fmu_substep must be in (0, comm_step = {H:g}], got {fmu_substep!r}")
+        start["cs_substep"] = sub
+    elif fmu_substep is not None:
+        raise ValueError(f"{path}: the FMU has no parameter cs_substep")
+    else:
+        sub = float("nan")
+
+    # the controller: all blocks of the closed loop but the plant
+    ctrl_cfg = {k: v for k, v in config.items() if k not in ("q0", "dq0", "theta")}
+    ctrl = closed_loop(law, model, external_plant=True, **ctrl_cfg)
+    in_labels = list(ctrl.input_labels)            # q[0..n-1], dq[0..n-1]
+    if sorted(in_labels) != sorted([f"q[{i}]" for i in range(n)] + [f"dq[{i}]" for i in range(n)]):
+        raise ValueError(f"controller inputs {in_labels} are not q, dq")
+    c_labels = list(ctrl.output_labels)
+    fmu_in = [f"tau[{i}]" for i in range(n)] + [f"tau_d[{i}]" for i in range(n)]
+    take = [c_labels.index(s) for s in fmu_in]
+    # tau, tau_d are adjacent in closed_loop's outputs: copy a slice (no per-step allocation)
+    t_lo = take[0] if take == list(range(take[0], take[0] + len(take))) else None
+    take = np.array(take)
+    labels = in_labels + c_labels                  # = closed_loop(law).output_labels order
+    if method == "rk4":
+        h = H / max(1, math.ceil(H / float(ctrl_step) - 1e-9))
+    else:
+        h = min(H, float(ctrl_step))
+    sim = Simulator(ctrl, method=method, engine=engine, h=h, rtol=rtol, atol=atol)
+
+    ny = len(labels)
+    times = H * np.arange(N + 1)
+    times[-1] = float(t_end)
+    nq = len(in_labels)
+    Yp = np.full((N + 1, nq), np.nan)               # plant: q, dq from the FMU
+    Yc = np.full((N + 1, ny - nq), np.nan)          # controller outputs (C-contiguous rows,
+                                                    # the layout the compiled engine expects)
+    out_t = np.zeros(1)
+    out_x = np.zeros((1, 0))
+    show = _want_progress(progress)
+    bar = slave = None
+    every = max(1, N // 200)
+    wall_loop = 0.0
+    try:
+        if show:
+            from tqdm import tqdm
+            bar = tqdm(total=N, unit="step", file=sys.stderr, leave=False,
+                       desc=desc or f"co-sim {law} H={H:g}")
+        slave = _Slave(path, md, variables, start, fmu_in, in_labels)
+        fmu = slave.fmu
+        do_step, get_real, set_real = fmu.fmi2DoStep, fmu.fmi2GetReal, fmu.fmi2SetReal
+        comp = fmu.component
+        yp, up = slave.y, slave.u
+        out_vr, in_vr, out_buf, in_buf = slave.out_vr, slave.in_vr, slave.out_buf, slave.in_buf
+        t_loop = _time.perf_counter()
+        slave._call("fmi2GetReal", get_real, comp, out_vr, nq, out_buf)
+        for k in range(N):
+            tk = times[k]
+            Yp[k] = yp
+            # controller: inputs q(t_k), dq(t_k) held; record its outputs at t_k (before
+            # stepping, with these inputs), then integrate to t_{k+1}
+            out_t[0] = tk
+            sim.advance(times[k + 1], u=yp, out_t=out_t, out_y=Yc[k:k + 1], out_x=out_x)
+            # plant: tau(t_k), tau_d(t_k) held over [t_k, t_{k+1}]
+            if t_lo is not None:
+                up[:] = Yc[k, t_lo:t_lo + 2 * n]
+            else:
+                np.take(Yc[k], take, out=up)
+            try:
+                set_real(comp, in_vr, slave.nin, in_buf)
+                do_step(comp, tk, times[k + 1] - tk, 1)
+                get_real(comp, out_vr, nq, out_buf)
+            except Exception as exc:
+                raise CosimError(f"FMU {path.name}: step at t = {tk:.6g} s failed: "
+                                 f"{' '.join(slave.messages[-3:]) or 'no message'} ({exc})") \
+                    from None
+            if bar is not None and (k + 1) % every == 0:
+                bar.update(every)
+            if k == 0:      # the first step loads the compiled code: not in the per-step time
+                t_loop1 = _time.perf_counter()
+        # last sample: plant outputs at t_N, controller outputs with them
+        Yp[N] = yp
+        out_t[0] = times[N]
+        sim.advance(times[N], u=yp, out_t=out_t, out_y=Yc[N:N + 1], out_x=out_x)
+        t_done = _time.perf_counter()
+        wall_loop = t_done - t_loop
+        us_step = 1e6 * (t_done - t_loop1) / max(1, N - 1)
+    except (SimulationError, CosimError) as exc:
+        t_fail = sim.t
+        raise type(exc)(f"co-simulation with comm_step H = {H:g} s failed near t = "
+                        f"{t_fail:.6g} s: {exc} -- The explicit coupling is only stable while H "
+                        f"is well below the fastest closed-loop time constant (about m_min / "
+                        f"(lambda_max(K) + delta_mu mu(t)), which shrinks as mu grows): use a "
+                        f"smaller comm_step for long runs.") from exc
+    finally:
+        if bar is not None:
+            bar.close()
+        if slave is not None:
+            slave.close()                           # terminate, freeInstance, remove files
+        sim.close()
+    Y = np.concatenate([Yp, Yc], axis=1)
+    resp = ct.TimeResponseData(times, Y.T, None, None, output_labels=labels,
+                               sysname=f"cosim[{law}]", issiso=False)
+    resp.stats = {"comm_step": H, "comm_steps": N, "fmu_substep": sub,
+                  "controller": sim.stats_dict(), "wall_loop_s": wall_loop,
+                  "wall_s": _time.perf_counter() - wall0,
+                  "us_per_step": us_step}
+    return resp
+
+
+# ----------------------------------------------------------------------------- comparison
+@dataclass
+class CosimComparison:
+    """Result of :func:`compare_to_python`.
+
+    ``errors[signal][i]``: max over time and components of |co-sim - Python| at
+    ``comm_steps[i]``; ``orders[signal][i]``: observed order between ``comm_steps[i]`` and
+    ``comm_steps[i + 1]`` = log(err_i / err_{i+1}) / log(H_i / H_{i+1}).
+    """
+    law: str
+    t_end: float
+    comm_steps: tuple
+    signals: tuple
+    errors: dict
+    orders: dict
+    reference: object = field(repr=False)
+    results: list = field(repr=False)
+    wall: dict = field(default_factory=dict)
+    expected_order: tuple = EXPECTED_ORDER
+
+    @property
+    def ok(self) -> bool:
+        lo, hi = self.expected_order
+        return all(np.all(np.isfinite(self.errors[s])) for s in self.signals) and \
+            all(lo <= o <= hi for s in self.signals for o in self.orders[s])
+
+    def table(self) -> str:
+        rows = [("signal", "H [s]", "max |co-sim - Python|", "order")]
+        for s in self.signals:
+            for i, H in enumerate(self.comm_steps):
+                o = "" if i == 0 else f"{self.orders[s][i - 1]:.2f}"
+                rows.append((s if i == 0 else "", f"{H:.4g}", f"{self.errors[s][i]:.3e}", o))
+        w = [max(len(r[j]) for r in rows) for j in range(4)]
+        line = "  ".join("-" * x for x in w)
+        out = []
+        for i, r in enumerate(rows):
+            out.append(f"{r[0]:<{w[0]}}  {r[1]:>{w[1]}}  {r[2]:>{w[2]}}  {r[3]:>{w[3]}}")
+            if i == 0:
+                out.append(line)
+        return "\n".join(out)
+
+    def verdict(self) -> str:
+        lo, hi = self.expected_order
+        allo = [o for s in self.signals for o in self.orders[s]]
+        rng = f"{min(allo):.2f}..{max(allo):.2f}" if allo else "n/a"
+        if self.ok:
+            return (f"OK: the co-simulation converges to the all-Python closed loop at first "
+                    f"order in H (observed orders {rng}, expected {lo}..{hi} for "
+                    f"sample-and-hold coupling)")
+        return (f"CHECK: observed orders {rng} outside the expected {lo}..{hi} for "
+                f"sample-and-hold coupling (or non-finite errors)")
+
+    def __str__(self):
+        return self.table() + "\n" + self.verdict()
+
+
+def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="iv-drem",
+                      model=None, engine="compiled", ref_method="rk4", ref_h=None,
+                      ref_rtol=1e-11, ref_atol=1e-13, signals=COMPARED_SIGNALS,
+                      progress=None, **config):
+    """Co-simulate at each communication step and compare with the all-Python closed loop.
+
+    The reference is ``simulate(closed_loop(law, model, **config), t_end, method="rk4",
+    h=ref_h)`` (default ``ref_h`` = the smallest communication step; RK4's error,
+    ``O(h^4)``, is then orders of magnitude below the coupling error) or, with
+    ``ref_method="dp45"``, error-controlled with ``ref_rtol``, ``ref_atol``.  It is sampled at
+    the smallest communication step; every step in ``comm_steps`` must be a whole multiple of
+    it, and ``t_end`` a whole multiple of every step.
+
+    For each signal in ``signals`` (default q, theta_hat, tau_d_hat) the result holds the max
+    abs difference over the run (all components, all communication points) and the observed
+    order of convergence between successive steps, ``log(e_i / e_{i+1}) / log(H_i / H_{i+1})``
+    (``log2`` of the error ratio for halvings).
+
+    What to expect: the explicit sample-and-hold (zero-order hold) coupling holds each side's
+    inputs at their value at ``t_k`` over ``[t_k, t_k + H]``, an ``O(H)`` perturbation of
+    the continuous closed loop, so the global error is ``O(H)``: the error should roughly
+    halve when ``H`` halves, observed order close to 1 (accepted range
+    :data:`EXPECTED_ORDER` = 0.7 .. 1.5).  The integrators (RK4 in the FMU and the
+    controller, reference RK4 at the finest ``H``) are fourth order and do not show.
+    """
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import two_link
+    from ivdrem.sim import simulate
+
+    model = two_link() if model is None else model
+    comm_steps = tuple(float(H) for H in comm_steps)
+    if not comm_steps:
+        raise ValueError("comm_steps must not be empty")
+    h_min = min(comm_steps)
+    strides = []
+    for H in comm_steps:
+        _steps(t_end, H)
+        r = H / h_min
+        if not (h_min > 0 and abs(r - round(r)) < 1e-9 * r):
+            raise ValueError(f"communication step {H:g} is not a whole multiple of the "
+                             f"smallest one, {h_min:g}")
+        strides.append(int(round(r)))
+    # signals must exist in the result (checked on the full diagram's labels)
+    full = closed_loop(law, model, **config)
+    labels = list(full.output_labels)
+    idx = {}
+    for s in signals:
+        cols = [i for i, lab in enumerate(labels) if lab == s or lab.startswith(s + "[")]
+        if not cols:
+            names = sorted({lab.split("[")[0] for lab in labels})
+            raise ValueError(f"unknown signal {s!r}; outputs are {', '.join(names)}")
+        idx[s] = cols
+
+    show = _want_progress(progress)
+    wall = {}
+    t0 = _time.perf_counter()
+    if ref_method == "rk4":
+        h = h_min if ref_h is None else float(ref_h)
+        r = h_min / h if h > 0 else math.nan
+        if not (math.isfinite(h) and h > 0 and abs(r - round(r)) < 1e-9 * max(1.0, r)):
+            raise ValueError(f"ref_h = {h:g} s must divide the smallest communication step "
+                             f"{h_min:g} s (the reference is sampled there)")
+        ref = simulate(full, t_end, method="rk4", h=h, dt_out=h_min, engine=engine,
+                       return_states=False, progress=show, desc=f"Python {law}")
+    elif ref_method == "dp45":
+        ref = simulate(full, t_end, method="dp45", rtol=ref_rtol, atol=ref_atol,
+                       dt_out=h_min, engine=engine, return_states=False, progress=show,
+                       desc=f"Python {law}")
+    else:
+        raise ValueError(f"ref_method must be 'rk4' or 'dp45', got {ref_method!r}")
+    wall["python"] = _time.perf_counter() - t0
+    Yref = np.asarray(ref.outputs)
+    results = []
+    errors = {s: np.zeros(len(comm_steps)) for s in signals}
+    for i, H in enumerate(comm_steps):
+        t0 = _time.perf_counter()
+        res = cosimulate(fmu_path, t_end, law=law, comm_step=H, model=model, engine=engine,
+                         progress=show, **config)
+        wall[f"cosim H={H:g}"] = _time.perf_counter() - t0
+        if list(res.output_labels) != labels:
+            raise RuntimeError(f"co-simulation outputs {res.output_labels} differ from the "
+                               f"closed loop's {labels}")  # pragma: no cover
+        Yc = np.asarray(res.outputs)
+        Yr = Yref[:, ::strides[i]]
+        if Yr.shape != Yc.shape:  # pragma: no cover - guarded by _steps
+            raise RuntimeError(f"sample mismatch {Yr.shape} vs {Yc.shape}")
+        for s in signals:
+            errors[s][i] = float(np.max(np.abs(Yc[idx[s]] - Yr[idx[s]])))
+        results.append(res)
+    orders = {}
+    for s in signals:
+        e = errors[s]
+        orders[s] = np.array([
+            math.log(e[i] / e[i + 1]) / math.log(comm_steps[i] / comm_steps[i + 1])
+            if e[i] > 0 and e[i + 1] > 0 and comm_steps[i] != comm_steps[i + 1] else math.nan
+            for i in range(len(comm_steps) - 1)])
+    return CosimComparison(law=law, t_end=float(t_end), comm_steps=comm_steps,
+                           signals=tuple(signals), errors=errors, orders=orders,
+                           reference=ref, results=results, wall=wall)
