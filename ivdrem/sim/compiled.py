@@ -192,8 +192,12 @@ def generate_source(plan):
         return kernels[(fn.__module__, fn.__qualname__,
                         b.spec.model.key if b.spec.model else None)]
 
+    # all parameters live in one flat float64 vector P (shapes are baked into the code, the
+    # values are not: changing a gain does not recompile); structural constants are literals
+    playout = _param_layout(plan)
+
     def pargs(b):
-        return "".join(f", P[{b.index}][{i}]" for i in range(len(b.spec.param_names)))
+        return "".join(", " + a for a in playout[b.index][0])
 
     def sl(s):
         return f"{s.start}:{s.stop}"
@@ -216,8 +220,8 @@ def generate_source(plan):
                          f"ys[{sl(b.y)}]{pargs(b)})")
         elif spec.kind == "delay":
             dl = next(x for x in plan.delays if x["block"] == k)
-            lines.append(f"    hist_lookup(W, t - P[{k}][0], {dl['off']}, {dl['size']}, "
-                         f"ys[{sl(b.y)}])")
+            lines.append(f"    hist_lookup(W, t - {playout[k][0][0]}, {dl['off']}, "
+                         f"{dl['size']}, ys[{sl(b.y)}])")
         else:
             hd = next(x for x in plan.holds if x["block"] == k)
             y0 = b.y.start
@@ -253,7 +257,7 @@ def generate_source(plan):
                 lines.append(f"        copy_into(dv, {a}, us, {dl['du']}, {s})")
             else:
                 lines.append(f"        for _i in range({a}, {a + s}):\n            est[_i] = 1")
-            tmax.append(f"P[{dl['block']}][0]")
+            tmax.append(playout[dl["block"]][0][0])
         lines += ["        st = hist_push(W, t, v, dv, est)", "        if st != OK:",
                   "            return st",
                   f"        hist_trim(W, t - max({', '.join(tmax + ['0.0'])}))"]
@@ -261,7 +265,7 @@ def generate_source(plan):
     for hd in plan.holds:
         lines.append(f"        upd |= hold_update(W, {hd['k']}, {hd['off']}, {hd['size']}, "
                      f"{hd['nvec']}, {hd['nmat']}, us[{hd['u']}:{hd['u'] + hd['size']}], "
-                     f"P[{hd['block']}][0])")
+                     f"{playout[hd['block']][0][0]})")
     lines.append("        return HOLD_UPDATED if upd else OK")
 
     # mode RECORD: diagram outputs (output_map over [block outputs, block inputs])
@@ -281,6 +285,59 @@ def generate_source(plan):
     out.append(f"_JIT = {sorted(set(jit_names))!r}")
     out.append("for _n in _JIT:\n    globals()[_n] = njit(cache=True)(globals()[_n])\n")
     return "\n".join(out), list(deps.items())
+
+
+def _param_values(plan, b):
+    """The kernel arguments of block b, as _param_layout flattens them."""
+    if b.spec.kind == "ode":
+        return kernel_args(b.spec, plan.block_params(b))
+    if b.spec.kind == "delay":
+        return (float(next(x["T"] for x in plan.delays if x["block"] == b.index)),)
+    return (float(next(x["eps"] for x in plan.holds if x["block"] == b.index)),)
+
+
+def _param_layout(plan):
+    """Per block: (argument expressions into the flat vector P, values), and P's size."""
+    layout, off = {}, 0
+    for b in plan.blocks:
+        exprs, vals = [], _param_values(plan, b)
+        names = b.spec.param_names if b.spec.kind == "ode" else ("p",)
+        for name, v in zip(names, vals):
+            if b.spec.kind == "ode" and name in b.spec.constants:
+                exprs.append(repr(v))
+            elif np.ndim(v) == 0:
+                exprs.append(f"P[{off}]")
+                off += 1
+            elif np.ndim(v) == 1:
+                exprs.append(f"P[{off}:{off + v.size}]")
+                off += v.size
+            elif np.ndim(v) == 2:
+                r, c = v.shape
+                exprs.append(f"P[{off}:{off + r * c}].reshape(({r}, {c}))")
+                off += r * c
+            else:
+                raise CompileError(f"block '{b.sys.name}': parameter {name!r} has "
+                                   f"{np.ndim(v)} dimensions; the compiled path takes <= 2")
+        layout[b.index] = (exprs, vals)
+    layout["size"] = off
+    return layout
+
+
+def _flat_params(plan):
+    layout = _param_layout(plan)
+    P = np.zeros(layout["size"])
+    for b in plan.blocks:
+        exprs, vals = layout[b.index]
+        for e, v in zip(exprs, vals):
+            m = re.match(r"P\[(\d+)(?::(\d+))?\]", e)
+            if m is None:
+                continue            # a structural constant, baked into the code
+            a = int(m.group(1))
+            if m.group(2) is None:
+                P[a] = float(v)
+            else:
+                P[a:int(m.group(2))] = np.asarray(v, float).reshape(-1)
+    return P
 
 
 def _write(cdir, name, src):
@@ -330,15 +387,7 @@ class CompiledEngine:
         self.plan = plan
         self.source, self.deps = generate_source(plan)
         self.module = _load(self.source, self.deps)
-        P = []
-        for b in plan.blocks:
-            if b.spec.kind == "ode":
-                P.append(kernel_args(b.spec, plan.block_params(b)))
-            elif b.spec.kind == "delay":
-                P.append((float(next(x["T"] for x in plan.delays if x["block"] == b.index)),))
-            else:
-                P.append((float(next(x["eps"] for x in plan.holds if x["block"] == b.index)),))
-        self.P = tuple(P)
+        self.P = _flat_params(plan)
 
     def chunk(self, method, *args):
         fn = self.module.rk4_chunk if method == "rk4" else self.module.dp45_chunk
