@@ -18,12 +18,12 @@ from __future__ import annotations
 import ctypes
 import shutil
 import weakref
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import control as ct
+from ..fmu.describe import read_description
 
 __all__ = ["fmu_plant", "FmuPlantInfo"]
 
@@ -41,27 +41,8 @@ class FmuPlantInfo:
 
 
 def _read(path: Path):
-    """Model description of the FMU at ``path``; clear errors for missing or foreign files."""
-    from fmpy import read_model_description
-    if not path.exists():
-        raise FileNotFoundError(f"FMU file not found: {path}")
-    if path.is_file():
-        if not zipfile.is_zipfile(path):
-            raise ValueError(f"{path} is not an FMU (not a zip archive)")
-        with zipfile.ZipFile(path) as zf:
-            if "modelDescription.xml" not in zf.namelist():
-                raise ValueError(f"{path} is not an FMU (no modelDescription.xml in the archive)")
-    elif not (path / "modelDescription.xml").is_file():
-        raise ValueError(f"{path} is not an FMU (no modelDescription.xml in the directory)")
-    try:
-        md = read_model_description(str(path))
-    except Exception as exc:
-        raise ValueError(f"{path}: invalid modelDescription.xml: {exc}") from None
-    if md.fmiVersion != "2.0":
-        raise ValueError(f"{path}: FMI version {md.fmiVersion}, expected 2.0")
-    if md.modelExchange is None:
-        raise ValueError(f"{path}: the FMU does not support model exchange")
-    return md
+    """Model description of the FMU at ``path`` (model exchange); clear errors otherwise."""
+    return read_description(path, "model exchange")
 
 
 def _vector(name, value, n):

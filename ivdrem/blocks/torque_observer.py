@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
 from ._core import ParameterError
 
 _VARIANTS = {"corrected": 1.0, "literal": 0.0}

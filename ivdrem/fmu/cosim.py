@@ -52,12 +52,12 @@ import os
 import shutil
 import sys
 import time as _time
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import control as ct
+from .describe import read_description
 
 __all__ = ["cosimulate", "compare_to_python", "CosimComparison", "CosimError",
            "COMPARED_SIGNALS", "EXPECTED_ORDER"]
@@ -78,28 +78,8 @@ class CosimError(RuntimeError):
 
 # ----------------------------------------------------------------------------- FMU side
 def _read_fmu(path: Path):
-    """Model description of a co-simulation FMU; clear errors for missing / unsuitable files."""
-    from fmpy import read_model_description
-    if not path.exists():
-        raise FileNotFoundError(f"FMU file not found: {path}")
-    if path.is_file():
-        if not zipfile.is_zipfile(path):
-            raise ValueError(f"{path} is not an FMU (not a zip archive)")
-        with zipfile.ZipFile(path) as zf:
-            if "modelDescription.xml" not in zf.namelist():
-                raise ValueError(f"{path} is not an FMU (no modelDescription.xml in the archive)")
-    elif not (path / "modelDescription.xml").is_file():
-        raise ValueError(f"{path} is not an FMU (no modelDescription.xml in the directory)")
-    try:
-        md = read_model_description(str(path))
-    except Exception as exc:
-        raise ValueError(f"{path}: invalid modelDescription.xml: {exc}") from None
-    if md.fmiVersion != "2.0":
-        raise ValueError(f"{path}: FMI version {md.fmiVersion}, expected 2.0")
-    if md.coSimulation is None:
-        raise ValueError(f"{path}: the FMU does not support co-simulation (model exchange "
-                         "only); export it with ivdrem.fmu.export_fmu, which provides both")
-    return md
+    """Model description of the FMU at ``path`` (co-simulation); clear errors otherwise."""
+    return read_description(path, "co-simulation")
 
 
 def _check_interface(path, md, model):

@@ -150,12 +150,12 @@ def _validate_params(diagram, params):
     if not isinstance(params, dict):
         raise TypeError(f"params must be a dict, got {type(params).__name__}")
     known = set()
-    for sys in diagram.syslist:
-        known |= set(sys.params)
-        spec = getattr(sys, "ivdrem", None)
-        relevant = {k: v for k, v in params.items() if k in sys.params}
+    for block in diagram.syslist:
+        known |= set(block.params)
+        spec = getattr(block, "ivdrem", None)
+        relevant = {k: v for k, v in params.items() if k in block.params}
         if relevant and spec is not None and spec.validate is not None:
-            spec.validate({**sys.params, **relevant})
+            spec.validate({**block.params, **relevant})
     unknown = set(params) - known
     if unknown:
         raise ValueError(f"unknown parameter(s) {sorted(unknown)}; the diagram's blocks "
