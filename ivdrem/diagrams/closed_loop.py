@@ -5,7 +5,6 @@ import numpy as np
 import control as ct
 
 from .. import blocks as B
-from ..blocks._core import ParameterError
 
 __all__ = ["closed_loop", "LAWS", "assemble", "check_connected"]
 
