@@ -347,7 +347,29 @@ def test_cli_arguments_defaults():
         parse(["--engine", "turbo"])
 
 
-def test_cli_runs_and_writes(fake_paper, tmp_path, capsys, text_only):
+@pytest.fixture
+def fake_fmu_check(monkeypatch):
+    """The FMU co-simulation check (exercised for real in test_cosim.py), faked."""
+    import ivdrem.reports.cli as rcli
+
+    class _Cmp:
+        def table(self):
+            return "signal  H  err  order"
+
+        def verdict(self):
+            return "OK: first order"
+    rows = {"q, H = 0.001 s": {"max |co-sim − Python|": 3.0e-3, "observed order": ""},
+            "q, H = 0.0005 s": {"max |co-sim − Python|": 1.5e-3, "observed order": "1.00"}}
+    calls = []
+
+    def fake(config, t_end=10.0, **kw):
+        calls.append(t_end)
+        return rows, _Cmp()
+    monkeypatch.setattr(rcli, "fmu_check", fake)
+    return calls
+
+
+def test_cli_runs_and_writes(fake_paper, fake_fmu_check, tmp_path, capsys, text_only):
     cfg = tmp_path / "my.toml"
     cfg.write_text("[controller]\nK = [3.0, 3.0]\n")
     out = tmp_path / "out"
@@ -362,6 +384,15 @@ def test_cli_runs_and_writes(fake_paper, tmp_path, capsys, text_only):
     assert str(out / "ivdrem-paper.html") in printed and str(out / "ivdrem-paper.pdf") in printed
     assert "C1" in printed and "C3" in printed and "PASS" in printed
     assert (out / "ivdrem-paper.html").exists() and (out / "ivdrem-paper.pdf").exists()
+    assert fake_fmu_check == [10.0]
+    html = (out / "ivdrem-paper.html").read_text()
+    assert "q, H = 0.0005 s" in html and "1.00" in html
+
+
+def test_cli_no_fmu_check(fake_paper, fake_fmu_check, tmp_path, text_only):
+    args = parse(["--out", str(tmp_path / "o"), "--t-end", "30", "--quiet", "--no-fmu-check"])
+    assert run_report_command(args) == 0
+    assert fake_fmu_check == []
 
 
 @pytest.mark.parametrize("text, argv, message", [
