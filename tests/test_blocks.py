@@ -128,11 +128,9 @@ def test_plain_transport_delay_order():
     assert min(ratios) >= 4.0, (errs, ratios)
 
 
-@pytest.mark.xfail(strict=True, reason="BUG: transport_delay without a derivative gives the "
-                   "first history point slope 0 and the second a 2-point slope, so u(t-T) "
-                   "on [t0+T, t0+T+2h] is only first order (error ~ h|u'(t0)|/8) instead "
-                   "of the documented third order")
 def test_plain_transport_delay_startup_is_third_order():
+    """Regression: the first two history points once had slopes 0 and a 2-point slope, so
+    u(t-T) was first order on [t0+T, t0+T+2h]; they now get the quadratic's slopes."""
     h0 = 4e-3
     T = 0.7 + h0 / 3
     errs = []
@@ -445,10 +443,8 @@ def test_mixing_bounded_for_any_scale(args):
 
 
 @pytest.mark.filterwarnings("ignore:overflow encountered")
-@pytest.mark.xfail(strict=True, reason="BUG: mixing_output forms ||Psi||_F as sqrt(sum of "
-                   "squares), which overflows to inf for entries above ~1e154; Psi_n then "
-                   "becomes 0 and Delta = 0 although det(Psi/(1+||Psi||)) is scale-free")
 def test_mixing_huge_psi_keeps_delta():
+    """Regression: ||Psi||_F as a plain sum of squares overflowed above ~1e154."""
     Psi = 1e160 * np.eye(5)
     D, calY = run_mixing(Psi @ np.ones(5), Psi)
     assert D == pytest.approx(5.0 ** -2.5, rel=1e-9)

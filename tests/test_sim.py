@@ -288,12 +288,9 @@ def test_singular_inertia_raises(engine):
 
 @pytest.mark.parametrize("engine", [
     "compiled",
-    pytest.param("reference", marks=pytest.mark.xfail(strict=True, reason=(
-        "BUG: on the reference engine a NaN stage state (any kernel producing NaN) reaches "
-        "python-control's static-I/O fixed-point loop, which never converges on NaN and "
-        "raises RuntimeError('algebraic loop detected'); Simulator._chunk does not catch "
-        "RuntimeError, so the user gets a misleading error instead of SimulationError "
-        "naming the time and the state")))])
+    # regression: on the reference engine a NaN used to surface as python-control's
+    # "algebraic loop detected" instead of a SimulationError naming the time and state
+    "reference"])
 def test_nan_state_is_reported(engine):
     """A kernel producing NaN stops the run with the state named (not NaNs in the result)."""
     with pytest.raises(SimulationError, match=r"lab_source\.blow\[0\] is (np\.float64\()?nan"):

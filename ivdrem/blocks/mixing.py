@@ -18,10 +18,15 @@ def mixing_output(t, x, u, y, ntheta):
     # inputs   u = [Y (nθ), Psi (nθ*nθ row-major)]
     # outputs  y = [Delta, calY (nθ)]
     nn = ntheta * ntheta
-    ss = 0.0
+    big = 0.0
     for k in range(nn):
-        ss += u[ntheta + k] * u[ntheta + k]
-    s = 1.0 + math.sqrt(ss)                              # 1 + ||Psi||_F
+        big = max(big, abs(u[ntheta + k]))
+    ss = 0.0
+    if big > 0.0:
+        for k in range(nn):
+            r = u[ntheta + k] / big                      # scaled: no overflow for huge Psi
+            ss += r * r
+    s = 1.0 + big * math.sqrt(ss)                        # 1 + ||Psi||_F
     Pn = np.empty((ntheta, ntheta))
     for i in range(ntheta):
         for j in range(ntheta):

@@ -40,6 +40,13 @@ def hist_index(meta, i):
     return (meta[0] + i) % meta[2]
 
 
+def quad_slope(ta, va, tb, vb, tc, vc):
+    """Slope at ta of the quadratic through (ta, va), (tb, vb), (tc, vc)."""
+    return (va * (2.0 * ta - tb - tc) / ((ta - tb) * (ta - tc))
+            + vb * (ta - tc) / ((tb - ta) * (tb - tc))
+            + vc * (ta - tb) / ((tc - ta) * (tc - tb)))
+
+
 def hist_push(W, t, v, d, estimate_slope):
     """Append an accepted point (t, v, dv/dt).  Where no derivative is wired
     (estimate_slope[j] = 1) the slope comes from a quadratic through the last 3 points."""
@@ -74,15 +81,14 @@ def hist_push(W, t, v, d, estimate_slope):
     if cnt >= 3:
         k1 = hist_index(meta, cnt - 2)
         k2 = hist_index(meta, cnt - 3)
-        t0 = t
-        t1 = ht[k1]
-        t2 = ht[k2]
-        w0 = (2.0 * t0 - t1 - t2) / ((t0 - t1) * (t0 - t2))
-        w1 = (t0 - t2) / ((t1 - t0) * (t1 - t2))
-        w2 = (t0 - t1) / ((t2 - t0) * (t2 - t1))
         for j in range(nd):
             if estimate_slope[j] == 1:
-                hd[k, j] = w0 * v[j] + w1 * hv[k1, j] + w2 * hv[k2, j]
+                hd[k, j] = quad_slope(t, v[j], ht[k1], hv[k1, j], ht[k2], hv[k2, j])
+                if cnt == 3:
+                    # the first two points got provisional slopes: now that three points
+                    # exist, give them the quadratic's slopes too (third order from t0 on)
+                    hd[k1, j] = quad_slope(ht[k1], hv[k1, j], t, v[j], ht[k2], hv[k2, j])
+                    hd[k2, j] = quad_slope(ht[k2], hv[k2, j], t, v[j], ht[k1], hv[k1, j])
     elif cnt == 2:
         k1 = hist_index(meta, 0)
         for j in range(nd):

@@ -78,7 +78,15 @@ class ReferenceEngine:
         return T.OK
 
     def _rhs(self, t, x, P, W, dx):
-        dx[:] = self.plan.diagram._rhs(t, x, W[8])
+        try:
+            dx[:] = self.plan.diagram._rhs(t, x, W[8])
+        except RuntimeError as e:
+            # The plan has already shown the diagram has no algebraic loop, so python-control's
+            # fixed-point sweep failing to settle means a NaN in a signal (NaN != NaN): return
+            # NaN like the compiled path, and the step control reports the divergence.
+            if "algebraic loop" not in str(e):
+                raise
+            dx[:] = np.nan
 
     def _after_step(self, t, x, P, W):
         plan = self.plan
@@ -345,10 +353,10 @@ class Simulator:
         if st == T.DIVERGED:
             i = int(self.stats[3])
             order = np.argsort(-np.nan_to_num(np.abs(self.x), nan=np.inf))[:5]
-            worst = ", ".join(f"{self.plan.state_owner(j)} = {self.x[j]:.3g}" for j in order)
+            worst = ", ".join(f"{self.plan.state_owner(j)} = {float(self.x[j]):.3g}" for j in order)
             raise SimulationError(
                 f"simulation diverged at t = {self.t:.6g} s: state "
-                f"{self.plan.state_owner(i)} is {self.x[i]!r} (limit {self.x_limit:g}); "
+                f"{self.plan.state_owner(i)} is {float(self.x[i])!r} (limit {self.x_limit:g}); "
                 f"largest states: {worst}. The closed loop may be unstable for these gains, "
                 f"or the step too large for the stiffness mu(t) reaches "
                 f"(method {self.method}, h = {self.tf[1]:.3g}).")
