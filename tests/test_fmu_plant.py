@@ -156,3 +156,45 @@ def test_cleanup(fmus):
     del sys
     gc.collect()
     assert not os.path.exists(d)
+
+
+def test_freed_wrappers_leave_fmpy_logging_intact(fmus, tmp_path):
+    """Regression (a segfault seen in CI): fmpy's native logger proxy keeps the last logger
+    registered with addLoggerProxy in one global; wrappers that registered their own
+    short-lived Python logger left it dangling, and the next FMU that logged an error
+    through fmpy's default callbacks crashed the process.  Run that sequence in a
+    subprocess: create and free an fmu_plant, then make a default-callback FMU log."""
+    import subprocess
+    import sys
+    import textwrap
+    _, path = fmus["two-link"]
+    script = textwrap.dedent(f"""
+        import gc
+        from fmpy import read_model_description, extract
+        from fmpy.fmi2 import FMU2Slave
+        from fmpy.fmi1 import FMICallException
+        from ivdrem.blocks.fmu_plant import fmu_plant
+        for _ in range(3):
+            blk = fmu_plant({str(path)!r})
+            del blk
+            gc.collect()
+        md = read_model_description({str(path)!r})
+        d = extract({str(path)!r}, unzipdir={str(tmp_path / 'unz')!r})
+        s = FMU2Slave(guid=md.guid, unzipDirectory=d,
+                      modelIdentifier=md.coSimulation.modelIdentifier, instanceName="x")
+        s.instantiate()
+        s.setupExperiment(startTime=0.0)
+        s.enterInitializationMode()
+        s.exitInitializationMode()
+        for _ in range(50):
+            try:
+                s.deSerializeFMUstate(b"\\0" * 64)     # an error, logged by the FMU
+            except FMICallException:
+                pass
+        print("survived")
+    """)
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
+    assert "survived" in p.stdout
+    assert "not a serialized state" in p.stdout     # fmpy printed the FMU's whole message

@@ -138,18 +138,17 @@ def fmu_plant(path, name="plant", q0=None, dq0=None, params=None):
     messages = []
 
     def log(env, instance, status, category, message):
-        messages.append(message.decode("utf-8", "replace"))
+        # ivdrem's FMUs pass complete text with '%' doubled (printf-safe): undo that
+        messages.append(message.decode("utf-8", "replace").replace("%%", "%"))
         del messages[:-100]
 
+    # No fmpy.logging.addLoggerProxy here: its native proxy keeps the last registered
+    # Python logger in one global, which dangles once these callbacks are freed and then
+    # crashes every FMU in the process that logs through the proxy.
     callbacks = fmi2CallbackFunctions()
     callbacks.logger = fmi2CallbackLoggerTYPE(log)
     callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
     callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
-    try:
-        from fmpy.logging import addLoggerProxy
-        addLoggerProxy(ctypes.byref(callbacks))  # formats the printf-style messages
-    except Exception:  # pragma: no cover - the proxy ships with fmpy
-        pass
 
     try:
         fmu = FMU2Model(guid=md.guid, unzipDirectory=unzipdir,

@@ -122,18 +122,17 @@ class _Slave:
         self._unzipdir = extract(str(path)) if path.is_file() else None
         try:
             def log(env, instance, status, category, message):
-                self.messages.append(message.decode("utf-8", "replace"))
+                # ivdrem's FMUs pass complete text with '%' doubled (printf-safe)
+                self.messages.append(message.decode("utf-8", "replace").replace("%%", "%"))
                 del self.messages[:-100]
 
+            # No fmpy.logging.addLoggerProxy: its native proxy keeps the last registered
+            # Python logger in one global, which dangles once these callbacks are freed and
+            # then crashes any FMU in the process that logs through the proxy.
             cb = fmi2CallbackFunctions()
             cb.logger = fmi2CallbackLoggerTYPE(log)
             cb.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
             cb.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
-            try:
-                from fmpy.logging import addLoggerProxy
-                addLoggerProxy(ctypes.byref(cb))    # formats printf-style messages
-            except Exception:  # pragma: no cover - ships with fmpy
-                pass
             self._callbacks = (cb, log)             # keep alive while the FMU runs
             try:
                 self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=self._unzipdir or str(path),

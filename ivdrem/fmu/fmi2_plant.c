@@ -100,15 +100,23 @@ typedef struct {
 /* ---------------------------------------------------------------- logging */
 
 static void logMessage(Instance *S, fmi2Status status, const char *category, const char *fmt, ...) {
-    char buf[1024];
+    char buf[1024], msg[2048];
+    size_t i, j;
     va_list args;
     if (!S || !S->logger) return;
     if (status == fmi2OK && !S->logEvents) return; /* errors are always reported */
     va_start(args, fmt);
     vsnprintf(buf, sizeof(buf), fmt, args);
     va_end(args);
-    /* the logger's message is a printf format: pass the text as an argument */
-    S->logger(S->env, S->instanceName, status, category, "%s", buf);
+    /* The message is complete text, with '%' doubled because the logger may treat it as a
+       printf format.  No variadic arguments: importers whose logger cannot read them (a
+       ctypes callback, say) still get the whole message. */
+    for (i = 0, j = 0; buf[i] && j + 2 < sizeof(msg); i++) {
+        if (buf[i] == '%') msg[j++] = '%';
+        msg[j++] = buf[i];
+    }
+    msg[j] = '\0';
+    S->logger(S->env, S->instanceName, status, category, msg);
 }
 
 #define logError(S, ...) logMessage(S, fmi2Error, "logStatusError", __VA_ARGS__)
