@@ -19,16 +19,6 @@ def matT_vec(A, x, out):
 
 
 @njit(cache=True)
-def mat_vec(A, x, out):
-    m, k = A.shape
-    for i in range(m):
-        s = 0.0
-        for j in range(k):
-            s += A[i, j] * x[j]
-        out[i] = s
-
-
-@njit(cache=True)
 def matT_mat(A, B, out):
     """out = A^T B for A (m, k), B (m, l): zeta phi^T from the stored n x nθ forms."""
     m, k = A.shape
@@ -81,10 +71,3 @@ def det_adj(A, adj):
         for j in range(n):
             adj[i, j] = sign * Mk[i, j]
     return -sign * c
-
-
-@njit(cache=True)
-def lambda_min_sym(A):
-    """Smallest eigenvalue of the symmetric part of A."""
-    S = 0.5 * (A + A.T)
-    return np.linalg.eigvalsh(S)[0]
