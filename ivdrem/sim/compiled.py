@@ -28,7 +28,6 @@ import inspect
 import os
 import re
 import sys
-import tempfile
 import textwrap
 from pathlib import Path
 
@@ -36,6 +35,7 @@ import numpy as np
 
 from .. import __version__
 from ..blocks import _kernels
+from .._atomic import write_text_atomic
 from ..blocks._core import kernel_args
 from . import _template
 
@@ -143,13 +143,16 @@ def _fill_inputs(plan, indices, ny, lines, ind="    "):
     lines += other
 
 
-def generate_source(plan):
+def generate_source(plan, param_exprs=None):
     """Source of the diagram module and of the model/kernel modules it imports.
+
+    `param_exprs` is the first half of ``_param_layout(plan)``, if already computed.
 
     Returns (diagram source, [(module name, source), ...] in import order).  Kernels and
     model functions get modules of their own, shared by every diagram that uses them, so
     numba compiles each once (and caches it), not once per diagram.
     """
+    _check_kernels(plan)
     d = plan.diagram
     ny = sum(b.sys.noutputs for b in plan.blocks)
     deps = {}                      # module name -> source, in dependency order
@@ -157,10 +160,6 @@ def generate_source(plan):
     imports = []
     for b in plan.blocks:
         spec = b.spec
-        if spec is None:
-            raise CompileError(f"block '{b.sys.name}' is a plain nlsys without ivdrem kernels; "
-                               "the compiled path cannot run it. Use engine='reference' (slow "
-                               "but general), or declare the block with ivdrem.blocks.BlockSpec.")
         if spec.kind != "ode":
             continue
         mmod = None
@@ -194,10 +193,10 @@ def generate_source(plan):
 
     # all parameters live in one flat float64 vector P (shapes are baked into the code, the
     # values are not: changing a gain does not recompile); structural constants are literals
-    playout = _param_layout(plan)
+    playout = _param_layout(plan)[0] if param_exprs is None else param_exprs
 
     def pargs(b):
-        return "".join(", " + a for a in playout[b.index][0])
+        return "".join(", " + a for a in playout[b.index])
 
     def sl(s):
         return f"{s.start}:{s.stop}"
@@ -220,7 +219,7 @@ def generate_source(plan):
                          f"ys[{sl(b.y)}]{pargs(b)})")
         elif spec.kind == "delay":
             dl = next(x for x in plan.delays if x["block"] == k)
-            lines.append(f"    hist_lookup(W, t - {playout[k][0][0]}, {dl['off']}, "
+            lines.append(f"    hist_lookup(W, t - {playout[k][0]}, {dl['off']}, "
                          f"{dl['size']}, ys[{sl(b.y)}])")
         else:
             hd = next(x for x in plan.holds if x["block"] == k)
@@ -257,7 +256,7 @@ def generate_source(plan):
                 lines.append(f"        copy_into(dv, {a}, us, {dl['du']}, {s})")
             else:
                 lines.append(f"        for _i in range({a}, {a + s}):\n            est[_i] = 1")
-            tmax.append(playout[dl["block"]][0][0])
+            tmax.append(playout[dl["block"]][0])
         lines += ["        st = hist_push(W, t, v, dv, est)", "        if st != OK:",
                   "            return st",
                   f"        hist_trim(W, t - max({', '.join(tmax + ['0.0'])}))"]
@@ -265,7 +264,7 @@ def generate_source(plan):
     for hd in plan.holds:
         lines.append(f"        upd |= hold_update(W, {hd['k']}, {hd['off']}, {hd['size']}, "
                      f"{hd['nvec']}, {hd['nmat']}, us[{hd['u']}:{hd['u'] + hd['size']}], "
-                     f"{playout[hd['block']][0][0]})")
+                     f"{playout[hd['block']][0]})")
     lines.append("        return HOLD_UPDATED if upd else OK")
 
     # mode RECORD: diagram outputs (output_map over [block outputs, block inputs])
@@ -296,57 +295,51 @@ def _param_values(plan, b):
     return (float(next(x["eps"] for x in plan.holds if x["block"] == b.index)),)
 
 
-def _param_layout(plan):
-    """Per block: (argument expressions into the flat vector P, values), and P's size."""
-    layout, off = {}, 0
+def _check_kernels(plan):
     for b in plan.blocks:
-        exprs, vals = [], _param_values(plan, b)
+        if b.spec is None:
+            raise CompileError(f"block '{b.sys.name}' is a plain nlsys without ivdrem kernels; "
+                               "the compiled path cannot run it. Use engine='reference' (slow "
+                               "but general), or declare the block with ivdrem.blocks.BlockSpec.")
+
+
+def _param_layout(plan):
+    """The kernels' parameters in one flat float64 vector P.
+
+    Returns ({block index: [argument expression]}, P): arrays and floats become slices or
+    entries of P (with their shapes baked into the expressions), structural constants
+    become literals.
+    """
+    _check_kernels(plan)
+    exprs_by_block, values, off = {}, [], 0
+    for b in plan.blocks:
+        exprs = []
         names = b.spec.param_names if b.spec.kind == "ode" else ("p",)
-        for name, v in zip(names, vals):
+        for name, v in zip(names, _param_values(plan, b)):
             if b.spec.kind == "ode" and name in b.spec.constants:
                 exprs.append(repr(v))
-            elif np.ndim(v) == 0:
-                exprs.append(f"P[{off}]")
-                off += 1
-            elif np.ndim(v) == 1:
-                exprs.append(f"P[{off}:{off + v.size}]")
-                off += v.size
-            elif np.ndim(v) == 2:
-                r, c = v.shape
-                exprs.append(f"P[{off}:{off + r * c}].reshape(({r}, {c}))")
-                off += r * c
-            else:
+                continue
+            if np.ndim(v) > 2:
                 raise CompileError(f"block '{b.sys.name}': parameter {name!r} has "
                                    f"{np.ndim(v)} dimensions; the compiled path takes <= 2")
-        layout[b.index] = (exprs, vals)
-    layout["size"] = off
-    return layout
-
-
-def _flat_params(plan):
-    layout = _param_layout(plan)
-    P = np.zeros(layout["size"])
-    for b in plan.blocks:
-        exprs, vals = layout[b.index]
-        for e, v in zip(exprs, vals):
-            m = re.match(r"P\[(\d+)(?::(\d+))?\]", e)
-            if m is None:
-                continue            # a structural constant, baked into the code
-            a = int(m.group(1))
-            if m.group(2) is None:
-                P[a] = float(v)
+            flat = np.asarray(v, float).reshape(-1)
+            if np.ndim(v) == 0:
+                exprs.append(f"P[{off}]")
+            elif np.ndim(v) == 1:
+                exprs.append(f"P[{off}:{off + flat.size}]")
             else:
-                P[a:int(m.group(2))] = np.asarray(v, float).reshape(-1)
-    return P
+                exprs.append(f"P[{off}:{off + flat.size}].reshape({np.shape(v)!r})")
+            values.append(flat)
+            off += flat.size
+        exprs_by_block[b.index] = exprs
+    P = np.concatenate(values) if values else np.zeros(0)
+    return exprs_by_block, P
 
 
 def _write(cdir, name, src):
     path = cdir / f"{name}.py"
     if not path.exists() or path.read_text() != src:
-        fd, tmp = tempfile.mkstemp(dir=cdir, suffix=".py.tmp")
-        with os.fdopen(fd, "w") as f:
-            f.write(src)
-        os.replace(tmp, path)          # atomic: a concurrent process never sees half a file
+        write_text_atomic(path, src)   # a concurrent process never sees half a file
     return path
 
 
@@ -385,9 +378,9 @@ class CompiledEngine:
 
     def __init__(self, plan, params=None):
         self.plan = plan
-        self.source, self.deps = generate_source(plan)
+        param_exprs, self.P = _param_layout(plan)
+        self.source, self.deps = generate_source(plan, param_exprs)
         self.module = _load(self.source, self.deps)
-        self.P = _flat_params(plan)
 
     def chunk(self, method, *args):
         fn = self.module.rk4_chunk if method == "rk4" else self.module.dp45_chunk

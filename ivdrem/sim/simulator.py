@@ -270,15 +270,15 @@ class Simulator:
     def _start(self):
         if self.engine_name == "reference":
             self.engine.install_feeds(self._Wref)
-        st = self.engine.after_step(self.t, self.x, self.W)
-        while st == T.HISTORY_FULL:
-            self._grow()
-            st = self.engine.after_step(self.t, self.x, self.W)
+        self._after_step_with_room()
         self._started = True
 
-    def _grow(self):
-        self.W = _grow(self.W)
-        self._Wref[0] = self.W
+    def _after_step_with_room(self):
+        """The after-step update at the current point, growing the delay history until
+        the point fits."""
+        while self.engine.after_step(self.t, self.x, self.W) == T.HISTORY_FULL:
+            self.W = _grow(self.W)
+            self._Wref[0] = self.W
 
     def outputs_at_current(self):
         row = np.zeros(self.plan.diagram.noutputs)
@@ -343,11 +343,7 @@ class Simulator:
 
     def _handle(self, st, out_t, out_y, io, out_x):
         if st == T.HISTORY_FULL:
-            self._grow()
-            st2 = self.engine.after_step(self.t, self.x, self.W)
-            while st2 == T.HISTORY_FULL:
-                self._grow()
-                st2 = self.engine.after_step(self.t, self.x, self.W)
+            self._after_step_with_room()
             self._emit_due(out_t, out_y, out_x, io)
             return
         if st == T.DIVERGED:
