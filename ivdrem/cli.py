@@ -3,27 +3,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
-from pathlib import Path
+
+from ._atomic import write_text_atomic
 
 __all__ = ["main"]
-
-
-def _write_json_atomic(path, data):
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _cmd_paper(args):
@@ -56,7 +40,7 @@ def _cmd_paper(args):
     if set(run.runs) >= {"iv-drem", "composite-learning"}:
         print(format_conclusions(conclusions(run)))
     if args.json:
-        _write_json_atomic(args.json, out)
+        write_text_atomic(args.json, json.dumps(out, indent=2) + "\n")
         print(f"wrote {args.json}")
     return 0
 

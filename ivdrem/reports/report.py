@@ -2,12 +2,12 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import matplotlib as mpl
 from matplotlib.backends.backend_pdf import PdfPages
 
+from .._atomic import fsync_file, new_tempfile
 from . import figures as F
 from .content import build_content
 from .html import GENERATOR, render_html
@@ -41,23 +41,6 @@ def _check_target(path: Path, kind: str, overwrite: bool) -> None:
             f"refusing to overwrite {path}: it was not written by ivdrem's report; "
             "move it, choose another output directory or basename, or pass overwrite=True"
         )
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def _tempfile(outdir: Path, name: str) -> Path:
-    """A new hidden file next to the target, with the mode a plain open() would give."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=outdir)
-    try:
-        os.fchmod(fd, 0o666 & ~_umask())
-    except (AttributeError, OSError):  # pragma: no cover - platforms without fchmod
-        pass
-    os.close(fd)
-    return Path(tmp)
 
 
 def report_paths(outdir, basename="ivdrem-paper", *, overwrite=False) -> tuple[Path, Path]:
@@ -99,9 +82,9 @@ def write_report(run, outdir, *, fmu_check=None, basename="ivdrem-paper", overwr
 
     temps: list[Path] = []
     try:
-        html_tmp = _tempfile(outdir, html_path.name)
+        html_tmp = new_tempfile(outdir, html_path.name)
         temps.append(html_tmp)
-        pdf_tmp = _tempfile(outdir, pdf_path.name)
+        pdf_tmp = new_tempfile(outdir, pdf_path.name)
         temps.append(pdf_tmp)
         with mpl.rc_context(F.RC):
             content = build_content(run, fmu_check=fmu_check)
@@ -121,7 +104,7 @@ def write_report(run, outdir, *, fmu_check=None, basename="ivdrem-paper", overwr
                     pdf.savefig(s.figure)
             html_tmp.write_text(render_html(content, svgs), encoding="utf-8")
         for tmp in temps:
-            _fsync(tmp)
+            fsync_file(tmp)
         os.replace(html_tmp, html_path)
         temps.remove(html_tmp)
         os.replace(pdf_tmp, pdf_path)
@@ -133,19 +116,6 @@ def write_report(run, outdir, *, fmu_check=None, basename="ivdrem-paper", overwr
             except OSError:
                 pass
     return html_path, pdf_path
-
-
-def _fsync(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def _version() -> str:
