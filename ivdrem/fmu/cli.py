@@ -110,10 +110,12 @@ def main_cosim(argv=None) -> int:
     try:   # every option before exporting or simulating anything
         for h, what in zip(steps, ("--comm-step H", "H/2", "H/4")):
             _steps(args.t_end, h, what)
-        if fmu_path is not None and not fmu_path.exists():
-            raise FileNotFoundError(f"FMU file not found: {fmu_path}")
         from ivdrem.diagrams import closed_loop
         from ivdrem.models import two_link
+        if fmu_path is not None:  # missing, not an FMU, damaged, no CS, not the 2-link plant
+            from .cosim import _check_interface
+            from .describe import read_description
+            _check_interface(fmu_path, read_description(fmu_path, "co-simulation"), two_link())
         from ivdrem.sim.guards import check_diagram_cost
         # the all-Python reference: RK4 at the finest H, sampled there
         check_diagram_cost(closed_loop(args.law, two_link()), args.t_end, engine=args.engine,
