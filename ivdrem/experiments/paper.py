@@ -1,11 +1,11 @@
 """The paper experiment (SPEC section 8): run the closed loop for each law of a config."""
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._progress import want_progress
 from ..diagrams import closed_loop
 from ..models import get_model
 from ..sim import simulate
@@ -51,14 +51,14 @@ def run_law(config, law, *, model=None, progress=True, engine="compiled", allow_
 def run_paper(config=None, *, laws=None, progress=True, engine="compiled", allow_long=False):
     """Run every law of the configuration (default: the embedded paper experiment).
 
-    `progress` shows a bar per law when stderr is a terminal.
+    `progress` shows a bar per law when stderr is a terminal and CI is not set.
     """
     config = load_config() if config is None else config
     laws = list(config["experiment"]["laws"] if laws is None else laws)
     model = _model(config)
     run = PaperRun(config=config, theta=np.asarray(config["model"]["theta"], float),
                    model=model)
-    show = bool(progress) and sys.stderr.isatty()
+    show = want_progress(progress)   # one rule for every bar (ivdrem._progress)
     for law in laws:
         run.runs[law] = run_law(config, law, model=model, progress=show, engine=engine,
                                 allow_long=allow_long)
