@@ -194,11 +194,27 @@ def test_cli_refuses_before_work(inputs, no_work, clean_tmp, request, capsys,
                 assert [q.name for q in p.iterdir() if q.name.startswith(".")] == []
 
 
-def test_cli_refuses_unwritable_cache_dir(inputs, no_work, ro, monkeypatch, capsys):
+@pytest.mark.parametrize("argv", [["paper", "--t-end", "1"], ["report", "--t-end", "1"],
+                                  ["cosim", "--t-end", "1"]], ids=lambda a: a[0])
+def test_cli_refuses_unwritable_cache_dir(inputs, no_work, ro, monkeypatch, capsys, argv):
     monkeypatch.setenv("IVDREM_CACHE_DIR", str(ro / "cache"))
-    assert main(["paper", "--t-end", "1", "--quiet"]) == 2
+    assert main(argv + ["--quiet"] + (["--out", str(inputs["d"] / "r")]
+                                      if argv[0] == "report" else [])) == 2
     err = capsys.readouterr().err
     assert "compile cache directory (IVDREM_CACHE_DIR)" in err and str(ro) in err
+
+
+def test_overwrite_flag_passes_the_foreign_file_check(inputs, monkeypatch, capsys):
+    """The flag the refusal names exists and lets the run start."""
+    import ivdrem.experiments.paper as paper
+
+    def started(config, **kw):
+        raise SystemExit(17)
+    monkeypatch.setattr(paper, "run_paper", started)
+    with pytest.raises(SystemExit) as info:
+        main(["report", "--out", str(inputs["foreign"]), "--overwrite", "--quiet",
+              "--no-fmu-check"])
+    assert info.value.code == 17
 
 
 def _fmu_plant(path, **kw):

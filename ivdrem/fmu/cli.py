@@ -110,8 +110,10 @@ def main_cosim(argv=None) -> int:
     try:   # every option before exporting or simulating anything
         for h, what in zip(steps, ("--comm-step H", "H/2", "H/4")):
             _steps(args.t_end, h, what)
+        from ivdrem._preflight import check_cache_dir
         from ivdrem.diagrams import closed_loop
         from ivdrem.models import two_link
+        check_cache_dir(args.engine)
         if fmu_path is not None:  # missing, not an FMU, damaged, no CS, not the 2-link plant
             from .cosim import _check_interface
             from .describe import read_description
@@ -122,7 +124,7 @@ def main_cosim(argv=None) -> int:
                            method="rk4", h=min(steps), dt_out=min(steps),
                            return_states=False, allow_long=args.allow_long,
                            what="the reference run")
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, OSError) as exc:   # OSError: missing FMU, unwritable cache
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
 
