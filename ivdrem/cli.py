@@ -10,7 +10,6 @@ __all__ = ["main"]
 
 def _cmd_paper(args):
     from .experiments.config import ConfigError, load_config
-    from .sim import SimulationError
     from ._paths import OutputLocationError, check_writable_file, user_path
     from ._preflight import (PreflightError, check_cache_dir, check_method, check_runs,
                              horizon_note, timing_text)
@@ -40,6 +39,7 @@ def _cmd_paper(args):
 
     from .experiments.metrics import conclusions, format_conclusions, summary
     from .experiments.paper import run_paper
+    from .sim import SimulationError
     try:
         run = run_paper(config, progress=want_progress(not args.quiet), engine=args.engine,
                         allow_long=args.allow_long)

@@ -119,7 +119,6 @@ def run_report_command(args) -> int:
     """Check every option and output location, run the experiment, write the report;
     returns the exit status (2: refused before any work, 1: a run or the write failed)."""
     from .report import ReportError
-    from ..sim import SimulationError
 
     args.overwrite = getattr(args, "overwrite", False)
     args.allow_long = getattr(args, "allow_long", False)
@@ -134,6 +133,7 @@ def run_report_command(args) -> int:
 
     from ..experiments.metrics import conclusions, format_conclusions
     from ..experiments.paper import run_paper
+    from ..sim import SimulationError
 
     progress = want_progress(not args.quiet)
     extra = {"allow_long": True} if args.allow_long else {}
