@@ -524,3 +524,19 @@ def test_second_free_instance_does_not_abort(tmp_path):
         shutil.rmtree(d)
     assert p.returncode == 0, (p.returncode, p.stderr)
     assert "survived" in p.stdout
+
+
+def test_fmu_export_failing_mid_write_leaves_nothing(tmp_path, monkeypatch):
+    """A write error while zipping (disk full, say) leaves neither a partial FMU nor the
+    hidden temporary, and an FMU already at the target stays as it was."""
+    from ivdrem.fmu import export_fmu
+    target = tmp_path / "Plant.fmu"
+    target.write_bytes(b"the previous FMU")
+
+    def full(self, *a, **k):
+        raise OSError(28, "No space left on device (simulated)")
+    monkeypatch.setattr(zipfile.ZipFile, "write", full)
+    with pytest.raises(OSError, match="No space left"):
+        export_fmu("two-link", target, compile=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["Plant.fmu"]
+    assert target.read_bytes() == b"the previous FMU"
