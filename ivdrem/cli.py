@@ -5,30 +5,46 @@ import argparse
 import json
 import sys
 
-from ._atomic import write_text_atomic
-
 __all__ = ["main"]
 
 
 def _cmd_paper(args):
     from .experiments.config import ConfigError, load_config
-    from .experiments.metrics import conclusions, format_conclusions, summary
-    from .experiments.paper import run_paper
-    from .sim import SimulationError
+    from ._paths import OutputLocationError, check_writable_file, user_path
+    from ._preflight import (PreflightError, check_cache_dir, check_method, check_runs,
+                             horizon_note, timing_text)
+    from ._progress import want_progress
+    prog = "ivdrem paper"
     overrides = {}
     if args.t_end is not None:
         overrides["experiment.t_end"] = args.t_end
     if args.law:
         overrides["experiment.laws"] = list(args.law)
-    try:
-        config = load_config(args.config, overrides or None)
-    except ConfigError as e:
-        print(f"ivdrem paper: error: {e}", file=sys.stderr)
+    json_path = None
+    try:   # every option and output location before the first step
+        if check_method(args.method) is not None:
+            overrides["solver.method"] = args.method
+        config = load_config(None if args.config is None else user_path(args.config),
+                             overrides or None)
+        if args.json:
+            json_path = check_writable_file(user_path(args.json), "JSON file")
+        check_cache_dir(args.engine)
+        check_runs(config, engine=args.engine, allow_long=args.allow_long)
+    except (ConfigError, PreflightError, OutputLocationError, ValueError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
+    note = horizon_note(config)
+    if note and set(config["experiment"]["laws"]) >= {"iv-drem", "composite-learning"}:
+        print(f"{prog}: {note}", file=sys.stderr)
+
+    from .experiments.metrics import conclusions, format_conclusions, summary
+    from .experiments.paper import run_paper
+    from .sim import SimulationError
     try:
-        run = run_paper(config, progress=not args.quiet, engine=args.engine)
+        run = run_paper(config, progress=want_progress(not args.quiet), engine=args.engine,
+                        allow_long=args.allow_long)
     except SimulationError as e:
-        print(f"ivdrem paper: simulation failed: {e}", file=sys.stderr)
+        print(f"{prog}: simulation failed: {e}", file=sys.stderr)
         return 1
     out = {law: summary(lr, run.theta) for law, lr in run.runs.items()}
     for law, s in out.items():
@@ -36,12 +52,17 @@ def _cmd_paper(args):
         print(f"{law:>20s}: |theta_err|(t_end) = {s['theta_err_norm']:.4g}, "
               f"max|e| last 20% = {s['e_max_last20']:.3g} rad, "
               f"RMS tau_d err last 20% = {s['tau_d_err_rms_last20']:.4g} N m  "
-              f"({st['steps']} steps, {st['wall_s']:.2f} s)")
+              f"({st['steps']} steps, {timing_text(st)})")
     if set(run.runs) >= {"iv-drem", "composite-learning"}:
         print(format_conclusions(conclusions(run)))
-    if args.json:
-        write_text_atomic(args.json, json.dumps(out, indent=2) + "\n")
-        print(f"wrote {args.json}")
+    if json_path is not None:
+        from ._paths import write_text_or_keep
+        where, failed = write_text_or_keep(json_path, json.dumps(out, indent=2) + "\n")
+        if failed is not None:
+            print(f"{prog}: error: cannot write {json_path}: {failed}; "
+                  f"the results were kept in {where}", file=sys.stderr)
+            return 1
+        print(f"wrote {where}")
     return 0
 
 
@@ -51,6 +72,7 @@ def _cmd_report(args):
 
 
 def build_parser():
+    from ._preflight import add_run_options
     from .reports.cli import add_report_arguments
     p = argparse.ArgumentParser(prog="ivdrem", description=(
         "Composite adaptive disturbance rejection via IV-based DREM "
@@ -59,7 +81,8 @@ def build_parser():
 
     pp = sub.add_parser("paper", help="run the paper experiment and print/write its numbers")
     pp.add_argument("--t-end", type=float, default=None, metavar="SECONDS",
-                    help="horizon (default from the config: 300 s)")
+                    help="horizon (default from the config: 300 s, the horizon "
+                         "conclusions C1-C3 need)")
     pp.add_argument("--law", nargs="+", default=None, metavar="NAME",
                     help="laws to run (default: iv-drem composite-learning)")
     pp.add_argument("--json", default=None, metavar="FILE", help="write per-law numbers as JSON")
@@ -67,6 +90,7 @@ def build_parser():
                     help="experiment configuration (see examples/paper.toml)")
     pp.add_argument("--engine", choices=("compiled", "reference"), default="compiled")
     pp.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_run_options(pp)
     pp.set_defaults(func=_cmd_paper)
 
     rp = sub.add_parser("report", help="run the paper experiment and write the PDF/HTML report")

@@ -1,4 +1,4 @@
-"""Co-simulation of the controller with the plant FMU (issue 4 section 3): ivdrem.fmu.cosim.
+"""Co-simulation of the controller with the plant FMU: ivdrem.fmu.cosim.
 
 Coupling: explicit (Jacobi) sample-and-hold at communication step H, so the difference to
 the all-Python closed loop is first order in H.  Measured on the paper's loop (IV-DREM,

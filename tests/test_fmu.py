@@ -1,4 +1,4 @@
-"""Plant FMU (issue 4): export, validation, agreement with the Python plant, FMI behaviour.
+"""Plant FMU: export, validation, agreement with the Python plant, FMI behaviour.
 
 Measured agreement (printed with ``pytest -s``; asserted bounds in the tests):
 * derivatives (fmi2GetDerivatives) vs ``model.functions.forward_dynamics``: max-norm relative

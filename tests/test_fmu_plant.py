@@ -1,4 +1,4 @@
-"""The plant FMU imported as a python-control block (ivdrem.blocks.fmu_plant), issue 4 part 3."""
+"""The plant FMU imported as a python-control block (ivdrem.blocks.fmu_plant)."""
 from __future__ import annotations
 
 import gc

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 import control as ct
-from ..fmu.describe import read_description
+from ..fmu.describe import extract_fmu, read_description
 
-__all__ = ["fmu_plant", "FmuPlantInfo"]
+__all__ = ["fmu_plant", "FmuPlantInfo", "check_plant_fits"]
 
 
 @dataclass
@@ -54,7 +54,7 @@ def _vector(name, value, n):
     return a
 
 
-def fmu_plant(path, name="plant", q0=None, dq0=None, params=None):
+def fmu_plant(path, name="plant", q0=None, dq0=None, params=None, n=None):
     """The plant FMU at ``path`` (model exchange) as a ``ct.nlsys``.
 
     ======  =================================================================
@@ -75,11 +75,13 @@ def fmu_plant(path, name="plant", q0=None, dq0=None, params=None):
     params : dict, optional
         FMU parameter values by name, e.g. ``{"theta1": 1.2, "g": 9.7}``; the key
         ``"theta"`` sets all model parameters theta (in order) of an ivdrem-exported FMU.
+    n : int, optional
+        Degrees of freedom the loop expects (e.g. ``model.n``): an FMU of another size is
+        refused here, naming both sizes, instead of leaving loop signals unconnected.
 
     Raises FileNotFoundError if ``path`` does not exist, ValueError if it is not a suitable
-    FMU or a parameter is unknown.
+    FMU, has another size than ``n``, or a parameter is unknown.
     """
-    from fmpy import extract
     from fmpy.fmi2 import FMU2Model, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE, \
         fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE
     from fmpy import calloc, free
@@ -91,11 +93,13 @@ def fmu_plant(path, name="plant", q0=None, dq0=None, params=None):
     # states x = [q, dq] in the FMU's order (ModelStructure/Derivatives)
     fmu_states = [d.variable.derivative.name for d in md.derivatives]
     nx = len(fmu_states)
-    n = nx // 2
+    n_expected, n = n, nx // 2
     want = [f"q[{i}]" for i in range(n)] + [f"dq[{i}]" for i in range(n)]
     if nx == 0 or nx % 2 or sorted(fmu_states) != sorted(want):
         raise ValueError(f"{path}: the continuous states must be q[0..n-1], dq[0..n-1]; "
                          f"found {', '.join(fmu_states) or 'none'}")
+    if n_expected is not None and n != int(n_expected):
+        raise ValueError(size_mismatch(path, n, int(n_expected)))
     # block state k is FMU state perm[k]
     perm = np.array([fmu_states.index(s) for s in want])
     inputs = [f"tau[{i}]" for i in range(n)] + [f"tau_d[{i}]" for i in range(n)]
@@ -134,7 +138,7 @@ def fmu_plant(path, name="plant", q0=None, dq0=None, params=None):
     x0 = np.array([float(start.get(s, variables[s].start or 0.0)) for s in want])
 
     # the FMU: extracted to a temporary directory, removed with the system
-    unzipdir = extract(str(path)) if path.is_file() else str(path)
+    unzipdir = extract_fmu(path) if path.is_file() else str(path)
     messages = []
 
     def log(env, instance, status, category, message):
@@ -241,6 +245,21 @@ def fmu_plant(path, name="plant", q0=None, dq0=None, params=None):
     # free the instance and the extracted files with the system
     weakref.finalize(sys, _release, fmu, unzipdir if path.is_file() else None, callbacks)
     return sys
+
+
+def size_mismatch(path, n_fmu: int, n_loop: int) -> str:
+    """The message for a plant FMU whose size differs from the loop's."""
+    return (f"{path}: the FMU's plant has n = {n_fmu} degrees of freedom (signals "
+            f"q[0..{n_fmu - 1}], dq, tau, tau_d), the loop's model has n = {n_loop}: export "
+            f"the FMU of the loop's model (ivdrem fmu export --model ...)")
+
+
+def check_plant_fits(block, n: int) -> None:
+    """Raise ValueError if `block` is a :func:`fmu_plant` of another size than `n` (for
+    code that puts a given plant block into an n-DoF loop)."""
+    info = getattr(block, "fmu", None)
+    if isinstance(info, FmuPlantInfo) and info.n != int(n):
+        raise ValueError(size_mismatch(info.path, info.n, int(n)))
 
 
 def _release(fmu, unzipdir, callbacks=None):

@@ -78,7 +78,8 @@ SCHEMA: dict[str, dict[str, _Key]] = {
     "experiment": {
         "t_end": _Key("float", **_POS),
         "laws": _Key("strlist", choices=LAWS),
-        "dt_out": _Key("float", **_POS),
+        # lower bounds of ivdrem.sim.guards (DT_OUT_MIN, H_MAX_MIN), kept equal by a test
+        "dt_out": _Key("float", check=lambda x: x >= 1e-6, requirement="> 0 (at least 1e-06 s)"),
     },
     "model": {
         "name": _Key("str"),
@@ -134,7 +135,7 @@ SCHEMA: dict[str, dict[str, _Key]] = {
         "rtol": _Key("float", **_POS),
         "atol": _Key("float", **_POS),
         "h": _Key("float", **_POS),
-        "h_max": _Key("float", **_POS),
+        "h_max": _Key("float", check=lambda x: x >= 1e-6, requirement="> 0 (at least 1e-06 s)"),
     },
 }
 
@@ -194,6 +195,9 @@ def load_config(path: str | Path | None = None, overrides: Mapping | None = None
             text = p.read_text("utf-8")
         except FileNotFoundError:
             raise ConfigError(f"config file '{p}' not found") from None
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"config file '{p}' is not UTF-8 text (TOML must be UTF-8): "
+                              f"byte {exc.object[exc.start]:#04x} at offset {exc.start}") from None
         except OSError as exc:
             raise ConfigError(f"config file '{p}' cannot be read: {exc}") from None
         try:

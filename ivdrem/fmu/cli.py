@@ -32,12 +32,13 @@ def main_fmu(argv=None) -> int:
     args = _parser().parse_args(argv)
     if args.command == "export":
         from ivdrem.models import get_model
+        from .._paths import user_path
         from .export import export_fmu
         try:
             model = get_model(args.model)
-            path = export_fmu(model, args.output, q0=args.q0, dq0=args.dq0,
+            path = export_fmu(model, user_path(args.output), q0=args.q0, dq0=args.dq0,
                               substep=args.substep, cc=args.cc, compile=not args.no_compile)
-        except (ValueError, RuntimeError, NotImplementedError, FileNotFoundError) as exc:
+        except (ValueError, RuntimeError, NotImplementedError, OSError) as exc:
             print(f"ivdrem fmu export: error: {exc}", file=sys.stderr)
             return 2
         print(f"wrote {path} (model {model.name}, n = {model.n}, ntheta = {model.ntheta})")
@@ -67,6 +68,9 @@ def _cosim_parser() -> argparse.ArgumentParser:
     p.add_argument("--engine", default="compiled", choices=("compiled", "reference"),
                    help="controller / reference simulator engine (default %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--allow-long", action="store_true", dest="allow_long",
+                   help="run even when the reference run's estimated memory or step count "
+                        "exceeds the limits of ivdrem.sim.guards")
     return p
 
 
@@ -78,7 +82,6 @@ def main_cosim(argv=None) -> int:
     2 bad input (arguments, missing or unsuitable FMU).
     """
     import math
-    import os
     import tempfile
     import time
     import warnings
@@ -97,9 +100,33 @@ def main_cosim(argv=None) -> int:
     if not (math.isfinite(H) and 0 < H <= args.t_end):
         print(f"{prog}: error: --comm-step must be in (0, t_end], got {H:g}", file=sys.stderr)
         return 2
-    progress = (not args.quiet) and sys.stderr.isatty() and not os.environ.get("CI")
+    from ivdrem._paths import user_path
+    from ivdrem._progress import want_progress
     from ivdrem.sim import SimulationError
-    from .cosim import CosimError, compare_to_python
+    from .cosim import CosimError, _steps, compare_to_python
+    progress = want_progress(not args.quiet)
+    steps = (H, H / 2, H / 4)
+    fmu_path = None if args.fmu is None else user_path(args.fmu)
+    try:   # every option before exporting or simulating anything
+        for h, what in zip(steps, ("--comm-step H", "H/2", "H/4")):
+            _steps(args.t_end, h, what)
+        from ivdrem._preflight import check_cache_dir
+        from ivdrem.diagrams import closed_loop
+        from ivdrem.models import two_link
+        check_cache_dir(args.engine)
+        if fmu_path is not None:  # missing, not an FMU, damaged, no CS, not the 2-link plant
+            from .cosim import _check_interface
+            from .describe import read_description
+            _check_interface(fmu_path, read_description(fmu_path, "co-simulation"), two_link())
+        from ivdrem.sim.guards import check_diagram_cost
+        # the all-Python reference: RK4 at the finest H, sampled there
+        check_diagram_cost(closed_loop(args.law, two_link()), args.t_end, engine=args.engine,
+                           method="rk4", h=min(steps), dt_out=min(steps),
+                           return_states=False, allow_long=args.allow_long,
+                           what="the reference run")
+    except (ValueError, OSError) as exc:   # OSError: missing FMU, unwritable cache
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="ivdrem_cosim_") as tmp:
@@ -115,12 +142,11 @@ def main_cosim(argv=None) -> int:
                 return 2
             origin = "2-link plant exported to a temporary FMU"
         else:
-            fmu = Path(args.fmu)
+            fmu = fmu_path
             origin = str(fmu)
-        steps = (H, H / 2, H / 4)
         try:
             cmp = compare_to_python(fmu, args.t_end, steps, law=args.law, engine=args.engine,
-                                    progress=progress)
+                                    progress=progress, allow_long=args.allow_long)
         except (FileNotFoundError, ValueError) as exc:
             print(f"{prog}: error: {exc}", file=sys.stderr)
             return 2

@@ -1,4 +1,4 @@
-"""Co-simulation of ivdrem's controller with the plant FMU (issue 4 section 3).
+"""Co-simulation of ivdrem's controller with the plant FMU.
 
 The controller (every block of :func:`ivdrem.diagrams.closed_loop` but the plant, built with
 ``external_plant=True``) runs in ivdrem's :class:`~ivdrem.sim.Simulator`; the robot plant is
@@ -38,7 +38,7 @@ should roughly halve the difference to the all-Python closed loop (observed orde
 
 Stability: the explicit coupling delays the feedback by up to one step, so ``H`` must stay
 well below the fastest closed-loop time constant, about ``m_min / (lambda_max(K) +
-delta_mu mu(t))`` (SPEC section 9).  For the paper's gains and ``mu = t + 15`` this is
+delta_mu mu(t))`` (README, "Performance").  For the paper's gains and ``mu = t + 15`` this is
 ~2.4 ms at 40 s and ~0.43 ms at 300 s: ``H = 1e-3`` is fine for the 40 s runs here, long
 runs need a smaller ``H`` (the all-Python loop, with error-controlled steps, does not).
 Measured: the paper loop co-simulated at ``H = 1e-3`` diverges at t = 261 s
@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import ctypes
 import math
-import os
 import shutil
 import sys
 import time as _time
@@ -57,7 +56,8 @@ from pathlib import Path
 
 import numpy as np
 import control as ct
-from .describe import read_description
+from .._progress import want_progress
+from .describe import extract_fmu, read_description
 
 __all__ = ["cosimulate", "compare_to_python", "CosimComparison", "CosimError",
            "COMPARED_SIGNALS", "EXPECTED_ORDER"]
@@ -112,14 +112,14 @@ class _Slave:
     """An instantiated, initialized FMU2Slave with preallocated ctypes buffers."""
 
     def __init__(self, path: Path, md, variables, start: dict, in_names, out_names):
-        from fmpy import extract, calloc, free
+        from fmpy import calloc, free
         from fmpy.fmi2 import (FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE,
                                fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE)
         self.path = path
         self.messages = []
         self.fmu = None
         self._instantiated = False
-        self._unzipdir = extract(str(path)) if path.is_file() else None
+        self._unzipdir = extract_fmu(path) if path.is_file() else None
         try:
             def log(env, instance, status, category, message):
                 # ivdrem's FMUs pass complete text with '%' doubled (printf-safe)
@@ -231,9 +231,8 @@ def _initial_state(model, config):
 
 
 def _want_progress(progress):
-    if progress is None:
-        return sys.stderr.isatty() and not os.environ.get("CI")
-    return bool(progress)
+    # one rule for every bar (ivdrem._progress): a terminal, not CI, not quiet
+    return want_progress(progress)
 
 
 # ----------------------------------------------------------------------------- cosimulate
@@ -266,7 +265,8 @@ def cosimulate(fmu_path, t_end, *, law="iv-drem", comm_step=1e-3, model=None,
         The FMU's ``cs_substep`` (RK4 sub-step bound in ``fmi2DoStep``); default
         ``min(FMU start value, H)``.  Must be ``<= H``.
     progress : bool, optional
-        tqdm progress bar on stderr; default when stderr is a terminal.
+        tqdm progress bar on stderr, drawn only on a terminal and not in CI
+        (:func:`ivdrem._progress.want_progress`); False: never.
     **config
         Keyword arguments of :func:`~ivdrem.diagrams.closed_loop` (gains, ``theta_hat0``,
         trajectory, disturbance ...).  ``q0``, ``dq0`` (default: the Python plant's, i.e.
@@ -485,7 +485,7 @@ class CosimComparison:
 def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="iv-drem",
                       model=None, engine="compiled", ref_method="rk4", ref_h=None,
                       ref_rtol=1e-11, ref_atol=1e-13, signals=COMPARED_SIGNALS,
-                      progress=None, **config):
+                      progress=None, allow_long=False, **config):
     """Co-simulate at each communication step and compare with the all-Python closed loop.
 
     The reference is ``simulate(closed_loop(law, model, **config), t_end, method="rk4",
@@ -506,6 +506,9 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
     halve when ``H`` halves, observed order close to 1 (accepted range
     :data:`EXPECTED_ORDER` = 0.7 .. 1.5).  The integrators (RK4 in the FMU and the
     controller, reference RK4 at the finest ``H``) are fourth order and do not show.
+
+    The reference run's cost is checked first (:mod:`ivdrem.sim.guards`; ``allow_long``
+    lifts the limits).
     """
     from ivdrem.diagrams import closed_loop
     from ivdrem.models import two_link
@@ -545,11 +548,12 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
             raise ValueError(f"ref_h = {h:g} s must divide the smallest communication step "
                              f"{h_min:g} s (the reference is sampled there)")
         ref = simulate(full, t_end, method="rk4", h=h, dt_out=h_min, engine=engine,
-                       return_states=False, progress=show, desc=f"Python {law}")
+                       return_states=False, progress=show, desc=f"Python {law}",
+                       allow_long=allow_long)
     elif ref_method == "dp45":
         ref = simulate(full, t_end, method="dp45", rtol=ref_rtol, atol=ref_atol,
                        dt_out=h_min, engine=engine, return_states=False, progress=show,
-                       desc=f"Python {law}")
+                       desc=f"Python {law}", allow_long=allow_long)
     else:
         raise ValueError(f"ref_method must be 'rk4' or 'dp45', got {ref_method!r}")
     wall["python"] = _time.perf_counter() - t0

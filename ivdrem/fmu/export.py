@@ -65,6 +65,9 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import sympy as sp
 
+from .._atomic import new_tempfile
+from .._paths import check_writable_file
+
 __all__ = ["export_fmu", "generate_sources", "fmi2_header_dir", "FMU_SOURCE_FILES",
            "DEFAULT_SUBSTEP"]
 
@@ -649,6 +652,10 @@ def export_fmu(model, path, *, q0=None, dq0=None, substep=DEFAULT_SUBSTEP, cc=No
     Returns the path of the FMU.  Build files live in a temporary directory.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"the FMU path {path} is a directory; give a file name, e.g. "
+                         f"{path / 'Plant.fmu'}")
+    check_writable_file(path, "FMU file")   # before generating and compiling
     files = generate_sources(model, q0=q0, dq0=dq0, substep=substep,
                              model_identifier=model_identifier)
     ident = re.search(r'modelIdentifier="([^"]+)"', files["modelDescription.xml"]).group(1)
@@ -667,10 +674,16 @@ def export_fmu(model, path, *, q0=None, dq0=None, substep=DEFAULT_SUBSTEP, cc=No
                 warnings.warn(f"C compiler messages while building {path.name}:\n{msgs}",
                               stacklevel=2)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp_zip = path.with_name(path.name + ".part")
-        with zipfile.ZipFile(tmp_zip, "w", zipfile.ZIP_DEFLATED) as zf:
-            for p in sorted(root.rglob("*")):
-                if p.is_file():
-                    zf.write(p, p.relative_to(root).as_posix())
-        os.replace(tmp_zip, path)
+        # a hidden temporary next to the target, then os.replace: a reader never sees half
+        # an FMU, and a failure leaves neither a partial FMU nor the temporary behind
+        tmp_zip = new_tempfile(path.parent, path.name)
+        try:
+            with zipfile.ZipFile(tmp_zip, "w", zipfile.ZIP_DEFLATED) as zf:
+                for p in sorted(root.rglob("*")):
+                    if p.is_file():
+                        zf.write(p, p.relative_to(root).as_posix())
+            os.replace(tmp_zip, path)
+        except BaseException:
+            tmp_zip.unlink(missing_ok=True)
+            raise
     return path

@@ -89,7 +89,13 @@ typedef struct {
     double h;              /* co-simulation RK4 sub-step bound, "cs_substep" */
 } Data;
 
+/* Set by fmi2Instantiate, cleared by fmi2FreeInstance: a second fmi2FreeInstance (or any
+ * call) on a freed instance is undefined in FMI 2.0, but returning instead of freeing twice
+ * costs one comparison.  First member, so that it is the word the allocator reuses. */
+#define INSTANCE_MAGIC 0x1D4E3A7Bu
+
 typedef struct {
+    unsigned int magic;    /* INSTANCE_MAGIC while the instance is alive */
     Data d;
     char *instanceName;
     fmi2CallbackLogger logger;
@@ -123,7 +129,7 @@ static void logMessage(Instance *S, fmi2Status status, const char *category, con
 
 /* checks at the start of each function (Reference FMUs: BEGIN_FUNCTION / allowedState) */
 static int invalidState(Instance *S, const char *f, int mask) {
-    if (!S) return 1;
+    if (!S || S->magic != INSTANCE_MAGIC) return 1; /* NULL or already freed: no logger left */
     if (!(S->d.state & mask)) {
         logError(S, "%s: illegal call sequence (not allowed in the current state).", f);
         S->d.state = Error;
@@ -274,6 +280,7 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
     S->logger = tmp.logger;
     S->env = tmp.env;
     S->logEvents = loggingOn ? 1 : 0;
+    S->magic = INSTANCE_MAGIC;
     S->d.type = fmuType;
     S->d.state = Instantiated;
     setStartValues(S);
@@ -284,6 +291,7 @@ void fmi2FreeInstance(fmi2Component c) {
     Instance *S = (Instance *)c;
     if (!S) return;
     if (invalidState(S, "fmi2FreeInstance", MASK_fmi2FreeInstance)) return;
+    S->magic = 0;
     free(S->instanceName);
     free(S);
 }

@@ -11,6 +11,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .._paths import OutputLocationError, check_writable_dir, user_path
+from .._preflight import (PreflightError, add_run_options, check_cache_dir, check_fmu_check_t_end,
+                          check_method, check_runs, horizon_note, timing_text)
+from .._progress import want_progress
 from ..experiments.config import LAWS, ConfigError, load_config
 
 __all__ = ["add_report_arguments", "run_report_command", "config_from_args"]
@@ -23,21 +27,26 @@ def add_report_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
                              "(see examples/paper.toml)")
     parser.add_argument("--out", metavar="DIR", default="reports",
                         help="output directory of ivdrem-paper.html and ivdrem-paper.pdf (default: reports)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace ivdrem-paper.html/.pdf in --out even if ivdrem did not write them")
     parser.add_argument("--t-end", metavar="SECONDS", type=float, default=None, dest="t_end",
-                        help="simulated horizon, overrides experiment.t_end")
+                        help="simulated horizon, overrides experiment.t_end (conclusions C1-C3 "
+                             "need the default 300 s)")
     parser.add_argument("--laws", metavar="NAME", nargs="+", default=None,
                         help="adaptation laws to run, overrides experiment.laws; one of: " + ", ".join(LAWS))
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--engine", choices=("compiled", "reference"), default="compiled",
                         help="compiled (numba, default) or reference (python-control) evaluation")
+    add_run_options(parser)
     parser.add_argument("--no-fmu-check", action="store_true", dest="no_fmu_check",
                         help="skip the plant-FMU co-simulation check (needs a C compiler)")
     parser.add_argument("--fmu-check-t-end", type=float, default=10.0, metavar="SECONDS",
-                        help="horizon of the FMU co-simulation check (default 10 s)")
+                        help="horizon of the FMU co-simulation check (default 10 s; a whole "
+                             "number of milliseconds)")
     return parser
 
 
-def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False):
+def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False, allow_long=False):
     """Export the plant FMU, co-simulate the IV-DREM controller against it at three
     communication steps, and return (rows for the report table, comparison)."""
     import tempfile
@@ -54,7 +63,7 @@ def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False):
         path = Path(tmp) / "Plant.fmu"
         export_fmu(model, path, q0=kw["q0"], dq0=kw["dq0"])
         cmp = compare_to_python(path, t_end, law="iv-drem", model=model, engine=engine,
-                                progress=progress, **kw)
+                                progress=progress, allow_long=allow_long, **kw)
     rows = {}
     for sig in cmp.signals:
         for i, H in enumerate(cmp.comm_steps):
@@ -66,50 +75,93 @@ def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False):
 
 
 def config_from_args(args) -> dict:
-    """The validated configuration of the command line (raises ConfigError)."""
+    """The validated configuration of the command line (raises ConfigError, PreflightError)."""
     overrides: dict = {}
     if getattr(args, "t_end", None) is not None:
         overrides["experiment.t_end"] = args.t_end
     if getattr(args, "laws", None):
         overrides["experiment.laws"] = list(args.laws)
-    return load_config(getattr(args, "config", None), overrides or None)
+    if check_method(getattr(args, "method", None)) is not None:
+        overrides["solver.method"] = args.method
+    config = getattr(args, "config", None)
+    return load_config(None if config is None else user_path(config), overrides or None)
+
+
+def _preflight(args):
+    """Everything checked before the first simulation step: (config, html, pdf paths)."""
+    from .report import report_paths
+
+    config = config_from_args(args)
+    if not args.no_fmu_check:
+        check_fmu_check_t_end(args.fmu_check_t_end)
+    out = check_writable_dir(user_path(args.out), "report directory")
+    html_path, pdf_path = report_paths(out, overwrite=args.overwrite)
+    check_cache_dir(args.engine)
+    check_runs(config, engine=args.engine, allow_long=args.allow_long,
+               fmu_check_t_end=None if args.no_fmu_check else args.fmu_check_t_end)
+    return config, html_path, pdf_path
+
+
+def _write_or_keep(run, out, check, overwrite):
+    """write_report, and if writing to `out` fails at the end, to a new temporary
+    directory instead: (html, pdf, the error or None)."""
+    import tempfile
+
+    from .report import write_report
+    try:
+        return (*write_report(run, out, fmu_check=check, overwrite=overwrite), None)
+    except OSError as exc:
+        keep = tempfile.mkdtemp(prefix="ivdrem-report-")
+        return (*write_report(run, keep, fmu_check=check), exc)
 
 
 def run_report_command(args) -> int:
-    """Validate the configuration, run the experiment, write the report; exit status."""
+    """Check every option and output location, run the experiment, write the report;
+    returns the exit status (2: refused before any work, 1: a run or the write failed)."""
+    from .report import ReportError
+
+    args.overwrite = getattr(args, "overwrite", False)
+    args.allow_long = getattr(args, "allow_long", False)
     try:
-        config = config_from_args(args)
-    except ConfigError as exc:
+        config, html_path, pdf_path = _preflight(args)
+    except (ConfigError, PreflightError, ReportError, OutputLocationError, ValueError) as exc:
         print(f"ivdrem report: error: {exc}", file=sys.stderr)
         return 2
+    note = horizon_note(config)
+    if note:
+        print(f"ivdrem report: {note}", file=sys.stderr)
 
     from ..experiments.metrics import conclusions, format_conclusions
-    from .report import ReportError, report_paths, write_report
-
-    try:  # refuse an unusable output directory before minutes of simulation
-        report_paths(args.out)
-    except (ReportError, ValueError) as exc:
-        print(f"ivdrem report: error: {exc}", file=sys.stderr)
-        return 2
-
     from ..experiments.paper import run_paper
+    from ..sim import SimulationError
 
-    run = run_paper(config, progress=not args.quiet, engine=args.engine)
+    progress = want_progress(not args.quiet)
+    extra = {"allow_long": True} if args.allow_long else {}
+    try:
+        run = run_paper(config, progress=progress, engine=args.engine, **extra)
+    except SimulationError as exc:
+        print(f"ivdrem report: simulation failed: {exc}", file=sys.stderr)
+        return 1
+    for law, lr in run.runs.items():
+        print(f"{law:>20s}: {lr.stats.get('steps', '?')} steps, {timing_text(lr.stats)}")
     check = None
-    if not getattr(args, "no_fmu_check", False):
+    if not args.no_fmu_check:
         try:
             check, cmp = fmu_check(config, args.fmu_check_t_end, engine=args.engine,
-                                   progress=not args.quiet)
+                                   progress=progress, **extra)
             print(cmp.table())
             print(cmp.verdict())
         except Exception as exc:   # no C compiler, ...: the report still gets written
             print(f"ivdrem report: FMU check skipped: {exc}", file=sys.stderr)
             check = {"FMU check": {"result": f"not run: {exc}"}}
-    html_path, pdf_path = write_report(run, args.out, fmu_check=check)
-    print(f"HTML report: {html_path}")
-    print(f"PDF report:  {pdf_path}")
+    html, pdf, failed = _write_or_keep(run, html_path.parent, check, args.overwrite)
+    if failed is not None:
+        print(f"ivdrem report: error: cannot write the report to {html_path.parent}: "
+              f"{failed}; the results were kept in {html.parent}", file=sys.stderr)
+    print(f"HTML report: {html}")
+    print(f"PDF report:  {pdf}")
     print(format_conclusions(conclusions(run)))
-    return 0
+    return 1 if failed is not None else 0
 
 
 def main(argv=None) -> int:  # pragma: no cover - convenience for `python -m ivdrem.reports.cli`

@@ -39,7 +39,8 @@ def _check_target(path: Path, kind: str, overwrite: bool) -> None:
     if not overwrite and not _is_ours(path, kind):
         raise ReportError(
             f"refusing to overwrite {path}: it was not written by ivdrem's report; "
-            "move it, choose another output directory or basename, or pass overwrite=True"
+            "move it, choose another output directory or basename, or pass overwrite=True "
+            "(command line: ivdrem report --overwrite)"
         )
 
 

@@ -406,7 +406,7 @@ def _progress_bar(enabled, t0, t_end, desc):
 def simulate(diagram, t_end, *, method="dp45", engine="compiled", h=1e-3, rtol=1e-6,
              atol=1e-8, h_max=None, dt_out=0.01, params=None, x0=None, u=None,
              progress=None, return_states=True, x_limit=1e10, max_steps=50_000_000,
-             desc=None):
+             desc=None, allow_long=False):
     """Simulate a closed diagram from t = 0 to t_end; returns ct.TimeResponseData.
 
     Parameters
@@ -419,6 +419,7 @@ def simulate(diagram, t_end, *, method="dp45", engine="compiled", h=1e-3, rtol=1
     params : parameter overrides, passed to every block that has a parameter of that name
         (python-control semantics), validated by the blocks.
     progress : show a progress bar; default: when stderr is a terminal.
+    allow_long : run beyond the cost limits of :mod:`ivdrem.sim.guards` (memory, steps).
 
     The response carries ``.stats`` (steps, rejected, rhs_calls, wall_s, ...).
     """
@@ -426,6 +427,10 @@ def simulate(diagram, t_end, *, method="dp45", engine="compiled", h=1e-3, rtol=1
     dt_out = _check_positive("dt_out", dt_out)
     if dt_out > t_end:
         dt_out = t_end
+    from .guards import check_diagram_cost
+    check_diagram_cost(diagram, t_end, method=method, engine=engine, h=h, h_max=h_max,
+                       dt_out=dt_out, return_states=return_states, max_steps=max_steps,
+                       allow_long=allow_long)   # refuse before compiling (ivdrem.sim.guards)
     sim = Simulator(diagram, method=method, engine=engine, h=h, rtol=rtol, atol=atol,
                     h_max=h_max, params=params, x0=x0, x_limit=x_limit, max_steps=max_steps)
     out_t = _output_times(0.0, t_end, dt_out)

@@ -1,0 +1,131 @@
+"""What ``ivdrem paper`` and ``ivdrem report`` check before the first simulation step.
+
+Every option and every output location is checked first, so that a mistake costs a second,
+not the minutes of a run: the solver method, the cost of each law's run (output memory and
+a lower bound on the step count, :mod:`ivdrem.sim.guards`), the FMU check's horizon, and
+that the compile cache can be written.  The commands call these in order and print the
+error (exit status 2) without having simulated anything.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+
+from ._paths import check_writable_dir
+
+__all__ = ["PreflightError", "add_run_options", "solver_methods", "check_method",
+           "check_runs", "check_fmu_check_t_end", "check_cache_dir", "horizon_note",
+           "timing_text", "CONCLUSIONS_HORIZON", "FMU_CHECK_COMM_STEPS"]
+
+#: The horizon (s) that conclusions C1-C3 are stated for: the paper's Figures 1-4 and the
+#: default experiment.t_end.  Shorter runs are allowed but their verdicts mostly FAIL.
+CONCLUSIONS_HORIZON = 300.0
+#: Communication steps of the report's FMU co-simulation check (compare_to_python's default).
+FMU_CHECK_COMM_STEPS = (1e-3, 5e-4, 2.5e-4)
+
+
+class PreflightError(ValueError):
+    """A command-line option or output location refused before any work."""
+
+
+def add_run_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options that ``paper`` and ``report`` share: --method, --allow-long."""
+    parser.add_argument("--method", default=None, metavar="NAME",
+                        help="integration method, overrides solver.method (default from the "
+                             "config: dp45); one of ivdrem.sim.METHODS")
+    parser.add_argument("--allow-long", action="store_true", dest="allow_long",
+                        help="run even when the estimated output memory or step count "
+                             "exceeds the limits of ivdrem.sim.guards")
+    return parser
+
+
+def solver_methods() -> tuple:
+    """The simulator's method names (ivdrem.sim.METHODS, else the config's table)."""
+    try:
+        from .sim import METHODS
+        return tuple(METHODS)
+    except ImportError:  # pragma: no cover - a simulator without the table
+        from .experiments.config import SOLVER_METHODS
+        return tuple(SOLVER_METHODS)
+
+
+def check_method(name):
+    """None, or a method name the simulator knows (raises PreflightError)."""
+    if name is None:
+        return None
+    methods = solver_methods()
+    if name not in methods:
+        raise PreflightError(f"--method {name!r} is not a method of the simulator; "
+                             f"valid: {', '.join(methods)}")
+    return name
+
+
+def _model(config):
+    from .models import get_model
+    m = config["model"]
+    return get_model(m["name"], **({"g": float(m["g"])} if "g" in m else {}))
+
+
+def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=None):
+    """Price every law's run of `config` (and the FMU check's, if a horizon is given)
+    before any of them starts; raises ValueError (CostLimitError) with the numbers."""
+    from .diagrams import closed_loop
+    from .experiments.config import closed_loop_kwargs, solver_kwargs
+    from .sim.guards import check_diagram_cost
+
+    model = _model(config)
+    exp = config["experiment"]
+    solver = solver_kwargs(config)
+    diagrams = {}
+    for law in exp["laws"]:
+        diagrams[law] = d = closed_loop(law, model, **closed_loop_kwargs(config, law))
+        check_diagram_cost(d, float(exp["t_end"]), engine=engine, dt_out=float(exp["dt_out"]),
+                           method=solver["method"], h=solver["h"], h_max=solver["h_max"],
+                           allow_long=allow_long, what=f"the {law} run")
+    if fmu_check_t_end is not None:
+        d = diagrams.get("iv-drem") or closed_loop("iv-drem", model,
+                                                    **closed_loop_kwargs(config, "iv-drem"))
+        h = min(FMU_CHECK_COMM_STEPS)   # its Python reference: RK4 at the finest step
+        check_diagram_cost(d, float(fmu_check_t_end), engine=engine, method="rk4", h=h,
+                           dt_out=h, return_states=False, allow_long=allow_long,
+                           what="the FMU check")
+
+
+def check_fmu_check_t_end(t_end) -> float:
+    """--fmu-check-t-end: finite, > 0 and a whole number of every communication step."""
+    t = float(t_end)
+    H = max(FMU_CHECK_COMM_STEPS)
+    if not (math.isfinite(t) and t > 0):
+        raise PreflightError(f"--fmu-check-t-end must be a finite number of seconds > 0, "
+                             f"got {t_end:g}")
+    n = round(t / H)
+    if n < 1 or abs(n * H - t) > 1e-9 * max(1.0, t):
+        raise PreflightError(f"--fmu-check-t-end = {t:g} s must be a whole number of the "
+                             f"check's largest communication step {H:g} s")
+    return t
+
+
+def check_cache_dir(engine) -> None:
+    """The compiled engine writes generated modules to the cache: refuse an unwritable one
+    now rather than when the first (or a later) diagram compiles."""
+    if engine != "compiled":
+        return
+    from .sim.compiled import cache_dir
+    check_writable_dir(cache_dir(), "compile cache directory (IVDREM_CACHE_DIR)")
+
+
+def horizon_note(config) -> str | None:
+    """A one-line note when t_end is shorter than the horizon C1-C3 are stated for."""
+    t_end = float(config["experiment"]["t_end"])
+    if t_end >= CONCLUSIONS_HORIZON:
+        return None
+    return (f"note: t_end = {t_end:g} s is shorter than the {CONCLUSIONS_HORIZON:g} s horizon "
+            f"that conclusions C1-C3 are stated for; expect FAIL verdicts")
+
+
+def timing_text(stats) -> str:
+    """'compile X s + simulation Y s' when the stats split them, else the wall time."""
+    comp, sim = stats.get("compile_s"), stats.get("sim_s")
+    if comp is not None and sim is not None:
+        return f"compile {comp:.2f} s + simulation {sim:.2f} s"
+    return f"{stats.get('wall_s', float('nan')):.2f} s"

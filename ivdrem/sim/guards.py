@@ -1,0 +1,146 @@
+"""Cost guards: what a run will cost, estimated before it starts, and refused beyond limits.
+
+Two numbers are known before the first step:
+
+* the memory of the output grid: ``ceil(t_end / dt_out) + 1`` samples of every output (and
+  of every state when ``return_states``), 8 bytes each;
+* a lower bound on the number of steps: ``t_end / h`` for fixed-step RK4, ``t_end / h_max``
+  for Dormand-Prince (its steps never exceed ``h_max``; the loop's stiffness makes the real
+  count larger: ~140 000 steps against the bound 30 000 for the paper's 300 s run, README
+  "Performance").
+
+A run beyond :data:`MAX_OUTPUT_BYTES` or :data:`MAX_STEPS` (per engine) is refused with
+:class:`CostLimitError` giving the numbers; ``allow_long=True`` (``--allow-long`` on the
+command line) lifts both limits.  A Dormand-Prince run whose lower bound already exceeds
+its ``max_steps`` cannot finish and is refused regardless.  ``h_max`` and ``dt_out`` have
+fixed lower bounds (:data:`H_MAX_MIN`, :data:`DT_OUT_MIN`) that no flag lifts: below them
+the step or the sample spacing is a typo, not a plan.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["CostLimitError", "CostEstimate", "estimate_cost", "check_cost",
+           "check_bounds", "MAX_OUTPUT_BYTES", "MAX_STEPS", "H_MAX_MIN", "DT_OUT_MIN",
+           "DEFAULT_H_MAX", "check_diagram_cost"]
+
+#: Largest output grid (returned samples of outputs and states), bytes: 2 GiB.
+MAX_OUTPUT_BYTES = 2 * 2**30
+#: Largest lower bound on the step count, per engine.  Compiled: ~45 µs per
+#: Dormand-Prince step of the paper's loop (README "Performance": 12.5 s for 2 x 140 000
+#: steps), so 1e7 steps is about 8 minutes; reference (python-control evaluation, ~300x
+#: slower per step): 1e5 steps is about 25 minutes.
+MAX_STEPS = {"compiled": 10_000_000, "reference": 100_000}
+#: Smallest accepted h_max (s) and output spacing dt_out (s).
+H_MAX_MIN = 1e-6
+DT_OUT_MIN = 1e-6
+#: The simulator's largest default h_max (it takes min(0.05, T/4) for the shortest delay T).
+DEFAULT_H_MAX = 0.05
+
+
+class CostLimitError(ValueError):
+    """A run refused before it starts because of its estimated memory or step count."""
+
+
+def _gib(nbytes: float) -> str:
+    if nbytes >= 2**40:
+        return f"{nbytes / 2**40:.3g} TiB"
+    if nbytes >= 2**30:
+        return f"{nbytes / 2**30:.3g} GiB"
+    return f"{nbytes / 2**20:.3g} MiB"
+
+
+@dataclass(frozen=True)
+class CostEstimate:
+    """What a run costs at least: output samples x columns, bytes, steps."""
+    t_end: float
+    samples: float
+    columns: int
+    bytes: float
+    steps_min: float
+    step_source: str      # "t_end / h" or "t_end / h_max", with the numbers
+
+    def memory_text(self) -> str:
+        return (f"{self.samples:.3g} samples x {self.columns} signals x 8 bytes = "
+                f"{_gib(self.bytes)}")
+
+
+def _positive(x) -> float | None:
+    """x as a float if it is a finite number > 0, else None (the simulator's own checks
+    report those values; the guard only prices valid ones)."""
+    try:
+        f = float(x)
+    except (TypeError, ValueError):
+        return None
+    return f if f > 0 and math.isfinite(f) else None
+
+
+def check_bounds(*, h_max=None, dt_out=None) -> None:
+    """Raise ValueError for an ``h_max`` or ``dt_out`` below its documented lower bound."""
+    for name, value, low in (("h_max", h_max, H_MAX_MIN), ("dt_out", dt_out, DT_OUT_MIN)):
+        value = _positive(value)
+        if value is not None and value < low:
+            raise ValueError(f"{name} = {float(value):g} s is below its lower bound "
+                             f"{low:g} s (ivdrem.sim.guards)")
+
+
+def estimate_cost(t_end, *, noutputs, nstates=0, method="dp45", h=1e-3, h_max=None,
+                  dt_out=0.01, return_states=True) -> CostEstimate:
+    """Lower bounds on what simulating ``t_end`` seconds costs (see the module docstring)."""
+    t_end = float(t_end)
+    dt_out = min(_positive(dt_out) or t_end, t_end)
+    samples = math.ceil(t_end / dt_out * (1 - 1e-12)) + 1
+    columns = int(noutputs) + (int(nstates) if return_states else 0)
+    step = _positive(h) if method == "rk4" else \
+        (DEFAULT_H_MAX if h_max is None else _positive(h_max))
+    name = "h" if method == "rk4" else "h_max"
+    if step is None:
+        steps, src = 0.0, f"{name} invalid"
+    else:
+        steps, src = t_end / step, f"t_end / {name} = {t_end:g} / {step:g}"
+    return CostEstimate(t_end, float(samples), columns, float(samples) * columns * 8.0,
+                        steps, src)
+
+
+def check_cost(t_end, *, noutputs, nstates=0, method="dp45", engine="compiled", h=1e-3,
+               h_max=None, dt_out=0.01, return_states=True, max_steps=None,
+               allow_long=False, max_bytes=None, max_steps_estimate=None,
+               what="the run") -> CostEstimate:
+    """Refuse a run that is certain to be too big or too long, before it starts.
+
+    Raises ValueError (bounds of ``h_max``/``dt_out``) or :class:`CostLimitError`; returns
+    the :class:`CostEstimate` otherwise.  ``max_bytes`` and ``max_steps_estimate`` override
+    :data:`MAX_OUTPUT_BYTES` and :data:`MAX_STEPS` (tests use small ones).
+    """
+    check_bounds(h_max=h_max, dt_out=dt_out)
+    est = estimate_cost(t_end, noutputs=noutputs, nstates=nstates, method=method, h=h,
+                        h_max=h_max, dt_out=dt_out, return_states=return_states)
+    if method != "rk4" and max_steps is not None and est.steps_min > max_steps:
+        raise CostLimitError(
+            f"{what} cannot finish: it needs at least {est.steps_min:.3g} steps "
+            f"({est.step_source}), more than max_steps = {int(max_steps)}; raise h_max "
+            f"or shorten t_end")
+    if allow_long:
+        return est
+    limit_b = MAX_OUTPUT_BYTES if max_bytes is None else max_bytes
+    if est.bytes > limit_b:
+        raise CostLimitError(
+            f"{what} would record {est.memory_text()} of output (t_end = {est.t_end:g} s, "
+            f"dt_out = {est.t_end / (est.samples - 1):g} s), above the limit of "
+            f"{_gib(limit_b)}: raise dt_out, shorten t_end, or allow it with "
+            f"allow_long=True (command line: --allow-long)")
+    limit_s = MAX_STEPS.get(engine, MAX_STEPS["compiled"]) if max_steps_estimate is None \
+        else max_steps_estimate
+    if est.steps_min > limit_s:
+        raise CostLimitError(
+            f"{what} needs at least {est.steps_min:.3g} steps ({est.step_source}), above "
+            f"the limit of {limit_s:.3g} steps for the {engine} engine: raise "
+            f"{'h' if method == 'rk4' else 'h_max'}, shorten t_end, or allow it with "
+            f"allow_long=True (command line: --allow-long)")
+    return est
+
+
+def check_diagram_cost(diagram, t_end, **kwargs) -> CostEstimate:
+    """:func:`check_cost` with the output and state counts of a closed diagram."""
+    return check_cost(t_end, noutputs=diagram.noutputs, nstates=diagram.nstates, **kwargs)
