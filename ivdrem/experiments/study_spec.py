@@ -21,8 +21,8 @@ point), and each of those *points* is run once per law of ``experiment.laws`` (w
 itself be a grid key): one run = one closed loop, one law.
 
 :func:`expand_study` turns a study into its list of :class:`RunSpec`, each with a complete,
-validated configuration (``experiment.laws`` = [its law]) and the hash that identifies it
-(for ``--resume``).  Every run is validated before anything is simulated; errors are
+validated configuration (``experiment.laws`` = [its law]) and the hash of what it reads (:func:`config_hash`),
+which identifies it for ``--resume``.  Every run is validated before anything is simulated; errors are
 :class:`StudyError` naming the run and the key, with the message of ``ivdrem paper --config``.
 
 Random draws: each (key, element) has its own stream, ``numpy.random.default_rng([seed,
@@ -44,7 +44,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .config import ConfigError, load_config, validate_config
+from .config import ConfigError, closed_loop_kwargs, load_config, solver_kwargs, validate_config
 
 try:  # Python >= 3.11
     import tomllib
@@ -122,9 +122,30 @@ def _short(v) -> str:
     return json.dumps(v) if not isinstance(v, str) else v
 
 
-def config_hash(config: Mapping) -> str:
-    """Hash of a complete configuration (identifies a run for --resume)."""
-    text = json.dumps(config, sort_keys=True, separators=(",", ":"), allow_nan=False)
+def config_hash(config: Mapping, law: str) -> str:
+    """Hash of everything one law's run reads from a configuration (identifies the run).
+
+    That is the closed loop's arguments (``closed_loop_kwargs``), the solver's
+    (``solver_kwargs``), the model and the horizon: two runs that differ only in keys
+    their law does not read (composite learning and ``iv_drem.T``) have the same hash.
+    """
+    def plain(v):
+        if isinstance(v, np.ndarray):
+            return v.tolist()
+        if isinstance(v, Mapping):
+            return {str(k): plain(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [plain(x) for x in v]
+        return v
+
+    what = {
+        "law": law,
+        "model": config["model"],
+        "experiment": {k: v for k, v in config["experiment"].items() if k != "laws"},
+        "closed_loop": plain(closed_loop_kwargs(config, law)),
+        "solver": plain(solver_kwargs(config)),
+    }
+    text = json.dumps(what, sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
 
 
@@ -372,7 +393,6 @@ def expand_study(spec: StudySpec) -> list[RunSpec]:
     grid_keys = list(spec.grid)
     points = list(itertools.product(*(spec.grid[k] for k in grid_keys))) if grid_keys else [()]
     samples = _draws(spec)
-    seen: dict[str, int] = {}
     point = 0
     for gvals in points:
         for s, draw in enumerate(samples):
@@ -391,14 +411,11 @@ def expand_study(spec: StudySpec) -> list[RunSpec]:
             for law in cfg["experiment"]["laws"]:
                 run_cfg = copy.deepcopy(cfg)
                 run_cfg["experiment"]["laws"] = [law]
-                h = config_hash(run_cfg)
+                h = config_hash(run_cfg, law)
                 r = RunSpec(index=len(runs), point=point, law=law, sample=sample,
                             values=dict(values), config=run_cfg, hash=h)
-                if h in seen:
-                    first = runs[seen[h]]
-                    if spec.grid and not spec.random:
-                        raise StudyError(f"{r.label} has the same configuration as {first.label}")
-                seen.setdefault(h, r.index)
+                # runs with the same configuration (a law that does not read a varied
+                # key, a repeated draw of `choice`) are simulated once and share a record
                 runs.append(r)
             point += 1
     return runs
