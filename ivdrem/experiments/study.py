@@ -32,6 +32,8 @@ import os
 import socket
 import sys
 import time
+import uuid
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -291,9 +293,12 @@ def _connect(workers: int | None, scheduler: str | None):
     n = (os.cpu_count() or 1) if workers is None else int(workers)
     if n < 1:
         raise StudyError(f"--workers must be >= 1, got {workers}")
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           host="127.0.0.1", dashboard_address=None,
-                           silence_logs=logging.ERROR)
+    with warnings.catch_warnings():
+        # "Port 8787 is already in use": the scheduler's HTTP endpoint moves to a free port
+        warnings.filterwarnings("ignore", message="Port .* is already in use")
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                               host="127.0.0.1", dashboard_address=None,
+                               silence_logs=logging.ERROR)
     client = Client(cluster, set_as_default=False)
     return client, cluster
 
@@ -373,15 +378,16 @@ def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost,
 
     # one warm-up task per law (its code is shared by every run of that law); the runs of
     # a law start once it is done and the code is in the disk cache
+    session = uuid.uuid4().hex[:8]  # keys of an interrupted session may still be cancelling
     warm = {}
     for r in todo:
         if r.law not in warm:
-            warm[r.law] = client.submit(warm_up, r.config, r.law, key=f"warm-up-{r.hash}",
+            warm[r.law] = client.submit(warm_up, r.config, r.law, key=f"warm-up-{r.law}-{session}",
                                         pure=False, retries=TASK_RETRIES)
     futures = {}
     # interleave laws so that every worker has work while a law is still compiling
     for r in _interleave(todo):
-        f = client.submit(_run_after, r.config, r.law, warm[r.law], key=f"run-{r.hash}",
+        f = client.submit(_run_after, r.config, r.law, warm[r.law], key=f"run-{r.hash}-{session}",
                           pure=False, retries=TASK_RETRIES)
         futures[f] = r
     bar = None

@@ -254,17 +254,22 @@ def _dict_text(source) -> str:
     return ""
 
 
-def _flatten(table, *, stop_at_dist: bool, prefix: str = "") -> dict:
-    """{"iv_drem": {"T": [...]}} (TOML's bare dotted keys) -> {"iv_drem.T": [...]}."""
+def _flatten(table, *, stop_at_dist: bool = True) -> dict:
+    """{"iv_drem": {"T": [...]}} (TOML's bare dotted keys) -> {"iv_drem.T": [...]}.
+
+    Quoted keys ("iv_drem.T") are taken as they are; a bare key is a section whose
+    entries are its keys.  Values are never looked into (a distribution is a table).
+    """
     out = {}
     if not isinstance(table, Mapping):
-        raise StudyError(f"[study] entry '{prefix.rstrip('.')}' must be a table, got {table!r}")
+        raise StudyError(f"[study.grid] and [study.random] must be tables, got {table!r}")
     for key, value in table.items():
-        full = prefix + str(key)
-        if isinstance(value, Mapping) and not (stop_at_dist and _is_dist(value)):
-            out.update(_flatten(value, stop_at_dist=stop_at_dist, prefix=full + "."))
+        key = str(key)
+        if "." in key or not isinstance(value, Mapping) or _is_dist(value):
+            out[key] = value
         else:
-            out[full] = value
+            for sub, v in value.items():
+                out[f"{key}.{sub}"] = v
     return out
 
 
