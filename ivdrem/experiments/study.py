@@ -306,7 +306,7 @@ def _connect(workers: int | None, scheduler: str | None):
 # --------------------------------------------------------------------------- the study
 def run_study(study, out=None, *, workers: int | None = None, scheduler: str | None = None,
               resume: bool = False, progress: bool | None = None, report: bool = True,
-              on_run: Callable[[RunSpec, dict], None] | None = None):
+              warm_up_laws: bool = True, on_run: Callable[[RunSpec, dict], None] | None = None):
     """Run a study file (path) or dict; returns the results as a pandas DataFrame.
 
     out : output directory (default: ``studies/<name of the study file>``).
@@ -315,6 +315,8 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     resume : skip the runs whose record is already in ``out/runs``.
     progress : a bar over runs on stderr (default: when stderr is a terminal).
     report : write ``out/study.html`` and ``out/study.pdf`` at the end.
+    warm_up_laws : compile each law in one task before its runs start (else the first run
+        of a law on each worker loads or compiles it).
     on_run : called as ``on_run(run, record)`` after each run's record is saved.
 
     Everything is checked before the first run starts: the study file, every run's
@@ -356,7 +358,7 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     try:
         if todo:
             _execute(client, [wanted[h] for h in todo], store, records, runs, spec, out,
-                     lost, show, on_run)
+                     lost, show, on_run, warm_up_laws)
     finally:
         if client is not None:
             client.close()
@@ -373,7 +375,8 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     return df
 
 
-def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost, show, on_run):
+def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost, show, on_run,
+             warm_up_laws=True):
     from dask.distributed import as_completed
 
     # one warm-up task per law (its code is shared by every run of that law); the runs of
@@ -381,7 +384,9 @@ def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost,
     session = uuid.uuid4().hex[:8]  # keys of an interrupted session may still be cancelling
     warm = {}
     for r in todo:
-        if r.law not in warm:
+        if not warm_up_laws:
+            warm[r.law] = None
+        elif r.law not in warm:
             warm[r.law] = client.submit(warm_up, r.config, r.law, key=f"warm-up-{r.law}-{session}",
                                         pure=False, retries=TASK_RETRIES)
     futures = {}
