@@ -185,6 +185,13 @@ def test_adding_a_key_does_not_change_the_draws_of_the_others():
     assert a == b
 
 
+def test_fewer_samples_are_the_first_draws_of_more():
+    few = json.loads(json.dumps(RANDOM))
+    few["study"]["random"]["samples"] = 10
+    assert [r.hash for r in expand_study(read_study(few))] == \
+        [r.hash for r in expand_study(read_study(RANDOM))][:20]
+
+
 def test_grid_and_random_combine_and_laws_are_a_dimension():
     study = {"study": {"grid": {"iv_drem.T": [5.0, 10.0], "experiment.laws": ["iv-drem", "drem"]},
                        "random": {"samples": 3, "seed": 1,

@@ -19,9 +19,11 @@ in the study's run order, so a resumed study ends with the table of an uninterru
 A worker that dies mid-task loses nothing: the scheduler runs the task again elsewhere.
 
 Compiled code: runs of one law share one generated module (parameter values are not baked
-into the code), so a study compiles each law once; a warm-up task per law builds it (into
-the on-disk cache, ``ivdrem.sim.compiled.cache_dir``) before the runs of that law start, and
-every worker process then loads it from disk once and keeps it in memory.
+into the code), so each worker process builds (or loads from the on-disk cache,
+``ivdrem.sim.compiled.cache_dir``) each law's code once, at its first run of that law, and
+keeps it in memory.  Runs are submitted with the laws interleaved, so that on an empty
+cache the workers compile different laws at the same time.  A warm-up task per law
+(``warm_up_laws=True``) was measured not to pay: see docs/studies.md.
 """
 from __future__ import annotations
 
@@ -306,7 +308,7 @@ def _connect(workers: int | None, scheduler: str | None):
 # --------------------------------------------------------------------------- the study
 def run_study(study, out=None, *, workers: int | None = None, scheduler: str | None = None,
               resume: bool = False, progress: bool | None = None, report: bool = True,
-              warm_up_laws: bool = True, on_run: Callable[[RunSpec, dict], None] | None = None):
+              warm_up_laws: bool = False, on_run: Callable[[RunSpec, dict], None] | None = None):
     """Run a study file (path) or dict; returns the results as a pandas DataFrame.
 
     out : output directory (default: ``studies/<name of the study file>``).
@@ -315,8 +317,8 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     resume : skip the runs whose record is already in ``out/runs``.
     progress : a bar over runs on stderr (default: when stderr is a terminal).
     report : write ``out/study.html`` and ``out/study.pdf`` at the end.
-    warm_up_laws : compile each law in one task before its runs start (else the first run
-        of a law on each worker loads or compiles it).
+    warm_up_laws : compile each law in one task before its runs start (default: no; the
+        first run of a law on each worker loads it from the disk cache, or compiles it).
     on_run : called as ``on_run(run, record)`` after each run's record is saved.
 
     Everything is checked before the first run starts: the study file, every run's
@@ -376,11 +378,11 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
 
 
 def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost, show, on_run,
-             warm_up_laws=True):
+             warm_up_laws=False):
     from dask.distributed import as_completed
 
-    # one warm-up task per law (its code is shared by every run of that law); the runs of
-    # a law start once it is done and the code is in the disk cache
+    # optional warm-up task per law (its code is shared by every run of that law): the runs
+    # of a law then start once the code is in the disk cache
     session = uuid.uuid4().hex[:8]  # keys of an interrupted session may still be cancelling
     warm = {}
     for r in todo:
@@ -390,7 +392,7 @@ def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost,
             warm[r.law] = client.submit(warm_up, r.config, r.law, key=f"warm-up-{r.law}-{session}",
                                         pure=False, retries=TASK_RETRIES)
     futures = {}
-    # interleave laws so that every worker has work while a law is still compiling
+    # laws interleaved: on an empty cache the first tasks compile different laws at once
     for r in _interleave(todo):
         f = client.submit(_run_after, r.config, r.law, warm[r.law], key=f"run-{r.hash}-{session}",
                           pure=False, retries=TASK_RETRIES)
@@ -398,7 +400,8 @@ def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost,
     bar = None
     if show:
         from tqdm import tqdm
-        bar = tqdm(total=len(runs), initial=len(runs) - len(todo), unit="run", desc="study",
+        total = len({r.hash for r in runs})  # runs shared by several points count once
+        bar = tqdm(total=total, initial=total - len(todo), unit="run", desc="study",
                    file=sys.stderr, dynamic_ncols=True)
     last_rebuild = 0.0
     failed = 0

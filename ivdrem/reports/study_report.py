@@ -261,20 +261,16 @@ def _verdict_counts(df) -> Table:
 
 
 def _runs_table(df, varied) -> Table:
+    import pandas as pd
+
     head = ["run", *varied, "law", "status", "‖θ̃(t_end)‖", "max ‖e‖ l.20 %", "RMS ‖τ̃_d‖ l.20 %",
             "C1", "C2", "C3", "steps", "sim (s)"]
     rows = []
     for _, r in df.iterrows():
         def v(c):
             x = r.get(c)
-            if x is None or (isinstance(x, float) and math.isnan(x)) or x is getattr(np, "nan"):
+            if x is None or x is pd.NA or (isinstance(x, float) and math.isnan(x)):
                 return "–"
-            try:
-                import pandas as pd
-                if pd.isna(x):
-                    return "–"
-            except (TypeError, ValueError):
-                pass
             if isinstance(x, (bool, np.bool_)):
                 return "PASS" if x else "FAIL"
             return fmt(x)
