@@ -273,6 +273,8 @@ def _runs_table(df, varied) -> Table:
                 return "–"
             if isinstance(x, (bool, np.bool_)):
                 return "PASS" if x else "FAIL"
+            if isinstance(x, (float, np.floating)):
+                return f"{float(x):.4g}"  # the full precision is in results.parquet
             return fmt(x)
         rows.append([v("run"), *[v(k) for k in varied], r["law"], r["status"],
                      v("theta_err_norm"), v("e_max_last20"), v("tau_d_err_rms_last20"),
