@@ -79,6 +79,7 @@ def _comparable(df):
 # --------------------------------------------------------------------------- same numbers as `paper`
 def test_grid_study_equals_paper_runs_bit_for_bit(grid_study, paper_runs):
     out, df = grid_study
+    assert df.attrs["scheduler"].startswith("tcp://127.0.0.1:")
     assert list(df["run"]) == [0, 1, 2, 3]
     assert (df["status"] == "ok").all(), df["error"].tolist()
     assert str(df["status"].iloc[0]) == "ok"
@@ -266,6 +267,13 @@ def test_unreachable_scheduler_is_a_clear_error_before_any_run(tmp_path, capsys)
     msg = capsys.readouterr().err
     assert f"cannot reach the Dask scheduler at tcp://127.0.0.1:{port}" in msg
     assert not (tmp_path / "out" / "runs").exists()
+
+
+def test_a_directory_of_other_files_is_refused(tmp_path):
+    (tmp_path / "results.csv").write_text("mine\n", encoding="utf-8")
+    with pytest.raises(StudyError, match="not one of ivdrem's study directories"):
+        run_study(GRID, tmp_path, workers=1, progress=False)
+    assert (tmp_path / "results.csv").read_text(encoding="utf-8") == "mine\n"
 
 
 def test_a_directory_with_runs_needs_resume(grid_study):

@@ -55,6 +55,8 @@ SCHEDULER_TIMEOUT_S = 5.0
 TASK_RETRIES = 2
 #: per-run metrics of ``ivdrem.experiments.metrics.summary`` kept in the table
 METRICS = ("theta_err_norm", "e_max_last20", "tau_d_err_rms_last20")
+#: file marking a directory as written by ivdrem study (only such files are replaced)
+_MARKER = ".ivdrem-study"
 #: minimal interval between two rebuilds of the result tables while runs arrive, s
 _REBUILD_EVERY_S = 2.0
 
@@ -333,6 +335,10 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise StudyError(f"--out {out} exists and is not a directory")
+    if out.is_dir() and any(out.iterdir()) and not (out / _MARKER).exists() \
+            and not (out / "runs").is_dir():
+        raise StudyError(f"--out {out} is a directory with other files in it, not one of "
+                         "ivdrem's study directories; choose a new or empty directory")
     store = RunStore(out)
     have = store.load()
     if have and not resume:
@@ -350,9 +356,11 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
 
     if todo:
         client, cluster = _connect(workers, scheduler)
+        scheduler_address = client.scheduler.address
     else:
-        client = cluster = None
+        client = cluster = scheduler_address = None
     out.mkdir(parents=True, exist_ok=True)
+    (out / _MARKER).touch()
     write_text_atomic(out / ("study.json" if spec.source == "<dict>" else "study.toml"), spec.text)
     show = (sys.stderr.isatty() and not os.environ.get("CI")) if progress is None else bool(progress)
     lost: dict[str, str] = {}
@@ -370,6 +378,7 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     df, cf = _write_tables(out, runs, records, spec)
     df.attrs["wall_s"] = wall
     df.attrs["lost"] = dict(lost)
+    df.attrs["scheduler"] = scheduler_address
     if report:
         from ..reports.study_report import write_study_report
         write_study_report(out, spec=spec, runs=runs, results=df, curves=cf, lost=lost,
