@@ -66,6 +66,11 @@ def _cmd_paper(args):
     return 0
 
 
+def _cmd_study(args):
+    from .experiments.study import run_study_command
+    return run_study_command(args)
+
+
 def _cmd_report(args):
     from .reports.cli import run_report_command
     return run_report_command(args)
@@ -92,6 +97,11 @@ def build_parser():
     pp.add_argument("--quiet", action="store_true", help="no progress bars")
     add_run_options(pp)
     pp.set_defaults(func=_cmd_paper)
+
+    sp = sub.add_parser("study", help="run a parameter study (grid / Monte Carlo) on a Dask cluster")
+    from .experiments.study import add_study_arguments
+    add_study_arguments(sp)
+    sp.set_defaults(func=_cmd_study)
 
     rp = sub.add_parser("report", help="run the paper experiment and write the PDF/HTML report")
     add_report_arguments(rp)
