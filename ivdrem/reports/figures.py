@@ -44,14 +44,34 @@ RC = {
     "axes.edgecolor": "#444444",
 }
 
-#: colour and legend label of each law (Okabe-Ito palette, colour-blind safe).
-LAW_STYLE = {
-    "iv-drem": ("#0072B2", "IV-DREM, (11)+(21)"),
-    "composite-learning": ("#E69F00", "composite learning, (35)"),
-    "drem": ("#009E73", "DREM without IV"),
-    "sigma-modification": ("#CC79A7", "σ-modification"),
-    "none": ("#7F7F7F", "no composite term"),
-}
+class _LawStyle(dict):
+    """colour and legend label of each law, read from the law registry (ivdrem.laws) at
+    look-up time, so a law registered later has its own style (Okabe-Ito palette)."""
+
+    def _fill(self):
+        from ..laws import LAWS as registry
+        for name, law in registry.items():
+            dict.__setitem__(self, name, (law.color, law.label))
+
+    def get(self, key, default=None):
+        self._fill()
+        return dict.get(self, key, default)
+
+    def __getitem__(self, key):
+        self._fill()
+        return dict.__getitem__(self, key)
+
+    def __iter__(self):
+        self._fill()
+        return dict.__iter__(self)
+
+    def __len__(self):
+        self._fill()
+        return dict.__len__(self)
+
+
+#: colour and legend label of each law (from the registry; colour-blind safe palette).
+LAW_STYLE = _LawStyle()
 _EXTRA_COLORS = ["#D55E00", "#56B4E9", "#000000", "#F0E442"]
 
 WIDTH = 8.27  # inches: A4 width, so that PDF pages of figures and text line up
