@@ -61,7 +61,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
     maps block names to user blocks with the same signal names, e.g.
     ``replace={"disturbance": my_block}``.
 
-    Outputs: q, dq, q_d, e, r, tau, tau_d, tau_d_hat, theta_hat, mu; plus those of the
+    Outputs: q, dq, q_d, e, r, tau, tau_d, tau_d_hat, theta_hat, mu, Pi, v, dv; plus those of the
     law (``ivdrem.laws``): Delta, calY, z, phi (and zeta) for "iv-drem"/"drem",
     lambda_min_held for "composite-learning".
 
@@ -123,7 +123,8 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
         B.control_law(n, nth, K=K, delta_mu=delta_mu),
         B.adaptation_law(n, nth, Gamma=Gamma, theta_hat0=theta_hat0),
     ]
-    outputs = ["q", "dq", "q_d", "e", "r", "tau", "tau_d", "tau_d_hat", "theta_hat", "mu"]
+    outputs = ["q", "dq", "q_d", "e", "r", "tau", "tau_d", "tau_d_hat", "theta_hat", "mu",
+               "Pi", "v", "dv"]  # Pi, v, dv: the observer (7) with the true θ, offline
     # the law's own gains: explicit arguments of closed_loop, then law_params, over the
     # registry's defaults
     given = dict(T=T, p=p, F0=F0, gamma=gamma, epsilon=epsilon, sigma=sigma,
