@@ -129,10 +129,13 @@ def test_property42_finds_rho_for_the_papers_mu_and_none_for_a_decaying_mu():
 
 def test_rate_fit_recovers_the_exponent():
     t = np.linspace(0, 300, 3001)
-    c, (a, C) = D.check_rate(t, 2.0 * (t + 1e-3) ** -0.4)
-    assert c["verdict"] == D.HOLDS and a == pytest.approx(0.4, abs=1e-4)
+    c, (a, C) = D.check_rate(t, 2.0 * (t + 1e-3) ** -1.2)
+    assert c["verdict"] == D.HOLDS and a == pytest.approx(1.2, abs=0.01)
     c, _ = D.check_rate(t, 5.0 + 0 * t)
     assert c["verdict"] == D.FAILS
+    # a slow decrease towards a floor cannot be told from convergence at this horizon
+    c, _ = D.check_rate(t, 1.0 + 0.5 * np.exp(-t / 400))
+    assert c["verdict"] == D.UNDECIDED
 
 
 def test_lyapunov_function_and_bound():

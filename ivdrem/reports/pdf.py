@@ -19,7 +19,9 @@ PAGE_W, PAGE_H = 8.27, 11.69  # A4, inches
 MARGIN_X, MARGIN_TOP, MARGIN_BOTTOM = 0.7, 0.75, 0.75
 EM = 0.56  # average glyph width of DejaVu Sans in em (a slight over-estimate)
 
-_VERDICT_COLORS = {"PASS": ("#dff3e0", "#1b5e20"), "FAIL": ("#fde0dc", "#b71c1c")}
+_VERDICT_COLORS = {"PASS": ("#dff3e0", "#1b5e20"), "FAIL": ("#fde0dc", "#b71c1c"),
+                   "HOLDS": ("#dff3e0", "#1b5e20"), "FAILS": ("#fde0dc", "#b71c1c"),
+                   "NOT DECIDED": ("#fff4d6", "#7a5300")}
 _MATH = [("𝒲", r"$\mathcal{W}$"), ("𝒴", r"$\mathcal{Y}$")]
 
 
