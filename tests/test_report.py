@@ -466,3 +466,47 @@ def test_html_renders_in_a_browser(report, tmp_path):
     coloured = ((img.max(axis=2) - img.min(axis=2)) > 0.25).mean()  # law colours, verdict cells
     assert img.std() > 0.05
     assert dark > 0.005 and coloured > 0.001
+
+
+# --------------------------------------------------------------------------- table pagination
+def test_table_pages_never_leave_a_lone_row_or_header():
+    from ivdrem.reports.pdf import plan_table_pages
+    # 10 rows of 1 unit, header 1, pages of 6 units: 5 rows a page -> [5], [5]
+    assert plan_table_pages([1] * 10, 1, 6, 6) == (False, [[0, 1, 2, 3, 4], [5, 6, 7, 8, 9]])
+    # 11 rows: the naive split [5], [5], [1] leaves a lone last row -> [5], [4], [2]
+    new, groups = plan_table_pages([1] * 11, 1, 6, 6)
+    assert [len(g) for g in groups] == [5, 4, 2] and sum(groups, []) == list(range(11))
+    # room for the header and one row only on the current page: the table moves
+    new, groups = plan_table_pages([1] * 4, 1, 2.5, 6)
+    assert new is True and groups == [[0, 1, 2, 3]]
+    # a one-row table may stand alone
+    assert plan_table_pages([1], 1, 2.5, 6) == (False, [[0]])
+    for n in range(2, 40):
+        for first in (1.5, 2.5, 3.5, 6):
+            new, groups = plan_table_pages([1] * n, 1, first, 6)
+            assert sum(groups, []) == list(range(n))
+            assert all(len(g) >= 2 for g in groups), (n, first, groups)
+
+
+def test_pdf_tables_have_no_lone_rows(tmp_path, text_only):
+    """A real report: every table page of the PDF holds at least two rows."""
+    import io
+    from matplotlib.backends.backend_pdf import PdfPages
+    from ivdrem.reports.content import build_content
+    from ivdrem.reports.pdf import TextPages, write_text_pages
+    run = synthetic_paper_run(t_end=40.0, dt=0.05, laws=["iv-drem", "composite-learning", "drem"])
+    seen = {}
+    orig = TextPages.flush
+
+    def spy(self):
+        seen.update(getattr(self, "rows_per_page", {}))
+        return orig(self)
+    TextPages.flush = spy
+    try:
+        with mpl.rc_context(F.RC), PdfPages(io.BytesIO()) as pdf:
+            write_text_pages(pdf, build_content(run, fmu_check=FMU_CHECK), [])
+    finally:
+        TextPages.flush = orig
+    assert any(len(p) >= 2 for p in seen.values()), seen             # some table spans pages
+    for key, per_page in seen.items():
+        assert all(k >= 2 for k in per_page) or per_page == [1], (key, per_page)
