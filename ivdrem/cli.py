@@ -26,7 +26,7 @@ def _cmd_paper(args):
         print(f"ivdrem paper: error: {e}", file=sys.stderr)
         return 2
     try:
-        run = run_paper(config, progress=not args.quiet, engine=args.engine)
+        run = run_paper(config, progress=not args.quiet, engine=args.engine, log=print)
     except SimulationError as e:
         print(f"ivdrem paper: simulation failed: {e}", file=sys.stderr)
         return 1
@@ -39,6 +39,12 @@ def _cmd_paper(args):
               f"({st['steps']} steps, {st['wall_s']:.2f} s)")
     if set(run.runs) >= {"iv-drem", "composite-learning"}:
         print(format_conclusions(conclusions(run)))
+    from .experiments.diagnostics import diagnose_run, format_diagnostics, to_json
+    for law, d in diagnose_run(run).items():   # the assumptions of Theorem 2 on this run
+        print(format_diagnostics(d))
+        out[law]["diagnostics"] = to_json(d)
+        if run.runs[law].gamma is not None and not isinstance(run.runs[law].gamma, str):
+            out[law]["gamma"] = float(run.runs[law].gamma)
     if args.json:
         write_text_atomic(args.json, json.dumps(out, indent=2) + "\n")
         print(f"wrote {args.json}")
@@ -61,7 +67,7 @@ def build_parser():
     pp.add_argument("--t-end", type=float, default=None, metavar="SECONDS",
                     help="horizon (default from the config: 300 s)")
     pp.add_argument("--law", nargs="+", default=None, metavar="NAME",
-                    help="laws to run (default: iv-drem composite-learning)")
+                    help="laws to run, or 'all' (default: iv-drem composite-learning)")
     pp.add_argument("--json", default=None, metavar="FILE", help="write per-law numbers as JSON")
     pp.add_argument("--config", default=None, metavar="FILE.toml",
                     help="experiment configuration (see examples/paper.toml)")

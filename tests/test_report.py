@@ -347,7 +347,7 @@ def fake_paper(monkeypatch):
     """Replace ivdrem.experiments.paper by a module whose run_paper is synthetic."""
     calls = []
 
-    def run_paper(config, *, laws=None, progress=True, engine="compiled"):
+    def run_paper(config, *, laws=None, progress=True, engine="compiled", log=None):
         calls.append({"config": config, "laws": laws, "progress": progress, "engine": engine})
         return synthetic_paper_run(config, dt=0.05)
 

@@ -26,7 +26,8 @@ def add_report_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
     parser.add_argument("--t-end", metavar="SECONDS", type=float, default=None, dest="t_end",
                         help="simulated horizon, overrides experiment.t_end")
     parser.add_argument("--laws", metavar="NAME", nargs="+", default=None,
-                        help="adaptation laws to run, overrides experiment.laws; one of: " + ", ".join(LAWS))
+                        help="adaptation laws to run, overrides experiment.laws; 'all' or any of: "
+                             + ", ".join(LAWS))
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--engine", choices=("compiled", "reference"), default="compiled",
                         help="compiled (numba, default) or reference (python-control) evaluation")
@@ -94,7 +95,7 @@ def run_report_command(args) -> int:
 
     from ..experiments.paper import run_paper
 
-    run = run_paper(config, progress=not args.quiet, engine=args.engine)
+    run = run_paper(config, progress=not args.quiet, engine=args.engine, log=print)
     check = None
     if not getattr(args, "no_fmu_check", False):
         try:
