@@ -48,14 +48,15 @@ def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
 
 
 def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Gamma=0.01,
-                mu0=1.0, mu1=15.0, observer_variant="corrected", l=50.0, T=20.0, p=2.0,
-                F0=1.0, gamma=None, epsilon=1e-9, sigma=0.1, theta_star=None,
+                mu0=1.0, mu1=15.0, observer_variant="corrected", l=50.0, T=None, p=None,
+                F0=None, gamma=None, epsilon=None, sigma=None, theta_star=None,
                 theta_hat0=None, q0=None, dq0=None, theta=None, trajectory=None,
                 disturbance=None, replace=None, external_plant=False, law_params=None,
                 calibration=None):
     """The paper's closed loop with composite term `law`, as one InterconnectedSystem.
 
-    Parameters follow SPEC section 8 (defaults are the paper's experiment).  `trajectory`
+    Parameters are the paper's experiment by default; the law's own gains (T, p, F0,
+    gamma, epsilon, sigma, theta_star) default to its entry of the registry ``ivdrem.laws``.  `trajectory`
     and `disturbance` are either dicts of sinusoid parameters (amplitude, omega, phase,
     offset) or ready nlsys blocks with outputs (q_d, dq_d, ddq_d) and (tau_d).  `replace`
     maps block names to user blocks with the same signal names, e.g.
