@@ -24,7 +24,8 @@ import numpy as np
 
 from . import blocks as B
 
-__all__ = ["Law", "LawContext", "LAWS", "register_law", "get_law", "law_names"]
+__all__ = ["Law", "LawContext", "LAWS", "register_law", "get_law", "law_names",
+           "mixed_regression_blocks"]
 
 
 @dataclass
@@ -82,23 +83,30 @@ def law_names() -> tuple[str, ...]:
 
 
 # --------------------------------------------------------------------------- built-in laws
-def _drem_blocks(ctx: LawContext, *, iv: bool):
-    """Regression filters (13), [instrument (14)], extension (15a) over a window T,
-    averaging (15b), mixing (17) and the composite term (21)."""
+def mixed_regression_blocks(ctx: LawContext, *, instrument: bool = True):
+    """The blocks that produce the scalar regressions 𝒴_i = Δθ_i + 𝒲_i (17): regression
+    filters (13), [instrument (14)], extension (15a) over a window T (``params["T"]``),
+    averaging (15b) (``p``, ``F0``) and mixing.  Outputs Delta, calY for a composite term
+    to use; returns (blocks, recorded outputs).  A user law built on (17) starts here."""
     model, n, nth, p = ctx.model, ctx.n, ctx.ntheta, ctx.params
     m = nth + nth * nth
     blocks = [B.regression_filter(model, p["l"])]
-    if iv:
+    if instrument:
         blocks.append(B.instrument(model, p["l"]))
-    blocks += [B.extension(n, nth, instrument=iv),
+    blocks += [B.extension(n, nth, instrument=instrument),
                *B.windowed_integral(m, p["T"]),
                B.averaging(m, p["p"], p["F0"]),
-               B.mixing(nth),
-               B.drem_term(nth, p["gamma"])]
+               B.mixing(nth)]
     # z, phi (and zeta) are recorded so that the diagnostics can form w = z - phi^T theta
     # (13), the excitation of (18) and the products of (19) offline
-    outputs = ["Delta", "calY", "z", "phi"] + (["zeta"] if iv else [])
+    outputs = ["Delta", "calY", "z", "phi"] + (["zeta"] if instrument else [])
     return blocks, outputs
+
+
+def _drem_blocks(ctx: LawContext, *, iv: bool):
+    """(17) and the composite term (21)."""
+    blocks, outputs = mixed_regression_blocks(ctx, instrument=iv)
+    return blocks + [B.drem_term(ctx.ntheta, ctx.params["gamma"])], outputs
 
 
 def _build_iv_drem(ctx):
