@@ -425,7 +425,9 @@ def check_rate(t, theta_err_norm, figure=None, calW_over_Delta=None):
                 "theta_err_norm_end": float(y[-1])}
     if calW_over_Delta is not None:
         last = t >= t[-1] - (t[-1] - tm) / N_BINS
-        measured["calW_over_Delta_last_window"] = float(np.nanmean(np.asarray(calW_over_Delta)[last]))
+        vals = np.asarray(calW_over_Delta)[last]
+        vals = vals[np.isfinite(vals)]
+        measured["calW_over_Delta_last_window"] = float(np.mean(vals)) if vals.size else float("nan")
     return _check("RATE", "θ̃ → 0, rate", "Theorem 2 statement 2", verdict, measured,
                   f"windowed means of ‖θ̃‖ over the last half (×{N_BINS}) fitted by C t^(−a) and "
                   "c₀ + C t^(−b): a ≥ 0.1, last/first window ≤ 0.7 and c₀ ≤ 0.25 × last window "
