@@ -100,6 +100,10 @@ def test_gamma_auto_follows_the_documented_rule():
     ch = d.gamma_choice
     assert ch["t_cal"] == 25.0 and ch["window"][0] == pytest.approx(20.0)
     assert ch["gamma"] * ch["lambda_max_Gamma"] * ch["mean_Delta2"] == pytest.approx(0.5, rel=1e-12)
+    # two passes: the composite term off, then on at the first pass's γ
+    first, second = ch["passes"]
+    assert first["gamma_run"] < 1e-200 and second["gamma_run"] == first["gamma"]
+    assert second["gamma"] == ch["gamma"]
     # the chosen γ is the drem_term's parameter of the returned diagram
     term = [s for s in d.syslist if s.name == "drem_term"][0]
     assert term.params["gamma"] == pytest.approx(ch["gamma"])
