@@ -43,8 +43,9 @@ def _cmd_paper(args):
     for law, d in diagnose_run(run).items():   # the assumptions of Theorem 2 on this run
         print(format_diagnostics(d))
         out[law]["diagnostics"] = to_json(d)
-        if run.runs[law].gamma is not None and not isinstance(run.runs[law].gamma, str):
-            out[law]["gamma"] = float(run.runs[law].gamma)
+        gamma = getattr(run.runs[law], "gamma", None)
+        if isinstance(gamma, (int, float)):
+            out[law]["gamma"] = float(gamma)
     if args.json:
         write_text_atomic(args.json, json.dumps(out, indent=2) + "\n")
         print(f"wrote {args.json}")

@@ -196,3 +196,23 @@ def test_json_has_no_arrays_and_no_nan():
         assert "checks" in text
         ids = [c["id"] for c in d["checks"]]
         assert {"KA1", "KA2", "KA3", "P2", "P4.2", "RATE"} <= set(ids), law
+
+
+def test_paper_json_has_diagnostics_per_law(tmp_path, monkeypatch, capsys):
+    import json
+    import ivdrem.experiments.paper as paper
+    from ivdrem.cli import main
+    from ivdrem.reports.synthetic import synthetic_paper_run
+
+    def fake(config, *, laws=None, progress=True, engine="compiled", log=None):
+        return synthetic_paper_run(config, dt=0.05)
+    monkeypatch.setattr(paper, "run_paper", fake)
+    out = tmp_path / "o.json"
+    assert main(["paper", "--t-end", "60", "--json", str(out), "--quiet"]) == 0
+    data = json.loads(out.read_text())
+    for law in ("iv-drem", "composite-learning"):
+        ids = [c["id"] for c in data[law]["diagnostics"]["checks"]]
+        assert ids[:3] == ["KA1", "PE", "KA2"]
+        assert all(c["verdict"] in (D.HOLDS, D.FAILS, D.UNDECIDED, D.NA)
+                   for c in data[law]["diagnostics"]["checks"])
+    assert "diagnostics of iv-drem" in capsys.readouterr().out
