@@ -96,7 +96,7 @@ def test_lyapunov_bound_of_the_proof_holds_on_a_closed_loop(runs):
 
 
 def test_gamma_auto_follows_the_documented_rule():
-    d = closed_loop("iv-drem", MODEL, gamma="auto", calibration={"t_cal": 25.0})
+    d = closed_loop("iv-drem", MODEL, gamma="auto", calibration={"t_cal": 25.0, "passes": 2})
     ch = d.gamma_choice
     assert ch["t_cal"] == 25.0 and ch["window"][0] == pytest.approx(20.0)
     assert ch["gamma"] * ch["lambda_max_Gamma"] * ch["mean_Delta2"] == pytest.approx(0.5, rel=1e-12)
