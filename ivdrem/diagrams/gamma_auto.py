@@ -26,7 +26,7 @@ __all__ = ["calibrate_gamma", "gamma_from_delta", "DEFAULT_RATE"]
 
 #: target contraction rate κ = γ Δ² λ_max(Γ) of the composite term, 1/s
 DEFAULT_RATE = 0.5
-#: γ of the calibration run: the composite term is off (Δ barely depends on θ̂)
+#: γ of the calibration run: the composite term is off
 _GAMMA_OFF = 1e-300
 
 
