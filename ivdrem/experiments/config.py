@@ -1,6 +1,6 @@
 """Configuration of the paper experiment: embedded default, loading, validation.
 
-The default configuration (SPEC section 8) is the package data file
+The default configuration (the paper experiment) is the package data file
 ``ivdrem/experiments/default.toml``.  :func:`load_config` deep-merges a user TOML
 file (and optional overrides) over it and validates the result *before* anything is
 simulated; every problem is reported as a :class:`ConfigError` naming the key.
@@ -210,7 +210,7 @@ def _follow_model(cfg: dict, user_set: set) -> None:
 
 # --------------------------------------------------------------------------- loading
 def default_config() -> dict:
-    """A fresh copy of the embedded default configuration (SPEC section 8)."""
+    """A fresh copy of the embedded default configuration."""
     return copy.deepcopy(_default_raw())
 
 

@@ -10,7 +10,7 @@ uses their duck type:
   ``calY[j]`` for "iv-drem"/"drem"; ``lambda_min_held`` for "composite-learning") and
   ``.stats`` (solver statistics).
 
-Conclusions (SPEC section 8), each a dict with keys id, statement, criterion, law(s),
+Conclusions, each a dict with keys id, statement, criterion, law(s),
 measured, threshold, verdict (True/False; None when a needed law was not run):
 
 * C1 (composite learning, θ̃ bounded, no convergence): over the last half of the run

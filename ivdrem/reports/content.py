@@ -138,7 +138,7 @@ def _errata(cfg: Mapping, laws: list[str]) -> Table:
          f"Frobenius norm in the mixing, horizon t_end = {fmt(cfg['experiment']['t_end'])} s."],
         ["–", "The paper's Πᵀr in eqs. (11) and (35) is a typo.", "Π r (an nθ-vector) is used."],
     ]
-    return Table("errata", "Errata and choices (SPEC section 7)", ["", "issue in the paper", "what this run uses"],
+    return Table("errata", "Errata and choices (README: conventions and errata)", ["", "issue in the paper", "what this run uses"],
                  rows, [0.06, 0.47, 0.47])
 
 
