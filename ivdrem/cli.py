@@ -42,7 +42,7 @@ def _cmd_paper(args):
     from .sim import SimulationError
     try:
         run = run_paper(config, progress=want_progress(not args.quiet), engine=args.engine,
-                        allow_long=args.allow_long)
+                        allow_long=args.allow_long, log=print)
     except SimulationError as e:
         print(f"{prog}: simulation failed: {e}", file=sys.stderr)
         return 1
@@ -55,6 +55,13 @@ def _cmd_paper(args):
               f"({st['steps']} steps, {timing_text(st)})")
     if set(run.runs) >= {"iv-drem", "composite-learning"}:
         print(format_conclusions(conclusions(run)))
+    from .experiments.diagnostics import diagnose_run, format_diagnostics, to_json
+    for law, d in diagnose_run(run).items():   # the assumptions of Theorem 2 on this run
+        print(format_diagnostics(d))
+        out[law]["diagnostics"] = to_json(d)
+        gamma = getattr(run.runs[law], "gamma", None)
+        if isinstance(gamma, (int, float)):
+            out[law]["gamma"] = float(gamma)
     if json_path is not None:
         from ._paths import write_text_or_keep
         where, failed = write_text_or_keep(json_path, json.dumps(out, indent=2) + "\n")
@@ -89,7 +96,7 @@ def build_parser():
                     help="horizon (default from the config: 300 s, the horizon "
                          "conclusions C1-C3 need)")
     pp.add_argument("--law", nargs="+", default=None, metavar="NAME",
-                    help="laws to run (default: iv-drem composite-learning)")
+                    help="laws to run, or 'all' (default: iv-drem composite-learning)")
     pp.add_argument("--json", default=None, metavar="FILE", help="write per-law numbers as JSON")
     pp.add_argument("--config", default=None, metavar="FILE.toml",
                     help="experiment configuration (see examples/paper.toml)")

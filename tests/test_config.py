@@ -158,26 +158,60 @@ def test_missing_file_and_bad_toml(tmp_path):
         load_config(write(tmp_path, "[experiment\nt_end = 1\n"))
 
 
-def test_planar_model_checks_n_but_not_ntheta():
+def test_planar_model_checks_n_and_ntheta():
     vec3 = [0.0, 0.0, 0.0]
     with pytest.raises(ConfigError, match="'initial.q0' must have 3 entries"):
         load_config(overrides={"model": {"name": "planar-3"}})
     ov = {
-        "model": {"name": "planar-3", "theta": [1.0] * 9},
-        "initial": {"q0": vec3, "dq0": vec3, "theta_hat0": [0.0] * 9},
+        "model": {"name": "planar-3", "theta": [1.0] * 6},
+        "initial": {"q0": vec3, "dq0": vec3, "theta_hat0": [0.0] * 6},
         "controller": {"K": [1.0, 1.0, 1.0]},
-        "sigma_modification": {"theta_star": [1.0] * 9},
+        "sigma_modification": {"theta_star": [1.0] * 6},
         "trajectory": {k: vec3 for k in ("amplitude", "omega", "phase", "offset")},
         "disturbance": {k: vec3 for k in ("amplitude", "omega", "phase", "offset")},
     }
     c = load_config(overrides=ov)
     assert c["model"]["name"] == "planar-3"
     kw = closed_loop_kwargs(c, "iv-drem")
-    assert kw["K"].shape == (3, 3) and kw["Gamma"].shape == (9, 9)
-    # nθ-vectors must at least agree with each other
+    assert kw["K"].shape == (3, 3) and kw["Gamma"].shape == (6, 6)
+    # nθ of the model (6 for a planar 3-link arm) is checked
     ov["initial"] = dict(ov["initial"], theta_hat0=[0.0] * 4)
-    with pytest.raises(ConfigError, match="'initial.theta_hat0' has 4 entries but model.theta has 9"):
+    with pytest.raises(ConfigError, match="'initial.theta_hat0' must have 6 entries"):
         load_config(overrides=ov)
+
+
+def test_another_robot_needs_only_what_differs():
+    """Defaults that are zeros, the per-joint gain or the model's own values follow the
+    model's n and nθ; what the user sets is kept."""
+    from ivdrem.models import get_model
+    vec3 = [0.1, 0.2, 0.3]
+    ov = {"model": {"name": "planar-3"}, "initial": {"q0": vec3},
+          "trajectory": {k: vec3 for k in ("amplitude", "omega", "phase", "offset")},
+          "disturbance": {k: vec3 for k in ("amplitude", "omega", "phase", "offset")},
+          "controller": {"K": [3.0, 3.0, 3.0]}}
+    c = load_config(overrides=ov)
+    m = get_model("planar-3")
+    np.testing.assert_allclose(c["model"]["theta"], m.theta_values)
+    assert c["initial"]["dq0"] == [0.0] * 3 and c["initial"]["theta_hat0"] == [0.0] * 6
+    assert c["controller"]["K"] == [3.0] * 3                      # set by the user: kept
+    assert c["sigma_modification"]["theta_star"] == [0.0] * 6
+    assert c["iv_drem"]["gamma"] == "auto"
+    assert closed_loop_kwargs(c, "iv-drem")["gamma"] == "auto"
+    # the paper's arm keeps the paper's numbers
+    d = load_config()
+    assert d["iv_drem"]["gamma"] == 1e10 and d["controller"]["K"] == [2.0, 2.0]
+    # a number or "auto", nothing else
+    assert load_config(overrides={"iv_drem.gamma": "auto"})["iv_drem"]["gamma"] == "auto"
+    with pytest.raises(ConfigError, match="iv_drem.gamma' must be a number or \"auto\""):
+        load_config(overrides={"iv_drem.gamma": "big"})
+
+
+def test_laws_all_expands_to_every_registered_law():
+    c = load_config(overrides={"experiment.laws": "all"})
+    assert c["experiment"]["laws"] == list(LAWS)
+    assert set(LAWS) == {"iv-drem", "composite-learning", "drem", "sigma-modification", "none"}
+    with pytest.raises(ConfigError, match="or 'all'"):
+        load_config(overrides={"experiment.laws": ["al"]})
 
 
 def test_closed_loop_kwargs_per_law():

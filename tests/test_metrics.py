@@ -97,8 +97,9 @@ def test_rms_and_norm():
 # --------------------------------------------------------------------------- conclusions
 def test_all_conclusions_pass():
     c = by_id(make_run(STALLED, CONVERGING))
-    assert [k for k in c] == ["C1", "C2", "C3"]
-    for cid in c:
+    assert [k for k in c] == ["C1", "C2", "C3", "C4"]
+    assert c["C4"]["verdict"] is None and "drem" in c["C4"]["note"]   # DREM not run
+    for cid in ("C1", "C2", "C3"):
         assert c[cid]["verdict"] is True, c[cid]
         assert set(c[cid]) >= {"id", "statement", "measured", "threshold", "verdict"}
     assert c["C1"]["measured"]["max_rel_deviation_last_half"] == pytest.approx(0.0, abs=1e-12)
@@ -185,10 +186,13 @@ def test_missing_law_is_not_evaluated():
 def test_synthetic_paper_run_flags():
     def verdicts(**kw):
         return [c["verdict"] for c in conclusions(synthetic_paper_run(t_end=60.0, dt=0.05, **kw))]
-    assert verdicts() == [True, True, True]
-    assert verdicts(cl_converges=True) == [False, True, True]
-    assert verdicts(iv_converges=False) == [True, False, True]
-    assert verdicts(iv_tau_better=False) == [True, True, False]
+    assert verdicts() == [True, True, True, None]
+    assert verdicts(cl_converges=True) == [False, True, True, None]
+    assert verdicts(iv_converges=False) == [True, False, True, None]
+    assert verdicts(iv_tau_better=False) == [True, True, False, None]
+    # C4: DREM without the instrument stalls in the synthetic run -> the instrument matters
+    assert verdicts(laws=["iv-drem", "composite-learning", "drem"])[3] is True
+    assert verdicts(laws=["iv-drem", "composite-learning", "drem"], iv_converges=False)[3] is False
 
 
 # --------------------------------------------------------------------------- summary

@@ -23,7 +23,18 @@ from ivdrem.reports.cli import add_report_arguments, run_report_command
 from ivdrem.reports.synthetic import synthetic_paper_run
 
 N_FIGURES = 7  # Figures 1-4 of the paper, θ̂ vs θ, τ, λ_min/μ
-N_TEXT_PAGES = 3  # title + conclusions, parameters, errata/solver/versions/FMU check
+N_TEXT_PAGES = 3  # at least: title + conclusions, parameters, errata/solver/versions/FMU check
+
+
+def text_pages(run):
+    """Pages of text (tables) the report of `run` has, rendered on their own."""
+    import io
+    from matplotlib.backends.backend_pdf import PdfPages
+    from ivdrem.reports.content import build_content
+    from ivdrem.reports.pdf import write_text_pages
+    with mpl.rc_context(F.RC), PdfPages(io.BytesIO()) as pdf:
+        titles = [spec.title for spec in F.iter_figures(run)]
+        return write_text_pages(pdf, build_content(run, fmu_check=FMU_CHECK), titles)
 FMU_CHECK = {"max |q - q_fmu| (rad)": 1.25e-9, "max |dq - dq_fmu| (rad/s)": 3.5e-8, "FMU steps": 60000}
 
 
@@ -130,14 +141,20 @@ def test_global_matplotlib_settings_untouched(report):
 def test_html_has_every_figure_and_table(report, run):
     html = report["html"].read_text("utf-8")
     assert html.startswith("<!DOCTYPE html>")
-    assert html.count("<svg") == N_FIGURES
+    assert html.count("<svg") == N_FIGURES + len(run.runs)   # + one Figure D per law
     for k in range(1, N_FIGURES + 1):
         assert f'<figure id="fig{k}"' in html
+    for law in run.runs:
+        assert f'<figure id="figD-{law}"' in html
+        assert f'id="tab-diag-{law}"' in html                      # verdicts of Theorem 2
     for key in ("conclusions", "summary", "parameters", "errata", "solver", "versions", "fmu"):
         assert f'id="tab-{key}"' in html
-    for cid in ("C1", "C2", "C3"):
+    for cid in ("C1", "C2", "C3", "C4"):
         assert f"<td>{cid}</td>" in html
-    assert html.count('class="PASS"') == 3
+    start = html.index('id="tab-conclusions"')
+    concl_html = html[start:html.index("</table>", start)]
+    assert concl_html.count('class="PASS"') == 3
+    assert "KA1" in html and "KA3" in html and "HOLDS" in html
     for c in conclusions(run):
         assert key_numbers(c).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;") in html
     for e in ("E1", "E2", "E3", "E4", "E5"):
@@ -167,13 +184,15 @@ def test_html_is_self_contained(report):
 
 def test_pdf_pages_and_text(report, run):
     data = report["pdf"].read_bytes()
-    assert pdf_page_count(data) == N_TEXT_PAGES + N_FIGURES
+    n_text = text_pages(run)
+    assert n_text >= N_TEXT_PAGES
+    assert pdf_page_count(data) == n_text + N_FIGURES + len(run.runs)
     concl = conclusions(run)
     ratio = f"{concl[2]['measured']['ratio']:.3g}"
     texts = pdf_text(report["pdf"])
     for text in texts:
         flat = re.sub(r"\s+", " ", text)
-        assert "Conclusions C1-C3" in flat
+        assert "Conclusions C1-C4" in flat
         for cid in ("C1", "C2", "C3"):
             assert cid in flat
         assert flat.count("PASS") >= 3
@@ -187,7 +206,7 @@ def test_pdf_pages_and_text(report, run):
         import pypdf
     except ImportError:
         return
-    assert len(pypdf.PdfReader(str(report["pdf"])).pages) == N_TEXT_PAGES + N_FIGURES
+    assert len(pypdf.PdfReader(str(report["pdf"])).pages) == n_text + N_FIGURES + len(run.runs)
 
 
 def test_pdf_has_no_tex_and_embedded_truetype(report):
@@ -206,15 +225,18 @@ def test_failing_verdicts_are_shown(tmp_path, text_only):
     bad = synthetic_paper_run(t_end=40.0, dt=0.05, iv_converges=False, iv_tau_better=False)
     html, pdf = write_report(bad, tmp_path)
     text = html.read_text("utf-8")
-    assert text.count('class="FAIL"') == 2 and text.count('class="PASS"') == 1
+    start = text.index('id="tab-conclusions"')
+    concl = text[start:text.index("</table>", start)]
+    assert concl.count('class="FAIL"') == 2 and concl.count('class="PASS"') == 1
     assert re.sub(r"\s+", " ", pdf_text(pdf)[0]).count("FAIL") >= 2
 
 
 def test_figures_of_a_single_law_run():
     run = synthetic_paper_run(t_end=30.0, dt=0.05, laws=["composite-learning"])
     keys = [spec.key for spec in F.iter_figures(run)]
-    assert keys == ["fig2", "fig3", "fig4", "fig5", "fig6", "fig7"]  # no Δ, 𝒲 without a DREM law
-    assert [c["verdict"] for c in conclusions(run)] == [True, None, None]
+    # no Δ, 𝒲 without a DREM law; the law's Figure D of the diagnostics
+    assert keys == ["fig2", "fig3", "fig4", "fig5", "fig6", "fig7", "figD-composite-learning"]
+    assert [c["verdict"] for c in conclusions(run)] == [True, None, None, None]
 
 
 def test_single_law_report_says_not_evaluated(tmp_path, text_only):
@@ -325,7 +347,7 @@ def fake_paper(monkeypatch):
     """Replace ivdrem.experiments.paper by a module whose run_paper is synthetic."""
     calls = []
 
-    def run_paper(config, *, laws=None, progress=True, engine="compiled"):
+    def run_paper(config, *, laws=None, progress=True, engine="compiled", log=None):
         calls.append({"config": config, "laws": laws, "progress": progress, "engine": engine})
         return synthetic_paper_run(config, dt=0.05)
 
@@ -444,3 +466,47 @@ def test_html_renders_in_a_browser(report, tmp_path):
     coloured = ((img.max(axis=2) - img.min(axis=2)) > 0.25).mean()  # law colours, verdict cells
     assert img.std() > 0.05
     assert dark > 0.005 and coloured > 0.001
+
+
+# --------------------------------------------------------------------------- table pagination
+def test_table_pages_never_leave_a_lone_row_or_header():
+    from ivdrem.reports.pdf import plan_table_pages
+    # 10 rows of 1 unit, header 1, pages of 6 units: 5 rows a page -> [5], [5]
+    assert plan_table_pages([1] * 10, 1, 6, 6) == (False, [[0, 1, 2, 3, 4], [5, 6, 7, 8, 9]])
+    # 11 rows: the naive split [5], [5], [1] leaves a lone last row -> [5], [4], [2]
+    new, groups = plan_table_pages([1] * 11, 1, 6, 6)
+    assert [len(g) for g in groups] == [5, 4, 2] and sum(groups, []) == list(range(11))
+    # room for the header and one row only on the current page: the table moves
+    new, groups = plan_table_pages([1] * 4, 1, 2.5, 6)
+    assert new is True and groups == [[0, 1, 2, 3]]
+    # a one-row table may stand alone
+    assert plan_table_pages([1], 1, 2.5, 6) == (False, [[0]])
+    for n in range(2, 40):
+        for first in (1.5, 2.5, 3.5, 6):
+            new, groups = plan_table_pages([1] * n, 1, first, 6)
+            assert sum(groups, []) == list(range(n))
+            assert all(len(g) >= 2 for g in groups), (n, first, groups)
+
+
+def test_pdf_tables_have_no_lone_rows(tmp_path, text_only):
+    """A real report: every table page of the PDF holds at least two rows."""
+    import io
+    from matplotlib.backends.backend_pdf import PdfPages
+    from ivdrem.reports.content import build_content
+    from ivdrem.reports.pdf import TextPages, write_text_pages
+    run = synthetic_paper_run(t_end=40.0, dt=0.05, laws=["iv-drem", "composite-learning", "drem"])
+    seen = {}
+    orig = TextPages.flush
+
+    def spy(self):
+        seen.update(getattr(self, "rows_per_page", {}))
+        return orig(self)
+    TextPages.flush = spy
+    try:
+        with mpl.rc_context(F.RC), PdfPages(io.BytesIO()) as pdf:
+            write_text_pages(pdf, build_content(run, fmu_check=FMU_CHECK), [])
+    finally:
+        TextPages.flush = orig
+    assert any(len(p) >= 2 for p in seen.values()), seen             # some table spans pages
+    for key, per_page in seen.items():
+        assert all(k >= 2 for k in per_page) or per_page == [1], (key, per_page)

@@ -5,15 +5,15 @@ import numpy as np
 import control as ct
 
 from .. import blocks as B
+from .. import laws as law_registry
 
 __all__ = ["closed_loop", "LAWS", "assemble", "check_connected"]
 
-#: Composite terms vartheta_c: "iv-drem" (proposed, eq. 21), "composite-learning" (eq. 35,
-#: Pan & Yu), "drem" (DREM with phi in place of the instrument), "sigma-modification"
-#: (erratum E5), "none" (plain disturbance-rejection adaptive control).
-LAWS = ("iv-drem", "composite-learning", "drem", "sigma-modification", "none")
-
-_DEFAULT_GAMMA = {"iv-drem": 1e10, "drem": 1e10, "composite-learning": 1.0}
+#: Names of the registered composite terms vartheta_c (``ivdrem.laws``): "iv-drem"
+#: (proposed, eq. 21), "composite-learning" (eq. 35, Pan & Yu), "drem" (DREM with phi in
+#: place of the instrument), "sigma-modification" (erratum E5), "none" (plain
+#: disturbance-rejection adaptive control); plus any law added by ``register_law``.
+LAWS = law_registry.law_names()
 
 PAPER_TRAJECTORY = dict(amplitude=[0.4 * np.pi, 0.3 * np.pi], omega=[2.0, 0.3],
                         phase=[0.0, np.pi / 2], offset=[0.2 * np.pi, 0.3 * np.pi])
@@ -48,33 +48,54 @@ def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
 
 
 def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Gamma=0.01,
-                mu0=1.0, mu1=15.0, observer_variant="corrected", l=50.0, T=20.0, p=2.0,
-                F0=1.0, gamma=None, epsilon=1e-9, sigma=0.1, theta_star=None,
+                mu0=1.0, mu1=15.0, observer_variant="corrected", l=50.0, T=None, p=None,
+                F0=None, gamma=None, epsilon=None, sigma=None, theta_star=None,
                 theta_hat0=None, q0=None, dq0=None, theta=None, trajectory=None,
-                disturbance=None, replace=None, external_plant=False):
+                disturbance=None, replace=None, external_plant=False, law_params=None,
+                calibration=None):
     """The paper's closed loop with composite term `law`, as one InterconnectedSystem.
 
-    Parameters follow SPEC section 8 (defaults are the paper's experiment).  `trajectory`
+    Parameters are the paper's experiment by default; the law's own gains (T, p, F0,
+    gamma, epsilon, sigma, theta_star) default to its entry of the registry ``ivdrem.laws``.  `trajectory`
     and `disturbance` are either dicts of sinusoid parameters (amplitude, omega, phase,
     offset) or ready nlsys blocks with outputs (q_d, dq_d, ddq_d) and (tau_d).  `replace`
     maps block names to user blocks with the same signal names, e.g.
     ``replace={"disturbance": my_block}``.
 
-    Outputs: q, dq, q_d, e, r, tau, tau_d, tau_d_hat, theta_hat, mu; plus Delta and calY
-    for "iv-drem"/"drem", lambda_min_held for "composite-learning".
+    Outputs: q, dq, q_d, e, r, tau, tau_d, tau_d_hat, theta_hat, mu, Pi, v, dv; plus those of the
+    law (``ivdrem.laws``): Delta, calY, z, phi (and zeta) for "iv-drem"/"drem",
+    lambda_min_held for "composite-learning".
+
+    ``gamma="auto"`` (laws with the mixed regression (17)) picks γ of (21) from the loop's
+    own Δ in a short calibration run (``ivdrem.diagrams.gamma_auto``; ``calibration`` is a
+    dict of its options); the choice is ``diagram.gamma_choice``.  ``law_params`` passes
+    extra gains to a registered user law.
 
     With ``external_plant=True`` the plant block is left out: the diagram has inputs q, dq
     (measured by an external plant, e.g. an FMU) and the same outputs less q, dq (tau and
     tau_d are what the plant receives).
     """
-    if law not in LAWS:
-        raise ValueError(f"unknown law {law!r}; choose one of {', '.join(LAWS)}")
+    spec = law_registry.get_law(law)
     if model is None:
         from ..models import two_link
         model = two_link()
     n, nth = model.n, model.ntheta
-    if gamma is None:
-        gamma = _DEFAULT_GAMMA.get(law, 1.0)
+    if isinstance(gamma, str):
+        if gamma != "auto":
+            raise ValueError(f"gamma must be a positive number or 'auto', got {gamma!r}")
+        if not spec.uses_delta:
+            raise ValueError(f"gamma='auto' needs the mixed regression (17); law {law!r} has none")
+        from .gamma_auto import calibrate_gamma
+        args = dict(alpha=alpha, K=K, delta_mu=delta_mu, Gamma=Gamma, mu0=mu0, mu1=mu1,
+                    observer_variant=observer_variant, l=l, T=T, p=p, F0=F0,
+                    epsilon=epsilon, sigma=sigma, theta_star=theta_star,
+                    theta_hat0=theta_hat0, q0=q0, dq0=dq0, theta=theta,
+                    trajectory=trajectory, disturbance=disturbance, replace=replace,
+                    external_plant=external_plant, law_params=law_params)
+        choice = calibrate_gamma(law, model, args, **(calibration or {}))
+        diagram = closed_loop(law, model, gamma=choice["gamma"], **args)
+        diagram.gamma_choice = choice
+        return diagram
     if model.name == "two-link" and n == 2:
         trajectory = PAPER_TRAJECTORY if trajectory is None else trajectory
         disturbance = PAPER_DISTURBANCE if disturbance is None else disturbance
@@ -103,31 +124,19 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
         B.control_law(n, nth, K=K, delta_mu=delta_mu),
         B.adaptation_law(n, nth, Gamma=Gamma, theta_hat0=theta_hat0),
     ]
-    outputs = ["q", "dq", "q_d", "e", "r", "tau", "tau_d", "tau_d_hat", "theta_hat", "mu"]
-    m = nth + nth * nth
-    if law in ("iv-drem", "drem"):
-        iv = law == "iv-drem"
-        blocks += [B.regression_filter(model, l)]
-        if iv:
-            blocks += [B.instrument(model, l)]
-        blocks += [B.extension(n, nth, instrument=iv),
-                   *B.windowed_integral(m, T),
-                   B.averaging(m, p, F0),
-                   B.mixing(nth),
-                   B.drem_term(nth, gamma)]
-        outputs += ["Delta", "calY"]
-    elif law == "composite-learning":
-        blocks += [B.regression_filter(model, l),
-                   B.extension(n, nth, instrument=False),
-                   *B.windowed_integral(m, T),
-                   B.max_hold(nth, nth, epsilon),
-                   B.composite_learning_term(nth, gamma)]
-        outputs += ["lambda_min_held"]
-    elif law == "sigma-modification":
-        ts = model.theta_values if theta_star is None else theta_star
-        blocks += [B.sigma_modification_term(nth, sigma, ts)]
-    else:
-        blocks += [B.zero_term(nth)]
+    outputs = ["q", "dq", "q_d", "e", "r", "tau", "tau_d", "tau_d_hat", "theta_hat", "mu",
+               "Pi", "v", "dv"]  # Pi, v, dv: the observer (7) with the true θ, offline
+    # the law's own gains: explicit arguments of closed_loop, then law_params, over the
+    # registry's defaults
+    given = dict(T=T, p=p, F0=F0, gamma=gamma, epsilon=epsilon, sigma=sigma,
+                 theta_star=theta_star)
+    given = {k: v for k, v in given.items() if k in spec.defaults}
+    given.update(law_params or {})
+    params = law_registry.resolve_params(spec, given)
+    params.setdefault("l", l)
+    law_blocks, law_outputs = spec.build(law_registry.LawContext(model, n, nth, params))
+    blocks += list(law_blocks)
+    outputs += [o for o in law_outputs if o not in outputs]
 
     if replace:
         names = {b.name: i for i, b in enumerate(blocks)}
@@ -136,8 +145,31 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
                 raise ValueError(f"replace: no block named {key!r}; blocks are {sorted(names)}")
             if not isinstance(blk, ct.InputOutputSystem):
                 raise TypeError(f"replace[{key!r}] must be a python-control system")
+            _check_signal_sizes(key, blocks[names[key]], blk)
             blocks[names[key]] = blk
     if external_plant:
         outputs = [o for o in outputs if o not in ("q", "dq")]
         return assemble(blocks, outputs, name=f"controller[{law}]", inputs=["q", "dq"])
     return assemble(blocks, outputs, name=f"closed_loop[{law}]")
+
+
+def _signal_sizes(labels):
+    """{base name: size} of vector signals labelled ``name[i]`` (plain labels count 1)."""
+    sizes = {}
+    for lab in labels:
+        base = lab.split("[", 1)[0]
+        sizes[base] = sizes.get(base, 0) + 1
+    return sizes
+
+
+def _check_signal_sizes(key, old, new):
+    """A replacement block must carry each signal it shares with the block it replaces at
+    the same size: a 3-vector tau_d in a 2-joint loop is an error, not a silent truncation."""
+    for kind in ("input", "output"):
+        was = _signal_sizes(getattr(old, f"{kind}_labels"))
+        now = _signal_sizes(getattr(new, f"{kind}_labels"))
+        for name in sorted(set(was) & set(now)):
+            if was[name] != now[name]:
+                raise ValueError(
+                    f"replace[{key!r}]: {kind} signal {name!r} has {now[name]} entries, but the "
+                    f"loop's {key!r} block has {was[name]}")

@@ -1,6 +1,6 @@
 """Configuration of the paper experiment: embedded default, loading, validation.
 
-The default configuration (SPEC section 8) is the package data file
+The default configuration (the paper experiment) is the package data file
 ``ivdrem/experiments/default.toml``.  :func:`load_config` deep-merges a user TOML
 file (and optional overrides) over it and validates the result *before* anything is
 simulated; every problem is reported as a :class:`ConfigError` naming the key.
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import functools
 import math
 import re
 from dataclasses import dataclass
@@ -21,6 +22,8 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
+
+from ..laws import get_law, law_names
 
 try:  # Python >= 3.11
     import tomllib
@@ -41,8 +44,9 @@ __all__ = [
     "dump_toml",
 ]
 
-#: Adaptation laws known to the closed-loop diagrams.
-LAWS = ("iv-drem", "composite-learning", "drem", "sigma-modification", "none")
+#: Adaptation laws known to the closed-loop diagrams (the registry ``ivdrem.laws``;
+#: ``experiment.laws = "all"`` runs every registered law).
+LAWS = law_names()
 #: Integration methods of ivdrem's simulator.
 SOLVER_METHODS = ("dp45", "rk4")
 #: Variants of the Φ_Mf filter gain (erratum E1).
@@ -56,7 +60,7 @@ class ConfigError(ValueError):
 # --------------------------------------------------------------------------- schema
 @dataclass(frozen=True)
 class _Key:
-    kind: str  # "float", "str", "strlist", "vec", "float_or_vec"
+    kind: str  # "float", "str", "strlist", "vec", "float_or_vec", "float_or_auto"
     length: str | None = None  # "n" or "ntheta" for vectors
     check: Callable[[float], bool] | None = None  # applied to every number
     requirement: str = ""  # text of the check, for messages
@@ -77,7 +81,7 @@ _NONNEG = dict(check=_nonneg, requirement=">= 0")
 SCHEMA: dict[str, dict[str, _Key]] = {
     "experiment": {
         "t_end": _Key("float", **_POS),
-        "laws": _Key("strlist", choices=LAWS),
+        "laws": _Key("strlist"),  # checked against the law registry at validation
         # lower bounds of ivdrem.sim.guards (DT_OUT_MIN, H_MAX_MIN), kept equal by a test
         "dt_out": _Key("float", check=lambda x: x >= 1e-6, requirement="> 0 (at least 1e-06 s)"),
     },
@@ -107,7 +111,7 @@ SCHEMA: dict[str, dict[str, _Key]] = {
         "T": _Key("float", **_POS),
         "p": _Key("float", check=lambda x: x >= 1, requirement=">= 1"),
         "F0": _Key("float", **_POS),
-        "gamma": _Key("float", **_POS),
+        "gamma": _Key("float_or_auto", **_POS),
     },
     "composite_learning": {
         "T": _Key("float", **_POS),
@@ -154,7 +158,7 @@ def model_dims(name: str) -> tuple[int, int | None]:
         return _KNOWN_MODELS[name]
     m = _PLANAR.match(name)
     if m and int(m.group(1)) >= 1:
-        return int(m.group(1)), None
+        return int(m.group(1)), _model_ntheta(name)
     raise ConfigError(
         f"config key 'model.name' = {name!r} is not a known model"
         + _suggest(name, ["two-link", "planar-2", "planar-3"])
@@ -162,9 +166,52 @@ def model_dims(name: str) -> tuple[int, int | None]:
     )
 
 
+@functools.lru_cache(maxsize=8)
+def _model(name: str):
+    from ..models import get_model
+    return get_model(name)
+
+
+def _model_ntheta(name: str) -> int | None:
+    try:
+        return int(_model(name).ntheta)
+    except Exception:  # pragma: no cover - the run reports the model error itself
+        return None
+
+
+#: Keys whose default follows the model when the configuration names a model other than
+#: the paper's arm and does not set them: zeros, the paper's per-joint gain, the model's
+#: own parameter values, and gamma = "auto" (γ of (21) scaled to this robot's Δ).
+MODEL_FOLLOWING = {
+    ("model", "theta"): lambda m: [float(v) for v in m.theta_values],
+    ("initial", "dq0"): lambda m: [0.0] * m.n,
+    ("initial", "theta_hat0"): lambda m: [0.0] * m.ntheta,
+    ("controller", "K"): lambda m: [2.0] * m.n,
+    ("sigma_modification", "theta_star"): lambda m: [0.0] * m.ntheta,
+    ("iv_drem", "gamma"): lambda m: "auto",
+}
+#: The model the embedded default is written for.
+DEFAULT_MODEL = "two-link"
+
+
+def _follow_model(cfg: dict, user_set: set) -> None:
+    """Fill the MODEL_FOLLOWING keys the user did not set from the configured model."""
+    name = cfg["model"]["name"]
+    if not isinstance(name, str) or name == DEFAULT_MODEL:
+        return
+    model_dims(name)  # a clear error for an unknown model name
+    try:
+        model = _model(name)
+    except Exception as exc:
+        raise ConfigError(f"config key 'model.name' = {name!r}: cannot build the model: {exc}") from None
+    for (section, key), fn in MODEL_FOLLOWING.items():
+        if (section, key) not in user_set:
+            cfg[section][key] = fn(model)
+
+
 # --------------------------------------------------------------------------- loading
 def default_config() -> dict:
-    """A fresh copy of the embedded default configuration (SPEC section 8)."""
+    """A fresh copy of the embedded default configuration."""
     return copy.deepcopy(_default_raw())
 
 
@@ -189,6 +236,7 @@ def load_config(path: str | Path | None = None, overrides: Mapping | None = None
     Raises :class:`ConfigError` for any invalid or unknown entry.
     """
     cfg = default_config()
+    user_set: set = set()
     if path is not None:
         p = Path(path)
         try:
@@ -204,9 +252,10 @@ def load_config(path: str | Path | None = None, overrides: Mapping | None = None
             user = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"config file '{p}' is not valid TOML: {exc}") from None
-        _merge(cfg, user, where=str(p))
+        _merge(cfg, user, where=str(p), user_set=user_set)
     if overrides:
-        _merge(cfg, _undot(overrides), where="overrides")
+        _merge(cfg, _undot(overrides), where="overrides", user_set=user_set)
+    _follow_model(cfg, user_set)
     return validate_config(cfg)
 
 
@@ -229,7 +278,7 @@ def _undot(overrides: Mapping) -> dict:
     return out
 
 
-def _merge(cfg: dict, user: Mapping, where: str) -> None:
+def _merge(cfg: dict, user: Mapping, where: str, user_set: set | None = None) -> None:
     for section, table in user.items():
         _check_section(section)
         if not isinstance(table, Mapping):
@@ -240,6 +289,8 @@ def _merge(cfg: dict, user: Mapping, where: str) -> None:
         for key, value in table.items():
             _check_key(section, key)
             cfg[section][key] = copy.deepcopy(value)
+            if user_set is not None:
+                user_set.add((section, key))
 
 
 def _suggest(word: str, valid, prefix=" (did you mean ", suffix="?)") -> str:
@@ -366,14 +417,21 @@ def _validate_value(name: str, spec: _Key, value: Any):
             raise ConfigError(f"config key '{name}' must be a list of strings, got {value!r}")
         if not value:
             raise ConfigError(f"config key '{name}' must name at least one law")
+        choices = spec.choices if spec.choices is not None else law_names()
+        if value == ["all"]:
+            return list(choices)
         for v in value:
-            if spec.choices is not None and v not in spec.choices:
+            if v not in choices:
                 raise ConfigError(
-                    f"config key '{name}': law {v!r} is not known" + _suggest(v, spec.choices)
-                    + "; valid laws: " + ", ".join(repr(c) for c in spec.choices)
+                    f"config key '{name}': law {v!r} is not known" + _suggest(v, choices)
+                    + "; valid laws: " + ", ".join(repr(c) for c in choices) + ", or 'all'"
                 )
         return list(value)
-    if spec.kind == "float" or (spec.kind == "float_or_vec" and not isinstance(value, list)):
+    if spec.kind == "float_or_auto" and isinstance(value, str):
+        if value != "auto":
+            raise ConfigError(f"config key '{name}' must be a number or \"auto\", got {value!r}")
+        return value
+    if spec.kind in ("float", "float_or_auto") or (spec.kind == "float_or_vec" and not isinstance(value, list)):
         x = _number(name, value)
         if spec.check is not None and not spec.check(x):
             raise ConfigError(f"config key '{name}' must be {spec.requirement}, got {value!r}")
@@ -410,8 +468,9 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
     epsilon of [composite_learning]; "sigma-modification": T, p, F0 of [iv_drem] and
     sigma, theta_star; "none": T, p, F0 of [iv_drem].
     """
-    if law not in LAWS:
-        raise ConfigError(f"law {law!r} is not known" + _suggest(law, LAWS) + "; valid laws: " + ", ".join(LAWS))
+    names = law_names()
+    if law not in names:
+        raise ConfigError(f"law {law!r} is not known" + _suggest(law, names) + "; valid laws: " + ", ".join(names))
     c = config
     ctl = c["controller"]
     theta = np.asarray(c["model"]["theta"], dtype=float)
@@ -433,10 +492,14 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
     }
     ivd = c["iv_drem"]
     if law in ("iv-drem", "drem"):
-        kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]), gamma=float(ivd["gamma"]))
+        gamma = ivd["gamma"] if ivd["gamma"] == "auto" else float(ivd["gamma"])
+        kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]), gamma=gamma)
     elif law == "composite-learning":
         cl = c["composite_learning"]
         kw.update(T=float(cl["T"]), gamma=float(cl["gamma"]), epsilon=float(cl["epsilon"]))
+    elif law not in ("sigma-modification", "none"):
+        # a user law (ivdrem.laws.register_law): its gains are its registry defaults
+        kw["law_params"] = dict(get_law(law).defaults)
     else:
         kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]))
         if law == "sigma-modification":

@@ -1,4 +1,4 @@
-"""Measured numbers of a paper run: errors, the disturbance 𝒲, conclusions C1-C3.
+"""Measured numbers of a paper run: errors, the disturbance 𝒲, conclusions C1-C4.
 
 Results arrive as ``PaperRun`` objects (``ivdrem.experiments.paper``); this module only
 uses their duck type:
@@ -10,7 +10,7 @@ uses their duck type:
   ``calY[j]`` for "iv-drem"/"drem"; ``lambda_min_held`` for "composite-learning") and
   ``.stats`` (solver statistics).
 
-Conclusions (SPEC section 8), each a dict with keys id, statement, criterion, law(s),
+Conclusions, each a dict with keys id, statement, criterion, law(s),
 measured, threshold, verdict (True/False; None when a needed law was not run):
 
 * C1 (composite learning, θ̃ bounded, no convergence): over the last half of the run
@@ -19,6 +19,9 @@ measured, threshold, verdict (True/False; None when a needed law was not run):
   < max over the second quarter.
 * C3 (IV-DREM estimates τ_d better): RMS of ‖τ̃_d‖ over the last 20 % of the run is at
   most half that of composite learning.
+* C4 (the instrument matters, measured, not presumed): DREM with φ in place of the
+  instrument ζ ends with ‖θ̃(t_end)‖ at least twice IV-DREM's.  Also reported: both
+  errors at the end of the first quarter (the early transient).
 """
 from __future__ import annotations
 
@@ -45,6 +48,7 @@ __all__ = [
     "C1_END_RATIO",
     "C2_END_RATIO",
     "C3_RMS_RATIO",
+    "C4_RATIO",
     "LAST_FRACTION",
 ]
 
@@ -56,11 +60,14 @@ C1_END_RATIO = 0.10
 C2_END_RATIO = 0.10
 #: C3: RMS ‖τ̃_d‖ of IV-DREM at most this fraction of composite learning's.
 C3_RMS_RATIO = 0.5
+#: C4: DREM without the instrument must end at least this many times worse than IV-DREM.
+C4_RATIO = 2.0
 #: The "last 20 %" of the run used by C3 and summary().
 LAST_FRACTION = 0.2
 
 PROPOSED = "iv-drem"
 BASELINE = "composite-learning"
+NO_INSTRUMENT = "drem"
 
 _INDEXED = re.compile(r"^(.*)\[(\d+)\]$")
 
@@ -200,6 +207,8 @@ _STATEMENTS = {
           "but θ̃ does not converge to zero.",
     "C2": "IV-DREM (eqs. 11 + 21) drives the parameter error θ̃ towards zero.",
     "C3": "IV-DREM estimates the external torque τ_d better than composite learning.",
+    "C4": "The instrument ζ matters: DREM with the measured regressor φ in its place "
+          "(no instrument) converges worse.",
 }
 _CRITERIA = {
     "C1": "over the last half, max and min of ‖θ̃‖ within 10 % of ‖θ̃(t_mid)‖, "
@@ -207,6 +216,7 @@ _CRITERIA = {
     "C2": "‖θ̃(t_end)‖ ≤ 0.1 ‖θ̃(0)‖, and max ‖θ̃‖ over the last quarter "
           "< max ‖θ̃‖ over the second quarter",
     "C3": "RMS ‖τ̃_d‖ over the last 20 % of the run: IV-DREM ≤ 0.5 × composite learning",
+    "C4": "‖θ̃(t_end)‖ of DREM without instrument ≥ 2 × that of IV-DREM",
 }
 
 
@@ -301,8 +311,30 @@ def _c3(proposed, baseline) -> dict:
     }
 
 
+def _c4(proposed, plain, theta) -> dict:
+    t_iv, n_iv = _theta_norm(proposed, theta)
+    t_dr, n_dr = _theta_norm(plain, theta)
+    tq = t_iv[0] + 0.25 * (t_iv[-1] - t_iv[0])
+    iq_iv = int(np.searchsorted(t_iv, tq))
+    iq_dr = int(np.searchsorted(t_dr, tq))
+    end_iv, end_dr = float(n_iv[-1]), float(n_dr[-1])
+    ratio = end_dr / end_iv if end_iv > 0 else (1.0 if end_dr == 0 else float("inf"))
+    return {
+        "measured": {
+            "theta_err_norm_end_iv_drem": end_iv,
+            "theta_err_norm_end_drem": end_dr,
+            "ratio_end": ratio,
+            "t_quarter": float(t_iv[min(iq_iv, t_iv.size - 1)]),
+            "theta_err_norm_quarter_iv_drem": float(n_iv[min(iq_iv, n_iv.size - 1)]),
+            "theta_err_norm_quarter_drem": float(n_dr[min(iq_dr, n_dr.size - 1)]),
+        },
+        "threshold": {"ratio_end_at_least": C4_RATIO},
+        "verdict": bool(ratio >= C4_RATIO),
+    }
+
+
 def conclusions(run) -> list[dict]:
-    """Conclusions C1-C3 of a PaperRun with their numbers and verdicts."""
+    """Conclusions C1-C4 of a PaperRun with their numbers and verdicts."""
     runs = run.runs
     theta = np.asarray(run.theta, dtype=float)
     out = []
@@ -310,6 +342,7 @@ def conclusions(run) -> list[dict]:
         ("C1", [BASELINE], lambda: _c1(runs[BASELINE], theta)),
         ("C2", [PROPOSED], lambda: _c2(runs[PROPOSED], theta)),
         ("C3", [PROPOSED, BASELINE], lambda: _c3(runs[PROPOSED], runs[BASELINE])),
+        ("C4", [PROPOSED, NO_INSTRUMENT], lambda: _c4(runs[PROPOSED], runs[NO_INSTRUMENT], theta)),
     ):
         if any(law not in runs for law in laws):
             out.append(_missing(cid, laws, runs))
@@ -349,6 +382,11 @@ def key_numbers(c: Mapping) -> str:
         return (f"RMS ‖τ̃_d‖ last 20 %: IV-DREM {m['tau_d_err_rms_last20_iv_drem']:.3g} N·m, "
                 f"composite learning {m['tau_d_err_rms_last20_composite_learning']:.3g} N·m, "
                 f"ratio {m['ratio']:.3g} (≤ {C3_RMS_RATIO:g})")
+    if c["id"] == "C4":
+        return (f"‖θ̃(t_end)‖: DREM without IV {m['theta_err_norm_end_drem']:.3g}, IV-DREM "
+                f"{m['theta_err_norm_end_iv_drem']:.3g}, ratio {m['ratio_end']:.3g} (≥ {C4_RATIO:g}); "
+                f"at t = {m['t_quarter']:.3g} s: {m['theta_err_norm_quarter_drem']:.3g} vs "
+                f"{m['theta_err_norm_quarter_iv_drem']:.3g}")
     return ", ".join(f"{k} = {v:.4g}" for k, v in m.items())
 
 

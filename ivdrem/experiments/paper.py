@@ -1,4 +1,4 @@
-"""The paper experiment (SPEC section 8): run the closed loop for each law of a config."""
+"""The paper experiment: run the closed loop for each law of a configuration."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -20,6 +20,7 @@ class LawRun:
     law: str
     response: object
     stats: dict
+    gamma: object = None  # γ of the composite term used (the number chosen for "auto")
 
 
 @dataclass
@@ -36,19 +37,39 @@ def _model(config):
     return get_model(m["name"], **kwargs)
 
 
-def run_law(config, law, *, model=None, progress=True, engine="compiled", allow_long=False):
+def run_law(config, law, *, model=None, progress=True, engine="compiled", log=None,
+            allow_long=False):
     """Build the closed loop of `law` from `config` and simulate it (`allow_long`: beyond
-    the cost limits of ivdrem.sim.guards)."""
+    the cost limits of ivdrem.sim.guards).
+
+    With ``iv_drem.gamma = "auto"`` the γ of (21) is chosen by a calibration run first
+    (``ivdrem.diagrams.gamma_auto``); the choice is printed to ``log`` (a callable, default
+    none) and stored in ``stats["gamma_choice"]`` and ``LawRun.gamma``.
+    """
     model = _model(config) if model is None else model
-    diagram = closed_loop(law, model, **closed_loop_kwargs(config, law))
+    kw = closed_loop_kwargs(config, law)
+    solver = solver_kwargs(config)
+    if kw.get("gamma") == "auto":
+        kw["calibration"] = dict(engine=engine, dt_out=float(config["experiment"]["dt_out"]),
+                                 **solver)
+    diagram = closed_loop(law, model, **kw)
+    choice = getattr(diagram, "gamma_choice", None)
+    if choice is not None and log is not None:
+        log(f"{law}: gamma = \"auto\" -> {choice['gamma']:.4g} "
+            f"(mean Delta^2 = {choice['mean_Delta2']:.3g} over t in "
+            f"[{choice['window'][0]:g}, {choice['window'][1]:g}] s; {choice['rule']})")
     resp = simulate(diagram, float(config["experiment"]["t_end"]),
                     dt_out=float(config["experiment"]["dt_out"]), engine=engine,
-                    progress=progress, desc=law, allow_long=allow_long,
-                    **solver_kwargs(config))
-    return LawRun(law, resp, resp.stats)
+                    progress=progress, desc=law, allow_long=allow_long, **solver)
+    stats = dict(resp.stats)
+    if choice is not None:
+        stats["gamma_choice"] = choice
+    gamma = choice["gamma"] if choice is not None else kw.get("gamma")
+    return LawRun(law, resp, stats, gamma=gamma)
 
 
-def run_paper(config=None, *, laws=None, progress=True, engine="compiled", allow_long=False):
+def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=None,
+              allow_long=False):
     """Run every law of the configuration (default: the embedded paper experiment).
 
     `progress` shows a bar per law when stderr is a terminal and CI is not set.
@@ -61,5 +82,5 @@ def run_paper(config=None, *, laws=None, progress=True, engine="compiled", allow
     show = want_progress(progress)   # one rule for every bar (ivdrem._progress)
     for law in laws:
         run.runs[law] = run_law(config, law, model=model, progress=show, engine=engine,
-                                allow_long=allow_long)
+                                allow_long=allow_long, log=log)
     return run

@@ -33,7 +33,8 @@ def add_report_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
                         help="simulated horizon, overrides experiment.t_end (conclusions C1-C3 "
                              "need the default 300 s)")
     parser.add_argument("--laws", metavar="NAME", nargs="+", default=None,
-                        help="adaptation laws to run, overrides experiment.laws; one of: " + ", ".join(LAWS))
+                        help="adaptation laws to run, overrides experiment.laws; 'all' or any of: "
+                             + ", ".join(LAWS))
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--engine", choices=("compiled", "reference"), default="compiled",
                         help="compiled (numba, default) or reference (python-control) evaluation")
@@ -138,7 +139,7 @@ def run_report_command(args) -> int:
     progress = want_progress(not args.quiet)
     extra = {"allow_long": True} if args.allow_long else {}
     try:
-        run = run_paper(config, progress=progress, engine=args.engine, **extra)
+        run = run_paper(config, progress=progress, engine=args.engine, log=print, **extra)
     except SimulationError as exc:
         print(f"ivdrem report: simulation failed: {exc}", file=sys.stderr)
         return 1

@@ -44,14 +44,34 @@ RC = {
     "axes.edgecolor": "#444444",
 }
 
-#: colour and legend label of each law (Okabe-Ito palette, colour-blind safe).
-LAW_STYLE = {
-    "iv-drem": ("#0072B2", "IV-DREM, (11)+(21)"),
-    "composite-learning": ("#E69F00", "composite learning, (35)"),
-    "drem": ("#009E73", "DREM without IV"),
-    "sigma-modification": ("#CC79A7", "σ-modification"),
-    "none": ("#7F7F7F", "no composite term"),
-}
+class _LawStyle(dict):
+    """colour and legend label of each law, read from the law registry (ivdrem.laws) at
+    look-up time, so a law registered later has its own style (Okabe-Ito palette)."""
+
+    def _fill(self):
+        from ..laws import LAWS as registry
+        for name, law in registry.items():
+            dict.__setitem__(self, name, (law.color, law.label))
+
+    def get(self, key, default=None):
+        self._fill()
+        return dict.get(self, key, default)
+
+    def __getitem__(self, key):
+        self._fill()
+        return dict.__getitem__(self, key)
+
+    def __iter__(self):
+        self._fill()
+        return dict.__iter__(self)
+
+    def __len__(self):
+        self._fill()
+        return dict.__len__(self)
+
+
+#: colour and legend label of each law (from the registry; colour-blind safe palette).
+LAW_STYLE = _LawStyle()
 _EXTRA_COLORS = ["#D55E00", "#56B4E9", "#000000", "#F0E442"]
 
 WIDTH = 8.27  # inches: A4 width, so that PDF pages of figures and text line up
@@ -369,19 +389,103 @@ def fig_auxiliary(run):
     return FigureSpec("fig7", title, caption, fig)
 
 
+def _na(ax, text):
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, color="#777777")
+    ax.set_yticks([])
+
+
+def fig_diagnostics_law(run, law, diag):
+    """Figure D: the signals behind the verdicts of one law (ivdrem.experiments.diagnostics)."""
+    from ..experiments import diagnostics as D
+    title = f"Figure D ({law}). Assumptions of Theorem 2 along the run"
+    caption = ("(a) ∫Δ² ds (KA1: keeps growing when Δ ∉ L2); (b) ∫‖τ̇_d‖²/μ² ds (KA2: levels "
+               "off when λ ∈ L2); (c) running integrals ∫ζ_kj w_j ds of (19) (KA3: bounded); "
+               "(d) max_i |𝒲_i| F/Ḟ (Proposition 2, eq. 20: bounded); (e) ‖θ̃‖ and the fit C t^(−a) "
+               "over the last half; (f) V of (23) and the bound of the proof.")
+    fig, axes = _grid(6, cols=2, titles=True, caption_lines=len(_caption_lines(caption)))
+    order = list(run.runs)
+    k = order.index(law)
+    ser = diag["series"]
+    t = ser["t"]
+    verdict = {c["id"]: c["verdict"] for c in diag["checks"]}
+    color = law_color(law, k)
+
+    def head(ax, text, cid):
+        ax.set_title(f"{text}  [{verdict.get(cid, D.NA)}]")
+
+    ax = axes[0]
+    if "int_Delta2" in ser:
+        ax.plot(*decimate(t, ser["int_Delta2"]), color=color)
+    else:
+        _na(ax, "no Δ (17) in this law")
+    ax.set_ylabel(r"$\int_0^t \Delta^2 ds$")
+    head(ax, "(a) KA1", "KA1")
+    ax = axes[1]
+    ax.plot(*decimate(t, ser["int_lambda2"]), color=color)
+    ax.set_ylabel(r"$\int_0^t \|\dot\tau_d\|^2/\mu^2 ds$")
+    head(ax, "(b) KA2", "KA2")
+    ax = axes[2]
+    if "ka3_integrals" in ser:
+        ints = ser["ka3_integrals"]
+        for row in ints:
+            if np.any(row):
+                ax.plot(*decimate(t, row), color=color, lw=0.6, alpha=0.6)
+    else:
+        _na(ax, "no instrument in this law")
+    ax.set_ylabel(r"$\int_0^t \zeta_{kj} w_j ds$")
+    head(ax, "(c) KA3, (19)", "KA3")
+    ax = axes[3]
+    if "prop2_ratio" in ser:
+        R = ser["prop2_ratio"]
+        _plot(ax, t, R, law, k, log=_spans_decades(np.nan_to_num(R), t))
+    else:
+        _na(ax, r"no $\mathcal{W}$ in this law")
+    ax.set_ylabel(r"$\max_i |\mathcal{W}_i| F/\dot F$")
+    head(ax, "(d) Proposition 2", "P2")
+    ax = axes[4]
+    y = ser["theta_err_norm"]
+    _plot(ax, t, y, law, k, log=True)
+    a, C = ser["rate_fit"]
+    if np.isfinite(a):
+        half = t >= t[0] + 0.5 * (t[-1] - t[0])
+        ax.plot(t[half], C * t[half] ** (-a), color="black", ls="--", lw=1.0)
+    ax.set_ylabel(r"$\|\tilde\theta\|$ (log)")
+    head(ax, f"(e) rate, a = {a:.3g}", "RATE")
+    ax = axes[5]
+    if "V" in ser:
+        _plot(ax, t, ser["V"], law, k, log=True)
+        if ser.get("V_bound") is not None:
+            ax.plot(*decimate(t, ser["V_bound"]), color="black", ls="--", lw=1.0)
+    else:
+        _na(ax, "model not available")
+    ax.set_ylabel("V (23) (log)")
+    head(ax, "(f) Lyapunov V, bound dashed", "V")
+    _finish(fig, axes, title, caption, [law], run)
+    return FigureSpec(f"figD-{law}", title, caption, fig)
+
+
+def fig_diagnostics(run):
+    """One Figure D per law (a list)."""
+    from ..experiments.diagnostics import diagnose_run
+    diags = diagnose_run(run)
+    return [fig_diagnostics_law(run, law, d) for law, d in diags.items()]
+
+
 #: builders in report order (names, looked up at call time)
 FIGURES = ["fig_delta_W", "fig_tracking_error", "fig_theta_error", "fig_tau_d_error",
-           "fig_theta_hat", "fig_torque", "fig_auxiliary"]
+           "fig_theta_hat", "fig_torque", "fig_auxiliary", "fig_diagnostics"]
 
 
 def iter_figures(run):
-    """Yield the FigureSpecs of a run, built one at a time."""
+    """Yield the FigureSpecs of a run, built one at a time (a builder may return a list)."""
     import sys
     mod = sys.modules[__name__]
     for name in FIGURES:
         spec = getattr(mod, name)(run)
-        if spec is not None:
-            yield spec
+        if spec is None:
+            continue
+        for one in (spec if isinstance(spec, list) else [spec]):
+            yield one
 
 
 # --------------------------------------------------------------------------- svg

@@ -22,6 +22,7 @@ th { background: #f2f2f2; }
 td.num { font-variant-numeric: tabular-nums; }
 table.meta { width: auto; } table.meta th { text-align: right; }
 .PASS { background: #dff3e0; color: #1b5e20; font-weight: bold; }
+.UNDECIDED { background: #fff4d6; color: #7a5300; font-weight: bold; }
 .FAIL { background: #fde0dc; color: #b71c1c; font-weight: bold; }
 .NA { background: #eeeeee; color: #555; font-weight: bold; }
 .banner { background: #fff3cd; border: 1px solid #e0c36c; padding: 0.5rem 0.8rem; font-weight: bold; }
@@ -46,7 +47,8 @@ def _table(t: Table) -> str:
         for j, cell in enumerate(row):
             cls = ""
             if t.verdict_col == j:
-                cls = {"PASS": "PASS", "FAIL": "FAIL"}.get(cell, "NA")
+                cls = {"PASS": "PASS", "FAIL": "FAIL", "HOLDS": "PASS", "FAILS": "FAIL",
+                       "NOT DECIDED": "UNDECIDED"}.get(cell, "NA")
             out.append(f'<td class="{cls}">{_cell(cell)}</td>' if cls else f"<td>{_cell(cell)}</td>")
         out.append("</tr>")
     out.append("</tbody></table>")

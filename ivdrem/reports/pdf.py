@@ -19,7 +19,9 @@ PAGE_W, PAGE_H = 8.27, 11.69  # A4, inches
 MARGIN_X, MARGIN_TOP, MARGIN_BOTTOM = 0.7, 0.75, 0.75
 EM = 0.56  # average glyph width of DejaVu Sans in em (a slight over-estimate)
 
-_VERDICT_COLORS = {"PASS": ("#dff3e0", "#1b5e20"), "FAIL": ("#fde0dc", "#b71c1c")}
+_VERDICT_COLORS = {"PASS": ("#dff3e0", "#1b5e20"), "FAIL": ("#fde0dc", "#b71c1c"),
+                   "HOLDS": ("#dff3e0", "#1b5e20"), "FAILS": ("#fde0dc", "#b71c1c"),
+                   "NOT DECIDED": ("#fff4d6", "#7a5300")}
 _MATH = [("𝒲", r"$\mathcal{W}$"), ("𝒴", r"$\mathcal{Y}$")]
 
 
@@ -37,6 +39,50 @@ def _wrap(text: str, width_in: float, size: float) -> list[str]:
     for para in str(text).split("\n"):
         lines += textwrap.wrap(para, chars, break_long_words=True, break_on_hyphens=False) or [""]
     return lines
+
+
+def plan_table_pages(heights, head_h, first_avail, page_avail):
+    """Split the rows of a table over pages so that no page holds a lone row.
+
+    ``heights``: row heights; ``head_h``: the header's (repeated on every page);
+    ``first_avail``: room on the current page, ``page_avail``: on a fresh page (after the
+    "(continued)" line).  Returns ``(new_page_first, groups)``: whether the table must start
+    on a fresh page, and the row indices of each page.  A page never gets one row of a
+    table of two or more rows (widow/orphan rows), and the header never stands alone;
+    only a row taller than a whole page breaks these rules.
+    """
+    n = len(heights)
+    if n == 0:
+        return False, []
+
+    def fit(start, avail):
+        k, used = 0, head_h
+        while start + k < n and used + heights[start + k] <= avail:
+            used += heights[start + k]
+            k += 1
+        return k
+
+    def split(avail):
+        groups, start = [], 0
+        while start < n:
+            k = max(fit(start, avail), 1)
+            if n - start - k == 1 and k >= 3:
+                k -= 1                   # take one more row over: the last page gets two
+            groups.append(list(range(start, start + k)))
+            start += k
+            avail = page_avail
+        return groups
+
+    def lone(groups):
+        return n >= 2 and any(len(g) < 2 for g in groups)
+
+    here = split(first_avail)
+    if not lone(here):
+        return False, here
+    fresh = split(page_avail)
+    if not lone(fresh) or len(fresh[0]) > len(here[0]):
+        return True, fresh               # start the table on a new page
+    return False, here                   # rows taller than a page: nothing better exists
 
 
 class TextPages:
@@ -132,23 +178,33 @@ class TextPages:
             draw_row(t.header, bold=True, shade="#eeeeee")
 
         head_h = max(len(x) for x in row_lines(t.header)) * lh + 2 * pad
-        first = True
-        for row in t.rows:
-            h = max(len(x) for x in row_lines(row)) * lh + 2 * pad
-            if first:
-                self.heading(t.title, 11)
-                self._ensure(head_h + h)
-                header()
-                first = False
-            elif self.y - h < MARGIN_BOTTOM:
-                self.new_page()
-                self._text(MARGIN_X, self.y, t.title + " (continued)", 9, fontstyle="italic")
-                self.y -= self._lh(9) + 0.04
-                header()
-            draw_row(row)
-        if first:  # empty table
+        heights = [max(len(x) for x in row_lines(row)) * lh + 2 * pad for row in t.rows]
+        if not t.rows:  # empty table
             self.heading(t.title, 11)
             self.paragraph("(no rows)")
+        else:
+            title_h = self._lh(11) * 3           # what heading() reserves
+            cont_h = self._lh(9) + 0.04
+            full = PAGE_H - MARGIN_TOP - MARGIN_BOTTOM
+            if self.fig is None:
+                self.new_page()
+            first_avail = self.y - MARGIN_BOTTOM - title_h
+            new_first, groups = plan_table_pages(heights, head_h, first_avail, full - cont_h)
+            if new_first:
+                self.new_page()
+                first_avail = self.y - MARGIN_BOTTOM - title_h
+                groups = plan_table_pages(heights, head_h, first_avail, full - cont_h)[1]
+            self.heading(t.title, 11)
+            for g, rows in enumerate(groups):
+                if g > 0:
+                    self.new_page()
+                    self._text(MARGIN_X, self.y, t.title + " (continued)", 9, fontstyle="italic")
+                    self.y -= cont_h
+                header()
+                for i in rows:
+                    draw_row(t.rows[i])
+            self.rows_per_page = getattr(self, "rows_per_page", {})
+            self.rows_per_page[t.key] = [len(rows) for rows in groups]
         if t.note:
             self.y -= 0.04
             self.paragraph(t.note, 7.5, color="#555555")

@@ -1,0 +1,174 @@
+"""One registry of adaptation laws: the composite terms ϑ_c of the adaptation law (11).
+
+A :class:`Law` says everything the rest of ivdrem needs about one composite term, in one
+place:
+
+* ``name``: the key used by ``closed_loop(law, ...)``, the configuration
+  (``experiment.laws``) and the command line (``--laws``);
+* ``build(ctx)``: the blocks that compute ``theta_c`` (and their outputs worth recording),
+  given a :class:`LawContext` (model, sizes and the law's parameters);
+* ``defaults``: the law's default gains (keyword arguments of ``build``);
+* ``section``: the configuration table holding those gains (``[iv_drem]``, ...);
+* ``color`` and ``label``: the law's colour and legend label in every figure;
+* ``equation``, ``description``: what the report and the docs say about it.
+
+:func:`register_law` adds a user's law; ``closed_loop``, the configuration and the
+figures then know it (see docs/custom-law.md and examples/custom_law.py).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from . import blocks as B
+
+__all__ = ["Law", "LawContext", "LAWS", "register_law", "get_law", "law_names",
+           "mixed_regression_blocks"]
+
+
+@dataclass
+class LawContext:
+    """What a law's ``build`` receives: the model, its sizes and the law's parameters.
+
+    ``params`` holds the law's gains (its ``defaults`` overridden by the caller) and the
+    loop's shared values ``l`` (filter gain of (13)).
+    """
+    model: object
+    n: int
+    ntheta: int
+    params: dict
+
+
+@dataclass(frozen=True)
+class Law:
+    name: str
+    build: Callable[[LawContext], tuple]   # ctx -> (blocks, extra recorded outputs)
+    label: str
+    color: str
+    equation: str = ""
+    description: str = ""
+    section: str | None = None             # configuration table of the gains
+    defaults: dict = field(default_factory=dict)
+    uses_delta: bool = False               # has the mixed regression (17): Delta, calY
+    instrument: str | None = None          # recorded instrument signal (zeta or phi)
+
+
+#: the registry, in report order
+LAWS: dict[str, Law] = {}
+
+
+def register_law(law: Law, *, replace: bool = False) -> Law:
+    """Add ``law`` to the registry (``replace=True`` to redefine an existing name)."""
+    if not isinstance(law, Law):
+        raise TypeError(f"register_law expects an ivdrem.laws.Law, got {type(law).__name__}")
+    if not law.name or not isinstance(law.name, str):
+        raise ValueError("a law needs a non-empty string name")
+    if law.name in LAWS and not replace:
+        raise ValueError(f"law {law.name!r} is already registered (pass replace=True)")
+    LAWS[law.name] = law
+    return law
+
+
+def get_law(name: str) -> Law:
+    try:
+        return LAWS[name]
+    except KeyError:
+        raise ValueError(f"unknown law {name!r}; choose one of {', '.join(LAWS)}") from None
+
+
+def law_names() -> tuple[str, ...]:
+    return tuple(LAWS)
+
+
+# --------------------------------------------------------------------------- built-in laws
+def mixed_regression_blocks(ctx: LawContext, *, instrument: bool = True):
+    """The blocks that produce the scalar regressions 𝒴_i = Δθ_i + 𝒲_i (17): regression
+    filters (13), [instrument (14)], extension (15a) over a window T (``params["T"]``),
+    averaging (15b) (``p``, ``F0``) and mixing.  Outputs Delta, calY for a composite term
+    to use; returns (blocks, recorded outputs).  A user law built on (17) starts here."""
+    model, n, nth, p = ctx.model, ctx.n, ctx.ntheta, ctx.params
+    m = nth + nth * nth
+    blocks = [B.regression_filter(model, p["l"])]
+    if instrument:
+        blocks.append(B.instrument(model, p["l"]))
+    blocks += [B.extension(n, nth, instrument=instrument),
+               *B.windowed_integral(m, p["T"]),
+               B.averaging(m, p["p"], p["F0"]),
+               B.mixing(nth)]
+    # z, phi (and zeta) are recorded so that the diagnostics can form w = z - phi^T theta
+    # (13), the excitation of (18) and the products of (19) offline
+    outputs = ["Delta", "calY", "z", "phi"] + (["zeta"] if instrument else [])
+    return blocks, outputs
+
+
+def _drem_blocks(ctx: LawContext, *, iv: bool):
+    """(17) and the composite term (21)."""
+    blocks, outputs = mixed_regression_blocks(ctx, instrument=iv)
+    return blocks + [B.drem_term(ctx.ntheta, ctx.params["gamma"])], outputs
+
+
+def _build_iv_drem(ctx):
+    return _drem_blocks(ctx, iv=True)
+
+
+def _build_drem(ctx):
+    return _drem_blocks(ctx, iv=False)
+
+
+def _build_composite_learning(ctx):
+    model, n, nth, p = ctx.model, ctx.n, ctx.ntheta, ctx.params
+    m = nth + nth * nth
+    blocks = [B.regression_filter(model, p["l"]),
+              B.extension(n, nth, instrument=False),
+              *B.windowed_integral(m, p["T"]),
+              B.max_hold(nth, nth, p["epsilon"]),
+              B.composite_learning_term(nth, p["gamma"])]
+    return blocks, ["lambda_min_held"]
+
+
+def _build_sigma(ctx):
+    ts = ctx.params.get("theta_star")
+    if ts is None:
+        ts = ctx.model.theta_values
+    return [B.sigma_modification_term(ctx.ntheta, ctx.params["sigma"], ts)], []
+
+
+def _build_none(ctx):
+    return [B.zero_term(ctx.ntheta)], []
+
+
+for _law in (
+    Law("iv-drem", _build_iv_drem, "IV-DREM, (11)+(21)", "#0072B2", "eqs. (11) + (21)",
+        "proposed: instrumental-variables DREM, ζ from the reference trajectory (14)",
+        section="iv_drem", defaults=dict(T=20.0, p=2.0, F0=1.0, gamma=1e10),
+        uses_delta=True, instrument="zeta"),
+    Law("composite-learning", _build_composite_learning, "composite learning, (35)", "#E69F00",
+        "eq. (35)", "baseline of Pan & Yu: max-held window integrals of φ",
+        section="composite_learning", defaults=dict(T=20.0, gamma=1.0, epsilon=1e-9)),
+    Law("drem", _build_drem, "DREM without IV", "#009E73", "eqs. (11) + (21), ζ := φ",
+        "DREM with the measured regressor φ in place of the instrument",
+        section="iv_drem", defaults=dict(T=20.0, p=2.0, F0=1.0, gamma=1e10),
+        uses_delta=True, instrument="phi"),
+    Law("sigma-modification", _build_sigma, "σ-modification", "#CC79A7",
+        "ϑ_c = σ(θ* − θ̂) (erratum E5)", "leakage toward a prior guess θ*",
+        section="sigma_modification", defaults=dict(sigma=0.1, theta_star=None)),
+    Law("none", _build_none, "no composite term", "#7F7F7F", "ϑ_c = 0",
+        "plain disturbance-rejection adaptive control"),
+):
+    register_law(_law)
+del _law
+
+
+def resolve_params(law: Law, given: dict) -> dict:
+    """The law's defaults overridden by the non-None entries of ``given``."""
+    out = dict(law.defaults)
+    for k, v in given.items():
+        if v is not None:
+            out[k] = v
+    return out
+
+
+def as_array(v):
+    return None if v is None else np.asarray(v, dtype=float)

@@ -1,0 +1,218 @@
+"""Each diagnostic of ivdrem.experiments.diagnostics against a case with a known answer."""
+import math
+
+import numpy as np
+import pytest
+
+from ivdrem.experiments import diagnostics as D
+
+T_LONG = np.linspace(0.0, 1000.0, 100_001)
+
+
+def test_power_fit_and_decay_exponent_recover_exact_powers():
+    t = T_LONG[1:]
+    a, C, r2 = D.power_fit(t, 3.0 * t ** -0.7)
+    assert a == pytest.approx(0.7, abs=1e-12) and C == pytest.approx(3.0, rel=1e-10) and r2 > 0.999999
+    # windowed means of an oscillation do not decay; of 1/(t+1) decay with k ~ 1
+    assert abs(D.decay_exponent(T_LONG, 1 + 0.5 * np.sin(3 * T_LONG))) < 0.01
+    assert D.decay_exponent(T_LONG, 1 / (T_LONG + 1)) == pytest.approx(1.0, abs=0.01)
+
+
+def test_ka1_and_pe_for_delta_one_over_sqrt_t_plus_1():
+    """The paper's example: Δ = 1/√(t+1) is not in L2 (KA1 holds) and not PE (vanishes)."""
+    delta = 1 / np.sqrt(T_LONG + 1)
+    c, S = D.check_ka1(T_LONG, delta)
+    assert c["verdict"] == D.HOLDS
+    np.testing.assert_allclose(S[-1], math.log(1001.0), rtol=1e-5)  # ∫ 1/(t+1) = log(t+1); trapezoid h = 0.01
+    assert c["measured"]["int_Delta2_growth_last_half"] == pytest.approx(math.log(1001 / 501), rel=1e-6)
+    pe = D.check_pe(T_LONG, delta)
+    assert pe["verdict"] == D.FAILS
+    assert pe["measured"]["decay_exponent_abs_Delta"] == pytest.approx(0.5, abs=0.01)
+
+
+def test_ka1_fails_for_square_integrable_delta_and_pe_holds_for_persistent_one():
+    c, S = D.check_ka1(T_LONG, np.exp(-T_LONG / 50))
+    assert c["verdict"] == D.FAILS
+    assert S[-1] == pytest.approx(25.0, rel=1e-6)                    # ∫ e^(-t/25) = 25
+    c, _ = D.check_ka1(T_LONG, 1 / (T_LONG + 1))                     # Δ² ~ t^-2: in L2
+    assert c["verdict"] == D.FAILS
+    persistent = 0.3 + 0.1 * np.sin(0.7 * T_LONG)
+    assert D.check_ka1(T_LONG, persistent)[0]["verdict"] == D.HOLDS
+    assert D.check_pe(T_LONG, persistent)["verdict"] == D.HOLDS
+    # Δ ≡ 0 is in L2
+    assert D.check_ka1(T_LONG, 0 * T_LONG)[0]["verdict"] == D.FAILS
+
+
+def test_excitation_beta_of_constant_regressors():
+    """ζ = φ constant: ∫_{t−T}^t ζφᵀ = T ZᵀZ, so β = T^nθ det(ZᵀZ) for t ≥ T."""
+    t = np.linspace(0, 50, 5001)
+    Z = np.array([[1.0, 0.0], [0.5, 2.0]])                           # ζᵀ, n = 2, nθ = 2
+    flat = np.repeat(Z.reshape(-1, 1), t.size, axis=1)
+    beta = D.excitation_beta(t, flat, flat, 2, 2, 10.0)
+    assert np.all(np.isnan(beta[t < 10.0 - 1e-9]))
+    np.testing.assert_allclose(beta[t >= 10.0], 100.0 * np.linalg.det(Z.T @ Z), rtol=1e-9)
+
+
+def test_ka2_holds_with_growing_mu_and_fails_with_constant_mu():
+    t = np.linspace(0, 600, 60_001)
+    tau = np.vstack([7.5 * np.sin(0.5 * np.pi * t), 1.5 * np.sin(0.05 * np.pi * t)])
+    dtau = np.vstack([7.5 * 0.5 * np.pi * np.cos(0.5 * np.pi * t),
+                      1.5 * 0.05 * np.pi * np.cos(0.05 * np.pi * t)])
+    good, L, _ = D.check_ka2(t, tau, t + 15.0)
+    assert good["verdict"] == D.HOLDS
+    # numerical τ̇_d (second order differences) = the analytic derivative
+    _, L_exact, _ = D.check_ka2(t, tau, t + 15.0, dtau_d=dtau)
+    np.testing.assert_allclose(L, L_exact, rtol=1e-4)
+    bad, L_const, _ = D.check_ka2(t, tau, 15.0 + 0 * t)
+    assert bad["verdict"] == D.FAILS                                  # μ constant: ∫ grows ~ t
+    assert L_const[-1] == pytest.approx(np.trapezoid(np.sum(dtau ** 2, 0), t) / 225, rel=1e-4)
+
+
+def test_filtered_disturbance_equals_the_analytic_filter_response():
+    """ẇ = l(−τ_d − w), w(0) = 0 for τ_d = sin ωt has the closed form below."""
+    l, om = 50.0, 1.3
+    A, B = -l * l / (l * l + om * om), l * om / (l * l + om * om)
+    errs = []
+    for nt in (2001, 4001):                                          # h = 0.01, 0.005
+        t = np.linspace(0, 20, nt)
+        w = D.filtered_disturbance(t, np.sin(om * t)[None, :], l)[0]
+        exact = A * np.sin(om * t) + B * np.cos(om * t) - B * np.exp(-l * t)
+        errs.append(np.max(np.abs(w - exact)))
+    assert errs[0] < 3e-5                                             # ~ h² ω² / 8
+    assert errs[0] / errs[1] == pytest.approx(4.0, rel=0.05)          # second order in h
+
+
+def _ka3(w_freq, w_phase=0.0):
+    t = np.linspace(0, 400, 40_001)
+    n, nth = 1, 2
+    zeta = np.vstack([np.sin(2.0 * t), np.cos(0.3 * t)])             # ζᵀ: 1 × 2
+    w = np.sin(w_freq * t + w_phase)[None, :]
+    return D.check_ka3(t, zeta, w, n, nth, tau_d=w)
+
+
+def test_ka3_holds_for_independent_frequencies_and_fails_for_a_shared_one():
+    good, ints = _ka3(math.pi / 2)
+    assert good["verdict"] == D.HOLDS
+    assert good["measured"]["shared_frequency"] is False
+    assert np.max(np.abs(ints)) < 5.0                                 # bounded integrals
+    bad, ints = _ka3(2.0, 0.4)                                        # ζ's own frequency
+    assert bad["verdict"] == D.FAILS
+    assert bad["measured"]["shared_frequency"] is True
+    assert bad["measured"]["closest_frequencies"][0] == pytest.approx(2.0, abs=0.02)
+    # ∫ sin(2t) sin(2t + 0.4) = t cos(0.4)/2 + bounded: grows linearly
+    assert ints[0, -1] == pytest.approx(400 * math.cos(0.4) / 2, rel=0.01)
+    assert bad["measured"]["worst_pair"].startswith("ζ_1,1")
+
+
+def test_prop2_ratio_bounded_for_W_like_dF_over_F_and_growing_for_constant_W():
+    t = np.linspace(0, 300, 30_001)
+    F, dF = t ** 2 + 1, 2 * t
+    good, R = D.check_prop2(t, (3.0 * dF / F)[None, :], 2.0, 1.0, 20.0)
+    assert good["verdict"] == D.HOLDS
+    np.testing.assert_allclose(R[t >= 20], 3.0, rtol=1e-12)
+    bad, _ = D.check_prop2(t, np.ones((1, t.size)), 2.0, 1.0, 20.0)
+    assert bad["verdict"] == D.FAILS
+
+
+def test_property42_finds_rho_for_the_papers_mu_and_none_for_a_decaying_mu():
+    t = np.linspace(0, 300, 3001)
+    mu = t + 15.0
+    c, p = D.check_property42(t, mu, 0.8, np.ones_like(t))
+    assert c["verdict"] == D.HOLDS
+    rho, drho = p["rho"], p["delta_rho"]
+    lhs = (rho - 1 / 0.8) * mu + rho * 1.0 / mu - rho / drho          # Property 4.2 itself
+    assert np.all(lhs >= p["mu_LB"] - 1e-9) and np.min(p["mu_LB"]) > 0
+    mu_bad = 1.0 / (t + 1.0)                                          # (ρ−1/δ)μ + ρμ̇/μ = −μ/δ < 0
+    c, p = D.check_property42(t, mu_bad, 0.8, -mu_bad ** 2)
+    assert c["verdict"] == D.FAILS and p is None
+
+
+def test_rate_fit_recovers_the_exponent():
+    t = np.linspace(0, 300, 3001)
+    c, (a, C) = D.check_rate(t, 2.0 * (t + 1e-3) ** -1.2)
+    assert c["verdict"] == D.HOLDS and a == pytest.approx(1.2, abs=0.01)
+    c, _ = D.check_rate(t, 5.0 + 0 * t)
+    assert c["verdict"] == D.FAILS
+    # a slow decrease towards a floor cannot be told from convergence at this horizon
+    c, _ = D.check_rate(t, 1.0 + 0.5 * np.exp(-t / 400))
+    assert c["verdict"] == D.UNDECIDED
+
+
+def test_lyapunov_function_and_bound():
+    rng = np.random.default_rng(1)
+    n, nth, nt = 2, 3, 5
+    r = rng.normal(size=(n, nt))
+    A = rng.normal(size=(n, n))
+    M = np.repeat((A @ A.T + np.eye(n))[:, :, None], nt, axis=2)
+    th = rng.normal(size=(nth, nt))
+    G = np.diag([0.1, 0.2, 0.5])
+    td = rng.normal(size=(n, nt))
+    mu = np.linspace(1, 2, nt)
+    V = D.lyapunov(r, M, th, G, td, mu, 2.5)
+    k = 3
+    expect = (0.5 * r[:, k] @ M[:, :, k] @ r[:, k] + 0.5 * th[:, k] @ np.linalg.inv(G) @ th[:, k]
+              + 1.25 * np.sum((td[:, k] / mu[k]) ** 2))
+    assert V[k] == pytest.approx(expect, rel=1e-12)
+    t = np.linspace(0, 10, 101)
+    W = np.ones((2, t.size))
+    ok, bound = D.check_lyapunov(t, 1.0 + 0.5 * t, W, 0.25, 0 * t, 1.0, 1.0)  # bound = 1 + t/2
+    assert ok["verdict"] == D.HOLDS
+    np.testing.assert_allclose(bound, 1 + 0.5 * t)
+    bad, _ = D.check_lyapunov(t, 1.0 + 0.6 * t, W, 0.25, 0 * t, 1.0, 1.0)
+    assert bad["verdict"] == D.FAILS and bad["measured"]["t_max_ratio"] == pytest.approx(10.0)
+
+
+def test_inactive_composite_term_is_flagged_with_the_fix():
+    t = np.linspace(0, 120, 12_001)
+    delta = np.where(t > 20, 2.5e-9, 0.0)                             # a 3-link arm's Δ level
+    c = D.check_active(t, delta, 1e10, 0.01, 20.0)
+    assert c["verdict"] == D.FAILS
+    assert "gamma = \"auto\"" in c["note"]
+    # the γ it suggests makes the term active: κ / (λ_max(Γ) Δ²) = 0.5 / (0.01 · 6.25e-18)
+    g = c["measured"]["gamma_auto_from_this_run"]
+    assert g == pytest.approx(0.5 / (0.01 * 2.5e-9 ** 2), rel=1e-3)
+    assert D.check_active(t, delta, g, 0.01, 20.0)["verdict"] == D.HOLDS
+
+
+def test_gamma_auto_rule():
+    from ivdrem.diagrams.gamma_auto import gamma_from_delta
+    t = np.linspace(0, 40, 4001)
+    delta = np.where(t >= 20, 8e-5 * (1 + 0.1 * np.sin(t)), 0.0)
+    out = gamma_from_delta(t, delta, 20.0, 0.01 * np.eye(5))
+    mean = np.trapezoid(delta[t >= 20] ** 2, t[t >= 20]) / 20.0
+    assert out["gamma"] == pytest.approx(0.5 / (0.01 * mean), rel=1e-12)
+    with pytest.raises(ValueError, match="not excited"):
+        gamma_from_delta(t, 0 * t, 20.0, 0.01)
+
+
+def test_json_has_no_arrays_and_no_nan():
+    import json
+    from ivdrem.experiments.config import load_config
+    from ivdrem.reports.synthetic import synthetic_paper_run
+    run = synthetic_paper_run(load_config(), t_end=60.0)
+    for law, lr in run.runs.items():
+        d = D.diagnose(lr, run.config, None, theta=run.theta)
+        text = json.dumps(D.to_json(d), allow_nan=False)
+        assert "checks" in text
+        ids = [c["id"] for c in d["checks"]]
+        assert {"KA1", "KA2", "KA3", "P2", "P4.2", "RATE"} <= set(ids), law
+
+
+def test_paper_json_has_diagnostics_per_law(tmp_path, monkeypatch, capsys):
+    import json
+    import ivdrem.experiments.paper as paper
+    from ivdrem.cli import main
+    from ivdrem.reports.synthetic import synthetic_paper_run
+
+    def fake(config, *, laws=None, progress=True, engine="compiled", log=None):
+        return synthetic_paper_run(config, dt=0.05)
+    monkeypatch.setattr(paper, "run_paper", fake)
+    out = tmp_path / "o.json"
+    assert main(["paper", "--t-end", "60", "--json", str(out), "--quiet"]) == 0
+    data = json.loads(out.read_text())
+    for law in ("iv-drem", "composite-learning"):
+        ids = [c["id"] for c in data[law]["diagnostics"]["checks"]]
+        assert ids[:3] == ["KA1", "PE", "KA2"]
+        assert all(c["verdict"] in (D.HOLDS, D.FAILS, D.UNDECIDED, D.NA)
+                   for c in data[law]["diagnostics"]["checks"])
+    assert "diagnostics of iv-drem" in capsys.readouterr().out
