@@ -38,6 +38,7 @@ from ..blocks import _kernels
 from .._atomic import write_text_atomic
 from ..blocks._core import kernel_args
 from . import _template
+from . import _dense_fallback
 
 __all__ = ["CompiledEngine", "generate_source", "cache_dir", "CompileError"]
 
@@ -280,10 +281,53 @@ def generate_source(plan, param_exprs=None):
     out.append("\n".join(lines) + "\n")
     jit_names += ["diagram_eval"]
 
+    # the Jacobian and Newton-matrix entry points the implicit methods call (mode RHS's
+    # df/dx; factor / solve of c I - J)
+    fb = _fallback_source(tsrc)
+    if fb:
+        out.append("# ---- dense fallbacks (ivdrem/sim/_dense_fallback.py)")
+        out.append(fb)
+        jit_names += re.findall(r"^def\s+(\w+)\s*\(", fb, flags=re.M)
+    out.append(_NEWTON_WRAPPERS)
+    jit_names += ["diagram_jacobian", "newton_factor", "newton_solve"]
+
     out.append("# ---- compile everything with numba, machine code cached beside this file")
     out.append(f"_JIT = {sorted(set(jit_names))!r}")
     out.append("for _n in _JIT:\n    globals()[_n] = njit(cache=True)(globals()[_n])\n")
     return "\n".join(out), list(deps.items())
+
+
+_NEWTON_WRAPPERS = """
+def diagram_jacobian(t, x, P, W, J):
+    return fd_jacobian(t, x, P, W, J)
+
+
+def newton_factor(J, c, LU, piv):
+    return dense_factor(J, c, LU, piv)
+
+
+def newton_solve(LU, piv, b):
+    dense_solve(LU, piv, b)
+"""
+
+
+def _fallback_source(template_src):
+    """The parts of _dense_fallback the template does not define itself."""
+    import ast
+    fsrc = Path(_dense_fallback.__file__).read_text()
+    have = set(re.findall(r"^def\s+(\w+)\s*\(", template_src, flags=re.M))
+    have |= set(re.findall(r"^(\w+)\s*=", template_src, flags=re.M))
+    parts = []
+    for node in ast.parse(fsrc).body:
+        if isinstance(node, ast.FunctionDef):
+            name = node.name
+        elif isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name):
+            name = node.targets[0].id
+        else:
+            continue
+        if name not in have:
+            parts.append(ast.get_source_segment(fsrc, node))
+    return "\n\n\n".join(parts) + "\n" if parts else ""
 
 
 def _param_values(plan, b):
@@ -396,3 +440,28 @@ class CompiledEngine:
         dx = np.zeros_like(x)
         self.module.diagram_eval(_template.RHS, t, x, self.P, W, dx)
         return dx
+
+    # ---- Jacobian and Newton matrix, callable from Python (tests, benchmarks)
+    def jacobian(self, t, x, W):
+        """df/dx at (t, x) as the generated diagram_jacobian computes it (n x n array)."""
+        x = np.ascontiguousarray(x, dtype=float)
+        J = np.zeros((x.size, x.size))
+        st = self.module.diagram_jacobian(float(t), x, self.P, W, J)
+        if st != _template.OK:
+            raise RuntimeError(f"diagram_jacobian returned status {st}")
+        return J
+
+    def factor(self, J, c):
+        """Factor c I - J with the generated newton_factor: (status, LU, piv)."""
+        J = np.ascontiguousarray(J, dtype=float)
+        n = J.shape[0]
+        LU = np.zeros((n, n))
+        piv = np.zeros(n, dtype=np.int64)
+        st = self.module.newton_factor(J, float(c), LU, piv)
+        return int(st), LU, piv
+
+    def solve(self, LU, piv, b):
+        """(c I - J)^{-1} b for a factorisation from :meth:`factor` (b is not modified)."""
+        out = np.array(b, dtype=float)
+        self.module.newton_solve(LU, piv, out)
+        return out
