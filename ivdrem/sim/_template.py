@@ -73,8 +73,9 @@ S_LU = 5
 S_STIFF = 6        # 1 once an explicit method was found limited by stability
 S_CUTS = 7         # steps cut to land on a max-hold update
 S_PROBES = 8       # max-hold evaluations at interpolated grid times
-S_STIFF_RUN = 9    # consecutive accepted steps with h*rho(J) beyond the stability bound
-N_STATS = 10
+S_STIFF_RUN = 9    # accepted steps with h*rho(J) beyond the stability bound (DOPRI5's IASTI)
+S_NONSTIFF = 10    # consecutive accepted steps within it (NONSTI)
+N_STATS = 11
 
 # entries of the float tf vector
 F_T = 0
@@ -629,6 +630,11 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
             if t >= t_stop - 1e-9 * h:
                 break
             h_use = h
+        if dense_out and W[1].shape[1] > 0 and W[3][1] + 2 > W[3][2]:
+            # no room for the midpoint and the end point of the next step in the history
+            tf[F_T] = t
+            tf[F_H] = h
+            return HISTORY_FULL
         err = method_step(mid, t, h_use, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
         if adaptive and not (err <= 1.0):
             if not (err == err):           # NaN: the trial state is not finite
@@ -666,9 +672,10 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
                 stats[S_CUTS] += 1
                 continue
         cut_landed = t_cut >= 0.0 and t1 >= t_cut - 1e-12 * max(1.0, abs(t1))
-        if check_stiff and mid == DP45:
+        if check_stiff and mid == DP45 and not (landing and h_use < h):
             # Hairer's DOPRI5 test: h*rho(J) ~ h |f(xn) - f(x6)| / |xn - x6| with x6 the
-            # stage at c = 1; beyond 3.25 (the stability boundary) 15 times in a row = stiff
+            # stage at c = 1; beyond 3.25 (the stability boundary) 15 times before 6 in a
+            # row within it = stiff.  Short steps that land on an output are not counted.
             num = 0.0
             den = 0.0
             for i in range(n):
@@ -678,12 +685,15 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
                 hrho = h_use * np.sqrt(num / den)
                 tf[F_HRHO] = hrho
                 if hrho > 3.25:
+                    stats[S_NONSTIFF] = 0
                     stats[S_STIFF_RUN] += 1
                     if stats[S_STIFF_RUN] >= 15 and stats[S_STIFF] == 0:
                         stats[S_STIFF] = 1
                         tf[F_T_STIFF] = t1
                 else:
-                    stats[S_STIFF_RUN] = 0
+                    stats[S_NONSTIFF] += 1
+                    if stats[S_NONSTIFF] >= 6:
+                        stats[S_STIFF_RUN] = 0
         if dense_out:
             # outputs inside the step from the dense output, before the holds move
             while io[0] < io[1] and out_t[io[0]] < t1 - 1e-12 * max(1.0, abs(t1)):
@@ -691,6 +701,16 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
                 dense_eval(mid, h_use, (to - t) / (t1 - t), x, xn, K[0], f1, K, xg)
                 emit(to, xg, P, W, out_y, out_x, io)
                 swept = True
+        if dense_out and W[1].shape[1] > 0:
+            # the delay history gets the step's midpoint from the dense output too, so that
+            # its cubic Hermite pieces stay short when the steps are long
+            for k in range(nmh):
+                W[10][k] = HOLD_SKIP
+            tm = t + 0.5 * (t1 - t)
+            dense_eval(mid, h_use, 0.5, x, xn, K[0], f1, K, xg)
+            W[14][0] = tm
+            diagram_eval(AFTER_STEP, tm, xg, P, W, xg)
+            swept = True
         # accepted
         t_prev = t
         t = t1

@@ -481,6 +481,10 @@ class Simulator:
 
     def _handle(self, st, out_t, out_y, io, out_x):
         if st == tpl.HISTORY_FULL:
+            meta = self.W.hist_meta
+            if meta[1] + 2 > meta[2]:
+                self.W = _grow(self.W)
+                self._Wref[0] = self.W
             self._after_step_with_room()
             self._emit_due(out_t, out_y, out_x, io)
             return
