@@ -31,13 +31,13 @@ import numpy as np
 
 from ..blocks._core import bind_model, kernel_args
 
-__all__ = ["block_pattern", "JacobianProgram", "CompileTimeError"]
+__all__ = ["block_pattern", "JacobianProgram", "DeclarationError"]
 
 # central-difference step factor eps^(1/3): truncation h^2 and rounding eps/h balance
 FD_STEP = float(np.finfo(float).eps ** (1.0 / 3.0))
 
 
-class CompileTimeError(ValueError):
+class DeclarationError(ValueError):
     """A block whose declared structure contradicts what its kernels compute."""
 
 
@@ -166,7 +166,7 @@ class JacobianProgram:
                    if pat[:ny, c].any() and (c - nx) not in direct_local]
             if bad:
                 labels = [b.sys.input_labels[i] for i in bad]
-                raise CompileTimeError(
+                raise DeclarationError(
                     f"block '{b.sys.name}': its outputs depend on the inputs {labels}, which "
                     "the block does not declare as direct feedthrough (BlockSpec.direct); the "
                     "right-hand side would read them before they are computed")
