@@ -44,7 +44,7 @@ __all__ = [
 #: Adaptation laws known to the closed-loop diagrams.
 LAWS = ("iv-drem", "composite-learning", "drem", "sigma-modification", "none")
 #: Integration methods of ivdrem's simulator.
-SOLVER_METHODS = ("dp45", "rk4")
+from ..sim.simulator import METHODS as SOLVER_METHODS  # noqa: E402  (one source of truth)
 #: Variants of the Φ_Mf filter gain (erratum E1).
 OBSERVER_VARIANTS = ("corrected", "literal")
 
