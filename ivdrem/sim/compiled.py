@@ -39,6 +39,8 @@ from .._atomic import write_text_atomic
 from ..blocks._core import kernel_args
 from . import _template
 from . import _dense_fallback
+from .jacobian import JacobianProgram, generated_source as jacobian_source
+from .sparse_lu import symbolic_lu
 
 __all__ = ["CompiledEngine", "generate_source", "cache_dir", "CompileError"]
 
@@ -288,27 +290,23 @@ def generate_source(plan, param_exprs=None):
         out.append("# ---- dense fallbacks (ivdrem/sim/_dense_fallback.py)")
         out.append(fb)
         jit_names += re.findall(r"^def\s+(\w+)\s*\(", fb, flags=re.M)
-    out.append(_NEWTON_WRAPPERS)
-    jit_names += ["diagram_jacobian", "newton_factor", "newton_solve"]
+    prog = JacobianProgram(plan)
+    slu = symbolic_lu(prog.pattern)
+    calls = []
+    for b in prog.fd_blocks:
+        nx, nu, ny = b.sys.nstates, b.sys.ninputs, b.sys.noutputs
+        c = [f"        {kname(b, 'output')}(t, xb[0:{nx}], ub[0:{nu}], yf[0:{ny}]{pargs(b)})"]
+        if b.spec.update is not None and nx:
+            c.append(f"        {kname(b, 'update')}(t, xb[0:{nx}], ub[0:{nu}], "
+                     f"yf[{ny}:{ny + nx}]{pargs(b)})")
+        calls.append(c)
+    out.append(jacobian_source(prog, slu, calls))
+    jit_names += ["block_eval", "diagram_jacobian", "newton_factor", "newton_solve"]
 
     out.append("# ---- compile everything with numba, machine code cached beside this file")
     out.append(f"_JIT = {sorted(set(jit_names))!r}")
     out.append("for _n in _JIT:\n    globals()[_n] = njit(cache=True)(globals()[_n])\n")
     return "\n".join(out), list(deps.items())
-
-
-_NEWTON_WRAPPERS = """
-def diagram_jacobian(t, x, P, W, J):
-    return fd_jacobian(t, x, P, W, J)
-
-
-def newton_factor(J, c, LU, piv):
-    return dense_factor(J, c, LU, piv)
-
-
-def newton_solve(LU, piv, b):
-    dense_solve(LU, piv, b)
-"""
 
 
 def _fallback_source(template_src):
@@ -442,26 +440,31 @@ class CompiledEngine:
         return dx
 
     # ---- Jacobian and Newton matrix, callable from Python (tests, benchmarks)
-    def jacobian(self, t, x, W):
-        """df/dx at (t, x) as the generated diagram_jacobian computes it (n x n array)."""
+    def jacobian(self, t, x, W, *, dense=False):
+        """df/dx at (t, x) as the generated diagram_jacobian computes it (n x n array);
+        dense=True: the whole-system forward-difference fallback fd_jacobian instead."""
         x = np.ascontiguousarray(x, dtype=float)
         J = np.zeros((x.size, x.size))
-        st = self.module.diagram_jacobian(float(t), x, self.P, W, J)
+        fn = self.module.fd_jacobian if dense else self.module.diagram_jacobian
+        st = fn(float(t), x, self.P, W, J)
         if st != _template.OK:
             raise RuntimeError(f"diagram_jacobian returned status {st}")
         return J
 
-    def factor(self, J, c):
-        """Factor c I - J with the generated newton_factor: (status, LU, piv)."""
+    def factor(self, J, c, *, dense=False):
+        """Factor c I - J with the generated newton_factor (the static-pattern sparse LU),
+        or with dense=True the partial-pivoting dense_factor: (status, LU, piv)."""
         J = np.ascontiguousarray(J, dtype=float)
         n = J.shape[0]
         LU = np.zeros((n, n))
         piv = np.zeros(n, dtype=np.int64)
-        st = self.module.newton_factor(J, float(c), LU, piv)
+        fn = self.module.dense_factor if dense else self.module.newton_factor
+        st = fn(J, float(c), LU, piv)
         return int(st), LU, piv
 
-    def solve(self, LU, piv, b):
+    def solve(self, LU, piv, b, *, dense=False):
         """(c I - J)^{-1} b for a factorisation from :meth:`factor` (b is not modified)."""
         out = np.array(b, dtype=float)
-        self.module.newton_solve(LU, piv, out)
+        fn = self.module.dense_solve if dense else self.module.newton_solve
+        fn(LU, piv, out)
         return out
