@@ -756,7 +756,7 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
                 fac = 5.0 if err == 0.0 else min(fac_max, max(0.2, 0.9 * err ** -0.2))
                 h = h_use * fac
             fac_max = 5.0
-            if cut_landed:
+            if cut_landed or st == HOLD_UPDATED:
                 # holds that update at one sampling time often update at the next: try
                 # to end the next step there rather than cut another step short
                 t_cut = -1.0
