@@ -1,5 +1,5 @@
-"""ivdrem's simulator: transport delays, max-holds and growing stiffness (docs/ and README,
-"How the simulator works").
+"""ivdrem's simulator: transport delays, max-holds and growing stiffness (README, "How the
+simulator works").
 
 Two engines evaluate the same diagram with the same stepping code (``_template``):
 
