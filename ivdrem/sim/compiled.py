@@ -169,7 +169,7 @@ def generate_source(plan, param_exprs=None):
         if spec.model is not None:
             mmod, msrc = _model_module(spec.model)
             deps.setdefault(mmod, msrc)
-        for role in ("update", "output"):
+        for role in ("update", "output", "jacobian"):
             fn = getattr(spec, role)
             if fn is None:
                 continue
@@ -300,7 +300,16 @@ def generate_source(plan, param_exprs=None):
             c.append(f"        {kname(b, 'update')}(t, xb[0:{nx}], ub[0:{nu}], "
                      f"yf[{ny}:{ny + nx}]{pargs(b)})")
         calls.append(c)
-    out.append(jacobian_source(prog, slu, calls))
+    supplied = []
+    for b in prog.fd_blocks:
+        if b.spec.jacobian is None:
+            supplied.append(None)
+        else:
+            nx, nu = b.sys.nstates, b.sys.ninputs
+            ny = b.sys.noutputs
+            supplied.append([f"        {kname(b, 'jacobian')}(t, xb[0:{nx}], ub[0:{nu}], "
+                             f"jl[0:{ny + nx}, 0:{nx + nu}]{pargs(b)})"])
+    out.append(jacobian_source(prog, slu, calls, supplied))
     jit_names += ["block_eval", "diagram_jacobian", "newton_factor", "newton_solve"]
 
     out.append("# ---- compile everything with numba, machine code cached beside this file")
@@ -423,10 +432,6 @@ class CompiledEngine:
         param_exprs, self.P = _param_layout(plan)
         self.source, self.deps = generate_source(plan, param_exprs)
         self.module = _load(self.source, self.deps)
-
-    def chunk(self, method, *args):
-        fn = self.module.rk4_chunk if method == "rk4" else self.module.dp45_chunk
-        return fn(*args)
 
     def after_step(self, t, x, W):
         return self.module.diagram_eval(_template.AFTER_STEP, t, x, self.P, W, x)

@@ -298,12 +298,16 @@ def _arr(name, a, dtype="np.int64"):
     return f"{name} = np.array({np.asarray(a).tolist()!r}, dtype={dtype})"
 
 
-def generated_source(prog, slu, block_calls):
+def generated_source(prog, slu, block_calls, supplied=None):
     """Source of block_eval, diagram_jacobian, newton_factor and newton_solve.
 
-    `block_calls[k]` are the lines (indented 8) that evaluate FD block k: output kernel into
-    yf[0:ny], update kernel into yf[ny:ny+nx], from xb[0:nx], ub[0:nu].
+    `block_calls[k]` are the lines (indented 8) that evaluate block k: output kernel into
+    yf[0:ny], update kernel into yf[ny:ny+nx], from xb[0:nx], ub[0:nu].  `supplied[k]`, if
+    not None, are the lines that call the block's own Jacobian kernel into jl (dense
+    (ny + nx) x (nx + nu)), used instead of differences.
     """
+    supplied = supplied or [None] * len(block_calls)
+    with_jac = [k for k, s in enumerate(supplied) if s is not None]
     p = prog
     nfd = len(p.fd_blocks)
     maxx = int(max(p.fd_nx.max(initial=0), 1))
@@ -312,7 +316,7 @@ def generated_source(prog, slu, block_calls):
     lines = ["from ivdrem.sim._jit_sparse import jac_chain, fd_shift, fd_scatter, "
              "slu_factor, slu_solve", "",
              "# structured Jacobian (ivdrem/sim/jacobian.py): block FD program and chain rule"]
-    for name in ("fd_x0", "fd_nx", "fd_u0", "fd_nu", "g_ptr", "gc_ptr", "col", "e_ptr",
+    for name in ("fd_x0", "fd_nx", "fd_u0", "fd_nu", "fd_ny", "g_ptr", "gc_ptr", "col", "e_ptr",
                  "e_row", "e_slot", "ins_dst", "ins_f", "ins_src", "j_row", "j_col", "j_slot"):
         lines.append(_arr("_JAC_" + name.upper(), getattr(p, name)))
     lines.append(_arr("_JAC_GAINS", p.gains, "np.float64"))
@@ -326,6 +330,14 @@ def generated_source(prog, slu, block_calls):
     for k, calls in enumerate(block_calls):
         lines.append(f"    {'if' if k == 0 else 'elif'} k == {k}:")
         lines += calls
+    lines += ["", "", "def block_jacobian(k, t, xb, ub, jl, P):"]
+    if not with_jac:
+        lines.append("    return")
+    for i, k in enumerate(with_jac):
+        lines.append(f"    {'if' if i == 0 else 'elif'} k == {k}:")
+        lines += supplied[k]
+    lines.append(_arr("_JAC_SUPPLIED", [int(s is not None) for s in supplied] or [0]))
+    maxcol = int(max((p.fd_nx + p.fd_nu).max(initial=0), 1))
     lines += [
         "", "",
         "def diagram_jacobian(t, x, P, W, J):",
@@ -340,6 +352,7 @@ def generated_source(prog, slu, block_calls):
         f"    xb0 = np.empty({maxx})", f"    ub0 = np.empty({maxu})",
         f"    yp = np.empty({maxyf})", f"    ym = np.empty({maxyf})",
         f"    hh = np.empty({max(p.col.size, 1)})",
+        f"    jl = np.empty(({maxyf}, {maxcol}))",
         f"    for kb in range({nfd}):",
         "        nx = _JAC_FD_NX[kb]",
         "        nu = _JAC_FD_NU[kb]",
@@ -349,6 +362,16 @@ def generated_source(prog, slu, block_calls):
         "        for i in range(nu):",
         "            ub0[i] = us[_JAC_FD_U0[kb] + i]",
         "            ub[i] = ub0[i]",
+        "        if _JAC_SUPPLIED[kb] == 1:     # the block's own Jacobian kernel",
+        "            for i in range(nx + nu):",
+        "                for r in range(_JAC_FD_NY[kb] + nx):",
+        "                    jl[r, i] = 0.0",
+        "            block_jacobian(kb, t, xb, ub, jl, P)",
+        "            for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
+        "                for c in range(_JAC_GC_PTR[g], _JAC_GC_PTR[g + 1]):",
+        "                    for e in range(_JAC_E_PTR[c], _JAC_E_PTR[c + 1]):",
+        "                        F[_JAC_E_SLOT[e]] = jl[_JAC_E_ROW[e], _JAC_COL[c]]",
+        "            continue",
         "        for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
         "            c0 = _JAC_GC_PTR[g]",
         "            c1 = _JAC_GC_PTR[g + 1]",
