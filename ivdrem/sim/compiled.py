@@ -206,7 +206,7 @@ def generate_source(plan, param_exprs=None):
 
     # one function for the three modes (see _template): signals first, in topological order
     # of direct feedthrough, then the mode's work
-    lines = ["def diagram_eval(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
+    lines = ["def diagram_eval_body(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
              "    ue = W[8]", "    if mode == AFTER_STEP_EVALUATED:", "        mode = AFTER_STEP",
              "    else:"]
     body_start = len(lines)
@@ -281,7 +281,12 @@ def generate_source(plan, param_exprs=None):
         lines.append(f"    out[{r}] = " + (" + ".join(terms) if terms else "0.0"))
     lines.append("    return OK")
     out.append("\n".join(lines) + "\n")
-    jit_names += ["diagram_eval"]
+    # The template calls diagram_eval with its mode constants, which numba types as
+    # literals and would compile the whole body once per mode; mode + 0 is a plain int64,
+    # so the body compiles once and only this wrapper is specialised.
+    out.append("def diagram_eval(mode, t, x, P, W, out):\n"
+               "    return diagram_eval_body(mode + 0, t, x, P, W, out)\n")
+    jit_names += ["diagram_eval_body", "diagram_eval"]
 
     # the Jacobian and Newton-matrix entry points the implicit methods call (mode RHS's
     # df/dx; factor / solve of c I - J)
@@ -310,7 +315,8 @@ def generate_source(plan, param_exprs=None):
             supplied.append([f"        {kname(b, 'jacobian')}(t, xb[0:{nx}], ub[0:{nu}], "
                              f"jl[0:{ny + nx}, 0:{nx + nu}]{pargs(b)})"])
     out.append(jacobian_source(prog, slu, calls, supplied))
-    jit_names += ["block_eval", "diagram_jacobian", "newton_factor", "newton_solve"]
+    jit_names += ["block_eval", "block_jacobian", "diagram_jacobian", "newton_factor",
+                  "newton_solve"]
 
     out.append("# ---- compile everything with numba, machine code cached beside this file")
     out.append(f"_JIT = {sorted(set(jit_names))!r}")
