@@ -300,11 +300,13 @@ def generate_source(plan, param_exprs=None):
     calls = []
     for b in prog.fd_blocks:
         nx, nu, ny = b.sys.nstates, b.sys.ninputs, b.sys.noutputs
-        c = [f"        {kname(b, 'output')}(t, xb[0:{nx}], ub[0:{nu}], yf[0:{ny}]{pargs(b)})"]
+        c_out = [f"            {kname(b, 'output')}(t, xb[0:{nx}], ub[0:{nu}], "
+                 f"yf[0:{ny}]{pargs(b)})"]
+        c_upd = []
         if b.spec.update is not None and nx:
-            c.append(f"        {kname(b, 'update')}(t, xb[0:{nx}], ub[0:{nu}], "
-                     f"yf[{ny}:{ny + nx}]{pargs(b)})")
-        calls.append(c)
+            c_upd.append(f"            {kname(b, 'update')}(t, xb[0:{nx}], ub[0:{nu}], "
+                         f"yf[{ny}:{ny + nx}]{pargs(b)})")
+        calls.append((c_out, c_upd))
     supplied = []
     for b in prog.fd_blocks:
         if b.spec.jacobian is None:
