@@ -100,6 +100,8 @@ def main(argv=None):
                     help="horizons 30 / 100 / 300 s instead of 300 / 1000 / 3000 s")
     ap.add_argument("--skip-rk4", action="store_true", help="no RK4 h = 0.25 ms reference")
     ap.add_argument("--skip-1000", action="store_true", help="no DP45 run at the 1000 s horizon")
+    ap.add_argument("--repeat", type=int, default=2,
+                    help="runs per method at the first horizon, fastest kept (default 2)")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     a = ap.parse_args(argv)
     scale = 0.1 if a.quick else 1.0
@@ -114,11 +116,16 @@ def main(argv=None):
             run(law, m, 0.05)
 
     runs = {}
-    out("\n== runs (sim_s: integration only; compile: engine construction + numba load)")
+    out("\n== runs (sim_s: integration only; compile: engine construction + numba load; "
+        f"first horizon: fastest of {a.repeat} runs per method)")
     out(HEAD)
 
-    def do(law, m, t, **kw):
+    def do(law, m, t, repeat=1, **kw):
         s = run(law, m, t, **kw)
+        for _ in range(repeat - 1):       # the machine's load varies: keep the fastest
+            s2 = run(law, m, t, **kw)
+            if s2["sim_s"] < s["sim_s"]:
+                s = s2
         runs[(law, m, t, tuple(sorted(kw.items())))] = s
         res["runs"].append(s)
         out(row(s))
@@ -126,9 +133,10 @@ def main(argv=None):
 
     for t in (H1, H2):
         for law in LAWS:
-            do(law, stiff, t)
+            rep = a.repeat if t == H1 else 1
+            do(law, stiff, t, repeat=rep)
             if t == H1 or not a.skip_1000:
-                do(law, "dp45", t)
+                do(law, "dp45", t, repeat=rep)
     do("iv-drem", stiff, H3)
 
     out("\n== speed-up (DP45 sim_s / stiff sim_s, both laws summed, same run)")

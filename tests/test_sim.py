@@ -36,7 +36,9 @@ def test_rk4_and_dp45_agree_over_10s():
     assert np.allclose(a.time, b.time, rtol=0, atol=1e-9)
     assert b.stats["method"] == "dp45" and b.stats["steps"] > 100
     assert a.stats["method"] == "rk4" and a.stats["steps"] == 10000
-    assert a.stats["rhs_calls"] == 4 * a.stats["steps"] + 1    # + f(t0) before the first step
+    # 4 per step, plus f(t, x) at each entry into the loop (the start, and after each of the
+    # delay history's (at most two) regrowths within 10 s)
+    assert 1 <= a.stats["rhs_calls"] - 4 * a.stats["steps"] <= 3
     d_th = np.abs(sig(a, "theta_hat") - sig(b, "theta_hat")).max()
     d_q = np.abs(sig(a, "q") - sig(b, "q")).max()
     assert d_th <= 1e-7, d_th

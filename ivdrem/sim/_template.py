@@ -75,7 +75,8 @@ S_CUTS = 7         # steps cut to land on a max-hold update
 S_PROBES = 8       # max-hold evaluations at interpolated grid times
 S_STIFF_RUN = 9    # accepted steps with h*rho(J) beyond the stability bound (DOPRI5's IASTI)
 S_NONSTIFF = 10    # consecutive accepted steps within it (NONSTI)
-N_STATS = 11
+S_EXPLICIT = 11    # DP45 steps a Rodas5P run took while max-hold updates pinned its steps
+N_STATS = 12
 
 # entries of the float tf vector
 F_T = 0
@@ -86,7 +87,8 @@ F_GROW_T = 4       # growth check: reference time and norm
 F_GROW_N = 5
 F_GROW_RATE = 6    # e-folding rate (1/s) at a DIVERGED_GROWTH stop
 F_HRHO = 7         # last h*rho(J) estimate of DP45
-N_TF = 8
+F_HRHO_STIFF = 8   # the estimate when S_STIFF was set
+N_TF = 9
 
 # growth-rate divergence: a state norm (>= 1) growing by GROWTH_FACTOR within GROWTH_WINDOW
 GROWTH_FACTOR = 1e6
@@ -597,6 +599,8 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
     stats[S_RHS] += 1
     fac_max = 5.0
     t_cut = -1.0
+    pinned = False         # the last step ended on a max-hold update: the next ends on the grid
+    explicit_ok = True     # ... and may be an explicit DP45 step while that stays stable
     while True:
         landing = False
         if adaptive:
@@ -635,7 +639,17 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
             tf[F_T] = t
             tf[F_H] = h
             return HISTORY_FULL
-        err = method_step(mid, t, h_use, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
+        # while max-hold updates pin a Rodas5P run's steps to the 1-sample grid, a fresh
+        # Jacobian per sample costs ~8 explicit steps: take DP45 steps where they are stable
+        # (same error control; back to Rodas5P at a rejection or h*rho(J) > 2.5)
+        m = mid
+        if mid == RODAS5P and pinned and explicit_ok:
+            m = DP45
+        err = method_step(m, t, h_use, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
+        if m != mid and not (err <= 1.0):
+            explicit_ok = False
+            stats[S_REJECTED] += 1
+            continue
         if adaptive and not (err <= 1.0):
             if not (err == err):           # NaN: the trial state is not finite
                 bad = check_state(xn, x_limit)
@@ -657,14 +671,14 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
         # slope at the new point: the FSAL stage of DP45, else one evaluation (it is the
         # first stage of the next step)
         swept = False
-        if mid == DP45:
+        if m == DP45:
             for i in range(n):
                 f1[i] = K[6][i]
         else:
             diagram_eval(RHS, t1, xn, P, W, f1)
             stats[S_RHS] += 1
         if nmh > 0 and adaptive:
-            tg = probe_holds(mid, t, t1, x, xn, K[0], f1, K, xg, P, W, stats, t0)
+            tg = probe_holds(m, t, t1, x, xn, K[0], f1, K, xg, P, W, stats, t0)
             swept = True
             if tg > 0.0:
                 t_cut = tg
@@ -672,6 +686,15 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
                 stats[S_CUTS] += 1
                 continue
         cut_landed = t_cut >= 0.0 and t1 >= t_cut - 1e-12 * max(1.0, abs(t1))
+        if m != mid:
+            stats[S_EXPLICIT] += 1
+            num = 0.0
+            den = 0.0
+            for i in range(n):
+                num += (K[6][i] - K[5][i]) ** 2
+                den += (xn[i] - K[7][i]) ** 2
+            if den > 0.0 and h_use * np.sqrt(num / den) > 2.5:
+                explicit_ok = False
         if check_stiff and mid == DP45 and not (landing and h_use < h):
             # Hairer's DOPRI5 test: h*rho(J) ~ h |f(xn) - f(x6)| / |xn - x6| with x6 the
             # stage at c = 1; beyond 3.25 (the stability boundary) 15 times before 6 in a
@@ -690,6 +713,7 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
                     if stats[S_STIFF_RUN] >= 15 and stats[S_STIFF] == 0:
                         stats[S_STIFF] = 1
                         tf[F_T_STIFF] = t1
+                        tf[F_HRHO_STIFF] = hrho
                 else:
                     stats[S_NONSTIFF] += 1
                     if stats[S_NONSTIFF] >= 6:
@@ -698,7 +722,7 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
             # outputs inside the step from the dense output, before the holds move
             while io[0] < io[1] and out_t[io[0]] < t1 - 1e-12 * max(1.0, abs(t1)):
                 to = out_t[io[0]]
-                dense_eval(mid, h_use, (to - t) / (t1 - t), x, xn, K[0], f1, K, xg)
+                dense_eval(m, h_use, (to - t) / (t1 - t), x, xn, K[0], f1, K, xg)
                 emit(to, xg, P, W, out_y, out_x, io)
                 swept = True
         if dense_out and W[1].shape[1] > 0:
@@ -707,7 +731,7 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
             for k in range(nmh):
                 W[10][k] = HOLD_SKIP
             tm = t + 0.5 * (t1 - t)
-            dense_eval(mid, h_use, 0.5, x, xn, K[0], f1, K, xg)
+            dense_eval(m, h_use, 0.5, x, xn, K[0], f1, K, xg)
             W[14][0] = tm
             diagram_eval(AFTER_STEP, tm, xg, P, W, xg)
             swept = True
@@ -756,14 +780,19 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
                 fac = 5.0 if err == 0.0 else min(fac_max, max(0.2, 0.9 * err ** -0.2))
                 h = h_use * fac
             fac_max = 5.0
-            if cut_landed:
+            if cut_landed or st == HOLD_UPDATED:
                 # holds that update at one sampling time often update at the next: try
                 # to end the next step there rather than cut another step short
                 t_cut = -1.0
+                if not pinned:
+                    explicit_ok = True
+                pinned = True
                 for k in range(nmh):
                     hg = next_grid(t, t0, W[9][k]) - t
                     if hg < h:
                         h = hg
+            else:
+                pinned = False
         else:
             while io[0] < io[1] and out_t[io[0]] <= t + 1e-9 * h:
                 out_t[io[0]] = t

@@ -401,7 +401,7 @@ class Simulator:
             W = self.W._replace(ys=self.W.ys.copy(), us=self.W.us.copy())
             tf = self.tf.copy()
             tf[tpl.F_T] = self.t
-            self._integrate(self.info.id, tf, self.t, self.x.copy(), self.engine.P, W,
+            self._run_integrate(self.info.id, tf, self.t, self.x.copy(), self.engine.P, W,
                             np.zeros(0), np.zeros((0, self.plan.diagram.noutputs)),
                             np.zeros((0, 0)), np.zeros(2, dtype=np.int64),
                             np.zeros(tpl.N_STATS, dtype=np.int64), self.ctl)
@@ -459,23 +459,26 @@ class Simulator:
                 out_x[io[0]] = self.x
             io[0] += 1
 
+    def _run_integrate(self, *args):
+        try:
+            return self._integrate(*args)
+        except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError) as e:
+            raise SimulationError(f"simulation stopped after t = {self.tf[0]:.6g} s: {e}") \
+                from e
+
     def _chunk(self, t_stop, out_t, out_y, out_x, io):
         self.tf[tpl.F_T] = self.t
         if not self.info.adaptive:
             self.tf[tpl.F_H] = self.h
-        try:
-            st = self._integrate(self.info.id, self.tf, t_stop, self.x, self.engine.P, self.W,
+        st = self._run_integrate(self.info.id, self.tf, t_stop, self.x, self.engine.P, self.W,
                                  out_t, out_y, out_x, io, self.stats, self.ctl)
-        except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError) as e:
-            raise SimulationError(f"simulation stopped after t = {self.tf[0]:.6g} s: {e}") \
-                from e
         self.t = float(self.tf[tpl.F_T])
         if self.stats[tpl.S_STIFF] and not self._warned_stiff:
             self._warned_stiff = True
             warnings.warn(
                 f"the loop has become stiff at t = {self.tf[tpl.F_T_STIFF]:.6g} s: method "
                 f"{self.method}'s steps are limited by stability (h*rho(J) ~ "
-                f"{self.tf[tpl.F_HRHO]:.3g} beyond its stability bound 3.3), not accuracy; "
+                f"{self.tf[tpl.F_HRHO_STIFF]:.3g}, its stability bound is ~3.3), not accuracy; "
                 f"use method=\"{STIFF_METHOD}\"", StiffnessWarning, stacklevel=4)
         return int(st)
 
@@ -523,6 +526,7 @@ class Simulator:
                 "rhs_calls": int(st[tpl.S_RHS]), "jacobians": int(st[tpl.S_JAC]),
                 "factorizations": int(st[tpl.S_LU]), "hold_cuts": int(st[tpl.S_CUTS]),
                 "hold_samples": int(st[tpl.S_PROBES]),
+                "explicit_steps": int(st[tpl.S_EXPLICIT]),
                 "stiff_at": float(self.tf[tpl.F_T_STIFF]) if st[tpl.S_STIFF] else None,
                 "sim_s": self.wall, "compile_s": self.compile_s,
                 "wall_s": self.wall + self.compile_s, "rtol": self.rtol,
