@@ -13,8 +13,8 @@ for 0.2 s each with the default method, and prints per case: the Python-side cod
 first integrate call (``stats["compile_s"]``), and the simulation time (``sim_s``).  A
 second child with the same (now warm) cache directories shows the cache-load cost.
 
-Targets (issue "stiff simulation", item 5): both default laws from empty caches <= 20 s in
-all; a second law or a rewired diagram <= 8 s.
+Targets: both default laws from empty caches <= 20 s in all; a second law or a rewired
+diagram <= 8 s.
 
 Usage::
 
