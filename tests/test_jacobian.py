@@ -35,6 +35,16 @@ def osc_output(t, x, u, y, a):
     y[1] = np.sin(x[0])
 
 
+def osc_jacobian(t, x, u, jac, a):
+    # the block's own Jacobian: rows [y0, y1, dx0, dx1], columns [x0, x1, u0]
+    jac[0, 0] = x[1]
+    jac[0, 1] = x[0]
+    jac[1, 0] = np.cos(x[0])
+    jac[2, 1] = 1.0
+    jac[3, 0] = -a
+    jac[3, 2] = 1.0
+
+
 def mix_output(t, x, u, y):
     # direct feedthrough: w = v0^2 + 3 v1
     y[0] = u[0] * u[0] + 3.0 * u[1]
@@ -68,7 +78,8 @@ def leaky_output(t, x, u, y):
 def tiny_diagram():
     blocks = [
         make_block(BlockSpec("osc", [("u", 1)], [("y", 2)], [("x", 2)], np.array([0.3, -0.2]),
-                             ("a",), osc_output, osc_update), {"a": TINY_A}),
+                             ("a",), osc_output, osc_update, jacobian=osc_jacobian),
+                   {"a": TINY_A}),
         make_block(BlockSpec("mix", [("v", 2)], [("w", 1)], [], np.zeros(0), (), mix_output,
                              direct=("v",))),
         make_block(BlockSpec("decay", [("w", 1)], [("zo", 1)], [("z", 1)], np.ones(1), (),
@@ -120,11 +131,14 @@ def tiny():
 
 
 def test_chain_rule_on_tiny_diagram(tiny):
+    """osc supplies its own Jacobian kernel; mix, decay and grow are differenced alone."""
     rng = np.random.default_rng(3)
     for _ in range(3):
         x = rng.uniform(-1.5, 1.5, size=4)
         J = tiny.engine.jacobian(0.4, x, tiny.W)
         np.testing.assert_allclose(J, tiny_exact(x), rtol=1e-8, atol=1e-9)
+        # osc's rows come from its own kernel, exactly (differences would be ~1e-11 off)
+        assert J[0, 1] == 1.0 and J[1, 0] == -TINY_A
         # and the whole-system dense fallback agrees to its own (forward-difference) accuracy
         np.testing.assert_allclose(tiny.engine.jacobian(0.4, x, tiny.W, dense=True),
                                    tiny_exact(x), rtol=1e-5, atol=1e-6)

@@ -169,7 +169,7 @@ def generate_source(plan, param_exprs=None):
         if spec.model is not None:
             mmod, msrc = _model_module(spec.model)
             deps.setdefault(mmod, msrc)
-        for role in ("update", "output"):
+        for role in ("update", "output", "jacobian"):
             fn = getattr(spec, role)
             if fn is None:
                 continue
@@ -206,7 +206,7 @@ def generate_source(plan, param_exprs=None):
 
     # one function for the three modes (see _template): signals first, in topological order
     # of direct feedthrough, then the mode's work
-    lines = ["def diagram_eval(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
+    lines = ["def diagram_eval_body(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
              "    ue = W[8]", "    if mode == AFTER_STEP_EVALUATED:", "        mode = AFTER_STEP",
              "    else:"]
     body_start = len(lines)
@@ -281,7 +281,12 @@ def generate_source(plan, param_exprs=None):
         lines.append(f"    out[{r}] = " + (" + ".join(terms) if terms else "0.0"))
     lines.append("    return OK")
     out.append("\n".join(lines) + "\n")
-    jit_names += ["diagram_eval"]
+    # The template calls diagram_eval with its mode constants, which numba types as
+    # literals and would compile the whole body once per mode; mode + 0 is a plain int64,
+    # so the body compiles once and only this wrapper is specialised.
+    out.append("def diagram_eval(mode, t, x, P, W, out):\n"
+               "    return diagram_eval_body(mode + 0, t, x, P, W, out)\n")
+    jit_names += ["diagram_eval_body", "diagram_eval"]
 
     # the Jacobian and Newton-matrix entry points the implicit methods call (mode RHS's
     # df/dx; factor / solve of c I - J)
@@ -295,13 +300,25 @@ def generate_source(plan, param_exprs=None):
     calls = []
     for b in prog.fd_blocks:
         nx, nu, ny = b.sys.nstates, b.sys.ninputs, b.sys.noutputs
-        c = [f"        {kname(b, 'output')}(t, xb[0:{nx}], ub[0:{nu}], yf[0:{ny}]{pargs(b)})"]
+        c_out = [f"            {kname(b, 'output')}(t, xb[0:{nx}], ub[0:{nu}], "
+                 f"yf[0:{ny}]{pargs(b)})"]
+        c_upd = []
         if b.spec.update is not None and nx:
-            c.append(f"        {kname(b, 'update')}(t, xb[0:{nx}], ub[0:{nu}], "
-                     f"yf[{ny}:{ny + nx}]{pargs(b)})")
-        calls.append(c)
-    out.append(jacobian_source(prog, slu, calls))
-    jit_names += ["block_eval", "diagram_jacobian", "newton_factor", "newton_solve"]
+            c_upd.append(f"            {kname(b, 'update')}(t, xb[0:{nx}], ub[0:{nu}], "
+                         f"yf[{ny}:{ny + nx}]{pargs(b)})")
+        calls.append((c_out, c_upd))
+    supplied = []
+    for b in prog.fd_blocks:
+        if b.spec.jacobian is None:
+            supplied.append(None)
+        else:
+            nx, nu = b.sys.nstates, b.sys.ninputs
+            ny = b.sys.noutputs
+            supplied.append([f"        {kname(b, 'jacobian')}(t, xb[0:{nx}], ub[0:{nu}], "
+                             f"jl[0:{ny + nx}, 0:{nx + nu}]{pargs(b)})"])
+    out.append(jacobian_source(prog, slu, calls, supplied))
+    jit_names += ["block_eval", "block_jacobian", "diagram_jacobian", "newton_factor",
+                  "newton_solve"]
 
     out.append("# ---- compile everything with numba, machine code cached beside this file")
     out.append(f"_JIT = {sorted(set(jit_names))!r}")
@@ -423,10 +440,6 @@ class CompiledEngine:
         param_exprs, self.P = _param_layout(plan)
         self.source, self.deps = generate_source(plan, param_exprs)
         self.module = _load(self.source, self.deps)
-
-    def chunk(self, method, *args):
-        fn = self.module.rk4_chunk if method == "rk4" else self.module.dp45_chunk
-        return fn(*args)
 
     def after_step(self, t, x, W):
         return self.module.diagram_eval(_template.AFTER_STEP, t, x, self.P, W, x)

@@ -151,6 +151,7 @@ class JacobianProgram:
         jb = 0
         fd = dict(blk=[], x0=[], nx=[], u0=[], nu=[], ny=[])
         g_ptr, gc_ptr, cols, e_ptr, e_row, e_slot = [0], [0], [], [0], [], []
+        g_kind = []         # per group: 0 output kernel, 1 update kernel
         self.fd_blocks = []
         for b in plan.blocks:
             spec = b.spec
@@ -170,22 +171,26 @@ class JacobianProgram:
                     f"block '{b.sys.name}': its outputs depend on the inputs {labels}, which "
                     "the block does not declare as direct feedthrough (BlockSpec.direct); the "
                     "right-hand side would read them before they are computed")
-            rows_of_col = {c: set(np.flatnonzero(pat[:, c]).tolist())
-                           for c in range(nx + nu) if pat[:, c].any()}
-            if not rows_of_col:
+            if not pat.any():
                 local[b.index] = []
                 continue
+            # the output kernel and the update kernel are differenced apart, each with its
+            # own column groups (a column that only moves outputs costs no update call)
             entries = []
-            for grp in _color(rows_of_col):
-                for c in grp:
-                    cols.append(c)
-                    for r in sorted(rows_of_col[c]):
-                        e_row.append(r)
-                        e_slot.append(jb)
-                        entries.append((r, c, jb))
-                        jb += 1
-                    e_ptr.append(len(e_row))
-                gc_ptr.append(len(cols))
+            for kind, lo, hi in ((0, 0, ny), (1, ny, ny + nx)):
+                rows_of_col = {c: set((lo + np.flatnonzero(pat[lo:hi, c])).tolist())
+                               for c in range(nx + nu) if pat[lo:hi, c].any()}
+                for grp in _color(rows_of_col):
+                    for c in grp:
+                        cols.append(c)
+                        for r in sorted(rows_of_col[c]):
+                            e_row.append(r)
+                            e_slot.append(jb)
+                            entries.append((r, c, jb))
+                            jb += 1
+                        e_ptr.append(len(e_row))
+                    gc_ptr.append(len(cols))
+                    g_kind.append(kind)
             g_ptr.append(len(gc_ptr) - 1)
             local[b.index] = entries
             self.fd_blocks.append(b)
@@ -197,6 +202,7 @@ class JacobianProgram:
         self.fd_x0, self.fd_nx, self.fd_u0 = i64(fd["x0"]), i64(fd["nx"]), i64(fd["u0"])
         self.fd_nu, self.fd_ny = i64(fd["nu"]), i64(fd["ny"])
         self.g_ptr, self.gc_ptr, self.col = i64(g_ptr), i64(gc_ptr), i64(cols)
+        self.g_kind = i64(g_kind)
         self.e_ptr, self.e_row, self.e_slot = i64(e_ptr), i64(e_row), i64(e_slot)
         self.local = local
 
@@ -298,12 +304,16 @@ def _arr(name, a, dtype="np.int64"):
     return f"{name} = np.array({np.asarray(a).tolist()!r}, dtype={dtype})"
 
 
-def generated_source(prog, slu, block_calls):
+def generated_source(prog, slu, block_calls, supplied=None):
     """Source of block_eval, diagram_jacobian, newton_factor and newton_solve.
 
-    `block_calls[k]` are the lines (indented 8) that evaluate FD block k: output kernel into
-    yf[0:ny], update kernel into yf[ny:ny+nx], from xb[0:nx], ub[0:nu].
+    `block_calls[k]` are (output lines, update lines) (indented 12) that evaluate block k
+    from xb[0:nx], ub[0:nu]: output kernel into yf[0:ny], update kernel into yf[ny:ny+nx].  `supplied[k]`, if
+    not None, are the lines that call the block's own Jacobian kernel into jl (dense
+    (ny + nx) x (nx + nu)), used instead of differences.
     """
+    supplied = supplied or [None] * len(block_calls)
+    with_jac = [k for k, s in enumerate(supplied) if s is not None]
     p = prog
     nfd = len(p.fd_blocks)
     maxx = int(max(p.fd_nx.max(initial=0), 1))
@@ -312,7 +322,7 @@ def generated_source(prog, slu, block_calls):
     lines = ["from ivdrem.sim._jit_sparse import jac_chain, fd_shift, fd_scatter, "
              "slu_factor, slu_solve", "",
              "# structured Jacobian (ivdrem/sim/jacobian.py): block FD program and chain rule"]
-    for name in ("fd_x0", "fd_nx", "fd_u0", "fd_nu", "g_ptr", "gc_ptr", "col", "e_ptr",
+    for name in ("fd_x0", "fd_nx", "fd_u0", "fd_nu", "fd_ny", "g_ptr", "g_kind", "gc_ptr", "col", "e_ptr",
                  "e_row", "e_slot", "ins_dst", "ins_f", "ins_src", "j_row", "j_col", "j_slot"):
         lines.append(_arr("_JAC_" + name.upper(), getattr(p, name)))
     lines.append(_arr("_JAC_GAINS", p.gains, "np.float64"))
@@ -320,12 +330,24 @@ def generated_source(prog, slu, block_calls):
                  f"{slu.ordering} ordering, nnz(A) = {slu.nnz_a}, nnz(L+U) = {slu.nnz_lu}")
     for name in ("perm", "rowptr", "colidx", "diagp"):
         lines.append(_arr("_SLU_" + name.upper(), getattr(slu, name)))
-    lines += ["", "", "def block_eval(k, t, xb, ub, yf, P):"]
+    lines += ["", "", "def block_eval(k, kind, t, xb, ub, yf, P):"]
     if nfd == 0:
         lines.append("    return")
-    for k, calls in enumerate(block_calls):
+    for k, (out_calls, upd_calls) in enumerate(block_calls):
         lines.append(f"    {'if' if k == 0 else 'elif'} k == {k}:")
-        lines += calls
+        lines.append("        if kind == 0:")
+        lines += out_calls
+        if upd_calls:
+            lines.append("        else:")
+            lines += upd_calls
+    lines += ["", "", "def block_jacobian(k, t, xb, ub, jl, P):"]
+    if not with_jac:
+        lines.append("    return")
+    for i, k in enumerate(with_jac):
+        lines.append(f"    {'if' if i == 0 else 'elif'} k == {k}:")
+        lines += supplied[k]
+    lines.append(_arr("_JAC_SUPPLIED", [int(s is not None) for s in supplied] or [0]))
+    maxcol = int(max((p.fd_nx + p.fd_nu).max(initial=0), 1))
     lines += [
         "", "",
         "def diagram_jacobian(t, x, P, W, J):",
@@ -340,6 +362,7 @@ def generated_source(prog, slu, block_calls):
         f"    xb0 = np.empty({maxx})", f"    ub0 = np.empty({maxu})",
         f"    yp = np.empty({maxyf})", f"    ym = np.empty({maxyf})",
         f"    hh = np.empty({max(p.col.size, 1)})",
+        f"    jl = np.empty(({maxyf}, {maxcol}))",
         f"    for kb in range({nfd}):",
         "        nx = _JAC_FD_NX[kb]",
         "        nu = _JAC_FD_NU[kb]",
@@ -349,13 +372,24 @@ def generated_source(prog, slu, block_calls):
         "        for i in range(nu):",
         "            ub0[i] = us[_JAC_FD_U0[kb] + i]",
         "            ub[i] = ub0[i]",
+        "        if _JAC_SUPPLIED[kb] == 1:     # the block's own Jacobian kernel",
+        "            for i in range(nx + nu):",
+        "                for r in range(_JAC_FD_NY[kb] + nx):",
+        "                    jl[r, i] = 0.0",
+        "            block_jacobian(kb, t, xb, ub, jl, P)",
+        "            for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
+        "                for c in range(_JAC_GC_PTR[g], _JAC_GC_PTR[g + 1]):",
+        "                    for e in range(_JAC_E_PTR[c], _JAC_E_PTR[c + 1]):",
+        "                        F[_JAC_E_SLOT[e]] = jl[_JAC_E_ROW[e], _JAC_COL[c]]",
+        "            continue",
         "        for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
         "            c0 = _JAC_GC_PTR[g]",
         "            c1 = _JAC_GC_PTR[g + 1]",
         "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 1.0, hh)",
-        "            block_eval(kb, t, xb, ub, yp, P)",
+        "            kind = _JAC_G_KIND[g]",
+        "            block_eval(kb, kind, t, xb, ub, yp, P)",
         "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, -1.0, hh)",
-        "            block_eval(kb, t, xb, ub, ym, P)",
+        "            block_eval(kb, kind, t, xb, ub, ym, P)",
         "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 0.0, hh)",
         "            fd_scatter(yp, ym, hh, c0, c1, _JAC_E_PTR, _JAC_E_ROW, _JAC_E_SLOT, F)",
         f"    jac_chain(F, _JAC_INS_DST, _JAC_INS_F, _JAC_INS_SRC, {p.n_slots}, _JAC_J_ROW,",
