@@ -22,7 +22,7 @@ import ivdrem.sim as sim
 from ivdrem.sim import _template as tpl
 from ivdrem.sim import (METHODS, METHOD_TABLE, SimulationError, StiffnessWarning, simulate)
 
-from conftest import build_lab, paper_loop, sig
+from conftest import build_lab, sig
 
 
 # ----------------------------------------------------------------- the tableau, symbolically
@@ -326,7 +326,6 @@ def test_growth_rate_divergence_is_reported_before_the_absolute_limit():
     """A state growing like e^{40 t} is stopped when it has grown 1e6-fold within a second,
     long before 1e10, with the state, the time and the rate in the message."""
     from conftest import lab_source
-    import ivdrem.blocks as B
     from ivdrem.diagrams import assemble
     d = assemble([lab_source(a_grow=40.0)], ["blow"], name="blow")
     with pytest.raises(SimulationError, match=r"diverged at t = 0\.3\d* s: state "
