@@ -1,33 +1,34 @@
 #!/usr/bin/env python
-"""Benchmarks of the paper experiment against the targets of issue 3 (section 6).
+"""Benchmark of the paper experiment: the stiff method (Rodas5P) against Dormand-Prince.
 
-Measured side by side in one run:
+Measured side by side in one run, on the compiled engine (see benchmarks/README.md):
 
-* reference and compiled engines: microseconds per right-hand side, in the loop (wall time of a
-  short RK4 run / RHS calls, so the per-step work of delays and max-holds is included), and
-  also isolated (the RHS function alone, called repeatedly at one state);
-  simulated seconds per wall second and the compiled / reference speed-up;
-* the full paper experiment (both laws, 300 s, default settings: dp45);
-* 1000 s of both laws (default settings);
-* compile time (a fresh process with an empty cache directory) and cache-load start-up
-  (a second process with the same directory).
+* both laws, 300 s and 1000 s, DP45 and Rodas5P at their default tolerances: steps,
+  rejected steps, right-hand sides, Jacobians, integration time (sim_s) and compile/load
+  time (compile_s) apart, and the DP45 / Rodas5P ratio of integration time;
+* IV-DREM over 3000 s with Rodas5P; DP45 at 3000 s is extrapolated from its measured steps
+  at 300 s and 1000 s (power law in t_end) and its time per step at 1000 s, and the output
+  says so;
+* steps and right-hand sides per horizon, so that growth like t_end (Rodas5P) or t_end^2
+  (DP45) is visible;
+* accuracy: IV-DREM theta_hat(300 s) against a Rodas5P run with 100x tighter tolerances;
+  both laws' theta_hat(300 s) (DP45 and Rodas5P) against fixed-step RK4 at h = 0.25 ms;
+  composite learning: theta_hat(300 s) and the hold time t_e of DP45 against Rodas5P.
 
 Usage::
 
-    cd /work/main && PYTHONPATH=. python benchmarks/bench_paper.py [--quick]
-        [--skip-compile] [--json FILE]
+    PYTHONPATH=. python benchmarks/bench_paper.py [--quick] [--skip-rk4] [--skip-1000]
+        [--json FILE]
 
-Progress goes to stderr, the table to stdout.
+Rows are printed as soon as they are measured (stdout); progress goes to stderr.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
-import platform
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -39,48 +40,22 @@ try:                            # PYTHONPATH (or an installed ivdrem) wins; else
 except ImportError:
     sys.path.insert(0, str(REPO))
     import ivdrem
-PKG_ROOT = Path(ivdrem.__file__).resolve().parents[1]   # what the child processes import
+
+from ivdrem.diagrams import closed_loop          # noqa: E402
+from ivdrem.sim import simulate, STIFF_METHOD     # noqa: E402
 
 LAWS = ("iv-drem", "composite-learning")
-
-# targets of issue 3, section 6
-TARGET_PAPER_S = 3.0        # full paper experiment (both laws, 300 s) <= 3 s
-TARGET_SPEEDUP = 300.0      # compiled >= 300x faster than reference per simulated second
-TARGET_LONG_S = 20.0        # 1000 s of both laws <= 20 s
+TARGETS = {300.0: 5.0, 1000.0: 10.0, 3000.0: 30.0}     # speed-up of the stiff method over DP45
+TARGET_REL_TIGHT = 1e-6      # theta_hat(300 s) vs a 100x tighter run
+TARGET_REL_RK4 = 1e-5        # theta_hat(300 s) vs RK4 h = 0.25 ms
 
 
 def log(msg):
     print(f"[bench {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
 
 
-def _git_rev():
-    try:
-        out = subprocess.run(["git", "-C", str(PKG_ROOT), "rev-parse", "--short", "HEAD"],
-                             capture_output=True, text=True, timeout=10)
-        rev = out.stdout.strip()
-        if out.returncode != 0 or not rev:
-            return "unknown"
-        dirty = subprocess.run(["git", "-C", str(PKG_ROOT), "status", "--porcelain", "ivdrem"],
-                               capture_output=True, text=True, timeout=10).stdout.strip()
-        return rev + ("+dirty(ivdrem)" if dirty else "")
-    except Exception:           # pragma: no cover - no git
-        return "unknown"
-
-
-def _environment():
-    import numba
-    import control
-    env = {"python": platform.python_version(), "numpy": np.__version__,
-           "numba": numba.__version__, "control": control.__version__,
-           "machine": platform.machine(), "cpus": os.cpu_count(), "git": _git_rev(),
-           "ivdrem": str(PKG_ROOT)}
-    try:
-        with open("/proc/cpuinfo") as f:
-            env["cpu"] = next(ln.split(":", 1)[1].strip() for ln in f
-                              if ln.startswith("model name"))
-    except (OSError, StopIteration):
-        env["cpu"] = platform.processor() or "unknown"
-    return env
+def out(line=""):
+    print(line, flush=True)
 
 
 def _loadavg():
@@ -90,265 +65,150 @@ def _loadavg():
         return float("nan")
 
 
-# --------------------------------------------------------------------------- measurements
-def warm_up():
-    """Compile (or load from the cache) everything that will be timed."""
-    from ivdrem.diagrams import closed_loop
-    from ivdrem.sim import simulate
-    t0 = time.perf_counter()
-    for law in LAWS:
-        d = closed_loop(law)
-        simulate(d, 0.5, method="dp45", progress=False)
-        simulate(d, 0.05, method="rk4", progress=False)
-    simulate(closed_loop("iv-drem"), 0.005, method="rk4", engine="reference", progress=False)
-    return time.perf_counter() - t0
+def run(law, method, t_end, **kw):
+    d = closed_loop(law)
+    log(f"{law} {method} {t_end:g} s {kw or ''}")
+    r = simulate(d, t_end, method=method, dt_out=min(0.01, t_end), progress=False,
+                 return_states=False, **kw)
+    labels = list(r.output_labels)
+    th = [k for k, lab in enumerate(labels) if lab.startswith("theta_hat")]
+    s = dict(r.stats)
+    s["theta_hat_end"] = np.asarray(r.outputs)[th, -1].tolist()
+    s["hold_times"] = [float(v) for v in r.hold_times]
+    s["law"], s["t_end"] = law, t_end
+    return s
 
 
-def _rhs_callable(sim, t, x, dx):
-    """A no-argument call of the engine's RHS alone, through whichever entry point exists
-    (generated module's diagram_eval(RHS, ...) or rhs(...), reference _rhs, engine.rhs)."""
-    from ivdrem.sim import _template as T
-    eng, P, W = sim.engine, sim.engine.P, sim.W
-    mod = getattr(eng, "module", None)
-    if mod is not None and hasattr(mod, "diagram_eval") and hasattr(T, "RHS"):
-        f, mode = mod.diagram_eval, T.RHS
-        return lambda: f(mode, t, x, P, W, dx)
-    if mod is not None and hasattr(mod, "rhs"):
-        f = mod.rhs
-        return lambda: f(t, x, P, W, dx)
-    if hasattr(eng, "_rhs"):
-        f = eng._rhs
-        return lambda: f(t, x, P, W, dx)
-    f = eng.rhs
-    return lambda: f(t, x, W)
+def rel(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    return float(np.abs(a - b).max() / np.abs(b).max())
 
 
-def rhs_speed(engine, t_sim, h=1e-3, n_iso=None):
-    """RK4 run of the iv-drem diagram with one engine; in-loop and isolated us per RHS."""
-    from ivdrem.diagrams import closed_loop
-    from ivdrem.sim import Simulator
-    sim = Simulator(closed_loop("iv-drem"), method="rk4", engine=engine, h=h)
-    try:
-        sim.advance(t_sim)
-        st = sim.stats_dict()
-        # isolated RHS at the final state (delay history and max-holds in place)
-        dx = np.zeros_like(sim.x)
-        x = sim.x.copy()
-        t = sim.t
-        call = _rhs_callable(sim, t, x, dx)
-        n = n_iso or (200_000 if engine == "compiled" else 300)
-        call()
-        t0 = time.perf_counter()
-        for _ in range(n):
-            call()
-        iso_us = (time.perf_counter() - t0) / n * 1e6
-    finally:
-        sim.close()
-    wall = st["wall_s"]
-    return {"engine": engine, "method": "rk4", "h": h, "t_sim": t_sim, "steps": st["steps"],
-            "rhs_calls": st["rhs_calls"], "wall_s": wall,
-            "us_per_rhs_in_loop": wall / st["rhs_calls"] * 1e6,
-            "us_per_rhs_isolated": iso_us, "isolated_calls": n,
-            "sim_s_per_wall_s": t_sim / wall}
+def row(s):
+    return (f"  {s['law']:<19} {s['method']:<8} {s['t_end']:>6g} {s['steps']:>9d} "
+            f"{s['rejected']:>7d} {s['rhs_calls']:>10d} {s['jacobians']:>8d} "
+            f"{s['hold_cuts']:>6d} {s['sim_s']:>9.2f} {s['compile_s']:>8.2f}")
 
 
-def run_both_laws(t_end):
-    """Both laws with the default settings; end-to-end wall (diagram + simulate) per law."""
-    from ivdrem.diagrams import closed_loop
-    from ivdrem.sim import simulate
-    rows = []
-    for law in LAWS:
-        log(f"  {law}: {t_end:g} s (dp45, compiled) ...")
-        t0 = time.perf_counter()
-        d = closed_loop(law)
-        r = simulate(d, t_end, progress=False)
-        wall = time.perf_counter() - t0
-        st = r.stats
-        rows.append({"law": law, "t_end": t_end, "wall_s": wall,
-                     "integration_wall_s": st["wall_s"], "steps": st["steps"],
-                     "rejected": st["rejected"], "rhs_calls": st["rhs_calls"],
-                     "last_h": st["h"], "method": st["method"], "engine": st["engine"]})
-        log(f"    {wall:.2f} s wall, {st['steps']} steps, {st['rejected']} rejected, "
-            f"{st['rhs_calls']} RHS calls")
-    return {"t_end": t_end, "laws": rows, "wall_s": sum(r["wall_s"] for r in rows),
-            "integration_wall_s": sum(r["integration_wall_s"] for r in rows)}
-
-
-_CHILD = r"""
-import json, sys, time
-t0 = time.perf_counter()
-from ivdrem.diagrams import closed_loop
-from ivdrem.sim import simulate
-t_import = time.perf_counter() - t0
-first = {}
-for law in %(laws)r:
-    t1 = time.perf_counter()
-    simulate(closed_loop(law), %(t_sim)r, progress=False)
-    first[law] = time.perf_counter() - t1
-total = time.perf_counter() - t0
-print("BENCH_JSON " + json.dumps({"import_s": t_import, "first_simulate_s": first,
-                                  "import_to_done_s": total}))
-"""
-
-
-def _child(cache, t_sim):
-    env = dict(os.environ)
-    env["IVDREM_CACHE_DIR"] = cache
-    env.pop("NUMBA_CACHE_DIR", None)     # numba caches beside the generated module
-    env["PYTHONPATH"] = os.pathsep.join([str(PKG_ROOT)] + [p for p in
-                                         env.get("PYTHONPATH", "").split(os.pathsep) if p])
-    code = _CHILD % {"laws": LAWS, "t_sim": t_sim}
-    t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                       cwd=str(PKG_ROOT))
-    wall = time.perf_counter() - t0
-    if p.returncode != 0:
-        raise RuntimeError(f"benchmark child failed ({p.returncode}):\n{p.stderr[-3000:]}")
-    line = next(ln for ln in p.stdout.splitlines() if ln.startswith("BENCH_JSON "))
-    res = json.loads(line[len("BENCH_JSON "):])
-    res["process_wall_s"] = wall
-    return res
-
-
-def compile_times(t_sim=0.1):
-    with tempfile.TemporaryDirectory(prefix="ivdrem-bench-cache-") as cache:
-        log("  first process, empty cache (compiles both laws' modules) ...")
-        cold = _child(cache, t_sim)
-        log(f"    import to done {cold['import_to_done_s']:.1f} s")
-        log("  second process, same cache (loads) ...")
-        warm = _child(cache, t_sim)
-        log(f"    import to done {warm['import_to_done_s']:.1f} s")
-    return {"t_sim": t_sim, "cold": cold, "cached": warm}
-
-
-# --------------------------------------------------------------------------- report
-def _check(value, target, kind):
-    """kind '<=' or '>='; returns (PASS/MISS, value/target)."""
-    ok = value <= target if kind == "<=" else value >= target
-    return ("PASS" if ok else "MISS"), value / target
-
-
-def build_report(res):
-    L = []
-    env = res["environment"]
-    L.append(f"ivdrem benchmark ({'quick' if res['quick'] else 'full'}) - ivdrem from "
-             f"{env['ivdrem']}, git {env['git']}, "
-             f"python {env['python']}, numba {env['numba']}, control {env['control']}")
-    L.append(f"CPU: {env['cpu']} x {env['cpus']}; load average at start {res['load_start']:.2f},"
-             f" at end {res['load_end']:.2f}; warm-up {res['warmup_s']:.1f} s")
-    L.append("")
-
-    ref, cmp_ = res["rhs"]["reference"], res["rhs"]["compiled"]
-    L.append("Right-hand side, iv-drem diagram, RK4 h = 1 ms")
-    hdr = f"  {'engine':<10} {'sim s':>7} {'RHS calls':>10} {'wall s':>9} " \
-          f"{'us/RHS loop':>12} {'us/RHS alone':>13} {'sim s/wall s':>13}"
-    L.append(hdr)
-    for r in (ref, cmp_):
-        L.append(f"  {r['engine']:<10} {r['t_sim']:>7g} {r['rhs_calls']:>10d} "
-                 f"{r['wall_s']:>9.3f} {r['us_per_rhs_in_loop']:>12.2f} "
-                 f"{r['us_per_rhs_isolated']:>13.2f} {r['sim_s_per_wall_s']:>13.4g}")
-    L.append(f"  speed-up compiled/reference: {res['speedup_per_sim_s']:.0f}x per simulated "
-             f"second (isolated RHS: {res['speedup_rhs_isolated']:.0f}x)")
-    L.append("")
-
-    for key, title in (("paper", "Paper experiment"), ("long", "Long run")):
-        b = res[key]
-        L.append(f"{title}: both laws, {b['t_end']:g} s, default settings "
-                 f"(dp45, compiled, rtol 1e-6, atol 1e-8)")
-        L.append(f"  {'law':<20} {'wall s':>8} {'integr. s':>10} {'steps':>9} "
-                 f"{'rejected':>9} {'RHS calls':>10} {'us/RHS':>7}")
-        for r in b["laws"]:
-            L.append(f"  {r['law']:<20} {r['wall_s']:>8.2f} {r['integration_wall_s']:>10.2f} "
-                     f"{r['steps']:>9d} {r['rejected']:>9d} {r['rhs_calls']:>10d} "
-                     f"{r['integration_wall_s'] / r['rhs_calls'] * 1e6:>7.2f}")
-        L.append(f"  {'both':<20} {b['wall_s']:>8.2f} {b['integration_wall_s']:>10.2f}")
-        L.append("")
-
-    if res.get("compile"):
-        c = res["compile"]
-        L.append(f"Start-up in a new process (both laws, first simulate of {c['t_sim']:g} s each)")
-        L.append(f"  {'cache':<14} {'import s':>9} " +
-                 " ".join(f"{'1st ' + law + ' s':>24}" for law in LAWS) +
-                 f" {'import->done s':>15} {'process s':>10}")
-        for name, k in (("cold (compile)", "cold"), ("cached (load)", "cached")):
-            r = c[k]
-            L.append(f"  {name:<14} {r['import_s']:>9.2f} " +
-                     " ".join(f"{r['first_simulate_s'][law]:>24.2f}" for law in LAWS) +
-                     f" {r['import_to_done_s']:>15.2f} {r['process_wall_s']:>10.2f}")
-        L.append("")
-    else:
-        L.append("Start-up in a new process: skipped (--skip-compile)")
-        L.append("")
-
-    L.append("Targets (issue 3, section 6)")
-    L.append(f"  {'target':<52} {'measured':>10} {'target':>8} {'meas/tgt':>9}  result")
-    for t in res["targets"]:
-        L.append(f"  {t['name']:<52} {t['measured']:>10.3g} {t['kind']}{t['target']:<6g} "
-                 f"{t['ratio']:>9.3f}  {t['result']}")
-    if res["quick"]:
-        L.append("  (--quick: shorter horizons than the targets state; the results are indicative)")
-    return "\n".join(L)
+HEAD = (f"  {'law':<19} {'method':<8} {'t_end':>6} {'steps':>9} {'reject':>7} {'RHS':>10} "
+        f"{'Jacob.':>8} {'cuts':>6} {'sim_s':>9} {'compile':>8}")
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true",
-                    help="smoke test: 30 s / 100 s instead of 300 s / 1000 s, shorter RHS runs")
-    ap.add_argument("--skip-compile", action="store_true",
-                    help="skip the cold-cache / cache-load subprocess measurement")
+                    help="horizons 30 / 100 / 300 s instead of 300 / 1000 / 3000 s")
+    ap.add_argument("--skip-rk4", action="store_true", help="no RK4 h = 0.25 ms reference")
+    ap.add_argument("--skip-1000", action="store_true", help="no DP45 run at the 1000 s horizon")
+    ap.add_argument("--repeat", type=int, default=2,
+                    help="runs per method at the first horizon, fastest kept (default 2)")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
-    args = ap.parse_args(argv)
+    a = ap.parse_args(argv)
+    scale = 0.1 if a.quick else 1.0
+    H1, H2, H3 = 300.0 * scale, 1000.0 * scale, 3000.0 * scale
+    stiff = STIFF_METHOD
+    res = {"load_start": _loadavg(), "cpus": os.cpu_count(), "runs": []}
+    out(f"ivdrem {ivdrem.__version__}: stiff method {stiff} vs dp45 (compiled engine); "
+        f"load average {res['load_start']:.1f} on {os.cpu_count()} CPUs")
+    log("warm-up (compile or load every module)")
+    for law in LAWS:
+        for m in ("dp45", stiff, "rk4"):
+            run(law, m, 0.05)
 
-    t_paper, t_long = (30.0, 100.0) if args.quick else (300.0, 1000.0)
-    t_ref, t_cmp = (0.2, 5.0) if args.quick else (1.0, 20.0)
+    runs = {}
+    out("\n== runs (sim_s: integration only; compile: engine construction + numba load; "
+        f"first horizon: fastest of {a.repeat} runs per method)")
+    out(HEAD)
 
-    res = {"quick": args.quick, "load_start": _loadavg()}
-    log("importing ivdrem ...")
-    res["environment"] = _environment()
+    def do(law, m, t, repeat=1, **kw):
+        s = run(law, m, t, **kw)
+        for _ in range(repeat - 1):       # the machine's load varies: keep the fastest
+            s2 = run(law, m, t, **kw)
+            if s2["sim_s"] < s["sim_s"]:
+                s = s2
+        runs[(law, m, t, tuple(sorted(kw.items())))] = s
+        res["runs"].append(s)
+        out(row(s))
+        return s
 
-    log("warm-up (compile or load the modules of both laws, dp45 and rk4) ...")
-    res["warmup_s"] = warm_up()
-    log(f"  {res['warmup_s']:.1f} s")
+    for t in (H1, H2):
+        for law in LAWS:
+            rep = a.repeat if t == H1 else 1
+            do(law, stiff, t, repeat=rep)
+            if t == H1 or not a.skip_1000:
+                do(law, "dp45", t, repeat=rep)
+    do("iv-drem", stiff, H3)
 
-    log(f"RHS speed: reference engine, RK4 {t_ref:g} s ...")
-    ref = rhs_speed("reference", t_ref)
-    log(f"  {ref['us_per_rhs_in_loop']:.1f} us/RHS in the loop")
-    log(f"RHS speed: compiled engine, RK4 {t_cmp:g} s ...")
-    cmp_ = rhs_speed("compiled", t_cmp)
-    log(f"  {cmp_['us_per_rhs_in_loop']:.2f} us/RHS in the loop")
-    res["rhs"] = {"reference": ref, "compiled": cmp_}
-    res["speedup_per_sim_s"] = cmp_["sim_s_per_wall_s"] / ref["sim_s_per_wall_s"]
-    res["speedup_rhs_isolated"] = ref["us_per_rhs_isolated"] / cmp_["us_per_rhs_isolated"]
+    out("\n== speed-up (DP45 sim_s / stiff sim_s, both laws summed, same run)")
+    speed = {}
+    for t in (H1, H2):
+        if a.skip_1000 and t == H2:
+            continue
+        sd = sum(runs[(law, "dp45", t, ())]["sim_s"] for law in LAWS)
+        ss = sum(runs[(law, stiff, t, ())]["sim_s"] for law in LAWS)
+        speed[t] = sd / ss
+        tgt = TARGETS[t / scale]
+        out(f"  {t:>6g} s both laws: dp45 {sd:8.2f} s, {stiff} {ss:7.2f} s -> {speed[t]:6.1f}x "
+            f"(target >= {tgt:g}x: {'PASS' if speed[t] >= tgt else 'MISS'})")
+    # DP45 at H3 extrapolated: steps ~ t^p from the two measured horizons (1000 s needed)
+    law = "iv-drem"
+    if not a.skip_1000:
+        d1, d2 = runs[(law, "dp45", H1, ())], runs[(law, "dp45", H2, ())]
+        p = math.log(d2["steps"] / d1["steps"]) / math.log(H2 / H1)
+        steps3 = d2["steps"] * (H3 / H2) ** p
+        rhs3 = steps3 * d2["rhs_calls"] / d2["steps"]
+        sim3 = steps3 * d2["sim_s"] / d2["steps"]
+        s3 = runs[(law, stiff, H3, ())]
+        speed[H3] = sim3 / s3["sim_s"]
+        tgt = TARGETS[H3 / scale]
+        out(f"  {H3:>6g} s iv-drem: dp45 EXTRAPOLATED (steps ~ t_end^{p:.2f} from its {H1:g} s and "
+            f"{H2:g} s runs, {1e6 * d2['sim_s'] / d2['steps']:.1f} us/step at {H2:g} s): "
+            f"{steps3:.3g} steps, {rhs3:.3g} RHS, {sim3:.1f} s; {stiff} measured "
+            f"{s3['sim_s']:.2f} s -> {speed[H3]:.1f}x (target >= {tgt:g}x: "
+            f"{'PASS' if speed[H3] >= tgt else 'MISS'})")
+        res["dp45_extrapolated"] = {"t_end": H3, "exponent": p, "steps": steps3, "rhs": rhs3,
+                                    "sim_s": sim3}
 
-    log(f"paper experiment, both laws, {t_paper:g} s ...")
-    res["paper"] = run_both_laws(t_paper)
-    log(f"long run, both laws, {t_long:g} s ...")
-    res["long"] = run_both_laws(t_long)
+    out("\n== growth with the horizon (iv-drem): steps and RHS per method")
+    for m in ("dp45", stiff):
+        parts = []
+        for t in (H1, H2, H3):
+            s = runs.get((law, m, t, ()))
+            if s is not None:
+                parts.append(f"{t:g} s: {s['steps']} steps / {s['rhs_calls']} RHS")
+            elif m == "dp45" and "dp45_extrapolated" in res:
+                e = res["dp45_extrapolated"]
+                parts.append(f"{t:g} s: ~{e['steps']:.3g} steps / ~{e['rhs']:.3g} RHS "
+                             "(extrapolated)")
+        out(f"  {m:<8} " + "; ".join(parts))
 
-    if args.skip_compile:
-        res["compile"] = None
-    else:
-        log("compile time and cache load in new processes ...")
-        res["compile"] = compile_times()
+    out("\n== accuracy of theta_hat at the end of the first horizon "
+        "(max |difference| / max |theta_hat|)")
+    base = runs[("iv-drem", stiff, H1, ())]
+    tight = do("iv-drem", stiff, H1, rtol=base["rtol"] / 100, atol=base["atol"] / 100)
+    e = rel(base["theta_hat_end"], tight["theta_hat_end"])
+    res["rel_vs_tight"] = e
+    out(f"  iv-drem {stiff} (rtol {base['rtol']:g}, atol {base['atol']:g}) vs 100x tighter: "
+        f"{e:.2e} (target <= {TARGET_REL_TIGHT:g}: {'PASS' if e <= TARGET_REL_TIGHT else 'MISS'})")
+    c_d, c_s = runs[("composite-learning", "dp45", H1, ())], \
+        runs[("composite-learning", stiff, H1, ())]
+    e = rel(c_s["theta_hat_end"], c_d["theta_hat_end"])
+    res["composite_dp45_vs_stiff"] = e
+    out(f"  composite-learning dp45 vs {stiff}: theta_hat {e:.2e}; hold time t_e "
+        f"{c_d['hold_times']} vs {c_s['hold_times']}")
+    if not a.skip_rk4:
+        for law in LAWS:
+            ref = do(law, "rk4", H1, h=2.5e-4)
+            for m in ("dp45", stiff):
+                e = rel(runs[(law, m, H1, ())]["theta_hat_end"], ref["theta_hat_end"])
+                res[f"rel_rk4_{law}_{m}"] = e
+                out(f"  {law:<19} {m:<8} vs RK4 h = 0.25 ms: {e:.2e} (target <= "
+                    f"{TARGET_REL_RK4:g}: {'PASS' if e <= TARGET_REL_RK4 else 'MISS'})")
+    res["speedup"] = {str(k): v for k, v in speed.items()}
     res["load_end"] = _loadavg()
-
-    targets = []
-    for name, value, target, kind in (
-            (f"full paper experiment, both laws {t_paper:g} s, wall s", res["paper"]["wall_s"],
-             TARGET_PAPER_S, "<="),
-            ("compiled/reference speed-up per simulated s", res["speedup_per_sim_s"],
-             TARGET_SPEEDUP, ">="),
-            (f"both laws {t_long:g} s, wall s", res["long"]["wall_s"], TARGET_LONG_S, "<=")):
-        verdict, ratio = _check(value, target, kind)
-        targets.append({"name": name, "measured": value, "target": target, "kind": kind,
-                        "ratio": ratio, "result": verdict})
-    res["targets"] = targets
-
-    print(build_report(res), flush=True)
-    if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=2) + "\n")
-        log(f"wrote {args.json}")
+    out(f"\nload average at the end {res['load_end']:.1f}")
+    if a.json:
+        Path(a.json).write_text(json.dumps(res, indent=1))
     return 0
 
 

@@ -198,7 +198,7 @@ def test_pdf_pages_and_text(report, run):
         assert flat.count("PASS") >= 3
         assert ratio in flat
         assert "Errata and choices" in flat and "E5" in flat
-        assert "Solver statistics" in flat and "dp45" in flat
+        assert "Solver statistics" in flat and "rodas5p" in flat
         assert "Software versions" in flat and "matplotlib" in flat
         assert "FMU check" in flat and "1.25e-09" in flat
         assert "Figure 4. Disturbance estimation error" in flat

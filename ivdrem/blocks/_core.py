@@ -6,6 +6,7 @@ of Python::
 
     update(t, x, u, dx, *params)   # writes dx/dt into dx        (blocks with states)
     output(t, x, u, y, *params)    # writes the outputs into y   (pure, cheap)
+    jacobian(t, x, u, jac, *params)  # optional: d(y, dx)/d(x, u), dense (see BlockSpec)
 
 ``x``, ``u``, ``dx`` and ``y`` are flat float64 vectors; matrix-valued signals are stored
 row-major (SPEC section 3).  The kernels hold no state of their own: the state lives in
@@ -59,6 +60,11 @@ class BlockSpec:
     # structural constants passed to the kernels like parameters (sizes, flags); not
     # python-control params, which share one namespace across a whole diagram
     constants: dict = field(default_factory=dict)
+    # optional analytic Jacobian kernel jacobian(t, x, u, jac, *params) writing the dense
+    # local Jacobian jac[(ny + nx), (nx + nu)]: rows outputs then state derivatives,
+    # columns states then inputs.  Without it the compiled path differentiates the
+    # block's update/output kernels by central differences (ivdrem.sim.jacobian)
+    jacobian: Callable | None = None
 
     @property
     def ninputs(self):

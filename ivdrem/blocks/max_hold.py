@@ -7,28 +7,34 @@ from ._core import BlockSpec, make_block
 from . import _validate as V
 
 
-def max_hold(nvec, nmat, epsilon=1e-9, *, input="window_y", output="held",
+def max_hold(nvec, nmat, epsilon=1e-9, *, dt_sample=1e-3, input="window_y", output="held",
              score="lambda_min_held", name="max_hold"):
-    """Hold the input [v (nvec), A (nmat x nmat)] of the accepted step maximising lambda_min(A).
+    """Hold the input [v (nvec), A (nmat x nmat)] at the sampling time maximising lambda_min(A).
 
-    The simulator updates the hold after every accepted step, when lambda_min of the
-    symmetric part of A exceeds both the running maximum and epsilon.  Before the first
-    update the output is zero.  python-control cannot simulate this block.
+    lambda_min of the symmetric part of A is sampled on the fixed grid t0 + k dt_sample,
+    read from the integrator's dense output, so the held value and the hold time t_e do not
+    depend on the step sequence or the method.  The hold updates when the sample beats both
+    the running maximum and epsilon; the simulator ends a step at each update, which is a
+    discontinuity of the right-hand side.  Before the first update the output is zero.
+    python-control cannot simulate this block.
 
     ======  ==========================================================
     states  none (the held values live in the simulator)
     inputs  <input>[nvec + nmat*nmat]
     output  <output>[nvec + nmat*nmat], <score> (lambda_min at t_e, 0 before)
-    params  epsilon > 0
+    params  epsilon > 0, dt_sample > 0 (s, sampling period of lambda_min)
     ======  ==========================================================
     """
     eps = V.scalar(name, "epsilon", epsilon, positive=True)
+    dts = V.scalar(name, "dt_sample", dt_sample, positive=True)
     size = nvec + nmat * nmat
     spec = BlockSpec(name=name, inputs=[(input, size)], outputs=[(output, size), (score, 1)],
-                     states=[], x0=np.zeros(0), param_names=("epsilon",), output=None,
-                     kind="maxhold", info={"epsilon": eps, "nvec": nvec, "nmat": nmat,
-                                           "size": size})
+                     states=[], x0=np.zeros(0), param_names=("epsilon", "dt_sample"),
+                     output=None, kind="maxhold",
+                     info={"epsilon": eps, "nvec": nvec, "nmat": nmat, "size": size})
 
-    spec.validate = lambda p: {**p, "epsilon": V.scalar(name, "epsilon", p["epsilon"],
-                                                         positive=True)}
-    return make_block(spec, {"epsilon": eps})
+    spec.validate = lambda p: {**p,
+                               "epsilon": V.scalar(name, "epsilon", p["epsilon"], positive=True),
+                               "dt_sample": V.scalar(name, "dt_sample", p["dt_sample"],
+                                                     positive=True)}
+    return make_block(spec, {"epsilon": eps, "dt_sample": dts})

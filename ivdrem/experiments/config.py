@@ -48,7 +48,7 @@ __all__ = [
 #: ``experiment.laws = "all"`` runs every registered law).
 LAWS = law_names()
 #: Integration methods of ivdrem's simulator.
-SOLVER_METHODS = ("dp45", "rk4")
+from ..sim.simulator import METHODS as SOLVER_METHODS  # noqa: E402  (one source of truth)
 #: Variants of the Φ_Mf filter gain (erratum E1).
 OBSERVER_VARIANTS = ("corrected", "literal")
 

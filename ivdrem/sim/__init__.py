@@ -1,6 +1,9 @@
 """Simulators for diagrams with transport delays and max-holds (reference + compiled)."""
-from .simulator import simulate, Simulator, SimulationError, METHODS, ENGINES
+from .simulator import (simulate, Simulator, SimulationError, StiffnessWarning, METHODS,
+                        METHOD_TABLE, DEFAULT_METHOD, STIFF_METHOD, DEFAULT_TOLERANCES,
+                        ENGINES, MethodInfo, Workspace, method_info)
 from .plan import DiagramPlan, AlgebraicLoopError
 
-__all__ = ["simulate", "Simulator", "SimulationError", "METHODS", "ENGINES", "DiagramPlan",
-           "AlgebraicLoopError"]
+__all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METHODS",
+           "METHOD_TABLE", "DEFAULT_METHOD", "STIFF_METHOD", "DEFAULT_TOLERANCES", "ENGINES",
+           "MethodInfo", "Workspace", "method_info", "DiagramPlan", "AlgebraicLoopError"]

@@ -38,6 +38,9 @@ from ..blocks import _kernels
 from .._atomic import write_text_atomic
 from ..blocks._core import kernel_args
 from . import _template
+from . import _dense_fallback
+from .jacobian import JacobianProgram, generated_source as jacobian_source
+from .sparse_lu import symbolic_lu
 
 __all__ = ["CompiledEngine", "generate_source", "cache_dir", "CompileError"]
 
@@ -166,7 +169,7 @@ def generate_source(plan, param_exprs=None):
         if spec.model is not None:
             mmod, msrc = _model_module(spec.model)
             deps.setdefault(mmod, msrc)
-        for role in ("update", "output"):
+        for role in ("update", "output", "jacobian"):
             fn = getattr(spec, role)
             if fn is None:
                 continue
@@ -203,7 +206,7 @@ def generate_source(plan, param_exprs=None):
 
     # one function for the three modes (see _template): signals first, in topological order
     # of direct feedthrough, then the mode's work
-    lines = ["def diagram_eval(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
+    lines = ["def diagram_eval_body(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
              "    ue = W[8]", "    if mode == AFTER_STEP_EVALUATED:", "        mode = AFTER_STEP",
              "    else:"]
     body_start = len(lines)
@@ -278,12 +281,68 @@ def generate_source(plan, param_exprs=None):
         lines.append(f"    out[{r}] = " + (" + ".join(terms) if terms else "0.0"))
     lines.append("    return OK")
     out.append("\n".join(lines) + "\n")
-    jit_names += ["diagram_eval"]
+    # The template calls diagram_eval with its mode constants, which numba types as
+    # literals and would compile the whole body once per mode; mode + 0 is a plain int64,
+    # so the body compiles once and only this wrapper is specialised.
+    out.append("def diagram_eval(mode, t, x, P, W, out):\n"
+               "    return diagram_eval_body(mode + 0, t, x, P, W, out)\n")
+    jit_names += ["diagram_eval_body", "diagram_eval"]
+
+    # the Jacobian and Newton-matrix entry points the implicit methods call (mode RHS's
+    # df/dx; factor / solve of c I - J)
+    fb = _fallback_source(tsrc)
+    if fb:
+        out.append("# ---- dense fallbacks (ivdrem/sim/_dense_fallback.py)")
+        out.append(fb)
+        jit_names += re.findall(r"^def\s+(\w+)\s*\(", fb, flags=re.M)
+    prog = JacobianProgram(plan)
+    slu = symbolic_lu(prog.pattern)
+    calls = []
+    for b in prog.fd_blocks:
+        nx, nu, ny = b.sys.nstates, b.sys.ninputs, b.sys.noutputs
+        c_out = [f"            {kname(b, 'output')}(t, xb[0:{nx}], ub[0:{nu}], "
+                 f"yf[0:{ny}]{pargs(b)})"]
+        c_upd = []
+        if b.spec.update is not None and nx:
+            c_upd.append(f"            {kname(b, 'update')}(t, xb[0:{nx}], ub[0:{nu}], "
+                         f"yf[{ny}:{ny + nx}]{pargs(b)})")
+        calls.append((c_out, c_upd))
+    supplied = []
+    for b in prog.fd_blocks:
+        if b.spec.jacobian is None:
+            supplied.append(None)
+        else:
+            nx, nu = b.sys.nstates, b.sys.ninputs
+            ny = b.sys.noutputs
+            supplied.append([f"        {kname(b, 'jacobian')}(t, xb[0:{nx}], ub[0:{nu}], "
+                             f"jl[0:{ny + nx}, 0:{nx + nu}]{pargs(b)})"])
+    out.append(jacobian_source(prog, slu, calls, supplied))
+    jit_names += ["block_eval", "block_jacobian", "diagram_jacobian", "newton_factor",
+                  "newton_solve"]
 
     out.append("# ---- compile everything with numba, machine code cached beside this file")
     out.append(f"_JIT = {sorted(set(jit_names))!r}")
     out.append("for _n in _JIT:\n    globals()[_n] = njit(cache=True)(globals()[_n])\n")
     return "\n".join(out), list(deps.items())
+
+
+def _fallback_source(template_src):
+    """The parts of _dense_fallback the template does not define itself."""
+    import ast
+    fsrc = Path(_dense_fallback.__file__).read_text()
+    have = set(re.findall(r"^def\s+(\w+)\s*\(", template_src, flags=re.M))
+    have |= set(re.findall(r"^(\w+)\s*=", template_src, flags=re.M))
+    parts = []
+    for node in ast.parse(fsrc).body:
+        if isinstance(node, ast.FunctionDef):
+            name = node.name
+        elif isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name):
+            name = node.targets[0].id
+        else:
+            continue
+        if name not in have:
+            parts.append(ast.get_source_segment(fsrc, node))
+    return "\n\n\n".join(parts) + "\n" if parts else ""
 
 
 def _param_values(plan, b):
@@ -382,10 +441,6 @@ class CompiledEngine:
         self.source, self.deps = generate_source(plan, param_exprs)
         self.module = _load(self.source, self.deps)
 
-    def chunk(self, method, *args):
-        fn = self.module.rk4_chunk if method == "rk4" else self.module.dp45_chunk
-        return fn(*args)
-
     def after_step(self, t, x, W):
         return self.module.diagram_eval(_template.AFTER_STEP, t, x, self.P, W, x)
 
@@ -396,3 +451,33 @@ class CompiledEngine:
         dx = np.zeros_like(x)
         self.module.diagram_eval(_template.RHS, t, x, self.P, W, dx)
         return dx
+
+    # ---- Jacobian and Newton matrix, callable from Python (tests, benchmarks)
+    def jacobian(self, t, x, W, *, dense=False):
+        """df/dx at (t, x) as the generated diagram_jacobian computes it (n x n array);
+        dense=True: the whole-system forward-difference fallback fd_jacobian instead."""
+        x = np.ascontiguousarray(x, dtype=float)
+        J = np.zeros((x.size, x.size))
+        fn = self.module.fd_jacobian if dense else self.module.diagram_jacobian
+        st = fn(float(t), x, self.P, W, J)
+        if st != _template.OK:
+            raise RuntimeError(f"diagram_jacobian returned status {st}")
+        return J
+
+    def factor(self, J, c, *, dense=False):
+        """Factor c I - J with the generated newton_factor (the static-pattern sparse LU),
+        or with dense=True the partial-pivoting dense_factor: (status, LU, piv)."""
+        J = np.ascontiguousarray(J, dtype=float)
+        n = J.shape[0]
+        LU = np.zeros((n, n))
+        piv = np.zeros(n, dtype=np.int64)
+        fn = self.module.dense_factor if dense else self.module.newton_factor
+        st = fn(J, float(c), LU, piv)
+        return int(st), LU, piv
+
+    def solve(self, LU, piv, b, *, dense=False):
+        """(c I - J)^{-1} b for a factorisation from :meth:`factor` (b is not modified)."""
+        out = np.array(b, dtype=float)
+        fn = self.module.dense_solve if dense else self.module.newton_solve
+        fn(LU, piv, out)
+        return out

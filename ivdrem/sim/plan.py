@@ -39,7 +39,7 @@ class DiagramPlan:
     conn: list              # per absolute input index: [(output index, gain)]
     order: list             # block indices in output-evaluation order
     delays: list = field(default_factory=list)   # dicts: block, off, size, T, hermite, u, du
-    holds: list = field(default_factory=list)    # dicts: block, off, size, nvec, nmat, eps, u
+    holds: list = field(default_factory=list)    # dicts: block, off, size, nvec, nmat, eps, dt, u
     nd: int = 0
     nh: int = 0
 
@@ -151,8 +151,8 @@ class DiagramPlan:
                 size = spec.info["size"]
                 self.holds.append(dict(block=b.index, off=nh, size=size,
                                        nvec=spec.info["nvec"], nmat=spec.info["nmat"],
-                                       eps=p["epsilon"], u=b.u.start, y=b.y.start,
-                                       k=len(self.holds)))
+                                       eps=p["epsilon"], dt=p.get("dt_sample", 1e-3),
+                                       u=b.u.start, y=b.y.start, k=len(self.holds)))
                 nh += size
         self.nd, self.nh = nd, nh
 

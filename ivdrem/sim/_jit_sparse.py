@@ -1,0 +1,125 @@
+"""Numba kernels shared by every generated diagram module (compiled once, cached on disk).
+
+* :func:`jac_chain` runs the chain rule's multiply-adds (:class:`ivdrem.sim.jacobian.
+  JacobianProgram`) and scatters df/dx into a dense J;
+* :func:`slu_factor` / :func:`slu_solve`: an LU of A = c I - J with the static pattern,
+  ordering and fill computed at generation time (:mod:`ivdrem.sim.sparse_lu`).
+
+They take the index arrays as arguments, so their machine code does not depend on the
+diagram.
+"""
+import numpy as np
+from numba import njit
+
+OK = 0
+SINGULAR = 6          # the stepping template's status for a zero / non-finite pivot
+
+# a pivot smaller than this times the largest entry of its row of A is refused: with
+# static (diagonal) pivoting it signals a near-singular A or growth; the integrator then
+# shrinks the step, which makes c I - J more diagonally dominant
+PIVOT_RTOL = 1e-12
+
+
+@njit(cache=True)
+def jac_chain(F, dst, fidx, src, n_slots, j_row, j_col, j_slot, J):
+    """S[dst] += F[f] * S[src] (or + F[f] where src < 0), in order; then J = 0, J[r, c] = S."""
+    S = np.zeros(n_slots)
+    for i in range(dst.shape[0]):
+        s = src[i]
+        if s < 0:
+            S[dst[i]] += F[fidx[i]]
+        else:
+            S[dst[i]] += F[fidx[i]] * S[s]
+    n = J.shape[0]
+    for i in range(n):
+        for j in range(J.shape[1]):
+            J[i, j] = 0.0
+    for e in range(j_row.shape[0]):
+        J[j_row[e], j_col[e]] = S[j_slot[e]]
+
+
+@njit(cache=True)
+def fd_shift(xb, ub, xb0, ub0, nx, col, c0, c1, sign, hh):
+    """Set the columns col[c0:c1] of the block to base + sign h (h = eps^(1/3) max(|v|, 1));
+    with sign 0 restore them.  hh[c] receives (v + h) - (v - h) as represented."""
+    for c in range(c0, c1):
+        j = col[c]
+        v = xb0[j] if j < nx else ub0[j - nx]
+        h = 6.055454452393343e-06 * max(abs(v), 1.0)
+        w = v + sign * h
+        if sign > 0:
+            hh[c] = (v + h) - (v - h)
+        if j < nx:
+            xb[j] = w
+        else:
+            ub[j - nx] = w
+
+
+@njit(cache=True)
+def fd_scatter(yp, ym, hh, c0, c1, e_ptr, e_row, e_slot, JB):
+    for c in range(c0, c1):
+        inv = 1.0 / hh[c]
+        for e in range(e_ptr[c], e_ptr[c + 1]):
+            r = e_row[e]
+            JB[e_slot[e]] = (yp[r] - ym[r]) * inv
+
+
+@njit(cache=True)
+def slu_factor(J, c, LU, piv, perm, rowptr, colidx, diagp):
+    """Factor A = c I - J as L U of P A P^T (perm = P) on the static filled pattern.
+
+    Row-oriented (IKJ) elimination with a dense work row; values go to LU.reshape(-1)[:nnz]
+    and perm to piv.  Returns SINGULAR for a pivot that is not finite or smaller than
+    PIVOT_RTOL times the largest |A| entry of its row.
+    """
+    n = J.shape[0]
+    vals = LU.reshape(n * n)
+    w = np.zeros(n)
+    for i in range(n):
+        piv[i] = perm[i]
+    for i in range(n):
+        pi = perm[i]
+        rmax = 0.0
+        for p in range(rowptr[i], rowptr[i + 1]):
+            j = colidx[p]
+            a = -J[pi, perm[j]]
+            if j == i:
+                a += c
+            w[j] = a
+            if not (abs(a) <= rmax):      # also catches NaN / inf entries
+                rmax = abs(a)
+        for p in range(rowptr[i], diagp[i]):
+            k = colidx[p]
+            l = w[k] / vals[diagp[k]]
+            w[k] = l
+            if l != 0.0:
+                for q in range(diagp[k] + 1, rowptr[k + 1]):
+                    w[colidx[q]] -= l * vals[q]
+        for p in range(rowptr[i], rowptr[i + 1]):
+            vals[p] = w[colidx[p]]
+        d = vals[diagp[i]]
+        if not (abs(d) > PIVOT_RTOL * rmax) or not np.isfinite(d) or not np.isfinite(rmax):
+            return SINGULAR
+    return OK
+
+
+@njit(cache=True)
+def slu_solve(LU, perm, rowptr, colidx, diagp, b):
+    """b = A^{-1} b for the factorisation of slu_factor."""
+    n = b.shape[0]
+    vals = LU.reshape(n * n)
+    y = np.empty(n)
+    for i in range(n):
+        y[i] = b[perm[i]]
+    for i in range(n):
+        s = y[i]
+        for p in range(rowptr[i], diagp[i]):
+            s -= vals[p] * y[colidx[p]]
+        y[i] = s
+    for i in range(n - 1, -1, -1):
+        s = y[i]
+        for p in range(diagp[i] + 1, rowptr[i + 1]):
+            s -= vals[p] * y[colidx[p]]
+        y[i] = s / vals[diagp[i]]
+    for i in range(n):
+        b[perm[i]] = y[i]

@@ -1,0 +1,405 @@
+"""The closed loop's Jacobian df/dx from block Jacobians chained through the connection map.
+
+Each block ``b`` with kernels is differentiated alone: its local Jacobian
+
+    [ dy_b/dx_b  dy_b/du_b ]        (outputs)
+    [ df_b/dx_b  df_b/du_b ]        (state derivatives)
+
+by central differences of *its own* kernels only (columns perturbed in groups whose rows do
+not overlap, Curtis-Powell-Reid), step eps^(1/3) max(|v|, 1), so entries are accurate to
+about eps^(2/3) relative.  The chain rule then follows the same topological order as the
+right-hand side: for the blocks in order of direct feedthrough
+
+    du_b/dx = sum_j C[b, j] dy_j/dx         (connection map; diagram inputs are constants)
+    dy_b/dx = dy_b/dx_b E_b + dy_b/du_b du_b/dx
+
+and finally df_b/dx = df_b/dx_b E_b + df_b/du_b du_b/dx (E_b selects the block's states).
+Transport-delay outputs come from the history at t - T and max-hold outputs are held
+values, so both are constants here (their rows of dy/dx are empty).
+
+Sparsity is fixed when the code is generated: each block's kernels are probed in Python at
+a few random points (random states, inputs and parameter values, so that a gain that is 0
+today, or a diagonal matrix parameter, does not hide an entry once it changes; parameter
+values are not part of the compiled code).  An entry is structural when a difference of
+the kernel's output is not exactly zero at any probe.  The generated code then only
+touches structural nonzeros: the chain is a list of multiply-adds over slots of a flat
+array, run by :func:`ivdrem.sim._jit_sparse.jac_chain`.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..blocks._core import bind_model, kernel_args
+
+__all__ = ["block_pattern", "JacobianProgram", "DeclarationError"]
+
+# central-difference step factor eps^(1/3): truncation h^2 and rounding eps/h balance
+FD_STEP = float(np.finfo(float).eps ** (1.0 / 3.0))
+
+
+class DeclarationError(ValueError):
+    """A block whose declared structure contradicts what its kernels compute."""
+
+
+def _random_args(spec, args, rng):
+    """Kernel arguments with every non-constant parameter moved randomly (up to 20 %), and
+    its exact zeros made small nonzeros, so no structural entry hides behind a value."""
+    out = []
+    for name, v in zip(spec.param_names, args):
+        if name in spec.constants:
+            out.append(v)
+            continue
+        a = np.asarray(v, dtype=float)
+        scale = max(float(np.max(np.abs(a), initial=0.0)), 1e-6)
+        r = a * rng.uniform(0.8, 1.2, size=a.shape)
+        r = np.where(a == 0.0, 1e-3 * scale * rng.uniform(0.5, 1.5, size=a.shape), r)
+        out.append(float(r) if np.ndim(v) == 0 else r)
+    return out
+
+
+def block_pattern(spec, args, nx, nu, ny, *, seed=0, n_points=3):
+    """Structural nonzeros of a block's local Jacobian, probed from its kernels.
+
+    Returns a boolean array (ny + nx, nx + nu): rows are outputs then state derivatives,
+    columns are states then inputs.  A block whose kernels give no finite value at any probe
+    point is taken as dense (correct, only slower).
+    """
+    upd = bind_model(spec.update, spec.model) if nx else None
+    out = bind_model(spec.output, spec.model)
+    rng = np.random.default_rng(seed)
+    pat = np.zeros((ny + nx, nx + nu), dtype=bool)
+    t = 0.7315
+
+    def ev(x, u, a):
+        yf = np.zeros(ny + nx)
+        out(t, x, u, yf[:ny], *a)
+        if upd is not None:
+            upd(t, x, u, yf[ny:], *a)
+        return yf
+
+    good = 0
+    for attempt in range(4 * n_points):
+        if good >= n_points:
+            break
+        a = _random_args(spec, args, rng)
+        sign = 1.0 if attempt % 3 != 2 else rng.choice([-1.0, 1.0], size=nx + nu)
+        v = sign * rng.uniform(0.5, 1.5, size=nx + nu)
+        ok = True
+        cols = np.zeros_like(pat)
+        try:
+            with np.errstate(all="ignore"):
+                base = ev(v[:nx].copy(), v[nx:].copy(), a)
+                ok = bool(np.all(np.isfinite(base)))
+                for c in range(nx + nu):
+                    if not ok:
+                        break
+                    h = 1e-3 * max(abs(v[c]), 1.0)
+                    vp = v.copy()
+                    vp[c] += h
+                    vm = v.copy()
+                    vm[c] -= h
+                    d = ev(vp[:nx], vp[nx:], a) - ev(vm[:nx], vm[nx:], a)
+                    ok = bool(np.all(np.isfinite(d)))
+                    cols[:, c] = d != 0.0
+        except (ValueError, ArithmeticError):
+            ok = False          # e.g. a model refusing a random state: try another point
+        if ok:
+            pat |= cols
+            good += 1
+    if good == 0:
+        pat[:] = True
+    return pat
+
+
+def _color(rows_of_col):
+    """Greedy grouping of columns whose row sets are disjoint (Curtis-Powell-Reid)."""
+    groups = []           # [(set of rows, [cols])]
+    for c in sorted(rows_of_col, key=lambda c: -len(rows_of_col[c])):
+        rows = rows_of_col[c]
+        for g in groups:
+            if not (g[0] & rows):
+                g[0].update(rows)
+                g[1].append(c)
+                break
+        else:
+            groups.append((set(rows), [c]))
+    return [sorted(g[1]) for g in groups]
+
+
+class JacobianProgram:
+    """Index arrays of the block finite differences and of the chain rule for one plan.
+
+    Attributes used by the code generator (all int64 arrays unless said):
+      fd_blocks: [BlockEntry] of the differentiated blocks, in FD order
+      fd_x0, fd_nx, fd_u0, fd_nu, fd_ny: per differentiated block
+      g_ptr (per block -> groups), gc_ptr (per group -> columns), col (local column),
+      e_ptr (per column -> entries), e_row (local row of yf), e_slot (index into JB)
+      n_jb: number of local-Jacobian values
+      ins_dst, ins_f, ins_src: the chain's multiply-adds S[dst] += F[f] (* S[src] if >= 0),
+          F = [JB, gains]; gains (float64)
+      n_slots, j_row, j_col, j_slot: where the dense J reads the chain's result
+      pattern: boolean n x n structural pattern of df/dx
+    """
+
+    def __init__(self, plan, *, seed=0):
+        self.plan = plan
+        n = plan.x0.size
+        self.n = n
+        ny_total = sum(b.sys.noutputs for b in plan.blocks)
+        # ---- local patterns and FD program
+        local = {}          # block index -> list of (row, col, jb slot)
+        jb = 0
+        fd = dict(blk=[], x0=[], nx=[], u0=[], nu=[], ny=[])
+        g_ptr, gc_ptr, cols, e_ptr, e_row, e_slot = [0], [0], [], [0], [], []
+        g_kind = []         # per group: 0 output kernel, 1 update kernel
+        self.fd_blocks = []
+        for b in plan.blocks:
+            spec = b.spec
+            if spec.kind != "ode":
+                continue
+            nx, nu, ny = b.sys.nstates, b.sys.ninputs, b.sys.noutputs
+            if nx + nu == 0:
+                continue
+            args = kernel_args(spec, plan.block_params(b))
+            pat = block_pattern(spec, args, nx, nu, ny, seed=seed + b.index)
+            direct_local = set(int(i) - b.u.start for i in b.direct_inputs)
+            bad = [c - nx for c in range(nx, nx + nu)
+                   if pat[:ny, c].any() and (c - nx) not in direct_local]
+            if bad:
+                labels = [b.sys.input_labels[i] for i in bad]
+                raise DeclarationError(
+                    f"block '{b.sys.name}': its outputs depend on the inputs {labels}, which "
+                    "the block does not declare as direct feedthrough (BlockSpec.direct); the "
+                    "right-hand side would read them before they are computed")
+            if not pat.any():
+                local[b.index] = []
+                continue
+            # the output kernel and the update kernel are differenced apart, each with its
+            # own column groups (a column that only moves outputs costs no update call)
+            entries = []
+            for kind, lo, hi in ((0, 0, ny), (1, ny, ny + nx)):
+                rows_of_col = {c: set((lo + np.flatnonzero(pat[lo:hi, c])).tolist())
+                               for c in range(nx + nu) if pat[lo:hi, c].any()}
+                for grp in _color(rows_of_col):
+                    for c in grp:
+                        cols.append(c)
+                        for r in sorted(rows_of_col[c]):
+                            e_row.append(r)
+                            e_slot.append(jb)
+                            entries.append((r, c, jb))
+                            jb += 1
+                        e_ptr.append(len(e_row))
+                    gc_ptr.append(len(cols))
+                    g_kind.append(kind)
+            g_ptr.append(len(gc_ptr) - 1)
+            local[b.index] = entries
+            self.fd_blocks.append(b)
+            for k, v in (("x0", b.x.start), ("nx", nx), ("u0", b.u.start), ("nu", nu),
+                         ("ny", ny)):
+                fd[k].append(v)
+        self.n_jb = jb
+        i64 = lambda v: np.asarray(v, dtype=np.int64)
+        self.fd_x0, self.fd_nx, self.fd_u0 = i64(fd["x0"]), i64(fd["nx"]), i64(fd["u0"])
+        self.fd_nu, self.fd_ny = i64(fd["nu"]), i64(fd["ny"])
+        self.g_ptr, self.gc_ptr, self.col = i64(g_ptr), i64(gc_ptr), i64(cols)
+        self.g_kind = i64(g_kind)
+        self.e_ptr, self.e_row, self.e_slot = i64(e_ptr), i64(e_row), i64(e_slot)
+        self.local = local
+
+        # ---- chain rule, symbolically: rows are {state column: slot}
+        slots = [0]
+        gains = {}
+        ins = []
+
+        def new_slot():
+            slots[0] += 1
+            return slots[0] - 1
+
+        def gain_index(g):
+            if g not in gains:
+                gains[g] = jb + len(gains)
+            return gains[g]
+
+        yrow = [dict() for _ in range(ny_total)]
+        urow = {}
+
+        def make_u(k):
+            srcs = plan.conn[k]
+            if len(srcs) == 1 and srcs[0][1] == 1.0:
+                urow[k] = yrow[srcs[0][0]]        # a plain copy: share the row
+                return
+            row = {}
+            for j, g in srcs:
+                f = gain_index(g)
+                for col, s in yrow[j].items():
+                    if col not in row:
+                        row[col] = new_slot()
+                    ins.append((row[col], f, s))
+            urow[k] = row
+
+        def accumulate(row, entries, nx, u0, x0):
+            for r, c, slot in entries:
+                if c < nx:
+                    col = x0 + c
+                    if col not in row:
+                        row[col] = new_slot()
+                    ins.append((row[col], slot, -1))
+                else:
+                    for col, s in urow[u0 + c - nx].items():
+                        if col not in row:
+                            row[col] = new_slot()
+                        ins.append((row[col], slot, s))
+
+        for k in plan.order:
+            b = plan.blocks[k]
+            if b.spec.kind != "ode":
+                continue          # delay / max-hold outputs: constants
+            for i in b.direct_inputs:
+                make_u(int(i))
+            entries = local.get(b.index, [])
+            nx, ny = b.sys.nstates, b.sys.noutputs
+            for r in range(ny):
+                mine = [e for e in entries if e[0] == r]
+                accumulate(yrow[b.y.start + r], mine, nx, b.u.start, b.x.start)
+        for b in plan.blocks:
+            for k in range(b.u.start, b.u.stop):
+                if k not in urow:
+                    make_u(k)
+        jrows = {}
+        for b in plan.blocks:
+            if b.spec.kind != "ode" or not b.sys.nstates:
+                continue
+            entries = local.get(b.index, [])
+            nx, ny = b.sys.nstates, b.sys.noutputs
+            for r in range(nx):
+                row = {}
+                mine = [e for e in entries if e[0] == ny + r]
+                accumulate(row, mine, nx, b.u.start, b.x.start)
+                jrows[b.x.start + r] = row
+        self.n_slots = slots[0]
+        self.ins_dst = i64([a for a, _, _ in ins])
+        self.ins_f = i64([f for _, f, _ in ins])
+        self.ins_src = i64([s for _, _, s in ins])
+        g = np.zeros(len(gains))
+        for val, idx in gains.items():
+            g[idx - jb] = val
+        self.gains = g
+        jr, jc, js = [], [], []
+        pattern = np.zeros((n, n), dtype=bool)
+        for i in sorted(jrows):
+            for col in sorted(jrows[i]):
+                jr.append(i)
+                jc.append(col)
+                js.append(jrows[i][col])
+                pattern[i, col] = True
+        self.j_row, self.j_col, self.j_slot = i64(jr), i64(jc), i64(js)
+        self.pattern = pattern
+
+    @property
+    def nnz(self):
+        return int(self.pattern.sum())
+
+
+def _arr(name, a, dtype="np.int64"):
+    return f"{name} = np.array({np.asarray(a).tolist()!r}, dtype={dtype})"
+
+
+def generated_source(prog, slu, block_calls, supplied=None):
+    """Source of block_eval, diagram_jacobian, newton_factor and newton_solve.
+
+    `block_calls[k]` are (output lines, update lines) (indented 12) that evaluate block k
+    from xb[0:nx], ub[0:nu]: output kernel into yf[0:ny], update kernel into yf[ny:ny+nx].  `supplied[k]`, if
+    not None, are the lines that call the block's own Jacobian kernel into jl (dense
+    (ny + nx) x (nx + nu)), used instead of differences.
+    """
+    supplied = supplied or [None] * len(block_calls)
+    with_jac = [k for k, s in enumerate(supplied) if s is not None]
+    p = prog
+    nfd = len(p.fd_blocks)
+    maxx = int(max(p.fd_nx.max(initial=0), 1))
+    maxu = int(max(p.fd_nu.max(initial=0), 1))
+    maxyf = int(max((p.fd_ny + p.fd_nx).max(initial=0), 1))
+    lines = ["from ivdrem.sim._jit_sparse import jac_chain, fd_shift, fd_scatter, "
+             "slu_factor, slu_solve", "",
+             "# structured Jacobian (ivdrem/sim/jacobian.py): block FD program and chain rule"]
+    for name in ("fd_x0", "fd_nx", "fd_u0", "fd_nu", "fd_ny", "g_ptr", "g_kind", "gc_ptr", "col", "e_ptr",
+                 "e_row", "e_slot", "ins_dst", "ins_f", "ins_src", "j_row", "j_col", "j_slot"):
+        lines.append(_arr("_JAC_" + name.upper(), getattr(p, name)))
+    lines.append(_arr("_JAC_GAINS", p.gains, "np.float64"))
+    lines.append("# static-pattern LU of c I - J (ivdrem/sim/sparse_lu.py): "
+                 f"{slu.ordering} ordering, nnz(A) = {slu.nnz_a}, nnz(L+U) = {slu.nnz_lu}")
+    for name in ("perm", "rowptr", "colidx", "diagp"):
+        lines.append(_arr("_SLU_" + name.upper(), getattr(slu, name)))
+    lines += ["", "", "def block_eval(k, kind, t, xb, ub, yf, P):"]
+    if nfd == 0:
+        lines.append("    return")
+    for k, (out_calls, upd_calls) in enumerate(block_calls):
+        lines.append(f"    {'if' if k == 0 else 'elif'} k == {k}:")
+        lines.append("        if kind == 0:")
+        lines += out_calls
+        if upd_calls:
+            lines.append("        else:")
+            lines += upd_calls
+    lines += ["", "", "def block_jacobian(k, t, xb, ub, jl, P):"]
+    if not with_jac:
+        lines.append("    return")
+    for i, k in enumerate(with_jac):
+        lines.append(f"    {'if' if i == 0 else 'elif'} k == {k}:")
+        lines += supplied[k]
+    lines.append(_arr("_JAC_SUPPLIED", [int(s is not None) for s in supplied] or [0]))
+    maxcol = int(max((p.fd_nx + p.fd_nu).max(initial=0), 1))
+    lines += [
+        "", "",
+        "def diagram_jacobian(t, x, P, W, J):",
+        "    n = x.shape[0]",
+        "    f0 = np.empty(n)",
+        "    diagram_eval(RHS, t, x, P, W, f0)       # the signals at (t, x)",
+        "    us = W[7]",
+        f"    F = np.empty({p.n_jb + p.gains.size})",
+        f"    for i in range({p.gains.size}):",
+        f"        F[{p.n_jb} + i] = _JAC_GAINS[i]",
+        f"    xb = np.empty({maxx})", f"    ub = np.empty({maxu})",
+        f"    xb0 = np.empty({maxx})", f"    ub0 = np.empty({maxu})",
+        f"    yp = np.empty({maxyf})", f"    ym = np.empty({maxyf})",
+        f"    hh = np.empty({max(p.col.size, 1)})",
+        f"    jl = np.empty(({maxyf}, {maxcol}))",
+        f"    for kb in range({nfd}):",
+        "        nx = _JAC_FD_NX[kb]",
+        "        nu = _JAC_FD_NU[kb]",
+        "        for i in range(nx):",
+        "            xb0[i] = x[_JAC_FD_X0[kb] + i]",
+        "            xb[i] = xb0[i]",
+        "        for i in range(nu):",
+        "            ub0[i] = us[_JAC_FD_U0[kb] + i]",
+        "            ub[i] = ub0[i]",
+        "        if _JAC_SUPPLIED[kb] == 1:     # the block's own Jacobian kernel",
+        "            for i in range(nx + nu):",
+        "                for r in range(_JAC_FD_NY[kb] + nx):",
+        "                    jl[r, i] = 0.0",
+        "            block_jacobian(kb, t, xb, ub, jl, P)",
+        "            for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
+        "                for c in range(_JAC_GC_PTR[g], _JAC_GC_PTR[g + 1]):",
+        "                    for e in range(_JAC_E_PTR[c], _JAC_E_PTR[c + 1]):",
+        "                        F[_JAC_E_SLOT[e]] = jl[_JAC_E_ROW[e], _JAC_COL[c]]",
+        "            continue",
+        "        for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
+        "            c0 = _JAC_GC_PTR[g]",
+        "            c1 = _JAC_GC_PTR[g + 1]",
+        "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 1.0, hh)",
+        "            kind = _JAC_G_KIND[g]",
+        "            block_eval(kb, kind, t, xb, ub, yp, P)",
+        "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, -1.0, hh)",
+        "            block_eval(kb, kind, t, xb, ub, ym, P)",
+        "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 0.0, hh)",
+        "            fd_scatter(yp, ym, hh, c0, c1, _JAC_E_PTR, _JAC_E_ROW, _JAC_E_SLOT, F)",
+        f"    jac_chain(F, _JAC_INS_DST, _JAC_INS_F, _JAC_INS_SRC, {p.n_slots}, _JAC_J_ROW,",
+        "              _JAC_J_COL, _JAC_J_SLOT, J)",
+        "    return OK",
+        "", "",
+        "def newton_factor(J, c, LU, piv):",
+        "    return slu_factor(J, c, LU, piv, _SLU_PERM, _SLU_ROWPTR, _SLU_COLIDX, _SLU_DIAGP)",
+        "", "",
+        "def newton_solve(LU, piv, b):",
+        "    slu_solve(LU, _SLU_PERM, _SLU_ROWPTR, _SLU_COLIDX, _SLU_DIAGP, b)",
+        ""]
+    return "\n".join(lines)

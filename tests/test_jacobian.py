@@ -1,0 +1,228 @@
+"""The generated Jacobian (ivdrem/sim/jacobian.py) and the static-pattern LU
+(ivdrem/sim/sparse_lu.py) against independent evaluations.
+
+* a tiny hand-made diagram whose df/dx is known in closed form (chain rule through a
+  direct-feedthrough block, a negative gain and a sum of two outputs in the connection map);
+* the paper's closed loops: the generated J against careful central differences of the
+  whole right-hand side at random states (after a short run, so delays and holds are live);
+* c I - J solved with the sparse LU against numpy's dense solve, and the SINGULAR guard.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ivdrem.blocks import BlockSpec, make_block
+from ivdrem.diagrams import assemble
+from ivdrem.sim.simulator import Simulator
+from ivdrem.sim._jit_sparse import SINGULAR
+
+from conftest import paper_loop
+
+TINY_A, TINY_B = 2.5, 0.75
+
+
+# ---------------------------------------------------------------- tiny diagram kernels
+def osc_update(t, x, u, dx, a):
+    # states x[2]; input u[1]; dx = [x1, -a x0 + u]
+    dx[0] = x[1]
+    dx[1] = -a * x[0] + u[0]
+
+
+def osc_output(t, x, u, y, a):
+    # outputs y = [x0 x1, sin x0]
+    y[0] = x[0] * x[1]
+    y[1] = np.sin(x[0])
+
+
+def osc_jacobian(t, x, u, jac, a):
+    # the block's own Jacobian: rows [y0, y1, dx0, dx1], columns [x0, x1, u0]
+    jac[0, 0] = x[1]
+    jac[0, 1] = x[0]
+    jac[1, 0] = np.cos(x[0])
+    jac[2, 1] = 1.0
+    jac[3, 0] = -a
+    jac[3, 2] = 1.0
+
+
+def mix_output(t, x, u, y):
+    # direct feedthrough: w = v0^2 + 3 v1
+    y[0] = u[0] * u[0] + 3.0 * u[1]
+
+
+def decay_update(t, x, u, dx):
+    dx[0] = -x[0] * u[0]
+
+
+def decay_output(t, x, u, y):
+    y[0] = x[0]
+
+
+def grow_update(t, x, u, dx, b):
+    dx[0] = b * x[0]
+
+
+def grow_output(t, x, u, y, b):
+    y[0] = x[0]
+
+
+def source_update(t, x, u, dx):
+    dx[0] = -x[0]
+
+
+def leaky_output(t, x, u, y):
+    # uses its input but declares no direct feedthrough (a wrong declaration)
+    y[0] = x[0] + u[0]
+
+
+def tiny_diagram():
+    blocks = [
+        make_block(BlockSpec("osc", [("u", 1)], [("y", 2)], [("x", 2)], np.array([0.3, -0.2]),
+                             ("a",), osc_output, osc_update, jacobian=osc_jacobian),
+                   {"a": TINY_A}),
+        make_block(BlockSpec("mix", [("v", 2)], [("w", 1)], [], np.zeros(0), (), mix_output,
+                             direct=("v",))),
+        make_block(BlockSpec("decay", [("w", 1)], [("zo", 1)], [("z", 1)], np.ones(1), (),
+                             decay_output, decay_update)),
+        make_block(BlockSpec("grow", [], [("g", 1)], [("g", 1)], np.ones(1), ("b",),
+                             grow_output, grow_update), {"b": TINY_B}),
+    ]
+    conns = [["osc.u[0]", "-decay.zo[0]", "grow.g[0]"],
+             ["mix.v[0]", "osc.y[0]"], ["mix.v[1]", "osc.y[1]"],
+             ["decay.w[0]", "mix.w[0]"]]
+    return assemble(blocks, ["zo"], name="tiny_jacobian", connections=conns)
+
+
+def tiny_exact(x):
+    x0, x1, z, g = x
+    s = x0 ** 2 * x1 ** 2 + 3.0 * np.sin(x0)
+    return np.array([[0.0, 1.0, 0.0, 0.0],
+                     [-TINY_A, 0.0, -1.0, 1.0],
+                     [-z * (2 * x0 * x1 ** 2 + 3 * np.cos(x0)), -z * 2 * x0 ** 2 * x1, -s, 0.0],
+                     [0.0, 0.0, 0.0, TINY_B]])
+
+
+def central_fd(engine, t, x, W):
+    """Central differences of the whole right-hand side, step 1e-5 max(|x_j|, 1)."""
+    n = x.size
+    J = np.zeros((n, n))
+    for j in range(n):
+        h = 1e-5 * max(abs(x[j]), 1.0)
+        xp, xm = x.copy(), x.copy()
+        xp[j] += h
+        xm[j] -= h
+        J[:, j] = (engine.rhs(t, xp, W) - engine.rhs(t, xm, W)) / (xp[j] - xm[j])
+    return J
+
+
+def assert_jacobian_close(J, Jfd, rtol=1e-6):
+    scale = np.abs(Jfd).max()
+    assert np.linalg.norm(J - Jfd) <= rtol * np.linalg.norm(Jfd)
+    big = np.abs(Jfd) >= 1e-3 * scale
+    rel = np.abs(J - Jfd)[big] / np.abs(Jfd)[big]
+    assert rel.max() <= rtol, f"worst entry-wise relative error {rel.max():.2e}"
+    # the structural pattern holds every entry the whole-system differences see
+    assert np.abs(Jfd[J == 0.0]).max(initial=0.0) <= 1e-9 * scale
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return Simulator(tiny_diagram())
+
+
+def test_chain_rule_on_tiny_diagram(tiny):
+    """osc supplies its own Jacobian kernel; mix, decay and grow are differenced alone."""
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        x = rng.uniform(-1.5, 1.5, size=4)
+        J = tiny.engine.jacobian(0.4, x, tiny.W)
+        np.testing.assert_allclose(J, tiny_exact(x), rtol=1e-8, atol=1e-9)
+        # osc's rows come from its own kernel, exactly (differences would be ~1e-11 off)
+        assert J[0, 1] == 1.0 and J[1, 0] == -TINY_A
+        # and the whole-system dense fallback agrees to its own (forward-difference) accuracy
+        np.testing.assert_allclose(tiny.engine.jacobian(0.4, x, tiny.W, dense=True),
+                                   tiny_exact(x), rtol=1e-5, atol=1e-6)
+
+
+def test_singular_pivot_is_reported(tiny):
+    x = np.array([0.4, -0.3, 0.8, 1.2])
+    J = tiny.engine.jacobian(0.0, x, tiny.W)
+    # the row of g holds only d(dg)/dg = b: c = b makes c I - J exactly singular
+    st, _, _ = tiny.engine.factor(J, TINY_B)
+    assert st == SINGULAR
+    st, _, _ = tiny.engine.factor(J, TINY_B, dense=True)
+    assert st == SINGULAR
+    Jnan = J.copy()
+    Jnan[2, 0] = np.nan
+    assert tiny.engine.factor(Jnan, 10.0)[0] == SINGULAR
+    st, LU, piv = tiny.engine.factor(J, 10.0)
+    assert st == 0
+    b = np.array([1.0, -2.0, 0.5, 3.0])
+    np.testing.assert_allclose(tiny.engine.solve(LU, piv, b),
+                               np.linalg.solve(10.0 * np.eye(4) - J, b), rtol=1e-13)
+
+
+def test_undeclared_feedthrough_is_an_error():
+    from ivdrem.sim.compiled import generate_source
+    from ivdrem.sim.jacobian import DeclarationError
+    from ivdrem.sim.plan import DiagramPlan
+    src = make_block(BlockSpec("src", [], [("s", 1)], [("s", 1)], np.ones(1), (),
+                               decay_output, source_update))
+    leaky = make_block(BlockSpec("leaky", [("s", 1)], [("o", 1)], [("o", 1)], np.ones(1), (),
+                                 leaky_output, decay_update))
+    d = assemble([src, leaky], ["o"], name="leaky",
+                 connections=[["leaky.s[0]", "src.s[0]"]])
+    with pytest.raises(DeclarationError, match="direct feedthrough"):
+        generate_source(DiagramPlan.from_diagram(d))
+
+
+def _loop_at_random_states(diagram, seeds, t_run=1.5):
+    sim = Simulator(diagram)
+    sim.advance(t_run)
+    out = []
+    for s in seeds:
+        rng = np.random.default_rng(s)
+        x = sim.x * rng.uniform(0.8, 1.2, sim.x.size) + 0.05 * rng.standard_normal(sim.x.size)
+        out.append(x)
+    return sim, out
+
+
+@pytest.mark.parametrize("law", ["iv-drem", "composite-learning"])
+def test_generated_jacobian_matches_whole_system_differences(law):
+    sim, states = _loop_at_random_states(paper_loop(law), seeds=[0, 1])
+    for x in states:
+        J = sim.engine.jacobian(sim.t, x, sim.W)
+        assert_jacobian_close(J, central_fd(sim.engine, sim.t, x, sim.W))
+
+
+@pytest.mark.slow
+def test_generated_jacobian_planar_arm_3():
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import planar_arm
+    ones = np.ones(3)
+    traj = dict(amplitude=0.5 * ones, omega=[1.0, 0.7, 0.4], phase=0 * ones, offset=0.2 * ones)
+    dist = dict(amplitude=[2.0, 1.0, 0.5], omega=[0.5, 0.3, 0.2], phase=0 * ones,
+                offset=0 * ones)
+    loop = closed_loop("iv-drem", model=planar_arm(3), trajectory=traj, disturbance=dist)
+    sim, states = _loop_at_random_states(loop, [5], t_run=0.5)
+    J = sim.engine.jacobian(sim.t, states[0], sim.W)
+    assert_jacobian_close(J, central_fd(sim.engine, sim.t, states[0], sim.W))
+
+
+def test_sparse_lu_matches_dense_solve():
+    sim, (x,) = _loop_at_random_states(paper_loop("iv-drem"), seeds=[7])
+    J = sim.engine.jacobian(sim.t, x, sim.W)
+    rng = np.random.default_rng(11)
+    for c in (10.0, 1e2, 1e3, 1e5):
+        st, LU, piv = sim.engine.factor(J, c)
+        assert st == 0
+        for _ in range(2):
+            b = rng.standard_normal(x.size)
+            ref = np.linalg.solve(c * np.eye(x.size) - J, b)
+            got = sim.engine.solve(LU, piv, b)
+            assert np.linalg.norm(got - ref) <= 1e-12 * np.linalg.norm(ref)
+            # the dense fallback (partial pivoting) agrees as well
+            st_d, LUd, pivd = sim.engine.factor(J, c, dense=True)
+            assert st_d == 0
+            assert np.linalg.norm(sim.engine.solve(LUd, pivd, b, dense=True) - ref) \
+                <= 1e-12 * np.linalg.norm(ref)
