@@ -60,6 +60,27 @@ def check_method(name):
     return name
 
 
+def method_overrides(name, config_path=None) -> dict:
+    """Config overrides for ``--method NAME``: the method, and its default tolerances
+    (Rodas5P runs at rtol 1e-4, DP45 needs 1e-6) unless the user's file sets them."""
+    if check_method(name) is None:
+        return {}
+    from .sim.simulator import DEFAULT_TOLERANCES
+    user = {}
+    if config_path is not None:
+        try:   # a broken file is reported by load_config, with its own message
+            from .experiments.config import tomllib
+            with open(config_path, "rb") as f:
+                user = tomllib.load(f).get("solver", {})
+        except Exception:
+            user = {}
+    out = {"solver.method": name}
+    for key, value in zip(("rtol", "atol"), DEFAULT_TOLERANCES[name]):
+        if key not in user:
+            out[f"solver.{key}"] = value
+    return out
+
+
 def _model(config):
     from .models import get_model
     m = config["model"]

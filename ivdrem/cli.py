@@ -11,7 +11,7 @@ __all__ = ["main"]
 def _cmd_paper(args):
     from .experiments.config import ConfigError, load_config
     from ._paths import OutputLocationError, check_writable_file, user_path
-    from ._preflight import (PreflightError, check_cache_dir, check_method, check_runs,
+    from ._preflight import (PreflightError, check_cache_dir, check_runs, method_overrides,
                              horizon_note, timing_text)
     from ._progress import want_progress
     prog = "ivdrem paper"
@@ -22,8 +22,8 @@ def _cmd_paper(args):
         overrides["experiment.laws"] = list(args.law)
     json_path = None
     try:   # every option and output location before the first step
-        if check_method(args.method) is not None:
-            overrides["solver.method"] = args.method
+        overrides.update(method_overrides(
+            args.method, None if args.config is None else user_path(args.config)))
         config = load_config(None if args.config is None else user_path(args.config),
                              overrides or None)
         if args.json:

@@ -54,3 +54,16 @@ def test_progress_is_silent_when_not_a_terminal(tmp_path):
                        capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr
     assert "%|" not in p.stderr and "it/s" not in p.stderr
+
+
+def test_method_option_brings_its_tolerances(tmp_path):
+    """--method dp45 runs DP45 at its own default tolerances, unless the file sets them."""
+    from ivdrem._preflight import method_overrides
+    from ivdrem.sim.simulator import DEFAULT_TOLERANCES
+    assert method_overrides(None) == {}
+    o = method_overrides("dp45")
+    assert (o["solver.rtol"], o["solver.atol"]) == DEFAULT_TOLERANCES["dp45"]
+    f = tmp_path / "c.toml"
+    f.write_text("[solver]\nrtol = 3e-7\n")
+    o = method_overrides("dp45", f)
+    assert "solver.rtol" not in o and o["solver.atol"] == DEFAULT_TOLERANCES["dp45"][1]

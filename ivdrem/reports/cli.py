@@ -13,7 +13,7 @@ import sys
 
 from .._paths import OutputLocationError, check_writable_dir, user_path
 from .._preflight import (PreflightError, add_run_options, check_cache_dir, check_fmu_check_t_end,
-                          check_method, check_runs, horizon_note, timing_text)
+                          check_runs, horizon_note, method_overrides, timing_text)
 from .._progress import want_progress
 from ..experiments.config import LAWS, ConfigError, load_config
 
@@ -82,9 +82,9 @@ def config_from_args(args) -> dict:
         overrides["experiment.t_end"] = args.t_end
     if getattr(args, "laws", None):
         overrides["experiment.laws"] = list(args.laws)
-    if check_method(getattr(args, "method", None)) is not None:
-        overrides["solver.method"] = args.method
     config = getattr(args, "config", None)
+    overrides.update(method_overrides(getattr(args, "method", None),
+                                      None if config is None else user_path(config)))
     return load_config(None if config is None else user_path(config), overrides or None)
 
 
