@@ -10,7 +10,12 @@ The generator reads the diagram's subsystem list and connection map (through
 * ``diagram_eval``: block outputs in topological order of direct feedthrough, inputs
   gathered from the connection map, delay outputs from the history, max-hold outputs from
   the held values; then, by mode, the state derivatives, the after-step update of the
-  history and holds, or the diagram outputs.
+  history and holds, or the diagram outputs,
+* ``diagram_jacobian`` (df/dx: each block differenced alone, or its own ``jacobian``
+  kernel, chained through the connection map in the same order; sparsity probed at
+  generation time, :mod:`ivdrem.sim.jacobian`) and ``newton_factor`` / ``newton_solve``
+  (an LU of c I - J whose ordering and filled pattern are fixed at generation time,
+  :mod:`ivdrem.sim.sparse_lu`, run by the shared kernels of :mod:`ivdrem.sim._jit_sparse`).
 
 Nothing is fused by hand: a rewired diagram, another law or another robot model compiles
 the same way.  A block without kernels (a plain nlsys) cannot be compiled; the error says
