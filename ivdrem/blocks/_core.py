@@ -9,7 +9,7 @@ of Python::
     jacobian(t, x, u, jac, *params)  # optional: d(y, dx)/d(x, u), dense (see BlockSpec)
 
 ``x``, ``u``, ``dx`` and ``y`` are flat float64 vectors; matrix-valued signals are stored
-row-major (SPEC section 3).  The kernels hold no state of their own: the state lives in
+row-major.  The kernels hold no state of their own: the state lives in
 the simulator.  Kernels that need the robot model call it through the global name
 ``model`` (``model.Phi_M(q, a, out)``, see :mod:`ivdrem.models`).
 

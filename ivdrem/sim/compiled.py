@@ -10,7 +10,12 @@ The generator reads the diagram's subsystem list and connection map (through
 * ``diagram_eval``: block outputs in topological order of direct feedthrough, inputs
   gathered from the connection map, delay outputs from the history, max-hold outputs from
   the held values; then, by mode, the state derivatives, the after-step update of the
-  history and holds, or the diagram outputs.
+  history and holds, or the diagram outputs,
+* ``diagram_jacobian`` (df/dx: each block differenced alone, or its own ``jacobian``
+  kernel, chained through the connection map in the same order; sparsity probed at
+  generation time, :mod:`ivdrem.sim.jacobian`) and ``newton_factor`` / ``newton_solve``
+  (an LU of c I - J whose ordering and filled pattern are fixed at generation time,
+  :mod:`ivdrem.sim.sparse_lu`, run by the shared kernels of :mod:`ivdrem.sim._jit_sparse`).
 
 Nothing is fused by hand: a rewired diagram, another law or another robot model compiles
 the same way.  A block without kernels (a plain nlsys) cannot be compiled; the error says
@@ -38,7 +43,6 @@ from ..blocks import _kernels
 from .._atomic import write_text_atomic
 from ..blocks._core import kernel_args
 from . import _template
-from . import _dense_fallback
 from .jacobian import JacobianProgram, generated_source as jacobian_source
 from .sparse_lu import symbolic_lu
 
@@ -288,13 +292,9 @@ def generate_source(plan, param_exprs=None):
                "    return diagram_eval_body(mode + 0, t, x, P, W, out)\n")
     jit_names += ["diagram_eval_body", "diagram_eval"]
 
-    # the Jacobian and Newton-matrix entry points the implicit methods call (mode RHS's
-    # df/dx; factor / solve of c I - J)
-    fb = _fallback_source(tsrc)
-    if fb:
-        out.append("# ---- dense fallbacks (ivdrem/sim/_dense_fallback.py)")
-        out.append(fb)
-        jit_names += re.findall(r"^def\s+(\w+)\s*\(", fb, flags=re.M)
+    # the Jacobian and Newton-matrix entry points of the implicit methods (df/dx of mode
+    # RHS; factor / solve of c I - J); the template's dense fd_jacobian, dense_factor and
+    # dense_solve stay available beside them
     prog = JacobianProgram(plan)
     slu = symbolic_lu(prog.pattern)
     calls = []
@@ -324,25 +324,6 @@ def generate_source(plan, param_exprs=None):
     out.append(f"_JIT = {sorted(set(jit_names))!r}")
     out.append("for _n in _JIT:\n    globals()[_n] = njit(cache=True)(globals()[_n])\n")
     return "\n".join(out), list(deps.items())
-
-
-def _fallback_source(template_src):
-    """The parts of _dense_fallback the template does not define itself."""
-    import ast
-    fsrc = Path(_dense_fallback.__file__).read_text()
-    have = set(re.findall(r"^def\s+(\w+)\s*\(", template_src, flags=re.M))
-    have |= set(re.findall(r"^(\w+)\s*=", template_src, flags=re.M))
-    parts = []
-    for node in ast.parse(fsrc).body:
-        if isinstance(node, ast.FunctionDef):
-            name = node.name
-        elif isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name):
-            name = node.targets[0].id
-        else:
-            continue
-        if name not in have:
-            parts.append(ast.get_source_segment(fsrc, node))
-    return "\n\n\n".join(parts) + "\n" if parts else ""
 
 
 def _param_values(plan, b):
