@@ -1,6 +1,6 @@
 """Correctness of the block library against independent closed forms and oracles.
 
-Every formula of the controller (SPEC sections 3, 5, 6; paper eqs. 3-21, 35) is checked
+Every formula of the controller (docs/conventions.md; paper eqs. 3-21, 35) is checked
 against something computed independently here: closed-form integrals, scipy quadrature,
 scipy ODE solutions of the error equations, sympy exact adjugates and the paper's
 hand-written 2-link regressors (Section 4).
@@ -390,7 +390,7 @@ def run_mixing(Y, Psi):
 @pytest.mark.parametrize("scale", [1e-4, 1.0, 1e3, 1e8])
 def test_mixing_identity(nth, scale):
     """Y = Psi theta + W  =>  calY = Delta theta + calW, calW = adj(Psi_n) W / s,
-    s = 1 + ||Psi||_F, Psi_n = Psi / s, Delta = det Psi_n (SPEC section 6, erratum E4)."""
+    s = 1 + ||Psi||_F, Psi_n = Psi / s, Delta = det Psi_n (docs/conventions.md, erratum E4)."""
     rng = np.random.default_rng(int(nth * 1000 + np.log10(scale) + 10))
     for _ in range(10):
         Psi = rng.normal(size=(nth, nth)) * scale
@@ -460,7 +460,7 @@ def test_mixing_block_declaration():
 
 
 # ============================================================ controller in the paper loop
-# The paper's experiment (SPEC section 8), written out here independently of the library.
+# The paper's experiment (docs/experiment.md), written out here independently of the library.
 ALPHA, K_GAIN, DELTA_MU, L_FILT = 1.0, 2.0, 0.8, 50.0
 
 
@@ -630,7 +630,7 @@ def loop_signals(loop_runs):
 
 
 def f_tilde_ode(t_eval, f0):
-    """Solve d f~/dt = -((mu^2 + dmu)/mu) f~ + (df/dt)/mu, f = -tau_d (SPEC section 5)."""
+    """Solve d f~/dt = -((mu^2 + dmu)/mu) f~ + (df/dt)/mu, f = -tau_d (proof of Theorem 2; docs/conventions.md)."""
     def rhs(t, f):
         mu = t + 15.0
         return -((mu * mu + 1.0) / mu) * f - dtaud_exact(t) / mu
@@ -782,7 +782,7 @@ def test_regression_filter_identity(loop_runs, loop_signals, key):
     w = w_exact(t)
     err = np.abs(resid - w).max()
     assert err <= 1e-6, err                            # measured 2.6e-8 (|w| <= 7.5)
-    # and phi^T = l (Phi_M^T(q, dq) - xi) + eta from the filter states (SPEC section 6)
+    # and phi^T = l (Phi_M^T(q, dq) - xi) + eta from the filter states (eq. 13; docs/conventions.md)
     r = loop_runs[key][1]
     xi = state(r, "regression_filter_xi").reshape(2, 5, nt).transpose(2, 0, 1)
     eta = state(r, "regression_filter_eta").reshape(2, 5, nt).transpose(2, 0, 1)
@@ -851,7 +851,7 @@ def test_control_law_kernel_full_gain_matrix():
 
 
 def test_adaptation_law_kernel_uses_Pi_r_not_Pi_T_r():
-    """theta_hat' = Gamma (Pi r + theta_c) with Pi = (Pi^T)^T (SPEC section 3: the paper's
+    """theta_hat' = Gamma (Pi r + theta_c) with Pi = (Pi^T)^T (docs/conventions.md: the paper's
     'Pi^T r' is a typo)."""
     rng = np.random.default_rng(14)
     n, nth = 2, 5

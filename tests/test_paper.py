@@ -1,4 +1,4 @@
-"""The paper's conclusions C1-C3 on the full 300 s experiment (issue 3 section 5).
+"""The paper's conclusions C1-C3 on the full 300 s experiment (docs/experiment.md).
 
 Slow (about a minute of simulation on the compiled path, plus compilation on a cold
 cache), but CI runs it: it is the check that the software reproduces the paper.

@@ -74,7 +74,7 @@ def test_dp45_error_control_tracks_tolerance():
 
 
 def test_dp45_stays_stable_where_fixed_rk4_diverges():
-    """SPEC section 9: the fastest mode grows like (K + delta_mu mu)/m_min.  With mu(0) = 2000
+    """docs/simulation.md: the fastest mode grows like (K + delta_mu mu)/m_min.  With mu(0) = 2000
     (param override, same compiled module) it is ~1.5e4 /s: RK4 at 1 ms diverges with a
     clear error, DP45 with default tolerances adapts its step and stays accurate.
 

@@ -1,7 +1,7 @@
 """Sliding-window integral y(t) = int_{t-T}^{t} g ds, eq. (15a), drift-free.
 
 The window keeps I(t) = int_{t0}^{t} g ds as a state and forms y = I(t) - I(t - T) with
-a TransportDelay block (SPEC section 6), not dy = g(t) - g(t - T), which would drift.
+a TransportDelay block (docs/conventions.md), not dy = g(t) - g(t - T), which would drift.
 """
 from __future__ import annotations
 
