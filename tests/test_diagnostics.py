@@ -204,7 +204,7 @@ def test_paper_json_has_diagnostics_per_law(tmp_path, monkeypatch, capsys):
     from ivdrem.cli import main
     from ivdrem.reports.synthetic import synthetic_paper_run
 
-    def fake(config, *, laws=None, progress=True, engine="compiled", log=None):
+    def fake(config, *, laws=None, progress=True, engine="compiled", log=None, **kw):
         return synthetic_paper_run(config, dt=0.05)
     monkeypatch.setattr(paper, "run_paper", fake)
     out = tmp_path / "o.json"

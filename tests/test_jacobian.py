@@ -226,3 +226,25 @@ def test_sparse_lu_matches_dense_solve():
             assert st_d == 0
             assert np.linalg.norm(sim.engine.solve(LUd, pivd, b, dense=True) - ref) \
                 <= 1e-12 * np.linalg.norm(ref)
+
+
+def test_unprobeable_block_is_dense_within_its_declaration():
+    """A plant whose parameters make M(q) indefinite everywhere gives no finite probe: the
+    block is taken as dense over its states and declared inputs, with no false
+    declaration error, and the run itself reports the model's problem."""
+    import pytest
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import two_link
+    from ivdrem.sim import SimulationError, simulate
+    from ivdrem.sim.jacobian import block_pattern
+    from ivdrem.sim.plan import DiagramPlan
+    from ivdrem.blocks._core import kernel_args
+    theta = [-1.3, 0.28, 0.32, 0.4, 1.4]
+    diagram = closed_loop("iv-drem", two_link(), theta=theta)
+    plan = DiagramPlan.from_diagram(diagram)
+    plant = next(b for b in plan.blocks if b.sys.name == "plant")
+    args = kernel_args(plant.spec, plan.block_params(plant))
+    assert block_pattern(plant.spec, args, plant.sys.nstates, plant.sys.ninputs,
+                         plant.sys.noutputs) is None
+    with pytest.raises(SimulationError, match="positive definite"):
+        simulate(diagram, 0.1)

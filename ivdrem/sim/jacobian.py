@@ -62,7 +62,9 @@ def block_pattern(spec, args, nx, nu, ny, *, seed=0, n_points=3):
 
     Returns a boolean array (ny + nx, nx + nu): rows are outputs then state derivatives,
     columns are states then inputs.  A block whose kernels give no finite value at any probe
-    point is taken as dense (correct, only slower).
+    point (e.g. a plant whose parameters make M(q) indefinite) returns None: the caller takes
+    it as dense within its declaration (correct, only slower), and the run itself reports
+    the model's error.
     """
     upd = bind_model(spec.update, spec.model) if nx else None
     out = bind_model(spec.output, spec.model)
@@ -107,7 +109,7 @@ def block_pattern(spec, args, nx, nu, ny, *, seed=0, n_points=3):
             pat |= cols
             good += 1
     if good == 0:
-        pat[:] = True
+        return None
     return pat
 
 
@@ -163,6 +165,11 @@ class JacobianProgram:
             args = kernel_args(spec, plan.block_params(b))
             pat = block_pattern(spec, args, nx, nu, ny, seed=seed + b.index)
             direct_local = set(int(i) - b.u.start for i in b.direct_inputs)
+            if pat is None:   # not probeable: dense, outputs only on states and direct inputs
+                pat = np.ones((ny + nx, nx + nu), dtype=bool)
+                for i in range(nu):
+                    if i not in direct_local:
+                        pat[:ny, nx + i] = False
             bad = [c - nx for c in range(nx, nx + nu)
                    if pat[:ny, c].any() and (c - nx) not in direct_local]
             if bad:
