@@ -20,8 +20,8 @@ import sys
 
 import numpy as np
 
-from ivdrem import blocks as B
-from ivdrem.blocks import _validate as V
+from ivdrem import blocks as block_library
+from ivdrem.blocks import _validate as checks
 from ivdrem.diagrams import closed_loop
 from ivdrem.experiments.metrics import signal
 from ivdrem.laws import Law, mixed_regression_blocks, register_law
@@ -48,13 +48,13 @@ def normalised_term(ntheta, gamma=1e10, nu=1.0, *, name="normalised_term"):
     params  gamma > 0, nu > 0 (s)
     ======  ==========================================="""
     def validate(p):
-        return {**p, "gamma": V.scalar(name, "gamma", p["gamma"], positive=True),
-                "nu": V.scalar(name, "nu", p["nu"], positive=True)}
-    spec = B.BlockSpec(name=name, inputs=[("Delta", 1), ("calY", ntheta), ("theta_hat", ntheta)],
+        return {**p, "gamma": checks.scalar(name, "gamma", p["gamma"], positive=True),
+                "nu": checks.scalar(name, "nu", p["nu"], positive=True)}
+    spec = block_library.BlockSpec(name=name, inputs=[("Delta", 1), ("calY", ntheta), ("theta_hat", ntheta)],
                        outputs=[("theta_c", ntheta)], states=[], x0=np.zeros(0),
                        param_names=("gamma", "nu"), output=normalised_term_output,
                        direct=("Delta", "calY", "theta_hat"), validate=validate)
-    return B.make_block(spec, {"gamma": gamma, "nu": nu})
+    return block_library.make_block(spec, {"gamma": gamma, "nu": nu})
 
 
 # 2. the law -----------------------------------------------------------------------------

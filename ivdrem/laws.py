@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from . import blocks as B
+from . import blocks as block_library
 
 __all__ = ["Law", "LawContext", "LAWS", "register_law", "get_law", "law_names",
            "mixed_regression_blocks"]
@@ -90,13 +90,13 @@ def mixed_regression_blocks(ctx: LawContext, *, instrument: bool = True):
     to use; returns (blocks, recorded outputs).  A user law built on (17) starts here."""
     model, n, nth, p = ctx.model, ctx.n, ctx.ntheta, ctx.params
     m = nth + nth * nth
-    blocks = [B.regression_filter(model, p["l"])]
+    blocks = [block_library.regression_filter(model, p["l"])]
     if instrument:
-        blocks.append(B.instrument(model, p["l"]))
-    blocks += [B.extension(n, nth, instrument=instrument),
-               *B.windowed_integral(m, p["T"]),
-               B.averaging(m, p["p"], p["F0"]),
-               B.mixing(nth)]
+        blocks.append(block_library.instrument(model, p["l"]))
+    blocks += [block_library.extension(n, nth, instrument=instrument),
+               *block_library.windowed_integral(m, p["T"]),
+               block_library.averaging(m, p["p"], p["F0"]),
+               block_library.mixing(nth)]
     # z, phi (and zeta) are recorded so that the diagnostics can form w = z - phi^T theta
     # (13), the excitation of (18) and the products of (19) offline
     outputs = ["Delta", "calY", "z", "phi"] + (["zeta"] if instrument else [])
@@ -106,7 +106,7 @@ def mixed_regression_blocks(ctx: LawContext, *, instrument: bool = True):
 def _drem_blocks(ctx: LawContext, *, iv: bool):
     """(17) and the composite term (21)."""
     blocks, outputs = mixed_regression_blocks(ctx, instrument=iv)
-    return blocks + [B.drem_term(ctx.ntheta, ctx.params["gamma"])], outputs
+    return blocks + [block_library.drem_term(ctx.ntheta, ctx.params["gamma"])], outputs
 
 
 def _build_iv_drem(ctx):
@@ -120,11 +120,11 @@ def _build_drem(ctx):
 def _build_composite_learning(ctx):
     model, n, nth, p = ctx.model, ctx.n, ctx.ntheta, ctx.params
     m = nth + nth * nth
-    blocks = [B.regression_filter(model, p["l"]),
-              B.extension(n, nth, instrument=False),
-              *B.windowed_integral(m, p["T"]),
-              B.max_hold(nth, nth, p["epsilon"]),
-              B.composite_learning_term(nth, p["gamma"])]
+    blocks = [block_library.regression_filter(model, p["l"]),
+              block_library.extension(n, nth, instrument=False),
+              *block_library.windowed_integral(m, p["T"]),
+              block_library.max_hold(nth, nth, p["epsilon"]),
+              block_library.composite_learning_term(nth, p["gamma"])]
     return blocks, ["lambda_min_held"]
 
 
@@ -132,11 +132,11 @@ def _build_sigma(ctx):
     ts = ctx.params.get("theta_star")
     if ts is None:
         ts = ctx.model.theta_values
-    return [B.sigma_modification_term(ctx.ntheta, ctx.params["sigma"], ts)], []
+    return [block_library.sigma_modification_term(ctx.ntheta, ctx.params["sigma"], ts)], []
 
 
 def _build_none(ctx):
-    return [B.zero_term(ctx.ntheta)], []
+    return [block_library.zero_term(ctx.ntheta)], []
 
 
 for _law in (

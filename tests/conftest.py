@@ -18,7 +18,7 @@ import functools
 import numpy as np
 import pytest
 
-import ivdrem.blocks as B
+import ivdrem.blocks as block_library
 from ivdrem.blocks import BlockSpec, make_block
 from ivdrem.diagrams import assemble
 
@@ -90,11 +90,11 @@ LAB_OUTPUTS = ["ext_g", "window_y", "window_I", "g_delayed", "avg", "held", "lam
 
 def build_lab():
     """lab source -> windowed integral (Hermite delay), plain delay, averaging, max-hold."""
-    win, dly = B.windowed_integral(3, LAB_T, input="ext_g")
+    win, dly = block_library.windowed_integral(3, LAB_T, input="ext_g")
     blocks = [lab_source(), win, dly,
-              B.transport_delay(3, LAB_T, input="ext_g", output="g_delayed", name="plain_delay"),
-              B.averaging(3, p=2.0, F0=1.0, input="ext_g", output="avg"),
-              B.max_hold(LAB_NVEC, LAB_NMAT, 1e-9, input="mh_in", output="held")]
+              block_library.transport_delay(3, LAB_T, input="ext_g", output="g_delayed", name="plain_delay"),
+              block_library.averaging(3, p=2.0, F0=1.0, input="ext_g", output="avg"),
+              block_library.max_hold(LAB_NVEC, LAB_NMAT, 1e-9, input="mh_in", output="held")]
     return assemble(blocks, LAB_OUTPUTS, name="lab")
 
 

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.integrate import quad, solve_ivp
 
-import ivdrem.blocks as B
+import ivdrem.blocks as block_library
 from ivdrem.blocks import ParameterError
 from ivdrem.blocks._kernels import det_adj
 from ivdrem.blocks.adaptation_law import adaptation_law_update
@@ -180,10 +180,10 @@ def test_averaging_reference_engine(lab_runs):
 
 def test_averaging_rejects_bad_parameters():
     with pytest.raises(ParameterError, match="'p' must be >= 1"):
-        B.averaging(3, p=0.5)
+        block_library.averaging(3, p=0.5)
     for F0 in (0.0, -1.0):
         with pytest.raises(ParameterError, match="'F0' must be > 0"):
-            B.averaging(3, F0=F0)
+            block_library.averaging(3, F0=F0)
 
 
 # ----------------------------------------------------------------------------- max-hold
@@ -264,11 +264,11 @@ def test_lab_engines_agree(lab_runs):
 def test_transport_delay_and_max_hold_reject_bad_parameters():
     for T in (0.0, -1.0):
         with pytest.raises(ParameterError, match="'T' must be > 0"):
-            B.transport_delay(2, T, input="a", output="b")
+            block_library.transport_delay(2, T, input="a", output="b")
         with pytest.raises(ParameterError, match="'T' must be > 0"):
-            B.windowed_integral(2, T)
+            block_library.windowed_integral(2, T)
     with pytest.raises(ParameterError, match="epsilon"):
-        B.max_hold(1, 1, epsilon=0.0)
+        block_library.max_hold(1, 1, epsilon=0.0)
 
 
 # ============================================================================ mixing (17)
@@ -452,7 +452,7 @@ def test_mixing_huge_psi_keeps_delta():
 
 
 def test_mixing_block_declaration():
-    blk = B.mixing(5)
+    blk = block_library.mixing(5)
     spec = blk.ivdrem
     assert spec.output is mixing_output
     assert [p for p, _ in spec.inputs] == ["avg"] and spec.ninputs == 5 + 25
@@ -887,39 +887,39 @@ def m2():
                                [1.0, -1.0]])
 def test_control_law_rejects_bad_K(K):
     with pytest.raises(ParameterError, match=r"'K' must be (positive definite|symmetric)"):
-        B.control_law(2, 5, K=K)
+        block_library.control_law(2, 5, K=K)
 
 
 @pytest.mark.parametrize("dm", [0.0, 1.0, -0.5, 1.5])
 def test_control_law_rejects_bad_delta_mu(dm):
     with pytest.raises(ParameterError, match=r"'delta_mu' must be in \(0.0, 1.0\)"):
-        B.control_law(2, 5, delta_mu=dm)
+        block_library.control_law(2, 5, delta_mu=dm)
 
 
 def test_filters_and_gains_reject_bad_values(m2):
     for l in (0.0, -50.0):
         with pytest.raises(ParameterError, match="'l' must be > 0"):
-            B.regression_filter(m2, l)
+            block_library.regression_filter(m2, l)
         with pytest.raises(ParameterError, match="'l' must be > 0"):
-            B.instrument(m2, l)
+            block_library.instrument(m2, l)
     with pytest.raises(ParameterError, match="'Gamma' must be positive definite"):
-        B.adaptation_law(2, 5, Gamma=-0.01)
+        block_library.adaptation_law(2, 5, Gamma=-0.01)
     with pytest.raises(ParameterError, match="'Gamma' must be 5x5"):
-        B.adaptation_law(2, 5, Gamma=np.eye(4))
+        block_library.adaptation_law(2, 5, Gamma=np.eye(4))
     with pytest.raises(ParameterError, match="'alpha' must be > 0"):
-        B.tracking_error(2, alpha=0.0)
+        block_library.tracking_error(2, alpha=0.0)
     with pytest.raises(ParameterError, match="'gamma' must be > 0"):
-        B.drem_term(5, gamma=0.0)
+        block_library.drem_term(5, gamma=0.0)
     with pytest.raises(ParameterError, match="'mu1' must be > 0"):
-        B.mu_schedule(1.0, 0.0)
+        block_library.mu_schedule(1.0, 0.0)
     with pytest.raises(ParameterError, match="unknown observer variant"):
-        B.torque_observer(m2, variant="paper")
+        block_library.torque_observer(m2, variant="paper")
 
 
 def test_plant_rejects_bad_shapes(m2):
     with pytest.raises(ParameterError, match="'theta' must have length 5"):
-        B.plant(m2, theta=[1.0, 2.0])
+        block_library.plant(m2, theta=[1.0, 2.0])
     with pytest.raises(ParameterError, match="'q0' must have length 2"):
-        B.plant(m2, q0=[0.0, 0.1, 0.2])
+        block_library.plant(m2, q0=[0.0, 0.1, 0.2])
     with pytest.raises(ParameterError, match="'theta' has non-finite"):
-        B.plant(m2, theta=[1.3, np.nan, 0.32, 0.4, 1.4])
+        block_library.plant(m2, theta=[1.3, np.nan, 0.32, 0.4, 1.4])

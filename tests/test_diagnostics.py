@@ -4,43 +4,43 @@ import math
 import numpy as np
 import pytest
 
-from ivdrem.experiments import diagnostics as D
+from ivdrem.experiments import diagnostics
 
 T_LONG = np.linspace(0.0, 1000.0, 100_001)
 
 
 def test_power_fit_and_decay_exponent_recover_exact_powers():
     t = T_LONG[1:]
-    a, C, r2 = D.power_fit(t, 3.0 * t ** -0.7)
+    a, C, r2 = diagnostics.power_fit(t, 3.0 * t ** -0.7)
     assert a == pytest.approx(0.7, abs=1e-12) and C == pytest.approx(3.0, rel=1e-10) and r2 > 0.999999
     # windowed means of an oscillation do not decay; of 1/(t+1) decay with k ~ 1
-    assert abs(D.decay_exponent(T_LONG, 1 + 0.5 * np.sin(3 * T_LONG))) < 0.01
-    assert D.decay_exponent(T_LONG, 1 / (T_LONG + 1)) == pytest.approx(1.0, abs=0.01)
+    assert abs(diagnostics.decay_exponent(T_LONG, 1 + 0.5 * np.sin(3 * T_LONG))) < 0.01
+    assert diagnostics.decay_exponent(T_LONG, 1 / (T_LONG + 1)) == pytest.approx(1.0, abs=0.01)
 
 
 def test_ka1_and_pe_for_delta_one_over_sqrt_t_plus_1():
     """The paper's example: Δ = 1/√(t+1) is not in L2 (KA1 holds) and not PE (vanishes)."""
     delta = 1 / np.sqrt(T_LONG + 1)
-    c, S = D.check_ka1(T_LONG, delta)
-    assert c["verdict"] == D.HOLDS
+    c, S = diagnostics.check_ka1(T_LONG, delta)
+    assert c["verdict"] == diagnostics.HOLDS
     np.testing.assert_allclose(S[-1], math.log(1001.0), rtol=1e-5)  # ∫ 1/(t+1) = log(t+1); trapezoid h = 0.01
     assert c["measured"]["int_Delta2_growth_last_half"] == pytest.approx(math.log(1001 / 501), rel=1e-6)
-    pe = D.check_pe(T_LONG, delta)
-    assert pe["verdict"] == D.FAILS
+    pe = diagnostics.check_pe(T_LONG, delta)
+    assert pe["verdict"] == diagnostics.FAILS
     assert pe["measured"]["decay_exponent_abs_Delta"] == pytest.approx(0.5, abs=0.01)
 
 
 def test_ka1_fails_for_square_integrable_delta_and_pe_holds_for_persistent_one():
-    c, S = D.check_ka1(T_LONG, np.exp(-T_LONG / 50))
-    assert c["verdict"] == D.FAILS
+    c, S = diagnostics.check_ka1(T_LONG, np.exp(-T_LONG / 50))
+    assert c["verdict"] == diagnostics.FAILS
     assert S[-1] == pytest.approx(25.0, rel=1e-6)                    # ∫ e^(-t/25) = 25
-    c, _ = D.check_ka1(T_LONG, 1 / (T_LONG + 1))                     # Δ² ~ t^-2: in L2
-    assert c["verdict"] == D.FAILS
+    c, _ = diagnostics.check_ka1(T_LONG, 1 / (T_LONG + 1))                     # Δ² ~ t^-2: in L2
+    assert c["verdict"] == diagnostics.FAILS
     persistent = 0.3 + 0.1 * np.sin(0.7 * T_LONG)
-    assert D.check_ka1(T_LONG, persistent)[0]["verdict"] == D.HOLDS
-    assert D.check_pe(T_LONG, persistent)["verdict"] == D.HOLDS
+    assert diagnostics.check_ka1(T_LONG, persistent)[0]["verdict"] == diagnostics.HOLDS
+    assert diagnostics.check_pe(T_LONG, persistent)["verdict"] == diagnostics.HOLDS
     # Δ ≡ 0 is in L2
-    assert D.check_ka1(T_LONG, 0 * T_LONG)[0]["verdict"] == D.FAILS
+    assert diagnostics.check_ka1(T_LONG, 0 * T_LONG)[0]["verdict"] == diagnostics.FAILS
 
 
 def test_excitation_beta_of_constant_regressors():
@@ -48,7 +48,7 @@ def test_excitation_beta_of_constant_regressors():
     t = np.linspace(0, 50, 5001)
     Z = np.array([[1.0, 0.0], [0.5, 2.0]])                           # ζᵀ, n = 2, nθ = 2
     flat = np.repeat(Z.reshape(-1, 1), t.size, axis=1)
-    beta = D.excitation_beta(t, flat, flat, 2, 2, 10.0)
+    beta = diagnostics.excitation_beta(t, flat, flat, 2, 2, 10.0)
     assert np.all(np.isnan(beta[t < 10.0 - 1e-9]))
     np.testing.assert_allclose(beta[t >= 10.0], 100.0 * np.linalg.det(Z.T @ Z), rtol=1e-9)
 
@@ -58,13 +58,13 @@ def test_ka2_holds_with_growing_mu_and_fails_with_constant_mu():
     tau = np.vstack([7.5 * np.sin(0.5 * np.pi * t), 1.5 * np.sin(0.05 * np.pi * t)])
     dtau = np.vstack([7.5 * 0.5 * np.pi * np.cos(0.5 * np.pi * t),
                       1.5 * 0.05 * np.pi * np.cos(0.05 * np.pi * t)])
-    good, L, _ = D.check_ka2(t, tau, t + 15.0)
-    assert good["verdict"] == D.HOLDS
+    good, L, _ = diagnostics.check_ka2(t, tau, t + 15.0)
+    assert good["verdict"] == diagnostics.HOLDS
     # numerical τ̇_d (second order differences) = the analytic derivative
-    _, L_exact, _ = D.check_ka2(t, tau, t + 15.0, dtau_d=dtau)
+    _, L_exact, _ = diagnostics.check_ka2(t, tau, t + 15.0, dtau_d=dtau)
     np.testing.assert_allclose(L, L_exact, rtol=1e-4)
-    bad, L_const, _ = D.check_ka2(t, tau, 15.0 + 0 * t)
-    assert bad["verdict"] == D.FAILS                                  # μ constant: ∫ grows ~ t
+    bad, L_const, _ = diagnostics.check_ka2(t, tau, 15.0 + 0 * t)
+    assert bad["verdict"] == diagnostics.FAILS                                  # μ constant: ∫ grows ~ t
     assert L_const[-1] == pytest.approx(np.trapezoid(np.sum(dtau ** 2, 0), t) / 225, rel=1e-4)
 
 
@@ -75,7 +75,7 @@ def test_filtered_disturbance_equals_the_analytic_filter_response():
     errs = []
     for nt in (2001, 4001):                                          # h = 0.01, 0.005
         t = np.linspace(0, 20, nt)
-        w = D.filtered_disturbance(t, np.sin(om * t)[None, :], l)[0]
+        w = diagnostics.filtered_disturbance(t, np.sin(om * t)[None, :], l)[0]
         exact = A * np.sin(om * t) + B * np.cos(om * t) - B * np.exp(-l * t)
         errs.append(np.max(np.abs(w - exact)))
     assert errs[0] < 3e-5                                             # ~ h² ω² / 8
@@ -87,16 +87,16 @@ def _ka3(w_freq, w_phase=0.0):
     n, nth = 1, 2
     zeta = np.vstack([np.sin(2.0 * t), np.cos(0.3 * t)])             # ζᵀ: 1 × 2
     w = np.sin(w_freq * t + w_phase)[None, :]
-    return D.check_ka3(t, zeta, w, n, nth, tau_d=w)
+    return diagnostics.check_ka3(t, zeta, w, n, nth, tau_d=w)
 
 
 def test_ka3_holds_for_independent_frequencies_and_fails_for_a_shared_one():
     good, ints = _ka3(math.pi / 2)
-    assert good["verdict"] == D.HOLDS
+    assert good["verdict"] == diagnostics.HOLDS
     assert good["measured"]["shared_frequency"] is False
     assert np.max(np.abs(ints)) < 5.0                                 # bounded integrals
     bad, ints = _ka3(2.0, 0.4)                                        # ζ's own frequency
-    assert bad["verdict"] == D.FAILS
+    assert bad["verdict"] == diagnostics.FAILS
     assert bad["measured"]["shared_frequency"] is True
     assert bad["measured"]["closest_frequencies"][0] == pytest.approx(2.0, abs=0.02)
     # ∫ sin(2t) sin(2t + 0.4) = t cos(0.4)/2 + bounded: grows linearly
@@ -107,35 +107,35 @@ def test_ka3_holds_for_independent_frequencies_and_fails_for_a_shared_one():
 def test_prop2_ratio_bounded_for_W_like_dF_over_F_and_growing_for_constant_W():
     t = np.linspace(0, 300, 30_001)
     F, dF = t ** 2 + 1, 2 * t
-    good, R = D.check_prop2(t, (3.0 * dF / F)[None, :], 2.0, 1.0, 20.0)
-    assert good["verdict"] == D.HOLDS
+    good, R = diagnostics.check_prop2(t, (3.0 * dF / F)[None, :], 2.0, 1.0, 20.0)
+    assert good["verdict"] == diagnostics.HOLDS
     np.testing.assert_allclose(R[t >= 20], 3.0, rtol=1e-12)
-    bad, _ = D.check_prop2(t, np.ones((1, t.size)), 2.0, 1.0, 20.0)
-    assert bad["verdict"] == D.FAILS
+    bad, _ = diagnostics.check_prop2(t, np.ones((1, t.size)), 2.0, 1.0, 20.0)
+    assert bad["verdict"] == diagnostics.FAILS
 
 
 def test_property42_finds_rho_for_the_papers_mu_and_none_for_a_decaying_mu():
     t = np.linspace(0, 300, 3001)
     mu = t + 15.0
-    c, p = D.check_property42(t, mu, 0.8, np.ones_like(t))
-    assert c["verdict"] == D.HOLDS
+    c, p = diagnostics.check_property42(t, mu, 0.8, np.ones_like(t))
+    assert c["verdict"] == diagnostics.HOLDS
     rho, drho = p["rho"], p["delta_rho"]
     lhs = (rho - 1 / 0.8) * mu + rho * 1.0 / mu - rho / drho          # Property 4.2 itself
     assert np.all(lhs >= p["mu_LB"] - 1e-9) and np.min(p["mu_LB"]) > 0
     mu_bad = 1.0 / (t + 1.0)                                          # (ρ−1/δ)μ + ρμ̇/μ = −μ/δ < 0
-    c, p = D.check_property42(t, mu_bad, 0.8, -mu_bad ** 2)
-    assert c["verdict"] == D.FAILS and p is None
+    c, p = diagnostics.check_property42(t, mu_bad, 0.8, -mu_bad ** 2)
+    assert c["verdict"] == diagnostics.FAILS and p is None
 
 
 def test_rate_fit_recovers_the_exponent():
     t = np.linspace(0, 300, 3001)
-    c, (a, C) = D.check_rate(t, 2.0 * (t + 1e-3) ** -1.2)
-    assert c["verdict"] == D.HOLDS and a == pytest.approx(1.2, abs=0.01)
-    c, _ = D.check_rate(t, 5.0 + 0 * t)
-    assert c["verdict"] == D.FAILS
+    c, (a, C) = diagnostics.check_rate(t, 2.0 * (t + 1e-3) ** -1.2)
+    assert c["verdict"] == diagnostics.HOLDS and a == pytest.approx(1.2, abs=0.01)
+    c, _ = diagnostics.check_rate(t, 5.0 + 0 * t)
+    assert c["verdict"] == diagnostics.FAILS
     # a slow decrease towards a floor cannot be told from convergence at this horizon
-    c, _ = D.check_rate(t, 1.0 + 0.5 * np.exp(-t / 400))
-    assert c["verdict"] == D.UNDECIDED
+    c, _ = diagnostics.check_rate(t, 1.0 + 0.5 * np.exp(-t / 400))
+    assert c["verdict"] == diagnostics.UNDECIDED
 
 
 def test_lyapunov_function_and_bound():
@@ -148,30 +148,30 @@ def test_lyapunov_function_and_bound():
     G = np.diag([0.1, 0.2, 0.5])
     td = rng.normal(size=(n, nt))
     mu = np.linspace(1, 2, nt)
-    V = D.lyapunov(r, M, th, G, td, mu, 2.5)
+    V = diagnostics.lyapunov(r, M, th, G, td, mu, 2.5)
     k = 3
     expect = (0.5 * r[:, k] @ M[:, :, k] @ r[:, k] + 0.5 * th[:, k] @ np.linalg.inv(G) @ th[:, k]
               + 1.25 * np.sum((td[:, k] / mu[k]) ** 2))
     assert V[k] == pytest.approx(expect, rel=1e-12)
     t = np.linspace(0, 10, 101)
     W = np.ones((2, t.size))
-    ok, bound = D.check_lyapunov(t, 1.0 + 0.5 * t, W, 0.25, 0 * t, 1.0, 1.0)  # bound = 1 + t/2
-    assert ok["verdict"] == D.HOLDS
+    ok, bound = diagnostics.check_lyapunov(t, 1.0 + 0.5 * t, W, 0.25, 0 * t, 1.0, 1.0)  # bound = 1 + t/2
+    assert ok["verdict"] == diagnostics.HOLDS
     np.testing.assert_allclose(bound, 1 + 0.5 * t)
-    bad, _ = D.check_lyapunov(t, 1.0 + 0.6 * t, W, 0.25, 0 * t, 1.0, 1.0)
-    assert bad["verdict"] == D.FAILS and bad["measured"]["t_max_ratio"] == pytest.approx(10.0)
+    bad, _ = diagnostics.check_lyapunov(t, 1.0 + 0.6 * t, W, 0.25, 0 * t, 1.0, 1.0)
+    assert bad["verdict"] == diagnostics.FAILS and bad["measured"]["t_max_ratio"] == pytest.approx(10.0)
 
 
 def test_inactive_composite_term_is_flagged_with_the_fix():
     t = np.linspace(0, 120, 12_001)
     delta = np.where(t > 20, 2.5e-9, 0.0)                             # a 3-link arm's Δ level
-    c = D.check_active(t, delta, 1e10, 0.01, 20.0)
-    assert c["verdict"] == D.FAILS
+    c = diagnostics.check_active(t, delta, 1e10, 0.01, 20.0)
+    assert c["verdict"] == diagnostics.FAILS
     assert "gamma = \"auto\"" in c["note"]
     # the γ it suggests makes the term active: κ / (λ_max(Γ) Δ²) = 0.5 / (0.01 · 6.25e-18)
     g = c["measured"]["gamma_auto_from_this_run"]
     assert g == pytest.approx(0.5 / (0.01 * 2.5e-9 ** 2), rel=1e-3)
-    assert D.check_active(t, delta, g, 0.01, 20.0)["verdict"] == D.HOLDS
+    assert diagnostics.check_active(t, delta, g, 0.01, 20.0)["verdict"] == diagnostics.HOLDS
 
 
 def test_gamma_auto_rule():
@@ -191,8 +191,8 @@ def test_json_has_no_arrays_and_no_nan():
     from ivdrem.reports.synthetic import synthetic_paper_run
     run = synthetic_paper_run(load_config(), t_end=60.0)
     for law, lr in run.runs.items():
-        d = D.diagnose(lr, run.config, None, theta=run.theta)
-        text = json.dumps(D.to_json(d), allow_nan=False)
+        d = diagnostics.diagnose(lr, run.config, None, theta=run.theta)
+        text = json.dumps(diagnostics.to_json(d), allow_nan=False)
         assert "checks" in text
         ids = [c["id"] for c in d["checks"]]
         assert {"KA1", "KA2", "KA3", "P2", "P4.2", "RATE"} <= set(ids), law
@@ -213,6 +213,6 @@ def test_paper_json_has_diagnostics_per_law(tmp_path, monkeypatch, capsys):
     for law in ("iv-drem", "composite-learning"):
         ids = [c["id"] for c in data[law]["diagnostics"]["checks"]]
         assert ids[:3] == ["KA1", "PE", "KA2"]
-        assert all(c["verdict"] in (D.HOLDS, D.FAILS, D.UNDECIDED, D.NA)
+        assert all(c["verdict"] in (diagnostics.HOLDS, diagnostics.FAILS, diagnostics.UNDECIDED, diagnostics.NA)
                    for c in data[law]["diagnostics"]["checks"])
     assert "diagnostics of iv-drem" in capsys.readouterr().out

@@ -5,7 +5,7 @@ import pytest
 
 from ivdrem import laws as registry
 from ivdrem.diagrams import closed_loop
-from ivdrem.experiments import diagnostics as D
+from ivdrem.experiments import diagnostics
 from ivdrem.experiments.metrics import signal, signal_names
 from ivdrem.models import two_link
 from ivdrem.sim import simulate
@@ -41,7 +41,7 @@ def test_w_from_z_minus_phi_theta_equals_the_filtered_disturbance(runs):
         r = runs[law]
         phiT = signal(r, "phi").reshape(2, 5, -1)
         w_loop = signal(r, "z") - np.einsum("jkt,k->jt", phiT, THETA)
-        w_off = D.filtered_disturbance(r.time, signal(r, "tau_d"), 50.0)
+        w_off = diagnostics.filtered_disturbance(r.time, signal(r, "tau_d"), 50.0)
         scale = np.max(np.abs(w_off))
         assert np.max(np.abs(w_loop - w_off)) < 2e-3 * scale, law
 
@@ -89,10 +89,10 @@ def test_lyapunov_bound_of_the_proof_holds_on_a_closed_loop(runs):
 
     class Run:
         law, response, gamma = "iv-drem", runs["iv-drem"], 1e10
-    d = D.diagnose(Run, cfg, MODEL)
+    d = diagnostics.diagnose(Run, cfg, MODEL)
     v = {c["id"]: c for c in d["checks"]}["V"]
     assert v["measured"]["f_n_from"].startswith("true")
-    assert v["verdict"] == D.HOLDS, v
+    assert v["verdict"] == diagnostics.HOLDS, v
 
 
 def test_gamma_auto_follows_the_documented_rule():
@@ -114,12 +114,12 @@ def test_gamma_auto_follows_the_documented_rule():
 
 
 def test_a_registered_law_is_known_to_the_diagram_config_and_figures():
-    from ivdrem import blocks as B
+    from ivdrem import blocks as block_library
     from ivdrem.experiments.config import closed_loop_kwargs, load_config
     from ivdrem.reports.figures import law_color, law_label
 
     def build(ctx):
-        return [B.sigma_modification_term(ctx.ntheta, ctx.params["sigma"], np.zeros(ctx.ntheta))], []
+        return [block_library.sigma_modification_term(ctx.ntheta, ctx.params["sigma"], np.zeros(ctx.ntheta))], []
     law = registry.Law("leak-to-zero", build, "leak to 0", "#123456", "σ(0 − θ̂)",
                        defaults={"sigma": 0.05})
     registry.register_law(law)

@@ -18,7 +18,7 @@ import pytest
 from ivdrem.experiments.config import load_config
 from ivdrem.experiments.metrics import conclusions, key_numbers
 from ivdrem.reports import ReportError, write_report
-from ivdrem.reports import figures as F
+from ivdrem.reports import figures as report_figures
 from ivdrem.reports.cli import add_report_arguments, run_report_command
 from ivdrem.reports.synthetic import synthetic_paper_run
 
@@ -32,8 +32,8 @@ def text_pages(run):
     from matplotlib.backends.backend_pdf import PdfPages
     from ivdrem.reports.content import build_content
     from ivdrem.reports.pdf import write_text_pages
-    with mpl.rc_context(F.RC), PdfPages(io.BytesIO()) as pdf:
-        titles = [spec.title for spec in F.iter_figures(run)]
+    with mpl.rc_context(report_figures.RC), PdfPages(io.BytesIO()) as pdf:
+        titles = [spec.title for spec in report_figures.iter_figures(run)]
         return write_text_pages(pdf, build_content(run, fmu_check=FMU_CHECK), titles)
 FMU_CHECK = {"max |q - q_fmu| (rad)": 1.25e-9, "max |dq - dq_fmu| (rad/s)": 3.5e-8, "FMU steps": 60000}
 
@@ -218,7 +218,7 @@ def test_pdf_has_no_tex_and_embedded_truetype(report):
 @pytest.fixture
 def text_only(monkeypatch):
     """Reports without figures: the write path is the same, and it takes a second."""
-    monkeypatch.setattr(F, "FIGURES", [])
+    monkeypatch.setattr(report_figures, "FIGURES", [])
 
 
 def test_failing_verdicts_are_shown(tmp_path, text_only):
@@ -233,7 +233,7 @@ def test_failing_verdicts_are_shown(tmp_path, text_only):
 
 def test_figures_of_a_single_law_run():
     run = synthetic_paper_run(t_end=30.0, dt=0.05, laws=["composite-learning"])
-    keys = [spec.key for spec in F.iter_figures(run)]
+    keys = [spec.key for spec in report_figures.iter_figures(run)]
     # no Δ, 𝒲 without a DREM law; the law's Figure D of the diagnostics
     assert keys == ["fig2", "fig3", "fig4", "fig5", "fig6", "fig7", "figD-composite-learning"]
     assert [c["verdict"] for c in conclusions(run)] == [True, None, None, None]
@@ -246,8 +246,8 @@ def test_single_law_report_says_not_evaluated(tmp_path, text_only):
 
 
 def test_svg_ids_are_prefixed(run):
-    spec = F.fig_tracking_error(run)
-    svg = F.figure_to_svg(spec.figure, "figX-")
+    spec = report_figures.fig_tracking_error(run)
+    svg = report_figures.figure_to_svg(spec.figure, "figX-")
     ids = re.findall(r'\bid="([^"]+)"', svg)
     assert ids and all(i.startswith("figX-") for i in ids)
     for ref in re.findall(r'href="#([^"]+)"', svg) + re.findall(r"url\(#([^)]+)\)", svg):
@@ -257,7 +257,7 @@ def test_svg_ids_are_prefixed(run):
 def test_decimate_keeps_the_envelope():
     t = np.linspace(0, 100, 200001)
     y = np.sin(40 * t) * np.exp(-t / 50)
-    td, yd = F.decimate(t, y, buckets=500)
+    td, yd = report_figures.decimate(t, y, buckets=500)
     assert td.size <= 2 * 500 + 4 and td[0] == t[0] and td[-1] == t[-1]
     assert np.all(np.diff(td) > 0)
     assert yd.max() == y.max() and yd.min() == y.min()
@@ -269,7 +269,7 @@ def _fail(*args, **kwargs):
 
 
 def _only(monkeypatch, names):
-    monkeypatch.setattr(F, "FIGURES", list(names))
+    monkeypatch.setattr(report_figures, "FIGURES", list(names))
 
 
 def test_failure_in_a_figure_keeps_previous_report(tmp_path, monkeypatch):
@@ -277,7 +277,7 @@ def test_failure_in_a_figure_keeps_previous_report(tmp_path, monkeypatch):
     run = synthetic_paper_run(t_end=20.0, dt=0.05)
     html, pdf = write_report(run, tmp_path)
     old_html, old_pdf = html.read_bytes(), pdf.read_bytes()
-    monkeypatch.setattr(F, "fig_tau_d_error", _fail)
+    monkeypatch.setattr(report_figures, "fig_tau_d_error", _fail)
     with pytest.raises(RuntimeError, match="injected"):
         write_report(synthetic_paper_run(t_end=10.0, dt=0.05), tmp_path)
     assert html.read_bytes() == old_html and pdf.read_bytes() == old_pdf
@@ -285,19 +285,19 @@ def test_failure_in_a_figure_keeps_previous_report(tmp_path, monkeypatch):
 
 
 def test_failure_while_writing_the_pdf_keeps_previous_report(tmp_path, monkeypatch):
-    import ivdrem.reports.report as R
+    import ivdrem.reports.report as report_module
 
     _only(monkeypatch, ["fig_tracking_error"])
     run = synthetic_paper_run(t_end=20.0, dt=0.05)
     html, pdf = write_report(run, tmp_path)
     old_html, old_pdf = html.read_bytes(), pdf.read_bytes()
-    real = R.write_text_pages
+    real = report_module.write_text_pages
 
     def half_then_fail(pdf_pages, *args, **kwargs):
         real(pdf_pages, *args, **kwargs)  # some pages are already in the temporary file
         raise OSError("disk full (injected)")
 
-    monkeypatch.setattr(R, "write_text_pages", half_then_fail)
+    monkeypatch.setattr(report_module, "write_text_pages", half_then_fail)
     with pytest.raises(OSError, match="injected"):
         write_report(run, tmp_path)
     assert html.read_bytes() == old_html and pdf.read_bytes() == old_pdf
@@ -305,7 +305,7 @@ def test_failure_while_writing_the_pdf_keeps_previous_report(tmp_path, monkeypat
 
 
 def test_failure_without_previous_report_leaves_nothing(run, tmp_path, monkeypatch):
-    monkeypatch.setattr(F, "fig_theta_hat", _fail)
+    monkeypatch.setattr(report_figures, "fig_theta_hat", _fail)
     with pytest.raises(RuntimeError, match="injected"):
         write_report(run, tmp_path / "new")
     assert list((tmp_path / "new").iterdir()) == []
@@ -503,7 +503,7 @@ def test_pdf_tables_have_no_lone_rows(tmp_path, text_only):
         return orig(self)
     TextPages.flush = spy
     try:
-        with mpl.rc_context(F.RC), PdfPages(io.BytesIO()) as pdf:
+        with mpl.rc_context(report_figures.RC), PdfPages(io.BytesIO()) as pdf:
             write_text_pages(pdf, build_content(run, fmu_check=FMU_CHECK), [])
     finally:
         TextPages.flush = orig

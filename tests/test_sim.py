@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import ivdrem.blocks as B
+import ivdrem.blocks as block_library
 from ivdrem.blocks import BlockSpec, ParameterError, make_block
 from ivdrem.diagrams import assemble, closed_loop
 from ivdrem.sim import AlgebraicLoopError, SimulationError, Simulator, simulate
@@ -166,8 +166,8 @@ def test_simulator_advance_in_chunks_equals_one_shot(lab):
 
 # ============================================================== errors
 def test_input_output_response_refuses_delay_and_max_hold():
-    for extra in (B.transport_delay(3, 0.5, input="ext_g", output="g_delayed"),
-                  B.max_hold(2, 2, input="mh_in", output="held")):
+    for extra in (block_library.transport_delay(3, 0.5, input="ext_g", output="g_delayed"),
+                  block_library.max_hold(2, 2, input="mh_in", output="held")):
         d = assemble([lab_source(), extra], [extra.output_labels[0].split("[")[0]])
         with pytest.raises(Exception, match=r"ivdrem\.sim\.simulate") as ei:
             ct.input_output_response(d, T=np.linspace(0, 0.1, 5))

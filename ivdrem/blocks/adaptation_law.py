@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 from ._kernels import matT_vec
 
 
@@ -44,11 +44,11 @@ def adaptation_law(n, ntheta, Gamma=0.01, theta_hat0=None, *, name="adaptation_l
     params  Gamma (nθ x nθ, symmetric positive definite; scalar or diagonal accepted)
     ======  ==========================================================
     """
-    th0 = np.zeros(ntheta) if theta_hat0 is None else V.vector(name, "theta_hat0",
+    th0 = np.zeros(ntheta) if theta_hat0 is None else checks.vector(name, "theta_hat0",
                                                                theta_hat0, ntheta)
 
     def validate(p):
-        return {**p, "Gamma": V.square(name, "Gamma", p["Gamma"], ntheta, pd=True)}
+        return {**p, "Gamma": checks.square(name, "Gamma", p["Gamma"], ntheta, pd=True)}
     spec = BlockSpec(name=name, inputs=[("Pi", n * ntheta), ("r", n), ("theta_c", ntheta)],
                      outputs=[("theta_hat", ntheta)], states=[("theta_hat", ntheta)], x0=th0,
                      param_names=("Gamma",), update=adaptation_law_update,

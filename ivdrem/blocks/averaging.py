@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 from ._core import ParameterError
 
 
@@ -40,10 +40,10 @@ def averaging(size, p=2.0, F0=1.0, *, input="window_y", output="avg", name="aver
     """
     def validate(q):
         q = dict(q)
-        q["p"] = V.scalar(name, "p", q["p"])
+        q["p"] = checks.scalar(name, "p", q["p"])
         if q["p"] < 1:
             raise ParameterError(f"block '{name}': parameter 'p' must be >= 1, got {q['p']}")
-        q["F0"] = V.scalar(name, "F0", q["F0"], positive=True)
+        q["F0"] = checks.scalar(name, "F0", q["F0"], positive=True)
         return q
     spec = BlockSpec(name=name, inputs=[(input, size)], outputs=[(output, size)],
                      states=[(output, size)], x0=np.zeros(size), param_names=("p", "F0"),

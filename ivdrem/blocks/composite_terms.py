@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 
 
 def drem_term_output(t, x, u, y, gamma):
@@ -27,7 +27,7 @@ def drem_term(ntheta, gamma=1e10, *, name="drem_term"):
     ======  ==========================================================
     """
     def validate(p):
-        return {**p, "gamma": V.scalar(name, "gamma", p["gamma"], positive=True)}
+        return {**p, "gamma": checks.scalar(name, "gamma", p["gamma"], positive=True)}
     spec = BlockSpec(name=name, inputs=[("Delta", 1), ("calY", ntheta), ("theta_hat", ntheta)],
                      outputs=[("theta_c", ntheta)], states=[], x0=np.zeros(0),
                      param_names=("gamma",), output=drem_term_output,
@@ -59,7 +59,7 @@ def composite_learning_term(ntheta, gamma=1.0, *, input="held", name="composite_
     ======  ==========================================================
     """
     def validate(p):
-        return {**p, "gamma": V.scalar(name, "gamma", p["gamma"], positive=True)}
+        return {**p, "gamma": checks.scalar(name, "gamma", p["gamma"], positive=True)}
     spec = BlockSpec(name=name, inputs=[(input, ntheta + ntheta * ntheta), ("theta_hat", ntheta)],
                      outputs=[("theta_c", ntheta)], states=[], x0=np.zeros(0),
                      param_names=("gamma",), output=composite_learning_term_output,
@@ -85,8 +85,8 @@ def sigma_modification_term(ntheta, sigma=0.1, theta_star=None, *,
     ======  ==========================================================
     """
     def validate(p):
-        return {**p, "sigma": V.scalar(name, "sigma", p["sigma"], positive=True),
-                "theta_star": V.vector(name, "theta_star", p["theta_star"], ntheta)}
+        return {**p, "sigma": checks.scalar(name, "sigma", p["sigma"], positive=True),
+                "theta_star": checks.vector(name, "theta_star", p["theta_star"], ntheta)}
     ts = np.zeros(ntheta) if theta_star is None else theta_star
     spec = BlockSpec(name=name, inputs=[("theta_hat", ntheta)], outputs=[("theta_c", ntheta)],
                      states=[], x0=np.zeros(0), param_names=("sigma", "theta_star"),

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 
 
 def control_law_output(t, x, u, y, K, delta_mu, ntheta):
@@ -38,8 +38,8 @@ def control_law(n, ntheta, K=2.0, delta_mu=0.8, *, name="control_law"):
     """
     def validate(p):
         p = dict(p)
-        p["K"] = V.square(name, "K", p["K"], n, pd=True)
-        p["delta_mu"] = V.scalar(name, "delta_mu", p["delta_mu"], lo=0.0, hi=1.0)
+        p["K"] = checks.square(name, "K", p["K"], n, pd=True)
+        p["delta_mu"] = checks.scalar(name, "delta_mu", p["delta_mu"], lo=0.0, hi=1.0)
         return p
     spec = BlockSpec(name=name, inputs=[("r", n), ("mu", 1), ("Pi", n * ntheta),
                                         ("theta_hat", ntheta), ("u_f", n)],

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 
 
 def instrument_update(t, x, u, dx, l):
@@ -40,7 +40,7 @@ def instrument(model, l=50.0, *, name="instrument"):
     n, nth = model.n, model.ntheta
 
     def validate(p):
-        return {**p, "l": V.scalar(name, "l", p["l"], positive=True)}
+        return {**p, "l": checks.scalar(name, "l", p["l"], positive=True)}
     spec = BlockSpec(name=name, inputs=[("q_d", n), ("dq_d", n), ("ddq_d", n)],
                      outputs=[("zeta", n * nth)], states=[("zeta", n * nth)],
                      x0=np.zeros(n * nth), param_names=("l",), update=instrument_update,

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 
 
 def max_hold(nvec, nmat, epsilon=1e-9, *, dt_sample=1e-3, input="window_y", output="held",
@@ -25,8 +25,8 @@ def max_hold(nvec, nmat, epsilon=1e-9, *, dt_sample=1e-3, input="window_y", outp
     params  epsilon > 0, dt_sample > 0 (s, sampling period of lambda_min)
     ======  ==========================================================
     """
-    eps = V.scalar(name, "epsilon", epsilon, positive=True)
-    dts = V.scalar(name, "dt_sample", dt_sample, positive=True)
+    eps = checks.scalar(name, "epsilon", epsilon, positive=True)
+    dts = checks.scalar(name, "dt_sample", dt_sample, positive=True)
     size = nvec + nmat * nmat
     spec = BlockSpec(name=name, inputs=[(input, size)], outputs=[(output, size), (score, 1)],
                      states=[], x0=np.zeros(0), param_names=("epsilon", "dt_sample"),
@@ -34,7 +34,7 @@ def max_hold(nvec, nmat, epsilon=1e-9, *, dt_sample=1e-3, input="window_y", outp
                      info={"epsilon": eps, "nvec": nvec, "nmat": nmat, "size": size})
 
     spec.validate = lambda p: {**p,
-                               "epsilon": V.scalar(name, "epsilon", p["epsilon"], positive=True),
-                               "dt_sample": V.scalar(name, "dt_sample", p["dt_sample"],
+                               "epsilon": checks.scalar(name, "epsilon", p["epsilon"], positive=True),
+                               "dt_sample": checks.scalar(name, "dt_sample", p["dt_sample"],
                                                      positive=True)}
     return make_block(spec, {"epsilon": eps, "dt_sample": dts})

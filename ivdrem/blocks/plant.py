@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 
 
 def plant_update(t, x, u, dx, theta):
@@ -36,13 +36,13 @@ def plant(model, *, theta=None, q0=None, dq0=None, name="plant"):
     ======  =================================================================
     """
     n, nth = model.n, model.ntheta
-    q0 = np.zeros(n) if q0 is None else V.vector(name, "q0", q0, n)
-    dq0 = np.zeros(n) if dq0 is None else V.vector(name, "dq0", dq0, n)
+    q0 = np.zeros(n) if q0 is None else checks.vector(name, "q0", q0, n)
+    dq0 = np.zeros(n) if dq0 is None else checks.vector(name, "dq0", dq0, n)
     theta = model.theta_values if theta is None else theta
 
     def validate(p):
         p = dict(p)
-        p["theta"] = V.vector(name, "theta", p["theta"], nth)
+        p["theta"] = checks.vector(name, "theta", p["theta"], nth)
         return p
 
     spec = BlockSpec(name=name, inputs=[("tau", n), ("tau_d", n)],

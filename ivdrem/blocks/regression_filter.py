@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 
 
 def regression_filter_update(t, x, u, dx, l, ntheta):
@@ -66,7 +66,7 @@ def regression_filter(model, l=50.0, *, name="regression_filter"):
     n, nth = model.n, model.ntheta
 
     def validate(p):
-        return {**p, "l": V.scalar(name, "l", p["l"], positive=True)}
+        return {**p, "l": checks.scalar(name, "l", p["l"], positive=True)}
     spec = BlockSpec(name=name, inputs=[("tau", n), ("q", n), ("dq", n)],
                      outputs=[("z", n), ("phi", n * nth)],
                      states=[("z", n), ("xi", n * nth), ("eta", n * nth)],

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 
 
 def sliding_window_update(t, x, u, dx):
@@ -60,13 +60,13 @@ def transport_delay(size, T, *, input, output, derivative=None, name="transport_
     params  T > 0 (s)
     ======  ==========================================================
     """
-    T = V.scalar(name, "T", T, positive=True)
+    T = checks.scalar(name, "T", T, positive=True)
     inputs = [(input, size)] + ([(derivative, size)] if derivative else [])
     spec = BlockSpec(name=name, inputs=inputs, outputs=[(output, size)], states=[],
                      x0=np.zeros(0), param_names=("T",), output=None, kind="delay",
                      info={"T": T, "hermite": derivative is not None, "size": size})
 
-    spec.validate = lambda p: {**p, "T": V.scalar(name, "T", p["T"], positive=True)}
+    spec.validate = lambda p: {**p, "T": checks.scalar(name, "T", p["T"], positive=True)}
     return make_block(spec, {"T": T})
 
 

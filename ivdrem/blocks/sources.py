@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 
 
 def sinusoid_trajectory_output(t, x, u, y, amplitude, omega, phase, offset):
@@ -33,7 +33,7 @@ def _sine_params(name, n, prefix, amplitude, omega, phase, offset):
     vals = {"amplitude": amplitude, "omega": omega,
             "phase": np.zeros(n) if phase is None else phase,
             "offset": np.zeros(n) if offset is None else offset}
-    return {f"{prefix}_{k}": V.vector(name, f"{prefix}_{k}", v, n) for k, v in vals.items()}
+    return {f"{prefix}_{k}": checks.vector(name, f"{prefix}_{k}", v, n) for k, v in vals.items()}
 
 
 def _sine_validate(name, n, prefix):
@@ -95,8 +95,8 @@ def mu_schedule(mu0=1.0, mu1=15.0, *, name="mu_schedule"):
     """
     def validate(p):
         p = dict(p)
-        p["mu0"] = V.scalar(name, "mu0", p["mu0"], nonneg=True)
-        p["mu1"] = V.scalar(name, "mu1", p["mu1"], positive=True)
+        p["mu0"] = checks.scalar(name, "mu0", p["mu0"], nonneg=True)
+        p["mu1"] = checks.scalar(name, "mu1", p["mu1"], positive=True)
         return p
     spec = BlockSpec(name=name, inputs=[], outputs=[("mu", 1), ("dmu", 1)], states=[],
                      x0=np.zeros(0), param_names=("mu0", "mu1"), output=mu_schedule_output,

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._core import BlockSpec, make_block
-from . import _validate as V
+from . import _validate as checks
 
 
 def tracking_error_output(t, x, u, y, alpha):
@@ -32,7 +32,7 @@ def tracking_error(n, alpha=1.0, *, name="tracking_error"):
     ======  ====================================================
     """
     def validate(p):
-        return {**p, "alpha": V.scalar(name, "alpha", p["alpha"], positive=True)}
+        return {**p, "alpha": checks.scalar(name, "alpha", p["alpha"], positive=True)}
     spec = BlockSpec(name=name,
                      inputs=[("q", n), ("dq", n), ("q_d", n), ("dq_d", n), ("ddq_d", n)],
                      outputs=[("e", n), ("r", n), ("v", n), ("dv", n)], states=[],

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import control as ct
 
-from .. import blocks as B
+from .. import blocks as block_library
 from .. import laws as law_registry
 
 __all__ = ["closed_loop", "LAWS", "assemble", "check_connected"]
@@ -114,15 +114,15 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
             raise ValueError(f"unknown sinusoid parameter(s) {sorted(unknown)}")
         return factory(n, **spec)
 
-    blocks = [] if external_plant else [B.plant(model, theta=theta, q0=q0, dq0=dq0)]
+    blocks = [] if external_plant else [block_library.plant(model, theta=theta, q0=q0, dq0=dq0)]
     blocks += [
-        source(trajectory, B.trajectory),
-        source(disturbance, B.disturbance),
-        B.mu_schedule(mu0, mu1),
-        B.tracking_error(n, alpha),
-        B.torque_observer(model, variant=observer_variant),
-        B.control_law(n, nth, K=K, delta_mu=delta_mu),
-        B.adaptation_law(n, nth, Gamma=Gamma, theta_hat0=theta_hat0),
+        source(trajectory, block_library.trajectory),
+        source(disturbance, block_library.disturbance),
+        block_library.mu_schedule(mu0, mu1),
+        block_library.tracking_error(n, alpha),
+        block_library.torque_observer(model, variant=observer_variant),
+        block_library.control_law(n, nth, K=K, delta_mu=delta_mu),
+        block_library.adaptation_law(n, nth, Gamma=Gamma, theta_hat0=theta_hat0),
     ]
     outputs = ["q", "dq", "q_d", "e", "r", "tau", "tau_d", "tau_d_hat", "theta_hat", "mu",
                "Pi", "v", "dv"]  # Pi, v, dv: the observer (7) with the true θ, offline

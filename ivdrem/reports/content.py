@@ -12,7 +12,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..experiments import metrics as M
+from ..experiments import metrics
 
 __all__ = ["Table", "ReportContent", "build_content", "versions", "git_commit", "fmt"]
 
@@ -169,7 +169,7 @@ def _summary(run) -> Table:
     theta = np.asarray(run.theta, dtype=float)
     rows = []
     for law, lr in run.runs.items():
-        s = M.summary(lr, theta)
+        s = metrics.summary(lr, theta)
         rows.append([law, fmt(s["t_end"]), fmt(s["theta_err_norm"]), fmt(s["e_max_last20"]),
                      fmt(s["tau_d_err_rms_last20"]), fmt(s["theta_hat"])])
     return Table("summary", "Final values per law",
@@ -273,8 +273,8 @@ def _instrument_table(run, diags: Mapping) -> Table | None:
 def _conclusions_table(concl: list[dict]) -> Table:
     rows = []
     for c in concl:
-        rows.append([c["id"], c["statement"] + "\nCriterion: " + c["criterion"], M.key_numbers(c),
-                     M.verdict_text(c["verdict"])])
+        rows.append([c["id"], c["statement"] + "\nCriterion: " + c["criterion"], metrics.key_numbers(c),
+                     metrics.verdict_text(c["verdict"])])
     return Table("conclusions", "Conclusions C1-C4 of the paper, measured", ["", "statement and criterion",
                  "measured", "verdict"], rows, [0.05, 0.43, 0.4, 0.12], verdict_col=3)
 
@@ -293,7 +293,7 @@ def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
 
     cfg = run.config
     laws = list(run.runs)
-    concl = M.conclusions(run)
+    concl = metrics.conclusions(run)
     when = generated or _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     t_end = max(float(np.asarray(lr.response.time)[-1]) for lr in run.runs.values())
     synthetic = bool(getattr(run, "synthetic", False))

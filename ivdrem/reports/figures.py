@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from ..experiments import metrics as M
+from ..experiments import metrics
 
 __all__ = ["FigureSpec", "FIGURES", "LAW_STYLE", "law_label", "law_color", "iter_figures",
            "figure_to_svg", "decimate", "RC"]
@@ -246,7 +246,7 @@ def _mathify(s: str) -> str:
 def _laws(run, need=None):
     out = []
     for law, lr in run.runs.items():
-        if need is None or need in M.signal_names(lr.response):
+        if need is None or need in metrics.signal_names(lr.response):
             out.append(law)
     return out
 
@@ -257,7 +257,7 @@ def _t(lr):
 
 def _norm_panel(ax, run, laws, fn, ylabel):
     """‖x‖ per law; log axis when it spans decades."""
-    data = [(law, _t(run.runs[law]), M.norm(fn(run.runs[law]))) for law in laws]
+    data = [(law, _t(run.runs[law]), metrics.norm(fn(run.runs[law]))) for law in laws]
     log = any(_spans_decades(y, t) for _, t, y in data)
     for i, (law, t, y) in enumerate(data):
         _plot(ax, t, y, law, list(run.runs).index(law), log=log)
@@ -279,8 +279,8 @@ def fig_delta_W(run):
     for law in laws:
         lr = run.runs[law]
         t = _t(lr)
-        D = M.signal(lr, "Delta")
-        W = M.norm(M.calW(lr, theta))
+        D = metrics.signal(lr, "Delta")
+        W = metrics.norm(metrics.calW(lr, theta))
         k = order.index(law)
         _plot(axes[0], t, D, law, k, log=True)
         _plot(axes[1], t, W, law, k, log=True)
@@ -327,7 +327,7 @@ def fig_tracking_error(run):
     return _component_figure(
         run, "fig2", "Figure 2. Tracking error e(t)",
         "e = q_d − q for each joint; the last panel is ‖e‖ (log scale when it spans decades).",
-        lambda lr: M.signal(lr, "e"), lambda j: rf"$e_{{{j + 1}}}$", r"$\|e\|$", "rad")
+        lambda lr: metrics.signal(lr, "e"), lambda j: rf"$e_{{{j + 1}}}$", r"$\|e\|$", "rad")
 
 
 def fig_theta_error(run):
@@ -335,7 +335,7 @@ def fig_theta_error(run):
     return _component_figure(
         run, "fig3", "Figure 3. Parameter error θ̃(t)",
         "θ̃ = θ − θ̂ for each parameter; the last panel is ‖θ̃‖ (log scale when it spans decades).",
-        lambda lr: M.theta_error(lr, theta), lambda j: rf"$\tilde\theta_{{{j + 1}}}$",
+        lambda lr: metrics.theta_error(lr, theta), lambda j: rf"$\tilde\theta_{{{j + 1}}}$",
         r"$\|\tilde\theta\|$", "")
 
 
@@ -343,7 +343,7 @@ def fig_tau_d_error(run):
     return _component_figure(
         run, "fig4", "Figure 4. Disturbance estimation error τ̃_d(t)",
         "τ̃_d = τ_d − τ̂_d, τ̂_d extracted from the control signal (9); the last panel is ‖τ̃_d‖.",
-        lambda lr: M.tau_d_error(lr), lambda j: rf"$\tilde\tau_{{d,{j + 1}}}$",
+        lambda lr: metrics.tau_d_error(lr), lambda j: rf"$\tilde\tau_{{d,{j + 1}}}$",
         r"$\|\tilde\tau_d\|$", "N·m")
 
 
@@ -352,7 +352,7 @@ def fig_theta_hat(run):
     return _component_figure(
         run, "fig5", "Figure 5. Parameter estimates θ̂(t) and true θ",
         "Each estimate θ̂_j against the true value θ_j (dashed).",
-        lambda lr: M.signal(lr, "theta_hat"), lambda j: rf"$\hat\theta_{{{j + 1}}}$", None, "",
+        lambda lr: metrics.signal(lr, "theta_hat"), lambda j: rf"$\hat\theta_{{{j + 1}}}$", None, "",
         truth=theta)
 
 
@@ -360,7 +360,7 @@ def fig_torque(run):
     return _component_figure(
         run, "fig6", "Figure 6. Control torque τ(t)",
         "τ = (K + δ_μ μ) r + Πᵀθ̂ − u_f, eq. (9).",
-        lambda lr: M.signal(lr, "tau"), lambda j: rf"$\tau_{{{j + 1}}}$", None, "N·m")
+        lambda lr: metrics.signal(lr, "tau"), lambda j: rf"$\tau_{{{j + 1}}}$", None, "N·m")
 
 
 def fig_auxiliary(run):
@@ -375,13 +375,13 @@ def fig_auxiliary(run):
         for law in cl:
             lr = run.runs[law]
             t = _t(lr)
-            lam = M.signal(lr, "lambda_min_held")
+            lam = metrics.signal(lr, "lambda_min_held")
             _plot(ax, t, lam, law, order.index(law), log=_spans_decades(lam, t))
         ax.set_ylabel(r"$\lambda_{\min}(\Psi_b(t_e))$")
         ax.set_title(r"smallest eigenvalue of the held $\Psi_b$ of composite learning (35)")
         ax = axes[1]
     lr = run.runs[order[0]]
-    ax.plot(*decimate(_t(lr), M.signal(lr, "mu")), color="#333333")
+    ax.plot(*decimate(_t(lr), metrics.signal(lr, "mu")), color="#333333")
     ax.set_ylabel(r"$\mu(t)$")
     ax.set_title(r"weight $\mu(t) = \mu_0 t + \mu_1$ of the torque observer (same for every law)")
     laws = cl
@@ -396,7 +396,7 @@ def _na(ax, text):
 
 def fig_diagnostics_law(run, law, diag):
     """Figure D: the signals behind the verdicts of one law (ivdrem.experiments.diagnostics)."""
-    from ..experiments import diagnostics as D
+    from ..experiments import diagnostics
     title = f"Figure D ({law}). Assumptions of Theorem 2 along the run"
     caption = ("(a) ∫Δ² ds (KA1: keeps growing when Δ ∉ L2); (b) ∫‖τ̇_d‖²/μ² ds (KA2: levels "
                "off when λ ∈ L2); (c) running integrals ∫ζ_kj w_j ds of (19) (KA3: bounded); "
@@ -411,7 +411,7 @@ def fig_diagnostics_law(run, law, diag):
     color = law_color(law, k)
 
     def head(ax, text, cid):
-        ax.set_title(f"{text}  [{verdict.get(cid, D.NA)}]")
+        ax.set_title(f"{text}  [{verdict.get(cid, diagnostics.NA)}]")
 
     ax = axes[0]
     if "int_Delta2" in ser:

@@ -8,7 +8,7 @@ import matplotlib as mpl
 from matplotlib.backends.backend_pdf import PdfPages
 
 from .._atomic import fsync_file, new_tempfile
-from . import figures as F
+from . import figures as report_figures
 from .content import build_content
 from .html import GENERATOR, render_html
 from .pdf import write_text_pages
@@ -87,12 +87,12 @@ def write_report(run, outdir, *, fmu_check=None, basename="ivdrem-paper", overwr
         temps.append(html_tmp)
         pdf_tmp = new_tempfile(outdir, pdf_path.name)
         temps.append(pdf_tmp)
-        with mpl.rc_context(F.RC):
+        with mpl.rc_context(report_figures.RC):
             content = build_content(run, fmu_check=fmu_check)
             specs = []
-            for spec in F.iter_figures(run):
+            for spec in report_figures.iter_figures(run):
                 specs.append(spec)
-            svgs = [(s.key, s.title, F.figure_to_svg(s.figure, f"{s.key}-")) for s in specs]
+            svgs = [(s.key, s.title, report_figures.figure_to_svg(s.figure, f"{s.key}-")) for s in specs]
             meta = {
                 "Title": content.title,
                 "Subject": content.subtitle,

@@ -26,7 +26,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from .._atomic import fsync_file, new_tempfile
-from . import figures as F
+from . import figures as report_figures
 from .content import Table, fmt, git_commit
 from .pdf import TextPages
 
@@ -87,8 +87,8 @@ def _log_axis(values) -> bool:
 
 def _figure(rows: int, cols: int, title: str, caption: str, height: float = 2.2):
     h = 0.9 + rows * height + 0.45
-    fig = Figure(figsize=(F.WIDTH, h))
-    fig.subplots_adjust(left=0.9 / F.WIDTH, right=1 - 0.25 / F.WIDTH, top=1 - 0.75 / h,
+    fig = Figure(figsize=(report_figures.WIDTH, h))
+    fig.subplots_adjust(left=0.9 / report_figures.WIDTH, right=1 - 0.25 / report_figures.WIDTH, top=1 - 0.75 / h,
                         bottom=0.6 / h, hspace=0.45, wspace=0.35)
     axes = fig.subplots(rows, cols, squeeze=False)
     fig.text(0.5, 1 - 0.12 / h, title, ha="center", va="top", fontsize=11, fontweight="bold")
@@ -98,7 +98,7 @@ def _figure(rows: int, cols: int, title: str, caption: str, height: float = 2.2)
 
 
 def _legend(fig, laws):
-    handles = [Line2D([], [], color=F.law_color(law, i), marker="o", ms=3, label=F.law_label(law))
+    handles = [Line2D([], [], color=report_figures.law_color(law, i), marker="o", ms=3, label=report_figures.law_label(law))
                for i, law in enumerate(laws)]
     h = fig.get_figheight()
     fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 1 - 0.36 / h),
@@ -124,7 +124,7 @@ def fig_metrics_vs_key(df, key: str, grid_keys: list[str], number: int):
             x = sub[key].astype(float).to_numpy() if numeric else \
                 np.array([cats.index(str(v)) for v in sub[key]], dtype=float)
             y = sub[m].astype(float).to_numpy()
-            color = F.law_color(law, i)
+            color = report_figures.law_color(law, i)
             ax.plot(x, y, "o", ms=2.5, alpha=0.45, color=color, mec="none")
             if key in grid_keys or not numeric:
                 xs = np.unique(x)
@@ -176,7 +176,7 @@ def fig_heatmap(df, kx: str, ky: str, number: int):
         ax.set_yticks(range(len(ys)), [f"{v:g}" for v in ys])
         ax.set_xlabel(kx)
         ax.set_ylabel(ky)
-        ax.set_title(F.law_label(law))
+        ax.set_title(report_figures.law_label(law))
         ax.grid(False)
         fig.colorbar(im, ax=ax, shrink=0.9)
     return f"fig-heatmap-{number}", title, fig
@@ -203,7 +203,7 @@ def fig_envelope(df, curves, number: int, random: bool):
         sub = cv[cv["law"] == law]
         g = sub.groupby("t")["theta_err_norm"]
         t = np.asarray(g.median().index, dtype=float)
-        color = F.law_color(law, i)
+        color = report_figures.law_color(law, i)
         ax.fill_between(t, g.min().to_numpy(), g.max().to_numpy(), color=color, alpha=0.22, lw=0)
         ax.plot(t, g.median().to_numpy(), color=color, lw=1.3)
     if _log_axis(cv["theta_err_norm"].astype(float)):
@@ -407,9 +407,9 @@ def write_study_report(outdir, *, spec, runs, results, curves, lost=None, wall_s
         temps.append(html_tmp)
         pdf_tmp = new_tempfile(outdir, pdf_path.name)
         temps.append(pdf_tmp)
-        with mpl.rc_context(F.RC):
+        with mpl.rc_context(report_figures.RC):
             figs = build_figures(spec, results, curves)
-            svgs = [(k, t, F.figure_to_svg(fig, f"{k}-")) for k, t, fig in figs]
+            svgs = [(k, t, report_figures.figure_to_svg(fig, f"{k}-")) for k, t, fig in figs]
             pdf_meta = {"Title": title, "Creator": GENERATOR, "Keywords": "ivdrem, parameter study"}
             with PdfPages(pdf_tmp, metadata=pdf_meta) as pdf:
                 tp = TextPages(pdf, footer=f"{title}  ·  {meta[0][1]}")
