@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["new_tempfile", "fsync_file", "write_text_atomic"]
+__all__ = ["new_tempfile", "fsync_file", "write_text_atomic", "written_together"]
 
 
 def _umask() -> int:
@@ -55,3 +56,26 @@ def write_text_atomic(path, text: str) -> Path:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+@contextmanager
+def written_together(*targets):
+    """Temporaries next to each target, yielded as a tuple; on normal exit each is flushed
+    and replaces its target (in order); on any error no target is touched, and no
+    temporary is left behind either way."""
+    temps = []
+    try:
+        for target in targets:
+            target = Path(target)
+            temps.append(new_tempfile(target.parent, target.name))
+        yield tuple(temps)
+        for tmp in temps:
+            fsync_file(tmp)
+        for tmp, target in zip(temps, targets):
+            os.replace(tmp, target)
+    finally:
+        for tmp in temps:
+            try:
+                tmp.unlink(missing_ok=True)
+            except OSError:
+                pass

@@ -7,7 +7,7 @@ from pathlib import Path
 import matplotlib as mpl
 from matplotlib.backends.backend_pdf import PdfPages
 
-from .._atomic import fsync_file, new_tempfile
+from .._atomic import written_together
 from . import figures as report_figures
 from .content import build_content
 from .html import GENERATOR, render_html
@@ -81,12 +81,7 @@ def write_report(run, outdir, *, fmu_check=None, basename="ivdrem-paper", overwr
     outdir = html_path.parent
     outdir.mkdir(parents=True, exist_ok=True)
 
-    temps: list[Path] = []
-    try:
-        html_tmp = new_tempfile(outdir, html_path.name)
-        temps.append(html_tmp)
-        pdf_tmp = new_tempfile(outdir, pdf_path.name)
-        temps.append(pdf_tmp)
+    with written_together(html_path, pdf_path) as (html_tmp, pdf_tmp):
         with mpl.rc_context(report_figures.RC):
             content = build_content(run, fmu_check=fmu_check)
             specs = []
@@ -104,18 +99,6 @@ def write_report(run, outdir, *, fmu_check=None, basename="ivdrem-paper", overwr
                 for s in specs:
                     pdf.savefig(s.figure)
             html_tmp.write_text(render_html(content, svgs), encoding="utf-8")
-        for tmp in temps:
-            fsync_file(tmp)
-        os.replace(html_tmp, html_path)
-        temps.remove(html_tmp)
-        os.replace(pdf_tmp, pdf_path)
-        temps.remove(pdf_tmp)
-    finally:
-        for tmp in temps:
-            try:
-                tmp.unlink()
-            except OSError:
-                pass
     return html_path, pdf_path
 
 

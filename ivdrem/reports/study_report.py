@@ -25,7 +25,7 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from .._atomic import fsync_file, new_tempfile
+from .._atomic import written_together
 from . import figures as report_figures
 from .content import Table, fmt, git_commit
 from .pdf import TextPages
@@ -401,12 +401,7 @@ def write_study_report(outdir, *, spec, runs, results, curves, lost=None, wall_s
     meta = _definition(spec, runs, results, wall_s, lost)
     varied = _varied(results)
     tables = [_verdict_counts(results), _failed_table(results, lost), _runs_table(results, varied)]
-    temps = []
-    try:
-        html_tmp = new_tempfile(outdir, html_path.name)
-        temps.append(html_tmp)
-        pdf_tmp = new_tempfile(outdir, pdf_path.name)
-        temps.append(pdf_tmp)
+    with written_together(html_path, pdf_path) as (html_tmp, pdf_tmp):
         with mpl.rc_context(report_figures.RC):
             figs = build_figures(spec, results, curves)
             svgs = [(k, t, report_figures.figure_to_svg(fig, f"{k}-")) for k, t, fig in figs]
@@ -429,15 +424,6 @@ def write_study_report(outdir, *, spec, runs, results, curves, lost=None, wall_s
                 for _, _, fig in figs:
                     pdf.savefig(fig)
             html_tmp.write_text(_render_html(title, meta, tables, svgs, spec.text), encoding="utf-8")
-        for tmp in temps:
-            fsync_file(tmp)
-        os.replace(html_tmp, html_path)
-        temps.remove(html_tmp)
-        os.replace(pdf_tmp, pdf_path)
-        temps.remove(pdf_tmp)
-    finally:
-        for tmp in temps:
-            tmp.unlink(missing_ok=True)
     return html_path, pdf_path
 
 
