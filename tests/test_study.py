@@ -358,3 +358,12 @@ def test_killed_worker_loses_no_run(tmp_path, cluster):
     assert not df.attrs["lost"]
     with pytest.raises(ProcessLookupError):
         os.kill(killed["pid"], 0)  # it really died
+
+
+def test_non_utf8_study_file_is_a_clear_error(tmp_path):
+    """A study file read like a config file: not UTF-8 is refused naming the byte."""
+    from ivdrem.experiments.study_spec import StudyError, read_study
+    f = tmp_path / "s.toml"
+    f.write_bytes(b"[study.grid]\n# caf\xe9\n")
+    with pytest.raises(StudyError, match=r"study file .* is not UTF-8 text.*0xe9"):
+        read_study(f)

@@ -239,24 +239,32 @@ def load_config(path: str | Path | None = None, overrides: Mapping | None = None
     user_set: set = set()
     if path is not None:
         p = Path(path)
-        try:
-            text = p.read_text("utf-8")
-        except FileNotFoundError:
-            raise ConfigError(f"config file '{p}' not found") from None
-        except UnicodeDecodeError as exc:
-            raise ConfigError(f"config file '{p}' is not UTF-8 text (TOML must be UTF-8): "
-                              f"byte {exc.object[exc.start]:#04x} at offset {exc.start}") from None
-        except OSError as exc:
-            raise ConfigError(f"config file '{p}' cannot be read: {exc}") from None
-        try:
-            user = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"config file '{p}' is not valid TOML: {exc}") from None
+        user, _ = read_toml(p)
         _merge(cfg, user, where=str(p), user_set=user_set)
     if overrides:
         _merge(cfg, _undot(overrides), where="overrides", user_set=user_set)
     _follow_model(cfg, user_set)
     return validate_config(cfg)
+
+
+def read_toml(path, what: str = "config file", error=None) -> tuple[dict, str]:
+    """(table, text) of a TOML file; a missing, unreadable, non-UTF-8 or invalid file raises
+    `error` (default ConfigError) naming `what` and the path."""
+    error = ConfigError if error is None else error
+    p = Path(path)
+    try:
+        text = p.read_text("utf-8")
+    except FileNotFoundError:
+        raise error(f"{what} '{p}' not found") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"{what} '{p}' is not UTF-8 text (TOML must be UTF-8): "
+                    f"byte {exc.object[exc.start]:#04x} at offset {exc.start}") from None
+    except OSError as exc:
+        raise error(f"{what} '{p}' cannot be read: {exc}") from None
+    try:
+        return tomllib.loads(text), text
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{what} '{p}' is not valid TOML: {exc}") from None
 
 
 def _undot(overrides: Mapping) -> dict:

@@ -44,12 +44,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .config import ConfigError, closed_loop_kwargs, load_config, solver_kwargs, validate_config
+from .config import (ConfigError, closed_loop_kwargs, load_config, read_toml, solver_kwargs,
+                     validate_config)
 
-try:  # Python >= 3.11
-    import tomllib
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
 
 __all__ = ["StudyError", "StudySpec", "RunSpec", "DISTRIBUTIONS", "read_study", "expand_study",
            "config_hash"]
@@ -157,16 +154,7 @@ def read_study(source) -> StudySpec:
         where, folder, text = "<dict>", Path.cwd(), None
     else:
         path = Path(source)
-        try:
-            text = path.read_text("utf-8")
-        except FileNotFoundError:
-            raise StudyError(f"study file '{path}' not found") from None
-        except OSError as exc:
-            raise StudyError(f"study file '{path}' cannot be read: {exc}") from None
-        try:
-            raw = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise StudyError(f"study file '{path}' is not valid TOML: {exc}") from None
+        raw, text = read_toml(path, "study file", StudyError)
         where, folder = str(path), path.resolve().parent
     study = raw.pop("study", None)
     if not isinstance(study, Mapping):

@@ -20,15 +20,15 @@ class ReportError(FileExistsError):
     """The report would overwrite a file that ivdrem did not write."""
 
 
-def _is_ours(path: Path, kind: str) -> bool:
+def _is_ours(path: Path, kind: str, generator: str = GENERATOR) -> bool:
+    """Whether `path` is an HTML or PDF file that `generator` wrote (so it may be replaced)."""
     try:
-        with open(path, "rb") as fh:
-            data = fh.read()
+        data = Path(path).read_bytes()
     except OSError:
         return False
     if kind == "html":
-        return f'<meta name="generator" content="{GENERATOR}">'.encode() in data[:4096]
-    return data.startswith(b"%PDF") and GENERATOR.encode() in data
+        return f'<meta name="generator" content="{generator}">'.encode() in data[:4096]
+    return data.startswith(b"%PDF") and generator.encode() in data
 
 
 def _check_target(path: Path, kind: str, overwrite: bool) -> None:

@@ -26,6 +26,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from .._atomic import written_together
+from .report import _is_ours as is_report_of
 from . import figures as report_figures
 from .content import Table, fmt, git_commit
 from .pdf import TextPages
@@ -49,13 +50,7 @@ _METRIC_TEXT = {
 
 # --------------------------------------------------------------------------- targets
 def _is_ours(path: Path, kind: str) -> bool:
-    try:
-        data = path.read_bytes()
-    except OSError:
-        return False
-    if kind == "html":
-        return f'<meta name="generator" content="{GENERATOR}">'.encode() in data[:4096]
-    return data.startswith(b"%PDF") and GENERATOR.encode() in data
+    return is_report_of(path, kind, GENERATOR)
 
 
 def report_paths(outdir) -> tuple[Path, Path]:
