@@ -48,7 +48,10 @@ from .sparse_lu import symbolic_lu
 
 __all__ = ["CompiledEngine", "generate_source", "cache_dir", "CompileError"]
 
-_ALLOWED_GLOBALS = {"np", "math", "model"} | {k for k in dir(_kernels) if not k.startswith("_")}
+# what a kernel may name besides its arguments: numpy, math, its robot model, the shared
+# helpers, and call_c (C functions by address: FMU calls, Python callbacks)
+_ALLOWED_GLOBALS = ({"np", "math", "model", "call_c"}
+                    | {k for k in dir(_kernels) if not k.startswith("_")})
 _modules = {}
 
 
@@ -76,7 +79,7 @@ def _kernel_source(fn, block_name, has_model):
                 f"kernel {fn.__name__} of block '{block_name}' uses the global {g!r}, which the "
                 f"compiled path cannot see (allowed: np, math, model and ivdrem.blocks._kernels "
                 f"helpers). Pass it as a parameter, or simulate with engine='reference'.")
-        if g not in ("np", "math", "model") and val is not getattr(_kernels, g, None):
+        if g not in ("np", "math", "model", "call_c") and val is not getattr(_kernels, g, None):
             raise CompileError(f"kernel {fn.__name__} of block '{block_name}': global {g!r} "
                                "shadows an ivdrem.blocks._kernels helper")
     src = textwrap.dedent(inspect.getsource(fn))
@@ -89,7 +92,7 @@ def _kernel_source(fn, block_name, has_model):
 
 
 _HEADER = ["import math", "import numpy as np", "from numba import njit",
-           "from ivdrem.blocks._kernels import *"]
+           "from ivdrem.blocks._kernels import *", "from ivdrem.sim._native import call_c"]
 
 
 def _model_module(model):
