@@ -153,6 +153,18 @@ def _fill_inputs(plan, indices, ny, lines, ind="    "):
     lines += other
 
 
+def kernel_call(b, role, kernel, t, x, u, out, pargs):
+    """Source of one call of block b's kernel `role` ("update", "output", "jacobian").
+
+    `kernel` is the kernel's local name in the generated module; `x`, `u` and `out` are
+    expressions for the block's flat state, input and output (or derivative, or local
+    Jacobian) vectors; `pargs` the parameter arguments, each preceded by ", ".  Every
+    kernel call of the generated code is built here, so the calling convention lives in
+    one place.
+    """
+    return f"{kernel}({t}, {x}, {u}, {out}{pargs})"
+
+
 def generate_source(plan, param_exprs=None):
     """Source of the diagram module and of the model/kernel modules it imports.
 
@@ -225,8 +237,9 @@ def generate_source(plan, param_exprs=None):
         _fill_inputs(plan, direct, ny, lines)
         filled |= set(direct)
         if spec.kind == "ode":
-            lines.append(f"    {kname(b, 'output')}(t, x[{sl(b.x)}], us[{sl(b.u)}], "
-                         f"ys[{sl(b.y)}]{pargs(b)})")
+            lines.append("    " + kernel_call(b, "output", kname(b, "output"), "t",
+                                             f"x[{sl(b.x)}]", f"us[{sl(b.u)}]",
+                                             f"ys[{sl(b.y)}]", pargs(b)))
         elif spec.kind == "delay":
             dl = next(x for x in plan.delays if x["block"] == k)
             lines.append(f"    hist_lookup(W, t - {playout[k][0]}, {dl['off']}, "
@@ -248,8 +261,9 @@ def generate_source(plan, param_exprs=None):
     n_upd = 0
     for b in plan.blocks:
         if b.spec.kind == "ode" and b.spec.update is not None and b.sys.nstates:
-            lines.append(f"        {kname(b, 'update')}(t, x[{sl(b.x)}], us[{sl(b.u)}], "
-                         f"out[{sl(b.x)}]{pargs(b)})")
+            lines.append("        " + kernel_call(b, "update", kname(b, "update"), "t",
+                                                 f"x[{sl(b.x)}]", f"us[{sl(b.u)}]",
+                                                 f"out[{sl(b.x)}]", pargs(b)))
             n_upd += 1
     lines.append("        return OK")
 
@@ -303,12 +317,14 @@ def generate_source(plan, param_exprs=None):
     calls = []
     for b in prog.fd_blocks:
         nx, nu, ny = b.sys.nstates, b.sys.ninputs, b.sys.noutputs
-        c_out = [f"            {kname(b, 'output')}(t, xb[0:{nx}], ub[0:{nu}], "
-                 f"yf[0:{ny}]{pargs(b)})"]
+        c_out = ["            " + kernel_call(b, "output", kname(b, "output"), "t",
+                                                 f"xb[0:{nx}]", f"ub[0:{nu}]", f"yf[0:{ny}]",
+                                                 pargs(b))]
         c_upd = []
         if b.spec.update is not None and nx:
-            c_upd.append(f"            {kname(b, 'update')}(t, xb[0:{nx}], ub[0:{nu}], "
-                         f"yf[{ny}:{ny + nx}]{pargs(b)})")
+            c_upd.append("            " + kernel_call(b, "update", kname(b, "update"), "t",
+                                                         f"xb[0:{nx}]", f"ub[0:{nu}]",
+                                                         f"yf[{ny}:{ny + nx}]", pargs(b)))
         calls.append((c_out, c_upd))
     supplied = []
     for b in prog.fd_blocks:
@@ -317,8 +333,10 @@ def generate_source(plan, param_exprs=None):
         else:
             nx, nu = b.sys.nstates, b.sys.ninputs
             ny = b.sys.noutputs
-            supplied.append([f"        {kname(b, 'jacobian')}(t, xb[0:{nx}], ub[0:{nu}], "
-                             f"jl[0:{ny + nx}, 0:{nx + nu}]{pargs(b)})"])
+            supplied.append(["        " + kernel_call(b, "jacobian", kname(b, "jacobian"), "t",
+                                                         f"xb[0:{nx}]", f"ub[0:{nu}]",
+                                                         f"jl[0:{ny + nx}, 0:{nx + nu}]",
+                                                         pargs(b))])
     out.append(jacobian_source(prog, slu, calls, supplied))
     jit_names += ["block_eval", "block_jacobian", "diagram_jacobian", "newton_factor",
                   "newton_solve"]
