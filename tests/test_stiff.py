@@ -142,7 +142,8 @@ def _template_ns(f, jac):
         jac(t, x, J)
         return tpl.OK
     ns.update(diagram_eval=diagram_eval, diagram_jacobian=diagram_jacobian,
-              newton_factor=ns["dense_factor"], newton_solve=ns["dense_solve"])
+              newton_factor=lambda W, J, c, LU, piv: ns["dense_factor"](J, c, LU, piv),
+              newton_solve=lambda W, LU, piv, b: ns["dense_solve"](LU, piv, b))
     return ns
 
 

@@ -7,14 +7,16 @@ engine supplies:
   pushes the delay history and updates (or probes) the max-holds at an accepted point and
   returns a status; mode RECORD writes the diagram outputs into out.  (One function rather
   than three keeps numba from optimising the diagram code thrice.)
-* ``diagram_jacobian(t, x, P, W, J)``, ``newton_factor(J, c, LU, piv)``,
-  ``newton_solve(LU, piv, b)``: df/dx of mode RHS, and the factorisation / solve of
-  c I - J used by the Rosenbrock method.  Generic versions an engine may use
+* ``diagram_jacobian(t, x, P, W, J)``, ``newton_factor(W, J, c, LU, piv)``,
+  ``newton_solve(W, LU, piv, b)``: df/dx of mode RHS, and the factorisation / solve of
+  c I - J used by the Rosenbrock method (W passed so that the compiled engine's stepper
+  can reach the diagram's functions, see ivdrem.sim.stepper).  Generic versions an engine may use
   (``fd_jacobian``, ``dense_factor``, ``dense_solve``) are defined at the end.
 
 The reference engine runs these functions in Python with python-control behind the
-right-hand side; the compiled engine pastes this source into the generated module and numba
-compiles it with the generated ``diagram_eval``.  Same code, same semantics.
+right-hand side; the compiled engine compiles this source once, for every diagram, into a
+stepper module whose diagram functions call each diagram's compiled functions by address
+(:mod:`ivdrem.sim.stepper`).  Same code, same semantics.
 
 Structure (integrator apart from the loop): each method is a step function
 ``*_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)`` that leaves the new state in
@@ -52,6 +54,7 @@ STEP_TOO_SMALL = 4
 MAX_STEPS = 5
 SINGULAR = 6
 DIVERGED_GROWTH = 7
+BLOCK_RAISED = 8      # a block's compiled kernel raised (compiled engine, ivdrem.sim.stepper)
 
 # method ids (the table in ivdrem.sim.simulator maps names to these)
 RK4 = 0
@@ -436,7 +439,7 @@ def rodas5p_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats):
     diagram_eval(RHS, t + dt, x, P, W, ft)
     for i in range(n):
         ft[i] = (ft[i] - f0[i]) / dt
-    st = newton_factor(J, 1.0 / (RODAS5P_GAMMA * h), LU, piv)
+    st = newton_factor(W, J, 1.0 / (RODAS5P_GAMMA * h), LU, piv)
     stats[S_LU] += 1
     stats[S_RHS] += 1
     if st != OK:
@@ -465,7 +468,7 @@ def rodas5p_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats):
                 Uj = K[1 + j]
                 for i in range(n):
                     U[i] += c * Uj[i]
-        newton_solve(LU, piv, U)
+        newton_solve(W, LU, piv, U)
     for i in range(n):
         v = x[i]
         for j in range(8):

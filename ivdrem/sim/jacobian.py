@@ -312,11 +312,13 @@ def _arr(name, a, dtype="np.int64"):
 
 
 def generated_source(prog, slu, block_calls, supplied=None):
-    """Source of block_eval, diagram_jacobian, newton_factor and newton_solve.
+    """Source of block_eval, diagram_jacobian, sparse_factor / sparse_solve and the
+    template's newton_factor / newton_solve on top of them.
 
     `block_calls[k]` are (output lines, update lines) (indented 12) that evaluate block k
-    from xb[0:nx], ub[0:nu]: output kernel into yf[0:ny], update kernel into yf[ny:ny+nx].  `supplied[k]`, if
-    not None, are the lines that call the block's own Jacobian kernel into jl (dense
+    from xb[0:nx], ub[0:nu]: output kernel into yf[0:ny], update kernel into yf[ny:ny+nx];
+    each returns a non-OK status if the kernel raised.  `supplied[k]`, if not None, are
+    the lines that call the block's own Jacobian kernel into jl (row-major
     (ny + nx) x (nx + nu)), used instead of differences.
     """
     supplied = supplied or [None] * len(block_calls)
@@ -337,9 +339,7 @@ def generated_source(prog, slu, block_calls, supplied=None):
                  f"{slu.ordering} ordering, nnz(A) = {slu.nnz_a}, nnz(L+U) = {slu.nnz_lu}")
     for name in ("perm", "rowptr", "colidx", "diagp"):
         lines.append(_arr("_SLU_" + name.upper(), getattr(slu, name)))
-    lines += ["", "", "def block_eval(k, kind, t, xb, ub, yf, P):"]
-    if nfd == 0:
-        lines.append("    return")
+    lines += ["", "", "def block_eval(k, kind, t, xb, ub, yf, P, W):"]
     for k, (out_calls, upd_calls) in enumerate(block_calls):
         lines.append(f"    {'if' if k == 0 else 'elif'} k == {k}:")
         lines.append("        if kind == 0:")
@@ -347,12 +347,12 @@ def generated_source(prog, slu, block_calls, supplied=None):
         if upd_calls:
             lines.append("        else:")
             lines += upd_calls
-    lines += ["", "", "def block_jacobian(k, t, xb, ub, jl, P):"]
-    if not with_jac:
-        lines.append("    return")
+    lines.append("    return OK")
+    lines += ["", "", "def block_jacobian(k, t, xb, ub, jl, P, W):"]
     for i, k in enumerate(with_jac):
         lines.append(f"    {'if' if i == 0 else 'elif'} k == {k}:")
         lines += supplied[k]
+    lines.append("    return OK")
     lines.append(_arr("_JAC_SUPPLIED", [int(s is not None) for s in supplied] or [0]))
     maxcol = int(max((p.fd_nx + p.fd_nu).max(initial=0), 1))
     lines += [
@@ -369,7 +369,7 @@ def generated_source(prog, slu, block_calls, supplied=None):
         f"    xb0 = np.empty({maxx})", f"    ub0 = np.empty({maxu})",
         f"    yp = np.empty({maxyf})", f"    ym = np.empty({maxyf})",
         f"    hh = np.empty({max(p.col.size, 1)})",
-        f"    jl = np.empty(({maxyf}, {maxcol}))",
+        f"    jl = np.empty({maxyf * maxcol})      # a block's local Jacobian, row-major",
         f"    for kb in range({nfd}):",
         "        nx = _JAC_FD_NX[kb]",
         "        nu = _JAC_FD_NU[kb]",
@@ -380,33 +380,41 @@ def generated_source(prog, slu, block_calls, supplied=None):
         "            ub0[i] = us[_JAC_FD_U0[kb] + i]",
         "            ub[i] = ub0[i]",
         "        if _JAC_SUPPLIED[kb] == 1:     # the block's own Jacobian kernel",
-        "            for i in range(nx + nu):",
-        "                for r in range(_JAC_FD_NY[kb] + nx):",
-        "                    jl[r, i] = 0.0",
-        "            block_jacobian(kb, t, xb, ub, jl, P)",
+        "            for i in range((_JAC_FD_NY[kb] + nx) * (nx + nu)):",
+        "                jl[i] = 0.0",
+        "            if block_jacobian(kb, t, xb, ub, jl, P, W) != OK:",
+        "                return BLOCK_RAISED",
         "            for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
         "                for c in range(_JAC_GC_PTR[g], _JAC_GC_PTR[g + 1]):",
         "                    for e in range(_JAC_E_PTR[c], _JAC_E_PTR[c + 1]):",
-        "                        F[_JAC_E_SLOT[e]] = jl[_JAC_E_ROW[e], _JAC_COL[c]]",
+        "                        F[_JAC_E_SLOT[e]] = jl[_JAC_E_ROW[e] * (nx + nu) + _JAC_COL[c]]",
         "            continue",
         "        for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
         "            c0 = _JAC_GC_PTR[g]",
         "            c1 = _JAC_GC_PTR[g + 1]",
         "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 1.0, hh)",
         "            kind = _JAC_G_KIND[g]",
-        "            block_eval(kb, kind, t, xb, ub, yp, P)",
+        "            if block_eval(kb, kind, t, xb, ub, yp, P, W) != OK:",
+        "                return BLOCK_RAISED",
         "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, -1.0, hh)",
-        "            block_eval(kb, kind, t, xb, ub, ym, P)",
+        "            if block_eval(kb, kind, t, xb, ub, ym, P, W) != OK:",
+        "                return BLOCK_RAISED",
         "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 0.0, hh)",
         "            fd_scatter(yp, ym, hh, c0, c1, _JAC_E_PTR, _JAC_E_ROW, _JAC_E_SLOT, F)",
         f"    jac_chain(F, _JAC_INS_DST, _JAC_INS_F, _JAC_INS_SRC, {p.n_slots}, _JAC_J_ROW,",
         "              _JAC_J_COL, _JAC_J_SLOT, J)",
         "    return OK",
         "", "",
-        "def newton_factor(J, c, LU, piv):",
+        "def sparse_factor(J, c, LU, piv):",
         "    return slu_factor(J, c, LU, piv, _SLU_PERM, _SLU_ROWPTR, _SLU_COLIDX, _SLU_DIAGP)",
         "", "",
-        "def newton_solve(LU, piv, b):",
+        "def sparse_solve(LU, piv, b):",
         "    slu_solve(LU, _SLU_PERM, _SLU_ROWPTR, _SLU_COLIDX, _SLU_DIAGP, b)",
+        "", "",
+        "def newton_factor(W, J, c, LU, piv):",
+        "    return sparse_factor(J, c, LU, piv)",
+        "", "",
+        "def newton_solve(W, LU, piv, b):",
+        "    sparse_solve(LU, piv, b)",
         ""]
     return "\n".join(lines)

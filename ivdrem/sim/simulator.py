@@ -72,10 +72,25 @@ STIFF_METHOD = "rodas5p"
 ENGINES = ("compiled", "reference")
 _TEMPLATE_PATH = Path(tpl.__file__)
 
-#: The workspace of a run (positions 0..8 are indexed by position in generated code).
-Workspace = namedtuple("Workspace", ["hist_t", "hist_v", "hist_d", "hist_meta", "held", "score",
-                                     "ys", "us", "u_ext", "hold_dt", "hold_mode", "hold_time",
-                                     "hold_vec", "probing", "clock"])
+#: The workspace of a run: (field, dtype, ndim), in order (generated code indexes the
+#: fields by position; the compiled engine's stepper passes them to a diagram's C-callable
+#: functions as a table of addresses and shapes, ivdrem.sim.stepper).  ``tab`` is that
+#: table; ``fns`` the addresses of the diagram's functions, ``kernels`` those of its blocks'
+#: kernels, ``failure`` [kernel index, t] of a kernel that raised (compiled engine only).
+WORKSPACE_LAYOUT = (
+    ("hist_t", "float64", 1), ("hist_v", "float64", 2), ("hist_d", "float64", 2),
+    ("hist_meta", "int64", 1), ("held", "float64", 1), ("score", "float64", 1),
+    ("ys", "float64", 1), ("us", "float64", 1), ("u_ext", "float64", 1),
+    ("hold_dt", "float64", 1), ("hold_mode", "int64", 1), ("hold_time", "float64", 1),
+    ("hold_vec", "float64", 2), ("probing", "int64", 1), ("clock", "float64", 1),
+    ("tab", "int64", 1), ("fns", "int64", 1), ("kernels", "int64", 1),
+    ("failure", "float64", 1))
+Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
+#: number of diagram functions the stepper calls by address (see ivdrem.sim.stepper)
+N_DIAGRAM_FUNCTIONS = 4
+#: what the compiled stepper raises when a block's kernel raised (the simulator turns it
+#: into a SimulationError naming the block and the time)
+BLOCK_RAISED_MESSAGE = "ivdrem: a block kernel raised inside the compiled stepper"
 
 
 def method_info(method) -> MethodInfo:
@@ -124,8 +139,8 @@ class ReferenceEngine:
         exec(compile(_TEMPLATE_PATH.read_text(), str(_TEMPLATE_PATH), "exec"), ns)
         ns["diagram_eval"] = self._eval
         ns["diagram_jacobian"] = self._jacobian
-        ns["newton_factor"] = self._factor
-        ns["newton_solve"] = self._solve
+        ns["newton_factor"] = lambda W, J, c, LU, piv: self._factor(J, c, LU, piv)
+        ns["newton_solve"] = lambda W, LU, piv, b: self._solve(LU, piv, b)
         self.ns = ns
         self.integrate = ns["integrate"]
         self.P = ()
@@ -277,7 +292,7 @@ def _slope_flags(plan):
 
 
 # --------------------------------------------------------------------------- driver
-def _workspace(plan, cap, nu_ext, ny, nu):
+def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0):
     nmh = len(plan.holds)
     nmat = max([hd["nmat"] for hd in plan.holds] + [1])
     return Workspace(
@@ -287,7 +302,11 @@ def _workspace(plan, cap, nu_ext, ny, nu):
         hold_dt=np.array([float(hd["dt"]) for hd in plan.holds]).reshape(nmh),
         hold_mode=np.full(nmh, tpl.HOLD_COMMIT, dtype=np.int64),
         hold_time=np.full(nmh, np.nan), hold_vec=np.zeros((nmh, nmat)),
-        probing=np.zeros(1, dtype=np.int64), clock=np.zeros(1))
+        probing=np.zeros(1, dtype=np.int64), clock=np.zeros(1),
+        tab=np.zeros(3 * len(WORKSPACE_LAYOUT), dtype=np.int64),
+        fns=np.zeros(N_DIAGRAM_FUNCTIONS, dtype=np.int64),
+        kernels=np.zeros(max(n_kernels, 1), dtype=np.int64),
+        failure=np.full(2 + max([b.sys.nstates for b in plan.blocks] + [0]), -1.0))
 
 
 def _grow(W):
@@ -346,13 +365,16 @@ class Simulator:
         else:
             from .compiled import CompiledEngine
             self.engine = CompiledEngine(plan, params)
-            self._integrate = self.engine.module.integrate
+            self._integrate = self.engine.integrate
         self.compile_s = _time.perf_counter() - c0
         d = plan.diagram
         self.ny, self.nu = sum(b.sys.noutputs for b in plan.blocks), \
             sum(b.sys.ninputs for b in plan.blocks)
         cap = 4096 if plan.delays else 4
-        self.W = _workspace(plan, cap, d.ninputs, self.ny, self.nu)
+        self.W = _workspace(plan, cap, d.ninputs, self.ny, self.nu,
+                            0 if engine == "reference" else self.engine.n_kernels)
+        if engine != "reference":
+            self.engine.bind(self.W)
         self._Wref = [self.W]
         self.x = plan.x0.copy()
         self.t = float(t0)
@@ -462,6 +484,11 @@ class Simulator:
     def _run_integrate(self, *args):
         try:
             return self._integrate(*args)
+        except RuntimeError as e:
+            if self.engine_name != "reference" and str(e) == BLOCK_RAISED_MESSAGE:
+                err, cause = self.engine.block_error(self.W)
+                raise err from cause
+            raise
         except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError) as e:
             raise SimulationError(f"simulation stopped after t = {self.tf[0]:.6g} s: {e}") \
                 from e
