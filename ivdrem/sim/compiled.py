@@ -1,25 +1,24 @@
-"""The compiled path: one numba module generated from a diagram, cached on disk.
+"""The compiled path: the diagram as tables, its kernels as cached C-callable wrappers.
 
-The generator reads the diagram's subsystem list and connection map (through
-:class:`~ivdrem.sim.plan.DiagramPlan`) and emits:
+Nothing here is compiled per diagram.  The generator reads the diagram's subsystem list and
+connection map (through :class:`~ivdrem.sim.plan.DiagramPlan`) and produces:
 
-* imports of the robot models' functions (``model.source()``, generated from sympy) and of
-  every block's own kernels (their source, unchanged), each in a cached module of its own
-  shared by all diagrams that use it (so a second diagram compiles only its own code),
-* the stepping template ``_template.py`` verbatim (the same code the reference path runs),
-* ``diagram_eval``: block outputs in topological order of direct feedthrough, inputs
-  gathered from the connection map, delay outputs from the history, max-hold outputs from
-  the held values; then, by mode, the state derivatives, the after-step update of the
-  history and holds, or the diagram outputs,
-* ``diagram_jacobian`` (df/dx: each block differenced alone, or its own ``jacobian``
-  kernel, chained through the connection map in the same order; sparsity probed at
-  generation time, :mod:`ivdrem.sim.jacobian`) and ``newton_factor`` / ``newton_solve``
-  (an LU of c I - J whose ordering and filled pattern are fixed at generation time,
-  :mod:`ivdrem.sim.sparse_lu`, run by the shared kernels of :mod:`ivdrem.sim._jit_sparse`).
+* modules of the robot models' functions (``model.source()``, generated from sympy) and of
+  every block's own kernels (their source, unchanged), each cached and shared by every
+  diagram that uses it;
+* for every kernel of every block, a C-callable wrapper (numba ``cfunc``, one module per
+  kernel and block shape, cached) that takes pointers to the block's states, inputs,
+  outputs and parameters;
+* the diagram's tables (:mod:`ivdrem.sim.tables`): blocks, evaluation order of direct
+  feedthrough, connection map, delays, max-holds, diagram outputs, the structured
+  Jacobian's finite-difference program (:mod:`ivdrem.sim.jacobian`) and the static LU
+  pattern of c I - J (:mod:`ivdrem.sim.sparse_lu`).
 
-Nothing is fused by hand: a rewired diagram, another law or another robot model compiles
-the same way.  A block without kernels (a plain nlsys) cannot be compiled; the error says
-so and points to ``engine="reference"``.
+The shared stepper (:mod:`ivdrem.sim.stepper`: the stepping template and the table-driven
+diagram functions of ``_diagram.py``, compiled once) runs any diagram from its tables,
+calling the wrappers by address.  A rewired diagram, another law or another robot compiles
+only the kernels it is the first to use.  A block without kernels (a plain nlsys) cannot be
+compiled; the error says so and points to ``engine="reference"``.
 
 Modules are written to ``$IVDREM_CACHE_DIR`` (default ``~/.cache/ivdrem``) under the hash
 of their source, and numba caches their machine code beside them, so a second process
@@ -43,12 +42,11 @@ from ..blocks import _kernels
 from .._atomic import write_text_atomic
 from ..blocks._core import kernel_args
 from . import _template
-from .jacobian import JacobianProgram, generated_source as jacobian_source
+from .jacobian import JacobianProgram
 from .sparse_lu import symbolic_lu
-from .stepper import stepper_source, wrapper_source, TRAMPOLINES, BLOCK_RAISED
-from .simulator import WORKSPACE_LAYOUT
-
-_W = {name: i for i, (name, _, _) in enumerate(WORKSPACE_LAYOUT)}
+from .stepper import stepper_source
+from .simulator import BLOCK_RAISED_MESSAGE
+from .tables import build_tables
 
 __all__ = ["CompiledEngine", "generate_source", "cache_dir", "CompileError"]
 
@@ -125,44 +123,6 @@ def _hash(text):
     return hashlib.sha256(text.encode()).hexdigest()[:20]
 
 
-def _i(v):
-    """An integer argument of a generated helper call, typed int64 rather than as a literal:
-    numba compiles a helper once per combination of literal arguments, once per call site."""
-    return f"np.int64({int(v)})"
-
-
-def _runs(pairs):
-    """Group [(dst, src)] with unit gain into contiguous runs (dst0, src0, length)."""
-    runs = []
-    for d, s in pairs:
-        if runs and runs[-1][0] + runs[-1][2] == d and runs[-1][1] + runs[-1][2] == s:
-            runs[-1][2] += 1
-        else:
-            runs.append([d, s, 1])
-    return runs
-
-
-def _fill_inputs(plan, indices, ny, lines, ind="    "):
-    """Emit us[k] = sum_j C[k, j] ys[j] (+ input_map u_ext) for the given input indices."""
-    Cin = np.asarray(plan.diagram.input_map)
-    simple, other = [], []
-    for k in indices:
-        srcs = plan.conn[k]
-        ext = np.flatnonzero(Cin[k]) if Cin.size else []
-        if len(srcs) == 1 and srcs[0][1] == 1.0 and len(ext) == 0:
-            simple.append((k, srcs[0][0]))
-        else:
-            terms = [f"{g!r} * ys[{j}]" for j, g in srcs]
-            terms += [f"{float(Cin[k, j])!r} * ue[{j}]" for j in ext]
-            other.append(f"{ind}us[{k}] = " + (" + ".join(terms) if terms else "0.0"))
-    for d, s, n in _runs(simple):
-        if n == 1:
-            lines.append(f"{ind}us[{d}] = ys[{s}]")
-        else:
-            lines.append(f"{ind}copy_into(us, {_i(d)}, ys, {_i(s)}, {_i(n)})")
-    lines += other
-
-
 def kernel_call(b, role, kernel, t, x, u, out, pargs):
     """Source of one call of block b's kernel `role` ("update", "output", "jacobian").
 
@@ -223,21 +183,31 @@ def _wrapper_module(b, role, kmod, fn_name, rel_exprs, npar):
     return f"ivdrem_wrapper_{_hash(body)}", body
 
 
+class DiagramProgram:
+    """What the compiled engine needs for one diagram: the modules to load (robot models,
+    kernels, the kernels' C-callable wrappers, the shared stepper) and the diagram's tables."""
+
+    def __init__(self, deps, wrappers, tables):
+        self.deps = deps              # [(module name, source)], in import order
+        self.wrappers = wrappers      # [(block name, role, wrapper module name)]
+        self.tables = tables          # DiagramTables
+
+    @property
+    def source(self):
+        """All generated source, for inspection (and its hash identifies the program)."""
+        return "\n".join(src for _, src in self.deps)
+
+
 def generate_source(plan, param_exprs=None):
-    """Source of the diagram module and of the model/kernel modules it imports.
+    """The modules and tables of a diagram (see :class:`DiagramProgram`).
 
-    `param_exprs` is the first half of ``_param_layout(plan)``, if already computed.
-
-    Returns (diagram source, [(module name, source), ...] in import order).  Kernels and
-    model functions get modules of their own, shared by every diagram that uses them, so
-    numba compiles each once (and caches it), not once per diagram.
+    `param_exprs` is the first half of ``_param_layout(plan)``, if already computed.  Kernels,
+    model functions and wrappers get modules of their own, shared by every diagram that uses
+    them, so numba compiles each once (and caches it); the diagram itself is data.
     """
     _check_kernels(plan)
-    d = plan.diagram
-    ny = sum(b.sys.noutputs for b in plan.blocks)
     deps = {}                      # module name -> source, in dependency order
-    kernels = {}                   # (module, qualname, model key) -> local name
-    imports = []
+    kernels = {}                   # (module, qualname, model key) -> kernel module
     for b in plan.blocks:
         spec = b.spec
         if spec.kind != "ode":
@@ -256,15 +226,14 @@ def generate_source(plan, param_exprs=None):
                 kmod, ksrc = _kernel_module(fn, src, mmod)
                 deps.setdefault(kmod, ksrc)
                 kernels[kk] = kmod
-    # playout: all parameters live in one flat float64 vector P (shapes are baked into the
-    # code, the values are not: changing a gain does not recompile); structural constants
-    # are literals
+    # all parameters live in one flat float64 vector P (shapes are baked into the wrappers,
+    # the values are not: changing a gain does not recompile); structural constants are
+    # literals in the wrappers
     playout = _param_layout(plan)[0] if param_exprs is None else param_exprs
     # every kernel of every block gets a C-callable wrapper (its own cached module) and an
     # index into the workspace field `kernels`, which holds the wrappers' addresses
-    wrappers = []                  # [(block index, role, module name)], index = position
-    windex = {}                    # (block index, role) -> index
-    pbase = {}
+    wrappers, wrapper_nx = [], []
+    windex, pbase = {}, {}
     for b in plan.blocks:
         if b.spec.kind != "ode":
             continue
@@ -279,151 +248,15 @@ def generate_source(plan, param_exprs=None):
             wmod, wsrc = _wrapper_module(b, role, kmod, fn.__name__, rel, npar)
             deps.setdefault(wmod, wsrc)
             windex[(b.index, role)] = len(wrappers)
-            wrappers.append((b.index, role, wmod))
-    smod, ssrc = stepper_module()
-    deps[smod] = ssrc
-    out = [f"# Generated by ivdrem {__version__} from diagram {d.name!r}. Do not edit.",
-           *_HEADER, *imports, "from numba import cfunc, carray",
-           "from ivdrem.sim._native import float_pointer, int_pointer, element_address",
-           "# the stepping template's helpers and constants (compiled once, shared)",
-           f"from {smod} import *", ""]
-    jit_names = []
-
-    kf = _W["kernels"]
-
-    fw = _W["failure"]
-
-    def kcall(b, role, x, x0, u, u0, out, o0, ind):
-        """Lines calling block b's kernel wrapper on x[x0:], u[u0:], out[o0:] (pointers);
-        if it raised: record [wrapper index, t, the block's states] in W.failure (inline,
-        not a call: a helper taking literal offsets would compile once per call site)."""
-        j = windex[(b.index, role)]
-        nx = b.sys.nstates
-        return [f"{ind}if call_c(W[{kf}][{j}], (t, element_address({x}, {x0}), "
-                f"element_address({u}, {u0}), element_address({out}, {o0}), "
-                f"element_address(P, {pbase[b.index]}))) != 0:",
-                f"{ind}    W[{fw}][0] = {j}", f"{ind}    W[{fw}][1] = t",
-                f"{ind}    for _i in range({nx}):",
-                f"{ind}        W[{fw}][2 + _i] = {x}[{x0} + _i]",
-                f"{ind}    return BLOCK_RAISED"]
-
-    def sl(s):
-        return f"{s.start}:{s.stop}"
-
-    # one function for the three modes (see _template): signals first, in topological order
-    # of direct feedthrough, then the mode's work
-    lines = ["def diagram_eval_body(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
-             "    ue = W[8]", "    if mode == AFTER_STEP_EVALUATED:", "        mode = AFTER_STEP",
-             "    else:"]
-    body_start = len(lines)
-    filled = set()
-    for k in plan.order:
-        b = plan.blocks[k]
-        spec = b.spec
-        direct = [int(i) for i in b.direct_inputs] if spec.kind == "ode" else []
-        _fill_inputs(plan, direct, ny, lines)
-        filled |= set(direct)
-        if spec.kind == "ode":
-            lines += kcall(b, "output", "x", b.x.start, "us", b.u.start, "ys", b.y.start, "    ")
-        elif spec.kind == "delay":
-            dl = next(x for x in plan.delays if x["block"] == k)
-            lines.append(f"    hist_lookup(W, t - {playout[k][0]}, {_i(dl['off'])}, "
-                         f"{_i(dl['size'])}, ys[{sl(b.y)}])")
-        else:
-            hd = next(x for x in plan.holds if x["block"] == k)
-            y0 = b.y.start
-            lines.append(f"    copy_into(ys, {_i(y0)}, W[4], {_i(hd['off'])}, {_i(hd['size'])})")
-            lines.append(f"    ys[{y0 + hd['size']}] = W[5][{hd['k']}]")
-    rest = [i for b in plan.blocks for i in range(b.u.start, b.u.stop) if i not in filled]
-    _fill_inputs(plan, rest, ny, lines)
-    if len(lines) == body_start:
-        lines.append("        pass")
-    else:   # the signal sweep sits under the else: above
-        lines[body_start:] = ["    " + ln.replace("\n", "\n    ") for ln in lines[body_start:]]
-
-    # mode RHS: state derivatives into out
-    lines.append("    if mode == RHS:")
-    n_upd = 0
-    for b in plan.blocks:
-        if b.spec.kind == "ode" and b.spec.update is not None and b.sys.nstates:
-            lines += kcall(b, "update", "x", b.x.start, "us", b.u.start, "out", b.x.start,
-                           "        ")
-            n_upd += 1
-    lines.append("        return OK")
-
-    # mode AFTER_STEP: push the delay history, update the max-holds
-    lines.append("    if mode == AFTER_STEP:")
-    if plan.delays:
-        lines += [f"        v = np.empty({plan.nd})", f"        dv = np.zeros({plan.nd})",
-                  f"        est = np.zeros({plan.nd}, dtype=np.int64)"]
-        tmax = []
-        for dl in plan.delays:
-            a, s = dl["off"], dl["size"]
-            lines.append(f"        copy_into(v, {_i(a)}, us, {_i(dl['u'])}, {_i(s)})")
-            if dl["hermite"]:
-                lines.append(f"        copy_into(dv, {_i(a)}, us, {_i(dl['du'])}, {_i(s)})")
-            else:
-                lines.append(f"        for _i in range({a}, {a + s}):\n            est[_i] = 1")
-            tmax.append(playout[dl["block"]][0])
-        lines += ["        st = hist_push(W, t, v, dv, est)", "        if st != OK:",
-                  "            return st",
-                  f"        hist_trim(W, t - max({', '.join(tmax + ['0.0'])}))"]
-    lines.append("        upd = 0")
-    for hd in plan.holds:
-        lines.append(f"        upd |= hold_update(W, {_i(hd['k'])}, {_i(hd['off'])}, "
-                     f"{_i(hd['size'])}, {_i(hd['nvec'])}, {_i(hd['nmat'])}, us[{hd['u']}:{hd['u'] + hd['size']}], "
-                     f"{playout[hd['block']][0]})")
-    lines.append("        return HOLD_UPDATED if upd else OK")
-
-    # mode RECORD: diagram outputs (output_map over [block outputs, block inputs])
-    Om = np.asarray(d.output_map)
-    for r in range(Om.shape[0]):
-        terms = []
-        for j in np.flatnonzero(Om[r]):
-            src = f"ys[{j}]" if j < ny else f"us[{j - ny}]"
-            g = float(Om[r, j])
-            terms.append(src if g == 1.0 else f"{g!r} * {src}")
-        lines.append(f"    out[{r}] = " + (" + ".join(terms) if terms else "0.0"))
-    lines.append("    return OK")
-    out.append("\n".join(lines) + "\n")
-    # The template calls diagram_eval with its mode constants, which numba types as
-    # literals and would compile the whole body once per mode; mode + 0 is a plain int64,
-    # so the body compiles once and only this wrapper is specialised.
-    out.append("def diagram_eval(mode, t, x, P, W, out):\n"
-               "    return diagram_eval_body(mode + 0, t, x, P, W, out)\n")
-    jit_names += ["diagram_eval_body", "diagram_eval"]
-
-    # the Jacobian and Newton-matrix entry points of the implicit methods (df/dx of mode
-    # RHS; factor / solve of c I - J); the template's dense fd_jacobian, dense_factor and
-    # dense_solve stay available beside them
+            wrappers.append((b.sys.name, role, wmod))
+            wrapper_nx.append(b.sys.nstates)
+    # the Jacobian's FD program and the Newton matrix's static LU pattern
     prog = JacobianProgram(plan)
     slu = symbolic_lu(prog.pattern)
-    calls = []
-    for b in prog.fd_blocks:
-        ny = b.sys.noutputs
-        c_out = kcall(b, "output", "xb", 0, "ub", 0, "yf", 0, "            ",
-                      )
-        c_upd = []
-        if b.spec.update is not None and b.sys.nstates:
-            c_upd = kcall(b, "update", "xb", 0, "ub", 0, "yf", ny, "            ")
-        calls.append((c_out, c_upd))
-    supplied = []
-    for b in prog.fd_blocks:
-        if b.spec.jacobian is None:
-            supplied.append(None)
-        else:
-            supplied.append(kcall(b, "jacobian", "xb", 0, "ub", 0, "jl", 0, "        "))
-    out.append(jacobian_source(prog, slu, calls, supplied))
-    jit_names += ["block_eval", "block_jacobian", "diagram_jacobian", "sparse_factor",
-                  "sparse_solve", "newton_factor", "newton_solve"]
-
-    out.append("# ---- compile everything with numba, machine code cached beside this file")
-    out.append(f"_JIT = {sorted(set(jit_names))!r}")
-    out.append("for _n in _JIT:\n    globals()[_n] = njit(cache=True)(globals()[_n])\n")
-    out.append(wrapper_source())
-    out.append("# the kernel wrappers, in the order of the workspace field `kernels`")
-    out.append(f"KERNEL_WRAPPERS = {[(plan.blocks[k].sys.name, role, m) for k, role, m in wrappers]!r}")
-    return "\n".join(out), list(deps.items())
+    tables = build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu)
+    smod, ssrc = stepper_module()
+    deps[smod] = ssrc
+    return DiagramProgram(list(deps.items()), wrappers, tables)
 
 
 _stepper = {}
@@ -510,41 +343,41 @@ def _import(cdir, name, src):
     return mod
 
 
-def _load(src, deps):
-    h = _hash(src)
-    if h in _modules:
-        return _modules[h]
+def _load(deps):
+    """Import the modules in order (models before the kernels that import them, wrappers,
+    the stepper last); returns the stepper module."""
     cdir = cache_dir()
     cdir.mkdir(parents=True, exist_ok=True)
-    for name, dsrc in deps:            # models before the kernels that import them
-        _import(cdir, name, dsrc)
-    mod = _import(cdir, f"ivdrem_diagram_{h}", src)
-    _modules[h] = mod
+    mod = None
+    for name, dsrc in deps:
+        mod = _import(cdir, name, dsrc)
     return mod
 
 
 class CompiledEngine:
-    """Runs the generated module; same interface as the reference engine."""
+    """Runs the shared compiled stepper on this diagram's tables and kernel wrappers; same
+    interface as the reference engine."""
 
     name = "compiled"
 
     def __init__(self, plan, params=None):
         self.plan = plan
         param_exprs, self.P = _param_layout(plan)
-        self.source, self.deps = generate_source(plan, param_exprs)
-        self.module = _load(self.source, self.deps)
-        self.stepper = sys.modules[stepper_module()[0]]
-        self.integrate = self.stepper.integrate
-        self.wrappers = list(self.module.KERNEL_WRAPPERS)
+        self.program = generate_source(plan, param_exprs)
+        self.module = _load(self.program.deps)
+        self.integrate = self.module.integrate
+        self.tables = self.program.tables
+        self.wrappers = self.program.wrappers
         self.n_kernels = len(self.wrappers)
-        self._fns = np.array([getattr(self.module, f"{n}_c").address for n in TRAMPOLINES],
-                             dtype=np.int64)
         self._kernels = np.array([sys.modules[m].wrapper.address for _, _, m in self.wrappers],
                                  dtype=np.int64)
 
+    @property
+    def source(self):
+        return self.program.source
+
     def bind(self, W):
-        """Put the addresses of this diagram's functions and kernels into workspace W."""
-        W.fns[:] = self._fns
+        """Put this diagram's kernel addresses into workspace W (its tables are W.tables)."""
         W.kernels[:self.n_kernels] = self._kernels
 
     def failed_kernel(self, W):
@@ -572,22 +405,27 @@ class CompiledEngine:
         return SimulationError(f"{head} (compiled kernel; re-running it in Python at the "
                                "recorded states did not reproduce the error)"), None
 
-    def _checked(self, st, W):
-        if st == BLOCK_RAISED:
+    def _run(self, fn, *args):
+        """fn(*args), a kernel that raised inside reported as a SimulationError naming the
+        block and the time (with the block's own exception where it can be reproduced)."""
+        try:
+            return fn(*args)
+        except RuntimeError as e:
+            if str(e) != BLOCK_RAISED_MESSAGE:
+                raise
+            W = args[4] if len(args) > 4 else args[3]
             err, cause = self.block_error(W)
             raise err from cause
-        return st
 
     def after_step(self, t, x, W):
-        return self._checked(
-            self.module.diagram_eval(_template.AFTER_STEP, t, x, self.P, W, x), W)
+        return self._run(self.module.diagram_eval, _template.AFTER_STEP, t, x, self.P, W, x)
 
     def record(self, t, x, W, row):
-        self._checked(self.module.diagram_eval(_template.RECORD, t, x, self.P, W, row), W)
+        self._run(self.module.diagram_eval, _template.RECORD, t, x, self.P, W, row)
 
     def rhs(self, t, x, W):
         dx = np.zeros_like(x)
-        self._checked(self.module.diagram_eval(_template.RHS, t, x, self.P, W, dx), W)
+        self._run(self.module.diagram_eval, _template.RHS, t, x, self.P, W, dx)
         return dx
 
     # ---- Jacobian and Newton matrix, callable from Python (tests, benchmarks)
@@ -597,7 +435,7 @@ class CompiledEngine:
         x = np.ascontiguousarray(x, dtype=float)
         J = np.zeros((x.size, x.size))
         fn = self.module.fd_jacobian if dense else self.module.diagram_jacobian
-        st = fn(float(t), x, self.P, W, J)
+        st = self._run(fn, float(t), x, self.P, W, J)
         if st != _template.OK:
             raise RuntimeError(f"diagram_jacobian returned status {st}")
         return J
@@ -609,13 +447,20 @@ class CompiledEngine:
         n = J.shape[0]
         LU = np.zeros((n, n))
         piv = np.zeros(n, dtype=np.int64)
-        fn = self.module.dense_factor if dense else self.module.sparse_factor
-        st = fn(J, float(c), LU, piv)
+        tb = self.tables
+        if dense:
+            st = self.module.dense_factor(J, float(c), LU, piv)
+        else:
+            st = self.module.slu_factor(J, float(c), LU, piv, tb.lu_perm, tb.lu_rowptr,
+                                        tb.lu_colidx, tb.lu_diagp)
         return int(st), LU, piv
 
     def solve(self, LU, piv, b, *, dense=False):
         """(c I - J)^{-1} b for a factorisation from :meth:`factor` (b is not modified)."""
         out = np.array(b, dtype=float)
-        fn = self.module.dense_solve if dense else self.module.sparse_solve
-        fn(LU, piv, out)
+        tb = self.tables
+        if dense:
+            self.module.dense_solve(LU, piv, out)
+        else:
+            self.module.slu_solve(LU, tb.lu_perm, tb.lu_rowptr, tb.lu_colidx, tb.lu_diagp, out)
         return out

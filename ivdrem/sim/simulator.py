@@ -34,6 +34,7 @@ import control as ct
 
 from .plan import DiagramPlan
 from . import _template as tpl
+from .tables import empty_tables, pack as pack_tables
 from ..blocks._core import active_feeds
 
 __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METHODS",
@@ -72,22 +73,20 @@ STIFF_METHOD = "rodas5p"
 ENGINES = ("compiled", "reference")
 _TEMPLATE_PATH = Path(tpl.__file__)
 
-#: The workspace of a run: (field, dtype, ndim), in order (generated code indexes the
-#: fields by position; the compiled engine's stepper passes them to a diagram's C-callable
-#: functions as a table of addresses and shapes, ivdrem.sim.stepper).  ``tab`` is that
-#: table; ``fns`` the addresses of the diagram's functions, ``kernels`` those of its blocks'
-#: kernels, ``failure`` [kernel index, t] of a kernel that raised (compiled engine only).
+#: The workspace of a run: (field, dtype, ndim), in order (the compiled code indexes the
+#: fields by position).  Compiled engine only: ``kernels`` the addresses of the blocks'
+#: kernel wrappers, ``failure`` [wrapper index, t, states] of a kernel that raised, and
+#: ``table_ints`` / ``table_floats`` the diagram as tables (ivdrem.sim.tables, packed;
+#: empty on the reference engine).
 WORKSPACE_LAYOUT = (
     ("hist_t", "float64", 1), ("hist_v", "float64", 2), ("hist_d", "float64", 2),
     ("hist_meta", "int64", 1), ("held", "float64", 1), ("score", "float64", 1),
     ("ys", "float64", 1), ("us", "float64", 1), ("u_ext", "float64", 1),
     ("hold_dt", "float64", 1), ("hold_mode", "int64", 1), ("hold_time", "float64", 1),
     ("hold_vec", "float64", 2), ("probing", "int64", 1), ("clock", "float64", 1),
-    ("tab", "int64", 1), ("fns", "int64", 1), ("kernels", "int64", 1),
-    ("failure", "float64", 1))
+    ("kernels", "int64", 1), ("failure", "float64", 1), ("table_ints", "int64", 1),
+    ("table_floats", "float64", 1))
 Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
-#: number of diagram functions the stepper calls by address (see ivdrem.sim.stepper)
-N_DIAGRAM_FUNCTIONS = 4
 #: what the compiled stepper raises when a block's kernel raised (the simulator turns it
 #: into a SimulationError naming the block and the time)
 BLOCK_RAISED_MESSAGE = "ivdrem: a block kernel raised inside the compiled stepper"
@@ -292,7 +291,7 @@ def _slope_flags(plan):
 
 
 # --------------------------------------------------------------------------- driver
-def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0):
+def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0, tables=None):
     nmh = len(plan.holds)
     nmat = max([hd["nmat"] for hd in plan.holds] + [1])
     return Workspace(
@@ -303,10 +302,10 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0):
         hold_mode=np.full(nmh, tpl.HOLD_COMMIT, dtype=np.int64),
         hold_time=np.full(nmh, np.nan), hold_vec=np.zeros((nmh, nmat)),
         probing=np.zeros(1, dtype=np.int64), clock=np.zeros(1),
-        tab=np.zeros(3 * len(WORKSPACE_LAYOUT), dtype=np.int64),
-        fns=np.zeros(N_DIAGRAM_FUNCTIONS, dtype=np.int64),
         kernels=np.zeros(max(n_kernels, 1), dtype=np.int64),
-        failure=np.full(2 + max([b.sys.nstates for b in plan.blocks] + [0]), -1.0))
+        failure=np.full(2 + max([b.sys.nstates for b in plan.blocks] + [0]), -1.0),
+        **dict(zip(("table_ints", "table_floats"),
+                   pack_tables(empty_tables() if tables is None else tables))))
 
 
 def _grow(W):
@@ -371,8 +370,10 @@ class Simulator:
         self.ny, self.nu = sum(b.sys.noutputs for b in plan.blocks), \
             sum(b.sys.ninputs for b in plan.blocks)
         cap = 4096 if plan.delays else 4
+        compiled = engine != "reference"
         self.W = _workspace(plan, cap, d.ninputs, self.ny, self.nu,
-                            0 if engine == "reference" else self.engine.n_kernels)
+                            self.engine.n_kernels if compiled else 0,
+                            self.engine.tables if compiled else None)
         if engine != "reference":
             self.engine.bind(self.W)
         self._Wref = [self.W]

@@ -1,0 +1,279 @@
+"""The compiled engine's diagram functions, driven by tables: the same code for every diagram.
+
+Written in the numba-compatible subset of Python and compiled once with the stepping
+template into the shared stepper module (:mod:`ivdrem.sim.stepper`).  A diagram is data
+here (:class:`ivdrem.sim.tables.DiagramTables`, in the workspace field ``tables``): its
+blocks with their offsets, the evaluation order of direct feedthrough, the connection map
+as sparse rows, delays, max-holds, the diagram outputs, the Jacobian's finite-difference
+program and the static LU pattern.  The blocks' kernels are separately compiled C-callable
+wrappers (one per kernel and block shape, cached, ``ivdrem.sim.compiled``), called by the
+addresses in the workspace field ``kernels``.  So a new diagram compiles no code at all
+beyond the kernels it is the first to use.
+
+Defines the four functions the template calls: ``diagram_eval``, ``diagram_jacobian``,
+``newton_factor``, ``newton_solve``.  Names it uses from its surroundings in the stepper
+module: the template's helpers and constants, ``call_c`` / ``element_address``
+(:mod:`ivdrem.sim._native`), the shared sparse kernels (:mod:`ivdrem.sim._jit_sparse`),
+``FIELD_*`` (workspace positions), ``DIM_*`` (entries of ``DiagramTables.dims``) and
+``BLOCK_RAISED_MESSAGE``.
+"""
+import numpy as np
+
+# columns of DiagramTables.blocks
+B_KIND = 0      # 0 ode, 1 delay, 2 max-hold
+B_X0 = 1
+B_NX = 2
+B_U0 = 3
+B_NU = 4
+B_Y0 = 5
+B_NY = 6
+B_P0 = 7        # start of the block's parameters in P
+B_OUT = 8       # wrapper index of the output kernel (-1: none)
+B_UPD = 9       # wrapper index of the update kernel (-1: none)
+B_SPECIAL = 10  # row in the delay / hold table
+B_FILL0 = 11    # range of DiagramTables.fill_order filled before this block's output
+B_FILL1 = 12
+N_BLOCK_COLUMNS = 13
+
+N_DELAY_COLUMNS = 6
+N_HOLD_COLUMNS = 7
+N_FD_COLUMNS = 9
+# columns of DiagramTables.delays
+D_OFF = 0
+D_SIZE = 1
+D_TP = 2        # index of T in P
+D_HERMITE = 3
+D_U = 4
+D_DU = 5
+# columns of DiagramTables.holds
+H_K = 0
+H_OFF = 1
+H_SIZE = 2
+H_NVEC = 3
+H_NMAT = 4
+H_U = 5
+H_EP = 6        # index of epsilon in P
+
+
+def int_table(ti, f):
+    """The int64 table number f (T_*) as a view of the packed ints."""
+    return ti[ti[f]:ti[f + 1]]
+
+
+def float_table(ti, tf, f):
+    """The float64 table number f (TF_*) as a view of the packed floats."""
+    base = N_INT_TABLES + 1
+    return tf[ti[base + f]:ti[base + f + 1]]
+
+
+def kernel_call(kernels, failure, wrapper_nx, j, t, x, x0, u, u0, out, o0, P, p0):
+    """Call kernel wrapper j on x[x0:], u[u0:], out[o0:], P[p0:]; a kernel that raised is
+    recorded in `failure` ([wrapper index, t, the block's states]) and stops the run.
+    (Arrays, not the workspace: a namedtuple argument is copied and reference-counted
+    field by field on every call.)"""
+    st = call_c(kernels[j], (t, element_address(x, x0), element_address(u, u0),
+                             element_address(out, o0), element_address(P, p0)))
+    if st != 0:
+        failure[0] = j
+        failure[1] = t
+        for i in range(min(wrapper_nx[j], failure.shape[0] - 2)):
+            failure[2 + i] = x[x0 + i]
+        raise RuntimeError(BLOCK_RAISED_MESSAGE)
+
+
+def fill_input(in_ptr, in_src, in_gain, k, ys, us, ue):
+    """us[k] = sum of gain * source over the connection map's row k (block outputs, or
+    diagram inputs where the source is negative: -1 - index)."""
+    s = 0.0
+    for e in range(in_ptr[k], in_ptr[k + 1]):
+        j = in_src[e]
+        if j >= 0:
+            s += in_gain[e] * ys[j]
+        else:
+            s += in_gain[e] * ue[-1 - j]
+    us[k] = s
+
+
+def diagram_eval(mode, t, x, P, W, out):
+    ys = W[6]
+    us = W[7]
+    ue = W[8]
+    ti = W[FIELD_TABLE_INTS]
+    tf = W[FIELD_TABLE_FLOATS]
+    B = int_table(ti, T_BLOCKS)
+    nb = B.shape[0] // N_BLOCK_COLUMNS
+    order = int_table(ti, T_ORDER)
+    fill_order = int_table(ti, T_FILL_ORDER)
+    fill_rest = int_table(ti, T_FILL_REST)
+    delays = int_table(ti, T_DELAYS)
+    holds = int_table(ti, T_HOLDS)
+    kernels = W[FIELD_KERNELS]
+    failure = W[FIELD_FAILURE]
+    wnx = int_table(ti, T_WRAPPER_NX)
+    in_ptr = int_table(ti, T_IN_PTR)
+    in_src = int_table(ti, T_IN_SRC)
+    in_gain = float_table(ti, tf, TF_IN_GAIN)
+    if mode == AFTER_STEP_EVALUATED:
+        mode = AFTER_STEP
+    else:
+        # signals, in topological order of direct feedthrough
+        for i in range(order.shape[0]):
+            k = order[i]
+            for f in range(B[k * N_BLOCK_COLUMNS + B_FILL0], B[k * N_BLOCK_COLUMNS + B_FILL1]):
+                fill_input(in_ptr, in_src, in_gain, fill_order[f], ys, us, ue)
+            kind = B[k * N_BLOCK_COLUMNS + B_KIND]
+            if kind == 0:
+                if B[k * N_BLOCK_COLUMNS + B_OUT] >= 0:
+                    kernel_call(kernels, failure, wnx, B[k * N_BLOCK_COLUMNS + B_OUT], t, x, B[k * N_BLOCK_COLUMNS + B_X0], us, B[k * N_BLOCK_COLUMNS + B_U0], ys,
+                                B[k * N_BLOCK_COLUMNS + B_Y0], P, B[k * N_BLOCK_COLUMNS + B_P0])
+            elif kind == 1:
+                dl = delays[B[k * N_BLOCK_COLUMNS + B_SPECIAL] * N_DELAY_COLUMNS:]
+                y0 = B[k * N_BLOCK_COLUMNS + B_Y0]
+                hist_lookup(W, t - P[dl[D_TP]], dl[D_OFF], dl[D_SIZE],
+                            ys[y0:y0 + dl[D_SIZE]])
+            else:
+                hd = holds[B[k * N_BLOCK_COLUMNS + B_SPECIAL] * N_HOLD_COLUMNS:]
+                y0 = B[k * N_BLOCK_COLUMNS + B_Y0]
+                copy_into(ys, y0, W[4], hd[H_OFF], hd[H_SIZE])
+                ys[y0 + hd[H_SIZE]] = W[5][hd[H_K]]
+        for f in range(fill_rest.shape[0]):
+            fill_input(in_ptr, in_src, in_gain, fill_rest[f], ys, us, ue)
+    if mode == RHS:
+        for k in range(nb):
+            if B[k * N_BLOCK_COLUMNS + B_UPD] >= 0:
+                kernel_call(kernels, failure, wnx, B[k * N_BLOCK_COLUMNS + B_UPD], t, x, B[k * N_BLOCK_COLUMNS + B_X0], us, B[k * N_BLOCK_COLUMNS + B_U0], out,
+                            B[k * N_BLOCK_COLUMNS + B_X0], P, B[k * N_BLOCK_COLUMNS + B_P0])
+        return OK
+    if mode == AFTER_STEP:
+        nd = int_table(ti, T_DIMS)[DIM_ND]
+        if delays.shape[0] > 0:
+            v = np.empty(nd)
+            dv = np.zeros(nd)
+            est = np.zeros(nd, dtype=np.int64)
+            t_max = 0.0
+            for r in range(delays.shape[0] // N_DELAY_COLUMNS):
+                dl = delays[r * N_DELAY_COLUMNS:]
+                copy_into(v, dl[D_OFF], us, dl[D_U], dl[D_SIZE])
+                if dl[D_HERMITE] != 0:
+                    copy_into(dv, dl[D_OFF], us, dl[D_DU], dl[D_SIZE])
+                else:
+                    for i in range(dl[D_OFF], dl[D_OFF] + dl[D_SIZE]):
+                        est[i] = 1
+                t_max = max(t_max, P[dl[D_TP]])
+            st = hist_push(W, t, v, dv, est)
+            if st != OK:
+                return st
+            hist_trim(W, t - t_max)
+        upd = 0
+        for r in range(holds.shape[0] // N_HOLD_COLUMNS):
+            hd = holds[r * N_HOLD_COLUMNS:]
+            u0 = hd[H_U]
+            upd |= hold_update(W, hd[H_K], hd[H_OFF], hd[H_SIZE], hd[H_NVEC], hd[H_NMAT],
+                               us[u0:u0 + hd[H_SIZE]], P[hd[H_EP]])
+        return HOLD_UPDATED if upd else OK
+    # RECORD: the diagram outputs (output map over block outputs, then block inputs)
+    rec_ptr = int_table(ti, T_REC_PTR)
+    rec_src = int_table(ti, T_REC_SRC)
+    rec_gain = float_table(ti, tf, TF_REC_GAIN)
+    for r in range(rec_ptr.shape[0] - 1):
+        s = 0.0
+        for e in range(rec_ptr[r], rec_ptr[r + 1]):
+            j = rec_src[e]
+            if j >= 0:
+                s += rec_gain[e] * ys[j]
+            else:
+                s += rec_gain[e] * us[-1 - j]
+        out[r] = s
+    return OK
+
+
+def diagram_jacobian(t, x, P, W, J):
+    """df/dx: each block differenced alone on its grouped columns (or its own Jacobian
+    kernel), chained through the connection map (ivdrem.sim.jacobian)."""
+    ti = W[FIELD_TABLE_INTS]
+    tf = W[FIELD_TABLE_FLOATS]
+    dims = int_table(ti, T_DIMS)
+    n = x.shape[0]
+    f0 = np.empty(n)
+    diagram_eval(RHS, t, x, P, W, f0)       # the signals at (t, x)
+    us = W[7]
+    kernels = W[FIELD_KERNELS]
+    failure = W[FIELD_FAILURE]
+    wnx = int_table(ti, T_WRAPPER_NX)
+    jac_gains = float_table(ti, tf, TF_JAC_GAINS)
+    njb = dims[DIM_NJB]
+    ng = jac_gains.shape[0]
+    F = np.empty(njb + ng)
+    for i in range(ng):
+        F[njb + i] = jac_gains[i]
+    maxx = dims[DIM_MAXX]
+    maxu = dims[DIM_MAXU]
+    maxyf = dims[DIM_MAXYF]
+    xb = np.empty(maxx)
+    ub = np.empty(maxu)
+    xb0 = np.empty(maxx)
+    ub0 = np.empty(maxu)
+    yp = np.empty(maxyf)
+    ym = np.empty(maxyf)
+    fd_g_ptr = int_table(ti, T_FD_G_PTR)
+    fd_g_kind = int_table(ti, T_FD_G_KIND)
+    fd_gc_ptr = int_table(ti, T_FD_GC_PTR)
+    fd_col = int_table(ti, T_FD_COL)
+    fd_e_ptr = int_table(ti, T_FD_E_PTR)
+    fd_e_row = int_table(ti, T_FD_E_ROW)
+    fd_e_slot = int_table(ti, T_FD_E_SLOT)
+    hh = np.empty(max(fd_col.shape[0], 1))
+    jl = np.empty(maxyf * dims[DIM_MAXCOL])      # a block's local Jacobian, row-major
+    fd = int_table(ti, T_FD)
+    for kb in range(fd.shape[0] // N_FD_COLUMNS):
+        nx = fd[kb * N_FD_COLUMNS + 1]
+        nu = fd[kb * N_FD_COLUMNS + 3]
+        ny = fd[kb * N_FD_COLUMNS + 4]
+        for i in range(nx):
+            xb0[i] = x[fd[kb * N_FD_COLUMNS + 0] + i]
+            xb[i] = xb0[i]
+        for i in range(nu):
+            ub0[i] = us[fd[kb * N_FD_COLUMNS + 2] + i]
+            ub[i] = ub0[i]
+        p0 = fd[kb * N_FD_COLUMNS + 8]
+        if fd[kb * N_FD_COLUMNS + 7] >= 0:     # the block's own Jacobian kernel
+            for i in range((ny + nx) * (nx + nu)):
+                jl[i] = 0.0
+            kernel_call(kernels, failure, wnx, fd[kb * N_FD_COLUMNS + 7], t, xb, 0, ub, 0, jl, 0, P, p0)
+            for g in range(fd_g_ptr[kb], fd_g_ptr[kb + 1]):
+                for c in range(fd_gc_ptr[g], fd_gc_ptr[g + 1]):
+                    for e in range(fd_e_ptr[c], fd_e_ptr[c + 1]):
+                        F[fd_e_slot[e]] = jl[fd_e_row[e] * (nx + nu) + fd_col[c]]
+            continue
+        for g in range(fd_g_ptr[kb], fd_g_ptr[kb + 1]):
+            c0 = fd_gc_ptr[g]
+            c1 = fd_gc_ptr[g + 1]
+            # kind 0: the output kernel into yf[0:ny]; 1: the update kernel into yf[ny:]
+            if fd_g_kind[g] == 0:
+                w = fd[kb * N_FD_COLUMNS + 5]
+                o0 = 0
+            else:
+                w = fd[kb * N_FD_COLUMNS + 6]
+                o0 = ny
+            fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh)
+            kernel_call(kernels, failure, wnx, w, t, xb, 0, ub, 0, yp, o0, P, p0)
+            fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, -1.0, hh)
+            kernel_call(kernels, failure, wnx, w, t, xb, 0, ub, 0, ym, o0, P, p0)
+            fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh)
+            fd_scatter(yp, ym, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F)
+    jac_chain(F, int_table(ti, T_JAC_INS_DST), int_table(ti, T_JAC_INS_F),
+              int_table(ti, T_JAC_INS_SRC), dims[DIM_NSLOTS], int_table(ti, T_JAC_J_ROW),
+              int_table(ti, T_JAC_J_COL), int_table(ti, T_JAC_J_SLOT), J)
+    return OK
+
+
+def newton_factor(W, J, c, LU, piv):
+    ti = W[FIELD_TABLE_INTS]
+    return slu_factor(J, c, LU, piv, int_table(ti, T_LU_PERM), int_table(ti, T_LU_ROWPTR),
+                      int_table(ti, T_LU_COLIDX), int_table(ti, T_LU_DIAGP))
+
+
+def newton_solve(W, LU, piv, b):
+    ti = W[FIELD_TABLE_INTS]
+    slu_solve(LU, int_table(ti, T_LU_PERM), int_table(ti, T_LU_ROWPTR),
+              int_table(ti, T_LU_COLIDX), int_table(ti, T_LU_DIAGP), b)

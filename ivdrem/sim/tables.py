@@ -1,0 +1,187 @@
+"""A diagram as tables for the compiled engine's table-driven diagram functions.
+
+:func:`build_tables` turns a :class:`~ivdrem.sim.plan.DiagramPlan` (with its parameter
+layout, kernel wrapper indices, Jacobian program and symbolic LU) into
+:class:`DiagramTables`, a namedtuple of int64 / float64 arrays that the shared, compiled
+once ``ivdrem/sim/_diagram.py`` reads.  The field types are the same for every diagram, so
+numba compiles that code once; only the values differ.
+"""
+from __future__ import annotations
+
+import re
+from collections import namedtuple
+
+import numpy as np
+
+from . import _diagram
+
+__all__ = ["DiagramTables", "TABLES_LAYOUT", "DIMS", "build_tables", "empty_tables", "pack",
+           "INT_FIELDS", "FLOAT_FIELDS"]
+
+#: (field, dtype, ndim) of DiagramTables
+TABLES_LAYOUT = (
+    ("blocks", "int64", 2), ("order", "int64", 1), ("fill_order", "int64", 1),
+    ("fill_rest", "int64", 1), ("in_ptr", "int64", 1), ("in_src", "int64", 1),
+    ("in_gain", "float64", 1), ("delays", "int64", 2), ("holds", "int64", 2),
+    ("rec_ptr", "int64", 1), ("rec_src", "int64", 1), ("rec_gain", "float64", 1),
+    ("wrapper_nx", "int64", 1), ("dims", "int64", 1),
+    ("fd", "int64", 2), ("fd_g_ptr", "int64", 1), ("fd_g_kind", "int64", 1),
+    ("fd_gc_ptr", "int64", 1), ("fd_col", "int64", 1), ("fd_e_ptr", "int64", 1),
+    ("fd_e_row", "int64", 1), ("fd_e_slot", "int64", 1), ("jac_ins_dst", "int64", 1),
+    ("jac_ins_f", "int64", 1), ("jac_ins_src", "int64", 1), ("jac_j_row", "int64", 1),
+    ("jac_j_col", "int64", 1), ("jac_j_slot", "int64", 1), ("jac_gains", "float64", 1),
+    ("lu_perm", "int64", 1), ("lu_rowptr", "int64", 1), ("lu_colidx", "int64", 1),
+    ("lu_diagp", "int64", 1))
+DiagramTables = namedtuple("DiagramTables", [f for f, _, _ in TABLES_LAYOUT])
+#: the int64 and float64 fields, in the order pack() concatenates them
+INT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "int64")
+FLOAT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "float64")
+#: entries of DiagramTables.dims
+DIMS = ("ND", "NJB", "MAXX", "MAXU", "MAXYF", "MAXCOL", "NSLOTS")
+_FD_COLUMNS = _diagram.N_FD_COLUMNS
+_P_INDEX = re.compile(r"^P\[(\d+)\]$")
+
+
+def empty_tables():
+    """Tables of no diagram (the reference engine's workspace carries these)."""
+    out = {}
+    for name, dtype, ndim in TABLES_LAYOUT:
+        shape = (0,) if ndim == 1 else (0, {"blocks": _diagram.N_BLOCK_COLUMNS,
+                                           "delays": _diagram.N_DELAY_COLUMNS,
+                                           "holds": _diagram.N_HOLD_COLUMNS,
+                                           "fd": _FD_COLUMNS}[name])
+        out[name] = np.zeros(shape, dtype=dtype)
+    out["dims"] = np.zeros(len(DIMS), dtype=np.int64)
+    return DiagramTables(**out)
+
+
+def _i64(v, cols=None):
+    a = np.asarray(v, dtype=np.int64)
+    if cols is not None:
+        a = a.reshape(-1, cols)
+    return np.ascontiguousarray(a)
+
+
+def _p_index(expr, what):
+    m = _P_INDEX.match(expr)
+    if not m:
+        raise ValueError(f"{what}: expected a scalar parameter P[i], got {expr!r}")
+    return int(m.group(1))
+
+
+def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
+    """The DiagramTables of `plan`.
+
+    `playout[k]`: block k's parameter expressions (compiled._param_layout); `pbase[k]` the
+    start of block k's parameters in P; `windex[(k, role)]` the wrapper index of block k's
+    kernel `role`; `wrapper_nx[j]` the state count of wrapper j's block; `prog` the
+    JacobianProgram and `slu` its symbolic LU.
+    """
+    d = plan.diagram
+    ny_total = sum(b.sys.noutputs for b in plan.blocks)
+    nu_total = sum(b.sys.ninputs for b in plan.blocks)
+    blocks = np.full((len(plan.blocks), _diagram.N_BLOCK_COLUMNS), -1, dtype=np.int64)
+    delays, holds = [], []
+    fill_order, filled = [], set()
+    for b in plan.blocks:
+        row = blocks[b.index]
+        kind = {"ode": 0, "delay": 1, "maxhold": 2}[b.spec.kind]
+        row[_diagram.B_KIND] = kind
+        row[_diagram.B_X0], row[_diagram.B_NX] = b.x.start, b.sys.nstates
+        row[_diagram.B_U0], row[_diagram.B_NU] = b.u.start, b.sys.ninputs
+        row[_diagram.B_Y0], row[_diagram.B_NY] = b.y.start, b.sys.noutputs
+        row[_diagram.B_P0] = pbase.get(b.index, 0)
+        row[_diagram.B_OUT] = windex.get((b.index, "output"), -1)
+        row[_diagram.B_UPD] = windex.get((b.index, "update"), -1)
+        if kind == 1:
+            dl = next(x for x in plan.delays if x["block"] == b.index)
+            row[_diagram.B_SPECIAL] = len(delays)
+            delays.append([dl["off"], dl["size"],
+                           _p_index(playout[b.index][0], f"delay '{b.sys.name}'"),
+                           int(bool(dl["hermite"])), dl["u"], dl["du"]])
+        elif kind == 2:
+            hd = next(x for x in plan.holds if x["block"] == b.index)
+            row[_diagram.B_SPECIAL] = len(holds)
+            holds.append([hd["k"], hd["off"], hd["size"], hd["nvec"], hd["nmat"], hd["u"],
+                          _p_index(playout[b.index][0], f"max-hold '{b.sys.name}'")])
+    for k in plan.order:
+        b = plan.blocks[k]
+        direct = [int(i) for i in b.direct_inputs] if b.spec.kind == "ode" else []
+        blocks[k, _diagram.B_FILL0] = len(fill_order)
+        fill_order += direct
+        filled |= set(direct)
+        blocks[k, _diagram.B_FILL1] = len(fill_order)
+    rest = [i for i in range(nu_total) if i not in filled]
+    # the connection map (and input map) as sparse rows: sources >= 0 are block outputs,
+    # -1 - j is diagram input j
+    Cin = np.asarray(d.input_map)
+    in_ptr, in_src, in_gain = [0], [], []
+    for k in range(nu_total):
+        for j, g in plan.conn[k]:
+            in_src.append(j)
+            in_gain.append(g)
+        if Cin.size:
+            for j in np.flatnonzero(Cin[k]):
+                in_src.append(-1 - int(j))
+                in_gain.append(float(Cin[k, j]))
+        in_ptr.append(len(in_src))
+    Om = np.asarray(d.output_map)
+    rec_ptr, rec_src, rec_gain = [0], [], []
+    for r in range(Om.shape[0]):
+        for j in np.flatnonzero(Om[r]):
+            rec_src.append(int(j) if j < ny_total else -1 - int(j - ny_total))
+            rec_gain.append(float(Om[r, j]))
+        rec_ptr.append(len(rec_src))
+    # the Jacobian's FD program, one row per differenced block
+    fd = []
+    for kb, b in enumerate(prog.fd_blocks):
+        fd.append([prog.fd_x0[kb], prog.fd_nx[kb], prog.fd_u0[kb], prog.fd_nu[kb],
+                   prog.fd_ny[kb], windex.get((b.index, "output"), -1),
+                   windex.get((b.index, "update"), -1), windex.get((b.index, "jacobian"), -1),
+                   pbase.get(b.index, 0)])
+    maxx = int(max(prog.fd_nx.max(initial=0), 1))
+    maxu = int(max(prog.fd_nu.max(initial=0), 1))
+    maxyf = int(max((prog.fd_ny + prog.fd_nx).max(initial=0), 1))
+    maxcol = int(max((prog.fd_nx + prog.fd_nu).max(initial=0), 1))
+    dims = dict(ND=plan.nd, NJB=prog.n_jb, MAXX=maxx, MAXU=maxu, MAXYF=maxyf, MAXCOL=maxcol,
+                NSLOTS=prog.n_slots)
+    return DiagramTables(
+        blocks=blocks, order=_i64(plan.order), fill_order=_i64(fill_order),
+        fill_rest=_i64(rest), in_ptr=_i64(in_ptr), in_src=_i64(in_src),
+        in_gain=np.asarray(in_gain, dtype=float), delays=_i64(delays, _diagram.N_DELAY_COLUMNS),
+        holds=_i64(holds, _diagram.N_HOLD_COLUMNS), rec_ptr=_i64(rec_ptr), rec_src=_i64(rec_src),
+        rec_gain=np.asarray(rec_gain, dtype=float), wrapper_nx=_i64(wrapper_nx),
+        dims=_i64([dims[k] for k in DIMS]), fd=_i64(fd, _FD_COLUMNS),
+        fd_g_ptr=_i64(prog.g_ptr), fd_g_kind=_i64(prog.g_kind), fd_gc_ptr=_i64(prog.gc_ptr),
+        fd_col=_i64(prog.col), fd_e_ptr=_i64(prog.e_ptr), fd_e_row=_i64(prog.e_row),
+        fd_e_slot=_i64(prog.e_slot), jac_ins_dst=_i64(prog.ins_dst),
+        jac_ins_f=_i64(prog.ins_f), jac_ins_src=_i64(prog.ins_src),
+        jac_j_row=_i64(prog.j_row), jac_j_col=_i64(prog.j_col), jac_j_slot=_i64(prog.j_slot),
+        jac_gains=np.asarray(prog.gains, dtype=float), lu_perm=_i64(slu.perm),
+        lu_rowptr=_i64(slu.rowptr), lu_colidx=_i64(slu.colidx), lu_diagp=_i64(slu.diagp))
+
+
+def pack(tables):
+    """(ints, floats): the tables as one int64 and one float64 vector, as the compiled code
+    reads them (two workspace fields rather than thirty: a namedtuple argument is passed
+    field by field on every call).  ints starts with the offsets of the int fields
+    (len(INT_FIELDS) + 1 entries, relative to the start of ints), floats' offsets follow
+    them; 2-D tables are stored row-major."""
+    head = len(INT_FIELDS) + 1 + len(FLOAT_FIELDS) + 1
+    ioff, parts, pos = [], [], head
+    for f in INT_FIELDS:
+        a = np.ascontiguousarray(getattr(tables, f), dtype=np.int64).reshape(-1)
+        ioff.append(pos)
+        parts.append(a)
+        pos += a.size
+    ioff.append(pos)
+    foff, fparts, fpos = [], [], 0
+    for f in FLOAT_FIELDS:
+        a = np.ascontiguousarray(getattr(tables, f), dtype=np.float64).reshape(-1)
+        foff.append(fpos)
+        fparts.append(a)
+        fpos += a.size
+    foff.append(fpos)
+    ints = np.concatenate([np.asarray(ioff + foff, dtype=np.int64)] + parts)
+    floats = np.concatenate(fparts) if fparts else np.zeros(0)
+    return ints, floats
