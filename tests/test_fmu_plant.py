@@ -12,7 +12,7 @@ from scipy.integrate import solve_ivp
 
 pytest.importorskip("fmpy")
 
-from ivdrem.blocks.fmu_plant import fmu_plant  # noqa: E402
+from ivdrem.fmu import fmu_plant  # noqa: E402
 from ivdrem.fmu import export_fmu  # noqa: E402
 from ivdrem.models import planar_arm, two_link  # noqa: E402
 
@@ -173,7 +173,7 @@ def test_freed_wrappers_leave_fmpy_logging_intact(fmus, tmp_path):
         from fmpy import read_model_description, extract
         from fmpy.fmi2 import FMU2Slave
         from fmpy.fmi1 import FMICallException
-        from ivdrem.blocks.fmu_plant import fmu_plant
+        from ivdrem.fmu import fmu_plant
         for _ in range(3):
             blk = fmu_plant({str(path)!r})
             del blk

@@ -76,13 +76,16 @@ class FmuInstance:
         instance is); see also :meth:`bind_owner`.
     label : str, optional
         Prefix of error messages (e.g. the block name).
+    md : fmpy ModelDescription, optional
+        The FMU's model description, if the caller has read it already.
 
     Raises FileNotFoundError / ValueError (from :func:`~ivdrem.fmu.describe.read_description`)
     for a missing or unsuitable file, ValueError if the binary cannot be loaded or
     ``fmi2Instantiate`` fails (with the FMU's message, e.g. a wrong GUID).
     """
 
-    def __init__(self, path, interface, *, instance_name="plant", owner=None, label=None):
+    def __init__(self, path, interface, *, instance_name="plant", owner=None, label=None,
+                 md=None):
         from fmpy import calloc, free
         from fmpy.fmi2 import (FMU2Model, FMU2Slave, fmi2CallbackFunctions,
                                fmi2CallbackLoggerTYPE, fmi2CallbackAllocateMemoryTYPE,
@@ -90,7 +93,7 @@ class FmuInstance:
         self.path = Path(path)
         self.interface = interface
         self.label = label
-        self.md = read_description(self.path, interface)
+        self.md = read_description(self.path, interface) if md is None else md
         self.variables = {v.name: v for v in self.md.modelVariables}
         self.messages = []
         self.broken = False

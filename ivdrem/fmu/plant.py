@@ -39,7 +39,7 @@ import numpy as np
 import control as ct
 
 from ..blocks._core import BlockSpec
-from .describe import direct_ports, output_dependencies
+from .describe import direct_ports, output_dependencies, read_description
 from .instance import FmuError, FmuInstance
 
 __all__ = ["fmu_plant", "FmuPlantInfo", "check_plant_fits", "size_mismatch",
@@ -66,7 +66,7 @@ class FmuPlantInfo:
     parameters: dict            # FMU parameter name -> value used
     messages: list              # FMU log messages (last 100)
     unzipdir: str | None        # temporary extraction, removed with the system
-    direct: tuple               # input ports the outputs depend on (ModelStructure)
+    direct: tuple = ()          # input ports the outputs depend on (ModelStructure)
     instance: FmuInstance = None
 
 
@@ -253,16 +253,10 @@ def fmu_plant(path, name="plant", q0=None, dq0=None, params=None, n=None):
     if the FMU fails to initialize, with its message.
     """
     path = Path(path)
-    inst = FmuInstance(path, "model exchange", instance_name=name, label=name)
-    try:
-        return _build(inst, path, name, q0, dq0, params, n)
-    except BaseException:
-        inst.close()        # terminate, free, remove the extracted files now
-        raise
-
-
-def _build(inst, path, name, q0, dq0, params, n):
-    md, variables = inst.md, inst.variables
+    # everything the model description can refuse is refused before extracting and
+    # loading the binary
+    md = read_description(path, "model exchange")
+    variables = {v.name: v for v in md.modelVariables}
 
     # states x = [q, dq] in the FMU's order (ModelStructure/Derivatives)
     fmu_states = [d.variable.derivative.name for d in md.derivatives]
@@ -313,6 +307,19 @@ def _build(inst, path, name, q0, dq0, params, n):
         start.update({f"q[{i}]": x for i, x in enumerate(_vector(f"{name}: q0", q0, n))})
     if dq0 is not None:
         start.update({f"dq[{i}]": x for i, x in enumerate(_vector(f"{name}: dq0", dq0, n))})
+    layout = dict(nx=nx, n=n, perm=perm, inputs=inputs, want=want, in_vr=in_vr,
+                  out_vr=out_vr, direct=direct, fmu_params=fmu_params, values=values)
+    inst = FmuInstance(path, "model exchange", instance_name=name, label=name, md=md)
+    try:
+        return _build(inst, path, name, start, **layout)
+    except BaseException:
+        inst.close()        # terminate, free, remove the extracted files now
+        raise
+
+
+def _build(inst, path, name, start, *, nx, n, perm, inputs, want, in_vr, out_vr, direct,
+           fmu_params, values):
+    md = inst.md
     inst.initialize(start)
     fmu = inst.fmu
     xs = (c_double * nx)()
