@@ -361,6 +361,20 @@ def test_fmu_error_stops_the_compiled_loop(paper_fmu):
     assert np.all(np.isfinite(r.outputs))
 
 
+@pytest.mark.parametrize("engine", ["compiled", "reference"])
+def test_fmu_error_early_on_both_engines(paper_fmu, engine):
+    """Started at q2 = 0.56 rad moving down at 5 rad/s, M(q) (theta1 = 0.5) loses positive
+    definiteness within milliseconds: both engines stop with the FMU's message."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import SimulationError, simulate
+    blk = fmu_plant(paper_fmu, name="plant", params={"theta1": 0.5}, q0=[0.0, 0.56],
+                    dq0=[0.0, -5.0])
+    loop = closed_loop("iv-drem", two_link(), replace={"plant": blk})
+    with pytest.raises(SimulationError, match=r"simulation stopped after t = 0[.0-9]* s: plant: "
+                       r"FMU TwoLink.fmu: fmi2GetDerivatives at t = .*M\(q\) is singular"):
+        simulate(loop, 0.1, engine=engine, method="dp45", progress=False)
+
+
 def test_start_values_are_the_initial_state(fmus, tmp_path):
     from ivdrem.diagrams import closed_loop
     from ivdrem.sim.plan import DiagramPlan

@@ -42,7 +42,7 @@ from ..blocks._core import BlockSpec
 from .describe import direct_ports, output_dependencies, read_description
 from .instance import FmuError, FmuInstance
 
-__all__ = ["fmu_plant", "FmuPlantInfo", "check_plant_fits", "size_mismatch",
+__all__ = ["fmu_plant", "FmuPlantInfo", "FmuEvaluationError", "check_plant_fits", "size_mismatch",
            "fmu_plant_update", "fmu_plant_output"]
 
 # fmi2Status: fmi2OK = 0, fmi2Warning = 1 (the call succeeded), then Discard, Error, Fatal
@@ -333,8 +333,6 @@ def _build(inst, path, name, start, *, nx, n, perm, inputs, want, in_vr, out_vr,
     y_c = (c_double * nx)()
     in_c = (c_uint * (2 * n))(*in_vr)
     out_c = (c_uint * nx)(*out_vr)
-    calls = {"mark": 0}
-
     def set_all(t, x, u):
         inst.recover()      # after an earlier error that could not be reset at once
         xf = np.empty(nx)
@@ -360,10 +358,11 @@ def _build(inst, path, name, start, *, nx, n, perm, inputs, want, in_vr, out_vr,
             set_all(t, x, u)
             get(fmu.component, buf, nx) if what == "fmi2GetDerivatives" else \
                 get(fmu.component, out_c, nx, buf)
-        except FmuError:
-            raise
+        except FmuError as exc:
+            raise FmuEvaluationError(str(exc)) from None
         except Exception as exc:
-            raise inst.fail_and_reset(f"{what} at t = {float(t):.6g} s", exc, mark) from None
+            err = inst.fail_and_reset(f"{what} at t = {float(t):.6g} s", exc, mark)
+            raise FmuEvaluationError(str(err)) from None
         return np.array(buf[:])
 
     def updfcn(t, x, u, params=None):
@@ -410,8 +409,13 @@ def _build(inst, path, name, start, *, nx, n, perm, inputs, want, in_vr, out_vr,
     return sys
 
 
-_REPORT_TYPE = CFUNCTYPE(c_int32, c_int64, c_int64,
-                                c_double, c_void_p, c_int64)
+_REPORT_TYPE = CFUNCTYPE(c_int32, c_int64, c_int64, c_double, c_void_p, c_int64)
+
+
+class FmuEvaluationError(FmuError, ValueError):
+    """An FMU evaluation failed (derivatives or outputs), with the FMU's message.  Also a
+    ValueError, like the compiled kernels' error, so that the simulator stops the run on
+    either engine with a SimulationError naming the time."""
 
 
 def size_mismatch(path, n_fmu: int, n_loop: int) -> str:
