@@ -453,3 +453,33 @@ def test_fmu_declaring_feedthrough_is_direct(fmus, tmp_path):
     loop = closed_loop("iv-drem", two_link(), replace={"plant": blk})
     with pytest.raises(AlgebraicLoopError, match="plant"):
         simulate(loop, 0.1, progress=False)
+
+
+# ----------------------------------------------------------------------------- FmuInstance
+@pytest.mark.parametrize("interface", ["model exchange", "co-simulation"])
+def test_instance_wrapper(fmus, interface):
+    """The one wrapper of the plant block and the co-simulation: start values, an error
+    with the FMU's message, reset with the same start values, release with the owner."""
+    import os
+    from ivdrem.fmu import FmuError, FmuInstance
+    _, path = fmus["two-link"]
+
+    class Owner:
+        pass
+    owner = Owner()
+    inst = FmuInstance(path, interface, owner=owner, label="blk")
+    d = inst.unzipdir
+    assert d and os.path.isdir(d)
+    inst.initialize({"q[0]": 0.5})
+    vr_q0, vr_tau0 = inst.value_reference("q[0]"), inst.value_reference("tau[0]")
+    assert inst.fmu.getReal([vr_q0]) == [0.5]
+    assert inst.component_address > 0 and inst.address("fmi2SetReal") > 0
+    with pytest.raises(FmuError, match=r"blk: FMU two.fmu: setting tau failed: "
+                                       r"fmi2SetReal: the value of tau\[0\] is not finite"):
+        inst.call("setting tau", inst.fmu.setReal, [vr_tau0], [float("nan")])
+    assert inst.broken and "not finite" in inst.messages[-1]
+    inst.recover()                       # fmi2Reset, then the same start values again
+    assert not inst.broken and inst.fmu.getReal([vr_q0]) == [0.5]
+    del owner
+    gc.collect()
+    assert inst.closed and not os.path.exists(d)
