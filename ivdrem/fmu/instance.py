@@ -90,6 +90,9 @@ class FmuInstance:
         from fmpy.fmi2 import (FMU2Model, FMU2Slave, fmi2CallbackFunctions,
                                fmi2CallbackLoggerTYPE, fmi2CallbackAllocateMemoryTYPE,
                                fmi2CallbackFreeMemoryTYPE)
+        if interface not in ("model exchange", "co-simulation"):
+            raise ValueError(f"interface must be 'model exchange' or 'co-simulation', "
+                             f"got {interface!r}")
         self.path = Path(path)
         self.interface = interface
         self.label = label
