@@ -39,6 +39,7 @@ import numpy as np
 import control as ct
 
 from ..blocks._core import BlockSpec
+from ..sim._native import call_c
 from .describe import direct_ports, output_dependencies, read_description
 from .instance import FmuError, FmuInstance
 
@@ -173,21 +174,6 @@ def fmu_plant_output(t, x, u, y, fmi, vr_in, vr_out, perm):
         raise ValueError(text)
     for i in range(ny):
         y[i] = yf[i]
-
-
-_CTYPES_FUNCTIONS = {}
-
-
-def call_c(address, args):
-    """The kernels' ``call_c`` when they run as plain Python (the compiled engine probes a
-    block's Jacobian pattern that way): the same C call through ctypes.  The compiled
-    kernels use :func:`ivdrem.sim._native.call_c`, which the generated module imports."""
-    sig = tuple(c_double if isinstance(a, float) else c_int64 for a in args)
-    fn_type = _CTYPES_FUNCTIONS.get(sig)
-    if fn_type is None:
-        fn_type = _CTYPES_FUNCTIONS[sig] = CFUNCTYPE(c_int32, *sig)
-    return int(fn_type(int(address))(*[float(a) if isinstance(a, float) else int(a)
-                                        for a in args]))
 
 
 # ----------------------------------------------------------------------------- the block
