@@ -218,7 +218,7 @@ def test_overwrite_flag_passes_the_foreign_file_check(inputs, monkeypatch, capsy
 
 
 def _fmu_plant(path, **kw):
-    from ivdrem.blocks.fmu_plant import fmu_plant
+    from ivdrem.fmu import fmu_plant
     return fmu_plant(path, **kw)
 
 
@@ -280,7 +280,7 @@ def test_api_refuses_before_work(inputs, no_work, clean_tmp, call, exc_name, mes
 
 def test_planar3_plant_in_two_link_loop_names_the_sizes(inputs):
     """check_plant_fits: what closed_loop's `replace` can call for a given plant block."""
-    from ivdrem.blocks.fmu_plant import FmuPlantInfo, check_plant_fits
+    from ivdrem.fmu.plant import FmuPlantInfo, check_plant_fits
 
     class Block:
         fmu = FmuPlantInfo(path=inputs["p3"], model_description=None, n=3, x0=np.zeros(6),

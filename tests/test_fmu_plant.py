@@ -1,4 +1,5 @@
-"""The plant FMU imported as a python-control block (ivdrem.blocks.fmu_plant)."""
+"""The plant FMU imported as a block (ivdrem.fmu.fmu_plant, also ivdrem.blocks.fmu_plant):
+its Python (fmpy) path, its declaration, and the closed loop on both engines."""
 from __future__ import annotations
 
 import gc
@@ -12,7 +13,7 @@ from scipy.integrate import solve_ivp
 
 pytest.importorskip("fmpy")
 
-from ivdrem.blocks.fmu_plant import fmu_plant  # noqa: E402
+from ivdrem.fmu import fmu_plant  # noqa: E402
 from ivdrem.fmu import export_fmu  # noqa: E402
 from ivdrem.models import planar_arm, two_link  # noqa: E402
 
@@ -173,7 +174,7 @@ def test_freed_wrappers_leave_fmpy_logging_intact(fmus, tmp_path):
         from fmpy import read_model_description, extract
         from fmpy.fmi2 import FMU2Slave
         from fmpy.fmi1 import FMICallException
-        from ivdrem.blocks.fmu_plant import fmu_plant
+        from ivdrem.fmu import fmu_plant
         for _ in range(3):
             blk = fmu_plant({str(path)!r})
             del blk
@@ -198,3 +199,287 @@ def test_freed_wrappers_leave_fmpy_logging_intact(fmus, tmp_path):
     assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
     assert "survived" in p.stdout
     assert "not a serialized state" in p.stdout     # fmpy printed the FMU's whole message
+
+
+
+# ----------------------------------------------------------------------------- closed loop
+PAPER_Q0 = [0.0, 0.3 * np.pi]       # the Python plant's q(0) in closed_loop (two-link)
+
+
+@pytest.fixture(scope="module")
+def paper_fmu(tmp_path_factory):
+    """The two-link plant FMU with the Python plant's q(0) as its start values."""
+    return export_fmu(two_link(), tmp_path_factory.mktemp("fmu_loop") / "TwoLink.fmu",
+                      q0=PAPER_Q0)
+
+
+def _q(resp, n=2):
+    labels = list(resp.output_labels)
+    assert labels[:n] == [f"q[{i}]" for i in range(n)]
+    return np.asarray(resp.outputs)[:n]
+
+
+def test_both_spellings(paper_fmu):
+    import subprocess
+    import sys
+    import ivdrem.blocks
+    import ivdrem.fmu
+    assert ivdrem.blocks.fmu_plant is ivdrem.fmu.fmu_plant is fmu_plant
+    blk = ivdrem.blocks.fmu_plant(paper_fmu, name="fmu")
+    assert isinstance(blk, ct.NonlinearIOSystem) and blk.name == "fmu"
+    # a fresh process: the block library alone neither loads fmpy nor meets an import
+    # cycle, and ivdrem.blocks.fmu_plant is the function (no submodule shadows it)
+    code = ("import sys, ivdrem.blocks as b; assert 'fmpy' not in sys.modules; "
+            "f = b.fmu_plant; import ivdrem.fmu, ivdrem.fmu.plant; "
+            "assert f is ivdrem.fmu.fmu_plant is b.fmu_plant; print(f.__module__)")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert p.stdout.strip() == "ivdrem.fmu.plant"
+
+
+def test_declaration(paper_fmu):
+    from ivdrem.blocks import BlockSpec
+    blk = fmu_plant(paper_fmu)
+    spec = blk.ivdrem
+    assert isinstance(spec, BlockSpec) and spec.kind == "ode"
+    assert spec.inputs == [("tau", 2), ("tau_d", 2)]
+    assert spec.outputs == [("q", 2), ("dq", 2)] and spec.states == [("q", 2), ("dq", 2)]
+    assert spec.direct == () == blk.fmu.direct       # q, dq depend on the states only
+    np.testing.assert_array_equal(spec.x0, PAPER_Q0 + [0.0, 0.0])
+    # the kernels' parameters are runtime constants, not python-control parameters
+    assert dict(blk.params) == {}
+    assert set(spec.param_names) == set(spec.constants)
+
+
+def test_kernels_as_python_equal_the_fmpy_path(paper_fmu):
+    """The kernels run as plain Python (their call_c through ctypes, as the compiled engine's
+    sparsity probe runs them) give bit for bit what the fmpy path gives."""
+    from ivdrem.fmu.plant import fmu_plant_output, fmu_plant_update
+    blk = fmu_plant(paper_fmu)
+    spec = blk.ivdrem
+    args = [spec.constants[k] for k in spec.param_names]
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        x, u = rng.uniform(-2, 2, 4), rng.uniform(-5, 5, 4)
+        dx, y = np.empty(4), np.empty(4)
+        fmu_plant_update(0.3, x, u, dx, *args)
+        fmu_plant_output(0.3, x, u, y, *args)
+        np.testing.assert_array_equal(dx, blk._rhs(0.3, x, u))
+        np.testing.assert_array_equal(y, blk._out(0.3, x, u))
+    # NaN in, NaN out (no FMU call): the step control rejects such a trial step
+    dx = np.zeros(4)
+    fmu_plant_update(0.3, np.array([np.nan, 0, 0, 0]), np.zeros(4), dx, *args)
+    assert np.all(np.isnan(dx)) and np.all(np.isnan(blk._rhs(0.3, [np.nan, 0, 0, 0], np.zeros(4))))
+
+
+def test_generated_code_holds_no_addresses(paper_fmu):
+    """Two instances (other C addresses) generate the same diagram source, which contains
+    none of the addresses: the cached module serves every process."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim.compiled import _param_layout, generate_source
+    from ivdrem.sim.plan import DiagramPlan
+    model = two_link()
+    a, b = fmu_plant(paper_fmu), fmu_plant(paper_fmu)
+    ta, tb = a.ivdrem.constants["fmi"], b.ivdrem.constants["fmi"]
+    assert ta[0] != tb[0]                          # two components
+    assert all(float(v).is_integer() and v < 2.0 ** 53 for v in ta)
+    srcs, Ps = [], []
+    for blk in (a, b):
+        plan = DiagramPlan.from_diagram(closed_loop("iv-drem", model, replace={"plant": blk}))
+        exprs, P = _param_layout(plan)
+        srcs.append(generate_source(plan, exprs)[0])
+        Ps.append(P)
+    assert srcs[0] == srcs[1]
+    for v in ta:
+        assert repr(float(v)) not in srcs[0] and str(int(v)) not in srcs[0]
+    assert set(ta) <= set(Ps[0]) and set(tb) <= set(Ps[1])
+
+
+def test_address_must_fit_a_float64(paper_fmu):
+    from ivdrem.fmu.plant import _address_table
+    blk = fmu_plant(paper_fmu)
+    inst = blk.fmu.instance
+
+    class Far:
+        path = inst.path
+        component_address = 2 ** 53 + 2
+        address = staticmethod(inst.address)
+    with pytest.raises(ValueError, match="does not fit a float64"):
+        _address_table(Far(), blk.ivdrem.info["report"])
+
+
+def test_closed_loop_compiled_equals_python_plant(paper_fmu):
+    """closed_loop with the FMU plant on the default (compiled) engine and method: the same
+    run as the Python plant's loop, q within 1e-7 over 10 s (measured ~1e-11)."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import simulate
+    model = two_link()
+    fmu_loop = closed_loop("iv-drem", model, replace={"plant": fmu_plant(paper_fmu, name="plant")})
+    a = simulate(fmu_loop, 10.0, progress=False)
+    b = simulate(closed_loop("iv-drem", model), 10.0, progress=False)
+    assert a.stats["steps"] > 100
+    err = float(np.max(np.abs(_q(a) - _q(b))))
+    print(f"\nFMU plant vs Python plant, compiled, 10 s: max |q - q_ref| = {err:.1e}")
+    assert err < 1e-7
+    np.testing.assert_array_equal(_q(a)[:, 0], PAPER_Q0)
+
+
+def test_closed_loop_reference_engine(paper_fmu):
+    """The reference engine runs the FMU plant through fmpy (python-control evaluation):
+    the same run as the compiled Python-plant loop (short horizon: the path is slow)."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import simulate
+    model = two_link()
+    fmu_loop = closed_loop("iv-drem", model, replace={"plant": fmu_plant(paper_fmu, name="plant")})
+    kw = dict(method="dp45", progress=False)
+    a = simulate(fmu_loop, 0.5, engine="reference", **kw)
+    b = simulate(closed_loop("iv-drem", model), 0.5, **kw)
+    err = float(np.max(np.abs(_q(a) - _q(b))))
+    print(f"\nFMU plant (reference engine) vs Python plant, 0.5 s: max |q - q_ref| = {err:.1e}")
+    assert err < 1e-7
+
+
+def test_fmu_error_stops_the_compiled_loop(paper_fmu):
+    """theta1 = 0.5 keeps M(q) positive definite at q(0) but not once q2 falls below about
+    0.54 rad (det M = 0.0576 - 0.0784 cos^2 q2): the FMU refuses, the compiled run stops
+    with the FMU's own message and the time, and the block works again afterwards."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import SimulationError, simulate
+    blk = fmu_plant(paper_fmu, name="plant", params={"theta1": 0.5})
+    loop = closed_loop("iv-drem", two_link(), replace={"plant": blk})
+    with pytest.raises(SimulationError) as info:
+        simulate(loop, 10.0, progress=False)
+    msg = str(info.value)
+    assert "M(q) is singular or not positive definite" in msg, msg
+    assert "plant: FMU TwoLink.fmu: fmi2GetDerivatives at t = " in msg, msg
+    assert "simulation stopped after t = " in msg
+    # the FMU was reset: the block evaluates again, and a short run completes
+    x0 = blk.ivdrem.x0
+    assert np.all(np.isfinite(blk._rhs(0.0, x0, np.zeros(4))))
+    r = simulate(loop, 0.2, progress=False)
+    assert np.all(np.isfinite(r.outputs))
+
+
+@pytest.mark.parametrize("engine", ["compiled", "reference"])
+def test_fmu_error_early_on_both_engines(paper_fmu, engine):
+    """Started at q2 = 0.56 rad moving down at 5 rad/s, M(q) (theta1 = 0.5) loses positive
+    definiteness within milliseconds: both engines stop with the FMU's message."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import SimulationError, simulate
+    blk = fmu_plant(paper_fmu, name="plant", params={"theta1": 0.5}, q0=[0.0, 0.56],
+                    dq0=[0.0, -5.0])
+    loop = closed_loop("iv-drem", two_link(), replace={"plant": blk})
+    with pytest.raises(SimulationError, match=r"simulation stopped after t = 0[.0-9]* s: plant: "
+                       r"FMU TwoLink.fmu: fmi2GetDerivatives at t = .*M\(q\) is singular"):
+        simulate(loop, 0.1, engine=engine, method="dp45", progress=False)
+
+
+def test_start_values_are_the_initial_state(fmus, tmp_path):
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim.plan import DiagramPlan
+    model = two_link()
+    path = export_fmu(model, tmp_path / "start.fmu", q0=[0.1, -0.2], dq0=[0.3, 0.05])
+    blk = fmu_plant(path)
+    np.testing.assert_array_equal(blk.ivdrem.x0, [0.1, -0.2, 0.3, 0.05])
+    plan = DiagramPlan.from_diagram(closed_loop("iv-drem", model, replace={"plant": blk}))
+    entry = next(b for b in plan.blocks if b.sys is blk)
+    np.testing.assert_array_equal(plan.x0[entry.x], [0.1, -0.2, 0.3, 0.05])
+    # q0 / dq0 given: set on the FMU before initialization, and the block starts there
+    blk2 = fmu_plant(path, q0=[1.0, 2.0])
+    np.testing.assert_array_equal(blk2.ivdrem.x0, [1.0, 2.0, 0.3, 0.05])
+    np.testing.assert_array_equal(blk2.fmu.x0, blk2.ivdrem.x0)
+
+
+# ----------------------------------------------------------------------------- ModelStructure
+_XML = """<?xml version="1.0" encoding="UTF-8"?>
+<fmiModelDescription fmiVersion="2.0" modelName="m" guid="{0}">
+  <ModelVariables>
+    <ScalarVariable name="u1" valueReference="10" causality="input"><Real start="0"/></ScalarVariable>
+    <ScalarVariable name="u2" valueReference="11" causality="input"><Real start="0"/></ScalarVariable>
+    <ScalarVariable name="x" valueReference="0" causality="local"><Real/></ScalarVariable>
+    <ScalarVariable name="y1" valueReference="1" causality="output"><Real/></ScalarVariable>
+    <ScalarVariable name="y2" valueReference="2" causality="output"><Real/></ScalarVariable>
+    <ScalarVariable name="y3" valueReference="3" causality="output"><Real/></ScalarVariable>
+  </ModelVariables>
+  <ModelStructure>
+    <Outputs>
+      <Unknown index="4" dependencies="1 3"/>
+      <Unknown index="5" dependencies=""/>
+      <Unknown index="6"/>
+    </Outputs>
+  </ModelStructure>
+</fmiModelDescription>
+"""
+
+
+def test_output_dependencies_from_model_structure():
+    from ivdrem.fmu.describe import direct_ports, output_dependencies
+    deps = output_dependencies(_XML)
+    # indices are 1-based positions in ModelVariables; no attribute: depends on everything
+    assert deps == {"y1": frozenset({"u1", "x"}), "y2": frozenset(), "y3": None}
+    ports = {"a": ["u1"], "b": ["u2"]}
+    assert direct_ports(deps, ["y1"], ports) == ("a",)
+    assert direct_ports(deps, ["y2"], ports) == ()
+    assert direct_ports(deps, ["y3"], ports) == ("a", "b")
+    assert direct_ports(deps, ["y1", "y2"], ports) == ("a",)
+    assert direct_ports(deps, ["not listed"], ports) == ("a", "b")
+    with pytest.raises(ValueError, match="variable index '9'"):
+        output_dependencies(_XML.replace('index="6"', 'index="9"'))
+    with pytest.raises(ValueError, match="not valid XML"):
+        output_dependencies("<fmiModelDescription")
+
+
+def test_fmu_declaring_feedthrough_is_direct(fmus, tmp_path):
+    """An FMU whose outputs carry no dependencies attribute depends, per FMI 2.0, on all its
+    inputs: the block is direct, and the plan then finds the loop algebraic."""
+    import re
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import simulate
+    from ivdrem.sim.plan import AlgebraicLoopError
+    _, path = fmus["two-link"]
+    direct = tmp_path / "direct.fmu"
+    with zipfile.ZipFile(path) as zi, zipfile.ZipFile(direct, "w") as zo:
+        for item in zi.infolist():
+            data = zi.read(item.filename)
+            if item.filename == "modelDescription.xml":
+                xml = data.decode()
+                a, b = xml.index("<Outputs>"), xml.index("</Outputs>")
+                xml = xml[:a] + re.sub(r' dependencies="[^"]*"', "", xml[a:b]) + xml[b:]
+                data = xml.encode()
+            zo.writestr(item, data)
+    blk = fmu_plant(direct)
+    assert blk.ivdrem.direct == ("tau", "tau_d")
+    loop = closed_loop("iv-drem", two_link(), replace={"plant": blk})
+    with pytest.raises(AlgebraicLoopError, match="plant"):
+        simulate(loop, 0.1, progress=False)
+
+
+# ----------------------------------------------------------------------------- FmuInstance
+@pytest.mark.parametrize("interface", ["model exchange", "co-simulation"])
+def test_instance_wrapper(fmus, interface):
+    """The one wrapper of the plant block and the co-simulation: start values, an error
+    with the FMU's message, reset with the same start values, release with the owner."""
+    import os
+    from ivdrem.fmu import FmuError, FmuInstance
+    _, path = fmus["two-link"]
+
+    class Owner:
+        pass
+    owner = Owner()
+    inst = FmuInstance(path, interface, owner=owner, label="blk")
+    d = inst.unzipdir
+    assert d and os.path.isdir(d)
+    inst.initialize({"q[0]": 0.5})
+    vr_q0, vr_tau0 = inst.value_reference("q[0]"), inst.value_reference("tau[0]")
+    assert inst.fmu.getReal([vr_q0]) == [0.5]
+    assert inst.component_address > 0 and inst.address("fmi2SetReal") > 0
+    with pytest.raises(FmuError, match=r"blk: FMU two.fmu: setting tau failed: "
+                                       r"fmi2SetReal: the value of tau\[0\] is not finite"):
+        inst.call("setting tau", inst.fmu.setReal, [vr_tau0], [float("nan")])
+    assert inst.broken and "not finite" in inst.messages[-1]
+    inst.recover()                       # fmi2Reset, then the same start values again
+    assert not inst.broken and inst.fmu.getReal([vr_q0]) == [0.5]
+    del owner
+    gc.collect()
+    assert inst.closed and not os.path.exists(d)

@@ -29,3 +29,11 @@ def test_call_c_passes_double_pointer_and_size_and_returns_int():
     y = np.ones(2)
     assert _call(address, -1.0, y) == -1
     np.testing.assert_array_equal(y, [-1.0, -1.0])
+
+
+def test_call_c_from_plain_python_is_the_same_call():
+    cb = _CB(_scale)
+    address = ctypes.cast(cb, ctypes.c_void_p).value
+    x = np.arange(3.0)
+    assert _call.py_func(address, 2.5, x) == 7
+    np.testing.assert_array_equal(x, [0.0, 2.5, 5.0])

@@ -1,7 +1,23 @@
 """Plant FMU: export of the robot plant as an FMI 2.0 FMU (generated C, model exchange and
-co-simulation in one binary), see :mod:`ivdrem.fmu.export`; the FMU as a python-control
-block: :func:`ivdrem.blocks.fmu_plant.fmu_plant`.
+co-simulation in one binary), see :mod:`ivdrem.fmu.export`; the FMU as a block of the
+closed loop: :func:`fmu_plant` (:mod:`ivdrem.fmu.plant`); one FMU instance, shared by the
+plant block and the co-simulation: :class:`~ivdrem.fmu.instance.FmuInstance`.
 """
 from .export import DEFAULT_SUBSTEP, export_fmu, generate_sources
 
-__all__ = ["export_fmu", "generate_sources", "DEFAULT_SUBSTEP"]
+__all__ = ["export_fmu", "generate_sources", "DEFAULT_SUBSTEP", "fmu_plant", "FmuInstance",
+           "FmuError"]
+
+
+def __getattr__(name):
+    # imported on first use: the plant block imports the block library, which imports
+    # this package lazily too (no import cycle, and fmpy loads only when needed)
+    if name == "fmu_plant":
+        from .plant import fmu_plant as value
+    elif name in ("FmuInstance", "FmuError"):
+        from . import instance
+        value = getattr(instance, name)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import ctypes
 import math
-import shutil
 import sys
 import time as _time
 from dataclasses import dataclass, field
@@ -57,7 +56,8 @@ from pathlib import Path
 import numpy as np
 import control as ct
 from .._progress import want_progress
-from .describe import extract_fmu, read_description
+from .describe import read_description
+from .instance import FmuError, FmuInstance
 
 __all__ = ["cosimulate", "compare_to_python", "CosimComparison", "CosimError",
            "COMPARED_SIGNALS", "EXPECTED_ORDER"]
@@ -72,7 +72,7 @@ EXPECTED_ORDER = (0.7, 1.5)
 DEFAULT_CTRL_STEP = 1e-3
 
 
-class CosimError(RuntimeError):
+class CosimError(FmuError):
     """The FMU reported an error during the co-simulation (message from its logger)."""
 
 
@@ -109,44 +109,17 @@ def _check_interface(path, md, model):
 
 
 class _Slave:
-    """An instantiated, initialized FMU2Slave with preallocated ctypes buffers."""
+    """The co-simulation FMU (:class:`~ivdrem.fmu.instance.FmuInstance`), initialized, with
+    preallocated ctypes buffers for the stepping loop."""
 
     def __init__(self, path: Path, md, variables, start: dict, in_names, out_names):
-        from fmpy import calloc, free
-        from fmpy.fmi2 import (FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE,
-                               fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE)
         self.path = path
-        self.messages = []
-        self.fmu = None
-        self._instantiated = False
-        self._unzipdir = extract_fmu(path) if path.is_file() else None
+        self.instance = FmuInstance(path, "co-simulation", instance_name="plant", md=md)
         try:
-            def log(env, instance, status, category, message):
-                # ivdrem's FMUs pass complete text with '%' doubled (printf-safe)
-                self.messages.append(message.decode("utf-8", "replace").replace("%%", "%"))
-                del self.messages[:-100]
-
-            # No fmpy.logging.addLoggerProxy: its native proxy keeps the last registered
-            # Python logger in one global, which dangles once these callbacks are freed and
-            # then crashes any FMU in the process that logs through the proxy.
-            cb = fmi2CallbackFunctions()
-            cb.logger = fmi2CallbackLoggerTYPE(log)
-            cb.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
-            cb.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
-            self._callbacks = (cb, log)             # keep alive while the FMU runs
             try:
-                self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=self._unzipdir or str(path),
-                                     modelIdentifier=md.coSimulation.modelIdentifier,
-                                     instanceName="plant")
-            except Exception as exc:
-                raise ValueError(f"{path}: cannot load the FMU binary: {exc}") from None
-            try:
-                self.fmu.instantiate(callbacks=cb)
-            except Exception as exc:
-                raise ValueError(f"{path}: fmi2Instantiate failed: "
-                                 f"{' '.join(self.messages) or exc}") from None
-            self._instantiated = True
-            self._call("initialization", self._initialize, variables, start)
+                self.instance.initialize(start)
+            except FmuError as exc:
+                raise CosimError(str(exc)) from None
             nin, nout = len(in_names), len(out_names)
             self.in_vr = (ctypes.c_uint * nin)(*[variables[s].valueReference for s in in_names])
             self.out_vr = (ctypes.c_uint * nout)(*[variables[s].valueReference for s in out_names])
@@ -160,43 +133,22 @@ class _Slave:
             self.close()
             raise
 
-    def _initialize(self, variables, start):
-        fmu = self.fmu
-        fmu.setupExperiment(startTime=0.0)
-        if start:
-            fmu.setReal([variables[k].valueReference for k in start], list(start.values()))
-        fmu.enterInitializationMode()
-        fmu.exitInitializationMode()
+    @property
+    def fmu(self):
+        return self.instance.fmu
+
+    @property
+    def messages(self):
+        return self.instance.messages
 
     def _call(self, what, fn, *args):
-        mark = len(self.messages)
         try:
-            return fn(*args)
-        except Exception as exc:
-            new = self.messages[mark:] or self.messages[-1:]
-            raise CosimError(f"FMU {self.path.name}: {what} failed: "
-                             f"{' '.join(new) or 'no message from the FMU'} ({exc})") from None
+            return self.instance.call(what, fn, *args)
+        except FmuError as exc:
+            raise CosimError(str(exc)) from None
 
     def close(self):
-        fmu, self.fmu = self.fmu, None
-        if fmu is not None:
-            if self._instantiated:
-                try:
-                    fmu.terminate()
-                except Exception:
-                    pass
-                try:
-                    fmu.freeInstance()          # also unloads the library
-                except Exception:
-                    pass
-            else:
-                try:
-                    fmu.freeLibrary()
-                except Exception:
-                    pass
-        if self._unzipdir:
-            shutil.rmtree(self._unzipdir, ignore_errors=True)
-            self._unzipdir = None
+        self.instance.close()           # terminate, freeInstance, remove the files
 
 
 # ----------------------------------------------------------------------------- helpers

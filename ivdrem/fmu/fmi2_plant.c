@@ -413,16 +413,20 @@ fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nv
             logError(S, "fmi2SetReal: unknown value reference %u.", r);
             return fail(S);
         }
-        vrName(r, name, sizeof(name));
+        /* the name only for a message: snprintf on every call would dominate the cost of
+         * setting the inputs in a simulation loop */
         if (r >= VR_DER_Q && r < VR_TAU) {
+            vrName(r, name, sizeof(name));
             logError(S, "fmi2SetReal: %s is calculated and cannot be set.", name);
             return fail(S);
         }
         if ((r < VR_DER_Q || r >= VR_P) && !beforeInit) {
+            vrName(r, name, sizeof(name));
             logError(S, "fmi2SetReal: %s can only be set before fmi2ExitInitializationMode.", name);
             return fail(S);
         }
         if (!isfinite(value[i])) {
+            vrName(r, name, sizeof(name));
             logError(S, "fmi2SetReal: the value of %s is not finite.", name);
             return fail(S);
         }

@@ -4,17 +4,40 @@ A C function's address is a runtime value (it changes from process to process), 
 passed in as an integer rather than baked into the machine code: the generated diagram
 modules stay cacheable on disk.  ``call_c(address, args)`` calls ``int f(args...)`` with
 the C calling convention; each argument is an integer (pointers and sizes: pass
-``array.ctypes.data`` for an array) or a float64 (a C ``double``).
+``array.ctypes.data`` for an array) or a float64 (a C ``double``).  The same call works
+from plain Python (through ctypes), so a kernel that uses it runs in both worlds.
 """
+from ctypes import CFUNCTYPE, c_double, c_int32, c_int64
+
 from llvmlite import ir
 from numba import types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 
 __all__ = ["call_c", "float_pointer", "int_pointer", "element_address"]
 
+_CTYPES_FUNCTIONS = {}
+
+
+def call_c(address, args):
+    """int32 f(*args) for the C function at `address`; `args` a tuple of ints and floats
+    (from Python: through ctypes; from numba code: a direct call, see _call_c)."""
+    sig = tuple(c_double if isinstance(a, float) else c_int64 for a in args)
+    fn_type = _CTYPES_FUNCTIONS.get(sig)
+    if fn_type is None:
+        fn_type = _CTYPES_FUNCTIONS[sig] = CFUNCTYPE(c_int32, *sig)
+    return int(fn_type(int(address))(*[float(a) if isinstance(a, float) else int(a)
+                                        for a in args]))
+
+
+@overload(call_c)
+def _call_c_overload(address, args):
+    def impl(address, args):
+        return _call_c(address, args)
+    return impl
+
 
 @intrinsic
-def call_c(typingctx, address, args):
+def _call_c(typingctx, address, args):
     """int32 f(*args) for the C function at `address` (int64); `args` a tuple of
     int64 / uint64 / float64 values."""
     if not isinstance(address, types.Integer):

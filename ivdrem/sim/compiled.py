@@ -301,7 +301,9 @@ def _param_layout(plan):
         exprs = []
         names = b.spec.param_names if b.spec.kind == "ode" else ("p",)
         for name, v in zip(names, _param_values(plan, b)):
-            if b.spec.kind == "ode" and name in b.spec.constants:
+            # scalar constants are literals; array constants (e.g. an FMU's C addresses,
+            # different in every process) travel in P so the source stays the same
+            if b.spec.kind == "ode" and name in b.spec.constants and np.ndim(v) == 0:
                 exprs.append(repr(v))
                 continue
             if np.ndim(v) > 2:
