@@ -485,14 +485,16 @@ class Simulator:
     def _run_integrate(self, *args):
         try:
             return self._integrate(*args)
-        except RuntimeError as e:
-            if self.engine_name != "reference" and str(e) == BLOCK_RAISED_MESSAGE:
+        except Exception as e:
+            if (self.engine_name != "reference" and isinstance(e, RuntimeError)
+                    and str(e) == BLOCK_RAISED_MESSAGE):
                 err, cause = self.engine.block_error(self.W)
                 raise err from cause
+            if isinstance(e, (ValueError, ZeroDivisionError, FloatingPointError,
+                              np.linalg.LinAlgError)):
+                raise SimulationError(f"simulation stopped after t = {self.tf[0]:.6g} s: "
+                                      f"{e}") from e
             raise
-        except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError) as e:
-            raise SimulationError(f"simulation stopped after t = {self.tf[0]:.6g} s: {e}") \
-                from e
 
     def _chunk(self, t_stop, out_t, out_y, out_x, io):
         self.tf[tpl.F_T] = self.t
