@@ -280,3 +280,13 @@ def test_steps_end_at_the_kinks(loop):
     ref = ct.input_output_response(loop, T, U, sim.plan.x0, solve_ivp_kwargs=IVP,
                                    t_eval=[3.0])
     assert _err(sim.outputs_at_current(), ref.outputs[:, -1]) < 1e-5
+
+
+def test_cost_guard_counts_given_output_times(loop):
+    """With output times given as an array the guard prices their number (not a dt_out
+    grid), and refuses before any work."""
+    from ivdrem.sim.guards import CostLimitError, estimate_cost, check_diagram_cost
+    est = estimate_cost(10.0, noutputs=4, nstates=5, samples=7)
+    assert est.samples == 7 and est.bytes == 7 * 9 * 8
+    with pytest.raises(CostLimitError, match=r"1e\+03 samples x 9 signals"):
+        check_diagram_cost(loop, 1.0, samples=1000, max_bytes=1000)

@@ -406,12 +406,16 @@ class Simulator:
         """
         nu = self.plan.diagram.ninputs
         values = np.asarray(values, float)
+        if not np.all(np.isfinite(values)):
+            raise ValueError("inputs have non-finite entries")
         if times is None:
             values = values.reshape(-1)
             if values.size != nu:
                 raise ValueError(f"inputs have {values.size} entries, the diagram has {nu}")
             self.W[8][:] = values
-            self.W = self.W._replace(u_times=np.zeros(0), u_values=np.zeros((0, nu)))
+            if self.W.u_times.size:             # drop the table (cheap when there is none:
+                self.W = self.W._replace(       # co-simulation sets u every step)
+                    u_times=np.zeros(0), u_values=np.zeros((0, nu)))
             self._kinks = np.zeros(0)
         else:
             times = np.asarray(times, float).reshape(-1)
@@ -423,8 +427,6 @@ class Simulator:
             self.W = self.W._replace(u_times=np.ascontiguousarray(times),
                                      u_values=np.ascontiguousarray(values.T))
             self._kinks = input_kinks(times, values)
-        if not np.all(np.isfinite(values)):
-            raise ValueError("inputs have non-finite entries")
         self._Wref[0] = self.W
         self._inputs_set = True
 
@@ -656,12 +658,12 @@ def _increasing_times(name, v):
         raise ValueError(f"{name} must be a 1-D array of times, got shape {a.shape}")
     bad = np.flatnonzero(~np.isfinite(a))
     if bad.size:
-        raise ValueError(f"{name}[{bad[0]}] is {a[bad[0]]!r}: times must be finite")
+        raise ValueError(f"{name}[{bad[0]}] is {float(a[bad[0]])!r}: times must be finite")
     back = np.flatnonzero(np.diff(a) <= 0)
     if back.size:
         i = int(back[0])
-        raise ValueError(f"{name} must be strictly increasing: {name}[{i}] = {a[i]!r}, "
-                         f"{name}[{i + 1}] = {a[i + 1]!r}")
+        raise ValueError(f"{name} must be strictly increasing: {name}[{i}] = {float(a[i])!r}, "
+                         f"{name}[{i + 1}] = {float(a[i + 1])!r}")
     return a
 
 
@@ -695,7 +697,7 @@ def _output_grid(t0, t_end, T, t_eval, dt_out):
         tol = 1e-12 * max(1.0, abs(t0), abs(t_end))
         if te[0] < t0 - tol or te[-1] > t_end + tol:
             raise ValueError(f"t_eval must lie within the simulated interval [{t0!r}, "
-                             f"{t_end!r}], got [{te[0]!r}, {te[-1]!r}]")
+                             f"{t_end!r}], got [{float(te[0])!r}, {float(te[-1])!r}]")
         return np.clip(te, t0, t_end), None
     if T is not None and dt_out is None:
         return T.copy(), None
@@ -759,7 +761,7 @@ def _input_table(diagram, inputs, T):
     if bad.size:
         i = tuple(int(k) for k in bad[0])
         where = f"{labels[i[0]]}" + (f" at timepts[{i[1]}]" if len(i) > 1 else "")
-        raise ValueError(f"inputs has a non-finite entry ({U[i]!r}) for input {where}")
+        raise ValueError(f"inputs has a non-finite entry ({float(U[i])!r}) for input {where}")
     return (U, None) if U.ndim == 1 else (U, T)
 
 
@@ -790,7 +792,7 @@ def _initial_state(diagram, initial_state, name, params):
                 a = _numbers(f"{name}[{k}]", e).reshape(-1)
                 if a.size != sub.nstates:
                     raise ValueError(f"{name}[{k}] has {a.size} entries, subsystem "
-                                     f"'{sub.name}' has {sub.nstates} states")
+                                     f"'{sub.name}' has {sub.nstates} state(s)")
                 parts.append(a)
             i += sub.nstates
         x0 = np.concatenate(parts) if parts else np.zeros(0)
@@ -808,7 +810,7 @@ def _initial_state(diagram, initial_state, name, params):
     bad = np.flatnonzero(~np.isfinite(x0))
     if bad.size:
         labels = list(diagram.state_labels)
-        raise ValueError(f"{name} has a non-finite entry ({x0[bad[0]]!r}) for state "
+        raise ValueError(f"{name} has a non-finite entry ({float(x0[bad[0]])!r}) for state "
                          f"{labels[bad[0]]}")
     return x0
 
