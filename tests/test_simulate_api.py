@@ -290,3 +290,19 @@ def test_cost_guard_counts_given_output_times(loop):
     assert est.samples == 7 and est.bytes == 7 * 9 * 8
     with pytest.raises(CostLimitError, match=r"1e\+03 samples x 9 signals"):
         check_diagram_cost(loop, 1.0, samples=1000, max_bytes=1000)
+
+
+def test_readme_example_siso_shapes():
+    """The README's example: a SISO system's outputs and inputs come back 1-D, as from
+    ct.input_output_response, and equal it."""
+    lowpass = ct.ss([[-2.0]], [[2.0]], [[1.0]], [[0.0]], name="lowpass", inputs="r",
+                    outputs="y")
+    sys = ct.interconnect([lowpass], inplist=["r"], outlist=["y"], name="lp")
+    T = np.linspace(0.0, 5.0, 51)
+    resp = simulate(sys, T, np.sin(T), [0.5], engine="reference", progress=False, **TOL)
+    ref = ct.input_output_response(sys, T, np.sin(T), [0.5], solve_ivp_kwargs=IVP)
+    assert resp.outputs.shape == ref.outputs.shape == (51,)
+    assert resp.inputs.shape == ref.inputs.shape == (51,)
+    assert _err(resp.outputs, ref.outputs) < 1e-9
+    # y = 0.5 e^{-2t} + the response to sin over the interpolated input: far from y(0)
+    assert abs(resp.outputs[-1] - 0.5) > 0.5

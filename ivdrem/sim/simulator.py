@@ -914,7 +914,7 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
         out_t, out_y.T, out_x.T if out_x is not None else None, u_out,
         output_labels=list(diagram.output_labels), input_labels=list(diagram.input_labels),
         state_labels=list(diagram.state_labels) if out_x is not None else None,
-        sysname=diagram.name, params=dict(params or {}), issiso=False)
+        sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso())
     resp.stats = sim.stats_dict()
     resp.hold_times = sim.hold_times()
     return resp
