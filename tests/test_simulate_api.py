@@ -168,18 +168,17 @@ def test_t_eval_and_end_time_conventions(loop, case):
     te = np.linspace(0.7, 4.9, 15)
     ref = ct.input_output_response(loop, T, U, X0, params=params, t_eval=te,
                                    solve_ivp_kwargs=IVP)
-    r = simulate(loop, T, U, X0, params, t_eval=te, engine="reference", method="dp45",
-                 progress=False, **TOL)
+    r = simulate(loop, T, U, X0, params, t_eval=te, method="dp45", progress=False, **TOL)
     assert np.array_equal(r.time, te)
     assert _err(r.outputs, ref.outputs) < 2e-9
     assert np.allclose(r.inputs, ref.inputs, rtol=0, atol=1e-15)
     # constant inputs: a vector over the inputs, or u= (the older name) with t_end=
     T2 = np.linspace(0.0, 2.0, 5)
     ref2 = ct.input_output_response(loop, T2, [0.5, -0.1], X0, solve_ivp_kwargs=IVP)
-    a = simulate(loop, 2.0, [0.5, -0.1], X0, dt_out=0.5, engine="reference",
-                 method="dp45", progress=False, **TOL)
-    b = simulate(loop, t_end=2.0, u=[0.5, -0.1], x0=X0, dt_out=0.5, engine="reference",
-                 method="dp45", progress=False, **TOL)
+    a = simulate(loop, 2.0, [0.5, -0.1], X0, dt_out=0.5, method="dp45", progress=False,
+                 **TOL)
+    b = simulate(loop, t_end=2.0, u=[0.5, -0.1], x0=X0, dt_out=0.5, method="dp45",
+                 progress=False, **TOL)
     assert np.array_equal(a.time, T2) and np.array_equal(a.outputs, b.outputs)
     assert _err(a.outputs, ref2.outputs) < 2e-9
     assert np.array_equal(a.inputs, np.tile([[0.5], [-0.1]], (1, 5)))

@@ -310,8 +310,9 @@ class Simulator:
     """A resumable simulation of one diagram (use :func:`simulate` for one-shot runs).
 
     ``advance(t_to, u=None)`` integrates to ``t_to`` holding the diagram's external inputs
-    at ``u`` (used by the FMU co-simulation runner); the history of delays and max-holds
-    carries over between calls.
+    at ``u`` (used by the FMU co-simulation runner), or following the table of
+    ``set_inputs(values, times)``; the history of delays and max-holds carries over between
+    calls.
     """
 
     def __init__(self, diagram, *, method=DEFAULT_METHOD, engine="compiled", h=1e-3,
