@@ -72,11 +72,14 @@ STIFF_METHOD = "rodas5p"
 ENGINES = ("compiled", "reference")
 _TEMPLATE_PATH = Path(tpl.__file__)
 
-#: The workspace of a run (the template and generated code index it by position).
+#: The workspace of a run (the template and generated code index it by position).  The
+#: input table (u_times, u_values) defaults to none (inputs held at u_ext); the empty
+#: defaults are never written to (set_inputs replaces them).
 Workspace = namedtuple("Workspace", ["hist_t", "hist_v", "hist_d", "hist_meta", "held", "score",
                                      "ys", "us", "u_ext", "hold_dt", "hold_mode", "hold_time",
                                      "hold_vec", "probing", "clock",
-                                     "u_times", "u_values"])
+                                     "u_times", "u_values"],
+                       defaults=(np.zeros(0), np.zeros((0, 0))))
 
 
 def method_info(method) -> MethodInfo:
