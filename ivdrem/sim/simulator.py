@@ -786,7 +786,6 @@ def _initial_state(diagram, initial_state, name, params):
     subs = diagram.syslist
     if isinstance(initial_state, (list, tuple)) and len(initial_state) == len(subs) and \
             any(e is None for e in initial_state):
-        from .plan import DiagramPlan
         own = DiagramPlan.from_diagram(diagram, None, params).x0
         parts, i = [], 0
         for k, (e, sub) in enumerate(zip(initial_state, subs)):
