@@ -28,12 +28,14 @@ in ``ivdrem.sim.simulator``; ``method_step`` dispatches on the id.
 Workspace ``W`` (a namedtuple ``ivdrem.sim.simulator.Workspace``; generated code indexes it
 by position): 0 hist_t[cap], 1 hist_v[cap, nd], 2 hist_d[cap, nd], 3 hist_meta[int64:
 start, count, cap, keep_from_time_index], 4 held[nh], 5 score[nmh], 6 ys (block outputs),
-7 us (block inputs), 8 u_ext (diagram inputs, held constant), 9 hold_dt[nmh] (sampling
+7 us (block inputs), 8 u_ext (diagram inputs at the current evaluation, see
+``external_inputs``), 9 hold_dt[nmh] (sampling
 period of each max-hold), 10 hold_mode[int64, nmh] (HOLD_SKIP / HOLD_COMMIT / HOLD_PROBE at
 the next after-step evaluation), 11 hold_time[nmh] (time of the last update, t_e),
 12 hold_vec[nmh, nmat] (eigenvector of lambda_min of the held matrix), 13 probing[int64, 1]
 (1 while the loop probes a hold at an interpolated point: no history push), 14 clock[1]
-(time of the current after-step evaluation).
+(time of the current after-step evaluation), 15 u_times[nut] and 16 u_values[nut, nu_ext]
+(the table of the diagram inputs over time; empty while they are held constant).
 """
 import numpy as np
 
@@ -274,6 +276,33 @@ def hist_lookup(W, tq, off, size, out):
     for j in range(size):
         out[j] = (h00 * hv[a, off + j] + h10 * h * hd[a, off + j]
                   + h01 * hv[b, off + j] + h11 * h * hd[b, off + j])
+
+
+def external_inputs(W, t):
+    """The diagram's external inputs at time t, in W[8] (returned).  Without a table
+    (W[15] empty) they are held at W[8]; otherwise W[8] becomes the linear interpolant of
+    the table at t, extrapolated linearly beyond its ends: python-control's
+    input_output_response convention (its ``ufun``), so both see the same u(t)."""
+    ue = W[8]
+    tt = W[15]
+    nt = tt.shape[0]
+    if nt < 2:
+        return ue
+    # i = searchsorted(tt, t, side="left") clipped to [1, nt - 1]: t in [tt[i-1], tt[i]]
+    lo = 0
+    hi = nt
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if tt[mid] < t:
+            lo = mid + 1
+        else:
+            hi = mid
+    i = min(max(lo, 1), nt - 1)
+    s = (t - tt[i - 1]) / (tt[i] - tt[i - 1])
+    uu = W[16]
+    for j in range(ue.shape[0]):
+        ue[j] = uu[i - 1, j] * (1.0 - s) + uu[i, j] * s
+    return ue
 
 
 def hold_update(W, k, off, size, nvec, nmat, u, epsilon):

@@ -226,7 +226,9 @@ def generate_source(plan, param_exprs=None):
     # one function for the three modes (see _template): signals first, in topological order
     # of direct feedthrough, then the mode's work
     lines = ["def diagram_eval_body(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
-             "    ue = W[8]", "    if mode == AFTER_STEP_EVALUATED:", "        mode = AFTER_STEP",
+             # the inputs at t (a table over time, or held: _template.external_inputs)
+             "    ue = external_inputs(W, t)" if d.ninputs else "    ue = W[8]",
+             "    if mode == AFTER_STEP_EVALUATED:", "        mode = AFTER_STEP",
              "    else:"]
     body_start = len(lines)
     filled = set()
