@@ -78,7 +78,8 @@ S_PROBES = 8       # max-hold evaluations at interpolated grid times
 S_STIFF_RUN = 9    # accepted steps with h*rho(J) beyond the stability bound (DOPRI5's IASTI)
 S_NONSTIFF = 10    # consecutive accepted steps within it (NONSTI)
 S_EXPLICIT = 11    # DP45 steps a Rodas5P run took while max-hold updates pinned its steps
-N_STATS = 12
+S_FRESH = 12       # 1: K[0] = f(t, x) and the signals W[6], W[7] are still those of (t, x)
+N_STATS = 13
 
 # entries of the float tf vector
 F_T = 0
@@ -458,7 +459,11 @@ def rodas5p_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats):
     f0 = K[0]
     ft = K[9]
     fs = K[10]
-    diagram_jacobian(t, x, P, W, J)
+    if stats[S_FRESH] == 1:    # the signals at (t, x) are at hand: no evaluation for them
+        diagram_jacobian_at(t, x, P, W, J, f0)
+    else:
+        diagram_jacobian(t, x, P, W, J)
+    stats[S_FRESH] = 0
     stats[S_JAC] += 1
     # df/dt: the diagram is time dependent (mu(t), trajectories); forward difference in t
     dt = 1.4901161193847656e-08 * max(1.0, abs(t))
@@ -626,7 +631,12 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
     t0 = tf[F_T0]
     diagram_eval(RHS, t, x, P, W, K[0])
     stats[S_RHS] += 1
+    stats[S_FRESH] = 1
     fac_max = 5.0
+    # predictive (Gustafsson) control of the stiff method: the last regular accepted step and
+    # its error (floored as in RADAU5), so a growing error shrinks the step before it fails
+    h_acc = -1.0
+    err_acc = 1.0
     t_cut = -1.0
     pinned = False         # the last step ended on a max-hold update: the next ends on the grid
     explicit_ok = True     # ... and may be an explicit DP45 step while that stays stable
@@ -675,6 +685,7 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
         if mid == RODAS5P and pinned and explicit_ok:
             m = DP45
         err = method_step(m, t, h_use, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
+        stats[S_FRESH] = 0       # the stages moved the signals
         if m != mid and not (err <= 1.0):
             explicit_ok = False
             stats[S_REJECTED] += 1
@@ -802,11 +813,22 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
         if st == HOLD_UPDATED:
             diagram_eval(RHS, t, x, P, W, K[0])   # the held values changed: f(t, x) is stale
             stats[S_RHS] += 1
+        # every path above ends with the signals of (t, x): the after-step sweep, the FSAL
+        # evaluation (AFTER_STEP_EVALUATED) or the re-evaluation after a hold update
+        stats[S_FRESH] = 1
         if adaptive:
             while io[0] < io[1] and out_t[io[0]] <= t + 1e-12 * max(1.0, abs(t)):
                 emit(t, x, P, W, out_y, out_x, io)
             if not landing or h_use >= h:
                 fac = 5.0 if err == 0.0 else min(fac_max, max(0.2, 0.9 * err ** -0.2))
+                if m == RODAS5P:
+                    # Gustafsson's predictive controller (Hairer & Wanner II, IV.8, (8.21)),
+                    # as RADAU5 combines it: the smaller of the standard and predicted steps
+                    if h_acc > 0.0 and err > 0.0:
+                        fac_p = 0.9 * (h_use / h_acc) * (err_acc / (err * err)) ** 0.2
+                        fac = min(fac, max(0.2, fac_p))
+                    h_acc = h_use
+                    err_acc = max(1e-2, err)
                 h = h_use * fac
             fac_max = 5.0
             if cut_landed or st == HOLD_UPDATED:
@@ -832,6 +854,12 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
 
 
 # ------------------------------------------------- generic Jacobian and linear algebra
+def diagram_jacobian_at(t, x, P, W, J, f0):
+    """df/dx at (t, x) given f0 = f(t, x) with the signals of that evaluation in W; an
+    engine with a structured Jacobian replaces this fallback, which ignores them."""
+    return diagram_jacobian(t, x, P, W, J)
+
+
 def fd_jacobian(t, x, P, W, J):
     """J = df/dx of mode RHS by forward differences of the whole right-hand side (n + 1
     evaluations): the fallback when an engine has nothing better."""

@@ -5,9 +5,19 @@ Each block ``b`` with kernels is differentiated alone: its local Jacobian
     [ dy_b/dx_b  dy_b/du_b ]        (outputs)
     [ df_b/dx_b  df_b/du_b ]        (state derivatives)
 
-by central differences of *its own* kernels only (columns perturbed in groups whose rows do
-not overlap, Curtis-Powell-Reid), step eps^(1/3) max(|v|, 1), so entries are accurate to
-about eps^(2/3) relative.  The chain rule then follows the same topological order as the
+comes from the block's own ``jacobian`` kernel when it has one (closed forms in
+:mod:`ivdrem.blocks.jacobians`), otherwise from differences of *its own* kernels only
+(columns perturbed in groups whose rows do not overlap, Curtis-Powell-Reid):
+
+* forward differences, step sqrt(eps) max(|v|, 1), for blocks without a robot model (linear
+  or bilinear in their arguments, so the truncation error is nil or small).  The base point
+  costs nothing: it is the block's outputs and state derivatives at (t, x), which the
+  right-hand-side evaluation that gathers the signals has just computed, so a group costs
+  one kernel call;
+* central differences, step eps^(1/3) max(|v|, 1) (accurate to about eps^(2/3) relative),
+  for blocks that call the robot model: their trigonometric terms, multiplied by gains such
+  as mu(t), make forward differences' rounding error eps |f| / h reach 1e-6 of an entry
+  (measured on planar_arm(3)); two kernel calls per group.  The chain rule then follows the same topological order as the
 right-hand side: for the blocks in order of direct feedthrough
 
     du_b/dx = sum_j C[b, j] dy_j/dx         (connection map; diagram inputs are constants)
@@ -151,7 +161,7 @@ class JacobianProgram:
         # ---- local patterns and FD program
         local = {}          # block index -> list of (row, col, jb slot)
         jb = 0
-        fd = dict(blk=[], x0=[], nx=[], u0=[], nu=[], ny=[])
+        fd = dict(blk=[], x0=[], nx=[], u0=[], nu=[], ny=[], y0=[], central=[])
         g_ptr, gc_ptr, cols, e_ptr, e_row, e_slot = [0], [0], [], [0], [], []
         g_kind = []         # per group: 0 output kernel, 1 update kernel
         self.fd_blocks = []
@@ -202,12 +212,14 @@ class JacobianProgram:
             local[b.index] = entries
             self.fd_blocks.append(b)
             for k, v in (("x0", b.x.start), ("nx", nx), ("u0", b.u.start), ("nu", nu),
-                         ("ny", ny)):
+                         ("ny", ny), ("y0", b.y.start),
+                         ("central", int(spec.model is not None))):
                 fd[k].append(v)
         self.n_jb = jb
         i64 = lambda v: np.asarray(v, dtype=np.int64)
         self.fd_x0, self.fd_nx, self.fd_u0 = i64(fd["x0"]), i64(fd["nx"]), i64(fd["u0"])
-        self.fd_nu, self.fd_ny = i64(fd["nu"]), i64(fd["ny"])
+        self.fd_nu, self.fd_ny, self.fd_y0 = i64(fd["nu"]), i64(fd["ny"]), i64(fd["y0"])
+        self.fd_central = i64(fd["central"])
         self.g_ptr, self.gc_ptr, self.col = i64(g_ptr), i64(gc_ptr), i64(cols)
         self.g_kind = i64(g_kind)
         self.e_ptr, self.e_row, self.e_slot = i64(e_ptr), i64(e_row), i64(e_slot)
@@ -326,10 +338,10 @@ def generated_source(prog, slu, block_calls, supplied=None):
     maxx = int(max(p.fd_nx.max(initial=0), 1))
     maxu = int(max(p.fd_nu.max(initial=0), 1))
     maxyf = int(max((p.fd_ny + p.fd_nx).max(initial=0), 1))
-    lines = ["from ivdrem.sim._jit_sparse import jac_chain, fd_shift, fd_scatter, "
-             "slu_factor, slu_solve", "",
+    lines = ["from ivdrem.sim._jit_sparse import jac_chain, fd_forward, fd_forward_scatter, "
+             "fd_shift, fd_scatter, slu_factor, slu_solve", "",
              "# structured Jacobian (ivdrem/sim/jacobian.py): block FD program and chain rule"]
-    for name in ("fd_x0", "fd_nx", "fd_u0", "fd_nu", "fd_ny", "g_ptr", "g_kind", "gc_ptr", "col", "e_ptr",
+    for name in ("fd_x0", "fd_nx", "fd_u0", "fd_nu", "fd_ny", "fd_y0", "fd_central", "g_ptr", "g_kind", "gc_ptr", "col", "e_ptr",
                  "e_row", "e_slot", "ins_dst", "ins_f", "ins_src", "j_row", "j_col", "j_slot"):
         lines.append(_arr("_JAC_" + name.upper(), getattr(p, name)))
     lines.append(_arr("_JAC_GAINS", p.gains, "np.float64"))
@@ -358,16 +370,21 @@ def generated_source(prog, slu, block_calls, supplied=None):
     lines += [
         "", "",
         "def diagram_jacobian(t, x, P, W, J):",
-        "    n = x.shape[0]",
-        "    f0 = np.empty(n)",
+        "    f0 = np.empty(x.shape[0])",
         "    diagram_eval(RHS, t, x, P, W, f0)       # the signals at (t, x)",
+        "    return diagram_jacobian_at(t, x, P, W, J, f0)",
+        "", "",
+        "def diagram_jacobian_at(t, x, P, W, J, f0):",
+        '    """df/dx at (t, x) when f0 = f(t, x) and the signals W[6], W[7] are those of the',
+        '    evaluation that gave f0 (the integrator knows when they still are)."""',
+        "    ys = W[6]",
         "    us = W[7]",
         f"    F = np.empty({p.n_jb + p.gains.size})",
         f"    for i in range({p.gains.size}):",
         f"        F[{p.n_jb} + i] = _JAC_GAINS[i]",
         f"    xb = np.empty({maxx})", f"    ub = np.empty({maxu})",
         f"    xb0 = np.empty({maxx})", f"    ub0 = np.empty({maxu})",
-        f"    yp = np.empty({maxyf})", f"    ym = np.empty({maxyf})",
+        f"    yp = np.empty({maxyf})", f"    y0 = np.empty({maxyf})", f"    ym = np.empty({maxyf})",
         f"    hh = np.empty({max(p.col.size, 1)})",
         f"    jl = np.empty(({maxyf}, {maxcol}))",
         f"    for kb in range({nfd}):",
@@ -389,16 +406,30 @@ def generated_source(prog, slu, block_calls, supplied=None):
         "                    for e in range(_JAC_E_PTR[c], _JAC_E_PTR[c + 1]):",
         "                        F[_JAC_E_SLOT[e]] = jl[_JAC_E_ROW[e], _JAC_COL[c]]",
         "            continue",
+        "        if _JAC_FD_CENTRAL[kb] == 1:   # a block calling the robot model: central",
+        "            for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
+        "                c0 = _JAC_GC_PTR[g]",
+        "                c1 = _JAC_GC_PTR[g + 1]",
+        "                fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 1.0, hh)",
+        "                block_eval(kb, _JAC_G_KIND[g], t, xb, ub, yp, P)",
+        "                fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, -1.0, hh)",
+        "                block_eval(kb, _JAC_G_KIND[g], t, xb, ub, ym, P)",
+        "                fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 0.0, hh)",
+        "                fd_scatter(yp, ym, hh, c0, c1, _JAC_E_PTR, _JAC_E_ROW, _JAC_E_SLOT, F)",
+        "            continue",
+        "        # the base values are the signals and derivatives just computed at (t, x)",
+        "        ny = _JAC_FD_NY[kb]",
+        "        for i in range(ny):",
+        "            y0[i] = ys[_JAC_FD_Y0[kb] + i]",
+        "        for i in range(nx):",
+        "            y0[ny + i] = f0[_JAC_FD_X0[kb] + i]",
         "        for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
         "            c0 = _JAC_GC_PTR[g]",
         "            c1 = _JAC_GC_PTR[g + 1]",
-        "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 1.0, hh)",
-        "            kind = _JAC_G_KIND[g]",
-        "            block_eval(kb, kind, t, xb, ub, yp, P)",
-        "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, -1.0, hh)",
-        "            block_eval(kb, kind, t, xb, ub, ym, P)",
-        "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 0.0, hh)",
-        "            fd_scatter(yp, ym, hh, c0, c1, _JAC_E_PTR, _JAC_E_ROW, _JAC_E_SLOT, F)",
+        "            fd_forward(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, True, hh)",
+        "            block_eval(kb, _JAC_G_KIND[g], t, xb, ub, yp, P)",
+        "            fd_forward(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, False, hh)",
+        "            fd_forward_scatter(yp, y0, hh, c0, c1, _JAC_E_PTR, _JAC_E_ROW, _JAC_E_SLOT, F)",
         f"    jac_chain(F, _JAC_INS_DST, _JAC_INS_F, _JAC_INS_SRC, {p.n_slots}, _JAC_J_ROW,",
         "              _JAC_J_COL, _JAC_J_SLOT, J)",
         "    return OK",
