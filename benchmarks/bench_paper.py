@@ -76,6 +76,7 @@ def run(law, method, t_end, **kw):
     s["theta_hat_end"] = np.asarray(r.outputs)[th, -1].tolist()
     s["hold_times"] = [float(v) for v in r.hold_times]
     s["law"], s["t_end"] = law, t_end
+    s["load"] = _loadavg()          # 1-min load average at the end of the run
     return s
 
 
@@ -87,11 +88,11 @@ def rel(a, b):
 def row(s):
     return (f"  {s['law']:<19} {s['method']:<8} {s['t_end']:>6g} {s['steps']:>9d} "
             f"{s['rejected']:>7d} {s['rhs_calls']:>10d} {s['jacobians']:>8d} "
-            f"{s['hold_cuts']:>6d} {s['sim_s']:>9.2f} {s['compile_s']:>8.2f}")
+            f"{s['hold_cuts']:>6d} {s['sim_s']:>9.2f} {s['compile_s']:>8.2f} {s['load']:>5.1f}")
 
 
 HEAD = (f"  {'law':<19} {'method':<8} {'t_end':>6} {'steps':>9} {'reject':>7} {'RHS':>10} "
-        f"{'Jacob.':>8} {'cuts':>6} {'sim_s':>9} {'compile':>8}")
+        f"{'Jacob.':>8} {'cuts':>6} {'sim_s':>9} {'compile':>8} {'load':>5}")
 
 
 def main(argv=None):
@@ -147,6 +148,9 @@ def main(argv=None):
         sd = sum(runs[(law, "dp45", t, ())]["sim_s"] for law in LAWS)
         ss = sum(runs[(law, stiff, t, ())]["sim_s"] for law in LAWS)
         speed[t] = sd / ss
+        for law in LAWS:
+            r = runs[(law, "dp45", t, ())]["sim_s"] / runs[(law, stiff, t, ())]["sim_s"]
+            out(f"  {t:>6g} s {law:<19} {r:6.1f}x")
         tgt = TARGETS[t / scale]
         out(f"  {t:>6g} s both laws: dp45 {sd:8.2f} s, {stiff} {ss:7.2f} s -> {speed[t]:6.1f}x "
             f"(target >= {tgt:g}x: {'PASS' if speed[t] >= tgt else 'MISS'})")

@@ -243,6 +243,19 @@ def _simulate(t_end, **kw):
     return simulate(build_lab(), t_end, progress=False, **kw)
 
 
+def _simulate_io(**kw):
+    """simulate() with python-control's arguments on a loop with inputs r, d and 5 states
+    (tests/test_simulate_api.py), over timepts = 5 points of [0, 1] unless kw says."""
+    from test_simulate_api import pendulum_loop
+    from ivdrem.sim import simulate
+    args = dict(timepts=np.linspace(0.0, 1.0, 5))
+    args.update(kw)
+    return simulate(pendulum_loop(), progress=False, **args)
+
+
+_NAN_U = np.array([[0.0, 0.0, np.nan, 0.0, 0.0], [0.0] * 5])
+
+
 def _foreign_report(d):
     from ivdrem.reports.report import report_paths
     return report_paths(d)
@@ -257,6 +270,19 @@ API_CASES = [
     ("simulate-h-max-bound", lambda f: _simulate(1.0, h_max=1e-9), "ValueError", "h_max = 1e-09 s is below its lower bound 1e-06 s", False),
     ("simulate-dt-out-bound", lambda f: _simulate(1.0, dt_out=1e-9), "ValueError", "dt_out = 1e-09 s is below its lower bound", False),
     ("simulate-cannot-finish", lambda f: _simulate(100.0, max_steps=10, allow_long=True), "CostLimitError", "cannot finish", False),
+    ("simulate-timepts-not-increasing", lambda f: _simulate_io(timepts=[0.0, 0.5, 0.5, 1.0]), "ValueError", "timepts must be strictly increasing: timepts[1] = 0.5, timepts[2] = 0.5", False),
+    ("simulate-timepts-nan", lambda f: _simulate_io(timepts=[0.0, np.nan, 1.0]), "ValueError", "timepts[1] is nan: times must be finite", False),
+    ("simulate-timepts-one-time", lambda f: _simulate_io(timepts=[1.0]), "ValueError", "timepts must hold at least 2 times", False),
+    ("simulate-inputs-shape", lambda f: _simulate_io(inputs=np.zeros((2, 4))), "ValueError", "inputs has shape (2, 4); the diagram has 2 external inputs ['r', 'd']: give a number, a vector of 2 constants or an array of shape (2, 5) over timepts", False),
+    ("simulate-inputs-transposed", lambda f: _simulate_io(inputs=np.zeros((5, 2))), "ValueError", "inputs has shape (5, 2) (transposed?)", False),
+    ("simulate-inputs-nan", lambda f: _simulate_io(inputs=_NAN_U), "ValueError", "inputs has a non-finite entry (nan) for input r at timepts[2]", False),
+    ("simulate-inputs-over-time-end-time", lambda f: _simulate_io(timepts=1.0, inputs=np.zeros((2, 5))), "ValueError", "an input over time needs timepts as an array of times", False),
+    ("simulate-inputs-and-u", lambda f: _simulate_io(inputs=[1.0, 0.0], u=[1.0, 0.0]), "TypeError", "give inputs or u (its older name), not both", False),
+    ("simulate-initial-state-size", lambda f: _simulate_io(initial_state=np.zeros(3)), "ValueError", "initial_state has 3 entries, the diagram has 5 states", False),
+    ("simulate-initial-state-nan", lambda f: _simulate_io(initial_state=[0, 0, 0, np.nan, 0]), "ValueError", "initial_state has a non-finite entry (nan) for state pendulum_theta[0]", False),
+    ("simulate-initial-state-subsystem", lambda f: _simulate_io(initial_state=[None, [1.0, 2.0], None]), "ValueError", "initial_state[1] has 2 entries, subsystem 'ctrl' has 1 state(s)", False),
+    ("simulate-t-eval-outside", lambda f: _simulate_io(t_eval=[0.5, 2.0]), "ValueError", "t_eval must lie within the simulated interval [0.0, 1.0], got [0.5, 2.0]", False),
+    ("simulate-t-eval-and-dt-out", lambda f: _simulate_io(t_eval=[0.5], dt_out=0.1), "TypeError", "give t_eval or dt_out, not both", False),
     ("fmu-plant-bit-flipped", lambda f: _fmu_plant(f["flipped"]), "ValueError", "the FMU archive is damaged", True),
     ("extract-bit-flipped", lambda f: _extract(f["flipped"]), "ValueError", "the FMU archive is damaged", True),
     ("fmu-plant-size-mismatch", lambda f: _fmu_plant(f["p3"], n=2), "ValueError", "has n = 3 degrees of freedom (signals q[0..2], dq, tau, tau_d), the loop's model has n = 2", True),

@@ -136,8 +136,9 @@ def test_chain_rule_on_tiny_diagram(tiny):
     for _ in range(3):
         x = rng.uniform(-1.5, 1.5, size=4)
         J = tiny.engine.jacobian(0.4, x, tiny.W)
-        np.testing.assert_allclose(J, tiny_exact(x), rtol=1e-8, atol=1e-9)
-        # osc's rows come from its own kernel, exactly (differences would be ~1e-11 off)
+        # mix and decay are forward-differenced (step sqrt(eps) max(|v|, 1)): ~1e-8 relative
+        np.testing.assert_allclose(J, tiny_exact(x), rtol=1e-7, atol=1e-9)
+        # osc's rows come from its own kernel, exactly (differences would be ~1e-8 off)
         assert J[0, 1] == 1.0 and J[1, 0] == -TINY_A
         # and the whole-system dense fallback agrees to its own (forward-difference) accuracy
         np.testing.assert_allclose(tiny.engine.jacobian(0.4, x, tiny.W, dense=True),
@@ -147,10 +148,12 @@ def test_chain_rule_on_tiny_diagram(tiny):
 def test_singular_pivot_is_reported(tiny):
     x = np.array([0.4, -0.3, 0.8, 1.2])
     J = tiny.engine.jacobian(0.0, x, tiny.W)
-    # the row of g holds only d(dg)/dg = b: c = b makes c I - J exactly singular
-    st, _, _ = tiny.engine.factor(J, TINY_B)
+    # the row of g holds only d(dg)/dg = b (differenced: b to ~1e-8): c = J[3, 3] makes
+    # c I - J exactly singular
+    assert J[3, 3] == pytest.approx(TINY_B, rel=1e-7)
+    st, _, _ = tiny.engine.factor(J, J[3, 3])
     assert st == SINGULAR
-    st, _, _ = tiny.engine.factor(J, TINY_B, dense=True)
+    st, _, _ = tiny.engine.factor(J, J[3, 3], dense=True)
     assert st == SINGULAR
     Jnan = J.copy()
     Jnan[2, 0] = np.nan
@@ -248,3 +251,91 @@ def test_unprobeable_block_is_dense_within_its_declaration():
                          plant.sys.noutputs) is None
     with pytest.raises(SimulationError, match="positive definite"):
         simulate(diagram, 0.1)
+
+
+# ------------------------------------------------- the blocks' own analytic Jacobians
+def _flat(spec, role):
+    """The block's kernel as f(t, x, u, out, *params) of flat vectors (named-port kernels
+    get their views from the block framework, where it offers them)."""
+    from ivdrem.blocks import _core
+    if hasattr(_core, "flat_kernel"):
+        return _core.flat_kernel(spec, role)
+    return _core.bind_model(getattr(spec, role), spec.model)
+
+
+def _block_central_fd(spec, args, t, v):
+    """Central differences (step 1e-5 max(|v_j|, 1)) of the block's own update/output
+    kernels: the local Jacobian [(ny + nx), (nx + nu)]."""
+    nx, nu, ny = spec.nstates, spec.ninputs, spec.noutputs
+    out, upd = _flat(spec, "output"), _flat(spec, "update") if nx else None
+
+    def ev(w):
+        yf = np.zeros(ny + nx)
+        out(t, w[:nx].copy(), w[nx:].copy(), yf[:ny], *args)
+        if upd is not None:
+            upd(t, w[:nx].copy(), w[nx:].copy(), yf[ny:], *args)
+        return yf
+    J = np.zeros((ny + nx, nx + nu))
+    for c in range(nx + nu):
+        h = 1e-5 * max(abs(v[c]), 1.0)
+        vp, vm = v.copy(), v.copy()
+        vp[c] += h
+        vm[c] -= h
+        J[:, c] = (ev(vp) - ev(vm)) / (vp[c] - vm[c])
+    return J
+
+
+def _blocks_with_jacobians(loop):
+    from ivdrem.blocks._core import kernel_args
+    for sysb in loop.syslist:
+        spec = getattr(sysb, "ivdrem", None)
+        if spec is not None and spec.jacobian is not None:
+            yield spec, kernel_args(spec, spec.validate(dict(sysb.params))
+                                    if spec.validate else dict(sysb.params))
+
+
+def _planar3_loop(law):
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import planar_arm
+    ones = np.ones(3)
+    traj = dict(amplitude=0.5 * ones, omega=[1.0, 0.7, 0.4], phase=0 * ones, offset=0.2 * ones)
+    dist = dict(amplitude=[2.0, 1.0, 0.5], omega=[0.5, 0.3, 0.2], phase=0 * ones,
+                offset=0 * ones)
+    return closed_loop(law, model=planar_arm(3), trajectory=traj, disturbance=dist)
+
+
+@pytest.mark.parametrize("case", ["iv-drem", "composite-learning", "planar3-iv-drem"])
+def test_block_jacobian_kernels_match_their_own_differences(case):
+    """Every block that supplies an analytic Jacobian (ivdrem/blocks/jacobians.py) against
+    central differences of its own update/output kernels, at random states and inputs,
+    including a singular Psi (rank nθ - 1) for the mixing step (17) and Psi = 0 (its
+    value at t0)."""
+    loop = _planar3_loop("iv-drem") if case.startswith("planar3") else paper_loop(case)
+    rng = np.random.default_rng(42)
+    seen = set()
+    for spec, args in _blocks_with_jacobians(loop):
+        seen.add(spec.name)
+        nx, nu, ny = spec.nstates, spec.ninputs, spec.noutputs
+        for trial in range(4):
+            v = rng.standard_normal(nx + nu)
+            if spec.name == "mixing":
+                nth = ny - 1
+                if trial == 2:          # singular Psi: adj is nonzero, det is zero
+                    B = rng.standard_normal((nth, nth - 1))
+                    v[nth:] = (B @ B.T).ravel()
+                if trial == 3:          # Psi = 0 (the start of every run)
+                    v[nth:] = 0.0
+            jac = np.zeros((ny + nx, nx + nu))
+            spec.jacobian(0.37, v[:nx].copy(), v[nx:].copy(), jac, *args)
+            ref = _block_central_fd(spec, args, 0.37, v)
+            scale = max(np.abs(ref).max(), 1e-300)
+            if spec.name == "mixing" and trial == 3:
+                # ||Psi||_F has a kink at 0: compare the columns of Y only there
+                np.testing.assert_allclose(jac[:, :nth], ref[:, :nth], rtol=0, atol=1e-9)
+                continue
+            err = np.abs(jac - ref).max() / scale
+            assert err <= 1e-7, f"{spec.name} (trial {trial}): {err:.2e}"
+    want = {"control_law", "adaptation_law", "extension"}
+    want |= {"composite_learning_term"} if case == "composite-learning" else {"mixing",
+                                                                              "drem_term"}
+    assert want <= seen, f"blocks without their analytic Jacobian: {sorted(want - seen)}"

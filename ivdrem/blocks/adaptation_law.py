@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .jacobians import adaptation_law_jacobian
 from ._core import BlockSpec, make_block
 from . import _validate as checks
 from ._kernels import matT_vec
@@ -52,5 +53,6 @@ def adaptation_law(n, ntheta, Gamma=0.01, theta_hat0=None, *, name="adaptation_l
     spec = BlockSpec(name=name, inputs=[("Pi", n * ntheta), ("r", n), ("theta_c", ntheta)],
                      outputs=[("theta_hat", ntheta)], states=[("theta_hat", ntheta)], x0=th0,
                      param_names=("Gamma",), update=adaptation_law_update,
-                     output=adaptation_law_output, direct=(), validate=validate)
+                     output=adaptation_law_output, direct=(), validate=validate,
+                     jacobian=adaptation_law_jacobian)
     return make_block(spec, {"Gamma": Gamma})

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .jacobians import drem_term_jacobian, composite_learning_term_jacobian
 from ._core import BlockSpec, make_block
 from . import _validate as checks
 
@@ -31,7 +32,8 @@ def drem_term(ntheta, gamma=1e10, *, name="drem_term"):
     spec = BlockSpec(name=name, inputs=[("Delta", 1), ("calY", ntheta), ("theta_hat", ntheta)],
                      outputs=[("theta_c", ntheta)], states=[], x0=np.zeros(0),
                      param_names=("gamma",), output=drem_term_output,
-                     direct=("Delta", "calY", "theta_hat"), validate=validate)
+                     direct=("Delta", "calY", "theta_hat"), validate=validate,
+                     jacobian=drem_term_jacobian)
     return make_block(spec, {"gamma": gamma})
 
 
@@ -63,7 +65,8 @@ def composite_learning_term(ntheta, gamma=1.0, *, input="held", name="composite_
     spec = BlockSpec(name=name, inputs=[(input, ntheta + ntheta * ntheta), ("theta_hat", ntheta)],
                      outputs=[("theta_c", ntheta)], states=[], x0=np.zeros(0),
                      param_names=("gamma",), output=composite_learning_term_output,
-                     direct=(input, "theta_hat"), validate=validate)
+                     direct=(input, "theta_hat"), validate=validate,
+                     jacobian=composite_learning_term_jacobian)
     return make_block(spec, {"gamma": gamma})
 
 

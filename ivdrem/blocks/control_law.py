@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .jacobians import control_law_jacobian
 from ._core import BlockSpec, make_block
 from . import _validate as checks
 
@@ -46,5 +47,6 @@ def control_law(n, ntheta, K=2.0, delta_mu=0.8, *, name="control_law"):
                      outputs=[("tau", n)], states=[], x0=np.zeros(0),
                      param_names=("K", "delta_mu", "ntheta"), output=control_law_output,
                      direct=("r", "mu", "Pi", "theta_hat", "u_f"), validate=validate,
+                     jacobian=control_law_jacobian,
                      constants={"ntheta": ntheta})
     return make_block(spec, {"K": K, "delta_mu": delta_mu})

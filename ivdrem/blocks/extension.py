@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .jacobians import extension_jacobian
 from ._core import BlockSpec, make_block
 from ._kernels import matT_vec, matT_mat
 
@@ -40,5 +41,6 @@ def extension(n, ntheta, *, instrument=True, output="ext_g", name="extension"):
     spec = BlockSpec(name=name, inputs=inputs, outputs=[(output, ntheta + ntheta * ntheta)],
                      states=[], x0=np.zeros(0), param_names=("n", "ntheta", "has_instrument"),
                      output=extension_output, direct=tuple(p for p, _ in inputs),
+                     jacobian=extension_jacobian,
                      constants={"n": n, "ntheta": ntheta, "has_instrument": int(instrument)})
     return make_block(spec, {})

@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from .jacobians import mixing_jacobian
 from ._core import BlockSpec, make_block
 from ._kernels import det_adj
 
@@ -53,5 +54,6 @@ def mixing(ntheta, *, input="avg", name="mixing"):
     spec = BlockSpec(name=name, inputs=[(input, ntheta + ntheta * ntheta)],
                      outputs=[("Delta", 1), ("calY", ntheta)], states=[], x0=np.zeros(0),
                      param_names=("ntheta",), output=mixing_output, direct=(input,),
+                     jacobian=mixing_jacobian,
                      constants={"ntheta": ntheta})
     return make_block(spec, {})

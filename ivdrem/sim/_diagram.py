@@ -37,7 +37,19 @@ N_BLOCK_COLUMNS = 13
 
 N_DELAY_COLUMNS = 6
 N_HOLD_COLUMNS = 7
-N_FD_COLUMNS = 9
+# columns of DiagramTables.fd (one row per differenced block)
+FD_X0 = 0
+FD_NX = 1
+FD_U0 = 2
+FD_NU = 3
+FD_NY = 4
+FD_WOUT = 5     # wrapper indices of the output / update / Jacobian kernels (-1: none)
+FD_WUPD = 6
+FD_WJAC = 7
+FD_P0 = 8
+FD_Y0 = 9       # the block's first output in the signal vector
+FD_CENTRAL = 10  # 1: central differences (the block calls the robot model)
+N_FD_COLUMNS = 11
 # columns of DiagramTables.delays
 D_OFF = 0
 D_SIZE = 1
@@ -97,7 +109,7 @@ def fill_input(in_ptr, in_src, in_gain, k, ys, us, ue):
 def diagram_eval(mode, t, x, P, W, out):
     ys = W[6]
     us = W[7]
-    ue = W[8]
+    ue = external_inputs(W, t)     # the diagram inputs at t (held, or a table over time)
     ti = W[FIELD_TABLE_INTS]
     tf = W[FIELD_TABLE_FLOATS]
     B = int_table(ti, T_BLOCKS)
@@ -188,14 +200,22 @@ def diagram_eval(mode, t, x, P, W, out):
 
 
 def diagram_jacobian(t, x, P, W, J):
-    """df/dx: each block differenced alone on its grouped columns (or its own Jacobian
-    kernel), chained through the connection map (ivdrem.sim.jacobian)."""
+    """df/dx at (t, x) (see diagram_jacobian_at), with f(t, x) evaluated first."""
+    f0 = np.empty(x.shape[0])
+    diagram_eval(RHS, t, x, P, W, f0)       # the signals at (t, x)
+    return diagram_jacobian_at(t, x, P, W, J, f0)
+
+
+def diagram_jacobian_at(t, x, P, W, J, f0):
+    """df/dx at (t, x) when f0 = f(t, x) and the signals W[6], W[7] are those of the
+    evaluation that gave f0: each block from its own Jacobian kernel, or differenced alone
+    on its grouped columns (central for blocks calling the robot model, forward from the
+    base values at hand for the others), chained through the connection map
+    (ivdrem.sim.jacobian)."""
     ti = W[FIELD_TABLE_INTS]
     tf = W[FIELD_TABLE_FLOATS]
     dims = int_table(ti, T_DIMS)
-    n = x.shape[0]
-    f0 = np.empty(n)
-    diagram_eval(RHS, t, x, P, W, f0)       # the signals at (t, x)
+    ys = W[6]
     us = W[7]
     kernels = W[FIELD_KERNELS]
     failure = W[FIELD_FAILURE]
@@ -214,6 +234,7 @@ def diagram_jacobian(t, x, P, W, J):
     xb0 = np.empty(maxx)
     ub0 = np.empty(maxu)
     yp = np.empty(maxyf)
+    y0 = np.empty(maxyf)
     ym = np.empty(maxyf)
     fd_g_ptr = int_table(ti, T_FD_G_PTR)
     fd_g_kind = int_table(ti, T_FD_G_KIND)
@@ -226,41 +247,55 @@ def diagram_jacobian(t, x, P, W, J):
     jl = np.empty(maxyf * dims[DIM_MAXCOL])      # a block's local Jacobian, row-major
     fd = int_table(ti, T_FD)
     for kb in range(fd.shape[0] // N_FD_COLUMNS):
-        nx = fd[kb * N_FD_COLUMNS + 1]
-        nu = fd[kb * N_FD_COLUMNS + 3]
-        ny = fd[kb * N_FD_COLUMNS + 4]
+        r0 = kb * N_FD_COLUMNS
+        nx = fd[r0 + FD_NX]
+        nu = fd[r0 + FD_NU]
+        ny = fd[r0 + FD_NY]
         for i in range(nx):
-            xb0[i] = x[fd[kb * N_FD_COLUMNS + 0] + i]
+            xb0[i] = x[fd[r0 + FD_X0] + i]
             xb[i] = xb0[i]
         for i in range(nu):
-            ub0[i] = us[fd[kb * N_FD_COLUMNS + 2] + i]
+            ub0[i] = us[fd[r0 + FD_U0] + i]
             ub[i] = ub0[i]
-        p0 = fd[kb * N_FD_COLUMNS + 8]
-        if fd[kb * N_FD_COLUMNS + 7] >= 0:     # the block's own Jacobian kernel
+        p0 = fd[r0 + FD_P0]
+        if fd[r0 + FD_WJAC] >= 0:     # the block's own Jacobian kernel
             for i in range((ny + nx) * (nx + nu)):
                 jl[i] = 0.0
-            kernel_call(kernels, failure, wnx, fd[kb * N_FD_COLUMNS + 7], t, xb, 0, ub, 0, jl, 0, P, p0)
+            kernel_call(kernels, failure, wnx, fd[r0 + FD_WJAC], t, xb, 0, ub, 0, jl, 0, P, p0)
             for g in range(fd_g_ptr[kb], fd_g_ptr[kb + 1]):
                 for c in range(fd_gc_ptr[g], fd_gc_ptr[g + 1]):
                     for e in range(fd_e_ptr[c], fd_e_ptr[c + 1]):
                         F[fd_e_slot[e]] = jl[fd_e_row[e] * (nx + nu) + fd_col[c]]
             continue
+        central = fd[r0 + FD_CENTRAL] != 0
+        if not central:
+            # the base values are the signals and derivatives just computed at (t, x)
+            for i in range(ny):
+                y0[i] = ys[fd[r0 + FD_Y0] + i]
+            for i in range(nx):
+                y0[ny + i] = f0[fd[r0 + FD_X0] + i]
         for g in range(fd_g_ptr[kb], fd_g_ptr[kb + 1]):
             c0 = fd_gc_ptr[g]
             c1 = fd_gc_ptr[g + 1]
-            # kind 0: the output kernel into yf[0:ny]; 1: the update kernel into yf[ny:]
+            # kind 0: the output kernel into y[0:ny]; 1: the update kernel into y[ny:]
             if fd_g_kind[g] == 0:
-                w = fd[kb * N_FD_COLUMNS + 5]
+                w = fd[r0 + FD_WOUT]
                 o0 = 0
             else:
-                w = fd[kb * N_FD_COLUMNS + 6]
+                w = fd[r0 + FD_WUPD]
                 o0 = ny
-            fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh)
-            kernel_call(kernels, failure, wnx, w, t, xb, 0, ub, 0, yp, o0, P, p0)
-            fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, -1.0, hh)
-            kernel_call(kernels, failure, wnx, w, t, xb, 0, ub, 0, ym, o0, P, p0)
-            fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh)
-            fd_scatter(yp, ym, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F)
+            if central:      # a block calling the robot model (see ivdrem.sim.jacobian)
+                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh)
+                kernel_call(kernels, failure, wnx, w, t, xb, 0, ub, 0, yp, o0, P, p0)
+                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, -1.0, hh)
+                kernel_call(kernels, failure, wnx, w, t, xb, 0, ub, 0, ym, o0, P, p0)
+                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh)
+                fd_scatter(yp, ym, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F)
+            else:
+                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, True, hh)
+                kernel_call(kernels, failure, wnx, w, t, xb, 0, ub, 0, yp, o0, P, p0)
+                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, False, hh)
+                fd_forward_scatter(yp, y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F)
     jac_chain(F, int_table(ti, T_JAC_INS_DST), int_table(ti, T_JAC_INS_F),
               int_table(ti, T_JAC_INS_SRC), dims[DIM_NSLOTS], int_table(ti, T_JAC_J_ROW),
               int_table(ti, T_JAC_J_COL), int_table(ti, T_JAC_J_SLOT), J)

@@ -65,6 +65,33 @@ def fd_scatter(yp, ym, hh, c0, c1, e_ptr, e_row, e_slot, JB):
 
 
 @njit(cache=True)
+def fd_forward(xb, ub, xb0, ub0, nx, col, c0, c1, on, hh):
+    """Move the columns col[c0:c1] of the block to base + h (h = sqrt(eps) max(|v|, 1)),
+    or back to the base (on = False).  hh[c] receives (v + h) - v as represented."""
+    for c in range(c0, c1):
+        j = col[c]
+        v = xb0[j] if j < nx else ub0[j - nx]
+        w = v
+        if on:
+            w = v + 1.4901161193847656e-08 * max(abs(v), 1.0)
+            hh[c] = w - v
+        if j < nx:
+            xb[j] = w
+        else:
+            ub[j - nx] = w
+
+
+@njit(cache=True)
+def fd_forward_scatter(yp, y0, hh, c0, c1, e_ptr, e_row, e_slot, JB):
+    """Forward differences (yp - y0) / h of the group's columns into their JB slots."""
+    for c in range(c0, c1):
+        inv = 1.0 / hh[c]
+        for e in range(e_ptr[c], e_ptr[c + 1]):
+            r = e_row[e]
+            JB[e_slot[e]] = (yp[r] - y0[r]) * inv
+
+
+@njit(cache=True)
 def slu_factor(J, c, LU, piv, perm, rowptr, colidx, diagp):
     """Factor A = c I - J as L U of P A P^T (perm = P) on the static filled pattern.
 

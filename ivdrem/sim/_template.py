@@ -30,12 +30,14 @@ in ``ivdrem.sim.simulator``; ``method_step`` dispatches on the id.
 Workspace ``W`` (a namedtuple ``ivdrem.sim.simulator.Workspace``; generated code indexes it
 by position): 0 hist_t[cap], 1 hist_v[cap, nd], 2 hist_d[cap, nd], 3 hist_meta[int64:
 start, count, cap, keep_from_time_index], 4 held[nh], 5 score[nmh], 6 ys (block outputs),
-7 us (block inputs), 8 u_ext (diagram inputs, held constant), 9 hold_dt[nmh] (sampling
+7 us (block inputs), 8 u_ext (diagram inputs at the current evaluation, see
+``external_inputs``), 9 hold_dt[nmh] (sampling
 period of each max-hold), 10 hold_mode[int64, nmh] (HOLD_SKIP / HOLD_COMMIT / HOLD_PROBE at
 the next after-step evaluation), 11 hold_time[nmh] (time of the last update, t_e),
 12 hold_vec[nmh, nmat] (eigenvector of lambda_min of the held matrix), 13 probing[int64, 1]
 (1 while the loop probes a hold at an interpolated point: no history push), 14 clock[1]
-(time of the current after-step evaluation).
+(time of the current after-step evaluation), 15 u_times[nut] and 16 u_values[nut, nu_ext]
+(the table of the diagram inputs over time; empty while they are held constant).
 """
 import numpy as np
 
@@ -79,7 +81,8 @@ S_PROBES = 8       # max-hold evaluations at interpolated grid times
 S_STIFF_RUN = 9    # accepted steps with h*rho(J) beyond the stability bound (DOPRI5's IASTI)
 S_NONSTIFF = 10    # consecutive accepted steps within it (NONSTI)
 S_EXPLICIT = 11    # DP45 steps a Rodas5P run took while max-hold updates pinned its steps
-N_STATS = 12
+S_FRESH = 12       # 1: K[0] = f(t, x) and the signals W[6], W[7] are still those of (t, x)
+N_STATS = 13
 
 # entries of the float tf vector
 F_T = 0
@@ -279,6 +282,33 @@ def hist_lookup(W, tq, off, size, out):
                   + h01 * hv[b, off + j] + h11 * h * hd[b, off + j])
 
 
+def external_inputs(W, t):
+    """The diagram's external inputs at time t, in W[8] (returned).  Without a table
+    (W[15] empty) they are held at W[8]; otherwise W[8] becomes the linear interpolant of
+    the table at t, extrapolated linearly beyond its ends: python-control's
+    input_output_response convention (its ``ufun``), so both see the same u(t)."""
+    ue = W[8]
+    tt = W[15]
+    nt = tt.shape[0]
+    if nt < 2:
+        return ue
+    # i = searchsorted(tt, t, side="left") clipped to [1, nt - 1]: t in [tt[i-1], tt[i]]
+    lo = 0
+    hi = nt
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if tt[mid] < t:
+            lo = mid + 1
+        else:
+            hi = mid
+    i = min(max(lo, 1), nt - 1)
+    s = (t - tt[i - 1]) / (tt[i] - tt[i - 1])
+    uu = W[16]
+    for j in range(ue.shape[0]):
+        ue[j] = uu[i - 1, j] * (1.0 - s) + uu[i, j] * s
+    return ue
+
+
 def hold_update(W, k, off, size, nvec, nmat, u, epsilon):
     """Max-hold k (composite learning, eq. 35): keep u when lambda_min of its matrix part beats
     the record and epsilon.  W[10][k] says what to do at this evaluation: HOLD_SKIP (not a
@@ -432,7 +462,11 @@ def rodas5p_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats):
     f0 = K[0]
     ft = K[9]
     fs = K[10]
-    diagram_jacobian(t, x, P, W, J)
+    if stats[S_FRESH] == 1:    # the signals at (t, x) are at hand: no evaluation for them
+        diagram_jacobian_at(t, x, P, W, J, f0)
+    else:
+        diagram_jacobian(t, x, P, W, J)
+    stats[S_FRESH] = 0
     stats[S_JAC] += 1
     # df/dt: the diagram is time dependent (mu(t), trajectories); forward difference in t
     dt = 1.4901161193847656e-08 * max(1.0, abs(t))
@@ -600,7 +634,12 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
     t0 = tf[F_T0]
     diagram_eval(RHS, t, x, P, W, K[0])
     stats[S_RHS] += 1
+    stats[S_FRESH] = 1
     fac_max = 5.0
+    # predictive (Gustafsson) control of the stiff method: the last regular accepted step and
+    # its error (floored as in RADAU5), so a growing error shrinks the step before it fails
+    h_acc = -1.0
+    err_acc = 1.0
     t_cut = -1.0
     pinned = False         # the last step ended on a max-hold update: the next ends on the grid
     explicit_ok = True     # ... and may be an explicit DP45 step while that stays stable
@@ -649,6 +688,7 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
         if mid == RODAS5P and pinned and explicit_ok:
             m = DP45
         err = method_step(m, t, h_use, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
+        stats[S_FRESH] = 0       # the stages moved the signals
         if m != mid and not (err <= 1.0):
             explicit_ok = False
             stats[S_REJECTED] += 1
@@ -776,11 +816,22 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
         if st == HOLD_UPDATED:
             diagram_eval(RHS, t, x, P, W, K[0])   # the held values changed: f(t, x) is stale
             stats[S_RHS] += 1
+        # every path above ends with the signals of (t, x): the after-step sweep, the FSAL
+        # evaluation (AFTER_STEP_EVALUATED) or the re-evaluation after a hold update
+        stats[S_FRESH] = 1
         if adaptive:
             while io[0] < io[1] and out_t[io[0]] <= t + 1e-12 * max(1.0, abs(t)):
                 emit(t, x, P, W, out_y, out_x, io)
             if not landing or h_use >= h:
                 fac = 5.0 if err == 0.0 else min(fac_max, max(0.2, 0.9 * err ** -0.2))
+                if m == RODAS5P:
+                    # Gustafsson's predictive controller (Hairer & Wanner II, IV.8, (8.21)),
+                    # as RADAU5 combines it: the smaller of the standard and predicted steps
+                    if h_acc > 0.0 and err > 0.0:
+                        fac_p = 0.9 * (h_use / h_acc) * (err_acc / (err * err)) ** 0.2
+                        fac = min(fac, max(0.2, fac_p))
+                    h_acc = h_use
+                    err_acc = max(1e-2, err)
                 h = h_use * fac
             fac_max = 5.0
             if cut_landed or st == HOLD_UPDATED:
@@ -806,6 +857,12 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
 
 
 # ------------------------------------------------- generic Jacobian and linear algebra
+def diagram_jacobian_at(t, x, P, W, J, f0):
+    """df/dx at (t, x) given f0 = f(t, x) with the signals of that evaluation in W; an
+    engine with a structured Jacobian replaces this fallback, which ignores them."""
+    return diagram_jacobian(t, x, P, W, J)
+
+
 def fd_jacobian(t, x, P, W, J):
     """J = df/dx of mode RHS by forward differences of the whole right-hand side (n + 1
     evaluations): the fallback when an engine has nothing better."""

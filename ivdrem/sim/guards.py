@@ -86,11 +86,13 @@ def check_bounds(*, h_max=None, dt_out=None) -> None:
 
 
 def estimate_cost(t_end, *, noutputs, nstates=0, method="dp45", h=1e-3, h_max=None,
-                  dt_out=0.01, return_states=True) -> CostEstimate:
-    """Lower bounds on what simulating ``t_end`` seconds costs (see the module docstring)."""
+                  dt_out=0.01, return_states=True, samples=None) -> CostEstimate:
+    """Lower bounds on what simulating ``t_end`` seconds costs (see the module docstring);
+    ``samples``: the number of output times when they are given as an array."""
     t_end = float(t_end)
     dt_out = min(_positive(dt_out) or t_end, t_end)
-    samples = math.ceil(t_end / dt_out * (1 - 1e-12)) + 1
+    if samples is None:
+        samples = math.ceil(t_end / dt_out * (1 - 1e-12)) + 1
     columns = int(noutputs) + (int(nstates) if return_states else 0)
     step = _positive(h) if method == "rk4" else \
         (DEFAULT_H_MAX if h_max is None else _positive(h_max))
@@ -106,7 +108,7 @@ def estimate_cost(t_end, *, noutputs, nstates=0, method="dp45", h=1e-3, h_max=No
 def check_cost(t_end, *, noutputs, nstates=0, method="dp45", engine="compiled", h=1e-3,
                h_max=None, dt_out=0.01, return_states=True, max_steps=None,
                allow_long=False, max_bytes=None, max_steps_estimate=None,
-               what="the run") -> CostEstimate:
+               what="the run", samples=None) -> CostEstimate:
     """Refuse a run that is certain to be too big or too long, before it starts.
 
     Raises ValueError (bounds of ``h_max``/``dt_out``) or :class:`CostLimitError`; returns
@@ -115,7 +117,8 @@ def check_cost(t_end, *, noutputs, nstates=0, method="dp45", engine="compiled", 
     """
     check_bounds(h_max=h_max, dt_out=dt_out)
     est = estimate_cost(t_end, noutputs=noutputs, nstates=nstates, method=method, h=h,
-                        h_max=h_max, dt_out=dt_out, return_states=return_states)
+                        h_max=h_max, dt_out=dt_out, return_states=return_states,
+                        samples=samples)
     if method != "rk4" and max_steps is not None and est.steps_min > max_steps:
         raise CostLimitError(
             f"{what} cannot finish: it needs at least {est.steps_min:.3g} steps "
@@ -127,7 +130,7 @@ def check_cost(t_end, *, noutputs, nstates=0, method="dp45", engine="compiled", 
     if est.bytes > limit_b:
         raise CostLimitError(
             f"{what} would record {est.memory_text()} of output (t_end = {est.t_end:g} s, "
-            f"dt_out = {est.t_end / (est.samples - 1):g} s), above the limit of "
+            f"dt_out = {est.t_end / max(est.samples - 1, 1):g} s), above the limit of "
             f"{_gib(limit_b)}: raise dt_out, shorten t_end, or allow it with "
             f"allow_long=True (command line: --allow-long)")
     limit_s = MAX_STEPS.get(engine, MAX_STEPS["compiled"]) if max_steps_estimate is None \

@@ -5,9 +5,19 @@ Each block ``b`` with kernels is differentiated alone: its local Jacobian
     [ dy_b/dx_b  dy_b/du_b ]        (outputs)
     [ df_b/dx_b  df_b/du_b ]        (state derivatives)
 
-by central differences of *its own* kernels only (columns perturbed in groups whose rows do
-not overlap, Curtis-Powell-Reid), step eps^(1/3) max(|v|, 1), so entries are accurate to
-about eps^(2/3) relative.  The chain rule then follows the same topological order as the
+comes from the block's own ``jacobian`` kernel when it has one (closed forms in
+:mod:`ivdrem.blocks.jacobians`), otherwise from differences of *its own* kernels only
+(columns perturbed in groups whose rows do not overlap, Curtis-Powell-Reid):
+
+* forward differences, step sqrt(eps) max(|v|, 1), for blocks without a robot model (linear
+  or bilinear in their arguments, so the truncation error is nil or small).  The base point
+  costs nothing: it is the block's outputs and state derivatives at (t, x), which the
+  right-hand-side evaluation that gathers the signals has just computed, so a group costs
+  one kernel call;
+* central differences, step eps^(1/3) max(|v|, 1) (accurate to about eps^(2/3) relative),
+  for blocks that call the robot model: their trigonometric terms, multiplied by gains such
+  as mu(t), make forward differences' rounding error eps |f| / h reach 1e-6 of an entry
+  (measured on planar_arm(3)); two kernel calls per group.  The chain rule then follows the same topological order as the
 right-hand side: for the blocks in order of direct feedthrough
 
     du_b/dx = sum_j C[b, j] dy_j/dx         (connection map; diagram inputs are constants)
@@ -151,7 +161,7 @@ class JacobianProgram:
         # ---- local patterns and FD program
         local = {}          # block index -> list of (row, col, jb slot)
         jb = 0
-        fd = dict(blk=[], x0=[], nx=[], u0=[], nu=[], ny=[])
+        fd = dict(blk=[], x0=[], nx=[], u0=[], nu=[], ny=[], y0=[], central=[])
         g_ptr, gc_ptr, cols, e_ptr, e_row, e_slot = [0], [0], [], [0], [], []
         g_kind = []         # per group: 0 output kernel, 1 update kernel
         self.fd_blocks = []
@@ -202,12 +212,14 @@ class JacobianProgram:
             local[b.index] = entries
             self.fd_blocks.append(b)
             for k, v in (("x0", b.x.start), ("nx", nx), ("u0", b.u.start), ("nu", nu),
-                         ("ny", ny)):
+                         ("ny", ny), ("y0", b.y.start),
+                         ("central", int(spec.model is not None))):
                 fd[k].append(v)
         self.n_jb = jb
         i64 = lambda v: np.asarray(v, dtype=np.int64)
         self.fd_x0, self.fd_nx, self.fd_u0 = i64(fd["x0"]), i64(fd["nx"]), i64(fd["u0"])
-        self.fd_nu, self.fd_ny = i64(fd["nu"]), i64(fd["ny"])
+        self.fd_nu, self.fd_ny, self.fd_y0 = i64(fd["nu"]), i64(fd["ny"]), i64(fd["y0"])
+        self.fd_central = i64(fd["central"])
         self.g_ptr, self.gc_ptr, self.col = i64(g_ptr), i64(gc_ptr), i64(cols)
         self.g_kind = i64(g_kind)
         self.e_ptr, self.e_row, self.e_slot = i64(e_ptr), i64(e_row), i64(e_slot)
@@ -305,116 +317,3 @@ class JacobianProgram:
     @property
     def nnz(self):
         return int(self.pattern.sum())
-
-
-def _arr(name, a, dtype="np.int64"):
-    return f"{name} = np.array({np.asarray(a).tolist()!r}, dtype={dtype})"
-
-
-def generated_source(prog, slu, block_calls, supplied=None):
-    """Source of block_eval, diagram_jacobian, sparse_factor / sparse_solve and the
-    template's newton_factor / newton_solve on top of them.
-
-    `block_calls[k]` are (output lines, update lines) (indented 12) that evaluate block k
-    from xb[0:nx], ub[0:nu]: output kernel into yf[0:ny], update kernel into yf[ny:ny+nx];
-    each returns a non-OK status if the kernel raised.  `supplied[k]`, if not None, are
-    the lines that call the block's own Jacobian kernel into jl (row-major
-    (ny + nx) x (nx + nu)), used instead of differences.
-    """
-    supplied = supplied or [None] * len(block_calls)
-    with_jac = [k for k, s in enumerate(supplied) if s is not None]
-    p = prog
-    nfd = len(p.fd_blocks)
-    maxx = int(max(p.fd_nx.max(initial=0), 1))
-    maxu = int(max(p.fd_nu.max(initial=0), 1))
-    maxyf = int(max((p.fd_ny + p.fd_nx).max(initial=0), 1))
-    lines = ["from ivdrem.sim._jit_sparse import jac_chain, fd_shift, fd_scatter, "
-             "slu_factor, slu_solve", "",
-             "# structured Jacobian (ivdrem/sim/jacobian.py): block FD program and chain rule"]
-    for name in ("fd_x0", "fd_nx", "fd_u0", "fd_nu", "fd_ny", "g_ptr", "g_kind", "gc_ptr", "col", "e_ptr",
-                 "e_row", "e_slot", "ins_dst", "ins_f", "ins_src", "j_row", "j_col", "j_slot"):
-        lines.append(_arr("_JAC_" + name.upper(), getattr(p, name)))
-    lines.append(_arr("_JAC_GAINS", p.gains, "np.float64"))
-    lines.append("# static-pattern LU of c I - J (ivdrem/sim/sparse_lu.py): "
-                 f"{slu.ordering} ordering, nnz(A) = {slu.nnz_a}, nnz(L+U) = {slu.nnz_lu}")
-    for name in ("perm", "rowptr", "colidx", "diagp"):
-        lines.append(_arr("_SLU_" + name.upper(), getattr(slu, name)))
-    lines += ["", "", "def block_eval(k, kind, t, xb, ub, yf, P, W):"]
-    for k, (out_calls, upd_calls) in enumerate(block_calls):
-        lines.append(f"    {'if' if k == 0 else 'elif'} k == {k}:")
-        lines.append("        if kind == 0:")
-        lines += out_calls
-        if upd_calls:
-            lines.append("        else:")
-            lines += upd_calls
-    lines.append("    return OK")
-    lines += ["", "", "def block_jacobian(k, t, xb, ub, jl, P, W):"]
-    for i, k in enumerate(with_jac):
-        lines.append(f"    {'if' if i == 0 else 'elif'} k == {k}:")
-        lines += supplied[k]
-    lines.append("    return OK")
-    lines.append(_arr("_JAC_SUPPLIED", [int(s is not None) for s in supplied] or [0]))
-    maxcol = int(max((p.fd_nx + p.fd_nu).max(initial=0), 1))
-    lines += [
-        "", "",
-        "def diagram_jacobian(t, x, P, W, J):",
-        "    n = x.shape[0]",
-        "    f0 = np.empty(n)",
-        "    diagram_eval(RHS, t, x, P, W, f0)       # the signals at (t, x)",
-        "    us = W[7]",
-        f"    F = np.empty({p.n_jb + p.gains.size})",
-        f"    for i in range({p.gains.size}):",
-        f"        F[{p.n_jb} + i] = _JAC_GAINS[i]",
-        f"    xb = np.empty({maxx})", f"    ub = np.empty({maxu})",
-        f"    xb0 = np.empty({maxx})", f"    ub0 = np.empty({maxu})",
-        f"    yp = np.empty({maxyf})", f"    ym = np.empty({maxyf})",
-        f"    hh = np.empty({max(p.col.size, 1)})",
-        f"    jl = np.empty({maxyf * maxcol})      # a block's local Jacobian, row-major",
-        f"    for kb in range({nfd}):",
-        "        nx = _JAC_FD_NX[kb]",
-        "        nu = _JAC_FD_NU[kb]",
-        "        for i in range(nx):",
-        "            xb0[i] = x[_JAC_FD_X0[kb] + i]",
-        "            xb[i] = xb0[i]",
-        "        for i in range(nu):",
-        "            ub0[i] = us[_JAC_FD_U0[kb] + i]",
-        "            ub[i] = ub0[i]",
-        "        if _JAC_SUPPLIED[kb] == 1:     # the block's own Jacobian kernel",
-        "            for i in range((_JAC_FD_NY[kb] + nx) * (nx + nu)):",
-        "                jl[i] = 0.0",
-        "            if block_jacobian(kb, t, xb, ub, jl, P, W) != OK:",
-        "                return BLOCK_RAISED",
-        "            for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
-        "                for c in range(_JAC_GC_PTR[g], _JAC_GC_PTR[g + 1]):",
-        "                    for e in range(_JAC_E_PTR[c], _JAC_E_PTR[c + 1]):",
-        "                        F[_JAC_E_SLOT[e]] = jl[_JAC_E_ROW[e] * (nx + nu) + _JAC_COL[c]]",
-        "            continue",
-        "        for g in range(_JAC_G_PTR[kb], _JAC_G_PTR[kb + 1]):",
-        "            c0 = _JAC_GC_PTR[g]",
-        "            c1 = _JAC_GC_PTR[g + 1]",
-        "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 1.0, hh)",
-        "            kind = _JAC_G_KIND[g]",
-        "            if block_eval(kb, kind, t, xb, ub, yp, P, W) != OK:",
-        "                return BLOCK_RAISED",
-        "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, -1.0, hh)",
-        "            if block_eval(kb, kind, t, xb, ub, ym, P, W) != OK:",
-        "                return BLOCK_RAISED",
-        "            fd_shift(xb, ub, xb0, ub0, nx, _JAC_COL, c0, c1, 0.0, hh)",
-        "            fd_scatter(yp, ym, hh, c0, c1, _JAC_E_PTR, _JAC_E_ROW, _JAC_E_SLOT, F)",
-        f"    jac_chain(F, _JAC_INS_DST, _JAC_INS_F, _JAC_INS_SRC, {p.n_slots}, _JAC_J_ROW,",
-        "              _JAC_J_COL, _JAC_J_SLOT, J)",
-        "    return OK",
-        "", "",
-        "def sparse_factor(J, c, LU, piv):",
-        "    return slu_factor(J, c, LU, piv, _SLU_PERM, _SLU_ROWPTR, _SLU_COLIDX, _SLU_DIAGP)",
-        "", "",
-        "def sparse_solve(LU, piv, b):",
-        "    slu_solve(LU, _SLU_PERM, _SLU_ROWPTR, _SLU_COLIDX, _SLU_DIAGP, b)",
-        "", "",
-        "def newton_factor(W, J, c, LU, piv):",
-        "    return sparse_factor(J, c, LU, piv)",
-        "", "",
-        "def newton_solve(W, LU, piv, b):",
-        "    sparse_solve(LU, piv, b)",
-        ""]
-    return "\n".join(lines)

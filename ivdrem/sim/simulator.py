@@ -74,7 +74,8 @@ ENGINES = ("compiled", "reference")
 _TEMPLATE_PATH = Path(tpl.__file__)
 
 #: The workspace of a run: (field, dtype, ndim), in order (the compiled code indexes the
-#: fields by position).  Compiled engine only: ``kernels`` the addresses of the blocks'
+#: fields by position).  The input table (u_times, u_values) is empty while the inputs are
+#: held at u_ext (set_inputs replaces it).  Compiled engine only: ``kernels`` the addresses of the blocks'
 #: kernel wrappers, ``failure`` [wrapper index, t, states] of a kernel that raised, and
 #: ``table_ints`` / ``table_floats`` the diagram as tables (ivdrem.sim.tables, packed;
 #: empty on the reference engine).
@@ -84,7 +85,7 @@ WORKSPACE_LAYOUT = (
     ("ys", "float64", 1), ("us", "float64", 1), ("u_ext", "float64", 1),
     ("hold_dt", "float64", 1), ("hold_mode", "int64", 1), ("hold_time", "float64", 1),
     ("hold_vec", "float64", 2), ("probing", "int64", 1), ("clock", "float64", 1),
-    ("kernels", "int64", 1), ("failure", "float64", 1), ("table_ints", "int64", 1),
+    ("u_times", "float64", 1), ("u_values", "float64", 2), ("kernels", "int64", 1), ("failure", "float64", 1), ("table_ints", "int64", 1),
     ("table_floats", "float64", 1))
 Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
 #: what the compiled stepper raises when a block's kernel raised (the simulator turns it
@@ -142,6 +143,7 @@ class ReferenceEngine:
         ns["newton_solve"] = lambda W, LU, piv, b: self._solve(LU, piv, b)
         self.ns = ns
         self.integrate = ns["integrate"]
+        self._inputs_at = ns["external_inputs"]     # the diagram inputs at t (into W[8])
         self.P = ()
         self._est = _slope_flags(plan)
         self._feeds = {}
@@ -158,7 +160,7 @@ class ReferenceEngine:
 
     def _rhs(self, t, x, P, W, dx):
         try:
-            dx[:] = self.plan.diagram._rhs(t, x, W[8])
+            dx[:] = self.plan.diagram._rhs(t, x, self._inputs_at(W, t))
         except RuntimeError as e:
             # The plan has already shown the diagram has no algebraic loop, so python-control's
             # fixed-point sweep failing to settle means a NaN in a signal (NaN != NaN): return
@@ -206,7 +208,7 @@ class ReferenceEngine:
 
     def _after_step(self, t, x, P, W):
         plan = self.plan
-        ulist, _ = plan.diagram._compute_static_io(t, x, W[8])
+        ulist, _ = plan.diagram._compute_static_io(t, x, self._inputs_at(W, t))
         if plan.delays and not W.probing[0]:
             v = np.empty(plan.nd)
             dv = np.zeros(plan.nd)
@@ -226,7 +228,7 @@ class ReferenceEngine:
         return tpl.HOLD_UPDATED if upd else tpl.OK
 
     def _record(self, t, x, P, W, row):
-        row[:] = self.plan.diagram._out(t, x, W[8])
+        row[:] = self.plan.diagram._out(t, x, self._inputs_at(W, t))
 
     def install_feeds(self, W_ref):
         """Let the delay / max-hold nlsys blocks read the simulator's history."""
@@ -302,6 +304,7 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0, tables=None):
         hold_mode=np.full(nmh, tpl.HOLD_COMMIT, dtype=np.int64),
         hold_time=np.full(nmh, np.nan), hold_vec=np.zeros((nmh, nmat)),
         probing=np.zeros(1, dtype=np.int64), clock=np.zeros(1),
+        u_times=np.zeros(0), u_values=np.zeros((0, nu_ext)),
         kernels=np.zeros(max(n_kernels, 1), dtype=np.int64),
         failure=np.full(2 + max([b.sys.nstates for b in plan.blocks] + [0]), -1.0),
         **dict(zip(("table_ints", "table_floats"),
@@ -325,8 +328,9 @@ class Simulator:
     """A resumable simulation of one diagram (use :func:`simulate` for one-shot runs).
 
     ``advance(t_to, u=None)`` integrates to ``t_to`` holding the diagram's external inputs
-    at ``u`` (used by the FMU co-simulation runner); the history of delays and max-holds
-    carries over between calls.
+    at ``u`` (used by the FMU co-simulation runner), or following the table of
+    ``set_inputs(values, times)``; the history of delays and max-holds carries over between
+    calls.
     """
 
     def __init__(self, diagram, *, method=DEFAULT_METHOD, engine="compiled", h=1e-3,
@@ -390,26 +394,78 @@ class Simulator:
         self.wall = 0.0          # integration only (sim_s); compile_s apart
         self._warned_stiff = False
         self._started = False
+        self._inputs_set = False
+        self._kinks = np.zeros(0)       # times where the input interpolant's slope changes
 
     @property
     def state_labels(self):
         return self.plan.state_labels()
 
     def _set_u(self, u):
+        """advance(u=...): hold the external inputs at u (None: keep what is set)."""
         d = self.plan.diagram
+        if u is None:
+            if d.ninputs and not self._inputs_set:
+                raise ValueError(f"this diagram has {d.ninputs} external inputs "
+                                 f"({', '.join(d.input_labels)}): pass u")
+            return
         if d.ninputs == 0:
-            if u is not None and np.size(u):
+            if np.size(u):
                 raise ValueError("this diagram has no external inputs")
             return
-        if u is None:
-            raise ValueError(f"this diagram has {d.ninputs} external inputs "
-                             f"({', '.join(d.input_labels)}): pass u")
         u = np.asarray(u, float).reshape(-1)
         if u.size != d.ninputs:
             raise ValueError(f"u has {u.size} entries, the diagram has {d.ninputs} inputs")
         if not np.all(np.isfinite(u)):
             raise ValueError("u has non-finite entries")
-        self.W[8][:] = u
+        self.set_inputs(u)
+
+    def set_inputs(self, values, times=None):
+        """The diagram's external inputs from now on: held at the vector `values`, or with
+        `times` (increasing, n_t) the linear interpolant of the columns of `values`
+        (ninputs x n_t), extrapolated linearly beyond the table's ends, as
+        ``ct.input_output_response`` interpolates its inputs.  Adaptive steps are cut at the
+        table times where the interpolant's slope changes, so that every step sees a smooth
+        right-hand side and keeps the method's order (a fixed-step RK4 steps on its own grid).
+        """
+        nu = self.plan.diagram.ninputs
+        values = np.asarray(values, float)
+        if not np.all(np.isfinite(values)):
+            raise ValueError("inputs have non-finite entries")
+        if times is None:
+            values = values.reshape(-1)
+            if values.size != nu:
+                raise ValueError(f"inputs have {values.size} entries, the diagram has {nu}")
+            self.W[8][:] = values
+            if self.W.u_times.size:             # drop the table (cheap when there is none:
+                self.W = self.W._replace(       # co-simulation sets u every step)
+                    u_times=np.zeros(0), u_values=np.zeros((0, nu)))
+            self._kinks = np.zeros(0)
+        else:
+            times = np.asarray(times, float).reshape(-1)
+            if values.shape != (nu, times.size) or times.size < 2 or \
+                    not np.all(np.diff(times) > 0):
+                raise ValueError(f"an input table needs increasing times (n_t >= 2) and "
+                                 f"values of shape ({nu}, n_t), got {times.size} times and "
+                                 f"values of shape {values.shape}")
+            self.W = self.W._replace(u_times=np.ascontiguousarray(times),
+                                     u_values=np.ascontiguousarray(values.T))
+            self._kinks = input_kinks(times, values)
+        self._Wref[0] = self.W
+        self._inputs_set = True
+
+    def _segment_end(self, t_stop):
+        """End of the next integrate call towards t_stop: the first kink of the input
+        interpolant after the current time (adaptive methods), else t_stop."""
+        k = self._kinks
+        if k.size and self.info.adaptive:
+            # beyond the loop's own end-of-interval tolerance, so that a kink just reached
+            # is not found again
+            tol = 4e-12 * max(1.0, abs(self.t))
+            i = int(np.searchsorted(k, self.t + tol, side="right"))
+            if i < k.size and k[i] < t_stop - tol:
+                return float(k[i])
+        return t_stop
 
     def _start(self):
         if self.engine_name == "reference":
@@ -465,9 +521,12 @@ class Simulator:
             for c in range(1, nchunk + 1):
                 t_stop = t_to if c == nchunk else t_start + span * c / nchunk
                 while self.t < t_stop - 1e-12 * max(1.0, abs(t_stop)):
-                    st = self._chunk(t_stop, out_t, out_y, out_x, io)
+                    t_seg = self._segment_end(t_stop)
+                    st = self._chunk(t_seg, out_t, out_y, out_x, io)
                     if st == tpl.OK:
-                        break
+                        if t_seg == t_stop:
+                            break
+                        continue
                     self._handle(st, out_t, out_y, io, out_x)
                 if progress is not None:
                     progress(self.t)
@@ -595,14 +654,226 @@ def _progress_bar(enabled, t0, t_end, desc):
     return bar, update
 
 
-def simulate(diagram, t_end, *, method=DEFAULT_METHOD, engine="compiled", h=1e-3, rtol=None,
-             atol=None, h_max=None, dt_out=0.01, params=None, x0=None, u=None,
-             progress=None, return_states=True, x_limit=1e10, max_steps=50_000_000,
-             desc=None, allow_long=False):
-    """Simulate a closed diagram from t = 0 to t_end; returns ct.TimeResponseData.
+def input_kinks(times, values):
+    """Interior table times at which the slope of the piecewise-linear input changes
+    (beyond the rounding of the slopes of sampled straight lines): where a step ends so
+    that the right-hand side is smooth on every step."""
+    if times.size < 3 or values.shape[0] == 0:
+        return np.zeros(0)
+    dt = np.diff(times)
+    slope = np.diff(values, axis=1) / dt
+    jump = np.abs(np.diff(slope, axis=1))
+    size = np.max(np.abs(values), axis=1, keepdims=True)
+    noise = 64 * np.finfo(float).eps * (np.maximum(np.abs(slope[:, 1:]), np.abs(slope[:, :-1]))
+                                        + size / np.minimum(dt[1:], dt[:-1]))
+    return times[1:-1][np.any(jump > noise, axis=0)]
 
-    Parameters
-    ----------
+
+def interpolate_inputs(times, values, t):
+    """python-control's input interpolant (input_output_response's ``ufun``): linear in
+    each interval of `times`, extrapolated linearly beyond the ends; `values` is
+    (ninputs, n_t), `t` an array of times; returns (ninputs, len(t))."""
+    idx = np.clip(np.searchsorted(times, t, side="left"), 1, len(times) - 1)
+    s = (t - times[idx - 1]) / (times[idx] - times[idx - 1])
+    return values[:, idx - 1] * (1.0 - s) + values[:, idx] * s
+
+
+def _increasing_times(name, v):
+    """v as a 1-D float array of finite, strictly increasing times (else a ValueError
+    naming the argument)."""
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an array of times, got {v!r}") from None
+    if a.ndim != 1 or a.size == 0:
+        raise ValueError(f"{name} must be a 1-D array of times, got shape {a.shape}")
+    bad = np.flatnonzero(~np.isfinite(a))
+    if bad.size:
+        raise ValueError(f"{name}[{bad[0]}] is {float(a[bad[0]])!r}: times must be finite")
+    back = np.flatnonzero(np.diff(a) <= 0)
+    if back.size:
+        i = int(back[0])
+        raise ValueError(f"{name} must be strictly increasing: {name}[{i}] = {float(a[i])!r}, "
+                         f"{name}[{i + 1}] = {float(a[i + 1])!r}")
+    return a
+
+
+def _time_span(timepts, t_end):
+    """(t0, t_end, timepts array or None) of simulate's time arguments."""
+    if timepts is not None and t_end is not None:
+        raise TypeError("give timepts or t_end (its older name), not both")
+    if timepts is None and t_end is None:
+        raise TypeError("simulate() needs timepts: an end time (the run starts at 0) or an "
+                        "array of times")
+    if timepts is None or np.ndim(timepts) == 0:
+        v = t_end if timepts is None else timepts
+        try:
+            return 0.0, _check_positive("t_end", v), None
+        except ValueError as e:
+            raise ValueError(f"{e} (timepts as a number is the end time; the run starts at "
+                             "t = 0)") from None
+    T = _increasing_times("timepts", timepts)
+    if T.size < 2:
+        raise ValueError(f"timepts must hold at least 2 times (start and end), got {T.size}")
+    return float(T[0]), float(T[-1]), T
+
+
+def _output_grid(t0, t_end, T, t_eval, dt_out):
+    """The output times given as an array (t_eval, else an array timepts), or None with
+    the spacing of the dt_out grid from t0 (its arrays are made after the cost guard)."""
+    if t_eval is not None:
+        if dt_out is not None:
+            raise TypeError("give t_eval or dt_out, not both")
+        te = _increasing_times("t_eval", t_eval)
+        tol = 1e-12 * max(1.0, abs(t0), abs(t_end))
+        if te[0] < t0 - tol or te[-1] > t_end + tol:
+            raise ValueError(f"t_eval must lie within the simulated interval [{t0!r}, "
+                             f"{t_end!r}], got [{float(te[0])!r}, {float(te[-1])!r}]")
+        return np.clip(te, t0, t_end), None
+    if T is not None and dt_out is None:
+        return T.copy(), None
+    dt_out = _check_positive("dt_out", 0.01 if dt_out is None else dt_out)
+    return None, min(dt_out, t_end - t0)
+
+
+def _input_table(diagram, inputs, T):
+    """The external inputs as (values, times): a constant vector (times None) or an
+    (ninputs, len(timepts)) table over timepts, after python-control's conventions (a
+    scalar broadcast to every input; a list of per-input parts, each a constant or a time
+    series; an array over timepts)."""
+    nu = diagram.ninputs
+    labels = list(diagram.input_labels)
+    nT = None if T is None else T.size
+    if inputs is None:
+        inputs = 0.0
+    if isinstance(inputs, (list, tuple)) and (nT is None or len(inputs) != nT):
+        parts = []
+        for i, part in enumerate(inputs):
+            a = _numbers(f"inputs[{i}]", part)
+            if a.ndim == 0 or (a.ndim == 1 and (nT is None or a.size != nT)):
+                parts.append(np.outer(a.reshape(-1), np.ones(nT or 1)))
+            elif nT is not None and ((a.ndim == 1 and a.size == nT) or
+                                     (a.ndim == 2 and a.shape[1] == nT)):
+                parts.append(a.reshape(-1, nT))
+            else:
+                raise ValueError(f"inputs[{i}] has shape {a.shape}: each part of a list of "
+                                 "inputs is a constant, a vector of constants, or a time "
+                                 f"series over timepts ({nT if nT else 'no'} times)")
+        U = np.vstack(parts) if parts else np.zeros((0, nT or 1))
+        if U.shape[0] != nu:
+            raise ValueError(f"inputs (a list) give {U.shape[0]} inputs, the diagram has "
+                             f"{nu}: {labels}")
+        if nT is None:
+            U = U[:, 0]
+    else:
+        U = _numbers("inputs", inputs)
+        if U.ndim == 0:
+            U = np.full(nu, float(U))
+        elif U.ndim == 1 and U.size == nu and not (nu == 1 and nT == 1):
+            pass                                   # a constant vector
+        elif U.ndim == 1 and nu == 1 and nT is not None and U.size == nT:
+            U = U.reshape(1, nT)
+        elif U.ndim == 2 and nT is not None and U.shape == (nu, nT):
+            pass
+        else:
+            if nu == 0:
+                raise ValueError(f"inputs has shape {U.shape}, but the diagram has no "
+                                 "external inputs (leave inputs at 0)")
+            want = f"a number, a vector of {nu} constants"
+            if nT is not None:
+                want += f" or an array of shape ({nu}, {nT}) over timepts"
+            elif U.ndim == 2:
+                want += " (an input over time needs timepts as an array of times)"
+            hint = " (transposed?)" if U.ndim == 2 and nT is not None and \
+                U.shape == (nT, nu) else ""
+            raise ValueError(f"inputs has shape {U.shape}{hint}; the diagram has {nu} "
+                             f"external inputs {labels}: give {want}")
+    bad = np.argwhere(~np.isfinite(U))
+    if bad.size:
+        i = tuple(int(k) for k in bad[0])
+        where = f"{labels[i[0]]}" + (f" at timepts[{i[1]}]" if len(i) > 1 else "")
+        raise ValueError(f"inputs has a non-finite entry ({float(U[i])!r}) for input {where}")
+    return (U, None) if U.ndim == 1 else (U, T)
+
+
+def _numbers(name, v):
+    try:
+        return np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numbers, got {v!r}") from None
+
+
+def _initial_state(diagram, initial_state, name, params):
+    """The full initial state from simulate's `initial_state`: None (each block's own
+    initial state), a number (every state), a full vector, or python-control's list of
+    parts (concatenated), or one entry per subsystem with None for a block's own state."""
+    if initial_state is None:
+        return None
+    n = diagram.nstates
+    subs = diagram.syslist
+    if isinstance(initial_state, (list, tuple)) and len(initial_state) == len(subs) and \
+            any(e is None for e in initial_state):
+        own = DiagramPlan.from_diagram(diagram, None, params).x0
+        parts, i = [], 0
+        for k, (e, sub) in enumerate(zip(initial_state, subs)):
+            if e is None:
+                parts.append(own[i:i + sub.nstates])
+            else:
+                a = _numbers(f"{name}[{k}]", e).reshape(-1)
+                if a.size != sub.nstates:
+                    raise ValueError(f"{name}[{k}] has {a.size} entries, subsystem "
+                                     f"'{sub.name}' has {sub.nstates} state(s)")
+                parts.append(a)
+            i += sub.nstates
+        x0 = np.concatenate(parts) if parts else np.zeros(0)
+    elif isinstance(initial_state, (list, tuple)):
+        parts = [_numbers(f"{name}[{k}]", e).reshape(-1) for k, e in enumerate(initial_state)]
+        x0 = np.concatenate(parts) if parts else np.zeros(0)
+    else:
+        x0 = _numbers(name, initial_state)
+        x0 = np.full(n, float(x0)) if x0.ndim == 0 else x0.reshape(-1)
+    if x0.size != n:
+        names = ", ".join(f"{s.name} ({s.nstates})" for s in subs)
+        raise ValueError(f"{name} has {x0.size} entries, the diagram has {n} states (give "
+                         f"all of them, or a list with one entry per subsystem, None for a "
+                         f"block's own initial state: {names})")
+    bad = np.flatnonzero(~np.isfinite(x0))
+    if bad.size:
+        labels = list(diagram.state_labels)
+        raise ValueError(f"{name} has a non-finite entry ({float(x0[bad[0]])!r}) for state "
+                         f"{labels[bad[0]]}")
+    return x0
+
+
+def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None, *,
+             t_eval=None, method=DEFAULT_METHOD, engine="compiled", h=1e-3, rtol=None,
+             atol=None, h_max=None, dt_out=None, progress=None, return_states=True,
+             x_limit=1e10, max_steps=50_000_000, desc=None, allow_long=False,
+             t_end=None, x0=None, u=None):
+    """Simulate a closed diagram; returns ct.TimeResponseData.
+
+    The arguments follow ``ct.input_output_response`` (docs/simulation.md, "Calling
+    convention"):
+
+    timepts : an end time (the run covers [0, timepts]) or an array of increasing times
+        (the run covers [timepts[0], timepts[-1]]; outputs at timepts unless t_eval or
+        dt_out says otherwise).
+    inputs : the diagram's external inputs: a number (every input), a vector of ninputs
+        constants, or an (ninputs, len(timepts)) array over timepts, linearly interpolated
+        as python-control does (steps of the adaptive methods end at the interpolant's
+        kinks); a list of per-input parts as python-control accepts.
+    initial_state : None (each block's own initial state), a full state vector, a number,
+        or a list with one entry per subsystem (None: that block's own initial state).
+    params : parameter overrides, passed to every block that has a parameter of that name
+        (python-control semantics), validated by the blocks.
+    t_eval : output times (within the simulated interval); default timepts (an array) or
+        a grid of spacing dt_out (default 0.01 s) from the start.
+
+    Older names keep working: ``t_end`` (= a number timepts), ``x0`` (= initial_state),
+    ``u`` (= constant inputs).
+
+    Other parameters
+    ----------------
     method : a name of :data:`METHOD_TABLE`: "rodas5p" (L-stable Rosenbrock 5(4), the
         default), "dp45" (Dormand-Prince 5(4)) or "rk4" (fixed step h).
     engine : "compiled" (numba, default) or "reference" (python-control evaluation).
@@ -611,45 +882,69 @@ def simulate(diagram, t_end, *, method=DEFAULT_METHOD, engine="compiled", h=1e-3
         ``DEFAULT_TOLERANCES``).
     h_max : largest step (default: min(0.05, T/4) for an explicit method, T/2 for the stiff
         one, T the shortest transport delay).
-    dt_out : spacing of the returned samples.
-    params : parameter overrides, passed to every block that has a parameter of that name
-        (python-control semantics), validated by the blocks.
+    dt_out : spacing of the returned samples (when neither t_eval nor an array timepts
+        gives them).
     progress : show a progress bar; default: when stderr is a terminal.
     allow_long : run beyond the cost limits of :mod:`ivdrem.sim.guards` (memory, steps).
 
-    The response carries ``.stats`` (steps, rejected, rhs_calls, jacobians, sim_s,
-    compile_s, wall_s = sim_s + compile_s, ...) and ``.hold_times`` (t_e of each max-hold).
+    The response carries ``inputs`` (the inputs at the output times), ``params``,
+    ``.stats`` (steps, rejected, rhs_calls, jacobians, sim_s, compile_s, wall_s = sim_s +
+    compile_s, ...) and ``.hold_times`` (t_e of each max-hold).
     """
-    t_end = _check_positive("t_end", t_end)
-    dt_out = _check_positive("dt_out", dt_out)
-    if dt_out > t_end:
-        dt_out = t_end
+    # every argument is checked here, before the plan, the compile and the run
+    if not isinstance(diagram, ct.InterconnectedSystem):
+        raise TypeError("simulate() needs a ct.InterconnectedSystem (from ct.interconnect "
+                        f"or ivdrem.diagrams), got {type(diagram).__name__}")
+    t0, t_end, T = _time_span(timepts, t_end)
+    out_t, dt_grid = _output_grid(t0, t_end, T, t_eval, dt_out)
+    if u is not None:
+        if not (np.ndim(inputs) == 0 and inputs == 0):
+            raise TypeError("give inputs or u (its older name), not both")
+        if np.ndim(u) > 1:
+            raise ValueError(f"u (constant inputs) must be a vector, got shape {np.shape(u)}")
+        inputs = u
+    u_values, u_times = _input_table(diagram, inputs, T)
+    if x0 is not None and initial_state is not None:
+        raise TypeError("give initial_state or x0 (its older name), not both")
+    if params is not None:
+        _validate_params(diagram, params)
+    state0 = _initial_state(diagram, x0 if x0 is not None else initial_state,
+                            "x0" if x0 is not None else "initial_state", params)
     from .guards import check_diagram_cost
-    check_diagram_cost(diagram, t_end, method=method, engine=engine, h=h, h_max=h_max,
-                       dt_out=dt_out, return_states=return_states, max_steps=max_steps,
+    check_diagram_cost(diagram, t_end - t0, method=method, engine=engine, h=h, h_max=h_max,
+                       dt_out=dt_grid, samples=None if out_t is None else out_t.size,
+                       return_states=return_states, max_steps=max_steps,
                        allow_long=allow_long)   # refuse before compiling (ivdrem.sim.guards)
+    if out_t is None:
+        out_t = _output_times(t0, t_end, dt_grid)
     sim = Simulator(diagram, method=method, engine=engine, h=h, rtol=rtol, atol=atol,
-                    h_max=h_max, params=params, x0=x0, x_limit=x_limit, max_steps=max_steps)
-    out_t = _output_times(0.0, t_end, dt_out)
+                    h_max=h_max, params=params, x0=state0, x_limit=x_limit,
+                    max_steps=max_steps, t0=t0)
+    sim.set_inputs(u_values, u_times)
     ny = diagram.noutputs
     out_y = np.full((out_t.size, ny), np.nan)
     out_x = np.full((out_t.size, diagram.nstates), np.nan) if return_states else None
     if progress is None:
         progress = sys.stderr.isatty() and not os.environ.get("CI")
-    bar, update = _progress_bar(progress, 0.0, t_end, desc or diagram.name)
+    bar, update = _progress_bar(progress, t0, t_end, desc or diagram.name)
     try:
-        n = sim.advance(t_end, u=u, out_t=out_t, out_y=out_y, out_x=out_x, progress=update)
+        n = sim.advance(t_end, out_t=out_t, out_y=out_y, out_x=out_x, progress=update)
     finally:
         if bar is not None:
             bar.close()
         sim.close()
     if n != out_t.size:
         raise SimulationError(f"recorded {n} of {out_t.size} output samples")
+    # the inputs at the output times (a fixed-step run reports the step times it used)
+    if u_times is None:
+        u_out = np.repeat(u_values.reshape(-1, 1), out_t.size, axis=1)
+    else:
+        u_out = interpolate_inputs(u_times, u_values, out_t)
     resp = ct.TimeResponseData(
-        out_t, out_y.T, out_x.T if out_x is not None else None, None,
-        output_labels=list(diagram.output_labels),
+        out_t, out_y.T, out_x.T if out_x is not None else None, u_out,
+        output_labels=list(diagram.output_labels), input_labels=list(diagram.input_labels),
         state_labels=list(diagram.state_labels) if out_x is not None else None,
-        sysname=diagram.name, params=params, issiso=False)
+        sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso())
     resp.stats = sim.stats_dict()
     resp.hold_times = sim.hold_times()
     return resp

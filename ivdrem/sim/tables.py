@@ -138,7 +138,7 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         fd.append([prog.fd_x0[kb], prog.fd_nx[kb], prog.fd_u0[kb], prog.fd_nu[kb],
                    prog.fd_ny[kb], windex.get((b.index, "output"), -1),
                    windex.get((b.index, "update"), -1), windex.get((b.index, "jacobian"), -1),
-                   pbase.get(b.index, 0)])
+                   pbase.get(b.index, 0), prog.fd_y0[kb], prog.fd_central[kb]])
     maxx = int(max(prog.fd_nx.max(initial=0), 1))
     maxu = int(max(prog.fd_nu.max(initial=0), 1))
     maxyf = int(max((prog.fd_ny + prog.fd_nx).max(initial=0), 1))
