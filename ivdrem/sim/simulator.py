@@ -462,7 +462,14 @@ class Simulator:
     def _run_integrate(self, *args):
         try:
             return self._integrate(*args)
-        except (ValueError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError) as e:
+        except Exception as e:
+            # a block's own exception inside the compiled loop: name the block and the time
+            named = getattr(self.engine, "block_failure", lambda e: None)(e)
+            if named is not None:
+                raise named[0] from named[1]
+            if not isinstance(e, (ValueError, ZeroDivisionError, FloatingPointError,
+                                  np.linalg.LinAlgError)):
+                raise
             raise SimulationError(f"simulation stopped after t = {self.tf[0]:.6g} s: {e}") \
                 from e
 
