@@ -20,12 +20,15 @@ Usage::
     PYTHONPATH=. python benchmarks/bench_open_engine.py [--t-end 10] [--reference]
 
 ``--reference`` adds the python-control reference engine on loop 1 (slow: about 1 s per
-simulated second or more).
+simulated second or more).  ``--bookkeeping`` also times loop 1 with and without the two
+stores per block call that let a raising block be named (BlockError): the same generated
+module with those lines removed, best of 3 alternating runs each.
 """
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import warnings
 
@@ -46,6 +49,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--t-end", type=float, default=10.0)
     ap.add_argument("--reference", action="store_true")
+    ap.add_argument("--bookkeeping", action="store_true")
     a = ap.parse_args(argv)
     model = two_link()
     base = closed_loop("iv-drem", model)
@@ -76,6 +80,38 @@ def main(argv=None):
               f"{1e6 * r.stats['sim_s'] / max(r.stats['rhs_calls'], 1):8.1f} "
               f"{np.max(np.abs(q - ref_q)):9.2e}")
     print(f"load {os.getloadavg()[0]:.2f}")
+    if a.bookkeeping:
+        bookkeeping(base, x0, a.t_end)
+
+
+def bookkeeping(diagram, x0, t_end):
+    """sim_s of the loop with and without the block-index bookkeeping of compiled.py."""
+    from ivdrem.sim import compiled
+    from ivdrem.sim.simulator import Simulator
+    original = compiled.generate_source
+
+    def stripped(plan, param_exprs=None):
+        src, deps = original(plan, param_exprs)
+        nb = plan.param_size
+        pat = rf"^[ ]*P\[{nb}\] = [-0-9.]+\n|^[ ]*P\[{nb + 1}\] = t\n"
+        return re.sub(pat, "", src, flags=re.M), deps
+
+    def run(strip):
+        compiled.generate_source = stripped if strip else original
+        try:
+            sim = Simulator(diagram, x0=x0)
+        finally:
+            compiled.generate_source = original
+        sim.advance(t_end)
+        return sim.wall / t_end
+    best = {False: [], True: []}
+    for _ in range(3):
+        for strip in (False, True):
+            best[strip].append(run(strip))
+    w, wo = min(best[False]), min(best[True])
+    print(f"bookkeeping: with {w:.4f} s/sim-s, without {wo:.4f} s/sim-s, ratio {w / wo:.3f} "
+          f"(best of 3 each; all: with {['%.4f' % v for v in best[False]]}, without "
+          f"{['%.4f' % v for v in best[True]]})")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """Blocks ivdrem did not write in the compiled engine: python-control's linear blocks, a
 user's plain-nlsys plant (compiled by numba, or called back into Python), and the error
 of a block that raises."""
+import math
 import warnings
 
 import numpy as np
@@ -31,8 +32,15 @@ def _linear_diagram():
     def source_out(t, x, u, params):
         return np.array([np.sin(params["w"] * t) + 0.5])
     src = ct.nlsys(None, source_out, inputs=0, outputs=["r"], params={"w": 2.0}, name="src")
-    return ct.interconnect([g, k, sj, gain, src], outputs=["y", "e", "y4"],
+    # a static nonlinearity with direct feedthrough (found by the probe), compiled by numba
+    sat = ct.nlsys(None, saturation_out, inputs=["y"], outputs=["ys"],
+                   params={"level": 0.3}, name="sat")
+    return ct.interconnect([g, k, sj, gain, src, sat], outputs=["y", "e", "y4", "ys"],
                            check_unused=False, name="linear")
+
+
+def saturation_out(t, x, u, params):
+    return np.array([params.get("level", 1.0) * math.tanh(u[0] / params["level"])])
 
 
 def test_ss_tf_and_summing_junction_compile_and_equal_the_reference_engine():
@@ -63,6 +71,18 @@ def test_linear_blocks_supply_their_exact_jacobian():
     A[:2, 2:] = Bg * 0.5
     A[2, 2] = -1.0
     np.testing.assert_allclose(J, A, atol=1e-12)
+    sat = next(b for b in sim.plan.blocks if b.sys.name == "sat")
+    assert sat.spec.runs == "numba" and list(sat.direct_inputs) == [sat.u.start]
+
+
+def test_a_function_returning_the_wrong_size_is_refused_before_the_run():
+    from ivdrem.sim.compiled import CompileError, _param_layout
+    bad = ct.nlsys(lambda t, x, u, p: np.zeros(3), None, inputs=0, outputs=["z[0]", "z[1]"],
+                   states=2, name="bad")
+    plan = DiagramPlan.from_diagram(ct.interconnect([bad], outputs=["z"]))
+    with pytest.raises(CompileError, match="'bad': its update function returns 3 values, "
+                                           "but the block has 2 states"):
+        _param_layout(plan)
 
 
 # ---- a user's own plant for the 2-link arm: a plain ct.nlsys, its own numpy M, C, g
@@ -102,12 +122,6 @@ def dict_arm_update(t, x, u, params):
     return np.array([x[2], x[3], ddq[0], ddq[1]])
 
 
-def raising_arm_update(t, x, u, params):
-    if t > 0.5:
-        raise ValueError("joint limit exceeded")
-    return user_arm_update(t, x, u, params)
-
-
 def _user_plant(update):
     return ct.nlsys(update, user_arm_output, inputs=["tau[0]", "tau[1]", "tau_d[0]", "tau_d[1]"],
                     outputs=["q[0]", "q[1]", "dq[0]", "dq[1]"],
@@ -144,36 +158,60 @@ def test_user_plant_numba_cannot_compile_runs_in_python_and_still_matches(ivdrem
     assert np.max(np.abs(_q(resp) - _q(ref))) < 1e-9
 
 
-def test_a_numba_block_that_raises_names_the_block_and_the_time(ivdrem_loop):
-    x0 = ivdrem_loop[2]
-    d = closed_loop("iv-drem", MODEL, replace={"plant": _user_plant(raising_arm_update)})
-    with pytest.raises(BlockError, match=r"block 'plant' raised at t = 0\.5\d* s: "
-                                         r"ValueError: joint limit exceeded") as info:
-        simulate(d, 1.0, x0=x0, progress=False)
-    assert isinstance(info.value, SimulationError)
-    assert isinstance(info.value.__cause__, ValueError)
-    assert 0.5 < info.value.t < 0.6
-
-
 class _Limit:
-    """An object numba cannot see: its block runs in Python."""
-    t_max = 0.5
+    """An object numba cannot see: a block using it runs in Python."""
+    t_max = 10.0
 
 
 LIMIT = _Limit()
 
 
+def numba_raising_update(t, x, u, params):
+    if t > params["t_fail"]:
+        raise ValueError("joint limit exceeded")
+    return np.array([-x[0] + 1.0])
+
+
 def python_raising_update(t, x, u, params):
     if t > LIMIT.t_max:
         raise KeyError("the user's lookup failed")
-    return user_arm_update(t, x, u, params)
+    return np.array([-2.0 * x[0] + u[0]])
 
 
-def test_a_python_block_that_raises_names_the_block_and_chains_its_exception(ivdrem_loop):
-    x0 = ivdrem_loop[2]
-    d = closed_loop("iv-drem", MODEL, replace={"plant": _user_plant(python_raising_update)})
+@pytest.fixture(scope="module")
+def raising_diagram():
+    """A numba-compiled block and a Python block, each raising after a time of its own;
+    one diagram (one compile) for both tests."""
+    a = ct.nlsys(numba_raising_update, None, inputs=0, outputs=["a"], states=1,
+                 params={"t_fail": 10.0}, name="numba_block")
+    b = ct.nlsys(python_raising_update, None, inputs=["a"], outputs=["b"], states=1,
+                 name="python_block")
+    g = ct.tf([1.0], [1.0, 1.0], inputs="b", outputs="y", name="G")
+    return ct.interconnect([a, b, g], outputs=["y"], name="raising")
+
+
+def test_a_numba_block_that_raises_names_the_block_and_the_time(raising_diagram):
+    LIMIT.t_max = 10.0
+    with pytest.warns(PythonBlockNotice, match="'python_block'"):
+        with pytest.raises(BlockError, match=r"block 'numba_block' raised at t = 0\.5\d* s: "
+                                             r"ValueError: joint limit exceeded") as info:
+            simulate(raising_diagram, 1.0, params={"t_fail": 0.5}, progress=False)
+    assert isinstance(info.value, SimulationError)
+    assert isinstance(info.value.__cause__, ValueError)
+    assert 0.5 < info.value.t < 0.6 and info.value.block == "numba_block"
+    # the same diagram runs to the end when nothing raises (the bookkeeping is harmless)
     with pytest.warns(PythonBlockNotice):
-        with pytest.raises(BlockError, match=r"block 'plant' \(running in Python\) raised at "
-                                             r"t = 0\.5\d* s: KeyError") as info:
-            simulate(d, 1.0, x0=x0, progress=False)
+        resp = simulate(raising_diagram, 1.0, progress=False)
+    assert np.all(np.isfinite(resp.outputs))
+
+
+def test_a_python_block_that_raises_names_the_block_and_chains_its_exception(raising_diagram):
+    LIMIT.t_max = 0.5
+    try:
+        with pytest.warns(PythonBlockNotice):
+            with pytest.raises(BlockError, match=r"block 'python_block' \(running in Python\) "
+                                                 r"raised at t = 0\.5\d* s: KeyError") as info:
+                simulate(raising_diagram, 1.0, progress=False)
+    finally:
+        LIMIT.t_max = 10.0
     assert isinstance(info.value.__cause__, KeyError)

@@ -256,8 +256,9 @@ def generate_source(plan, param_exprs=None):
     playout = _param_layout(plan)[0] if param_exprs is None else param_exprs
     nb = _bookkeeping_offset(plan, playout)   # P[nb]: block being called, P[nb + 1]: t
 
-    def mark(b, ind, t="t"):
-        return f"{ind}P[{nb}] = {float(b.index)!r}\n{ind}P[{nb + 1}] = {t}"
+    def mark(b, ind, with_t=False):
+        line = f"{ind}P[{nb}] = {float(b.index)!r}"
+        return line + (f"\n{ind}P[{nb + 1}] = t" if with_t else "")
 
     def pargs(b):
         return "".join(", " + a for a in playout[b.index])
@@ -268,7 +269,7 @@ def generate_source(plan, param_exprs=None):
     # one function for the three modes (see _template): signals first, in topological order
     # of direct feedthrough, then the mode's work
     lines = ["def diagram_eval_body(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
-             "    ue = W[8]", "    if mode == AFTER_STEP_EVALUATED:", "        mode = AFTER_STEP",
+             "    ue = W[8]", f"    P[{nb + 1}] = t", "    if mode == AFTER_STEP_EVALUATED:", "        mode = AFTER_STEP",
              "    else:"]
     body_start = len(lines)
     filled = set()
@@ -364,14 +365,14 @@ def generate_source(plan, param_exprs=None):
     calls = []
     for b in prog.fd_blocks:
         nx, nu, ny = b.sys.nstates, b.sys.ninputs, b.sys.noutputs
-        c_out = [mark(b, "            "),
+        c_out = [mark(b, "            ", True),
                  "            " + kernel_call(b, "output", kname(b, "output"), "t",
                                                  f"xb[0:{nx}]", f"ub[0:{nu}]", f"yf[0:{ny}]",
                                                  pargs(b)),
                  f"            P[{nb}] = -1.0"]
         c_upd = []
         if b.spec.update is not None and nx:
-            c_upd += [mark(b, "            "),
+            c_upd += [mark(b, "            ", True),
                       "            " + kernel_call(b, "update", kname(b, "update"), "t",
                                                          f"xb[0:{nx}]", f"ub[0:{nu}]",
                                                          f"yf[{ny}:{ny + nx}]", pargs(b)),
@@ -384,7 +385,7 @@ def generate_source(plan, param_exprs=None):
         else:
             nx, nu = b.sys.nstates, b.sys.ninputs
             ny = b.sys.noutputs
-            supplied.append([mark(b, "        "),
+            supplied.append([mark(b, "        ", True),
                              "        " + kernel_call(b, "jacobian", kname(b, "jacobian"), "t",
                                                          f"xb[0:{nx}]", f"ub[0:{nu}]",
                                                          f"jl[0:{ny + nx}, 0:{nx + nu}]",

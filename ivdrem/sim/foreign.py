@@ -431,7 +431,12 @@ def _nlsys_numba_spec(sys, params):
                 return
             p = dict(params)
             p.update(zip(keys, args))
-            out[:] = np.asarray(fn(t, x, u, p), dtype=float).reshape(-1)
+            try:        # see _nlsys_python_spec: the sparsity probe skips such a point
+                out[:] = np.asarray(fn(t, x, u, p), dtype=float).reshape(-1)
+            except (ValueError, ArithmeticError):
+                raise
+            except Exception as e:
+                raise ValueError(f"block '{sys.name}' raised {type(e).__name__}") from e
         return kernel
     ins, outs, states = _ports(sys)
     direct_idx = direct_inputs(sys, params)
@@ -483,7 +488,14 @@ def _nlsys_python_spec(sys, params, reason):
                 return 1
 
         def python_kernel(t, x, u, out, *addresses):
-            evaluate(t, np.array(x, dtype=float), np.array(u, dtype=float), out)
+            # evaluated in Python only by the Jacobian's sparsity probe, which skips a
+            # point where a block refuses to evaluate (ValueError)
+            try:
+                evaluate(t, np.array(x, dtype=float), np.array(u, dtype=float), out)
+            except (ValueError, ArithmeticError):
+                raise
+            except Exception as e:
+                raise ValueError(f"block '{sys.name}' raised {type(e).__name__}") from e
         return callback, python_kernel
 
     sources, keep, py, addresses = {}, [], {}, {"update": 0.0, "output": 0.0}
@@ -537,6 +549,25 @@ def _try_compile(spec, sys, params):
     return None
 
 
+def _check_returned_sizes(sys, params):
+    """The block's functions return as many values as it declares states / outputs (the
+    compiled kernels copy exactly that many).  A function failing at the zero point is
+    not judged here: the run reports it, naming the block."""
+    for role, fn, n, what in (("update", sys.updfcn, sys.nstates, "states"),
+                              ("output", sys.outfcn, sys.noutputs, "outputs")):
+        if fn is None or (role == "update" and not n):
+            continue
+        try:
+            with np.errstate(all="ignore"):
+                r = np.asarray(fn(0.0, np.zeros(sys.nstates), np.zeros(sys.ninputs),
+                                  dict(params)), dtype=float).reshape(-1)
+        except Exception:
+            continue
+        if r.size != n:
+            raise ValueError(f"block '{sys.name}': its {role} function returns {r.size} "
+                             f"values, but the block has {n} {what}")
+
+
 def adapt_block(sys, params):
     """A ForeignSpec for a block without an ivdrem declaration (see the module doc)."""
     if isinstance(sys, ct.TransferFunction):
@@ -550,6 +581,7 @@ def adapt_block(sys, params):
         raise ValueError(f"block '{sys.name}' is a discrete-time system (dt = {sys.dt}); "
                          "the simulator integrates continuous-time diagrams")
     params = dict(params)
+    _check_returned_sizes(sys, params)
     try:
         spec = _nlsys_numba_spec(sys, params)
         reason = _try_compile(spec, sys, params)
