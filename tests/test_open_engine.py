@@ -215,3 +215,34 @@ def test_a_python_block_that_raises_names_the_block_and_chains_its_exception(rai
     finally:
         LIMIT.t_max = 10.0
     assert isinstance(info.value.__cause__, KeyError)
+
+
+def _doubled(a):
+    return 2.0 * a
+
+
+def helper_using_update(t, x, u, params):
+    return -_doubled(x) * params.get("k", 3.0) + params["b"]
+
+
+def test_user_source_reads_params_as_arguments_and_says_why_not_otherwise():
+    """What numba is given (no compile here): params["b"] and params.get("k", 3.0) become
+    arguments or the default, helpers come along; the reasons for running in Python."""
+    from ivdrem.sim.foreign import _user_function_source, _NotCompilable
+    src, keys, extra = _user_function_source(helper_using_update, "update", {"b": 1.0})
+    assert keys == ["b"] and "3.0" in src and "params" not in src
+    assert extra == ["def _doubled(a):\n    return 2.0 * a"]
+    ns = {}
+    exec("\n\n".join(extra + [src]), ns)          # the rewritten function computes the same
+    x = np.array([0.5, -1.0])
+    np.testing.assert_array_equal(ns["_user_update"](0.0, x, None, 1.0),
+                                  helper_using_update(0.0, x, None, {"b": 1.0}))
+    for fn, why in ((lambda t, x, u, p: x, "lambda"), (dict_arm_update, "global 'SETTINGS'"),
+                    (python_raising_update, "global 'LIMIT'")):
+        with pytest.raises(_NotCompilable, match=why):
+            _user_function_source(fn, "update", {"theta": THETA})
+
+    def passes_params_on(t, x, u, params):
+        return user_arm_update(t, x, u, params)
+    with pytest.raises(_NotCompilable, match="other than as params"):
+        _user_function_source(passes_params_on, "update", {"theta": THETA})

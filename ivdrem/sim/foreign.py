@@ -333,6 +333,7 @@ def _globals_lines(fn, role, extra, seen):
         raise _NotCompilable(f"{fn.__name__} (used by its {role} function) is a closure")
     cv = inspect.getclosurevars(fn)
     for g, val in sorted(cv.globals.items()):
+        val = getattr(val, "py_func", val)      # a helper already decorated with njit
         if val is np:
             line = f"import numpy as {g}"
         elif val is math:
@@ -356,6 +357,7 @@ def _globals_lines(fn, role, extra, seen):
 def _user_function_source(fn, role, params):
     """(source of the renamed user function taking its parameters as arguments, parameter
     keys, extra module lines); raises _NotCompilable with the reason."""
+    fn = getattr(fn, "py_func", fn)      # a function the user already decorated with njit
     if not isinstance(fn, types.FunctionType):
         raise _NotCompilable(f"its {role} function is a {type(fn).__name__}, not a def")
     if fn.__name__ == "<lambda>":
