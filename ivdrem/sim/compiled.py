@@ -50,13 +50,12 @@ import numpy as np
 from .. import __version__
 from ..blocks import _kernels
 from .._atomic import write_text_atomic
-from ..blocks._core import kernel_args
+from ..blocks._core import effective_params, kernel_args
 from . import _template
 from .jacobian import JacobianProgram, generated_source as jacobian_source
 from .sparse_lu import symbolic_lu
 from . import foreign
 from .simulator import SimulationError
-from ..blocks._core import effective_params
 
 __all__ = ["CompiledEngine", "generate_source", "cache_dir", "CompileError", "BlockError"]
 
@@ -254,7 +253,7 @@ def generate_source(plan, param_exprs=None):
     # all parameters live in one flat float64 vector P (shapes are baked into the code, the
     # values are not: changing a gain does not recompile); structural constants are literals
     playout = _param_layout(plan)[0] if param_exprs is None else param_exprs
-    nb = _bookkeeping_offset(plan, playout)   # P[nb]: block being called, P[nb + 1]: t
+    nb = plan.param_size        # P[nb]: index of the block being called, P[nb + 1]: its t
 
     def mark(b, ind, with_t=False):
         line = f"{ind}P[{nb}] = {float(b.index)!r}"
@@ -269,8 +268,8 @@ def generate_source(plan, param_exprs=None):
     # one function for the three modes (see _template): signals first, in topological order
     # of direct feedthrough, then the mode's work
     lines = ["def diagram_eval_body(mode, t, x, P, W, out):", "    ys = W[6]", "    us = W[7]",
-             "    ue = W[8]", f"    P[{nb + 1}] = t", "    if mode == AFTER_STEP_EVALUATED:", "        mode = AFTER_STEP",
-             "    else:"]
+             "    ue = W[8]", f"    P[{nb + 1}] = t",
+             "    if mode == AFTER_STEP_EVALUATED:", "        mode = AFTER_STEP", "    else:"]
     body_start = len(lines)
     filled = set()
     for k in plan.order:
@@ -421,18 +420,12 @@ def _check_kernels(plan):
             except (TypeError, ValueError) as e:
                 raise CompileError(f"{e}. Use engine='reference', or declare the block "
                                    "with ivdrem.blocks.BlockSpec.") from e
-            b.foreign = True
 
 
 def python_blocks(plan):
     """[(block name, reason)] of the blocks that run in Python (called back)."""
     return [(b.sys.name, b.spec.reason) for b in plan.blocks
             if isinstance(b.spec, foreign.ForeignSpec) and b.spec.runs == "python"]
-
-
-def _bookkeeping_offset(plan, playout):
-    """Index in P of the two bookkeeping entries (after every parameter)."""
-    return plan.param_size
 
 
 def _param_layout(plan):
