@@ -246,3 +246,11 @@ def test_user_source_reads_params_as_arguments_and_says_why_not_otherwise():
         return user_arm_update(t, x, u, params)
     with pytest.raises(_NotCompilable, match="other than as params"):
         _user_function_source(passes_params_on, "update", {"theta": THETA})
+
+
+def test_the_reference_engine_names_a_raising_block_too(raising_diagram):
+    with pytest.raises(BlockError, match=r"block 'numba_block' raised at t = 0\.5\d* s: "
+                                         r"ValueError: joint limit exceeded") as info:
+        simulate(raising_diagram, 1.0, params={"t_fail": 0.5}, engine="reference",
+                 method="rk4", h=0.01, progress=False)
+    assert isinstance(info.value.__cause__, ValueError) and info.value.block == "numba_block"

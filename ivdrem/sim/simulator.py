@@ -214,6 +214,28 @@ class ReferenceEngine:
     def _record(self, t, x, P, W, row):
         row[:] = self.plan.diagram._out(t, x, W[8])
 
+    def block_failure(self, exc):
+        """(BlockError, cause) naming the block whose function raised `exc`, found in the
+        traceback (python-control evaluates each block in its ``_rhs`` / ``_out``); None
+        when no block's evaluation is on the traceback."""
+        blocks = {id(b.sys): b for b in self.plan.blocks}
+        found = None
+        tb = exc.__traceback__
+        while tb is not None:
+            frame = tb.tb_frame
+            if frame.f_code.co_name in ("_rhs", "_out") and \
+                    id(frame.f_locals.get("self")) in blocks:
+                found = (blocks[id(frame.f_locals["self"])], frame.f_locals.get("t"))
+            tb = tb.tb_next
+        if found is None:
+            return None
+        from .compiled import BlockError
+        b, t = found
+        err = BlockError(f"block '{b.sys.name}' raised at t = {float(t):.9g} s: "
+                         f"{type(exc).__name__}: {exc}")
+        err.block, err.t = b.sys.name, float(t)
+        return err, exc
+
     def install_feeds(self, W_ref):
         """Let the delay / max-hold nlsys blocks read the simulator's history."""
         feeds = active_feeds()
