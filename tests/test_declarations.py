@@ -8,7 +8,8 @@ import control as ct
 from ivdrem.diagrams import closed_loop
 from ivdrem.models import two_link, planar_arm
 from ivdrem.sim import DiagramPlan, AlgebraicLoopError
-from ivdrem.sim.foreign import declare_feedthrough, direct_inputs, probe_feedthrough
+from ivdrem.sim import declare_feedthrough
+from ivdrem.sim.foreign import direct_inputs, probe_feedthrough
 
 
 def _library_blocks():
