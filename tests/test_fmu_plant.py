@@ -355,7 +355,7 @@ def test_fmu_error_stops_the_compiled_loop(paper_fmu):
     assert "M(q) is singular or not positive definite" in msg, msg
     assert "plant: FMU TwoLink.fmu: fmi2GetDerivatives at t = " in msg, msg
     # the compiled engine names the block, the kernel and the time
-    assert "block 'plant' raised in its update (state derivative) function at t = " in msg
+    assert "block 'plant' raised at t = " in msg and "(in its update function)" in msg
     # the FMU was reset: the block evaluates again, and a short run completes
     x0 = blk.ivdrem.x0
     assert np.all(np.isfinite(blk._rhs(0.0, x0, np.zeros(4))))
@@ -373,8 +373,7 @@ def test_fmu_error_early_on_both_engines(paper_fmu, engine):
                     dq0=[0.0, -5.0])
     loop = closed_loop("iv-drem", two_link(), replace={"plant": blk})
     stop = (r"simulation stopped after t = 0[.0-9]* s" if engine == "reference" else
-            r"block 'plant' raised in its update \(state derivative\) function at "
-            r"t = 0[.0-9]* s: FmuEvaluationError")
+            r"block 'plant' raised at t = 0[.0-9]* s: FmuEvaluationError")
     with pytest.raises(SimulationError, match=stop + r": plant: FMU TwoLink.fmu: "
                        r"fmi2GetDerivatives at t = .*M\(q\) is singular"):
         simulate(loop, 0.1, engine=engine, method="dp45", progress=False)

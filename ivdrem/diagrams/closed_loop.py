@@ -6,6 +6,7 @@ import control as ct
 
 from .. import blocks as block_library
 from .. import laws as law_registry
+from ..sim.plan import check_signal_sizes, signal_sizes
 
 __all__ = ["closed_loop", "LAWS", "assemble", "check_connected"]
 
@@ -44,6 +45,7 @@ def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
     diagram = ct.interconnect(blocks, inputs=list(inputs), outputs=outputs, name=name,
                               check_unused=False, **kw)
     check_connected(diagram)
+    check_signal_sizes(diagram)      # a 3-vector tau_d into a 2-joint plant: an error
     return diagram
 
 
@@ -153,21 +155,12 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
     return assemble(blocks, outputs, name=f"closed_loop[{law}]")
 
 
-def _signal_sizes(labels):
-    """{base name: size} of vector signals labelled ``name[i]`` (plain labels count 1)."""
-    sizes = {}
-    for lab in labels:
-        base = lab.split("[", 1)[0]
-        sizes[base] = sizes.get(base, 0) + 1
-    return sizes
-
-
 def _check_signal_sizes(key, old, new):
     """A replacement block must carry each signal it shares with the block it replaces at
     the same size: a 3-vector tau_d in a 2-joint loop is an error, not a silent truncation."""
     for kind in ("input", "output"):
-        was = _signal_sizes(getattr(old, f"{kind}_labels"))
-        now = _signal_sizes(getattr(new, f"{kind}_labels"))
+        was = signal_sizes(getattr(old, f"{kind}_labels"))
+        now = signal_sizes(getattr(new, f"{kind}_labels"))
         for name in sorted(set(was) & set(now)):
             if was[name] != now[name]:
                 raise ValueError(

@@ -2,8 +2,10 @@
 from .simulator import (simulate, Simulator, SimulationError, StiffnessWarning, METHODS,
                         METHOD_TABLE, DEFAULT_METHOD, STIFF_METHOD, DEFAULT_TOLERANCES,
                         ENGINES, MethodInfo, Workspace, method_info)
-from .plan import DiagramPlan, AlgebraicLoopError
+from .plan import DiagramPlan, AlgebraicLoopError, SignalSizeError
+from .foreign import declare_feedthrough, PythonBlockNotice
 
 __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METHODS",
            "METHOD_TABLE", "DEFAULT_METHOD", "STIFF_METHOD", "DEFAULT_TOLERANCES", "ENGINES",
-           "MethodInfo", "Workspace", "method_info", "DiagramPlan", "AlgebraicLoopError"]
+           "MethodInfo", "Workspace", "method_info", "DiagramPlan", "AlgebraicLoopError",
+           "SignalSizeError", "declare_feedthrough", "PythonBlockNotice"]

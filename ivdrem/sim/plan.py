@@ -12,12 +12,67 @@ import numpy as np
 import control as ct
 
 from ..blocks._core import effective_params
+from .foreign import direct_inputs
 
-__all__ = ["DiagramPlan", "AlgebraicLoopError"]
+__all__ = ["DiagramPlan", "AlgebraicLoopError", "SignalSizeError", "check_signal_sizes",
+           "signal_sizes"]
 
 
 class AlgebraicLoopError(ValueError):
     """Blocks whose outputs depend on each other's outputs without a state in between."""
+
+
+class SignalSizeError(ValueError):
+    """A vector output wired by name to an input of another size."""
+
+
+def signal_sizes(labels):
+    """{base name: size} of vector signals labelled ``name[i]`` (plain labels count 1)."""
+    sizes = {}
+    for lab in labels:
+        base = lab.split("[", 1)[0]
+        sizes[base] = sizes.get(base, 0) + 1
+    return sizes
+
+
+def _signals(labels):
+    """[(base name, entry index)] per label; a plain label is entry 0 of itself."""
+    out = []
+    for lab in labels:
+        base, _, rest = lab.partition("[")
+        try:
+            idx = int(rest.rstrip("]")) if rest else 0
+        except ValueError:
+            base, idx = lab, 0
+        out.append((base, idx))
+    return out
+
+
+def check_signal_sizes(diagram):
+    """Raise SignalSizeError where an output vector is wired entry by entry (``y[i]`` to
+    ``u[i]``, as ct.interconnect connects signals of the same name) to an input vector of
+    another size: the surplus entries would be dropped (or left at zero) silently.
+
+    Wiring that re-indexes on purpose (``y[1]`` to ``u[0]``) is not checked.
+    """
+    C = np.asarray(diagram.connect_map)
+    outs, ins = [], []            # per absolute index: (block, base, entry, size)
+    for sys in diagram.syslist:
+        for kind, acc in (("output", outs), ("input", ins)):
+            labels = list(getattr(sys, f"{kind}_labels"))
+            sizes = signal_sizes(labels)
+            acc += [(sys.name, b, i, sizes[b]) for b, i in _signals(labels)]
+    seen = set()
+    for i, j in zip(*np.nonzero(C)):
+        bi, si, ki, ni = ins[i]
+        bo, so, ko, no = outs[j]
+        if ki != ko or ni == no or (bi, si, bo, so) in seen:
+            continue
+        seen.add((bi, si, bo, so))
+        raise SignalSizeError(
+            f"block '{bo}' output {so!r} has {no} entries but is wired to block '{bi}' "
+            f"input {si!r}, which has {ni}: {so}[{min(ni, no)}:] would be "
+            f"{'dropped' if no > ni else 'missing'}. Give both the same size.")
 
 
 @dataclass
@@ -53,14 +108,10 @@ class DiagramPlan:
         for k, sys in enumerate(diagram.syslist):
             spec = getattr(sys, "ivdrem", None)
             nx, nu, ny = sys.nstates, sys.ninputs, sys.noutputs
-            if spec is not None:
-                direct = []
-                sl = spec.port_slices("inputs")
-                for port in spec.direct:
-                    s = sl[port]
-                    direct += list(range(ui + s.start, ui + s.stop))
-            else:
-                direct = list(range(ui, ui + nu))   # unknown block: assume feedthrough
+            # what the block says (BlockSpec.direct, D of a StateSpace, a declaration),
+            # else a numerical probe of its output function (ivdrem.sim.foreign)
+            p = None if spec is not None else effective_params(sys, diagram, params)
+            direct = [ui + i for i in direct_inputs(sys, p)]
             blocks.append(BlockEntry(k, sys, spec, slice(xi, xi + nx), slice(ui, ui + nu),
                                      slice(yi, yi + ny), np.array(direct, dtype=int)))
             xi += nx
@@ -79,6 +130,7 @@ class DiagramPlan:
             if x0.size != diagram.nstates:
                 raise ValueError(f"x0 has {x0.size} entries, the diagram has "
                                  f"{diagram.nstates} states")
+        check_signal_sizes(diagram)
         C = np.asarray(diagram.connect_map)
         conn = []
         for i in range(C.shape[0]):

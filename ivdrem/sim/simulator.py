@@ -230,6 +230,28 @@ class ReferenceEngine:
     def _record(self, t, x, P, W, row):
         row[:] = self.plan.diagram._out(t, x, self._inputs_at(W, t))
 
+    def block_failure(self, exc, W=None):
+        """(BlockError, cause) naming the block whose function raised `exc`, found in the
+        traceback (python-control evaluates each block in its ``_rhs`` / ``_out``); None
+        when no block's evaluation is on the traceback."""
+        blocks = {id(b.sys): b for b in self.plan.blocks}
+        found = None
+        tb = exc.__traceback__
+        while tb is not None:
+            frame = tb.tb_frame
+            if frame.f_code.co_name in ("_rhs", "_out") and \
+                    id(frame.f_locals.get("self")) in blocks:
+                found = (blocks[id(frame.f_locals["self"])], frame.f_locals.get("t"))
+            tb = tb.tb_next
+        if found is None:
+            return None
+        from .compiled import BlockError
+        b, t = found
+        err = BlockError(f"block '{b.sys.name}' raised at t = {float(t):.9g} s: "
+                         f"{type(exc).__name__}: {exc}")
+        err.block, err.t = b.sys.name, float(t)
+        return err, exc
+
     def install_feeds(self, W_ref):
         """Let the delay / max-hold nlsys blocks read the simulator's history."""
         feeds = active_feeds()
@@ -545,15 +567,15 @@ class Simulator:
         try:
             return self._integrate(*args)
         except Exception as e:
-            if (self.engine_name != "reference" and isinstance(e, RuntimeError)
-                    and str(e) == BLOCK_RAISED_MESSAGE):
-                err, cause = self.engine.block_error(self.W)
-                raise err from cause
-            if isinstance(e, (ValueError, ZeroDivisionError, FloatingPointError,
-                              np.linalg.LinAlgError)):
-                raise SimulationError(f"simulation stopped after t = {self.tf[0]:.6g} s: "
-                                      f"{e}") from e
-            raise
+            # a block's own exception inside the loop: name the block and the time
+            named = self.engine.block_failure(e, self.W)
+            if named is not None:
+                raise named[0] from named[1]
+            if not isinstance(e, (ValueError, ZeroDivisionError, FloatingPointError,
+                                  np.linalg.LinAlgError)):
+                raise
+            raise SimulationError(f"simulation stopped after t = {self.tf[0]:.6g} s: {e}") \
+                from e
 
     def _chunk(self, t_stop, out_t, out_y, out_x, io):
         self.tf[tpl.F_T] = self.t
