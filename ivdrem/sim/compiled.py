@@ -464,7 +464,7 @@ class CompiledEngine:
             u = np.array(W.us[b.u])
             fn = b.sys.updfcn if role == "update" else b.sys.outfcn
             try:
-                fn(t, x, u, self.plan.block_params(b))
+                fn(t, x, u, effective_params(b.sys, self.plan.diagram, self.plan.params))
             except Exception as e:     # the block's own error, re-raised from Python
                 cause = e
         kind = " (running in Python)" if getattr(b.spec, "runs", "") == "python" else ""

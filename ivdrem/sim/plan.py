@@ -51,9 +51,11 @@ def _signals(labels):
 def check_signal_sizes(diagram):
     """Raise SignalSizeError where an output vector is wired entry by entry (``y[i]`` to
     ``u[i]``, as ct.interconnect connects signals of the same name) to an input vector of
-    another size: the surplus entries would be dropped (or left at zero) silently.
+    another size and the surplus entries would be lost silently: output entries wired
+    nowhere, or input entries fed by nothing.
 
-    Wiring that re-indexes on purpose (``y[1]`` to ``u[0]``) is not checked.
+    Wiring that re-indexes on purpose (``y[1]`` to ``u[0]``), and an input vector assembled
+    from several signals, are not errors.
     """
     C = np.asarray(diagram.connect_map)
     outs, ins = [], []            # per absolute index: (block, base, entry, size)
@@ -62,6 +64,9 @@ def check_signal_sizes(diagram):
             labels = list(getattr(sys, f"{kind}_labels"))
             sizes = signal_sizes(labels)
             acc += [(sys.name, b, i, sizes[b]) for b, i in _signals(labels)]
+    Cin = np.asarray(diagram.input_map)
+    fed = C.any(axis=1) | (Cin.any(axis=1) if Cin.size else False)   # inputs with a source
+    used = C.any(axis=0)                                            # outputs wired somewhere
     seen = set()
     for i, j in zip(*np.nonzero(C)):
         bi, si, ki, ni = ins[i]
@@ -69,6 +74,16 @@ def check_signal_sizes(diagram):
         if ki != ko or ni == no or (bi, si, bo, so) in seen:
             continue
         seen.add((bi, si, bo, so))
+        # only a real loss is an error: output entries that go nowhere, or input entries
+        # fed by nothing (a vector input assembled from several signals is fine)
+        if no > ni:
+            rest = [jj for jj, (b, sg, k, _) in enumerate(outs) if (b, sg) == (bo, so) and k >= ni]
+            if any(used[jj] for jj in rest):
+                continue
+        else:
+            rest = [ii for ii, (b, sg, k, _) in enumerate(ins) if (b, sg) == (bi, si) and k >= no]
+            if any(fed[ii] for ii in rest):
+                continue
         raise SignalSizeError(
             f"block '{bo}' output {so!r} has {no} entries but is wired to block '{bi}' "
             f"input {si!r}, which has {ni}: {so}[{min(ni, no)}:] would be "
