@@ -8,9 +8,13 @@ of Python::
     output(t, x, u, y, *params)    # writes the outputs into y   (pure, cheap)
     jacobian(t, x, u, jac, *params)  # optional: d(y, dx)/d(x, u), dense (see BlockSpec)
 
-``x``, ``u``, ``dx`` and ``y`` are flat float64 vectors; matrix-valued signals are stored
-row-major.  The kernels hold no state of their own: the state lives in
-the simulator.  Kernels that need the robot model call it through the global name
+With ``named_ports=True`` (every library block) ``x``, ``u``, ``dx`` and ``y`` are
+namedtuples of float64 views, one field per declared state or port (``u.q``, ``x.Phi_f``,
+``y.Pi``; size-1 ports are 1-element views, ``u.mu[0]``; see :mod:`ivdrem.blocks._ports`),
+made by the engine once per call, so no kernel computes offsets.  Otherwise (the default,
+for adapters of foreign blocks) they are the flat float64 vectors.  Matrix-valued signals
+are stored row-major either way; ``jacobian`` kernels always get flat vectors.  The kernels
+hold no state of their own: the state lives in the simulator.  Kernels that need the robot model call it through the global name
 ``model`` (``model.Phi_M(q, a, out)``, see :mod:`ivdrem.models`).
 
 :func:`make_block` wraps a declaration as a python-control ``NonlinearIOSystem`` (the
@@ -33,8 +37,10 @@ from typing import Callable
 import numpy as np
 import control as ct
 
+from . import _ports
+
 __all__ = ["BlockSpec", "make_block", "kernel_args", "bind_model", "ParameterError",
-           "active_feeds"]
+           "active_feeds", "flat_kernel", "port_layout"]
 
 
 class ParameterError(ValueError):
@@ -65,6 +71,13 @@ class BlockSpec:
     # columns states then inputs.  Without it the compiled path differentiates the
     # block's update/output kernels by central differences (ivdrem.sim.jacobian)
     jacobian: Callable | None = None
+    # update/output receive namedtuples of views by port name (ivdrem.blocks._ports)
+    # instead of flat vectors; jacobian kernels stay flat
+    named_ports: bool = False
+    # {port or state name: field name in the kernel's namedtuples}, for ports whose signal
+    # name the factory takes as an argument (sliding_window's prefix, ...): the kernel
+    # reads u.g whatever the diagram calls that signal
+    kernel_names: dict = field(default_factory=dict)
 
     @property
     def ninputs(self):
@@ -85,6 +98,49 @@ class BlockSpec:
             out[name] = slice(i, i + size)
             i += size
         return out
+
+
+# which declared ports each kernel argument views, by kernel role
+_ROLE_PORTS = {"update": ("states", "inputs", "states"), "output": ("states", "inputs", "outputs")}
+
+
+def port_layout(spec: BlockSpec, role: str):
+    """[(namedtuple class, [(name, size)])] for the x, u and out arguments of kernel `role`
+    of a named-port block; None for a flat block or the jacobian kernel."""
+    if not spec.named_ports or role not in _ROLE_PORTS:
+        return None
+    out = []
+    for which in _ROLE_PORTS[role]:
+        ports = getattr(spec, which)
+        fields = [spec.kernel_names.get(p, p) for p, _ in ports]
+        out.append((_ports.port_class(fields), ports))
+    return out
+
+
+def check_named_ports(spec: BlockSpec):
+    """Clear errors for port names a namedtuple cannot carry (named-port blocks)."""
+    if spec.named_ports:
+        for which in ("inputs", "outputs", "states"):
+            ports = [(spec.kernel_names.get(p, p), s) for p, s in getattr(spec, which)]
+            _ports.check_port_names(spec.name, which[:-1], ports)
+
+
+def flat_kernel(spec: BlockSpec, role: str):
+    """Kernel `role` of `spec` as a Python callable of flat vectors,
+    ``f(t, x, u, out, *params)``, with its model bound: named-port kernels get their views
+    built here.  The reference path, the sparsity probe and tests call kernels this way."""
+    fn = bind_model(getattr(spec, role), spec.model)
+    layout = port_layout(spec, role)
+    if fn is None or layout is None:
+        return fn
+    (cx, px), (cu, pu), (co, po) = layout
+    views = _ports.views
+
+    def flat(t, x, u, out, *params):
+        return fn(t, views(cx, px, x), views(cu, pu, u), views(co, po, out), *params)
+    flat.__name__ = f"flat_{fn.__name__}"
+    flat.__wrapped__ = fn
+    return flat
 
 
 def _labels(ports):
@@ -159,9 +215,10 @@ def make_block(spec: BlockSpec, params: dict | None = None) -> ct.NonlinearIOSys
         raise ParameterError(f"block '{spec.name}': initial state has {x0.size} entries, "
                              f"expected {spec.nstates}")
     spec.x0 = x0
+    check_named_ports(spec)
 
-    upd_k = bind_model(spec.update, spec.model)
-    out_k = bind_model(spec.output, spec.model)
+    upd_k = flat_kernel(spec, "update")
+    out_k = flat_kernel(spec, "output")
     nx, ny = spec.nstates, spec.noutputs
     # python-control passes the merged (system + diagram + call) params; re-validate only
     # when they differ from the block's own, so the common case stays cheap.
