@@ -139,6 +139,45 @@ def test_a_registered_law_is_known_to_the_diagram_config_and_figures():
         closed_loop("leak-to-zero", MODEL)
 
 
+def test_a_registered_law_brings_its_own_configuration_table(tmp_path):
+    """A law registered with a section of its own is configured there and nowhere else:
+    the table exists with the law's defaults, a TOML file overrides it, closed_loop_kwargs
+    passes it on, unknown keys are refused by name; unregistered, the table is unknown."""
+    from ivdrem import blocks as block_library
+    from ivdrem import diagrams
+    from ivdrem.experiments import config as config_mod
+    from ivdrem.experiments.config import ConfigError, closed_loop_kwargs, load_config
+
+    def build(ctx):
+        return [block_library.sigma_modification_term(ctx.ntheta, ctx.params["sigma"],
+                                                      ctx.params["theta_star"])], []
+    registry.register_law(registry.Law(
+        "leak-to-guess", build, "leak to a guess", "#654321", section="leak_to_guess",
+        defaults={"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0]}))
+    try:
+        assert "leak-to-guess" in diagrams.LAWS and "leak-to-guess" in config_mod.LAWS
+        cfg = load_config()
+        assert cfg["leak_to_guess"] == {"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0]}
+        f = tmp_path / "c.toml"
+        f.write_text('[experiment]\nlaws = ["leak-to-guess"]\n[leak_to_guess]\nsigma = 0.2\n')
+        cfg = load_config(f)
+        kw = closed_loop_kwargs(cfg, "leak-to-guess")["law_params"]
+        assert kw["sigma"] == 0.2
+        np.testing.assert_array_equal(kw["theta_star"], [1.0, 0.0, 0.0, 0.0, 1.0])
+        with pytest.raises(ConfigError, match=r"'leak_to_guess.sigmaa' is not known.*'leak_to_guess.sigma'"):
+            load_config(overrides={"leak_to_guess.sigmaa": 1.0})
+        with pytest.raises(ConfigError, match=r"'leak_to_guess.sigma' must be a number"):
+            load_config(overrides={"leak_to_guess.sigma": "big"})
+        d = closed_loop("leak-to-guess", MODEL, **closed_loop_kwargs(cfg, "leak-to-guess"))
+        term = [s for s in d.syslist if s.name == "sigma_modification_term"][0]
+        assert term.params["sigma"] == 0.2
+    finally:
+        registry.LAWS.pop("leak-to-guess")
+    assert "leak-to-guess" not in diagrams.LAWS
+    with pytest.raises(ConfigError, match="section 'leak_to_guess' is not known"):
+        load_config(f)
+
+
 def test_replace_checks_signal_sizes():
     """A replacement block whose shared signals have other sizes is refused by name."""
     import ivdrem.blocks as blocks
