@@ -1013,3 +1013,42 @@ def test_named_port_kernels_whole_diagram_rhs_against_the_paper(engine):
             gv = got[[i for i, lab_ in enumerate(labels) if lab_ == nm]]
             tol = 1e-9 if nm == "adaptation_law_theta_hat" else 1e-12   # det/adj vs numpy
             assert np.abs(gv - w).max() <= tol * max(np.abs(w).max(), 1.0), (nm, gv, w)
+
+
+def test_port_classes_are_named_by_their_fields_and_rebuilt_from_the_name():
+    """numba's on-disk cache pickles a kernel's argument types, namedtuple classes by module
+    and name: the name alone must rebuild the same class (fields with underscores too)."""
+    import pickle
+    from ivdrem.blocks import _ports
+    for fields in [(), ("q",), ("theta_hat", "u_f", "Pi"), ("a_s", "a", "s_u"), ("x__y", "_z")[:1]]:
+        cls = _ports.port_class(fields)
+        assert cls._fields == fields and cls.__name__.isidentifier()
+        assert _ports._fields_of(cls.__name__) == fields
+        assert pickle.loads(pickle.dumps(cls)) is cls
+        assert getattr(_ports, cls.__name__) is cls
+    # a fresh process has no classes yet: the module attribute builds it from the name
+    name = _ports.class_name(("never_seen_before", "b"))
+    assert name not in vars(_ports)
+    assert getattr(_ports, name)._fields == ("never_seen_before", "b")
+
+
+@pytest.mark.parametrize("bad", ["1q", "q-d", "class", "_hidden"])
+def test_named_port_names_must_be_identifiers(bad):
+    from ivdrem.blocks import BlockSpec, make_block
+    spec = BlockSpec(name="blk", inputs=[(bad, 1)], outputs=[("y", 1)], states=[],
+                     x0=np.zeros(0), param_names=(), output=None, named_ports=True)
+    with pytest.raises(ValueError, match=rf"block 'blk': input port name '{bad}' cannot be a "
+                                         r"named port.*named_ports=False"):
+        make_block(spec)
+
+
+def test_named_views_write_through_to_the_flat_vectors():
+    """flat_kernel hands a named-port kernel views, not copies: what it writes into y.<port>
+    lands in the flat output at the port's offset."""
+    blk = block_library.tracking_error(2, alpha=0.5)
+    u = np.arange(1.0, 11.0)             # q, dq, q_d, dq_d, ddq_d = [1,2], [3,4], ...
+    y = np.full(8, np.nan)
+    kernel(blk, "output")(0.0, np.zeros(0), u, y, 0.5)
+    sl = blk.ivdrem.port_slices("outputs")
+    np.testing.assert_array_equal(y[sl["e"]], [4.0, 4.0])          # q_d - q
+    np.testing.assert_array_equal(y[sl["dv"]], [9.0 + 2.0, 10.0 + 2.0])   # ddq_d + alpha de
