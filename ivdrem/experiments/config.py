@@ -560,6 +560,8 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
         table = c.get(spec.section, {}) if spec.section else {}
         kw["law_params"] = {k: (np.asarray(table[k], dtype=float) if isinstance(table.get(k), list)
                                 else table.get(k, v)) for k, v in spec.defaults.items()}
+        if kw["law_params"].get("gamma") == "auto":   # a law sharing [iv_drem]: closed_loop's rule
+            kw["gamma"] = kw["law_params"].pop("gamma")
     else:
         kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]))
         if law == "sigma-modification":
