@@ -449,7 +449,7 @@ def test_mixing_huge_psi_keeps_delta():
 def test_mixing_block_declaration():
     blk = block_library.mixing(5)
     spec = blk.ivdrem
-    assert spec.output is mixing_output
+    assert spec.named_kernels["output"] is mixing_output and spec.output.named_kernel is mixing_output
     assert [p for p, _ in spec.inputs] == ["avg"] and spec.ninputs == 5 + 25
     assert spec.outputs == [("Delta", 1), ("calY", 5)] and spec.direct == ("avg",)
 
@@ -1052,3 +1052,68 @@ def test_named_views_write_through_to_the_flat_vectors():
     sl = blk.ivdrem.port_slices("outputs")
     np.testing.assert_array_equal(y[sl["e"]], [4.0, 4.0])          # q_d - q
     np.testing.assert_array_equal(y[sl["dv"]], [9.0 + 2.0, 10.0 + 2.0])   # ddq_d + alpha de
+
+
+def _library_blocks():
+    from ivdrem.models import planar_arm
+    out = []
+    for model in (two_link(), planar_arm(3)):
+        n, nth = model.n, model.ntheta
+        m = nth + nth * nth
+        out += [block_library.plant(model), block_library.trajectory(n, [1.0] * n, [1.0] * n),
+                block_library.disturbance(n, [1.0] * n, [1.0] * n), block_library.mu_schedule(),
+                block_library.tracking_error(n), block_library.torque_observer(model),
+                block_library.torque_observer(model, variant="literal"),
+                block_library.control_law(n, nth), block_library.adaptation_law(n, nth),
+                block_library.regression_filter(model), block_library.instrument(model),
+                block_library.extension(n, nth), block_library.extension(n, nth, instrument=False),
+                block_library.sliding_window(m), block_library.averaging(m),
+                block_library.mixing(nth), block_library.drem_term(nth),
+                block_library.composite_learning_term(nth),
+                block_library.sigma_modification_term(nth), block_library.zero_term(nth)]
+    return out
+
+
+def test_flat_form_of_every_library_kernel_equals_the_kernel_as_written():
+    """What the compiled path compiles (spec.update/output: each u.<port> a view at its
+    declared offset, ivdrem.blocks._ports.flat_form) equals the kernel as written run on
+    namedtuples of views (the reference path), bit for bit, at random points."""
+    from ivdrem.blocks._core import kernel_args
+    rng = np.random.default_rng(5)
+    for blk in _library_blocks():
+        spec = blk.ivdrem
+        assert spec.named_ports and spec.named_kernels, spec.name
+        args = kernel_args(spec, blk.params)
+        nx, nu, ny = spec.nstates, spec.ninputs, spec.noutputs
+        for role, nout in (("output", ny), ("update", nx)):
+            if spec.named_kernels.get(role) is None:
+                continue
+            for _ in range(3):
+                x, u = rng.uniform(0.5, 1.5, nx), rng.uniform(0.5, 1.5, nu)
+                a, b = np.full(nout, np.nan), np.full(nout, np.nan)
+                kernel(blk, role)(0.8, x.copy(), u.copy(), a, *args)
+                flat_form(spec, role)(0.8, x.copy(), u.copy(), b, *args)
+                assert np.all(np.isfinite(a)), (spec.name, role)
+                assert np.array_equal(a, b), (spec.name, role)
+
+
+def flat_form(spec, role):
+    """spec.update / spec.output (the flat form) with the block's model bound."""
+    from ivdrem.blocks._core import bind_model
+    return bind_model(getattr(spec, role), spec.model)
+
+
+def test_named_port_kernel_errors_name_the_port():
+    from ivdrem.blocks import BlockSpec, make_block
+
+    def uses_undeclared(t, x, u, y):
+        y.out[0] = u.nope[0]
+
+    def uses_whole(t, x, u, y):
+        y.out[0] = u[0]
+    for fn, msg in ((uses_undeclared, r"u\.nope is not a declared input port \(they are: a\)"),
+                    (uses_whole, r"uses 'u' as a whole")):
+        spec = BlockSpec(name="blk", inputs=[("a", 1)], outputs=[("out", 1)], states=[],
+                         x0=np.zeros(0), param_names=(), output=fn, named_ports=True)
+        with pytest.raises(ParameterError, match=rf"block 'blk': kernel {fn.__name__}: {msg}"):
+            make_block(spec)

@@ -8,13 +8,18 @@ of Python::
     output(t, x, u, y, *params)    # writes the outputs into y   (pure, cheap)
     jacobian(t, x, u, jac, *params)  # optional: d(y, dx)/d(x, u), dense (see BlockSpec)
 
-With ``named_ports=True`` (every library block) ``x``, ``u``, ``dx`` and ``y`` are
-namedtuples of float64 views, one field per declared state or port (``u.q``, ``x.Phi_f``,
-``y.Pi``; size-1 ports are 1-element views, ``u.mu[0]``; see :mod:`ivdrem.blocks._ports`),
-made by the engine once per call, so no kernel computes offsets.  Otherwise (the default,
-for adapters of foreign blocks) they are the flat float64 vectors.  Matrix-valued signals
-are stored row-major either way; ``jacobian`` kernels always get flat vectors.  The kernels
-hold no state of their own: the state lives in the simulator.  Kernels that need the robot model call it through the global name
+With ``named_ports=True`` (every library block) ``x``, ``u``, ``dx`` and ``y`` carry the
+declared states and ports by name (``u.q``, ``x.Phi_f``, ``dx.Phi_f``, ``y.Pi``), each a
+1-D float64 view into the engine's flat vector; a size-1 port is a 1-element view
+(``u.mu[0]``), matrix-valued signals are flat row-major (``u.Pi.reshape((n, ntheta))``).
+No kernel computes offsets.  The reference path passes namedtuples of views; the compiled
+path compiles the kernel's flat form, each ``u.q`` a view ``u[a:b]`` made once at the top
+of the kernel with the offsets from the declaration (:mod:`ivdrem.blocks._ports`: numba's
+namedtuple arguments would cost about as much as the kernels themselves).  Without
+``named_ports`` (the default, for adapters of foreign blocks and the FMU plant) the
+kernels get the flat vectors; ``jacobian`` kernels always do.  The kernels hold no state
+of their own: the state lives in the simulator.  Kernels that need the robot model call it
+through the global name
 ``model`` (``model.Phi_M(q, a, out)``, see :mod:`ivdrem.models`).
 
 :func:`make_block` wraps a declaration as a python-control ``NonlinearIOSystem`` (the
@@ -78,6 +83,9 @@ class BlockSpec:
     # name the factory takes as an argument (sliding_window's prefix, ...): the kernel
     # reads u.g whatever the diagram calls that signal
     kernel_names: dict = field(default_factory=dict)
+    # set by make_block for a named-port block: {"update": fn, "output": fn} as written;
+    # spec.update / spec.output then hold their flat form (see _compile_named_ports)
+    named_kernels: dict | None = None
 
     @property
     def ninputs(self):
@@ -105,16 +113,32 @@ _ROLE_PORTS = {"update": ("states", "inputs", "states"), "output": ("states", "i
 
 
 def port_layout(spec: BlockSpec, role: str):
-    """[(namedtuple class, [(name, size)])] for the x, u and out arguments of kernel `role`
+    """[(field names, [(port name, size)])] for the x, u and out arguments of kernel `role`
     of a named-port block; None for a flat block or the jacobian kernel."""
     if not spec.named_ports or role not in _ROLE_PORTS:
         return None
     out = []
     for which in _ROLE_PORTS[role]:
         ports = getattr(spec, which)
-        fields = [spec.kernel_names.get(p, p) for p, _ in ports]
-        out.append((_ports.port_class(fields), ports))
+        out.append(([spec.kernel_names.get(p, p) for p, _ in ports], ports))
     return out
+
+
+def _compile_named_ports(spec: BlockSpec):
+    """Keep a named-port block's kernels as written (``spec.named_kernels``, run on
+    namedtuples of views by the reference path) and put their flat form in
+    ``spec.update`` / ``spec.output``: what the compiled path and the Jacobian's sparsity
+    probe call (ivdrem.blocks._ports.flat_form: each ``u.q`` a view ``u[a:b]``)."""
+    if not spec.named_ports or spec.named_kernels:
+        return
+    named = {"update": spec.update, "output": spec.output}
+    for role, fn in named.items():
+        if fn is not None:
+            try:
+                setattr(spec, role, _ports.flat_form(fn, role, port_layout(spec, role)))
+            except _ports.PortError as exc:
+                raise ParameterError(f"block '{spec.name}': {exc}") from None
+    spec.named_kernels = named
 
 
 def check_named_ports(spec: BlockSpec):
@@ -129,11 +153,12 @@ def flat_kernel(spec: BlockSpec, role: str):
     """Kernel `role` of `spec` as a Python callable of flat vectors,
     ``f(t, x, u, out, *params)``, with its model bound: named-port kernels get their views
     built here.  The reference path, the sparsity probe and tests call kernels this way."""
-    fn = bind_model(getattr(spec, role), spec.model)
+    named = spec.named_kernels.get(role) if spec.named_kernels else None
     layout = port_layout(spec, role)
-    if fn is None or layout is None:
-        return fn
-    (cx, px), (cu, pu), (co, po) = layout
+    if named is None or layout is None:
+        return bind_model(getattr(spec, role), spec.model)
+    fn = bind_model(named, spec.model)
+    (cx, px), (cu, pu), (co, po) = [(_ports.port_class(f), p) for f, p in layout]
     views = _ports.views
 
     def flat(t, x, u, out, *params):
@@ -216,6 +241,7 @@ def make_block(spec: BlockSpec, params: dict | None = None) -> ct.NonlinearIOSys
                              f"expected {spec.nstates}")
     spec.x0 = x0
     check_named_ports(spec)
+    _compile_named_ports(spec)
 
     upd_k = flat_kernel(spec, "update")
     out_k = flat_kernel(spec, "output")

@@ -41,7 +41,7 @@ import numpy as np
 from .. import __version__
 from ..blocks import _kernels
 from .._atomic import write_text_atomic
-from ..blocks._core import kernel_args, port_layout
+from ..blocks._core import kernel_args
 from . import _template
 from .jacobian import JacobianProgram, generated_source as jacobian_source
 from .sparse_lu import symbolic_lu
@@ -93,8 +93,6 @@ def _kernel_source(fn, block_name, has_model):
 
 _HEADER = ["import math", "import numpy as np", "from numba import njit",
            "from ivdrem.blocks._kernels import *", "from ivdrem.sim._native import call_c"]
-# named-port kernels receive namedtuples of views; their classes live in ivdrem.blocks._ports
-_HEADER.append("from ivdrem.blocks import _ports")
 
 
 def _model_module(model):
@@ -163,31 +161,8 @@ def kernel_call(b, role, kernel, t, x, u, out, pargs):
     Jacobian) vectors; `pargs` the parameter arguments, each preceded by ", ".  Every
     kernel call of the generated code is built here, so the calling convention lives in
     one place.
-
-    A named-port block (``BlockSpec.named_ports``) gets its update/output arguments as
-    namedtuples of views, ``_ports.Ports_q_sdq(u[4:6], u[6:8])``: slices of the same flat
-    vectors, made once per call (numba passes them as array structs, no copy).  Flat
-    blocks and every jacobian kernel get the flat vectors themselves.
     """
-    layout = port_layout(b.spec, role) if b.spec is not None else None
-    if layout is None:
-        return f"{kernel}({t}, {x}, {u}, {out}{pargs})"
-    args = ", ".join(_views_source(cls, ports, vec) for (cls, ports), vec in zip(layout, (x, u, out)))
-    return f"{kernel}({t}, {args}{pargs})"
-
-
-def _views_source(cls, ports, vec):
-    """Source of ``cls(view, ...)`` over the flat vector expression `vec` (``name[a:b]``
-    becomes ``name[a + i:a + j]``; any other expression is sliced again)."""
-    m = re.fullmatch(r"\s*(\w+)\[\s*(\d+)\s*:\s*(\d+)\s*\]\s*", vec)
-    base, start = (m.group(1), int(m.group(2))) if m else (f"({vec})", 0)
-    parts, i = [], start
-    for _, size in ports:
-        parts.append(f"{base}[{i}:{i + size}]")
-        i += size
-    if m and i != int(m.group(3)):
-        raise CompileError(f"port sizes ({i - start}) do not match the slice {vec}")
-    return f"_ports.{cls.__name__}({', '.join(parts)})"
+    return f"{kernel}({t}, {x}, {u}, {out}{pargs})"
 
 
 def generate_source(plan, param_exprs=None):

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..blocks._core import flat_kernel, kernel_args
+from ..blocks._core import bind_model, kernel_args
 
 __all__ = ["block_pattern", "JacobianProgram", "DeclarationError"]
 
@@ -66,8 +66,8 @@ def block_pattern(spec, args, nx, nu, ny, *, seed=0, n_points=3):
     it as dense within its declaration (correct, only slower), and the run itself reports
     the model's error.
     """
-    upd = flat_kernel(spec, "update") if nx else None
-    out = flat_kernel(spec, "output")
+    upd = bind_model(spec.update, spec.model) if nx else None
+    out = bind_model(spec.output, spec.model)
     rng = np.random.default_rng(seed)
     pat = np.zeros((ny + nx, nx + nu), dtype=bool)
     t = 0.7315
