@@ -151,8 +151,9 @@ def check_named_ports(spec: BlockSpec):
 
 def flat_kernel(spec: BlockSpec, role: str):
     """Kernel `role` of `spec` as a Python callable of flat vectors,
-    ``f(t, x, u, out, *params)``, with its model bound: named-port kernels get their views
-    built here.  The reference path, the sparsity probe and tests call kernels this way."""
+    ``f(t, x, u, out, *params)``, with its model bound.  A named-port kernel runs as
+    written, on namedtuples of views built here (the reference path and the tests; the
+    compiled path and the Jacobian's sparsity probe use its flat form, ``spec.<role>``)."""
     named = spec.named_kernels.get(role) if spec.named_kernels else None
     layout = port_layout(spec, role)
     if named is None or layout is None:
