@@ -155,8 +155,38 @@ def flat_form(fn, role, layout):
     taken = {n.id for n in ast.walk(fdef) if isinstance(n, ast.Name)}
     used = {}                       # local name -> (argument, start, stop), in first-use order
 
+    def port_of(node):
+        """(argument, start, stop) if `node` is ``<x|u|out>.<declared port>``, else None."""
+        if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                and node.value.id in where and node.attr in where[node.value.id]):
+            return (node.value.id, *where[node.value.id][node.attr])
+        return None
+
     class Rewrite(ast.NodeTransformer):
+        # u.q[i] -> u[a + i] and u.q.shape -> (size,): no view at all (a view costs an
+        # NRT incref/decref in numba); any other use of u.q -> a view made once at the top
+        def visit_Subscript(self, node):
+            port = port_of(node.value)
+            if port is not None and not isinstance(node.slice, (ast.Slice, ast.Tuple)):
+                arg, a, b = port
+                idx = self.visit(node.slice)
+                if isinstance(idx, ast.Constant) and isinstance(idx.value, int):
+                    k = idx.value + (b - a if idx.value < 0 else 0)
+                    if not 0 <= k < b - a:
+                        raise PortError(f"kernel {fn.__name__}: index {idx.value} out of "
+                                        f"range for {arg}.{node.value.attr} (size {b - a})")
+                    flat_idx = ast.Constant(a + k)
+                else:           # a port index must be >= 0 (documented)
+                    flat_idx = ast.BinOp(ast.Constant(a), ast.Add(), idx) if a else idx
+                return ast.copy_location(ast.Subscript(ast.Name(arg, ast.Load()), flat_idx,
+                                                       node.ctx), node)
+            return self.generic_visit(node)
+
         def visit_Attribute(self, node):
+            port = port_of(node.value)
+            if port is not None and node.attr == "shape":
+                return ast.copy_location(ast.Tuple([ast.Constant(port[2] - port[1])],
+                                                   ast.Load()), node)
             if isinstance(node.value, ast.Name) and node.value.id in where:
                 arg, field = node.value.id, node.attr
                 if field not in where[arg]:
