@@ -188,6 +188,7 @@ def test_replace_checks_signal_sizes():
         closed_loop("iv-drem", two_link(), replace={"disturbance": wide})
 
 
+@pytest.mark.slow      # compiles the example's new diagram (once; cached afterwards)
 def test_custom_law_example_runs_and_reduces_to_iv_drem():
     """examples/custom_law.py (docs/custom-law.md) defines a law, compiles it and runs it
     against IV-DREM; with nu = 1e-300 its term gamma Delta (calY - Delta theta_hat) /
