@@ -10,9 +10,10 @@ Matrix-valued signals stay flat row-major (``u.Pi.reshape((n, ntheta))``).
 
 Two forms, one kernel.  The reference path (python-control calling :func:`make_block`'s
 wrappers) passes namedtuples of views (:func:`views`).  The compiled path compiles the
-kernel's *flat form* (:func:`flat_form`): the same source with each ``u.q`` replaced by a
-local view ``u[a:b]`` made once at the top, the offsets taken from the declaration, so the
-generated code is what a hand-written flat kernel would be (numba passes namedtuple
+kernel's *flat form* (:func:`flat_form`): the same source with ``u.q[i]`` replaced by
+``u[a + i]``, ``u.q.shape`` by ``(size,)`` and any other use of ``u.q`` by a local view
+``u[a:b]`` made once at the top, the offsets taken from the declaration, so the generated
+code is what a hand-written flat kernel would be (numba passes namedtuple
 arguments to a separately compiled function at a cost comparable to the kernels' own
 work: measured 1.8x the paper loop's right-hand side).  Using a port that is not declared,
 or ``u`` as a whole, is an error naming the kernel and the port.
