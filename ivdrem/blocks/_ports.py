@@ -111,11 +111,10 @@ def views(cls, ports, vec):
 
 # ------------------------------------------------------------------ the compiled form
 # numba passes a namedtuple of views to a separately compiled kernel at a measurable cost
-# (about 1.8x the right-hand side of the paper loop: every access goes through the tuple),
-# so the compiled path does not: it gets the kernel rewritten to the flat convention, each
-# `u.q` replaced by a local view `u[a:b]` made once at the top (what the library's kernels
-# did by hand before), with the offsets from the declaration.  The reference path runs the
-# kernel as written on namedtuples (flat_kernel in _core); the tests compare the two.
+# (about 1.8x the right-hand side of the paper loop), and each view is an NRT incref/decref,
+# so the compiled path gets the kernel rewritten to the flat convention with the offsets
+# from the declaration (what the library's kernels did by hand before).  The reference
+# path runs the kernel as written on namedtuples (flat_kernel in _core); tests compare them.
 import ast
 import hashlib
 import inspect
