@@ -8,7 +8,9 @@ place:
 * ``build(ctx)``: the blocks that compute ``theta_c`` (and their outputs worth recording),
   given a :class:`LawContext` (model, sizes and the law's parameters);
 * ``defaults``: the law's default gains (keyword arguments of ``build``);
-* ``section``: the configuration table holding those gains (``[iv_drem]``, ...);
+* ``section``: the configuration table holding those gains (``[iv_drem]``, ...); a
+  section the built-in configuration does not have is created from ``defaults``
+  (numbers and vectors), so a TOML file sets the law's gains in ``[section]``;
 * ``color`` and ``label``: the law's colour and legend label in every figure;
 * ``equation``, ``description``: what the report and the docs say about it.
 

@@ -21,14 +21,9 @@ from scipy.integrate import quad, solve_ivp
 
 import ivdrem.blocks as block_library
 from ivdrem.blocks import ParameterError
+from ivdrem.blocks._core import flat_kernel
 from ivdrem.blocks._kernels import det_adj
-from ivdrem.blocks.adaptation_law import adaptation_law_update
-from ivdrem.blocks.composite_terms import (composite_learning_term_output, drem_term_output,
-                                           sigma_modification_output, zero_output)
-from ivdrem.blocks.control_law import control_law_output
-from ivdrem.blocks.extension import extension_output
 from ivdrem.blocks.mixing import mixing_output
-from ivdrem.blocks.tracking_error import tracking_error_output
 from ivdrem.models import two_link
 from ivdrem.sim import simulate
 
@@ -382,7 +377,7 @@ def run_mixing(Y, Psi):
     nth = Y.size
     u = np.concatenate([Y, np.asarray(Psi, float).ravel()])
     y = np.full(1 + nth, np.nan)
-    mixing_output(0.0, np.zeros(0), u, y, nth)
+    kernel(block_library.mixing(nth), "output")(0.0, np.zeros(0), u, y, nth)
     return y[0], y[1:]
 
 
@@ -454,7 +449,7 @@ def test_mixing_huge_psi_keeps_delta():
 def test_mixing_block_declaration():
     blk = block_library.mixing(5)
     spec = blk.ivdrem
-    assert spec.output is mixing_output
+    assert spec.named_kernels["output"] is mixing_output and spec.output.named_kernel is mixing_output
     assert [p for p, _ in spec.inputs] == ["avg"] and spec.ninputs == 5 + 25
     assert spec.outputs == [("Delta", 1), ("calY", 5)] and spec.direct == ("avg",)
 
@@ -807,21 +802,30 @@ def test_instrument_is_filtered_desired_regressor(loop_runs, loop_signals):
 
 
 # ============================================================== small kernels, called directly
+def kernel(block, role):
+    """Kernel `role` of a library block on flat vectors: the named-port kernel gets the
+    views that ivdrem.blocks._core.flat_kernel builds from the block's declaration (the
+    same views the compiled path slices), so these tests also check the port layout."""
+    return flat_kernel(block.ivdrem, role)
+
+
 def test_composite_terms():
     rng = np.random.default_rng(11)
     nth = 5
     D, calY, th_hat = rng.normal(), rng.normal(size=nth), rng.normal(size=nth)
     y = np.full(nth, np.nan)
-    drem_term_output(0.0, np.zeros(0), np.concatenate([[D], calY, th_hat]), y, 3.0)
+    kernel(block_library.drem_term(nth), "output")(
+        0.0, np.zeros(0), np.concatenate([[D], calY, th_hat]), y, 3.0)
     assert np.allclose(y, 3.0 * D * (calY - D * th_hat), rtol=1e-14)      # eq. 21
     Yb, Psib = rng.normal(size=nth), rng.normal(size=(nth, nth))
-    composite_learning_term_output(0.0, np.zeros(0),
-                                   np.concatenate([Yb, Psib.ravel(), th_hat]), y, 2.0)
+    kernel(block_library.composite_learning_term(nth), "output")(
+        0.0, np.zeros(0), np.concatenate([Yb, Psib.ravel(), th_hat]), y, 2.0)
     assert np.allclose(y, 2.0 * (Yb - Psib @ th_hat), rtol=1e-13)         # eq. 35
     ts = rng.normal(size=nth)
-    sigma_modification_output(0.0, np.zeros(0), th_hat, y, 0.1, ts)
+    kernel(block_library.sigma_modification_term(nth), "output")(
+        0.0, np.zeros(0), th_hat, y, 0.1, ts)
     assert np.allclose(y, 0.1 * (ts - th_hat), rtol=1e-14)                # erratum E5 sign
-    zero_output(0.0, np.zeros(0), np.zeros(0), y)
+    kernel(block_library.zero_term(nth), "output")(0.0, np.zeros(0), np.zeros(0), y)
     assert np.array_equal(y, np.zeros(nth))
 
 
@@ -830,7 +834,8 @@ def test_tracking_error_kernel():
     n, alpha = 3, 1.7
     q, dq, qd, dqd, ddqd = rng.normal(size=(5, n))
     y = np.full(4 * n, np.nan)
-    tracking_error_output(0.0, np.zeros(0), np.concatenate([q, dq, qd, dqd, ddqd]), y, alpha)
+    kernel(block_library.tracking_error(n), "output")(
+        0.0, np.zeros(0), np.concatenate([q, dq, qd, dqd, ddqd]), y, alpha)
     e, de = qd - q, dqd - dq
     assert np.allclose(y, np.concatenate([e, de + alpha * e, dqd + alpha * e,
                                           ddqd + alpha * de]), rtol=1e-14)
@@ -845,8 +850,8 @@ def test_control_law_kernel_full_gain_matrix():
     Pi = rng.normal(size=(n, nth))
     mu = 17.5
     y = np.full(n, np.nan)
-    control_law_output(0.0, np.zeros(0), np.concatenate([r, [mu], Pi.ravel(), th, uf]), y,
-                       K, 0.8, nth)
+    kernel(block_library.control_law(n, nth), "output")(
+        0.0, np.zeros(0), np.concatenate([r, [mu], Pi.ravel(), th, uf]), y, K, 0.8, nth)
     assert np.allclose(y, (K + 0.8 * mu * np.eye(n)) @ r + Pi @ th - uf, rtol=1e-13)
 
 
@@ -859,7 +864,8 @@ def test_adaptation_law_kernel_uses_Pi_r_not_Pi_T_r():
     A = rng.normal(size=(nth, nth))
     Gamma = A @ A.T + np.eye(nth)
     dx = np.full(nth, np.nan)
-    adaptation_law_update(0.0, np.zeros(nth), np.concatenate([PiT.ravel(), r, tc]), dx, Gamma)
+    kernel(block_library.adaptation_law(n, nth), "update")(
+        0.0, np.zeros(nth), np.concatenate([PiT.ravel(), r, tc]), dx, Gamma)
     assert np.allclose(dx, Gamma @ (PiT.T @ r + tc), rtol=1e-13)
 
 
@@ -871,7 +877,8 @@ def test_extension_kernel(instrument):
     z, phiT, zetaT = rng.normal(size=n), rng.normal(size=(n, nth)), rng.normal(size=(n, nth))
     u = np.concatenate([z, phiT.ravel()] + ([zetaT.ravel()] if instrument else []))
     y = np.full(nth + nth * nth, np.nan)
-    extension_output(0.0, np.zeros(0), u, y, n, nth, int(instrument))
+    kernel(block_library.extension(n, nth, instrument=instrument), "output")(
+        0.0, np.zeros(0), u, y, n, nth)
     Z = zetaT if instrument else phiT
     assert np.allclose(y[:nth], Z.T @ z, rtol=1e-13)
     assert np.allclose(y[nth:].reshape(nth, nth), Z.T @ phiT, rtol=1e-13)
@@ -923,3 +930,190 @@ def test_plant_rejects_bad_shapes(m2):
         block_library.plant(m2, q0=[0.0, 0.1, 0.2])
     with pytest.raises(ParameterError, match="'theta' has non-finite"):
         block_library.plant(m2, theta=[1.3, np.nan, 0.32, 0.4, 1.4])
+
+
+# ============================================================== named ports, whole diagram
+def _hand_rhs(t, X, T_win=20.0, gamma=1e10, Gamma=0.01, K=K_GAIN):
+    """dx/dt of closed_loop("iv-drem") at (t, X) written out from the paper, X: {state
+    name: array}.  Independent of the block kernels: the hand regressors above, numpy's
+    det/inv for the mixing (17), the 2-link M, C, G.  t < T, so the window's delayed
+    integral is its initial value 0 (the delay holds u(t0) before t0 + T)."""
+    col = lambda a: np.asarray(a, float)[:, None]     # (2,) -> (2, 1) for the hand functions
+    q, dq = X["plant_q"], X["plant_dq"]
+    qd, dqd, ddqd = (a.ravel() for a in qd_exact(np.array([t])))
+    taud = taud_exact(np.array([t])).ravel()
+    mu, dmu = mu_exact(t), 1.0
+    e, de = qd - q, dqd - dq
+    r, v, dv = de + ALPHA * e, dqd + ALPHA * e, ddqd + ALPHA * de
+    Phif = X["torque_observer_Phi_f"].reshape(2, 5)
+    PhiMf = X["torque_observer_Phi_Mf"].reshape(2, 5)
+    uf = X["torque_observer_u_f"]
+    th_hat = X["adaptation_law_theta_hat"]
+    PiT = mu * (PhiM_hand(col(q), col(r))[0] - PhiMf) + Phi_hand(col(q), col(dq), col(v), col(dv))[0] - Phif
+    tau = (K + DELTA_MU * mu) * r + PiT @ th_hat - uf                                   # (9)
+    d = {}
+    ddq = np.linalg.solve(M_hand(col(q))[0],
+                          tau + taud - C_hand(col(q), col(dq))[0] @ dq - PhiG_hand(col(q))[0] @ TH)
+    d["plant_q"], d["plant_dq"] = dq, ddq                                                # (1)
+    d["torque_observer_Phi_f"] = mu * (Phi_hand(col(q), col(dq), col(v), col(dv))[0]
+                                       - PhiC_hand(col(q), col(dq), col(r))[0]
+                                       + PhidM_hand(col(q), col(dq), col(r))[0] - Phif)  # (7)
+    d["torque_observer_Phi_Mf"] = (mu + dmu / mu) * (PhiM_hand(col(q), col(r))[0] - PhiMf)
+    d["torque_observer_u_f"] = mu * (-tau - uf)
+    z, xi, eta = (X[f"regression_filter_{k}"] for k in ("z", "xi", "eta"))
+    xi, eta = xi.reshape(2, 5), eta.reshape(2, 5)
+    d["regression_filter_z"] = L_FILT * (tau - z)                                       # (13)
+    d["regression_filter_xi"] = L_FILT * (PhiM_hand(col(q), col(dq))[0] - xi)
+    d["regression_filter_eta"] = L_FILT * (-PhidM_hand(col(q), col(dq), col(dq))[0]
+                                           + PhiC_hand(col(q), col(dq), col(dq))[0]
+                                           + PhiG_hand(col(q))[0] - eta)
+    zeta = X["instrument_zeta"].reshape(2, 5)
+    d["instrument_zeta"] = L_FILT * (Phi_hand(col(qd), col(dqd), col(dqd), col(ddqd))[0] - zeta)  # (14)
+    phiT = L_FILT * (PhiM_hand(col(q), col(dq))[0] - xi) + eta
+    g = np.concatenate([zeta.T @ z, (zeta.T @ phiT).ravel()])                          # (15a)
+    d["window_integrator_window_I"] = g
+    win = X["window_integrator_window_I"] - 0.0
+    Yav = X["averaging_avg"]
+    F, dF = t ** 2 + 1.0, 2.0 * t
+    d["averaging_avg"] = -(dF / F) * (Yav - win)                                        # (15b)
+    Y, Psi = Yav[:5], Yav[5:].reshape(5, 5)
+    s = 1.0 + np.linalg.norm(Psi)
+    Pn = Psi / s
+    Delta = np.linalg.det(Pn)
+    calY = Delta * np.linalg.solve(Pn, Y) / s                                           # (17)
+    theta_c = gamma * Delta * (calY - Delta * th_hat)                                  # (21)
+    d["adaptation_law_theta_hat"] = Gamma * (PiT.T @ r + theta_c)                       # (11)
+    return d
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_named_port_kernels_whole_diagram_rhs_against_the_paper(engine):
+    """The right-hand side of the whole IV-DREM loop, every library kernel reading its ports
+    by name, equals the paper's equations written out by hand (_hand_rhs) at random states
+    (measured: 4e-16 relative, both engines)."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim._template import RHS
+    from ivdrem.sim.simulator import Simulator
+    d = closed_loop("iv-drem")
+    sim = Simulator(d, engine=engine)
+    sim._start()
+    labels = [lab_.split("[")[0] for lab_ in d.state_labels]
+    names = list(dict.fromkeys(labels))
+    rng = np.random.default_rng(21)
+    for t in (0.37, 4.1):
+        x = rng.uniform(-1.0, 1.0, d.nstates)
+        got = np.zeros_like(x)
+        sim.engine._eval(RHS, t, x, sim.engine.P, sim.W, got) if engine == "reference" \
+            else sim.engine.module.diagram_eval(RHS, t, x, sim.engine.P, sim.W, got)
+        X = {nm: x[[i for i, lab_ in enumerate(labels) if lab_ == nm]] for nm in names}
+        want = _hand_rhs(t, X)
+        assert set(want) == set(names)
+        for nm in names:
+            w = np.ravel(want[nm])
+            gv = got[[i for i, lab_ in enumerate(labels) if lab_ == nm]]
+            tol = 1e-9 if nm == "adaptation_law_theta_hat" else 1e-12   # det/adj vs numpy
+            assert np.abs(gv - w).max() <= tol * max(np.abs(w).max(), 1.0), (nm, gv, w)
+
+
+def test_port_classes_are_named_by_their_fields_and_rebuilt_from_the_name():
+    """numba's on-disk cache pickles a kernel's argument types, namedtuple classes by module
+    and name: the name alone must rebuild the same class (fields with underscores too)."""
+    import pickle
+    from ivdrem.blocks import _ports
+    for fields in [(), ("q",), ("theta_hat", "u_f", "Pi"), ("a_s", "a", "s_u"), ("x__y", "_z")[:1]]:
+        cls = _ports.port_class(fields)
+        assert cls._fields == fields and cls.__name__.isidentifier()
+        assert _ports._fields_of(cls.__name__) == fields
+        assert pickle.loads(pickle.dumps(cls)) is cls
+        assert getattr(_ports, cls.__name__) is cls
+    # a fresh process has no classes yet: the module attribute builds it from the name
+    name = _ports.class_name(("never_seen_before", "b"))
+    assert name not in vars(_ports)
+    assert getattr(_ports, name)._fields == ("never_seen_before", "b")
+
+
+@pytest.mark.parametrize("bad", ["1q", "q-d", "class", "_hidden"])
+def test_named_port_names_must_be_identifiers(bad):
+    from ivdrem.blocks import BlockSpec, make_block
+    spec = BlockSpec(name="blk", inputs=[(bad, 1)], outputs=[("y", 1)], states=[],
+                     x0=np.zeros(0), param_names=(), output=None, named_ports=True)
+    with pytest.raises(ValueError, match=rf"block 'blk': input port name '{bad}' cannot be a "
+                                         r"named port.*named_ports=False"):
+        make_block(spec)
+
+
+def test_named_views_write_through_to_the_flat_vectors():
+    """flat_kernel hands a named-port kernel views, not copies: what it writes into y.<port>
+    lands in the flat output at the port's offset."""
+    blk = block_library.tracking_error(2, alpha=0.5)
+    u = np.arange(1.0, 11.0)             # q, dq, q_d, dq_d, ddq_d = [1,2], [3,4], ...
+    y = np.full(8, np.nan)
+    kernel(blk, "output")(0.0, np.zeros(0), u, y, 0.5)
+    sl = blk.ivdrem.port_slices("outputs")
+    np.testing.assert_array_equal(y[sl["e"]], [4.0, 4.0])          # q_d - q
+    np.testing.assert_array_equal(y[sl["dv"]], [9.0 + 2.0, 10.0 + 2.0])   # ddq_d + alpha de
+
+
+def _library_blocks():
+    from ivdrem.models import planar_arm
+    out = []
+    for model in (two_link(), planar_arm(3)):
+        n, nth = model.n, model.ntheta
+        m = nth + nth * nth
+        out += [block_library.plant(model), block_library.trajectory(n, [1.0] * n, [1.0] * n),
+                block_library.disturbance(n, [1.0] * n, [1.0] * n), block_library.mu_schedule(),
+                block_library.tracking_error(n), block_library.torque_observer(model),
+                block_library.torque_observer(model, variant="literal"),
+                block_library.control_law(n, nth), block_library.adaptation_law(n, nth),
+                block_library.regression_filter(model), block_library.instrument(model),
+                block_library.extension(n, nth), block_library.extension(n, nth, instrument=False),
+                block_library.sliding_window(m), block_library.averaging(m),
+                block_library.mixing(nth), block_library.drem_term(nth),
+                block_library.composite_learning_term(nth),
+                block_library.sigma_modification_term(nth), block_library.zero_term(nth)]
+    return out
+
+
+def test_flat_form_of_every_library_kernel_equals_the_kernel_as_written():
+    """What the compiled path compiles (spec.update/output: each u.<port> a view at its
+    declared offset, ivdrem.blocks._ports.flat_form) equals the kernel as written run on
+    namedtuples of views (the reference path), bit for bit, at random points."""
+    from ivdrem.blocks._core import kernel_args
+    rng = np.random.default_rng(5)
+    for blk in _library_blocks():
+        spec = blk.ivdrem
+        assert spec.named_ports and spec.named_kernels, spec.name
+        args = kernel_args(spec, blk.params)
+        nx, nu, ny = spec.nstates, spec.ninputs, spec.noutputs
+        for role, nout in (("output", ny), ("update", nx)):
+            if spec.named_kernels.get(role) is None:
+                continue
+            for _ in range(3):
+                x, u = rng.uniform(0.5, 1.5, nx), rng.uniform(0.5, 1.5, nu)
+                a, b = np.full(nout, np.nan), np.full(nout, np.nan)
+                kernel(blk, role)(0.8, x.copy(), u.copy(), a, *args)
+                flat_form(spec, role)(0.8, x.copy(), u.copy(), b, *args)
+                assert np.all(np.isfinite(a)), (spec.name, role)
+                assert np.array_equal(a, b), (spec.name, role)
+
+
+def flat_form(spec, role):
+    """spec.update / spec.output (the flat form) with the block's model bound."""
+    from ivdrem.blocks._core import bind_model
+    return bind_model(getattr(spec, role), spec.model)
+
+
+def test_named_port_kernel_errors_name_the_port():
+    from ivdrem.blocks import BlockSpec, make_block
+
+    def uses_undeclared(t, x, u, y):
+        y.out[0] = u.nope[0]
+
+    def uses_whole(t, x, u, y):
+        y.out[0] = u[0]
+    for fn, msg in ((uses_undeclared, r"u\.nope is not a declared input port \(they are: a\)"),
+                    (uses_whole, r"uses 'u' as a whole")):
+        spec = BlockSpec(name="blk", inputs=[("a", 1)], outputs=[("out", 1)], states=[],
+                         x0=np.zeros(0), param_names=(), output=fn, named_ports=True)
+        with pytest.raises(ParameterError, match=rf"block 'blk': kernel {fn.__name__}: {msg}"):
+            make_block(spec)

@@ -139,6 +139,45 @@ def test_a_registered_law_is_known_to_the_diagram_config_and_figures():
         closed_loop("leak-to-zero", MODEL)
 
 
+def test_a_registered_law_brings_its_own_configuration_table(tmp_path):
+    """A law registered with a section of its own is configured there and nowhere else:
+    the table exists with the law's defaults, a TOML file overrides it, closed_loop_kwargs
+    passes it on, unknown keys are refused by name; unregistered, the table is unknown."""
+    from ivdrem import blocks as block_library
+    from ivdrem import diagrams
+    from ivdrem.experiments import config as config_mod
+    from ivdrem.experiments.config import ConfigError, closed_loop_kwargs, load_config
+
+    def build(ctx):
+        return [block_library.sigma_modification_term(ctx.ntheta, ctx.params["sigma"],
+                                                      ctx.params["theta_star"])], []
+    registry.register_law(registry.Law(
+        "leak-to-guess", build, "leak to a guess", "#654321", section="leak_to_guess",
+        defaults={"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0]}))
+    try:
+        assert "leak-to-guess" in diagrams.LAWS and "leak-to-guess" in config_mod.LAWS
+        cfg = load_config()
+        assert cfg["leak_to_guess"] == {"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0]}
+        f = tmp_path / "c.toml"
+        f.write_text('[experiment]\nlaws = ["leak-to-guess"]\n[leak_to_guess]\nsigma = 0.2\n')
+        cfg = load_config(f)
+        kw = closed_loop_kwargs(cfg, "leak-to-guess")["law_params"]
+        assert kw["sigma"] == 0.2
+        np.testing.assert_array_equal(kw["theta_star"], [1.0, 0.0, 0.0, 0.0, 1.0])
+        with pytest.raises(ConfigError, match=r"'leak_to_guess.sigmaa' is not known.*'leak_to_guess.sigma'"):
+            load_config(overrides={"leak_to_guess.sigmaa": 1.0})
+        with pytest.raises(ConfigError, match=r"'leak_to_guess.sigma' must be a number"):
+            load_config(overrides={"leak_to_guess.sigma": "big"})
+        d = closed_loop("leak-to-guess", MODEL, **closed_loop_kwargs(cfg, "leak-to-guess"))
+        term = [s for s in d.syslist if s.name == "sigma_modification_term"][0]
+        assert term.params["sigma"] == 0.2
+    finally:
+        registry.LAWS.pop("leak-to-guess")
+    assert "leak-to-guess" not in diagrams.LAWS
+    with pytest.raises(ConfigError, match="section 'leak_to_guess' is not known"):
+        load_config(f)
+
+
 def test_replace_checks_signal_sizes():
     """A replacement block whose shared signals have other sizes is refused by name."""
     import ivdrem.blocks as blocks
@@ -147,3 +186,30 @@ def test_replace_checks_signal_sizes():
     wide = blocks.disturbance(3, amplitude=[1, 1, 1], omega=[1, 1, 1])
     with pytest.raises(ValueError, match=r"replace\['disturbance'\]: output signal 'tau_d' has 3 entries.*has 2"):
         closed_loop("iv-drem", two_link(), replace={"disturbance": wide})
+
+
+@pytest.mark.slow      # compiles the example's new diagram (once; cached afterwards)
+def test_custom_law_example_runs_and_reduces_to_iv_drem():
+    """examples/custom_law.py (docs/custom-law.md) defines a law, compiles it and runs it
+    against IV-DREM; with nu = 1e-300 its term gamma Delta (calY - Delta theta_hat) /
+    (1 + nu gamma Delta^2) is (21) to the last bit, so the two loops must agree."""
+    import runpy
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "examples" / "custom_law.py"
+    ns = runpy.run_path(str(path), run_name="custom_law_example")
+    try:
+        out = ns["main"](2.0)
+        assert set(out) == {"iv-drem", "normalised-iv-drem"}
+        for resp in out.values():
+            assert resp.time[-1] == pytest.approx(2.0) and np.all(np.isfinite(resp.outputs))
+        d = closed_loop("normalised-iv-drem", MODEL)
+        term = [s for s in d.syslist if s.name == "normalised_term"][0]
+        assert term.ivdrem.named_ports and term.params["nu"] == 1.0
+        tiny = simulate(d, 2.0, progress=False, params={"nu": 1e-300})
+        np.testing.assert_allclose(signal(tiny, "theta_hat"), signal(out["iv-drem"], "theta_hat"),
+                                   rtol=1e-12, atol=1e-15)
+        # and at the example's nu = 1 the two laws differ once Delta is active (t > 0)
+        assert np.max(np.abs(signal(out["normalised-iv-drem"], "theta_hat")
+                             - signal(out["iv-drem"], "theta_hat"))) > 0.0
+    finally:
+        registry.LAWS.pop("normalised-iv-drem", None)

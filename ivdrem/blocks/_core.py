@@ -8,9 +8,18 @@ of Python::
     output(t, x, u, y, *params)    # writes the outputs into y   (pure, cheap)
     jacobian(t, x, u, jac, *params)  # optional: d(y, dx)/d(x, u), dense (see BlockSpec)
 
-``x``, ``u``, ``dx`` and ``y`` are flat float64 vectors; matrix-valued signals are stored
-row-major.  The kernels hold no state of their own: the state lives in
-the simulator.  Kernels that need the robot model call it through the global name
+With ``named_ports=True`` (every library block) ``x``, ``u``, ``dx`` and ``y`` carry the
+declared states and ports by name (``u.q``, ``x.Phi_f``, ``dx.Phi_f``, ``y.Pi``), each a
+1-D float64 view into the engine's flat vector; a size-1 port is a 1-element view
+(``u.mu[0]``), matrix-valued signals are flat row-major (``u.Pi.reshape((n, ntheta))``).
+No kernel computes offsets.  The reference path passes namedtuples of views; the compiled
+path compiles the kernel's flat form, each ``u.q`` a view ``u[a:b]`` made once at the top
+of the kernel with the offsets from the declaration (:mod:`ivdrem.blocks._ports`: numba's
+namedtuple arguments would cost about as much as the kernels themselves).  Without
+``named_ports`` (the default, for adapters of foreign blocks and the FMU plant) the
+kernels get the flat vectors; ``jacobian`` kernels always do.  The kernels hold no state
+of their own: the state lives in the simulator.  Kernels that need the robot model call it
+through the global name
 ``model`` (``model.Phi_M(q, a, out)``, see :mod:`ivdrem.models`).
 
 :func:`make_block` wraps a declaration as a python-control ``NonlinearIOSystem`` (the
@@ -33,8 +42,10 @@ from typing import Callable
 import numpy as np
 import control as ct
 
+from . import _ports
+
 __all__ = ["BlockSpec", "make_block", "kernel_args", "bind_model", "ParameterError",
-           "active_feeds"]
+           "active_feeds", "flat_kernel", "port_layout"]
 
 
 class ParameterError(ValueError):
@@ -65,6 +76,16 @@ class BlockSpec:
     # columns states then inputs.  Without it the compiled path differentiates the
     # block's update/output kernels by central differences (ivdrem.sim.jacobian)
     jacobian: Callable | None = None
+    # update/output receive namedtuples of views by port name (ivdrem.blocks._ports)
+    # instead of flat vectors; jacobian kernels stay flat
+    named_ports: bool = False
+    # {port or state name: field name in the kernel's namedtuples}, for ports whose signal
+    # name the factory takes as an argument (sliding_window's prefix, ...): the kernel
+    # reads u.g whatever the diagram calls that signal
+    kernel_names: dict = field(default_factory=dict)
+    # set by make_block for a named-port block: {"update": fn, "output": fn} as written;
+    # spec.update / spec.output then hold their flat form (see _compile_named_ports)
+    named_kernels: dict | None = None
 
     @property
     def ninputs(self):
@@ -85,6 +106,67 @@ class BlockSpec:
             out[name] = slice(i, i + size)
             i += size
         return out
+
+
+# which declared ports each kernel argument views, by kernel role
+_ROLE_PORTS = {"update": ("states", "inputs", "states"), "output": ("states", "inputs", "outputs")}
+
+
+def port_layout(spec: BlockSpec, role: str):
+    """[(field names, [(port name, size)])] for the x, u and out arguments of kernel `role`
+    of a named-port block; None for a flat block or the jacobian kernel."""
+    if not spec.named_ports or role not in _ROLE_PORTS:
+        return None
+    out = []
+    for which in _ROLE_PORTS[role]:
+        ports = getattr(spec, which)
+        out.append(([spec.kernel_names.get(p, p) for p, _ in ports], ports))
+    return out
+
+
+def _compile_named_ports(spec: BlockSpec):
+    """Keep a named-port block's kernels as written (``spec.named_kernels``, run on
+    namedtuples of views by the reference path) and put their flat form in
+    ``spec.update`` / ``spec.output``: what the compiled path and the Jacobian's sparsity
+    probe call (ivdrem.blocks._ports.flat_form: each ``u.q`` a view ``u[a:b]``)."""
+    if not spec.named_ports or spec.named_kernels:
+        return
+    named = {"update": spec.update, "output": spec.output}
+    for role, fn in named.items():
+        if fn is not None:
+            try:
+                setattr(spec, role, _ports.flat_form(fn, role, port_layout(spec, role)))
+            except _ports.PortError as exc:
+                raise ParameterError(f"block '{spec.name}': {exc}") from None
+    spec.named_kernels = named
+
+
+def check_named_ports(spec: BlockSpec):
+    """Clear errors for port names a namedtuple cannot carry (named-port blocks)."""
+    if spec.named_ports:
+        for which in ("inputs", "outputs", "states"):
+            ports = [(spec.kernel_names.get(p, p), s) for p, s in getattr(spec, which)]
+            _ports.check_port_names(spec.name, which[:-1], ports)
+
+
+def flat_kernel(spec: BlockSpec, role: str):
+    """Kernel `role` of `spec` as a Python callable of flat vectors,
+    ``f(t, x, u, out, *params)``, with its model bound.  A named-port kernel runs as
+    written, on namedtuples of views built here (the reference path and the tests; the
+    compiled path and the Jacobian's sparsity probe use its flat form, ``spec.<role>``)."""
+    named = spec.named_kernels.get(role) if spec.named_kernels else None
+    layout = port_layout(spec, role)
+    if named is None or layout is None:
+        return bind_model(getattr(spec, role), spec.model)
+    fn = bind_model(named, spec.model)
+    (cx, px), (cu, pu), (co, po) = [(_ports.port_class(f), p) for f, p in layout]
+    views = _ports.views
+
+    def flat(t, x, u, out, *params):
+        return fn(t, views(cx, px, x), views(cu, pu, u), views(co, po, out), *params)
+    flat.__name__ = f"flat_{fn.__name__}"
+    flat.__wrapped__ = fn
+    return flat
 
 
 def _labels(ports):
@@ -159,9 +241,11 @@ def make_block(spec: BlockSpec, params: dict | None = None) -> ct.NonlinearIOSys
         raise ParameterError(f"block '{spec.name}': initial state has {x0.size} entries, "
                              f"expected {spec.nstates}")
     spec.x0 = x0
+    check_named_ports(spec)
+    _compile_named_ports(spec)
 
-    upd_k = bind_model(spec.update, spec.model)
-    out_k = bind_model(spec.output, spec.model)
+    upd_k = flat_kernel(spec, "update")
+    out_k = flat_kernel(spec, "output")
     nx, ny = spec.nstates, spec.noutputs
     # python-control passes the merged (system + diagram + call) params; re-validate only
     # when they differ from the block's own, so the common case stays cheap.

@@ -10,29 +10,27 @@ from ._kernels import matT_vec
 
 
 def adaptation_law_update(t, x, u, dx, Gamma):
-    # states   x = theta_hat (nθ)
-    # inputs   u = [Pi^T (n*nθ), r (n), theta_c (nθ)]
+    # states   x.theta_hat (nθ)
+    # inputs   u.Pi (Pi^T, n*nθ row-major), u.r (n), u.theta_c (nθ, the composite term)
     # params   Gamma (nθ x nθ, positive definite)
-    nth = x.shape[0]
-    n = (u.shape[0] - nth) // (nth + 1)
-    Pi = u[0:n * nth].reshape((n, nth))
-    r = u[n * nth:n * nth + n]
-    tc = u[n * nth + n:]
+    # dtheta_hat = Gamma (Pi r + vartheta_c)                                     (eq. 11)
+    nth = x.theta_hat.shape[0]
+    n = u.r.shape[0]
     g = np.empty(nth)
-    matT_vec(Pi, r, g)          # Pi r, Pi = (Pi^T)^T  (the paper's "Pi^T r" is a typo)
+    matT_vec(u.Pi.reshape((n, nth)), u.r, g)   # Pi r, Pi = (Pi^T)^T (the paper's "Pi^T r" is a typo)
     for i in range(nth):
-        g[i] += tc[i]
+        g[i] += u.theta_c[i]
     for i in range(nth):
         s = 0.0
         for j in range(nth):
             s += Gamma[i, j] * g[j]
-        dx[i] = s
+        dx.theta_hat[i] = s
 
 
 def adaptation_law_output(t, x, u, y, Gamma):
-    # outputs  y = theta_hat
-    for i in range(x.shape[0]):
-        y[i] = x[i]
+    # outputs  y.theta_hat = x.theta_hat
+    for i in range(x.theta_hat.shape[0]):
+        y.theta_hat[i] = x.theta_hat[i]
 
 
 def adaptation_law(n, ntheta, Gamma=0.01, theta_hat0=None, *, name="adaptation_law"):
@@ -54,5 +52,5 @@ def adaptation_law(n, ntheta, Gamma=0.01, theta_hat0=None, *, name="adaptation_l
                      outputs=[("theta_hat", ntheta)], states=[("theta_hat", ntheta)], x0=th0,
                      param_names=("Gamma",), update=adaptation_law_update,
                      output=adaptation_law_output, direct=(), validate=validate,
-                     jacobian=adaptation_law_jacobian)
+                     named_ports=True, jacobian=adaptation_law_jacobian)
     return make_block(spec, {"Gamma": Gamma})

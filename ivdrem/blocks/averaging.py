@@ -13,19 +13,20 @@ from ._core import ParameterError
 
 
 def averaging_update(t, x, u, dx, p, F0):
-    # states   x = Y (m) ;  inputs u = y (m)
+    # states   x.Y (m) ;  inputs u.y (m)
     # params   p >= 1, F0 > 0 ; t0 = 0
+    # dY = -(dF/F)(Y - y), F(t) = t^p + F0   (15b)
     F = t ** p + F0
     dF = p * t ** (p - 1.0) if t > 0.0 else (1.0 if p == 1.0 else 0.0)
     k = dF / F
-    for i in range(x.shape[0]):
-        dx[i] = -k * (x[i] - u[i])
+    for i in range(x.Y.shape[0]):
+        dx.Y[i] = -k * (x.Y[i] - u.y[i])
 
 
 def averaging_output(t, x, u, y, p, F0):
-    # outputs  y = Y
-    for i in range(x.shape[0]):
-        y[i] = x[i]
+    # outputs  y.Y = x.Y
+    for i in range(x.Y.shape[0]):
+        y.Y[i] = x.Y[i]
 
 
 def averaging(size, p=2.0, F0=1.0, *, input="window_y", output="avg", name="averaging"):
@@ -48,5 +49,6 @@ def averaging(size, p=2.0, F0=1.0, *, input="window_y", output="avg", name="aver
     spec = BlockSpec(name=name, inputs=[(input, size)], outputs=[(output, size)],
                      states=[(output, size)], x0=np.zeros(size), param_names=("p", "F0"),
                      update=averaging_update, output=averaging_output, direct=(),
-                     validate=validate)
+                     validate=validate, named_ports=True,
+                     kernel_names={input: "y", output: "Y"})
     return make_block(spec, {"p": p, "F0": F0})

@@ -9,12 +9,12 @@ from . import _validate as checks
 
 
 def drem_term_output(t, x, u, y, gamma):
-    # inputs   u = [Delta, calY (nθ), theta_hat (nθ)]
-    # outputs  y = theta_c = gamma Delta (calY - Delta theta_hat)            (eq. 21)
-    nth = y.shape[0]
-    D = u[0]
-    for i in range(nth):
-        y[i] = gamma * D * (u[1 + i] - D * u[1 + nth + i])
+    # inputs   u.Delta[0], u.calY (nθ), u.theta_hat (nθ)
+    # outputs  y.theta_c = gamma Delta (calY - Delta theta_hat)              (eq. 21)
+    # params   gamma > 0
+    D = u.Delta[0]
+    for i in range(y.theta_c.shape[0]):
+        y.theta_c[i] = gamma * D * (u.calY[i] - D * u.theta_hat[i])
 
 
 def drem_term(ntheta, gamma=1e10, *, name="drem_term"):
@@ -33,21 +33,21 @@ def drem_term(ntheta, gamma=1e10, *, name="drem_term"):
                      outputs=[("theta_c", ntheta)], states=[], x0=np.zeros(0),
                      param_names=("gamma",), output=drem_term_output,
                      direct=("Delta", "calY", "theta_hat"), validate=validate,
-                     jacobian=drem_term_jacobian)
+                     named_ports=True, jacobian=drem_term_jacobian)
     return make_block(spec, {"gamma": gamma})
 
 
 def composite_learning_term_output(t, x, u, y, gamma):
-    # inputs   u = [Y_b(t_e) (nθ), Psi_b(t_e) (nθ*nθ), theta_hat (nθ)]
-    # outputs  y = theta_c = gamma (Y_b(t_e) - Psi_b(t_e) theta_hat)         (eq. 35)
-    nth = y.shape[0]
-    Psi = u[nth:nth + nth * nth].reshape((nth, nth))
-    th = u[nth + nth * nth:]
+    # inputs   u.held = [Y_b(t_e) (nθ), Psi_b(t_e) (nθ*nθ row-major)], u.theta_hat (nθ)
+    # outputs  y.theta_c = gamma (Y_b(t_e) - Psi_b(t_e) theta_hat)           (eq. 35)
+    # params   gamma > 0
+    nth = y.theta_c.shape[0]
+    Psi = u.held[nth:nth + nth * nth].reshape((nth, nth))
     for i in range(nth):
-        s = u[i]
+        s = u.held[i]
         for j in range(nth):
-            s -= Psi[i, j] * th[j]
-        y[i] = gamma * s
+            s -= Psi[i, j] * u.theta_hat[j]
+        y.theta_c[i] = gamma * s
 
 
 def composite_learning_term(ntheta, gamma=1.0, *, input="held", name="composite_learning_term"):
@@ -65,15 +65,17 @@ def composite_learning_term(ntheta, gamma=1.0, *, input="held", name="composite_
     spec = BlockSpec(name=name, inputs=[(input, ntheta + ntheta * ntheta), ("theta_hat", ntheta)],
                      outputs=[("theta_c", ntheta)], states=[], x0=np.zeros(0),
                      param_names=("gamma",), output=composite_learning_term_output,
-                     direct=(input, "theta_hat"), validate=validate,
-                     jacobian=composite_learning_term_jacobian)
+                     direct=(input, "theta_hat"), validate=validate, named_ports=True,
+                     kernel_names={input: "held"}, jacobian=composite_learning_term_jacobian)
     return make_block(spec, {"gamma": gamma})
 
 
 def sigma_modification_output(t, x, u, y, sigma, theta_star):
-    # inputs   u = theta_hat ; outputs y = sigma (theta_star - theta_hat)  (erratum E5)
-    for i in range(y.shape[0]):
-        y[i] = sigma * (theta_star[i] - u[i])
+    # inputs   u.theta_hat (nθ)
+    # outputs  y.theta_c = sigma (theta_star - theta_hat)                    (erratum E5)
+    # params   sigma > 0, theta_star (nθ)
+    for i in range(y.theta_c.shape[0]):
+        y.theta_c[i] = sigma * (theta_star[i] - u.theta_hat[i])
 
 
 def sigma_modification_term(ntheta, sigma=0.1, theta_star=None, *,
@@ -93,13 +95,14 @@ def sigma_modification_term(ntheta, sigma=0.1, theta_star=None, *,
     ts = np.zeros(ntheta) if theta_star is None else theta_star
     spec = BlockSpec(name=name, inputs=[("theta_hat", ntheta)], outputs=[("theta_c", ntheta)],
                      states=[], x0=np.zeros(0), param_names=("sigma", "theta_star"),
-                     output=sigma_modification_output, direct=("theta_hat",), validate=validate)
+                     output=sigma_modification_output, direct=("theta_hat",), validate=validate,
+                     named_ports=True)
     return make_block(spec, {"sigma": sigma, "theta_star": ts})
 
 
 def zero_output(t, x, u, y):
-    # outputs  y = 0
-    y[:] = 0.0
+    # outputs  y.theta_c = 0
+    y.theta_c[:] = 0.0
 
 
 def zero_term(ntheta, *, name="zero_term"):
@@ -111,5 +114,5 @@ def zero_term(ntheta, *, name="zero_term"):
     ======  ======================
     """
     spec = BlockSpec(name=name, inputs=[], outputs=[("theta_c", ntheta)], states=[],
-                     x0=np.zeros(0), param_names=(), output=zero_output)
+                     x0=np.zeros(0), param_names=(), output=zero_output, named_ports=True)
     return make_block(spec, {})

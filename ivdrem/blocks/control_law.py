@@ -9,22 +9,19 @@ from . import _validate as checks
 
 
 def control_law_output(t, x, u, y, K, delta_mu, ntheta):
-    # inputs   u = [r (n), mu, Pi^T (n*nθ), theta_hat (nθ), u_f (n)]
-    # outputs  y = tau = (K + delta_mu mu) r + Pi^T theta_hat - u_f
+    # inputs   u.r (n), u.mu[0], u.Pi (Pi^T, n*nθ row-major), u.theta_hat (nθ), u.u_f (n)
+    # outputs  y.tau = (K + delta_mu mu) r + Pi^T theta_hat - u_f                  (eq. 9)
     # params   K (n x n, positive definite), delta_mu in (0, 1), ntheta
     n = K.shape[0]
-    r = u[0:n]
-    mu = u[n]
-    Pi = u[n + 1:n + 1 + n * ntheta].reshape((n, ntheta))
-    th = u[n + 1 + n * ntheta:n + 1 + n * ntheta + ntheta]
-    u_f = u[n + 1 + n * ntheta + ntheta:]
+    r = u.r
+    Pi = u.Pi.reshape((n, ntheta))
     for i in range(n):
-        s = delta_mu * mu * r[i] - u_f[i]
+        s = delta_mu * u.mu[0] * r[i] - u.u_f[i]
         for j in range(n):
             s += K[i, j] * r[j]
         for j in range(ntheta):
-            s += Pi[i, j] * th[j]
-        y[i] = s
+            s += Pi[i, j] * u.theta_hat[j]
+        y.tau[i] = s
 
 
 def control_law(n, ntheta, K=2.0, delta_mu=0.8, *, name="control_law"):
@@ -47,6 +44,6 @@ def control_law(n, ntheta, K=2.0, delta_mu=0.8, *, name="control_law"):
                      outputs=[("tau", n)], states=[], x0=np.zeros(0),
                      param_names=("K", "delta_mu", "ntheta"), output=control_law_output,
                      direct=("r", "mu", "Pi", "theta_hat", "u_f"), validate=validate,
-                     jacobian=control_law_jacobian,
+                     named_ports=True, jacobian=control_law_jacobian,
                      constants={"ntheta": ntheta})
     return make_block(spec, {"K": K, "delta_mu": delta_mu})

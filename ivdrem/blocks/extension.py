@@ -13,17 +13,22 @@ from ._kernels import matT_vec, matT_mat
 
 
 def extension_output(t, x, u, y, n, ntheta, has_instrument):
-    # inputs   u = [z (n), phi^T (n*nθ)] + [zeta^T (n*nθ)] if has_instrument
-    # outputs  y = [zeta z (nθ), zeta phi^T (nθ*nθ)]  (zeta := phi without instrument)
-    m = n * ntheta
-    z = u[0:n]
-    phiT = u[n:n + m].reshape((n, ntheta))
-    if has_instrument == 1:
-        zetaT = u[n + m:n + 2 * m].reshape((n, ntheta))
-    else:
-        zetaT = phiT
-    matT_vec(zetaT, z, y[0:ntheta])
-    matT_mat(zetaT, phiT, y[ntheta:ntheta + ntheta * ntheta].reshape((ntheta, ntheta)))
+    # inputs   u.z (n), u.phi (phi^T, n*nθ row-major)
+    # outputs  y.g = [phi z (nθ), phi phi^T (nθ*nθ)]: (15a) with zeta := phi (baseline, 35)
+    # params   n, ntheta, has_instrument (0 here; shared with the block's Jacobian kernel)
+    phiT = u.phi.reshape((n, ntheta))
+    matT_vec(phiT, u.z, y.g[0:ntheta])
+    matT_mat(phiT, phiT, y.g[ntheta:ntheta + ntheta * ntheta].reshape((ntheta, ntheta)))
+
+
+def iv_extension_output(t, x, u, y, n, ntheta, has_instrument):
+    # inputs   u.z (n), u.phi (phi^T), u.zeta (zeta^T, instrument (14)), n*nθ row-major
+    # outputs  y.g = [zeta z (nθ), zeta phi^T (nθ*nθ)]: the integrand of (15a)
+    # params   n, ntheta, has_instrument (1 here; shared with the block's Jacobian kernel)
+    phiT = u.phi.reshape((n, ntheta))
+    zetaT = u.zeta.reshape((n, ntheta))
+    matT_vec(zetaT, u.z, y.g[0:ntheta])
+    matT_mat(zetaT, phiT, y.g[ntheta:ntheta + ntheta * ntheta].reshape((ntheta, ntheta)))
 
 
 def extension(n, ntheta, *, instrument=True, output="ext_g", name="extension"):
@@ -40,7 +45,8 @@ def extension(n, ntheta, *, instrument=True, output="ext_g", name="extension"):
     inputs = [("z", n), ("phi", m)] + ([("zeta", m)] if instrument else [])
     spec = BlockSpec(name=name, inputs=inputs, outputs=[(output, ntheta + ntheta * ntheta)],
                      states=[], x0=np.zeros(0), param_names=("n", "ntheta", "has_instrument"),
-                     output=extension_output, direct=tuple(p for p, _ in inputs),
-                     jacobian=extension_jacobian,
+                     output=iv_extension_output if instrument else extension_output,
+                     direct=tuple(p for p, _ in inputs), named_ports=True,
+                     kernel_names={output: "g"}, jacobian=extension_jacobian,
                      constants={"n": n, "ntheta": ntheta, "has_instrument": int(instrument)})
     return make_block(spec, {})

@@ -8,23 +8,24 @@ from . import _validate as checks
 
 
 def instrument_update(t, x, u, dx, l):
-    # states   x = zeta^T (n*nθ)
-    # inputs   u = [q_d, dq_d, ddq_d] (n each)
+    # states   x.zeta (zeta^T, n*nθ row-major)
+    # inputs   u.q_d, u.dq_d, u.ddq_d (n each)
     # params   l > 0
-    n = u.shape[0] // 3
-    m = x.shape[0]
-    nth = m // n
+    # dzeta^T = l (Phi^T(q_d, dq_d, dq_d, ddq_d) - zeta^T)                       (14)
+    n = u.q_d.shape[0]
+    nth = x.zeta.shape[0] // n
     A = np.empty((n, nth))
-    model.Phi(u[0:n], u[n:2 * n], u[n:2 * n], u[2 * n:3 * n], A)
+    model.Phi(u.q_d, u.dq_d, u.dq_d, u.ddq_d, A)
     for i in range(n):
         for j in range(nth):
-            dx[i * nth + j] = l * (A[i, j] - x[i * nth + j])
+            k = i * nth + j
+            dx.zeta[k] = l * (A[i, j] - x.zeta[k])
 
 
 def instrument_output(t, x, u, y, l):
-    # outputs  y = zeta^T (n*nθ, row-major)
-    for i in range(x.shape[0]):
-        y[i] = x[i]
+    # outputs  y.zeta = x.zeta (zeta^T, n*nθ row-major)
+    for i in range(x.zeta.shape[0]):
+        y.zeta[i] = x.zeta[i]
 
 
 def instrument(model, l=50.0, *, name="instrument"):
@@ -44,5 +45,6 @@ def instrument(model, l=50.0, *, name="instrument"):
     spec = BlockSpec(name=name, inputs=[("q_d", n), ("dq_d", n), ("ddq_d", n)],
                      outputs=[("zeta", n * nth)], states=[("zeta", n * nth)],
                      x0=np.zeros(n * nth), param_names=("l",), update=instrument_update,
-                     output=instrument_output, direct=(), model=model, validate=validate)
+                     output=instrument_output, direct=(), model=model, validate=validate,
+                     named_ports=True)
     return make_block(spec, {"l": l})

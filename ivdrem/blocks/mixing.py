@@ -16,29 +16,31 @@ from ._kernels import det_adj
 
 
 def mixing_output(t, x, u, y, ntheta):
-    # inputs   u = [Y (nθ), Psi (nθ*nθ row-major)]
-    # outputs  y = [Delta, calY (nθ)]
+    # inputs   u.Y_Psi = [Y (nθ), Psi (nθ*nθ row-major)]
+    # outputs  y.Delta[0] = det Psi_n, y.calY (nθ) = adj(Psi_n) Y / s   (17), erratum E4
     nn = ntheta * ntheta
+    Y = u.Y_Psi[0:ntheta]
+    Psi = u.Y_Psi[ntheta:ntheta + nn]
     big = 0.0
     for k in range(nn):
-        big = max(big, abs(u[ntheta + k]))
+        big = max(big, abs(Psi[k]))
     ss = 0.0
     if big > 0.0:
         for k in range(nn):
-            r = u[ntheta + k] / big                      # scaled: no overflow for huge Psi
+            r = Psi[k] / big                             # scaled: no overflow for huge Psi
             ss += r * r
     s = 1.0 + big * math.sqrt(ss)                        # 1 + ||Psi||_F
     Pn = np.empty((ntheta, ntheta))
     for i in range(ntheta):
         for j in range(ntheta):
-            Pn[i, j] = u[ntheta + i * ntheta + j] / s
+            Pn[i, j] = Psi[i * ntheta + j] / s
     adj = np.empty((ntheta, ntheta))
-    y[0] = det_adj(Pn, adj)
+    y.Delta[0] = det_adj(Pn, adj)
     for i in range(ntheta):
         acc = 0.0
         for j in range(ntheta):
-            acc += adj[i, j] * u[j]
-        y[1 + i] = acc / s
+            acc += adj[i, j] * Y[j]
+        y.calY[i] = acc / s
 
 
 def mixing(ntheta, *, input="avg", name="mixing"):
@@ -54,6 +56,6 @@ def mixing(ntheta, *, input="avg", name="mixing"):
     spec = BlockSpec(name=name, inputs=[(input, ntheta + ntheta * ntheta)],
                      outputs=[("Delta", 1), ("calY", ntheta)], states=[], x0=np.zeros(0),
                      param_names=("ntheta",), output=mixing_output, direct=(input,),
-                     jacobian=mixing_jacobian,
+                     named_ports=True, kernel_names={input: "Y_Psi"}, jacobian=mixing_jacobian,
                      constants={"ntheta": ntheta})
     return make_block(spec, {})

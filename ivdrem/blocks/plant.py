@@ -8,21 +8,23 @@ from . import _validate as checks
 
 
 def plant_update(t, x, u, dx, theta):
-    # states   x = [q (n), dq (n)]
-    # inputs   u = [tau (n), tau_d (n)]
+    # states   x.q, x.dq (n each)
+    # inputs   u.tau (control torque), u.tau_d (external torque), n each
     # params   theta (nθ): the true parameters
-    n = x.shape[0] // 2
+    # dq/dt = dq ;  M(q) ddq = tau + tau_d - C(q, dq) dq - F(dq) - G(q)   (eq. 1)
+    n = x.q.shape[0]
     tau = np.empty(n)
     for i in range(n):
-        tau[i] = u[i] + u[n + i]
-        dx[i] = x[n + i]
-    model.forward_dynamics(x[:n], x[n:], tau, theta, dx[n:])
+        tau[i] = u.tau[i] + u.tau_d[i]
+        dx.q[i] = x.dq[i]
+    model.forward_dynamics(x.q, x.dq, tau, theta, dx.dq)
 
 
 def plant_output(t, x, u, y, theta):
-    # outputs  y = [q (n), dq (n)] (positions and velocities are measured)
-    for i in range(x.shape[0]):
-        y[i] = x[i]
+    # outputs  y.q, y.dq (positions and velocities are measured)
+    for i in range(x.q.shape[0]):
+        y.q[i] = x.q[i]
+        y.dq[i] = x.dq[i]
 
 
 def plant(model, *, theta=None, q0=None, dq0=None, name="plant"):
@@ -49,5 +51,5 @@ def plant(model, *, theta=None, q0=None, dq0=None, name="plant"):
                      outputs=[("q", n), ("dq", n)], states=[("q", n), ("dq", n)],
                      x0=np.concatenate([q0, dq0]), param_names=("theta",),
                      update=plant_update, output=plant_output, direct=(), model=model,
-                     validate=validate)
+                     validate=validate, named_ports=True)
     return make_block(spec, {"theta": theta})

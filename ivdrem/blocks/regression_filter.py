@@ -11,46 +11,43 @@ from . import _validate as checks
 
 
 def regression_filter_update(t, x, u, dx, l, ntheta):
-    # states   x = [z (n), xi (n*nθ), eta (n*nθ)]
-    # inputs   u = [tau, q, dq] (n each)
+    # states   x.z (n), x.xi (n*nθ), x.eta (n*nθ)   (xi, eta: n x nθ row-major)
+    # inputs   u.tau, u.q, u.dq (n each)
     # params   l > 0, ntheta
-    n = u.shape[0] // 3
-    m = n * ntheta
-    q = u[n:2 * n]
-    dq = u[2 * n:3 * n]
+    n = u.q.shape[0]
     for i in range(n):
-        dx[i] = l * (u[i] - x[i])                         # dz = l (tau - z)
+        dx.z[i] = l * (u.tau[i] - x.z[i])                 # dz = l (tau - z)
     A = np.empty((n, ntheta))
     B = np.empty((n, ntheta))
     C = np.empty((n, ntheta))
     D = np.empty((n, ntheta))
-    model.Phi_M(q, dq, A)
+    model.Phi_M(u.q, u.dq, A)
     for i in range(n):
         for j in range(ntheta):
-            k = n + i * ntheta + j
-            dx[k] = l * (A[i, j] - x[k])                  # dxi = l (Phi_M^T(q,dq) - xi)
-    # deta = l (-Phi_dM^T(q,dq,dq) + Phi_C^T(q,dq,dq) + Phi_F^T + Phi_G^T - eta)
-    model.Phi_C(q, dq, dq, A)
-    model.Phi_dM(q, dq, dq, B)
-    model.Phi_F(dq, C)
-    model.Phi_G(q, D)
+            k = i * ntheta + j
+            dx.xi[k] = l * (A[i, j] - x.xi[k])            # dxi = l (Phi_M^T(q,dq) - xi)
+    # deta = l (-Phi_dM^T(q,dq,dq) + Phi_C^T(q,dq,dq) + Phi_F^T + Phi_G^T - eta)   (13)
+    model.Phi_C(u.q, u.dq, u.dq, A)
+    model.Phi_dM(u.q, u.dq, u.dq, B)
+    model.Phi_F(u.dq, C)
+    model.Phi_G(u.q, D)
     for i in range(n):
         for j in range(ntheta):
-            k = n + m + i * ntheta + j
-            dx[k] = l * (A[i, j] - B[i, j] + C[i, j] + D[i, j] - x[k])
+            k = i * ntheta + j
+            dx.eta[k] = l * (A[i, j] - B[i, j] + C[i, j] + D[i, j] - x.eta[k])
 
 
 def regression_filter_output(t, x, u, y, l, ntheta):
-    # outputs  y = [z (n), phi^T (n*nθ)],  phi^T = l (Phi_M^T(q,dq) - xi) + eta
-    n = u.shape[0] // 3
-    m = n * ntheta
+    # outputs  y.z (n), y.phi (phi^T, n*nθ row-major),
+    #          phi^T = l (Phi_M^T(q,dq) - xi) + eta                               (13)
+    n = u.q.shape[0]
     A = np.empty((n, ntheta))
-    model.Phi_M(u[n:2 * n], u[2 * n:3 * n], A)
+    model.Phi_M(u.q, u.dq, A)
     for i in range(n):
-        y[i] = x[i]
+        y.z[i] = x.z[i]
         for j in range(ntheta):
             k = i * ntheta + j
-            y[n + k] = l * (A[i, j] - x[n + k]) + x[n + m + k]
+            y.phi[k] = l * (A[i, j] - x.xi[k]) + x.eta[k]
 
 
 def regression_filter(model, l=50.0, *, name="regression_filter"):
@@ -72,6 +69,6 @@ def regression_filter(model, l=50.0, *, name="regression_filter"):
                      states=[("z", n), ("xi", n * nth), ("eta", n * nth)],
                      x0=np.zeros(n + 2 * n * nth), param_names=("l", "ntheta"),
                      update=regression_filter_update, output=regression_filter_output,
-                     direct=("q", "dq"), model=model, validate=validate,
+                     direct=("q", "dq"), model=model, validate=validate, named_ports=True,
                      constants={"ntheta": nth})
     return make_block(spec, {"l": l})

@@ -12,18 +12,18 @@ from . import _validate as checks
 
 
 def sliding_window_update(t, x, u, dx):
-    # states   x = I (m) ;  inputs u = [g (m), I(t-T) (m)] ;  dI = g
-    for i in range(x.shape[0]):
-        dx[i] = u[i]
+    # states   x.I (m) = int_{t0}^{t} g ds ;  inputs u.g (m), u.I_delayed (m) = I(t - T)
+    # dI = g   (15a)
+    for i in range(x.I.shape[0]):
+        dx.I[i] = u.g[i]
 
 
 def sliding_window_output(t, x, u, y):
-    # outputs  y = [I (m), dI = g (m), y = I - I(t-T) (m)]
-    m = x.shape[0]
-    for i in range(m):
-        y[i] = x[i]
-        y[m + i] = u[i]
-        y[2 * m + i] = x[i] - u[m + i]
+    # outputs  y.I = I (m), y.dI = g (m), y.window = I - I(t - T) (m): the integral (15a)
+    for i in range(x.I.shape[0]):
+        y.I[i] = x.I[i]
+        y.dI[i] = u.g[i]
+        y.window[i] = x.I[i] - u.I_delayed[i]
 
 
 def sliding_window(size, *, input="ext_g", prefix="window", name="sliding_window"):
@@ -41,7 +41,10 @@ def sliding_window(size, *, input="ext_g", prefix="window", name="sliding_window
                               (f"{prefix}_y", size)],
                      states=[(f"{prefix}_I", size)], x0=np.zeros(size), param_names=(),
                      update=sliding_window_update, output=sliding_window_output,
-                     direct=(input, f"{prefix}_I_delayed"))
+                     direct=(input, f"{prefix}_I_delayed"), named_ports=True,
+                     kernel_names={input: "g", f"{prefix}_I_delayed": "I_delayed",
+                                   f"{prefix}_I": "I", f"{prefix}_dI": "dI",
+                                   f"{prefix}_y": "window"})
     return make_block(spec, {})
 
 

@@ -8,21 +8,20 @@ from . import _validate as checks
 
 
 def sinusoid_trajectory_output(t, x, u, y, amplitude, omega, phase, offset):
-    # outputs  y = [q_d (n), dq_d (n), ddq_d (n)]
-    # params   q_d,i = A_i sin(w_i t + phi_i) + c_i
-    n = amplitude.shape[0]
-    for i in range(n):
+    # outputs  y.q_d, y.dq_d, y.ddq_d (n each)
+    # params   q_d,i = A_i sin(w_i t + phi_i) + c_i   (A, w, phi, c: n each)
+    for i in range(amplitude.shape[0]):
         s = np.sin(omega[i] * t + phase[i])
         c = np.cos(omega[i] * t + phase[i])
-        y[i] = amplitude[i] * s + offset[i]
-        y[n + i] = amplitude[i] * omega[i] * c
-        y[2 * n + i] = -amplitude[i] * omega[i] * omega[i] * s
+        y.q_d[i] = amplitude[i] * s + offset[i]
+        y.dq_d[i] = amplitude[i] * omega[i] * c
+        y.ddq_d[i] = -amplitude[i] * omega[i] * omega[i] * s
 
 
 def sinusoid_output(t, x, u, y, amplitude, omega, phase, offset):
-    # outputs  y = A_i sin(w_i t + phi_i) + c_i
+    # outputs  y.signal (n): A_i sin(w_i t + phi_i) + c_i
     for i in range(amplitude.shape[0]):
-        y[i] = amplitude[i] * np.sin(omega[i] * t + phase[i]) + offset[i]
+        y.signal[i] = amplitude[i] * np.sin(omega[i] * t + phase[i]) + offset[i]
 
 
 _SINE = ("amplitude", "omega", "phase", "offset")
@@ -55,7 +54,8 @@ def trajectory(n, amplitude, omega, phase=None, offset=None, *, name="trajectory
     p = _sine_params(name, n, "q_d", amplitude, omega, phase, offset)
     spec = BlockSpec(name=name, inputs=[], outputs=[("q_d", n), ("dq_d", n), ("ddq_d", n)],
                      states=[], x0=np.zeros(0), param_names=tuple(p),
-                     output=sinusoid_trajectory_output, validate=_sine_validate(name, n, "q_d"))
+                     output=sinusoid_trajectory_output, validate=_sine_validate(name, n, "q_d"),
+                     named_ports=True)
     return make_block(spec, p)
 
 
@@ -73,14 +73,16 @@ def disturbance(n, amplitude, omega, phase=None, offset=None, *, name="disturban
     p = _sine_params(name, n, signal, amplitude, omega, phase, offset)
     spec = BlockSpec(name=name, inputs=[], outputs=[(signal, n)], states=[], x0=np.zeros(0),
                      param_names=tuple(p), output=sinusoid_output,
-                     validate=_sine_validate(name, n, signal))
+                     validate=_sine_validate(name, n, signal), named_ports=True,
+                     kernel_names={signal: "signal"})
     return make_block(spec, p)
 
 
 def mu_schedule_output(t, x, u, y, mu0, mu1):
-    # outputs  y = [mu, dmu]: mu(t) = mu0 t + mu1 (Remark 1), dmu = mu0
-    y[0] = mu0 * t + mu1
-    y[1] = mu0
+    # outputs  y.mu[0] = mu0 t + mu1 (Remark 1), y.dmu[0] = mu0
+    # params   mu0 >= 0, mu1 > 0
+    y.mu[0] = mu0 * t + mu1
+    y.dmu[0] = mu0
 
 
 def mu_schedule(mu0=1.0, mu1=15.0, *, name="mu_schedule"):
@@ -100,5 +102,5 @@ def mu_schedule(mu0=1.0, mu1=15.0, *, name="mu_schedule"):
         return p
     spec = BlockSpec(name=name, inputs=[], outputs=[("mu", 1), ("dmu", 1)], states=[],
                      x0=np.zeros(0), param_names=("mu0", "mu1"), output=mu_schedule_output,
-                     validate=validate)
+                     validate=validate, named_ports=True)
     return make_block(spec, {"mu0": mu0, "mu1": mu1})

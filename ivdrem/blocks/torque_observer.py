@@ -13,65 +13,51 @@ _VARIANTS = {"corrected": 1.0, "literal": 0.0}
 
 
 def torque_observer_update(t, x, u, dx, n, ntheta, literal_e1):
-    # states   x = [Phi_f^T (n*nθ), Phi_Mf^T (n*nθ), u_f (n)]
-    # inputs   u = [q, dq, r, v, dv (n each), mu, dmu, tau (n), theta_hat (nθ)]
+    # states   x.Phi_f, x.Phi_Mf (Phi_f^T, Phi_Mf^T: n*nθ row-major), x.u_f (n)
+    # inputs   u.q, u.dq, u.r, u.v, u.dv (n), u.mu[0], u.dmu[0], u.tau (n), u.theta_hat (nθ)
     # params   n, ntheta, literal_e1 (0: erratum E1 gain mu + dmu/mu; 1: the paper's mu)
-    m = n * ntheta
-    q = u[0:n]
-    dq = u[n:2 * n]
-    r = u[2 * n:3 * n]
-    v = u[3 * n:4 * n]
-    dv = u[4 * n:5 * n]
-    mu = u[5 * n]
-    dmu = u[5 * n + 1]
+    mu = u.mu[0]
     A = np.empty((n, ntheta))
     B = np.empty((n, ntheta))
     C = np.empty((n, ntheta))
-    model.Phi(q, dq, v, dv, A)
-    model.Phi_C(q, dq, r, B)
-    model.Phi_dM(q, dq, r, C)
-    # dPhi_f = mu (Phi^T(q,dq,v,dv) - Phi_C^T(q,dq,r) + Phi_dM^T(q,dq,r) - Phi_f)
+    model.Phi(u.q, u.dq, u.v, u.dv, A)
+    model.Phi_C(u.q, u.dq, u.r, B)
+    model.Phi_dM(u.q, u.dq, u.r, C)
+    # dPhi_f = mu (Phi^T(q,dq,v,dv) - Phi_C^T(q,dq,r) + Phi_dM^T(q,dq,r) - Phi_f)   (7)
     for i in range(n):
         for j in range(ntheta):
             k = i * ntheta + j
-            dx[k] = mu * (A[i, j] - B[i, j] + C[i, j] - x[k])
-    # dPhi_Mf = (mu + dmu/mu) (Phi_M^T(q,r) - Phi_Mf)   (E1; literal: gain mu)
-    model.Phi_M(q, r, A)
-    g = mu + (1.0 - literal_e1) * dmu / mu
+            dx.Phi_f[k] = mu * (A[i, j] - B[i, j] + C[i, j] - x.Phi_f[k])
+    # dPhi_Mf = (mu + dmu/mu) (Phi_M^T(q,r) - Phi_Mf)   (7) with E1; literal: gain mu
+    model.Phi_M(u.q, u.r, A)
+    g = mu + (1.0 - literal_e1) * u.dmu[0] / mu
     for i in range(n):
         for j in range(ntheta):
             k = i * ntheta + j
-            dx[m + k] = g * (A[i, j] - x[m + k])
-    # du_f = mu (u - u_f), u = -tau
+            dx.Phi_Mf[k] = g * (A[i, j] - x.Phi_Mf[k])
+    # du_f = mu (u - u_f) with u = -tau   (7)
     for i in range(n):
-        dx[2 * m + i] = mu * (-u[5 * n + 2 + i] - x[2 * m + i])
+        dx.u_f[i] = mu * (-u.tau[i] - x.u_f[i])
 
 
 def torque_observer_output(t, x, u, y, n, ntheta, literal_e1):
-    # outputs  y = [Pi^T (n*nθ), u_f (n), tau_d_hat (n)]
+    # outputs  y.Pi (Pi^T, n*nθ row-major), y.u_f (n), y.tau_d_hat (n)
     #   Pi^T = mu (Phi_M^T(q,r) - Phi_Mf^T) + Phi^T(q,dq,v,dv) - Phi_f^T      (eq. 8)
     #   tau_d_hat = -mu (Phi_M^T(q,r) - Phi_Mf^T - Phi_f^T/mu) theta_hat + u_f (Section 4)
-    m = n * ntheta
-    q = u[0:n]
-    dq = u[n:2 * n]
-    r = u[2 * n:3 * n]
-    v = u[3 * n:4 * n]
-    dv = u[4 * n:5 * n]
-    mu = u[5 * n]
-    th0 = 6 * n + 2
+    mu = u.mu[0]
     PM = np.empty((n, ntheta))
     P = np.empty((n, ntheta))
-    model.Phi_M(q, r, PM)
-    model.Phi(q, dq, v, dv, P)
+    model.Phi_M(u.q, u.r, PM)
+    model.Phi(u.q, u.dq, u.v, u.dv, P)
     for i in range(n):
         s = 0.0
         for j in range(ntheta):
             k = i * ntheta + j
-            e = mu * (PM[i, j] - x[m + k]) - x[k]
-            y[k] = e + P[i, j]
-            s += e * u[th0 + j]
-        y[m + i] = x[2 * m + i]
-        y[m + n + i] = -s + x[2 * m + i]
+            e = mu * (PM[i, j] - x.Phi_Mf[k]) - x.Phi_f[k]
+            y.Pi[k] = e + P[i, j]
+            s += e * u.theta_hat[j]
+        y.u_f[i] = x.u_f[i]
+        y.tau_d_hat[i] = -s + x.u_f[i]
 
 
 def torque_observer(model, *, variant="corrected", name="torque_observer"):
@@ -97,6 +83,6 @@ def torque_observer(model, *, variant="corrected", name="torque_observer"):
         states=[("Phi_f", m), ("Phi_Mf", m), ("u_f", n)], x0=np.zeros(2 * m + n),
         param_names=("n", "ntheta", "literal_e1"),
         update=torque_observer_update, output=torque_observer_output,
-        direct=("q", "dq", "r", "v", "dv", "mu", "theta_hat"), model=model,
+        direct=("q", "dq", "r", "v", "dv", "mu", "theta_hat"), model=model, named_ports=True,
         constants={"n": n, "ntheta": nth, "literal_e1": 1.0 - _VARIANTS[variant]})
     return make_block(spec, {})

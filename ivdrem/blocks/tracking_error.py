@@ -8,17 +8,17 @@ from . import _validate as checks
 
 
 def tracking_error_output(t, x, u, y, alpha):
-    # inputs   u = [q, dq, q_d, dq_d, ddq_d] (n each)
-    # outputs  y = [e, r, v, dv] (n each); dv = ddq_d + alpha de (no acceleration measured)
+    # inputs   u.q, u.dq, u.q_d, u.dq_d, u.ddq_d (n each)
+    # outputs  y.e, y.r, y.v, y.dv (n each): e = q_d - q, r = de + alpha e, v = dq_d + alpha e,
+    #          dv = ddq_d + alpha de (no acceleration measured)                  (3)-(4)
     # params   alpha > 0
-    n = u.shape[0] // 5
-    for i in range(n):
-        e = u[2 * n + i] - u[i]
-        de = u[3 * n + i] - u[n + i]
-        y[i] = e
-        y[n + i] = de + alpha * e
-        y[2 * n + i] = u[3 * n + i] + alpha * e
-        y[3 * n + i] = u[4 * n + i] + alpha * de
+    for i in range(u.q.shape[0]):
+        e = u.q_d[i] - u.q[i]
+        de = u.dq_d[i] - u.dq[i]
+        y.e[i] = e
+        y.r[i] = de + alpha * e
+        y.v[i] = u.dq_d[i] + alpha * e
+        y.dv[i] = u.ddq_d[i] + alpha * de
 
 
 def tracking_error(n, alpha=1.0, *, name="tracking_error"):
@@ -37,5 +37,6 @@ def tracking_error(n, alpha=1.0, *, name="tracking_error"):
                      inputs=[("q", n), ("dq", n), ("q_d", n), ("dq_d", n), ("ddq_d", n)],
                      outputs=[("e", n), ("r", n), ("v", n), ("dv", n)], states=[],
                      x0=np.zeros(0), param_names=("alpha",), output=tracking_error_output,
-                     direct=("q", "dq", "q_d", "dq_d", "ddq_d"), validate=validate)
+                     direct=("q", "dq", "q_d", "dq_d", "ddq_d"), validate=validate,
+                     named_ports=True)
     return make_block(spec, {"alpha": alpha})

@@ -10,11 +10,16 @@ from ..sim.plan import check_signal_sizes, signal_sizes
 
 __all__ = ["closed_loop", "LAWS", "assemble", "check_connected"]
 
-#: Names of the registered composite terms vartheta_c (``ivdrem.laws``): "iv-drem"
-#: (proposed, eq. 21), "composite-learning" (eq. 35, Pan & Yu), "drem" (DREM with phi in
-#: place of the instrument), "sigma-modification" (erratum E5), "none" (plain
-#: disturbance-rejection adaptive control); plus any law added by ``register_law``.
-LAWS = law_registry.law_names()
+#: ``LAWS``: names of the registered composite terms vartheta_c (``ivdrem.laws``), read
+#: from the registry on every access: "iv-drem" (proposed, eq. 21), "composite-learning"
+#: (eq. 35, Pan & Yu), "drem" (DREM with phi in place of the instrument),
+#: "sigma-modification" (erratum E5), "none" (plain disturbance-rejection adaptive
+#: control); plus any law added by ``register_law``.
+def __getattr__(name):
+    if name == "LAWS":
+        return law_registry.law_names()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 PAPER_TRAJECTORY = dict(amplitude=[0.4 * np.pi, 0.3 * np.pi], omega=[2.0, 0.3],
                         phase=[0.0, np.pi / 2], offset=[0.2 * np.pi, 0.3 * np.pi])

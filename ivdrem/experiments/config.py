@@ -23,7 +23,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ..laws import get_law, law_names
+from ..laws import LAWS as _LAW_REGISTRY, get_law, law_names
 
 try:  # Python >= 3.11
     import tomllib
@@ -42,11 +42,20 @@ __all__ = [
     "closed_loop_kwargs",
     "solver_kwargs",
     "dump_toml",
+    "schema",
 ]
 
 #: Adaptation laws known to the closed-loop diagrams (the registry ``ivdrem.laws``;
-#: ``experiment.laws = "all"`` runs every registered law).
-LAWS = law_names()
+#: ``experiment.laws = "all"`` runs every registered law).  ``LAWS`` is read from the
+#: registry on every access (module ``__getattr__`` below), so a law registered later is in it.
+
+
+def __getattr__(name):
+    if name == "LAWS":
+        return law_names()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 #: Integration methods of ivdrem's simulator.
 from ..sim.simulator import METHODS as SOLVER_METHODS  # noqa: E402  (one source of truth)
 #: Variants of the Φ_Mf filter gain (erratum E1).
@@ -211,8 +220,12 @@ def _follow_model(cfg: dict, user_set: set) -> None:
 
 # --------------------------------------------------------------------------- loading
 def default_config() -> dict:
-    """A fresh copy of the embedded default configuration."""
-    return copy.deepcopy(_default_raw())
+    """A fresh copy of the embedded default configuration, with the default gains of every
+    registered law that has a section of its own (:func:`_law_sections`)."""
+    cfg = copy.deepcopy(_default_raw())
+    for section, defaults in _law_sections().items():
+        cfg[section] = copy.deepcopy(defaults)
+    return cfg
 
 
 _DEFAULT_CACHE: dict | None = None
@@ -310,18 +323,49 @@ def _suggest(word: str, valid, prefix=" (did you mean ", suffix="?)") -> str:
     return f"{prefix}'{close[0]}'{suffix}" if close else ""
 
 
+def _law_key(value) -> _Key:
+    """Schema entry of a registered law's gain, from its default: a number or a vector."""
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return _Key("vec")
+    return _Key("float")
+
+
+def _law_sections() -> dict:
+    """{section: {key: default}} of the registered laws whose ``section`` the built-in
+    schema does not have: a law added with ``register_law(Law(..., section="my_law",
+    defaults=...))`` is configured in its own table [my_law], keys = its numeric defaults."""
+    out = {}
+    for law in _LAW_REGISTRY.values():
+        if law.section and law.section not in SCHEMA and law.section not in out:
+            out[law.section] = {k: (list(np.asarray(v, float).ravel())
+                                    if isinstance(v, (list, tuple, np.ndarray)) else v)
+                                for k, v in law.defaults.items()
+                                if v is not None and not isinstance(v, (str, bool))}
+    return out
+
+
+def schema() -> dict:
+    """The configuration's sections and keys: :data:`SCHEMA` plus one section per
+    registered law that brings its own (:func:`_law_sections`)."""
+    out = dict(SCHEMA)
+    for section, defaults in _law_sections().items():
+        out[section] = {k: _law_key(v) for k, v in defaults.items()}
+    return out
+
+
 def _check_section(section: str) -> None:
-    if section not in SCHEMA:
+    sch = schema()
+    if section not in sch:
         raise ConfigError(
             f"config section '{section}' is not known"
-            + _suggest(section, SCHEMA)
+            + _suggest(section, sch)
             + "; valid sections: "
-            + ", ".join(SCHEMA)
+            + ", ".join(sch)
         )
 
 
 def _check_key(section: str, key: str) -> None:
-    valid = SCHEMA[section]
+    valid = schema()[section]
     if key not in valid:
         full = [f"{section}.{k}" for k in valid]
         raise ConfigError(
@@ -359,7 +403,11 @@ def validate_config(cfg: Mapping) -> dict:
             raise ConfigError(f"config section '{section}' must be a table ([{section}])")
         for key in cfg[section]:
             _check_key(section, key)
-    for section, keys in SCHEMA.items():
+    sch = schema()
+    law_defaults = _law_sections()
+    for section, keys in sch.items():
+        if section in law_defaults:       # a registered law's own table: defaults fill gaps
+            cfg = {**cfg, section: {**law_defaults[section], **cfg.get(section, {})}}
         if section not in cfg:
             raise ConfigError(f"config section '{section}' is missing")
         out[section] = {}
@@ -370,7 +418,7 @@ def validate_config(cfg: Mapping) -> dict:
 
     n, ntheta = model_dims(out["model"]["name"])
     dims = {"n": n, "ntheta": ntheta}
-    for section, keys in SCHEMA.items():
+    for section, keys in sch.items():
         for key, spec in keys.items():
             value = out[section][key]
             if spec.length is None or not isinstance(value, list):
@@ -388,7 +436,7 @@ def validate_config(cfg: Mapping) -> dict:
         # lengths against nθ cannot be checked here; at least they must agree
         lengths = {
             f"{s}.{k}": len(out[s][k])
-            for s, keys in SCHEMA.items()
+            for s, keys in sch.items()
             for k, spec in keys.items()
             if spec.length == "ntheta" and isinstance(out[s][k], list)
         }
@@ -506,8 +554,14 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
         cl = c["composite_learning"]
         kw.update(T=float(cl["T"]), gamma=float(cl["gamma"]), epsilon=float(cl["epsilon"]))
     elif law not in ("sigma-modification", "none"):
-        # a user law (ivdrem.laws.register_law): its gains are its registry defaults
-        kw["law_params"] = dict(get_law(law).defaults)
+        # a user law (ivdrem.laws.register_law): its registry defaults, overridden by its
+        # own configuration table if it has one
+        spec = get_law(law)
+        table = c.get(spec.section, {}) if spec.section else {}
+        kw["law_params"] = {k: (np.asarray(table[k], dtype=float) if isinstance(table.get(k), list)
+                                else table.get(k, v)) for k, v in spec.defaults.items()}
+        if kw["law_params"].get("gamma") == "auto":   # a law sharing [iv_drem]: closed_loop's rule
+            kw["gamma"] = kw["law_params"].pop("gamma")
     else:
         kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]))
         if law == "sigma-modification":
