@@ -878,7 +878,7 @@ def test_extension_kernel(instrument):
     u = np.concatenate([z, phiT.ravel()] + ([zetaT.ravel()] if instrument else []))
     y = np.full(nth + nth * nth, np.nan)
     kernel(block_library.extension(n, nth, instrument=instrument), "output")(
-        0.0, np.zeros(0), u, y, n, nth)
+        0.0, np.zeros(0), u, y, n, nth, int(instrument))
     Z = zetaT if instrument else phiT
     assert np.allclose(y[:nth], Z.T @ z, rtol=1e-13)
     assert np.allclose(y[nth:].reshape(nth, nth), Z.T @ phiT, rtol=1e-13)

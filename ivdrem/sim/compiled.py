@@ -160,10 +160,10 @@ def _hash(text):
 def kernel_call(b, role, kernel, t, x, u, out, pargs):
     """Source of one call of block b's kernel `role` ("update", "output", "jacobian").
 
-    `kernel` is the kernel's local name in the generated module; `x`, `u` and `out` are
+    `kernel` is the kernel's local name in the wrapper module; `x`, `u` and `out` are
     expressions for the block's flat state, input and output (or derivative, or local
     Jacobian) vectors; `pargs` the parameter arguments, each preceded by ", ".  Every
-    kernel call of the generated code is built here, so the calling convention lives in
+    kernel call of the generated wrappers is built here, so the calling convention lives in
     one place.
     """
     return f"{kernel}({t}, {x}, {u}, {out}{pargs})"
@@ -304,7 +304,7 @@ _stepper = {}
 
 def stepper_module():
     """(module name, source) of the shared stepper (ivdrem.sim.stepper), one per version
-    of the template: every diagram module imports it instead of compiling its own."""
+    of the template and the diagram functions: every diagram runs on it."""
     if "src" not in _stepper:
         src = stepper_source()
         _stepper["src"] = (f"ivdrem_stepper_{_hash(src)}", src)
