@@ -206,8 +206,16 @@ def test_custom_law_example_runs_and_reduces_to_iv_drem():
         term = [s for s in d.syslist if s.name == "normalised_term"][0]
         assert term.ivdrem.named_ports and term.params["nu"] == 1.0
         tiny = simulate(d, 2.0, progress=False, params={"nu": 1e-300})
+        # the right-hand sides agree to the last bit, but IV-DREM's term has an analytic
+        # Jacobian and the example's is differenced, so Rodas5P's steps differ slightly: the
+        # two agree to the solver's tolerance (and bit for bit with the same steps, DP45)
         np.testing.assert_allclose(signal(tiny, "theta_hat"), signal(out["iv-drem"], "theta_hat"),
-                                   rtol=1e-12, atol=1e-15)
+                                   rtol=1e-6, atol=1e-9)
+        explicit = [simulate(closed_loop(law, MODEL), 2.0, progress=False, method="dp45",
+                             params=p) for law, p in (("normalised-iv-drem", {"nu": 1e-300}),
+                                                     ("iv-drem", None))]
+        np.testing.assert_allclose(signal(explicit[0], "theta_hat"),
+                                   signal(explicit[1], "theta_hat"), rtol=1e-12, atol=1e-15)
         # and at the example's nu = 1 the two laws differ once Delta is active (t > 0)
         assert np.max(np.abs(signal(out["normalised-iv-drem"], "theta_hat")
                              - signal(out["iv-drem"], "theta_hat"))) > 0.0
