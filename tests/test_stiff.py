@@ -16,15 +16,14 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-
-from ivdrem.sim.tables import empty_tables, pack
 import pytest
 
 import ivdrem.sim as sim
 from ivdrem.sim import _template as tpl
+from ivdrem.sim.tables import empty_tables, pack
 from ivdrem.sim import (METHODS, METHOD_TABLE, SimulationError, StiffnessWarning, simulate)
 
-from conftest import build_lab, sig
+from conftest import build_lab, paper_loop, sig
 
 
 # ----------------------------------------------------------------- the tableau, symbolically
@@ -413,3 +412,29 @@ def test_composite_learning_theta_hat_and_hold_time_do_not_depend_on_the_method(
     assert a.hold_times[0] == b.hold_times[0]
     assert 19.0 < a.hold_times[0] < 21.0
     assert abs(sig(a, "lambda_min_held")[0, -1] / sig(b, "lambda_min_held")[0, -1] - 1) < 1e-6
+
+
+def test_probing_a_hold_evaluates_only_what_feeds_it():
+    """While the loop probes composite learning's max-hold at interpolated points, the
+    table-driven diagram evaluates only the blocks the hold's inputs depend on; the run is
+    bit for bit the one that sweeps every block at every probe."""
+    from ivdrem.sim.simulator import Simulator
+    from ivdrem.sim.tables import pack as pack_tables
+    loop = paper_loop("composite-learning")
+    fast = Simulator(loop)
+    tb = fast.engine.tables
+    names = {loop.syslist[k].name for k in tb.probe_order}
+    assert names == {"plant", "regression_filter", "extension", "window_delay",
+                     "window_integrator"}, names
+    full = Simulator(loop)
+    everything = tb._replace(probe_order=tb.order, probe_fill=np.concatenate(
+        [tb.fill_order, tb.fill_rest]))
+    ints, floats = pack_tables(everything)
+    full.W = full.W._replace(table_ints=ints, table_floats=floats)
+    full._Wref[0] = full.W
+    t_out = np.linspace(0.0, 25.0, 26)
+    a = np.array([fast.advance(t) or fast.outputs_at_current() for t in t_out[1:]])
+    b = np.array([full.advance(t) or full.outputs_at_current() for t in t_out[1:]])
+    assert fast.stats[tpl.S_PROBES] > 1000 and fast.stats[tpl.S_PROBES] == full.stats[tpl.S_PROBES]
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(fast.hold_times(), full.hold_times())

@@ -128,6 +128,11 @@ def diagram_eval(mode, t, x, P, W, out):
     if mode == AFTER_STEP_EVALUATED:
         mode = AFTER_STEP
     else:
+        if mode == AFTER_STEP and W[13][0] != 0:
+            # probing a max-hold at an interpolated point: only the signals its inputs
+            # depend on (the loop sweeps everything again before it uses the others)
+            order = int_table(ti, T_PROBE_ORDER)
+            fill_rest = int_table(ti, T_PROBE_FILL)
         # signals, in topological order of direct feedthrough
         for i in range(order.shape[0]):
             k = order[i]

@@ -21,7 +21,8 @@ __all__ = ["DiagramTables", "TABLES_LAYOUT", "DIMS", "build_tables", "empty_tabl
 #: (field, dtype, ndim) of DiagramTables
 TABLES_LAYOUT = (
     ("blocks", "int64", 2), ("order", "int64", 1), ("fill_order", "int64", 1),
-    ("fill_rest", "int64", 1), ("in_ptr", "int64", 1), ("in_src", "int64", 1),
+    ("fill_rest", "int64", 1), ("probe_order", "int64", 1), ("probe_fill", "int64", 1),
+    ("in_ptr", "int64", 1), ("in_src", "int64", 1),
     ("in_gain", "float64", 1), ("delays", "int64", 2), ("holds", "int64", 2),
     ("rec_ptr", "int64", 1), ("rec_src", "int64", 1), ("rec_gain", "float64", 1),
     ("wrapper_nx", "int64", 1), ("dims", "int64", 1),
@@ -112,6 +113,21 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         filled |= set(direct)
         blocks[k, _diagram.B_FILL1] = len(fill_order)
     rest = [i for i in range(nu_total) if i not in filled]
+    # while the loop probes a max-hold at an interpolated point only the hold's inputs
+    # matter: the blocks they depend on through direct feedthrough, in the same order
+    owner = plan.output_owner()
+    hold_inputs = [i for b in plan.blocks if b.spec.kind == "maxhold"
+                   for i in range(b.u.start, b.u.stop)]
+    needed, stack = set(), [int(owner[j]) for i in hold_inputs for j, _ in plan.conn[i]]
+    while stack:
+        k = stack.pop()
+        if k in needed:
+            continue
+        needed.add(k)
+        b = plan.blocks[k]
+        if b.spec.kind == "ode":
+            stack += [int(owner[j]) for i in b.direct_inputs for j, _ in plan.conn[int(i)]]
+    probe_order = [k for k in plan.order if k in needed]
     # the connection map (and input map) as sparse rows: sources >= 0 are block outputs,
     # -1 - j is diagram input j
     Cin = np.asarray(d.input_map)
@@ -147,7 +163,8 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
                 NSLOTS=prog.n_slots)
     return DiagramTables(
         blocks=blocks, order=_i64(plan.order), fill_order=_i64(fill_order),
-        fill_rest=_i64(rest), in_ptr=_i64(in_ptr), in_src=_i64(in_src),
+        fill_rest=_i64(rest), probe_order=_i64(probe_order), probe_fill=_i64(hold_inputs),
+        in_ptr=_i64(in_ptr), in_src=_i64(in_src),
         in_gain=np.asarray(in_gain, dtype=float), delays=_i64(delays, _diagram.N_DELAY_COLUMNS),
         holds=_i64(holds, _diagram.N_HOLD_COLUMNS), rec_ptr=_i64(rec_ptr), rec_src=_i64(rec_src),
         rec_gain=np.asarray(rec_gain, dtype=float), wrapper_nx=_i64(wrapper_nx),
