@@ -93,17 +93,23 @@ def kernel_call(kernels, failure, wrapper_nx, j, t, x, x0, u, u0, out, o0, P, p0
         raise RuntimeError(BLOCK_RAISED_MESSAGE)
 
 
-def fill_input(in_ptr, in_src, in_gain, k, ys, us, ue):
-    """us[k] = sum of gain * source over the connection map's row k (block outputs, or
-    diagram inputs where the source is negative: -1 - index)."""
+def row_sum(ptr, src, gain, r, pos, neg):
+    """Sum of gain * source over sparse row r: a source j >= 0 is pos[j], a negative one
+    neg[-1 - j] (the connection map: block outputs / diagram inputs; the output map: block
+    outputs / block inputs)."""
     s = 0.0
-    for e in range(in_ptr[k], in_ptr[k + 1]):
-        j = in_src[e]
+    for e in range(ptr[r], ptr[r + 1]):
+        j = src[e]
         if j >= 0:
-            s += in_gain[e] * ys[j]
+            s += gain[e] * pos[j]
         else:
-            s += in_gain[e] * ue[-1 - j]
-    us[k] = s
+            s += gain[e] * neg[-1 - j]
+    return s
+
+
+def fill_input(in_ptr, in_src, in_gain, k, ys, us, ue):
+    """us[k] from the connection map's row k (block outputs ys, diagram inputs ue)."""
+    us[k] = row_sum(in_ptr, in_src, in_gain, k, ys, ue)
 
 
 def diagram_eval(mode, t, x, P, W, out):
@@ -193,14 +199,7 @@ def diagram_eval(mode, t, x, P, W, out):
     rec_src = int_table(ti, T_REC_SRC)
     rec_gain = float_table(ti, tf, TF_REC_GAIN)
     for r in range(rec_ptr.shape[0] - 1):
-        s = 0.0
-        for e in range(rec_ptr[r], rec_ptr[r + 1]):
-            j = rec_src[e]
-            if j >= 0:
-                s += rec_gain[e] * ys[j]
-            else:
-                s += rec_gain[e] * us[-1 - j]
-        out[r] = s
+        out[r] = row_sum(rec_ptr, rec_src, rec_gain, r, ys, us)
     return OK
 
 

@@ -27,8 +27,8 @@ dense output, the after-step work (delay history, holds), output rows, divergenc
 stiffness checks.  The method table (name -> id, step function, order, properties) lives
 in ``ivdrem.sim.simulator``; ``method_step`` dispatches on the id.
 
-Workspace ``W`` (a namedtuple ``ivdrem.sim.simulator.Workspace``; generated code indexes it
-by position): 0 hist_t[cap], 1 hist_v[cap, nd], 2 hist_d[cap, nd], 3 hist_meta[int64:
+Workspace ``W`` (a namedtuple ``ivdrem.sim.simulator.Workspace``; the compiled code indexes
+it by position): 0 hist_t[cap], 1 hist_v[cap, nd], 2 hist_d[cap, nd], 3 hist_meta[int64:
 start, count, cap, keep_from_time_index], 4 held[nh], 5 score[nmh], 6 ys (block outputs),
 7 us (block inputs), 8 u_ext (diagram inputs at the current evaluation, see
 ``external_inputs``), 9 hold_dt[nmh] (sampling
@@ -37,7 +37,8 @@ the next after-step evaluation), 11 hold_time[nmh] (time of the last update, t_e
 12 hold_vec[nmh, nmat] (eigenvector of lambda_min of the held matrix), 13 probing[int64, 1]
 (1 while the loop probes a hold at an interpolated point: no history push), 14 clock[1]
 (time of the current after-step evaluation), 15 u_times[nut] and 16 u_values[nut, nu_ext]
-(the table of the diagram inputs over time; empty while they are held constant).
+(the table of the diagram inputs over time; empty while they are held constant); then the
+compiled engine's kernels, failure and the diagram's tables (``WORKSPACE_LAYOUT``).
 """
 import numpy as np
 

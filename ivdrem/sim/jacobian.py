@@ -27,11 +27,11 @@ and finally df_b/dx = df_b/dx_b E_b + df_b/du_b du_b/dx (E_b selects the block's
 Transport-delay outputs come from the history at t - T and max-hold outputs are held
 values, so both are constants here (their rows of dy/dx are empty).
 
-Sparsity is fixed when the code is generated: each block's kernels are probed in Python at
+Sparsity is fixed when the diagram's tables are built: each block's kernels are probed in Python at
 a few random points (random states, inputs and parameter values, so that a gain that is 0
 today, or a diagonal matrix parameter, does not hide an entry once it changes; parameter
 values are not part of the compiled code).  An entry is structural when a difference of
-the kernel's output is not exactly zero at any probe.  The generated code then only
+the kernel's output is not exactly zero at any probe.  The Jacobian then only
 touches structural nonzeros: the chain is a list of multiply-adds over slots of a flat
 array, run by :func:`ivdrem.sim._jit_sparse.jac_chain`.
 """

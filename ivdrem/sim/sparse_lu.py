@@ -1,4 +1,4 @@
-"""Symbolic LU of the Newton matrix A = c I - J, fixed when the code is generated.
+"""Symbolic LU of the Newton matrix A = c I - J, fixed when the diagram's tables are built.
 
 The pattern of A is the structural pattern of df/dx (:class:`~ivdrem.sim.jacobian.
 JacobianProgram`) plus the diagonal.  A fill-reducing symmetric permutation P is chosen

@@ -184,21 +184,17 @@ def pack(tables):
     field by field on every call).  ints starts with the offsets of the int fields
     (len(INT_FIELDS) + 1 entries, relative to the start of ints), floats' offsets follow
     them; 2-D tables are stored row-major."""
-    head = len(INT_FIELDS) + 1 + len(FLOAT_FIELDS) + 1
-    ioff, parts, pos = [], [], head
-    for f in INT_FIELDS:
-        a = np.ascontiguousarray(getattr(tables, f), dtype=np.int64).reshape(-1)
-        ioff.append(pos)
-        parts.append(a)
-        pos += a.size
-    ioff.append(pos)
-    foff, fparts, fpos = [], [], 0
-    for f in FLOAT_FIELDS:
-        a = np.ascontiguousarray(getattr(tables, f), dtype=np.float64).reshape(-1)
-        foff.append(fpos)
-        fparts.append(a)
-        fpos += a.size
-    foff.append(fpos)
-    ints = np.concatenate([np.asarray(ioff + foff, dtype=np.int64)] + parts)
+    def flatten(fields, dtype, start):
+        """(offsets of the fields from `start`, plus the end; the flattened fields)"""
+        offsets, parts, pos = [], [], start
+        for f in fields:
+            a = np.ascontiguousarray(getattr(tables, f), dtype=dtype).reshape(-1)
+            offsets.append(pos)
+            parts.append(a)
+            pos += a.size
+        return offsets + [pos], parts
+    ioff, iparts = flatten(INT_FIELDS, np.int64, len(INT_FIELDS) + 1 + len(FLOAT_FIELDS) + 1)
+    foff, fparts = flatten(FLOAT_FIELDS, np.float64, 0)
+    ints = np.concatenate([np.asarray(ioff + foff, dtype=np.int64)] + iparts)
     floats = np.concatenate(fparts) if fparts else np.zeros(0)
     return ints, floats
