@@ -41,16 +41,16 @@ def loop_jac(k, t, x, P, W, J):
         JAC(t, x, P, W, J)
 
 
-def loop_factor(k, J, c, LU, piv):
+def loop_factor(k, W, J, c, LU, piv):
     for i in range(k):
-        FACTOR(J, c, LU, piv)
+        FACTOR(W, J, c, LU, piv)
 
 
-def loop_solve(k, LU, piv, b0, b):
+def loop_solve(k, W, LU, piv, b0, b):
     for i in range(k):
         for j in range(b.shape[0]):
             b[j] = b0[j]
-        SOLVE(LU, piv, b)
+        SOLVE(W, LU, piv, b)
 
 
 def loop_rhs(k, t, x, P, W, out):
@@ -100,14 +100,17 @@ def bench(law, reps):
     piv = np.zeros(n, dtype=np.int64)
     b0 = np.random.default_rng(0).standard_normal(n)
     b = b0.copy()
-    fast = _loops(mod.diagram_jacobian, mod.sparse_factor, mod.sparse_solve, mod.diagram_eval)
-    dense = _loops(mod.fd_jacobian, mod.dense_factor, mod.dense_solve, mod.diagram_eval)
+    fast = _loops(mod.diagram_jacobian, mod.newton_factor, mod.newton_solve, mod.diagram_eval)
+    dense_factor, dense_solve = mod.dense_factor, mod.dense_solve
+    dense = _loops(mod.fd_jacobian,
+                   njit(lambda W, J, c, LU, piv: dense_factor(J, c, LU, piv)),
+                   njit(lambda W, LU, piv, b: dense_solve(LU, piv, b)), mod.diagram_eval)
     rows = {}
     for name, L in (("structured + sparse LU", fast), ("dense FD + dense LU", dense)):
         r = {"jac": _time(L["loop_jac"], (t, x, P, W, J), reps)}
         Jc = J.copy()
-        r["factor"] = _time(L["loop_factor"], (Jc, c, LU, piv), reps)
-        r["solve"] = _time(L["loop_solve"], (LU, piv, b0, b), reps)
+        r["factor"] = _time(L["loop_factor"], (W, Jc, c, LU, piv), reps)
+        r["solve"] = _time(L["loop_solve"], (W, LU, piv, b0, b), reps)
         rows[name] = r
     A = c * np.eye(n) - J
     lu = sla.lu_factor(A)

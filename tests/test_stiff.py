@@ -416,16 +416,17 @@ def test_composite_learning_theta_hat_and_hold_time_do_not_depend_on_the_method(
 
 def test_probing_a_hold_evaluates_only_what_feeds_it():
     """While the loop probes composite learning's max-hold at interpolated points, the
-    table-driven diagram evaluates only the blocks the hold's inputs depend on; the run is
-    bit for bit the one that sweeps every block at every probe."""
+    table-driven diagram evaluates only the blocks the hold's inputs depend on, followed
+    output entry by output entry through the blocks' local patterns (the window
+    I - I(t - T) needs the integrator and the delay, not the regressor chain behind the
+    integrand g); the run is bit for bit the one that sweeps every block at every probe."""
     from ivdrem.sim.simulator import Simulator
     from ivdrem.sim.tables import pack as pack_tables
     loop = paper_loop("composite-learning")
     fast = Simulator(loop)
     tb = fast.engine.tables
     names = {loop.syslist[k].name for k in tb.probe_order}
-    assert names == {"plant", "regression_filter", "extension", "window_delay",
-                     "window_integrator"}, names
+    assert names == {"window_delay", "window_integrator"}, names
     full = Simulator(loop)
     everything = tb._replace(probe_order=tb.order, probe_fill=np.concatenate(
         [tb.fill_order, tb.fill_rest]))

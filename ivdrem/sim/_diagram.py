@@ -37,6 +37,7 @@ N_BLOCK_COLUMNS = 13
 
 N_DELAY_COLUMNS = 6
 N_HOLD_COLUMNS = 7
+ZERO = 0        # an offset argument (a runtime int in the stepper module: no literal)
 # columns of DiagramTables.fd (one row per differenced block)
 FD_X0 = 0
 FD_NX = 1
@@ -169,7 +170,7 @@ def diagram_eval(mode, t, x, P, W, out):
         return OK
     if mode == AFTER_STEP:
         nd = int_table(ti, T_DIMS)[DIM_ND]
-        if delays.shape[0] > 0:
+        if delays.shape[0] > 0 and W[13][0] == 0:     # (a max-hold probe adds no history)
             v = np.empty(nd)
             dv = np.zeros(nd)
             est = np.zeros(nd, dtype=np.int64)
@@ -265,7 +266,7 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
         if fd[r0 + FD_WJAC] >= 0:     # the block's own Jacobian kernel
             for i in range((ny + nx) * (nx + nu)):
                 jl[i] = 0.0
-            kernel_call(kernels, failure, wnx, fd[r0 + FD_WJAC], t, xb, 0, ub, 0, jl, 0, P, p0)
+            kernel_call(kernels, failure, wnx, fd[r0 + FD_WJAC], t, xb, ZERO, ub, ZERO, jl, ZERO, P, p0)
             for g in range(fd_g_ptr[kb], fd_g_ptr[kb + 1]):
                 for c in range(fd_gc_ptr[g], fd_gc_ptr[g + 1]):
                     for e in range(fd_e_ptr[c], fd_e_ptr[c + 1]):
@@ -290,15 +291,15 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
                 o0 = ny
             if central:      # a block calling the robot model (see ivdrem.sim.jacobian)
                 fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh)
-                kernel_call(kernels, failure, wnx, w, t, xb, 0, ub, 0, yp, o0, P, p0)
+                kernel_call(kernels, failure, wnx, w, t, xb, ZERO, ub, ZERO, yp, o0, P, p0)
                 fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, -1.0, hh)
-                kernel_call(kernels, failure, wnx, w, t, xb, 0, ub, 0, ym, o0, P, p0)
+                kernel_call(kernels, failure, wnx, w, t, xb, ZERO, ub, ZERO, ym, o0, P, p0)
                 fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh)
                 fd_scatter(yp, ym, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F)
             else:
-                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, True, hh)
-                kernel_call(kernels, failure, wnx, w, t, xb, 0, ub, 0, yp, o0, P, p0)
-                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, False, hh)
+                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh)
+                kernel_call(kernels, failure, wnx, w, t, xb, ZERO, ub, ZERO, yp, o0, P, p0)
+                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh)
                 fd_forward_scatter(yp, y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F)
     jac_chain(F, int_table(ti, T_JAC_INS_DST), int_table(ti, T_JAC_INS_F),
               int_table(ti, T_JAC_INS_SRC), dims[DIM_NSLOTS], int_table(ti, T_JAC_J_ROW),

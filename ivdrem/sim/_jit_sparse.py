@@ -67,12 +67,12 @@ def fd_scatter(yp, ym, hh, c0, c1, e_ptr, e_row, e_slot, JB):
 @njit(cache=True)
 def fd_forward(xb, ub, xb0, ub0, nx, col, c0, c1, on, hh):
     """Move the columns col[c0:c1] of the block to base + h (h = sqrt(eps) max(|v|, 1)),
-    or back to the base (on = False).  hh[c] receives (v + h) - v as represented."""
+    or back to the base (on = 0.0; a float, so that numba compiles one version).  hh[c] receives (v + h) - v as represented."""
     for c in range(c0, c1):
         j = col[c]
         v = xb0[j] if j < nx else ub0[j - nx]
         w = v
-        if on:
+        if on != 0.0:
             w = v + 1.4901161193847656e-08 * max(abs(v), 1.0)
             hh[c] = w - v
         if j < nx:

@@ -319,26 +319,29 @@ def hold_update(W, k, off, size, nvec, nmat, u, epsilon):
     if mode == HOLD_SKIP:
         return 0
     score = W[5]
-    A = np.empty((nmat, nmat))
-    for i in range(nmat):
-        for j in range(nmat):
-            A[i, j] = 0.5 * (u[nvec + i * nmat + j] + u[nvec + j * nmat + i])
     # cheap exact rejection: lambda_min(A) <= A_ii and <= v'Av for the unit eigenvector v of
-    # the held record (Rayleigh quotients), so no eigensolver while the record stands
-    bound = A[0, 0]
+    # the held record (Rayleigh quotients; A's symmetric part has the same ones, so they are
+    # read from u directly), so no eigensolver and no allocation while the record stands
+    bound = u[nvec]
     for i in range(nmat):
-        if A[i, i] < bound:
-            bound = A[i, i]
+        if u[nvec + i * nmat + i] < bound:
+            bound = u[nvec + i * nmat + i]
     vec = W[12]
-    if score[k] > 0.0:
+    if score[k] > 0.0 and bound > score[k]:
         r = 0.0
         for i in range(nmat):
+            ri = 0.0
             for j in range(nmat):
-                r += vec[k, i] * A[i, j] * vec[k, j]
+                ri += u[nvec + i * nmat + j] * vec[k, j]
+            r += vec[k, i] * ri
         if r < bound:
             bound = r
     if not (bound > epsilon and bound > score[k]):
         return 0
+    A = np.empty((nmat, nmat))
+    for i in range(nmat):
+        for j in range(nmat):
+            A[i, j] = 0.5 * (u[nvec + i * nmat + j] + u[nvec + j * nmat + i])
     w, V = np.linalg.eigh(A)
     lam = w[0]
     if lam > epsilon and lam > score[k]:

@@ -58,6 +58,7 @@ from .stepper import stepper_source
 from .simulator import BLOCK_RAISED_MESSAGE, SimulationError
 from .tables import build_tables
 from . import foreign
+from . import _warm_stepper
 
 __all__ = ["CompiledEngine", "generate_source", "cache_dir", "CompileError", "BlockError"]
 
@@ -397,14 +398,23 @@ def _import(cdir, name, src):
 
 
 def _load(deps):
-    """Import the modules in order (models before the kernels that import them, wrappers,
-    the stepper last); returns the stepper module."""
+    """Import the modules in order (models before the kernels that import them, then the
+    wrappers: their import compiles them); returns the stepper module (the last of deps).
+
+    The stepper is imported first (its functions compile at their first call): when numba's
+    cache does not hold it yet, a child process compiles it meanwhile
+    (:mod:`ivdrem.sim._warm_stepper`) and this one loads it from the cache afterwards."""
     cdir = cache_dir()
     cdir.mkdir(parents=True, exist_ok=True)
-    mod = None
-    for name, dsrc in deps:
-        mod = _import(cdir, name, dsrc)
-    return mod
+    sname, ssrc = deps[-1]
+    stepper = _import(cdir, sname, ssrc)
+    warmup = _warm_stepper.start(stepper)
+    try:
+        for name, dsrc in deps[:-1]:
+            _import(cdir, name, dsrc)
+    finally:
+        warmup.wait()
+    return stepper
 
 
 class CompiledEngine:

@@ -151,6 +151,8 @@ class JacobianProgram:
           F = [JB, gains]; gains (float64)
       n_slots, j_row, j_col, j_slot: where the dense J reads the chain's result
       pattern: boolean n x n structural pattern of df/dx
+      patterns: {block index: boolean (ny + nx, nx + nu) local pattern} of the ode blocks
+          with states or inputs (also used for the max-hold probe's dependencies)
     """
 
     def __init__(self, plan, *, seed=0):
@@ -165,6 +167,7 @@ class JacobianProgram:
         g_ptr, gc_ptr, cols, e_ptr, e_row, e_slot = [0], [0], [], [0], [], []
         g_kind = []         # per group: 0 output kernel, 1 update kernel
         self.fd_blocks = []
+        self.patterns = {}  # block index -> its local pattern (ny + nx, nx + nu)
         for b in plan.blocks:
             spec = b.spec
             if spec.kind != "ode":
@@ -188,6 +191,7 @@ class JacobianProgram:
                     f"block '{b.sys.name}': its outputs depend on the inputs {labels}, which "
                     "the block does not declare as direct feedthrough (BlockSpec.direct); the "
                     "right-hand side would read them before they are computed")
+            self.patterns[b.index] = pat
             if not pat.any():
                 local[b.index] = []
                 continue

@@ -21,6 +21,9 @@ from .tables import DIMS, FLOAT_FIELDS, INT_FIELDS
 
 __all__ = ["stepper_source"]
 
+# mode and literal arguments of the template's and diagram functions' calls (see below)
+_RUNTIME_INTS = ["RHS", "AFTER_STEP", "RECORD", "AFTER_STEP_EVALUATED", "ZERO"]
+
 
 def stepper_source():
     """Source of the stepper module: the template, the workspace and table constants, and
@@ -43,6 +46,11 @@ def stepper_source():
            *consts, "",
            "# ---- stepping template (ivdrem/sim/_template.py, verbatim)", tsrc,
            "# ---- table-driven diagram functions (ivdrem/sim/_diagram.py, verbatim)", dsrc,
+           "# ---- constants passed as arguments: numba types a global Python int as a",
+           "# literal and compiles a callee once per literal value (diagram_eval once per",
+           "# mode, int_table once per table); as np.int64 they are runtime values",
+           f"for _n in {_RUNTIME_INTS!r} + [_n for _n in dir() if _n.startswith(('T_', 'TF_', 'DIM_'))]:",
+           "    globals()[_n] = np.int64(globals()[_n])",
            f"_JIT = {sorted(set(names))!r}",
            "for _n in _JIT:\n    globals()[_n] = njit(cache=True)(globals()[_n])\n"]
     return "\n".join(out)

@@ -113,21 +113,9 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         filled |= set(direct)
         blocks[k, _diagram.B_FILL1] = len(fill_order)
     rest = [i for i in range(nu_total) if i not in filled]
-    # while the loop probes a max-hold at an interpolated point only the hold's inputs
-    # matter: the blocks they depend on through direct feedthrough, in the same order
-    owner = plan.output_owner()
     hold_inputs = [i for b in plan.blocks if b.spec.kind == "maxhold"
                    for i in range(b.u.start, b.u.stop)]
-    needed, stack = set(), [int(owner[j]) for i in hold_inputs for j, _ in plan.conn[i]]
-    while stack:
-        k = stack.pop()
-        if k in needed:
-            continue
-        needed.add(k)
-        b = plan.blocks[k]
-        if b.spec.kind == "ode":
-            stack += [int(owner[j]) for i in b.direct_inputs for j, _ in plan.conn[int(i)]]
-    probe_order = [k for k in plan.order if k in needed]
+    probe_order = _probe_order(plan, prog, hold_inputs)
     # the connection map (and input map) as sparse rows: sources >= 0 are block outputs,
     # -1 - j is diagram input j
     Cin = np.asarray(d.input_map)
@@ -176,6 +164,39 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         jac_j_row=_i64(prog.j_row), jac_j_col=_i64(prog.j_col), jac_j_slot=_i64(prog.j_slot),
         jac_gains=np.asarray(prog.gains, dtype=float), lu_perm=_i64(slu.perm),
         lu_rowptr=_i64(slu.rowptr), lu_colidx=_i64(slu.colidx), lu_diagp=_i64(slu.diagp))
+
+
+def _probe_order(plan, prog, hold_inputs):
+    """The blocks to evaluate, in evaluation order, when the loop probes a max-hold at an
+    interpolated point: only the hold's inputs matter, so only the output entries they
+    read and, through each block's local pattern (prog.patterns: which inputs an output
+    entry moves), the entries those depend on.  A block without a pattern counts as
+    depending on all its direct inputs.  (The composite-learning hold reads the window
+    I - I(t - T): the integrator's state and the delay's history, not the regressor chain
+    behind the integrand that the integrator also passes on.)"""
+    owner = plan.output_owner()
+    needed = set()                     # blocks to evaluate
+    seen = set()                       # global output entries already followed
+    stack = [j for i in hold_inputs for j, _ in plan.conn[i]]
+    while stack:
+        j = int(stack.pop())
+        if j in seen:
+            continue
+        seen.add(j)
+        k = int(owner[j])
+        needed.add(k)
+        b = plan.blocks[k]
+        if b.spec.kind != "ode":       # delays read their history, holds their record
+            continue
+        pat = prog.patterns.get(k)
+        nx = b.sys.nstates
+        if pat is None:
+            inputs = [int(i) for i in b.direct_inputs]
+        else:
+            r = j - b.y.start
+            inputs = [b.u.start + c - nx for c in np.flatnonzero(pat[r, nx:]) + nx]
+        stack += [src for i in inputs for src, _ in plan.conn[int(i)]]
+    return [k for k in plan.order if k in needed]
 
 
 def pack(tables):
