@@ -140,6 +140,11 @@ def diagram_eval(mode, t, x, P, W, out):
             # depend on (the loop sweeps everything again before it uses the others)
             order = int_table(ti, T_PROBE_ORDER)
             fill_rest = int_table(ti, T_PROBE_FILL)
+        elif mode == RECORD:
+            # recording the diagram outputs: only the signals the output map reads (an
+            # output inside a step is followed by a full sweep at the step's end)
+            order = int_table(ti, T_RECORD_ORDER)
+            fill_rest = int_table(ti, T_RECORD_FILL)
         # signals, in topological order of direct feedthrough
         for i in range(order.shape[0]):
             k = order[i]

@@ -626,7 +626,7 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
     dense_out = ctl[6] != 0.0
     check_stiff = ctl[7] != 0.0
     K = np.empty((K_ROWS, n))
-    J = np.empty((n, n))
+    J = np.zeros((n, n))          # a structured Jacobian writes only its pattern
     LU = np.empty((n, n))
     piv = np.zeros(n, dtype=np.int64)
     xn = np.empty(n)

@@ -22,7 +22,7 @@ __all__ = ["DiagramTables", "TABLES_LAYOUT", "DIMS", "build_tables", "empty_tabl
 TABLES_LAYOUT = (
     ("blocks", "int64", 2), ("order", "int64", 1), ("fill_order", "int64", 1),
     ("fill_rest", "int64", 1), ("probe_order", "int64", 1), ("probe_fill", "int64", 1),
-    ("in_ptr", "int64", 1), ("in_src", "int64", 1),
+    ("record_order", "int64", 1), ("record_fill", "int64", 1), ("in_ptr", "int64", 1), ("in_src", "int64", 1),
     ("in_gain", "float64", 1), ("delays", "int64", 2), ("holds", "int64", 2),
     ("rec_ptr", "int64", 1), ("rec_src", "int64", 1), ("rec_gain", "float64", 1),
     ("wrapper_nx", "int64", 1), ("dims", "int64", 1),
@@ -115,7 +115,14 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     rest = [i for i in range(nu_total) if i not in filled]
     hold_inputs = [i for b in plan.blocks if b.spec.kind == "maxhold"
                    for i in range(b.u.start, b.u.stop)]
-    probe_order = _probe_order(plan, prog, hold_inputs)
+    probe_order = _needed_blocks(plan, prog, [j for i in hold_inputs for j, _ in plan.conn[i]])
+    # recording the diagram outputs: the same for the entries the output map reads (block
+    # outputs, and block inputs, which are filled from their sources)
+    Om = np.asarray(d.output_map)
+    read = sorted({int(j) for j in np.flatnonzero(Om.any(axis=0))}) if Om.size else []
+    rec_inputs = [j - ny_total for j in read if j >= ny_total]
+    record_order = _needed_blocks(plan, prog, [j for j in read if j < ny_total]
+                                  + [j for i in rec_inputs for j, _ in plan.conn[i]])
     # the connection map (and input map) as sparse rows: sources >= 0 are block outputs,
     # -1 - j is diagram input j
     Cin = np.asarray(d.input_map)
@@ -152,6 +159,7 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     return DiagramTables(
         blocks=blocks, order=_i64(plan.order), fill_order=_i64(fill_order),
         fill_rest=_i64(rest), probe_order=_i64(probe_order), probe_fill=_i64(hold_inputs),
+        record_order=_i64(record_order), record_fill=_i64(rec_inputs),
         in_ptr=_i64(in_ptr), in_src=_i64(in_src),
         in_gain=np.asarray(in_gain, dtype=float), delays=_i64(delays, _diagram.N_DELAY_COLUMNS),
         holds=_i64(holds, _diagram.N_HOLD_COLUMNS), rec_ptr=_i64(rec_ptr), rec_src=_i64(rec_src),
@@ -166,18 +174,20 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         lu_rowptr=_i64(slu.rowptr), lu_colidx=_i64(slu.colidx), lu_diagp=_i64(slu.diagp))
 
 
-def _probe_order(plan, prog, hold_inputs):
-    """The blocks to evaluate, in evaluation order, when the loop probes a max-hold at an
-    interpolated point: only the hold's inputs matter, so only the output entries they
-    read and, through each block's local pattern (prog.patterns: which inputs an output
-    entry moves), the entries those depend on.  A block without a pattern counts as
-    depending on all its direct inputs.  (The composite-learning hold reads the window
-    I - I(t - T): the integrator's state and the delay's history, not the regressor chain
-    behind the integrand that the integrator also passes on.)"""
+def _needed_blocks(plan, prog, outputs):
+    """The blocks to evaluate, in evaluation order, for the block output entries `outputs`
+    (indices into the signal vector) alone: their owners and, through each block's local
+    pattern (prog.patterns: which inputs an output entry moves), the entries those depend
+    on.  A block without a pattern counts as depending on all its direct inputs.
+
+    Used where the loop needs a few signals at an interpolated point: a max-hold probe
+    (composite learning's hold reads the window I - I(t - T), the integrator's state and
+    the delay's history, not the regressor chain behind the integrand that the integrator
+    also passes on) and the recorded outputs."""
     owner = plan.output_owner()
     needed = set()                     # blocks to evaluate
     seen = set()                       # global output entries already followed
-    stack = [j for i in hold_inputs for j, _ in plan.conn[i]]
+    stack = list(outputs)
     while stack:
         j = int(stack.pop())
         if j in seen:
