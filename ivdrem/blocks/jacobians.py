@@ -27,7 +27,8 @@ def mixing_jacobian(t, x, u, jac, ntheta):
     #   dcalY/dPsi_kl  = (A'[E_kl] Y) / s^2 - nθ (A Y) g_kl / s^2   (adj homogeneous, degree nθ-1)
     # g_kl = ds/dPsi_kl = Psi_kl / ||Psi||_F (0 at Psi = 0), and A'[E] the derivative of the
     # adjugate in the direction E, from the Faddeev-LeVerrier recursion differentiated
-    # (a polynomial identity, exact for singular P too: Psi is singular at every start).
+    # (a polynomial identity, exact for singular P too: Psi is singular at every start),
+    # applied to Y as it goes (vectors, O(n^2) per step and direction, not O(n^3)).
     n = ntheta
     nn = n * n
     big = 0.0
@@ -80,39 +81,40 @@ def mixing_jacobian(t, x, u, jac, ntheta):
     for i in range(n):                     # dcalY / dY
         for j in range(n):
             jac[1 + i, j] = A[i, j] * inv_s
-    dM = np.empty((n, n))
-    dAM = np.empty((n, n))
+    # Only A'[E_ab] Y is needed: with w_k = dM_k Y the recursion runs on vectors,
+    #   w_1 = 0,  w_{k+1} = e_a (M_k Y)_b + P w_k + dc_k Y,  A'[E_ab] Y = sign w_n,
+    # where dc_k = dc_k/dP_ab = -(M_k)_ba in closed form (c_k is the coefficient of
+    # lambda^(n-k) of det(lambda I - P) = sum_k lambda^(n-k) M_k by Faddeev-LeVerrier, and
+    # d det(lambda I - P)/dP_ab = -adj(lambda I - P)_ba, Jacobi): exact for singular P too.
+    MY = np.zeros((n + 1, n))
+    for k in range(1, n):
+        for i in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += Ms[k, i, j] * u[j]
+            MY[k, i] = acc
+    w = np.empty(n)
+    wn = np.empty(n)
     for a in range(n):
         for b in range(n):
             col = n + a * n + b
             g = u[col] / nrm if nrm > 0.0 else 0.0
             jac[0, col] = A[b, a] * inv_s - n * det * g * inv_s
-            # dM_1 = 0; dM_{k+1} = E_ab M_k + P dM_k - tr(.)/k I; A'[E_ab] = sign dM_n
             for i in range(n):
-                for j in range(n):
-                    dM[i, j] = 0.0
+                w[i] = 0.0
             for k in range(1, n):
-                tr = 0.0
+                dc = -Ms[k, b, a]
                 for i in range(n):
-                    for j in range(n):
-                        acc = 0.0
-                        if k > 1:
-                            for l in range(n):
-                                acc += P[i, l] * dM[l, j]
-                        if i == a:
-                            acc += Ms[k, b, j]
-                        dAM[i, j] = acc
-                    tr += dAM[i, i]
-                dc = -tr / k
+                    acc = dc * u[i]
+                    if k > 1:
+                        for l in range(n):
+                            acc += P[i, l] * w[l]
+                    wn[i] = acc
+                wn[a] += MY[k, b]
                 for i in range(n):
-                    for j in range(n):
-                        dM[i, j] = dAM[i, j]
-                    dM[i, i] += dc
+                    w[i] = wn[i]
             for i in range(n):
-                acc = 0.0
-                for j in range(n):
-                    acc += dM[i, j] * u[j]
-                jac[1 + i, col] = (sign * acc - n * AY[i] * g) * inv_s2
+                jac[1 + i, col] = (sign * w[i] - n * AY[i] * g) * inv_s2
 
 
 def control_law_jacobian(t, x, u, jac, K, delta_mu, ntheta):
