@@ -517,6 +517,8 @@ def test_regressor_derivatives_match_central_differences(which, m2):
         ref = np.empty((n, nt))
         f.Phi_C(q, dq, e, ref)
         np.testing.assert_allclose(J[:, :, 2 * n + c], ref, rtol=1e-13, atol=1e-14)
+    with pytest.raises(ValueError, match="unknown regressor 'Phi_X'"):
+        m.regressor_jacobian("Phi_X")
 
 
 def test_regressor_derivatives_compile_with_numba(jit_models):
