@@ -193,6 +193,11 @@ def _loop_at_random_states(diagram, seeds, t_run=1.5):
 @pytest.mark.parametrize("law", ["iv-drem", "composite-learning"])
 def test_generated_jacobian_matches_whole_system_differences(law):
     sim, states = _loop_at_random_states(paper_loop(law), seeds=[0, 1])
+    # the robot-model blocks are not differenced: their own kernels are compiled and called
+    with_jac = {name for name, role, _ in sim.engine.wrappers if role == "jacobian"}
+    model_blocks = {"plant", "torque_observer", "regression_filter"}
+    model_blocks |= {"instrument"} if law == "iv-drem" else set()
+    assert model_blocks <= with_jac, sorted(model_blocks - with_jac)
     for x in states:
         J = sim.engine.jacobian(sim.t, x, sim.W)
         assert_jacobian_close(J, central_fd(sim.engine, sim.t, x, sim.W))
@@ -304,13 +309,21 @@ def _planar3_loop(law):
     return closed_loop(law, model=planar_arm(3), trajectory=traj, disturbance=dist)
 
 
-@pytest.mark.parametrize("case", ["iv-drem", "composite-learning", "planar3-iv-drem"])
+@pytest.mark.parametrize("case", ["iv-drem", "composite-learning", "planar3-iv-drem",
+                                  "planar3-composite-learning", "literal-observer"])
 def test_block_jacobian_kernels_match_their_own_differences(case):
     """Every block that supplies an analytic Jacobian (ivdrem/blocks/jacobians.py) against
     central differences of its own update/output kernels, at random states and inputs,
     including a singular Psi (rank nθ - 1) for the mixing step (17) and Psi = 0 (its
-    value at t0)."""
-    loop = _planar3_loop("iv-drem") if case.startswith("planar3") else paper_loop(case)
+    value at t0).  The robot-model blocks (plant, torque observer in both variants,
+    regression filter, instrument) use the regressors' generated derivatives."""
+    if case.startswith("planar3"):
+        loop = _planar3_loop(case[len("planar3-"):])
+    elif case == "literal-observer":
+        from ivdrem.diagrams import closed_loop
+        loop = closed_loop("iv-drem", observer_variant="literal")
+    else:
+        loop = paper_loop(case)
     rng = np.random.default_rng(42)
     seen = set()
     for spec, args in _blocks_with_jacobians(loop):
@@ -325,8 +338,13 @@ def test_block_jacobian_kernels_match_their_own_differences(case):
                     v[nth:] = (B @ B.T).ravel()
                 if trial == 3:          # Psi = 0 (the start of every run)
                     v[nth:] = 0.0
+            if spec.model is not None:
+                # a plausible robot input: mu > 0 (the observer divides by it)
+                for name, sl in spec.port_slices("inputs").items():
+                    if name == "mu":
+                        v[nx + sl.start] = 2.0 + abs(v[nx + sl.start])
             jac = np.zeros((ny + nx, nx + nu))
-            spec.jacobian(0.37, v[:nx].copy(), v[nx:].copy(), jac, *args)
+            _flat(spec, "jacobian")(0.37, v[:nx].copy(), v[nx:].copy(), jac, *args)
             ref = _block_central_fd(spec, args, 0.37, v)
             scale = max(np.abs(ref).max(), 1e-300)
             if spec.name == "mixing" and trial == 3:
@@ -335,7 +353,13 @@ def test_block_jacobian_kernels_match_their_own_differences(case):
                 continue
             err = np.abs(jac - ref).max() / scale
             assert err <= 1e-7, f"{spec.name} (trial {trial}): {err:.2e}"
-    want = {"control_law", "adaptation_law", "extension"}
-    want |= {"composite_learning_term"} if case == "composite-learning" else {"mixing",
-                                                                              "drem_term"}
+            if spec.model is not None:
+                # entry by entry too: the regressors' derivatives carry gains such as mu
+                big = np.abs(ref) >= 1e-6 * scale
+                rel = (np.abs(jac - ref)[big] / np.abs(ref)[big]).max()
+                assert rel <= 1e-6, f"{spec.name} (trial {trial}): entry-wise {rel:.2e}"
+    want = {"control_law", "adaptation_law", "extension", "plant", "torque_observer",
+            "regression_filter"}
+    want |= ({"composite_learning_term"} if case.endswith("composite-learning")
+             else {"mixing", "drem_term", "instrument"})
     assert want <= seen, f"blocks without their analytic Jacobian: {sorted(want - seen)}"

@@ -364,7 +364,8 @@ def test_numba_matches_python(jit_models):
 def test_source_prefix_and_self_contained(m2):
     src = m2.source("m0_")
     for name in ("Phi_M", "Phi_C", "Phi_dM", "Phi_G", "Phi_F", "Phi", "M", "C", "G", "F",
-                 "forward_dynamics"):
+                 "forward_dynamics", "Phi_M_jac", "Phi_C_jac", "Phi_dM_jac", "Phi_G_jac",
+                 "Phi_F_jac", "Phi_jac"):
         assert f"def m0_{name}(" in src
     assert "sympy" not in src and "lambda" not in src
     glb = {"math": math, "np": np}
@@ -471,3 +472,64 @@ def test_linear_but_written_nonlinearly_is_accepted():
     out = np.empty((2, 3))
     m.functions.Phi_M(np.array([0.0, 0.0]), np.array([1.0, 0.0]), out)
     np.testing.assert_allclose(out, [[1, 2, 0], [0, 1, 0]])
+
+
+# ----------------------------------------------------------------------------- derivatives
+@pytest.mark.parametrize("which", ["two-link", "planar-3"])
+def test_regressor_derivatives_match_central_differences(which, m2):
+    """Each generated R_jac (exact, from sympy diff) against central differences of the
+    generated regressor R itself, at random arguments: out[i, j, a n + m] = dR_ij/dw_a[m]."""
+    from ivdrem.models.euler_lagrange import REGRESSOR_ARGS
+    m = m2 if which == "two-link" else planar_arm(3, friction=True)
+    f, n, nt = m.functions, m.n, m.ntheta
+    rng = np.random.default_rng(21)
+    for name, argnames in REGRESSOR_ARGS.items():
+        k = len(argnames)
+        for _ in range(2):
+            w = rng.uniform(-2.0, 2.0, k * n)
+
+            def R(w):
+                out = np.empty((n, nt))
+                getattr(f, name)(*[w[a * n:(a + 1) * n] for a in range(k)], out)
+                return out
+            J = np.full((n, nt, k * n), np.nan)
+            getattr(f, name + "_jac")(*[w[a * n:(a + 1) * n].copy() for a in range(k)], J)
+            ref = np.empty_like(J)
+            for c in range(k * n):
+                h = 1e-5 * max(abs(w[c]), 1.0)
+                wp, wm = w.copy(), w.copy()
+                wp[c] += h
+                wm[c] -= h
+                ref[:, :, c] = (R(wp) - R(wm)) / (wp[c] - wm[c])
+            assert np.all(np.isfinite(J)), name
+            scale = np.abs(ref).max()
+            if scale == 0.0:            # Phi_F without friction: the derivative is zero
+                assert np.all(J == 0.0), name
+                continue
+            np.testing.assert_allclose(J, ref, rtol=1e-7, atol=1e-7 * scale, err_msg=name)
+    # d/dv of Phi_C and d/ddv of Phi are the regressors themselves at unit vectors (linear)
+    q, dq = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
+    J = np.empty((n, nt, 3 * n))
+    f.Phi_C_jac(q, dq, np.zeros(n), J)
+    for c in range(n):
+        e = np.zeros(n)
+        e[c] = 1.0
+        ref = np.empty((n, nt))
+        f.Phi_C(q, dq, e, ref)
+        np.testing.assert_allclose(J[:, :, 2 * n + c], ref, rtol=1e-13, atol=1e-14)
+    with pytest.raises(ValueError, match="unknown regressor 'Phi_X'"):
+        m.regressor_jacobian("Phi_X")
+
+
+def test_regressor_derivatives_compile_with_numba(jit_models):
+    """The numba versions of the derivatives agree with the plain Python ones."""
+    from ivdrem.models.euler_lagrange import REGRESSOR_ARGS
+    m = jit_models[1]
+    n, nt = m.n, m.ntheta
+    rng = np.random.default_rng(5)
+    for name, argnames in REGRESSOR_ARGS.items():
+        args = [rng.uniform(-2, 2, n) for _ in argnames]
+        a, b = (np.full((n, nt, len(args) * n), np.nan) for _ in range(2))
+        getattr(m.functions, name + "_jac")(*args, a)
+        getattr(m.jit_functions, name + "_jac")(*args, b)
+        np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-13, err_msg=name)

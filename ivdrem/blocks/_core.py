@@ -20,7 +20,8 @@ namedtuple arguments would cost about as much as the kernels themselves).  Witho
 kernels get the flat vectors; ``jacobian`` kernels always do.  The kernels hold no state
 of their own: the state lives in the simulator.  Kernels that need the robot model call it
 through the global name
-``model`` (``model.Phi_M(q, a, out)``, see :mod:`ivdrem.models`).
+``model`` (``model.Phi_M(q, a, out)``, see :mod:`ivdrem.models`); jacobian kernels too, for
+the regressors' generated derivatives (``model.Phi_jac(q, dq, v, dv, out)``).
 
 :func:`make_block` wraps a declaration as a python-control ``NonlinearIOSystem`` (the
 reference path: python-control evaluates the kernels in Python), and attaches the
@@ -74,7 +75,7 @@ class BlockSpec:
     # optional analytic Jacobian kernel jacobian(t, x, u, jac, *params) writing the dense
     # local Jacobian jac[(ny + nx), (nx + nu)]: rows outputs then state derivatives,
     # columns states then inputs.  Without it the compiled path differentiates the
-    # block's update/output kernels by central differences (ivdrem.sim.jacobian)
+    # block's update/output kernels by differences (ivdrem.sim.jacobian)
     jacobian: Callable | None = None
     # update/output receive namedtuples of views by port name (ivdrem.blocks._ports)
     # instead of flat vectors; jacobian kernels stay flat

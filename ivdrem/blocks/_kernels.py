@@ -71,3 +71,36 @@ def det_adj(A, adj):
         for j in range(n):
             adj[i, j] = sign * Mk[i, j]
     return -sign * c
+
+
+@njit(cache=True)
+def spd_solve(A, B):
+    """B <- A^{-1} B for a symmetric positive definite A (n, n), B (n, k), by Cholesky
+    (A is not modified): the plant's Jacobian solves with the inertia matrix M(q)."""
+    n = A.shape[0]
+    k = B.shape[1]
+    L = np.zeros((n, n))
+    for j in range(n):
+        d = A[j, j]
+        for l in range(j):
+            d -= L[j, l] * L[j, l]
+        if not (d > 0.0 and d < np.inf):
+            raise ValueError("inertia matrix M(q) is not positive definite (singular inertia)")
+        d = np.sqrt(d)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for l in range(j):
+                s -= L[i, l] * L[j, l]
+            L[i, j] = s / d
+    for c in range(k):
+        for i in range(n):
+            s = B[i, c]
+            for l in range(i):
+                s -= L[i, l] * B[l, c]
+            B[i, c] = s / L[i, i]
+        for i in range(n - 1, -1, -1):
+            s = B[i, c]
+            for l in range(i + 1, n):
+                s -= L[l, i] * B[l, c]
+            B[i, c] = s / L[i, i]

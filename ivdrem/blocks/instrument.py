@@ -5,6 +5,7 @@ import numpy as np
 
 from ._core import BlockSpec, make_block
 from . import _validate as checks
+from .jacobians import instrument_jacobian
 
 
 def instrument_update(t, x, u, dx, l):
@@ -46,5 +47,5 @@ def instrument(model, l=50.0, *, name="instrument"):
                      outputs=[("zeta", n * nth)], states=[("zeta", n * nth)],
                      x0=np.zeros(n * nth), param_names=("l",), update=instrument_update,
                      output=instrument_output, direct=(), model=model, validate=validate,
-                     named_ports=True)
+                     named_ports=True, jacobian=instrument_jacobian)
     return make_block(spec, {"l": l})

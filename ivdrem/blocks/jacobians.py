@@ -16,6 +16,8 @@ import math
 
 import numpy as np
 
+from ._kernels import spd_solve
+
 
 def mixing_jacobian(t, x, u, jac, ntheta):
     # inputs   u = [Y (nθ), Psi (nθ*nθ row-major)];  outputs y = [Delta, calY (nθ)]
@@ -25,7 +27,8 @@ def mixing_jacobian(t, x, u, jac, ntheta):
     #   dcalY/dPsi_kl  = (A'[E_kl] Y) / s^2 - nθ (A Y) g_kl / s^2   (adj homogeneous, degree nθ-1)
     # g_kl = ds/dPsi_kl = Psi_kl / ||Psi||_F (0 at Psi = 0), and A'[E] the derivative of the
     # adjugate in the direction E, from the Faddeev-LeVerrier recursion differentiated
-    # (a polynomial identity, exact for singular P too: Psi is singular at every start).
+    # (a polynomial identity, exact for singular P too: Psi is singular at every start),
+    # applied to Y as it goes (vectors, O(n^2) per step and direction, not O(n^3)).
     n = ntheta
     nn = n * n
     big = 0.0
@@ -78,39 +81,40 @@ def mixing_jacobian(t, x, u, jac, ntheta):
     for i in range(n):                     # dcalY / dY
         for j in range(n):
             jac[1 + i, j] = A[i, j] * inv_s
-    dM = np.empty((n, n))
-    dAM = np.empty((n, n))
+    # Only A'[E_ab] Y is needed: with w_k = dM_k Y the recursion runs on vectors,
+    #   w_1 = 0,  w_{k+1} = e_a (M_k Y)_b + P w_k + dc_k Y,  A'[E_ab] Y = sign w_n,
+    # where dc_k = dc_k/dP_ab = -(M_k)_ba in closed form (c_k is the coefficient of
+    # lambda^(n-k) of det(lambda I - P) = sum_k lambda^(n-k) M_k by Faddeev-LeVerrier, and
+    # d det(lambda I - P)/dP_ab = -adj(lambda I - P)_ba, Jacobi): exact for singular P too.
+    MY = np.zeros((n + 1, n))
+    for k in range(1, n):
+        for i in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += Ms[k, i, j] * u[j]
+            MY[k, i] = acc
+    w = np.empty(n)
+    wn = np.empty(n)
     for a in range(n):
         for b in range(n):
             col = n + a * n + b
             g = u[col] / nrm if nrm > 0.0 else 0.0
             jac[0, col] = A[b, a] * inv_s - n * det * g * inv_s
-            # dM_1 = 0; dM_{k+1} = E_ab M_k + P dM_k - tr(.)/k I; A'[E_ab] = sign dM_n
             for i in range(n):
-                for j in range(n):
-                    dM[i, j] = 0.0
+                w[i] = 0.0
             for k in range(1, n):
-                tr = 0.0
+                dc = -Ms[k, b, a]
                 for i in range(n):
-                    for j in range(n):
-                        acc = 0.0
-                        if k > 1:
-                            for l in range(n):
-                                acc += P[i, l] * dM[l, j]
-                        if i == a:
-                            acc += Ms[k, b, j]
-                        dAM[i, j] = acc
-                    tr += dAM[i, i]
-                dc = -tr / k
+                    acc = dc * u[i]
+                    if k > 1:
+                        for l in range(n):
+                            acc += P[i, l] * w[l]
+                    wn[i] = acc
+                wn[a] += MY[k, b]
                 for i in range(n):
-                    for j in range(n):
-                        dM[i, j] = dAM[i, j]
-                    dM[i, i] += dc
+                    w[i] = wn[i]
             for i in range(n):
-                acc = 0.0
-                for j in range(n):
-                    acc += dM[i, j] * u[j]
-                jac[1 + i, col] = (sign * acc - n * AY[i] * g) * inv_s2
+                jac[1 + i, col] = (sign * w[i] - n * AY[i] * g) * inv_s2
 
 
 def control_law_jacobian(t, x, u, jac, K, delta_mu, ntheta):
@@ -191,3 +195,204 @@ def extension_jacobian(t, x, u, jac, n, ntheta, has_instrument):
                 row = ntheta + a * ntheta + b
                 jac[row, p0 + i * ntheta + b] += zia              # d(zeta phi^T)_ab / dphi^T[i, b]
                 jac[row, z0 + i * ntheta + a] += u[p0 + i * ntheta + b]   # ... / dzeta^T[i, a]
+
+
+# ---------------------------------------------------------- blocks calling the robot model
+# These use the regressors' exact derivatives generated from the sympy model
+# (model.Phi_jac etc., ivdrem.models.euler_lagrange): out[i, j, a*n + m] = dR[i, j]/dw_a[m]
+# over the regressor's vector arguments w_0, w_1, ... in signature order.
+
+def plant_jacobian(t, x, u, jac, theta):
+    # states   x = [q (n), dq (n)];  inputs u = [tau (n), tau_d (n)];  outputs y = [q, dq]
+    # M(q) qdd + ID0(q, dq) = tau + tau_d with ID(q, dq, a) = M a + C dq + F + G =
+    # Phi^T(q, dq, dq, a) theta (Property 1, linear in theta), so at a = qdd      (eq. 1)
+    #   dqdd/d(q, dq) = -M^{-1} dID/d(q, dq)   (dq fills two argument slots of Phi)
+    #   dqdd/dtau = dqdd/dtau_d = M^{-1}
+    n = x.shape[0] // 2
+    nth = theta.shape[0]
+    q = x[0:n]
+    dq = x[n:2 * n]
+    tau = np.empty(n)
+    for i in range(n):
+        tau[i] = u[i] + u[n + i]
+    qdd = np.empty(n)
+    model.forward_dynamics(q, dq, tau, theta, qdd)
+    Mq = np.empty((n, n))
+    model.M(q, theta, Mq)
+    dPhi = np.empty((n, nth, 4 * n))
+    model.Phi_jac(q, dq, dq, qdd, dPhi)
+    B = np.zeros((n, 3 * n))            # [-dID/dq, -dID/ddq, I], then M^{-1} of it
+    for i in range(n):
+        for m in range(n):
+            sq = 0.0
+            sd = 0.0
+            for j in range(nth):
+                sq += dPhi[i, j, m] * theta[j]
+                sd += (dPhi[i, j, n + m] + dPhi[i, j, 2 * n + m]) * theta[j]
+            B[i, m] = -sq
+            B[i, n + m] = -sd
+        B[i, 2 * n + i] = 1.0
+    spd_solve(Mq, B)
+    for i in range(n):
+        jac[i, i] = 1.0                     # y.q = q
+        jac[n + i, n + i] = 1.0             # y.dq = dq
+        jac[2 * n + i, n + i] = 1.0         # dq/dt = dq
+        for m in range(2 * n):
+            jac[3 * n + i, m] = B[i, m]
+        for m in range(n):
+            jac[3 * n + i, 2 * n + m] = B[i, 2 * n + m]
+            jac[3 * n + i, 3 * n + m] = B[i, 2 * n + m]
+
+
+def torque_observer_jacobian(t, x, u, jac, n, ntheta, literal_e1):
+    # states   x = [Phi_f (m), Phi_Mf (m), u_f (n)], m = n nθ (n x nθ row-major)
+    # inputs   u = [q, dq, r, v, dv (n each), mu, dmu, tau (n), theta_hat (nθ)]
+    # outputs  y = [Pi (m), u_f (n), tau_d_hat (n)]; rows of dx start at m + 2n
+    #   Pi^T = mu (Phi_M^T(q,r) - Phi_Mf^T) + Phi^T(q,dq,v,dv) - Phi_f^T            (8)
+    #   tau_d_hat = -(mu (Phi_M^T(q,r) - Phi_Mf^T) - Phi_f^T) theta_hat + u_f
+    #   dPhi_f = mu (Phi^T - Phi_C^T(q,dq,r) + Phi_dM^T(q,dq,r) - Phi_f)             (7)
+    #   dPhi_Mf = g (Phi_M^T(q,r) - Phi_Mf), g = mu + (1 - literal_e1) dmu/mu        (7)
+    #   du_f = mu (-tau - u_f)                                                       (7)
+    m = n * ntheta
+    nx = 2 * m + n
+    q = u[0:n]
+    dq = u[n:2 * n]
+    r = u[2 * n:3 * n]
+    v = u[3 * n:4 * n]
+    dv = u[4 * n:5 * n]
+    mu = u[5 * n]
+    dmu = u[5 * n + 1]
+    ct = nx + 5 * n + 2                  # column of tau
+    cth = ct + n                         # column of theta_hat
+    cmu = nx + 5 * n
+    th = u[5 * n + 2 + n:5 * n + 2 + n + ntheta]
+    PM = np.empty((n, ntheta))
+    P = np.empty((n, ntheta))
+    PC = np.empty((n, ntheta))
+    PD = np.empty((n, ntheta))
+    model.Phi_M(q, r, PM)
+    model.Phi(q, dq, v, dv, P)
+    model.Phi_C(q, dq, r, PC)
+    model.Phi_dM(q, dq, r, PD)
+    dPM = np.empty((n, ntheta, 2 * n))      # d/(q, r)
+    dP = np.empty((n, ntheta, 4 * n))       # d/(q, dq, v, dv)
+    dPC = np.empty((n, ntheta, 3 * n))      # d/(q, dq, r)
+    dPD = np.empty((n, ntheta, 3 * n))      # d/(q, dq, r)
+    model.Phi_M_jac(q, r, dPM)
+    model.Phi_jac(q, dq, v, dv, dP)
+    model.Phi_C_jac(q, dq, r, dPC)
+    model.Phi_dM_jac(q, dq, r, dPD)
+    g = mu + (1.0 - literal_e1) * dmu / mu
+    dg_dmu = 1.0 - (1.0 - literal_e1) * dmu / (mu * mu)
+    dg_ddmu = (1.0 - literal_e1) / mu
+    rd = m + 2 * n                           # first row of the state derivatives
+    ytd = m + n                              # first row of tau_d_hat
+    for i in range(n):
+        for j in range(ntheta):
+            k = i * ntheta + j
+            e = PM[i, j] - x[m + k]
+            # Pi^T
+            jac[k, k] = -1.0
+            jac[k, m + k] = -mu
+            jac[k, cmu] = e
+            # tau_d_hat_i = -sum_j (mu e_ij - Phi_f_ij) theta_hat_j + u_f_i
+            jac[ytd + i, k] = th[j]
+            jac[ytd + i, m + k] = mu * th[j]
+            jac[ytd + i, cth + j] = -(mu * e - x[k])
+            jac[ytd + i, cmu] -= e * th[j]
+            # dPhi_f, dPhi_Mf
+            jac[rd + k, k] = -mu
+            jac[rd + k, cmu] = P[i, j] - PC[i, j] + PD[i, j] - x[k]
+            jac[rd + m + k, m + k] = -g
+            jac[rd + m + k, cmu] = dg_dmu * e
+            jac[rd + m + k, cmu + 1] = dg_ddmu * e
+            for c in range(n):
+                pq = dPM[i, j, c]              # dPhi_M/dq_c
+                pr = dPM[i, j, n + c]          # dPhi_M/dr_c
+                jac[k, nx + c] = mu * pq + dP[i, j, c]
+                jac[k, nx + n + c] = dP[i, j, n + c]
+                jac[k, nx + 2 * n + c] = mu * pr
+                jac[k, nx + 3 * n + c] = dP[i, j, 2 * n + c]
+                jac[k, nx + 4 * n + c] = dP[i, j, 3 * n + c]
+                jac[ytd + i, nx + c] -= mu * pq * th[j]
+                jac[ytd + i, nx + 2 * n + c] -= mu * pr * th[j]
+                jac[rd + k, nx + c] = mu * (dP[i, j, c] - dPC[i, j, c] + dPD[i, j, c])
+                jac[rd + k, nx + n + c] = mu * (dP[i, j, n + c] - dPC[i, j, n + c]
+                                                + dPD[i, j, n + c])
+                jac[rd + k, nx + 2 * n + c] = mu * (dPD[i, j, 2 * n + c] - dPC[i, j, 2 * n + c])
+                jac[rd + k, nx + 3 * n + c] = mu * dP[i, j, 2 * n + c]
+                jac[rd + k, nx + 4 * n + c] = mu * dP[i, j, 3 * n + c]
+                jac[rd + m + k, nx + c] = g * pq
+                jac[rd + m + k, nx + 2 * n + c] = g * pr
+    for i in range(n):
+        jac[m + i, 2 * m + i] = 1.0           # y.u_f = u_f
+        jac[ytd + i, 2 * m + i] = 1.0
+        jac[rd + 2 * m + i, 2 * m + i] = -mu  # du_f
+        jac[rd + 2 * m + i, ct + i] = -mu
+        jac[rd + 2 * m + i, cmu] = -u[ct - nx + i] - x[2 * m + i]
+
+
+def regression_filter_jacobian(t, x, u, jac, l, ntheta):
+    # states   x = [z (n), xi (m), eta (m)], m = n nθ;  inputs u = [tau, q, dq] (n each)
+    # outputs  y = [z (n), phi (m)]; rows of dx start at n + m                     (13)
+    #   phi^T = l (Phi_M^T(q,dq) - xi) + eta;  dz = l (tau - z);
+    #   dxi = l (Phi_M^T(q,dq) - xi);
+    #   deta = l (Phi_C^T(q,dq,dq) - Phi_dM^T(q,dq,dq) + Phi_F^T(dq) + Phi_G^T(q) - eta)
+    n = u.shape[0] // 3
+    m = n * ntheta
+    nx = n + 2 * m
+    q = u[n:2 * n]
+    dq = u[2 * n:3 * n]
+    dPM = np.empty((n, ntheta, 2 * n))      # d/(q, a) at a = dq
+    dPC = np.empty((n, ntheta, 3 * n))      # d/(q, dq, v) at v = dq
+    dPD = np.empty((n, ntheta, 3 * n))      # d/(q, dq, a) at a = dq
+    dPF = np.empty((n, ntheta, n))
+    dPG = np.empty((n, ntheta, n))
+    model.Phi_M_jac(q, dq, dPM)
+    model.Phi_C_jac(q, dq, dq, dPC)
+    model.Phi_dM_jac(q, dq, dq, dPD)
+    model.Phi_F_jac(dq, dPF)
+    model.Phi_G_jac(q, dPG)
+    rd = n + m
+    cq = nx + n
+    cdq = nx + 2 * n
+    for i in range(n):
+        jac[i, i] = 1.0                       # y.z = z
+        jac[rd + i, i] = -l                   # dz
+        jac[rd + i, nx + i] = l
+    for i in range(n):
+        for j in range(ntheta):
+            k = i * ntheta + j
+            jac[n + k, n + k] = -l            # phi
+            jac[n + k, n + m + k] = 1.0
+            jac[rd + n + k, n + k] = -l       # dxi
+            jac[rd + n + m + k, n + m + k] = -l   # deta
+            for c in range(n):
+                jac[n + k, cq + c] = l * dPM[i, j, c]
+                jac[n + k, cdq + c] = l * dPM[i, j, n + c]
+                jac[rd + n + k, cq + c] = l * dPM[i, j, c]
+                jac[rd + n + k, cdq + c] = l * dPM[i, j, n + c]
+                jac[rd + n + m + k, cq + c] = l * (dPC[i, j, c] - dPD[i, j, c] + dPG[i, j, c])
+                jac[rd + n + m + k, cdq + c] = l * (
+                    dPC[i, j, n + c] + dPC[i, j, 2 * n + c] - dPD[i, j, n + c]
+                    - dPD[i, j, 2 * n + c] + dPF[i, j, c])
+
+
+def instrument_jacobian(t, x, u, jac, l):
+    # states   x = zeta (m = n nθ);  inputs u = [q_d, dq_d, ddq_d] (n each);  output zeta
+    #   dzeta^T = l (Phi^T(q_d, dq_d, dq_d, ddq_d) - zeta^T)                         (14)
+    n = u.shape[0] // 3
+    m = x.shape[0]
+    nth = m // n
+    dP = np.empty((n, nth, 4 * n))          # d/(q, dq, v, dv)
+    model.Phi_jac(u[0:n], u[n:2 * n], u[n:2 * n], u[2 * n:3 * n], dP)
+    for k in range(m):
+        jac[k, k] = 1.0                       # y = zeta
+        jac[m + k, k] = -l
+    for i in range(n):
+        for j in range(nth):
+            k = i * nth + j
+            for c in range(n):
+                jac[m + k, m + c] = l * dP[i, j, c]
+                jac[m + k, m + n + c] = l * (dP[i, j, n + c] + dP[i, j, 2 * n + c])
+                jac[m + k, m + 2 * n + c] = l * dP[i, j, 3 * n + c]

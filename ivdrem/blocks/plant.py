@@ -5,6 +5,7 @@ import numpy as np
 
 from ._core import BlockSpec, make_block
 from . import _validate as checks
+from .jacobians import plant_jacobian
 
 
 def plant_update(t, x, u, dx, theta):
@@ -51,5 +52,5 @@ def plant(model, *, theta=None, q0=None, dq0=None, name="plant"):
                      outputs=[("q", n), ("dq", n)], states=[("q", n), ("dq", n)],
                      x0=np.concatenate([q0, dq0]), param_names=("theta",),
                      update=plant_update, output=plant_output, direct=(), model=model,
-                     validate=validate, named_ports=True)
+                     validate=validate, named_ports=True, jacobian=plant_jacobian)
     return make_block(spec, {"theta": theta})

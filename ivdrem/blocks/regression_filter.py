@@ -8,6 +8,7 @@ import numpy as np
 
 from ._core import BlockSpec, make_block
 from . import _validate as checks
+from .jacobians import regression_filter_jacobian
 
 
 def regression_filter_update(t, x, u, dx, l, ntheta):
@@ -70,5 +71,5 @@ def regression_filter(model, l=50.0, *, name="regression_filter"):
                      x0=np.zeros(n + 2 * n * nth), param_names=("l", "ntheta"),
                      update=regression_filter_update, output=regression_filter_output,
                      direct=("q", "dq"), model=model, validate=validate, named_ports=True,
-                     constants={"ntheta": nth})
+                     constants={"ntheta": nth}, jacobian=regression_filter_jacobian)
     return make_block(spec, {"l": l})

@@ -8,6 +8,7 @@ import numpy as np
 
 from ._core import BlockSpec, make_block
 from ._core import ParameterError
+from .jacobians import torque_observer_jacobian
 
 _VARIANTS = {"corrected": 1.0, "literal": 0.0}
 
@@ -84,5 +85,6 @@ def torque_observer(model, *, variant="corrected", name="torque_observer"):
         param_names=("n", "ntheta", "literal_e1"),
         update=torque_observer_update, output=torque_observer_output,
         direct=("q", "dq", "r", "v", "dv", "mu", "theta_hat"), model=model, named_ports=True,
+        jacobian=torque_observer_jacobian,
         constants={"n": n, "ntheta": nth, "literal_e1": 1.0 - _VARIANTS[variant]})
     return make_block(spec, {})

@@ -44,6 +44,17 @@ stored in the ``n x nθ`` orientation (they multiply ``theta``)::
     F(dq, theta, out)             out (n,)
     forward_dynamics(q, dq, tau, theta, out)
                                   out (n,) = qdd solving M qdd = tau - C dq - F - G
+
+and the derivatives of the regressors with respect to their vector arguments (exact, from
+sympy ``diff``), for the blocks' analytic Jacobians: for a regressor ``R(w_0, ..., w_{k-1})``
+of ``k`` vector arguments of length ``n`` each, ``R_jac(w_0, ..., w_{k-1}, out)`` writes
+
+    out[i, j, a*n + m] = d R[i, j] / d w_a[m]        out (n, nθ, k n)
+
+with the arguments in the order of ``R``'s signature, e.g. ``Phi_C_jac(q, dq, v, out)``:
+``out[:, :, 0:n]`` is d/dq, ``out[:, :, n:2n]`` d/ddq, ``out[:, :, 2n:3n]`` d/dv.
+Generated: ``Phi_M_jac``, ``Phi_C_jac``, ``Phi_dM_jac``, ``Phi_G_jac``, ``Phi_F_jac``,
+``Phi_jac``.  A derivative of ``Phi^T theta`` is the contraction ``out @ theta`` over ``j``.
 """
 from __future__ import annotations
 
@@ -56,15 +67,20 @@ import numpy as np
 import sympy as sp
 from sympy.printing.pycode import PythonCodePrinter
 
-__all__ = ["EulerLagrangeModel", "CODEGEN_VERSION"]
+__all__ = ["EulerLagrangeModel", "CODEGEN_VERSION", "REGRESSOR_ARGS"]
 
 #: Bumped whenever the generated source changes shape; part of :attr:`EulerLagrangeModel.key`.
-CODEGEN_VERSION = "1"
+CODEGEN_VERSION = "2"
 
 SINGULAR_INERTIA_MESSAGE = "inertia matrix M(q) is not positive definite (singular inertia)"
 
+#: The regressors and their vector arguments, in signature order.
+REGRESSOR_ARGS = {"Phi_M": ("q", "a"), "Phi_C": ("q", "dq", "v"), "Phi_dM": ("q", "dq", "a"),
+                  "Phi_G": ("q",), "Phi_F": ("dq",), "Phi": ("q", "dq", "v", "dv")}
+
 _FUNCTION_NAMES = ("Phi_M", "Phi_C", "Phi_dM", "Phi_G", "Phi_F", "Phi",
-                   "M", "C", "G", "F", "forward_dynamics")
+                   "M", "C", "G", "F", "forward_dynamics",
+                   *(f"{r}_jac" for r in REGRESSOR_ARGS))
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -280,6 +296,7 @@ class EulerLagrangeModel:
         self.dv = self._fresh("dv", n, taken)
 
         self._source_cache = {}
+        self._rjac_cache = {}
 
     # ------------------------------------------------------------------ validation
     @staticmethod
@@ -396,6 +413,20 @@ class EulerLagrangeModel:
         PM = self.Phi_M.xreplace(dict(zip(self.a, self.dv)))
         return sp.ImmutableMatrix(PM + self.Phi_C + self.Phi_F + self.Phi_G)
 
+    def regressor_jacobian(self, name):
+        """d R[i, j] / d w_a[m] of regressor `name` (e.g. ``"Phi_C"``) as a sympy
+        (n * nθ) x (k n) matrix, row ``i * nθ + j``, column ``a * n + m`` over its vector
+        arguments ``REGRESSOR_ARGS[name]`` (symbols ``self.q``, ``self.dq``, ``self.a``,
+        ``self.v``, ``self.dv``; ``Phi``'s fourth argument is ``self.dv``)."""
+        if name not in REGRESSOR_ARGS:
+            raise ValueError(f"unknown regressor {name!r}; valid: {', '.join(REGRESSOR_ARGS)}")
+        if name not in self._rjac_cache:
+            R = sp.Matrix(getattr(self, name))
+            wrt = [s for arg in REGRESSOR_ARGS[name] for s in getattr(self, arg)]
+            flat = sp.Matrix([R[i, j] for i in range(self.n) for j in range(self.ntheta)])
+            self._rjac_cache[name] = sp.ImmutableMatrix(flat.jacobian(wrt))
+        return self._rjac_cache[name]
+
     # ------------------------------------------------------------------ identity
     @cached_property
     def key(self) -> str:
@@ -468,6 +499,16 @@ class EulerLagrangeModel:
             return self._emit(full, f"{args}, out", f"{doc}; out ({n}, {self.ntheta})",
                               [((i, j), expr[i, j]) for i in range(n) for j in range(self.ntheta)],
                               two_d=True)
+        if fname.endswith("_jac") and fname[:-4] in REGRESSOR_ARGS:
+            base = fname[:-4]
+            args = REGRESSOR_ARGS[base]
+            k, nt = len(args), self.ntheta
+            expr = N.num(self.regressor_jacobian(base))
+            doc = (f"d{base}[i, j]/d(" + ", ".join(args) + f")[c], c = arg * {n} + entry; "
+                   f"out ({n}, {nt}, {k * n})")
+            return self._emit(full, ", ".join(args) + ", out", doc,
+                              [((i, j, c), expr[i * nt + j, c]) for i in range(n)
+                               for j in range(nt) for c in range(k * n)], two_d=True)
         if fname == "M":
             expr = N.num(self.M)
             return self._emit(full, "q, theta, out", f"inertia matrix M(q); out ({n}, {n})",
