@@ -6,7 +6,9 @@ Each block ``b`` with kernels is differentiated alone: its local Jacobian
     [ df_b/dx_b  df_b/du_b ]        (state derivatives)
 
 comes from the block's own ``jacobian`` kernel when it has one (closed forms in
-:mod:`ivdrem.blocks.jacobians`), otherwise from differences of *its own* kernels only
+:mod:`ivdrem.blocks.jacobians`; the library's robot-model blocks build theirs from the
+regressors' derivatives generated with the model), otherwise from differences of *its own*
+kernels only
 (columns perturbed in groups whose rows do not overlap, Curtis-Powell-Reid):
 
 * forward differences, step sqrt(eps) max(|v|, 1), for blocks without a robot model (linear
@@ -15,7 +17,7 @@ comes from the block's own ``jacobian`` kernel when it has one (closed forms in
   right-hand-side evaluation that gathers the signals has just computed, so a group costs
   one kernel call;
 * central differences, step eps^(1/3) max(|v|, 1) (accurate to about eps^(2/3) relative),
-  for blocks that call the robot model: their trigonometric terms, multiplied by gains such
+  for blocks that call the robot model without a kernel of their own (a user's block): their trigonometric terms, multiplied by gains such
   as mu(t), make forward differences' rounding error eps |f| / h reach 1e-6 of an entry
   (measured on planar_arm(3)); two kernel calls per group.  The chain rule then follows the same topological order as the
 right-hand side: for the blocks in order of direct feedthrough
