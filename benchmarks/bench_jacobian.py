@@ -96,7 +96,7 @@ def bench(law, reps):
     prog = JacobianProgram(sim.plan)
     slu = symbolic_lu(prog.pattern)
     J = np.zeros((n, n))
-    LU = np.zeros((n, n))
+    LU = np.zeros((n + 2, n))       # the template's layout: two spare rows for the sparse LU
     piv = np.zeros(n, dtype=np.int64)
     b0 = np.random.default_rng(0).standard_normal(n)
     b = b0.copy()

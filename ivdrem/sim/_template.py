@@ -627,7 +627,7 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
     check_stiff = ctl[7] != 0.0
     K = np.empty((K_ROWS, n))
     J = np.zeros((n, n))          # a structured Jacobian writes only its pattern
-    LU = np.empty((n, n))
+    LU = np.empty((n + 2, n))     # the factor in rows < n; the sparse LU uses the other two
     piv = np.zeros(n, dtype=np.int64)
     xn = np.empty(n)
     f1 = np.empty(n)

@@ -526,7 +526,7 @@ class CompiledEngine:
         or with dense=True the partial-pivoting dense_factor: (status, LU, piv)."""
         J = np.ascontiguousarray(J, dtype=float)
         n = J.shape[0]
-        LU = np.zeros((n, n))
+        LU = np.zeros((n + 2, n))     # rows n, n + 1: the sparse LU's inverse pivots, work row
         piv = np.zeros(n, dtype=np.int64)
         tb = self.tables
         if dense:

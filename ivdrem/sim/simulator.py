@@ -198,13 +198,13 @@ class ReferenceEngine:
         d = np.abs(np.diag(lu))
         if not (np.all(d > 0) and np.all(np.isfinite(d))):
             return tpl.SINGULAR
-        LU[:] = lu
+        LU[:lu.shape[0]] = lu          # (the template's LU has two spare rows)
         piv[:] = p
         return tpl.OK
 
     @staticmethod
     def _solve(LU, piv, b):
-        b[:] = scipy.linalg.lu_solve((LU, piv), b, check_finite=False)
+        b[:] = scipy.linalg.lu_solve((LU[:b.shape[0]], piv), b, check_finite=False)
 
     def _after_step(self, t, x, P, W):
         plan = self.plan
