@@ -467,3 +467,27 @@ def test_recording_evaluates_only_what_the_outputs_read():
         ys.append(y)
     assert fast.stats[tpl.S_STEPS] < 300           # outputs from inside the steps
     np.testing.assert_array_equal(ys[0], ys[1])
+
+
+def test_history_points_inside_steps_evaluate_only_what_the_delays_read():
+    """The midpoint of each Rodas5P step that feeds the delays' history evaluates only the
+    blocks the delay inputs (the window integral and its slope) depend on; the run is bit
+    for bit the one with a full sweep there."""
+    from ivdrem.sim.simulator import Simulator
+    from ivdrem.sim.tables import pack as pack_tables
+    loop = paper_loop("iv-drem")
+    fast = Simulator(loop)
+    tb = fast.engine.tables
+    names = {loop.syslist[k].name for k in tb.history_order}
+    assert names == {"plant", "regression_filter", "instrument", "extension",
+                     "window_integrator"}, names
+    full = Simulator(loop)
+    everything = tb._replace(history_order=tb.order, history_fill=tb.fill_rest)
+    ints, floats = pack_tables(everything)
+    full.W = full.W._replace(table_ints=ints, table_floats=floats)
+    full._Wref[0] = full.W
+    t_out = np.linspace(0.0, 25.0, 26)
+    a = np.array([fast.advance(t) or fast.outputs_at_current() for t in t_out[1:]])
+    b = np.array([full.advance(t) or full.outputs_at_current() for t in t_out[1:]])
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(fast.x, full.x)

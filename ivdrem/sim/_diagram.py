@@ -145,6 +145,11 @@ def diagram_eval(mode, t, x, P, W, out):
             # output inside a step is followed by a full sweep at the step's end)
             order = int_table(ti, T_RECORD_ORDER)
             fill_rest = int_table(ti, T_RECORD_FILL)
+        elif mode == HISTORY_POINT:
+            # a point of the delays' history inside a step: only the delays' inputs (a
+            # full sweep follows at the step's end)
+            order = int_table(ti, T_HISTORY_ORDER)
+            fill_rest = int_table(ti, T_HISTORY_FILL)
         # signals, in topological order of direct feedthrough
         for i in range(order.shape[0]):
             k = order[i]
@@ -173,7 +178,7 @@ def diagram_eval(mode, t, x, P, W, out):
                 kernel_call(kernels, failure, wnx, B[k * N_BLOCK_COLUMNS + B_UPD], t, x, B[k * N_BLOCK_COLUMNS + B_X0], us, B[k * N_BLOCK_COLUMNS + B_U0], out,
                             B[k * N_BLOCK_COLUMNS + B_X0], P, B[k * N_BLOCK_COLUMNS + B_P0])
         return OK
-    if mode == AFTER_STEP:
+    if mode == AFTER_STEP or mode == HISTORY_POINT:
         nd = int_table(ti, T_DIMS)[DIM_ND]
         if delays.shape[0] > 0 and W[13][0] == 0:     # (a max-hold probe adds no history)
             v = np.empty(nd)
@@ -194,6 +199,8 @@ def diagram_eval(mode, t, x, P, W, out):
                 return st
             hist_trim(W, t - t_max)
         upd = 0
+        if mode == HISTORY_POINT:
+            return OK
         for r in range(holds.shape[0] // N_HOLD_COLUMNS):
             hd = holds[r * N_HOLD_COLUMNS:]
             u0 = hd[H_U]

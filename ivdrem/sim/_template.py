@@ -47,6 +47,7 @@ RHS = 0
 AFTER_STEP = 1
 RECORD = 2
 AFTER_STEP_EVALUATED = 3   # after_step when the last RHS call was at this (t, x) already
+HISTORY_POINT = 4          # after_step at a point inside a step: the delays' history only
 
 # status codes returned by integrate (and by the engines' Jacobian / factorisation)
 OK = 0
@@ -780,7 +781,7 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
             tm = t + 0.5 * (t1 - t)
             dense_eval(m, h_use, 0.5, x, xn, K[0], f1, K, xg)
             W[14][0] = tm
-            diagram_eval(AFTER_STEP, tm, xg, P, W, xg)
+            diagram_eval(HISTORY_POINT, tm, xg, P, W, xg)
             swept = True
         # accepted
         t_prev = t

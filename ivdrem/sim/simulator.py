@@ -153,7 +153,7 @@ class ReferenceEngine:
         if mode == tpl.RHS:
             self._rhs(t, x, P, W, out)
             return tpl.OK
-        if mode == tpl.AFTER_STEP or mode == tpl.AFTER_STEP_EVALUATED:
+        if mode in (tpl.AFTER_STEP, tpl.AFTER_STEP_EVALUATED, tpl.HISTORY_POINT):
             return self._after_step(t, x, P, W)
         self._record(t, x, P, W, out)
         return tpl.OK

@@ -22,7 +22,8 @@ from .tables import DIMS, FLOAT_FIELDS, INT_FIELDS
 __all__ = ["stepper_source"]
 
 # mode and literal arguments of the template's and diagram functions' calls (see below)
-_RUNTIME_INTS = ["RHS", "AFTER_STEP", "RECORD", "AFTER_STEP_EVALUATED", "ZERO"]
+_RUNTIME_INTS = ["RHS", "AFTER_STEP", "RECORD", "AFTER_STEP_EVALUATED", "HISTORY_POINT",
+                 "ZERO"]
 
 
 def stepper_source():

@@ -22,7 +22,8 @@ __all__ = ["DiagramTables", "TABLES_LAYOUT", "DIMS", "build_tables", "empty_tabl
 TABLES_LAYOUT = (
     ("blocks", "int64", 2), ("order", "int64", 1), ("fill_order", "int64", 1),
     ("fill_rest", "int64", 1), ("probe_order", "int64", 1), ("probe_fill", "int64", 1),
-    ("record_order", "int64", 1), ("record_fill", "int64", 1), ("in_ptr", "int64", 1), ("in_src", "int64", 1),
+    ("record_order", "int64", 1), ("record_fill", "int64", 1),
+    ("history_order", "int64", 1), ("history_fill", "int64", 1), ("in_ptr", "int64", 1), ("in_src", "int64", 1),
     ("in_gain", "float64", 1), ("delays", "int64", 2), ("holds", "int64", 2),
     ("rec_ptr", "int64", 1), ("rec_src", "int64", 1), ("rec_gain", "float64", 1),
     ("wrapper_nx", "int64", 1), ("dims", "int64", 1),
@@ -116,6 +117,11 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     hold_inputs = [i for b in plan.blocks if b.spec.kind == "maxhold"
                    for i in range(b.u.start, b.u.stop)]
     probe_order = _needed_blocks(plan, prog, [j for i in hold_inputs for j, _ in plan.conn[i]])
+    # a history point inside a step: the same for the delays' inputs (values and slopes)
+    delay_inputs = sorted({int(dl[_diagram.D_U]) + i for dl in delays for i in range(dl[1])}
+                          | {int(dl[_diagram.D_DU]) + i for dl in delays if dl[3]
+                             for i in range(dl[1])})
+    history_order = _needed_blocks(plan, prog, [j for i in delay_inputs for j, _ in plan.conn[i]])
     # recording the diagram outputs: the same for the entries the output map reads (block
     # outputs, and block inputs, which are filled from their sources)
     Om = np.asarray(d.output_map)
@@ -160,6 +166,7 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         blocks=blocks, order=_i64(plan.order), fill_order=_i64(fill_order),
         fill_rest=_i64(rest), probe_order=_i64(probe_order), probe_fill=_i64(hold_inputs),
         record_order=_i64(record_order), record_fill=_i64(rec_inputs),
+        history_order=_i64(history_order), history_fill=_i64(delay_inputs),
         in_ptr=_i64(in_ptr), in_src=_i64(in_src),
         in_gain=np.asarray(in_gain, dtype=float), delays=_i64(delays, _diagram.N_DELAY_COLUMNS),
         holds=_i64(holds, _diagram.N_HOLD_COLUMNS), rec_ptr=_i64(rec_ptr), rec_src=_i64(rec_src),
