@@ -414,25 +414,30 @@ def test_composite_learning_theta_hat_and_hold_time_do_not_depend_on_the_method(
     assert abs(sig(a, "lambda_min_held")[0, -1] / sig(b, "lambda_min_held")[0, -1] - 1) < 1e-6
 
 
+def _restricted_and_full_sweep(loop, full_sweep):
+    """Two simulators of `loop`: one with its own tables, one whose tables are changed by
+    full_sweep(tables) -> {field: table} to evaluate every block where the first evaluates
+    only what a probe, an output or a history point reads."""
+    from ivdrem.sim.simulator import Simulator
+    fast = Simulator(loop)
+    full = Simulator(loop)
+    ints, floats = pack(fast.engine.tables._replace(**full_sweep(fast.engine.tables)))
+    full.W = full.W._replace(table_ints=ints, table_floats=floats)
+    full._Wref[0] = full.W
+    return fast, full
+
+
 def test_probing_a_hold_evaluates_only_what_feeds_it():
     """While the loop probes composite learning's max-hold at interpolated points, the
     table-driven diagram evaluates only the blocks the hold's inputs depend on, followed
     output entry by output entry through the blocks' local patterns (the window
     I - I(t - T) needs the integrator and the delay, not the regressor chain behind the
     integrand g); the run is bit for bit the one that sweeps every block at every probe."""
-    from ivdrem.sim.simulator import Simulator
-    from ivdrem.sim.tables import pack as pack_tables
     loop = paper_loop("composite-learning")
-    fast = Simulator(loop)
-    tb = fast.engine.tables
-    names = {loop.syslist[k].name for k in tb.probe_order}
+    fast, full = _restricted_and_full_sweep(loop, lambda tb: dict(
+        probe_order=tb.order, probe_fill=np.concatenate([tb.fill_order, tb.fill_rest])))
+    names = {loop.syslist[k].name for k in fast.engine.tables.probe_order}
     assert names == {"window_delay", "window_integrator"}, names
-    full = Simulator(loop)
-    everything = tb._replace(probe_order=tb.order, probe_fill=np.concatenate(
-        [tb.fill_order, tb.fill_rest]))
-    ints, floats = pack_tables(everything)
-    full.W = full.W._replace(table_ints=ints, table_floats=floats)
-    full._Wref[0] = full.W
     t_out = np.linspace(0.0, 25.0, 26)
     a = np.array([fast.advance(t) or fast.outputs_at_current() for t in t_out[1:]])
     b = np.array([full.advance(t) or full.outputs_at_current() for t in t_out[1:]])
@@ -445,20 +450,13 @@ def test_recording_evaluates_only_what_the_outputs_read():
     """Outputs recorded inside Rodas5P's steps (from its dense output) evaluate only the
     blocks the diagram's output map reads, through the blocks' local patterns; the
     recorded outputs are bit for bit those of a full sweep."""
-    from ivdrem.sim.simulator import Simulator
-    from ivdrem.sim.tables import pack as pack_tables
     loop = paper_loop("iv-drem")
-    fast = Simulator(loop)
-    tb = fast.engine.tables
-    names = {loop.syslist[k].name for k in tb.record_order}
+    fast, full = _restricted_and_full_sweep(loop, lambda tb: dict(
+        record_order=tb.order, record_fill=tb.fill_rest))
+    names = {loop.syslist[k].name for k in fast.engine.tables.record_order}
     # the window, its delay, the extension and the DREM term feed no recorded output
     assert {"window_integrator", "window_delay", "extension", "drem_term"}.isdisjoint(names)
     assert {"plant", "mixing", "torque_observer", "adaptation_law"} <= names
-    full = Simulator(loop)
-    everything = tb._replace(record_order=tb.order, record_fill=tb.fill_rest)
-    ints, floats = pack_tables(everything)
-    full.W = full.W._replace(table_ints=ints, table_floats=floats)
-    full._Wref[0] = full.W
     t_out = np.linspace(0.0, 6.0, 601)
     ys = []
     for s in (fast, full):
@@ -473,19 +471,12 @@ def test_history_points_inside_steps_evaluate_only_what_the_delays_read():
     """The midpoint of each Rodas5P step that feeds the delays' history evaluates only the
     blocks the delay inputs (the window integral and its slope) depend on; the run is bit
     for bit the one with a full sweep there."""
-    from ivdrem.sim.simulator import Simulator
-    from ivdrem.sim.tables import pack as pack_tables
     loop = paper_loop("iv-drem")
-    fast = Simulator(loop)
-    tb = fast.engine.tables
-    names = {loop.syslist[k].name for k in tb.history_order}
+    fast, full = _restricted_and_full_sweep(loop, lambda tb: dict(
+        history_order=tb.order, history_fill=tb.fill_rest))
+    names = {loop.syslist[k].name for k in fast.engine.tables.history_order}
     assert names == {"plant", "regression_filter", "instrument", "extension",
                      "window_integrator"}, names
-    full = Simulator(loop)
-    everything = tb._replace(history_order=tb.order, history_fill=tb.fill_rest)
-    ints, floats = pack_tables(everything)
-    full.W = full.W._replace(table_ints=ints, table_floats=floats)
-    full._Wref[0] = full.W
     t_out = np.linspace(0.0, 25.0, 26)
     a = np.array([fast.advance(t) or fast.outputs_at_current() for t in t_out[1:]])
     b = np.array([full.advance(t) or full.outputs_at_current() for t in t_out[1:]])

@@ -198,9 +198,9 @@ def diagram_eval(mode, t, x, P, W, out):
             if st != OK:
                 return st
             hist_trim(W, t - t_max)
-        upd = 0
-        if mode == HISTORY_POINT:
+        if mode == HISTORY_POINT:      # (no max-hold samples inside a step here)
             return OK
+        upd = 0
         for r in range(holds.shape[0] // N_HOLD_COLUMNS):
             hd = holds[r * N_HOLD_COLUMNS:]
             u0 = hd[H_U]

@@ -24,7 +24,8 @@ PIVOT_RTOL = 1e-12
 def jac_chain(F, dst, fidx, src, n_slots, j_row, j_col, j_slot, J):
     """S[dst] += F[f] * S[src] (or + F[f] where src < 0), in order; then J[r, c] = S on the
     structural pattern.  J's other entries are not written: zero them once, when J is
-    allocated (zeroing 123^2 entries on every call cost about as much as the chain)."""
+    allocated (zeroing IV-DREM's 123^2 entries on every call is 15 k stores, against the
+    chain's 2.7 k multiply-adds)."""
     S = np.zeros(n_slots)
     for i in range(dst.shape[0]):
         s = src[i]
@@ -94,9 +95,9 @@ def slu_factor(J, c, LU, piv, perm, rowptr, colidx, diagp):
     """Factor A = c I - J as L U of P A P^T (perm = P) on the static filled pattern.
 
     Row-oriented (IKJ) elimination with a dense work row; values go to LU.reshape(-1)[:nnz],
-    the inverse pivots to row n of LU (LU has n + 2 rows: a division per pivot, not per
-    entry: about 700 divisions of a factor and 123 of each solve were a quarter of their
-    time) and perm to piv; row n + 1 is the work row.  Returns SINGULAR for a pivot that is
+    the inverse pivots to row n of LU (LU has n + 2 rows: a division per pivot rather than
+    per entry of L, 706 for IV-DREM, and per row of each solve) and perm to piv; row n + 1
+    is the work row.  Returns SINGULAR for a pivot that is
     not finite or smaller than PIVOT_RTOL times the largest |A| entry of its row.
     """
     n = J.shape[0]

@@ -116,19 +116,20 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     rest = [i for i in range(nu_total) if i not in filled]
     hold_inputs = [i for b in plan.blocks if b.spec.kind == "maxhold"
                    for i in range(b.u.start, b.u.stop)]
-    probe_order = _needed_blocks(plan, prog, [j for i in hold_inputs for j, _ in plan.conn[i]])
+    probe_order = _needed_blocks(plan, prog, inputs=hold_inputs)
     # a history point inside a step: the same for the delays' inputs (values and slopes)
-    delay_inputs = sorted({int(dl[_diagram.D_U]) + i for dl in delays for i in range(dl[1])}
-                          | {int(dl[_diagram.D_DU]) + i for dl in delays if dl[3]
-                             for i in range(dl[1])})
-    history_order = _needed_blocks(plan, prog, [j for i in delay_inputs for j, _ in plan.conn[i]])
+    delay_inputs = sorted(
+        {int(dl[_diagram.D_U]) + i for dl in delays for i in range(dl[_diagram.D_SIZE])}
+        | {int(dl[_diagram.D_DU]) + i for dl in delays if dl[_diagram.D_HERMITE]
+           for i in range(dl[_diagram.D_SIZE])})
+    history_order = _needed_blocks(plan, prog, inputs=delay_inputs)
     # recording the diagram outputs: the same for the entries the output map reads (block
     # outputs, and block inputs, which are filled from their sources)
     Om = np.asarray(d.output_map)
     read = sorted({int(j) for j in np.flatnonzero(Om.any(axis=0))}) if Om.size else []
     rec_inputs = [j - ny_total for j in read if j >= ny_total]
-    record_order = _needed_blocks(plan, prog, [j for j in read if j < ny_total]
-                                  + [j for i in rec_inputs for j, _ in plan.conn[i]])
+    record_order = _needed_blocks(plan, prog, outputs=[j for j in read if j < ny_total],
+                                  inputs=rec_inputs)
     # the connection map (and input map) as sparse rows: sources >= 0 are block outputs,
     # -1 - j is diagram input j
     Cin = np.asarray(d.input_map)
@@ -142,7 +143,6 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
                 in_src.append(-1 - int(j))
                 in_gain.append(float(Cin[k, j]))
         in_ptr.append(len(in_src))
-    Om = np.asarray(d.output_map)
     rec_ptr, rec_src, rec_gain = [0], [], []
     for r in range(Om.shape[0]):
         for j in np.flatnonzero(Om[r]):
@@ -181,20 +181,26 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         lu_rowptr=_i64(slu.rowptr), lu_colidx=_i64(slu.colidx), lu_diagp=_i64(slu.diagp))
 
 
-def _needed_blocks(plan, prog, outputs):
+def _needed_blocks(plan, prog, *, outputs=(), inputs=()):
     """The blocks to evaluate, in evaluation order, for the block output entries `outputs`
-    (indices into the signal vector) alone: their owners and, through each block's local
-    pattern (prog.patterns: which inputs an output entry moves), the entries those depend
-    on.  A block without a pattern counts as depending on all its direct inputs.
+    and the block input entries `inputs` (indices into the signal and input vectors)
+    alone: the owners of those outputs and of the inputs' sources and, through each
+    block's local pattern (prog.patterns: which inputs an output entry moves), the entries
+    those depend on.  A block without a pattern counts as depending on all its direct
+    inputs.
 
     Used where the loop needs a few signals at an interpolated point: a max-hold probe
     (composite learning's hold reads the window I - I(t - T), the integrator's state and
     the delay's history, not the regressor chain behind the integrand that the integrator
-    also passes on) and the recorded outputs."""
+    also passes on), a history point of the delays and the recorded outputs."""
     owner = plan.output_owner()
+
+    def sources(entries):
+        return [src for i in entries for src, _ in plan.conn[int(i)]]
+
     needed = set()                     # blocks to evaluate
     seen = set()                       # global output entries already followed
-    stack = list(outputs)
+    stack = list(outputs) + sources(inputs)
     while stack:
         j = int(stack.pop())
         if j in seen:
@@ -206,13 +212,11 @@ def _needed_blocks(plan, prog, outputs):
         if b.spec.kind != "ode":       # delays read their history, holds their record
             continue
         pat = prog.patterns.get(k)
-        nx = b.sys.nstates
         if pat is None:
-            inputs = [int(i) for i in b.direct_inputs]
+            stack += sources(b.direct_inputs)
         else:
-            r = j - b.y.start
-            inputs = [b.u.start + c - nx for c in np.flatnonzero(pat[r, nx:]) + nx]
-        stack += [src for i in inputs for src, _ in plan.conn[int(i)]]
+            row = pat[j - b.y.start, b.sys.nstates:]
+            stack += sources(b.u.start + np.flatnonzero(row))
     return [k for k in plan.order if k in needed]
 
 
