@@ -19,6 +19,14 @@ module: the template's helpers and constants, ``call_c`` / ``element_address``
 """
 import numpy as np
 
+# How the stepper compiles these (ivdrem.sim.stepper).  Functions that allocate nothing
+# and return no array are compiled without reference counting: numba's atomic counts on
+# every view and array argument were a quarter of a Rodas5P step (perf, IV-DREM).  The
+# table views are inlined into their callers, so no count is taken for them either.
+NO_REFCOUNT = ("kernel_call", "row_sum", "fill_input", "diagram_eval",
+               "diagram_jacobian_at", "newton_factor", "newton_solve")
+INLINE = ("int_table", "float_table")
+
 # columns of DiagramTables.blocks
 B_KIND = 0      # 0 ode, 1 delay, 2 max-hold
 B_X0 = 1
@@ -179,25 +187,10 @@ def diagram_eval(mode, t, x, P, W, out):
                             B[k * N_BLOCK_COLUMNS + B_X0], P, B[k * N_BLOCK_COLUMNS + B_P0])
         return OK
     if mode == AFTER_STEP or mode == HISTORY_POINT:
-        nd = int_table(ti, T_DIMS)[DIM_ND]
         if delays.shape[0] > 0 and W[13][0] == 0:     # (a max-hold probe adds no history)
-            v = np.empty(nd)
-            dv = np.zeros(nd)
-            est = np.zeros(nd, dtype=np.int64)
-            t_max = 0.0
-            for r in range(delays.shape[0] // N_DELAY_COLUMNS):
-                dl = delays[r * N_DELAY_COLUMNS:]
-                copy_into(v, dl[D_OFF], us, dl[D_U], dl[D_SIZE])
-                if dl[D_HERMITE] != 0:
-                    copy_into(dv, dl[D_OFF], us, dl[D_DU], dl[D_SIZE])
-                else:
-                    for i in range(dl[D_OFF], dl[D_OFF] + dl[D_SIZE]):
-                        est[i] = 1
-                t_max = max(t_max, P[dl[D_TP]])
-            st = hist_push(W, t, v, dv, est)
+            st = push_history(t, P, W)
             if st != OK:
                 return st
-            hist_trim(W, t - t_max)
         if mode == HISTORY_POINT:      # (no max-hold samples inside a step here)
             return OK
         upd = 0
@@ -213,6 +206,34 @@ def diagram_eval(mode, t, x, P, W, out):
     rec_gain = float_table(ti, tf, TF_REC_GAIN)
     for r in range(rec_ptr.shape[0] - 1):
         out[r] = row_sum(rec_ptr, rec_src, rec_gain, r, ys, us)
+    return OK
+
+
+def push_history(t, P, W):
+    """Append the delays' inputs at the accepted point t (the signals in W[7]) to the
+    history and forget what no lookup can need any more.  Apart from diagram_eval because
+    it allocates (diagram_eval is compiled without reference counts)."""
+    ti = W[FIELD_TABLE_INTS]
+    us = W[7]
+    delays = int_table(ti, T_DELAYS)
+    nd = int_table(ti, T_DIMS)[DIM_ND]
+    v = np.empty(nd)
+    dv = np.zeros(nd)
+    est = np.zeros(nd, dtype=np.int64)
+    t_max = 0.0
+    for r in range(delays.shape[0] // N_DELAY_COLUMNS):
+        dl = delays[r * N_DELAY_COLUMNS:]
+        copy_into(v, dl[D_OFF], us, dl[D_U], dl[D_SIZE])
+        if dl[D_HERMITE] != 0:
+            copy_into(dv, dl[D_OFF], us, dl[D_DU], dl[D_SIZE])
+        else:
+            for i in range(dl[D_OFF], dl[D_OFF] + dl[D_SIZE]):
+                est[i] = 1
+        t_max = max(t_max, P[dl[D_TP]])
+    st = hist_push(W, t, v, dv, est)
+    if st != OK:
+        return st
+    hist_trim(W, t - t_max)
     return OK
 
 
@@ -240,19 +261,9 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
     jac_gains = float_table(ti, tf, TF_JAC_GAINS)
     njb = dims[DIM_NJB]
     ng = jac_gains.shape[0]
-    F = np.empty(njb + ng)
-    for i in range(ng):
-        F[njb + i] = jac_gains[i]
     maxx = dims[DIM_MAXX]
     maxu = dims[DIM_MAXU]
     maxyf = dims[DIM_MAXYF]
-    xb = np.empty(maxx)
-    ub = np.empty(maxu)
-    xb0 = np.empty(maxx)
-    ub0 = np.empty(maxu)
-    yp = np.empty(maxyf)
-    y0 = np.empty(maxyf)
-    ym = np.empty(maxyf)
     fd_g_ptr = int_table(ti, T_FD_G_PTR)
     fd_g_kind = int_table(ti, T_FD_G_KIND)
     fd_gc_ptr = int_table(ti, T_FD_GC_PTR)
@@ -260,8 +271,38 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
     fd_e_ptr = int_table(ti, T_FD_E_PTR)
     fd_e_row = int_table(ti, T_FD_E_ROW)
     fd_e_slot = int_table(ti, T_FD_E_SLOT)
-    hh = np.empty(max(fd_col.shape[0], 1))
-    jl = np.empty(maxyf * dims[DIM_MAXCOL])      # a block's local Jacobian, row-major
+    # work arrays carved from the workspace's scratch, in the order its size was summed
+    # (ivdrem.sim.tables): no allocation per Jacobian
+    sc = W[FIELD_SCRATCH]
+    ncol = max(fd_col.shape[0], 1)
+    nl = maxyf * dims[DIM_MAXCOL]
+    if (njb + ng + 2 * maxx + 2 * maxu + 3 * maxyf + ncol + nl + dims[DIM_NSLOTS]
+            > sc.shape[0]):
+        raise RuntimeError("ivdrem: the Jacobian's scratch is smaller than its tables")
+    o = 0
+    F = sc[o:o + njb + ng]
+    o += njb + ng
+    xb = sc[o:o + maxx]
+    o += maxx
+    xb0 = sc[o:o + maxx]
+    o += maxx
+    ub = sc[o:o + maxu]
+    o += maxu
+    ub0 = sc[o:o + maxu]
+    o += maxu
+    yp = sc[o:o + maxyf]
+    o += maxyf
+    y0 = sc[o:o + maxyf]
+    o += maxyf
+    ym = sc[o:o + maxyf]
+    o += maxyf
+    hh = sc[o:o + ncol]
+    o += ncol
+    jl = sc[o:o + nl]             # a block's local Jacobian, row-major
+    o += nl
+    S = sc[o:o + dims[DIM_NSLOTS]]
+    for i in range(ng):
+        F[njb + i] = jac_gains[i]
     fd = int_table(ti, T_FD)
     for kb in range(fd.shape[0] // N_FD_COLUMNS):
         r0 = kb * N_FD_COLUMNS
@@ -313,8 +354,8 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
                 kernel_call(kernels, failure, wnx, w, t, xb, ZERO, ub, ZERO, yp, o0, P, p0)
                 fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh)
                 fd_forward_scatter(yp, y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F)
-    jac_chain(F, int_table(ti, T_JAC_INS_DST), int_table(ti, T_JAC_INS_F),
-              int_table(ti, T_JAC_INS_SRC), dims[DIM_NSLOTS], int_table(ti, T_JAC_J_ROW),
+    jac_chain(F, S, int_table(ti, T_JAC_INS_DST), int_table(ti, T_JAC_INS_F),
+              int_table(ti, T_JAC_INS_SRC), int_table(ti, T_JAC_J_ROW),
               int_table(ti, T_JAC_J_COL), int_table(ti, T_JAC_J_SLOT), J)
     return OK
 

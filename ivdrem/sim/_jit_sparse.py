@@ -6,7 +6,9 @@
   ordering and fill computed at generation time (:mod:`ivdrem.sim.sparse_lu`).
 
 They take the index arrays as arguments, so their machine code does not depend on the
-diagram.
+diagram.  None allocates or returns an array, so all are compiled without reference
+counting (``_nrt=False``): numba's atomic counts on every view and array argument cost
+more than the arithmetic of a solve.
 """
 import numpy as np
 from numba import njit
@@ -20,13 +22,14 @@ SINGULAR = 6          # the stepping template's status for a zero / non-finite p
 PIVOT_RTOL = 1e-12
 
 
-@njit(cache=True)
-def jac_chain(F, dst, fidx, src, n_slots, j_row, j_col, j_slot, J):
-    """S[dst] += F[f] * S[src] (or + F[f] where src < 0), in order; then J[r, c] = S on the
-    structural pattern.  J's other entries are not written: zero them once, when J is
-    allocated (zeroing IV-DREM's 123^2 entries on every call is 15 k stores, against the
-    chain's 2.7 k multiply-adds)."""
-    S = np.zeros(n_slots)
+@njit(cache=True, _nrt=False)
+def jac_chain(F, S, dst, fidx, src, j_row, j_col, j_slot, J):
+    """S[dst] += F[f] * S[src] (or + F[f] where src < 0), in order, from S = 0 (S: one entry
+    per slot, scratch); then J[r, c] = S on the structural pattern.  J's other entries are
+    not written: zero them once, when J is allocated (zeroing IV-DREM's 123^2 entries on
+    every call is 15 k stores, against the chain's 2.7 k multiply-adds)."""
+    for i in range(S.shape[0]):
+        S[i] = 0.0
     for i in range(dst.shape[0]):
         s = src[i]
         if s < 0:
@@ -37,7 +40,7 @@ def jac_chain(F, dst, fidx, src, n_slots, j_row, j_col, j_slot, J):
         J[j_row[e], j_col[e]] = S[j_slot[e]]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def fd_shift(xb, ub, xb0, ub0, nx, col, c0, c1, sign, hh):
     """Set the columns col[c0:c1] of the block to base + sign h (h = eps^(1/3) max(|v|, 1));
     with sign 0 restore them.  hh[c] receives (v + h) - (v - h) as represented."""
@@ -54,7 +57,7 @@ def fd_shift(xb, ub, xb0, ub0, nx, col, c0, c1, sign, hh):
             ub[j - nx] = w
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def fd_scatter(yp, ym, hh, c0, c1, e_ptr, e_row, e_slot, JB):
     for c in range(c0, c1):
         inv = 1.0 / hh[c]
@@ -63,7 +66,7 @@ def fd_scatter(yp, ym, hh, c0, c1, e_ptr, e_row, e_slot, JB):
             JB[e_slot[e]] = (yp[r] - ym[r]) * inv
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def fd_forward(xb, ub, xb0, ub0, nx, col, c0, c1, on, hh):
     """Move the columns col[c0:c1] of the block to base + h (h = sqrt(eps) max(|v|, 1)),
     or back to the base (on = 0.0; a float, so that numba compiles one version).  hh[c] receives (v + h) - v as represented."""
@@ -80,7 +83,7 @@ def fd_forward(xb, ub, xb0, ub0, nx, col, c0, c1, on, hh):
             ub[j - nx] = w
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def fd_forward_scatter(yp, y0, hh, c0, c1, e_ptr, e_row, e_slot, JB):
     """Forward differences (yp - y0) / h of the group's columns into their JB slots."""
     for c in range(c0, c1):
@@ -90,7 +93,7 @@ def fd_forward_scatter(yp, y0, hh, c0, c1, e_ptr, e_row, e_slot, JB):
             JB[e_slot[e]] = (yp[r] - y0[r]) * inv
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def slu_factor(J, c, LU, piv, perm, rowptr, colidx, diagp):
     """Factor A = c I - J as L U of P A P^T (perm = P) on the static filled pattern.
 
@@ -133,7 +136,7 @@ def slu_factor(J, c, LU, piv, perm, rowptr, colidx, diagp):
     return OK
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def slu_solve(LU, perm, rowptr, colidx, diagp, b):
     """b = A^{-1} b for the factorisation of slu_factor (LU's row n + 1 is the work row)."""
     n = b.shape[0]

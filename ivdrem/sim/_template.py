@@ -153,6 +153,16 @@ RODAS5P_H = np.array([
 # rows of the stage array K each method uses (K has K_ROWS rows of n)
 K_ROWS = 11
 
+# How the compiled engine's stepper compiles these (ivdrem.sim.stepper): everything that
+# allocates nothing and returns no array without reference counting (numba's atomic counts
+# on the stage views K[i] and on array arguments cost more than the stage arithmetic);
+# external_inputs, which returns a workspace array, inlined into its callers.
+NO_REFCOUNT = ("copy_into", "hist_index", "quad_slope", "hist_push", "hist_trim",
+               "hist_lookup", "emit", "check_state", "err_norm", "rk4_step", "dp45_step",
+               "rodas5p_step", "method_step", "dense_eval", "on_grid", "next_grid",
+               "probe_holds", "set_hold_modes", "step_loop", "dense_factor", "dense_solve")
+INLINE = ("external_inputs",)
+
 
 def copy_into(dst, d0, src, s0, n):
     """dst[d0:d0+n] = src[s0:s0+n] without slice objects (smaller code for numba)."""
@@ -618,6 +628,22 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
     discontinuity of the right-hand side) and the method restarts there.
     """
     n = x.shape[0]
+    K = np.empty((K_ROWS, n))
+    J = np.zeros((n, n))          # a structured Jacobian writes only its pattern
+    LU = np.empty((n + 2, n))     # the factor in rows < n; the sparse LU uses the other two
+    piv = np.zeros(n, dtype=np.int64)
+    xn = np.empty(n)
+    f1 = np.empty(n)
+    xg = np.empty(n)
+    return step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
+                     K, J, LU, piv, xn, f1, xg)
+
+
+def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
+              K, J, LU, piv, xn, f1, xg):
+    """integrate's loop on the work arrays it allocated (apart, so that the loop is
+    compiled without reference counts)."""
+    n = x.shape[0]
     rtol = ctl[0]
     atol = ctl[1]
     h_max = ctl[2]
@@ -626,13 +652,6 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
     adaptive = ctl[5] != 0.0
     dense_out = ctl[6] != 0.0
     check_stiff = ctl[7] != 0.0
-    K = np.empty((K_ROWS, n))
-    J = np.zeros((n, n))          # a structured Jacobian writes only its pattern
-    LU = np.empty((n + 2, n))     # the factor in rows < n; the sparse LU uses the other two
-    piv = np.zeros(n, dtype=np.int64)
-    xn = np.empty(n)
-    f1 = np.empty(n)
-    xg = np.empty(n)
     nmh = W[5].shape[0]
     t = tf[F_T]
     h = tf[F_H]

@@ -34,7 +34,7 @@ import control as ct
 
 from .plan import DiagramPlan
 from . import _template as tpl
-from .tables import empty_tables, pack as pack_tables
+from .tables import DIMS, empty_tables, pack as pack_tables
 from ..blocks._core import active_feeds
 
 __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METHODS",
@@ -86,7 +86,7 @@ WORKSPACE_LAYOUT = (
     ("hold_dt", "float64", 1), ("hold_mode", "int64", 1), ("hold_time", "float64", 1),
     ("hold_vec", "float64", 2), ("probing", "int64", 1), ("clock", "float64", 1),
     ("u_times", "float64", 1), ("u_values", "float64", 2), ("kernels", "int64", 1), ("failure", "float64", 1), ("table_ints", "int64", 1),
-    ("table_floats", "float64", 1))
+    ("table_floats", "float64", 1), ("scratch", "float64", 1))
 Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
 #: what the compiled stepper raises when a block's kernel raised (the simulator turns it
 #: into a SimulationError naming the block and the time)
@@ -330,7 +330,9 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0, tables=None):
         kernels=np.zeros(max(n_kernels, 1), dtype=np.int64),
         failure=np.full(2 + max([b.sys.nstates for b in plan.blocks] + [0]), -1.0),
         **dict(zip(("table_ints", "table_floats"),
-                   pack_tables(empty_tables() if tables is None else tables))))
+                   pack_tables(empty_tables() if tables is None else tables))),
+        # the compiled Jacobian's work arrays (no allocation per step)
+        scratch=np.zeros(0 if tables is None else int(tables.dims[DIMS.index("SCRATCH")])))
 
 
 def _grow(W):

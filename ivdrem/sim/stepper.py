@@ -32,6 +32,11 @@ def stepper_source():
     tsrc = Path(_template.__file__).read_text()
     dsrc = Path(_diagram.__file__).read_text()
     names = re.findall(r"^def\s+(\w+)\s*\(", tsrc + "\n" + dsrc, flags=re.M)
+    no_refcount = set(_template.NO_REFCOUNT) | set(_diagram.NO_REFCOUNT)
+    inline = set(_template.INLINE) | set(_diagram.INLINE)
+    unknown = (no_refcount | inline) - set(names)
+    if unknown:
+        raise RuntimeError(f"NO_REFCOUNT / INLINE name no function: {sorted(unknown)}")
     consts = [f"FIELD_{name.upper()} = {i}" for i, (name, _, _) in enumerate(WORKSPACE_LAYOUT)]
     consts += [f"DIM_{d} = {i}" for i, d in enumerate(DIMS)]
     consts += [f"T_{f.upper()} = {i}" for i, f in enumerate(INT_FIELDS)]
@@ -53,5 +58,11 @@ def stepper_source():
            f"for _n in {_RUNTIME_INTS!r} + [_n for _n in dir() if _n.startswith(('T_', 'TF_', 'DIM_'))]:",
            "    globals()[_n] = np.int64(globals()[_n])",
            f"_JIT = {sorted(set(names))!r}",
-           "for _n in _JIT:\n    globals()[_n] = njit(cache=True)(globals()[_n])\n"]
+           "# without reference counts / inlined: the lists in _template and _diagram",
+           f"_NO_REFCOUNT = {sorted(no_refcount)!r}",
+           f"_INLINE = {sorted(inline)!r}",
+           "for _n in _JIT:",
+           "    globals()[_n] = njit(cache=True, _nrt=_n not in _NO_REFCOUNT,",
+           "                         inline='always' if _n in _INLINE else 'never')(globals()[_n])",
+           ""]
     return "\n".join(out)

@@ -39,7 +39,7 @@ DiagramTables = namedtuple("DiagramTables", [f for f, _, _ in TABLES_LAYOUT])
 INT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "int64")
 FLOAT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "float64")
 #: entries of DiagramTables.dims
-DIMS = ("ND", "NJB", "MAXX", "MAXU", "MAXYF", "MAXCOL", "NSLOTS")
+DIMS = ("ND", "NJB", "MAXX", "MAXU", "MAXYF", "MAXCOL", "NSLOTS", "SCRATCH")
 _FD_COLUMNS = _diagram.N_FD_COLUMNS
 _P_INDEX = re.compile(r"^P\[(\d+)\]$")
 
@@ -160,8 +160,12 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     maxu = int(max(prog.fd_nu.max(initial=0), 1))
     maxyf = int(max((prog.fd_ny + prog.fd_nx).max(initial=0), 1))
     maxcol = int(max((prog.fd_nx + prog.fd_nu).max(initial=0), 1))
+    # the Jacobian's work arrays, carved from the workspace field scratch in this order
+    # by diagram_jacobian_at: F, xb, xb0, ub, ub0, yp, y0, ym, hh, the local Jacobian, S
+    scratch = (prog.n_jb + len(prog.gains) + 2 * maxx + 2 * maxu + 3 * maxyf
+               + max(len(prog.col), 1) + maxyf * maxcol + prog.n_slots)
     dims = dict(ND=plan.nd, NJB=prog.n_jb, MAXX=maxx, MAXU=maxu, MAXYF=maxyf, MAXCOL=maxcol,
-                NSLOTS=prog.n_slots)
+                NSLOTS=prog.n_slots, SCRATCH=scratch)
     return DiagramTables(
         blocks=blocks, order=_i64(plan.order), fill_order=_i64(fill_order),
         fill_rest=_i64(rest), probe_order=_i64(probe_order), probe_fill=_i64(hold_inputs),
