@@ -20,7 +20,7 @@ import pytest
 
 import ivdrem.sim as sim
 from ivdrem.sim import _template as tpl
-from ivdrem.sim.tables import empty_tables, pack
+from ivdrem.sim.tables import empty_tables, pack, with_fill_runs
 from ivdrem.sim import (METHODS, METHOD_TABLE, SimulationError, StiffnessWarning, simulate)
 
 from conftest import build_lab, paper_loop, sig
@@ -421,7 +421,8 @@ def _restricted_and_full_sweep(loop, full_sweep):
     from ivdrem.sim.simulator import Simulator
     fast = Simulator(loop)
     full = Simulator(loop)
-    ints, floats = pack(fast.engine.tables._replace(**full_sweep(fast.engine.tables)))
+    ints, floats = pack(with_fill_runs(
+        fast.engine.tables._replace(**full_sweep(fast.engine.tables))))
     full.W = full.W._replace(table_ints=ints, table_floats=floats)
     full._Wref[0] = full.W
     return fast, full

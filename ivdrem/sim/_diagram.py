@@ -23,7 +23,7 @@ import numpy as np
 # and return no array are compiled without reference counting: numba's atomic counts on
 # every view and array argument were a quarter of a Rodas5P step (perf, IV-DREM).  The
 # table views are inlined into their callers, so no count is taken for them either.
-NO_REFCOUNT = ("kernel_call", "row_sum", "fill_input", "diagram_eval",
+NO_REFCOUNT = ("kernel_call", "row_sum", "fill_input", "fill_runs", "diagram_eval",
                "diagram_jacobian_at", "newton_factor", "newton_solve")
 INLINE = ("int_table", "float_table")
 
@@ -42,6 +42,21 @@ B_SPECIAL = 10  # row in the delay / hold table
 B_FILL0 = 11    # range of DiagramTables.fill_order filled before this block's output
 B_FILL1 = 12
 N_BLOCK_COLUMNS = 13
+
+# columns of DiagramTables.fill_runs (ivdrem.sim.tables.with_fill_runs) and their kinds
+RUN_KIND = 0
+RUN_D0 = 1      # first block input filled
+RUN_S0 = 2      # first source: a block output (RUN_SIGNALS) or a diagram input (RUN_INPUTS)
+RUN_N = 3
+N_RUN_COLUMNS = 4
+RUN_SIGNALS = 0
+RUN_INPUTS = 1
+RUN_ROW = 2     # one input row summed over its connection row (RUN_D0 = the row)
+# entries of DiagramTables.fill_run_ranges after the blocks' pairs
+FR_REST = 0
+FR_PROBE = 1
+FR_RECORD = 2
+FR_HISTORY = 3
 
 N_DELAY_COLUMNS = 6
 N_HOLD_COLUMNS = 7
@@ -121,6 +136,26 @@ def fill_input(in_ptr, in_src, in_gain, k, ys, us, ue):
     us[k] = row_sum(in_ptr, in_src, in_gain, k, ys, ue)
 
 
+def fill_runs(runs, gains, r0, r1, in_ptr, in_src, in_gain, ys, us, ue):
+    """Fill block inputs by runs r0..r1-1 of the fill tables: a run copies consecutive
+    sources times its gain (0.0 + g y, as the row sum gives it, so -0.0 reads as 0.0),
+    without the dependent index loads per entry that bound the row-by-row fill."""
+    for r in range(r0, r1):
+        kind = runs[r * N_RUN_COLUMNS + RUN_KIND]
+        d0 = runs[r * N_RUN_COLUMNS + RUN_D0]
+        s0 = runs[r * N_RUN_COLUMNS + RUN_S0]
+        n = runs[r * N_RUN_COLUMNS + RUN_N]
+        g = gains[r]
+        if kind == RUN_SIGNALS:
+            for i in range(n):
+                us[d0 + i] = 0.0 + g * ys[s0 + i]
+        elif kind == RUN_INPUTS:
+            for i in range(n):
+                us[d0 + i] = 0.0 + g * ue[s0 + i]
+        else:
+            fill_input(in_ptr, in_src, in_gain, d0, ys, us, ue)
+
+
 def diagram_eval(mode, t, x, P, W, out):
     ys = W[6]
     us = W[7]
@@ -130,8 +165,10 @@ def diagram_eval(mode, t, x, P, W, out):
     B = int_table(ti, T_BLOCKS)
     nb = B.shape[0] // N_BLOCK_COLUMNS
     order = int_table(ti, T_ORDER)
-    fill_order = int_table(ti, T_FILL_ORDER)
-    fill_rest = int_table(ti, T_FILL_REST)
+    runs = int_table(ti, T_FILL_RUNS)
+    run_gain = float_table(ti, tf, TF_FILL_RUN_GAIN)
+    ranges = int_table(ti, T_FILL_RUN_RANGES)
+    rest = 2 * nb + 2 * FR_REST        # the range of the inputs filled after the blocks
     delays = int_table(ti, T_DELAYS)
     holds = int_table(ti, T_HOLDS)
     kernels = W[FIELD_KERNELS]
@@ -147,22 +184,22 @@ def diagram_eval(mode, t, x, P, W, out):
             # probing a max-hold at an interpolated point: only the signals its inputs
             # depend on (the loop sweeps everything again before it uses the others)
             order = int_table(ti, T_PROBE_ORDER)
-            fill_rest = int_table(ti, T_PROBE_FILL)
+            rest = 2 * nb + 2 * FR_PROBE
         elif mode == RECORD:
             # recording the diagram outputs: only the signals the output map reads (an
             # output inside a step is followed by a full sweep at the step's end)
             order = int_table(ti, T_RECORD_ORDER)
-            fill_rest = int_table(ti, T_RECORD_FILL)
+            rest = 2 * nb + 2 * FR_RECORD
         elif mode == HISTORY_POINT:
             # a point of the delays' history inside a step: only the delays' inputs (a
             # full sweep follows at the step's end)
             order = int_table(ti, T_HISTORY_ORDER)
-            fill_rest = int_table(ti, T_HISTORY_FILL)
+            rest = 2 * nb + 2 * FR_HISTORY
         # signals, in topological order of direct feedthrough
         for i in range(order.shape[0]):
             k = order[i]
-            for f in range(B[k * N_BLOCK_COLUMNS + B_FILL0], B[k * N_BLOCK_COLUMNS + B_FILL1]):
-                fill_input(in_ptr, in_src, in_gain, fill_order[f], ys, us, ue)
+            fill_runs(runs, run_gain, ranges[2 * k], ranges[2 * k + 1], in_ptr, in_src, in_gain,
+                      ys, us, ue)
             kind = B[k * N_BLOCK_COLUMNS + B_KIND]
             if kind == 0:
                 if B[k * N_BLOCK_COLUMNS + B_OUT] >= 0:
@@ -178,8 +215,8 @@ def diagram_eval(mode, t, x, P, W, out):
                 y0 = B[k * N_BLOCK_COLUMNS + B_Y0]
                 copy_into(ys, y0, W[4], hd[H_OFF], hd[H_SIZE])
                 ys[y0 + hd[H_SIZE]] = W[5][hd[H_K]]
-        for f in range(fill_rest.shape[0]):
-            fill_input(in_ptr, in_src, in_gain, fill_rest[f], ys, us, ue)
+        fill_runs(runs, run_gain, ranges[rest], ranges[rest + 1], in_ptr, in_src, in_gain,
+                  ys, us, ue)
     if mode == RHS:
         for k in range(nb):
             if B[k * N_BLOCK_COLUMNS + B_UPD] >= 0:

@@ -16,7 +16,7 @@ import numpy as np
 from . import _diagram
 
 __all__ = ["DiagramTables", "TABLES_LAYOUT", "DIMS", "build_tables", "empty_tables", "pack",
-           "INT_FIELDS", "FLOAT_FIELDS"]
+           "with_fill_runs", "INT_FIELDS", "FLOAT_FIELDS"]
 
 #: (field, dtype, ndim) of DiagramTables
 TABLES_LAYOUT = (
@@ -33,7 +33,8 @@ TABLES_LAYOUT = (
     ("jac_ins_f", "int64", 1), ("jac_ins_src", "int64", 1), ("jac_j_row", "int64", 1),
     ("jac_j_col", "int64", 1), ("jac_j_slot", "int64", 1), ("jac_gains", "float64", 1),
     ("lu_perm", "int64", 1), ("lu_rowptr", "int64", 1), ("lu_colidx", "int64", 1),
-    ("lu_diagp", "int64", 1))
+    ("lu_diagp", "int64", 1), ("fill_runs", "int64", 2), ("fill_run_gain", "float64", 1),
+    ("fill_run_ranges", "int64", 1))
 DiagramTables = namedtuple("DiagramTables", [f for f, _, _ in TABLES_LAYOUT])
 #: the int64 and float64 fields, in the order pack() concatenates them
 INT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "int64")
@@ -51,7 +52,8 @@ def empty_tables():
         shape = (0,) if ndim == 1 else (0, {"blocks": _diagram.N_BLOCK_COLUMNS,
                                            "delays": _diagram.N_DELAY_COLUMNS,
                                            "holds": _diagram.N_HOLD_COLUMNS,
-                                           "fd": _FD_COLUMNS}[name])
+                                           "fd": _FD_COLUMNS,
+                                           "fill_runs": _diagram.N_RUN_COLUMNS}[name])
         out[name] = np.zeros(shape, dtype=dtype)
     out["dims"] = np.zeros(len(DIMS), dtype=np.int64)
     return DiagramTables(**out)
@@ -166,7 +168,9 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
                + max(len(prog.col), 1) + maxyf * maxcol + prog.n_slots)
     dims = dict(ND=plan.nd, NJB=prog.n_jb, MAXX=maxx, MAXU=maxu, MAXYF=maxyf, MAXCOL=maxcol,
                 NSLOTS=prog.n_slots, SCRATCH=scratch)
-    return DiagramTables(
+    return with_fill_runs(DiagramTables(
+        fill_runs=np.zeros((0, _diagram.N_RUN_COLUMNS), dtype=np.int64),
+        fill_run_gain=np.zeros(0), fill_run_ranges=np.zeros(0, dtype=np.int64),
         blocks=blocks, order=_i64(plan.order), fill_order=_i64(fill_order),
         fill_rest=_i64(rest), probe_order=_i64(probe_order), probe_fill=_i64(hold_inputs),
         record_order=_i64(record_order), record_fill=_i64(rec_inputs),
@@ -182,7 +186,51 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         jac_ins_f=_i64(prog.ins_f), jac_ins_src=_i64(prog.ins_src),
         jac_j_row=_i64(prog.j_row), jac_j_col=_i64(prog.j_col), jac_j_slot=_i64(prog.j_slot),
         jac_gains=np.asarray(prog.gains, dtype=float), lu_perm=_i64(slu.perm),
-        lu_rowptr=_i64(slu.rowptr), lu_colidx=_i64(slu.colidx), lu_diagp=_i64(slu.diagp))
+        lu_rowptr=_i64(slu.rowptr), lu_colidx=_i64(slu.colidx), lu_diagp=_i64(slu.diagp)))
+
+
+def _runs(seq, in_ptr, in_src, in_gain):
+    """The fill sequence `seq` (block input rows, filled in this order) as runs
+    [kind, first input, first source, length] with a gain each: consecutive rows with one
+    source each, consecutive sources of one kind (block outputs: RUN_SIGNALS, diagram
+    inputs: RUN_INPUTS) and one gain make one run, copied in a vectorisable loop; any
+    other row is a RUN_ROW of its own (a sum over its connection row)."""
+    runs, gains = [], []
+    for k in (int(i) for i in seq):
+        if in_ptr[k + 1] - in_ptr[k] != 1:
+            runs.append([_diagram.RUN_ROW, k, 0, 1])
+            gains.append(0.0)
+            continue
+        j, g = int(in_src[in_ptr[k]]), float(in_gain[in_ptr[k]])
+        kind, src = (_diagram.RUN_SIGNALS, j) if j >= 0 else (_diagram.RUN_INPUTS, -1 - j)
+        last = runs[-1] if runs else None
+        if (last is not None and last[0] == kind and gains[-1] == g
+                and last[1] + last[3] == k and last[2] + last[3] == src):
+            last[3] += 1
+        else:
+            runs.append([kind, k, src, 1])
+            gains.append(g)
+    return runs, gains
+
+
+def with_fill_runs(tables):
+    """`tables` with fill_runs / fill_run_gain / fill_run_ranges made from its fill
+    sequences and connection rows (what diagram_eval fills from): first each block's
+    range of runs (before its output), in block order, then the ranges of fill_rest,
+    probe_fill, record_fill and history_fill.  Call again after replacing a sequence."""
+    runs, gains, ranges = [], [], []
+    B = tables.blocks
+    seqs = [tables.fill_order[B[k, _diagram.B_FILL0]:B[k, _diagram.B_FILL1]]
+            for k in range(B.shape[0])]
+    seqs += [tables.fill_rest, tables.probe_fill, tables.record_fill, tables.history_fill]
+    for seq in seqs:
+        r, g = _runs(seq, tables.in_ptr, tables.in_src, tables.in_gain)
+        ranges += [len(runs), len(runs) + len(r)]
+        runs += r
+        gains += g
+    return tables._replace(fill_runs=_i64(runs, _diagram.N_RUN_COLUMNS),
+                           fill_run_gain=np.asarray(gains, dtype=float),
+                           fill_run_ranges=_i64(ranges))
 
 
 def _needed_blocks(plan, prog, *, outputs=(), inputs=()):
