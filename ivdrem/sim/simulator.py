@@ -109,8 +109,9 @@ class SimulationError(RuntimeError):
 
 
 #: Default (rtol, atol) per method: for the stiff method, the paper run's theta_hat(300 s)
-#: is within 1e-6 relative of a 100x tighter run (benchmarks/bench_paper.py measures it).
-DEFAULT_TOLERANCES = {"rodas5p": (1e-4, 1e-6), "dp45": (1e-6, 1e-8), "rk4": (1e-6, 1e-8)}
+#: is within 1e-6 relative of a 100x tighter run (benchmarks/bench_paper.py measures it:
+#: 5.0e-7 in 5 863 steps; 1e-4 gave 1.9e-7 in 7 165 steps, 3e-4 1.1e-6: too loose).
+DEFAULT_TOLERANCES = {"rodas5p": (2e-4, 2e-6), "dp45": (1e-6, 1e-8), "rk4": (1e-6, 1e-8)}
 
 
 def _check_positive(name, v):
