@@ -146,12 +146,13 @@ def fill_runs(runs, gains, r0, r1, in_ptr, in_src, in_gain, ys, us, ue):
         s0 = runs[r * N_RUN_COLUMNS + RUN_S0]
         n = runs[r * N_RUN_COLUMNS + RUN_N]
         g = gains[r]
-        if kind == RUN_SIGNALS:
+        if kind == RUN_SIGNALS or kind == RUN_INPUTS:
+            # through views indexed from 0: with us[d0 + i] numba must allow a negative
+            # index, and LLVM turns the loop into gathers and scatters
+            dst = us[d0:d0 + n]
+            src = ys[s0:s0 + n] if kind == RUN_SIGNALS else ue[s0:s0 + n]
             for i in range(n):
-                us[d0 + i] = 0.0 + g * ys[s0 + i]
-        elif kind == RUN_INPUTS:
-            for i in range(n):
-                us[d0 + i] = 0.0 + g * ue[s0 + i]
+                dst[i] = 0.0 + g * src[i]
         else:
             fill_input(in_ptr, in_src, in_gain, d0, ys, us, ue)
 
@@ -346,12 +347,10 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
         nx = fd[r0 + FD_NX]
         nu = fd[r0 + FD_NU]
         ny = fd[r0 + FD_NY]
-        for i in range(nx):
-            xb0[i] = x[fd[r0 + FD_X0] + i]
-            xb[i] = xb0[i]
-        for i in range(nu):
-            ub0[i] = us[fd[r0 + FD_U0] + i]
-            ub[i] = ub0[i]
+        copy_into(xb0, 0, x, fd[r0 + FD_X0], nx)
+        copy_into(xb, 0, xb0, 0, nx)
+        copy_into(ub0, 0, us, fd[r0 + FD_U0], nu)
+        copy_into(ub, 0, ub0, 0, nu)
         p0 = fd[r0 + FD_P0]
         if fd[r0 + FD_WJAC] >= 0:     # the block's own Jacobian kernel
             for i in range((ny + nx) * (nx + nu)):
@@ -365,10 +364,8 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
         central = fd[r0 + FD_CENTRAL] != 0
         if not central:
             # the base values are the signals and derivatives just computed at (t, x)
-            for i in range(ny):
-                y0[i] = ys[fd[r0 + FD_Y0] + i]
-            for i in range(nx):
-                y0[ny + i] = f0[fd[r0 + FD_X0] + i]
+            copy_into(y0, 0, ys, fd[r0 + FD_Y0], ny)
+            copy_into(y0, ny, f0, fd[r0 + FD_X0], nx)
         for g in range(fd_g_ptr[kb], fd_g_ptr[kb + 1]):
             c0 = fd_gc_ptr[g]
             c1 = fd_gc_ptr[g + 1]

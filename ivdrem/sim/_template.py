@@ -165,9 +165,12 @@ INLINE = ("external_inputs",)
 
 
 def copy_into(dst, d0, src, s0, n):
-    """dst[d0:d0+n] = src[s0:s0+n] without slice objects (smaller code for numba)."""
+    """dst[d0:d0+n] = src[s0:s0+n] (through views indexed from 0: dst[d0 + i] would
+    make numba allow negative indices, and LLVM use gathers and scatters)."""
+    d = dst[d0:d0 + n]
+    s = src[s0:s0 + n]
     for i in range(n):
-        dst[d0 + i] = src[s0 + i]
+        d[i] = s[i]
 
 
 def hist_index(meta, i):
@@ -263,13 +266,11 @@ def hist_lookup(W, tq, off, size, out):
         return
     kf = hist_index(meta, 0)
     if tq <= ht[kf] or cnt == 1:
-        for j in range(size):
-            out[j] = hv[kf, off + j]
+        copy_into(out, 0, hv[kf], off, size)
         return
     kl = hist_index(meta, cnt - 1)
     if tq >= ht[kl]:
-        for j in range(size):
-            out[j] = hv[kl, off + j]
+        copy_into(out, 0, hv[kl], off, size)
         return
     lo = 0
     hi = cnt - 1
@@ -289,9 +290,12 @@ def hist_lookup(W, tq, off, size, out):
     h10 = s3 - 2.0 * s2 + s
     h01 = -2.0 * s3 + 3.0 * s2
     h11 = s3 - s2
+    va = hv[a, off:off + size]      # (views: see copy_into)
+    da = hd[a, off:off + size]
+    vb = hv[b, off:off + size]
+    db = hd[b, off:off + size]
     for j in range(size):
-        out[j] = (h00 * hv[a, off + j] + h10 * h * hd[a, off + j]
-                  + h01 * hv[b, off + j] + h11 * h * hd[b, off + j])
+        out[j] = h00 * va[j] + h10 * h * da[j] + h01 * vb[j] + h11 * h * db[j]
 
 
 def external_inputs(W, t):
