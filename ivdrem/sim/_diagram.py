@@ -18,6 +18,7 @@ module: the template's helpers and constants, ``call_c`` / ``element_address``
 ``BLOCK_RAISED_MESSAGE``.
 """
 import numpy as np
+from numba import uint64        # an index type without wraparound code (see _jit_sparse)
 
 # How the stepper compiles these (ivdrem.sim.stepper).  Functions that allocate nothing
 # and return no array are compiled without reference counting: numba's atomic counts on
@@ -358,8 +359,11 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
             kernel_call(kernels, failure, wnx, fd[r0 + FD_WJAC], t, xb, ZERO, ub, ZERO, jl, ZERO, P, p0)
             for g in range(fd_g_ptr[kb], fd_g_ptr[kb + 1]):
                 for c in range(fd_gc_ptr[g], fd_gc_ptr[g + 1]):
+                    col = fd_col[c]
                     for e in range(fd_e_ptr[c], fd_e_ptr[c + 1]):
-                        F[fd_e_slot[e]] = jl[fd_e_row[e] * (nx + nu) + fd_col[c]]
+                        # (uint64 indices: no wraparound code, see _jit_sparse)
+                        q = uint64(e)
+                        F[uint64(fd_e_slot[q])] = jl[uint64(fd_e_row[q] * (nx + nu) + col)]
             continue
         central = fd[r0 + FD_CENTRAL] != 0
         if not central:
