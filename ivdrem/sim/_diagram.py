@@ -25,7 +25,7 @@ from numba import uint64        # an index type without wraparound code (see _ji
 # every view and array argument were a quarter of a Rodas5P step (perf, IV-DREM).  The
 # table views are inlined into their callers, so no count is taken for them either.
 NO_REFCOUNT = ("kernel_call", "row_sum", "fill_input", "fill_runs", "diagram_eval",
-               "diagram_jacobian_at", "newton_factor", "newton_solve")
+               "diagram_jacobian_at", "push_history", "newton_factor", "newton_solve")
 INLINE = ("int_table", "float_table")
 
 # columns of DiagramTables.blocks
@@ -250,15 +250,22 @@ def diagram_eval(mode, t, x, P, W, out):
 
 def push_history(t, P, W):
     """Append the delays' inputs at the accepted point t (the signals in W[7]) to the
-    history and forget what no lookup can need any more.  Apart from diagram_eval because
-    it allocates (diagram_eval is compiled without reference counts)."""
+    history and forget what no lookup can need any more.  Its work vectors (values,
+    slopes, 1.0 where a slope is to be estimated) are the first 3 nd entries of the
+    workspace's scratch (ivdrem.sim.tables sums the sizes)."""
     ti = W[FIELD_TABLE_INTS]
     us = W[7]
     delays = int_table(ti, T_DELAYS)
     nd = int_table(ti, T_DIMS)[DIM_ND]
-    v = np.empty(nd)
-    dv = np.zeros(nd)
-    est = np.zeros(nd, dtype=np.int64)
+    sc = W[FIELD_SCRATCH]
+    if 3 * nd > sc.shape[0]:
+        raise RuntimeError("ivdrem: the history's scratch is smaller than its tables")
+    v = sc[0:nd]
+    dv = sc[nd:2 * nd]
+    est = sc[2 * nd:3 * nd]
+    for i in range(nd):
+        dv[i] = 0.0
+        est[i] = 0.0
     t_max = 0.0
     for r in range(delays.shape[0] // N_DELAY_COLUMNS):
         dl = delays[r * N_DELAY_COLUMNS:]
@@ -267,7 +274,7 @@ def push_history(t, P, W):
             copy_into(dv, dl[D_OFF], us, dl[D_DU], dl[D_SIZE])
         else:
             for i in range(dl[D_OFF], dl[D_OFF] + dl[D_SIZE]):
-                est[i] = 1
+                est[i] = 1.0
         t_max = max(t_max, P[dl[D_TP]])
     st = hist_push(W, t, v, dv, est)
     if st != OK:
@@ -310,15 +317,15 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
     fd_e_ptr = int_table(ti, T_FD_E_PTR)
     fd_e_row = int_table(ti, T_FD_E_ROW)
     fd_e_slot = int_table(ti, T_FD_E_SLOT)
-    # work arrays carved from the workspace's scratch, in the order its size was summed
-    # (ivdrem.sim.tables): no allocation per Jacobian
+    # work arrays carved from the workspace's scratch after the history's, in the order
+    # its size was summed (ivdrem.sim.tables): no allocation per Jacobian
     sc = W[FIELD_SCRATCH]
     ncol = max(fd_col.shape[0], 1)
     nl = maxyf * dims[DIM_MAXCOL]
-    if (njb + ng + 2 * maxx + 2 * maxu + 3 * maxyf + ncol + nl + dims[DIM_NSLOTS]
+    o = 3 * dims[DIM_ND]          # (the history's work vectors come first)
+    if (o + njb + ng + 2 * maxx + 2 * maxu + 3 * maxyf + ncol + nl + dims[DIM_NSLOTS]
             > sc.shape[0]):
         raise RuntimeError("ivdrem: the Jacobian's scratch is smaller than its tables")
-    o = 0
     F = sc[o:o + njb + ng]
     o += njb + ng
     xb = sc[o:o + maxx]

@@ -162,9 +162,10 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     maxu = int(max(prog.fd_nu.max(initial=0), 1))
     maxyf = int(max((prog.fd_ny + prog.fd_nx).max(initial=0), 1))
     maxcol = int(max((prog.fd_nx + prog.fd_nu).max(initial=0), 1))
-    # the Jacobian's work arrays, carved from the workspace field scratch in this order
-    # by diagram_jacobian_at: F, xb, xb0, ub, ub0, yp, y0, ym, hh, the local Jacobian, S
-    scratch = (prog.n_jb + len(prog.gains) + 2 * maxx + 2 * maxu + 3 * maxyf
+    # the work arrays carved from the workspace field scratch, in this order: the
+    # history's values, slopes and slope flags (push_history), then the Jacobian's
+    # (diagram_jacobian_at) F, xb, xb0, ub, ub0, yp, y0, ym, hh, the local Jacobian, S
+    scratch = (3 * plan.nd + prog.n_jb + len(prog.gains) + 2 * maxx + 2 * maxu + 3 * maxyf
                + max(len(prog.col), 1) + maxyf * maxcol + prog.n_slots)
     dims = dict(ND=plan.nd, NJB=prog.n_jb, MAXX=maxx, MAXU=maxu, MAXYF=maxyf, MAXCOL=maxcol,
                 NSLOTS=prog.n_slots, SCRATCH=scratch)
