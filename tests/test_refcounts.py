@@ -81,5 +81,5 @@ def test_declared_functions_are_compiled_so():
         assert opts["_nrt"] is (name not in no_rc), name
         assert opts["inline"] == ("always" if name in inline else "never"), name
     # what allocates keeps its counts
-    for name in ("integrate", "hold_update", "diagram_jacobian"):
+    for name in ("integrate", "diagram_jacobian", "fd_jacobian"):
         assert name not in no_rc

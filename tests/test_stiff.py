@@ -153,7 +153,8 @@ def _workspace(n):
     return sim.Workspace(z(4), z((4, 0)), z((4, 0)), np.array([0, 0, 4, 0], dtype=np.int64),
                          z(0), z(0), z(0), z(0), z(0), z(0), z(0, dtype=np.int64), z(0),
                          z((0, 1)), z(1, dtype=np.int64), z(1), z(0), z((0, 0)),
-                         z(1, dtype=np.int64), z(2), *pack(empty_tables()), z(0))
+                         z(1, dtype=np.int64), z(2), *pack(empty_tables()), z(0),
+                         z(1, dtype=np.int64), z(2, dtype=np.uint8), z(8, dtype=np.int32))
 
 
 def _one_step(ns, step, t, h, x):

@@ -25,7 +25,8 @@ from numba import uint64        # an index type without wraparound code (see _ji
 # every view and array argument were a quarter of a Rodas5P step (perf, IV-DREM).  The
 # table views are inlined into their callers, so no count is taken for them either.
 NO_REFCOUNT = ("kernel_call", "row_sum", "fill_input", "fill_runs", "diagram_eval",
-               "diagram_jacobian_at", "push_history", "newton_factor", "newton_solve")
+               "diagram_jacobian_at", "push_history", "lowest_eigenpair", "newton_factor",
+               "newton_solve")
 INLINE = ("int_table", "float_table")
 
 # columns of DiagramTables.blocks
@@ -283,6 +284,53 @@ def push_history(t, P, W):
     return OK
 
 
+def lowest_eigenpair(W, u, nvec, nmat):
+    """lambda_min of the symmetric part of the nmat x nmat matrix in u[nvec:] and its unit
+    eigenvector (into the last row of W[12]), by LAPACK's dsyevd (jobz 'V', uplo 'L', as
+    np.linalg.eigh calls it), at the address in the workspace field lapack, on the work
+    arrays in the scratch and lapack_ints: np.linalg.eigh allocated seven arrays and asked
+    for the workspace size on every call, a quarter of composite learning's time while its
+    hold updates every sample (the template's version, for the reference engine)."""
+    ti = W[FIELD_TABLE_INTS]
+    dims = int_table(ti, T_DIMS)
+    sc = W[FIELD_SCRATCH]
+    iw = W[FIELD_LAPACK_INTS]
+    o = dims[DIM_SCR_HOLD]
+    nn = nmat * nmat
+    lwork = 1 + 6 * nmat + 2 * nn          # dsyevd's minimum for jobz 'V'
+    liwork = 3 + 5 * nmat
+    if o + nn + nmat + lwork > dims[DIM_SCR_JAC] or 5 + liwork > iw.shape[0]:
+        raise RuntimeError("ivdrem: the max-hold's LAPACK work arrays are too small")
+    A = sc[o:o + nn]
+    w = sc[o + nn:o + nn + nmat]
+    for i in range(nmat):
+        for j in range(nmat):
+            a = 0.5 * (u[nvec + i * nmat + j] + u[nvec + j * nmat + i])
+            if not np.isfinite(a):
+                raise RuntimeError("ivdrem: a max-hold's matrix is not finite")
+            A[j * nmat + i] = a                # column-major, as LAPACK reads it
+    iw[0] = nmat
+    iw[1] = nmat
+    iw[2] = lwork
+    iw[3] = liwork
+    iw[4] = 0
+    ch = W[FIELD_LAPACK_CHARS]
+    # dsyevd(jobz, uplo, n, a, lda, w, work, lwork, iwork, liwork, info): all by reference
+    # (void: call_c's int result means nothing, info is the status)
+    call_c(W[FIELD_LAPACK][0], (element_address(ch, 0), element_address(ch, 1),
+                                element_address(iw, 0), element_address(A, 0),
+                                element_address(iw, 1), element_address(w, 0),
+                                element_address(sc, o + nn + nmat), element_address(iw, 2),
+                                element_address(iw, 5), element_address(iw, 3),
+                                element_address(iw, 4)))
+    if iw[4] != 0:
+        raise RuntimeError("ivdrem: LAPACK dsyevd failed on a max-hold's matrix")
+    cand = W[12][W[12].shape[0] - 1]
+    for i in range(nmat):
+        cand[i] = A[i]                         # column 0: the eigenvector of w[0]
+    return w[0]
+
+
 def diagram_jacobian(t, x, P, W, J):
     """df/dx at (t, x) (see diagram_jacobian_at), with f(t, x) evaluated first."""
     f0 = np.empty(x.shape[0])
@@ -322,7 +370,7 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
     sc = W[FIELD_SCRATCH]
     ncol = max(fd_col.shape[0], 1)
     nl = maxyf * dims[DIM_MAXCOL]
-    o = 3 * dims[DIM_ND]          # (the history's work vectors come first)
+    o = dims[DIM_SCR_JAC]         # (after the history's and the max-holds' work arrays)
     if (o + njb + ng + 2 * maxx + 2 * maxu + 3 * maxyf + ncol + nl + dims[DIM_NSLOTS]
             > sc.shape[0]):
         raise RuntimeError("ivdrem: the Jacobian's scratch is smaller than its tables")

@@ -34,7 +34,8 @@ start, count, cap, keep_from_time_index], 4 held[nh], 5 score[nmh], 6 ys (block 
 ``external_inputs``), 9 hold_dt[nmh] (sampling
 period of each max-hold), 10 hold_mode[int64, nmh] (HOLD_SKIP / HOLD_COMMIT / HOLD_PROBE at
 the next after-step evaluation), 11 hold_time[nmh] (time of the last update, t_e),
-12 hold_vec[nmh, nmat] (eigenvector of lambda_min of the held matrix), 13 probing[int64, 1]
+12 hold_vec[nmh + 1, nmat] (eigenvector of lambda_min of the held matrix; the last row
+the candidate of the latest evaluation), 13 probing[int64, 1]
 (1 while the loop probes a hold at an interpolated point: no history push), 14 clock[1]
 (time of the current after-step evaluation), 15 u_times[nut] and 16 u_values[nut, nu_ext]
 (the table of the diagram inputs over time; empty while they are held constant); then the
@@ -160,7 +161,8 @@ K_ROWS = 11
 NO_REFCOUNT = ("copy_into", "hist_index", "quad_slope", "hist_push", "hist_trim",
                "hist_lookup", "emit", "check_state", "err_norm", "rk4_step", "dp45_step",
                "rodas5p_step", "method_step", "dense_eval", "on_grid", "next_grid",
-               "probe_holds", "set_hold_modes", "step_loop", "dense_factor", "dense_solve")
+               "probe_holds", "set_hold_modes", "step_loop", "dense_factor", "dense_solve",
+               "hold_update")
 INLINE = ("external_inputs",)
 
 
@@ -354,12 +356,7 @@ def hold_update(W, k, off, size, nvec, nmat, u, epsilon):
             bound = r
     if not (bound > epsilon and bound > score[k]):
         return 0
-    A = np.empty((nmat, nmat))
-    for i in range(nmat):
-        for j in range(nmat):
-            A[i, j] = 0.5 * (u[nvec + i * nmat + j] + u[nvec + j * nmat + i])
-    w, V = np.linalg.eigh(A)
-    lam = w[0]
+    lam = lowest_eigenpair(W, u, nvec, nmat)
     if lam > epsilon and lam > score[k]:
         if mode == HOLD_PROBE:
             return 1
@@ -367,11 +364,28 @@ def hold_update(W, k, off, size, nvec, nmat, u, epsilon):
         held = W[4]
         for j in range(size):
             held[off + j] = u[j]
+        cand = vec[vec.shape[0] - 1]
         for i in range(nmat):
-            vec[k, i] = V[i, 0]
+            vec[k, i] = cand[i]
         W[11][k] = W[14][0]
         return 1
     return 0
+
+
+def lowest_eigenpair(W, u, nvec, nmat):
+    """lambda_min of the symmetric part of the nmat x nmat matrix in u[nvec:], its unit
+    eigenvector left in the last row of W[12] (a candidate until the hold commits).  The
+    compiled engine replaces this with a LAPACK call on preallocated work arrays
+    (ivdrem.sim._diagram); both run LAPACK's dsyevd, as np.linalg.eigh does."""
+    A = np.empty((nmat, nmat))
+    for i in range(nmat):
+        for j in range(nmat):
+            A[i, j] = 0.5 * (u[nvec + i * nmat + j] + u[nvec + j * nmat + i])
+    w, V = np.linalg.eigh(A)
+    cand = W[12][W[12].shape[0] - 1]
+    for i in range(nmat):
+        cand[i] = V[i, 0]
+    return w[0]
 
 
 def emit(t, x, P, W, out_y, out_x, io):

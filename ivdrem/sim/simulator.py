@@ -34,7 +34,7 @@ import control as ct
 
 from .plan import DiagramPlan
 from . import _template as tpl
-from .tables import DIMS, empty_tables, pack as pack_tables
+from .tables import DIMS, empty_tables, hold_nmat, pack as pack_tables
 from ..blocks._core import active_feeds
 
 __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METHODS",
@@ -86,7 +86,8 @@ WORKSPACE_LAYOUT = (
     ("hold_dt", "float64", 1), ("hold_mode", "int64", 1), ("hold_time", "float64", 1),
     ("hold_vec", "float64", 2), ("probing", "int64", 1), ("clock", "float64", 1),
     ("u_times", "float64", 1), ("u_values", "float64", 2), ("kernels", "int64", 1), ("failure", "float64", 1), ("table_ints", "int64", 1),
-    ("table_floats", "float64", 1), ("scratch", "float64", 1))
+    ("table_floats", "float64", 1), ("scratch", "float64", 1), ("lapack", "int64", 1),
+    ("lapack_chars", "uint8", 1), ("lapack_ints", "int32", 1))
 Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
 #: what the compiled stepper raises when a block's kernel raised (the simulator turns it
 #: into a SimulationError naming the block and the time)
@@ -316,16 +317,23 @@ def _slope_flags(plan):
 
 
 # --------------------------------------------------------------------------- driver
+def _dsyevd_address():
+    """Address of LAPACK's dsyevd in scipy (the compiled max-hold calls it by address, see
+    _diagram.lowest_eigenpair; a runtime value, so cached machine code stays valid)."""
+    from numba.extending import get_cython_function_address
+    return get_cython_function_address("scipy.linalg.cython_lapack", "dsyevd")
+
+
 def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0, tables=None):
     nmh = len(plan.holds)
-    nmat = max([hd["nmat"] for hd in plan.holds] + [1])
+    nmat = hold_nmat(plan)
     return Workspace(
         hist_t=np.zeros(cap), hist_v=np.zeros((cap, plan.nd)), hist_d=np.zeros((cap, plan.nd)),
         hist_meta=np.array([0, 0, cap, 0], dtype=np.int64), held=np.zeros(plan.nh),
         score=np.zeros(nmh), ys=np.zeros(ny), us=np.zeros(nu), u_ext=np.zeros(nu_ext),
         hold_dt=np.array([float(hd["dt"]) for hd in plan.holds]).reshape(nmh),
         hold_mode=np.full(nmh, tpl.HOLD_COMMIT, dtype=np.int64),
-        hold_time=np.full(nmh, np.nan), hold_vec=np.zeros((nmh, nmat)),
+        hold_time=np.full(nmh, np.nan), hold_vec=np.zeros((nmh + 1, nmat)),
         probing=np.zeros(1, dtype=np.int64), clock=np.zeros(1),
         u_times=np.zeros(0), u_values=np.zeros((0, nu_ext)),
         kernels=np.zeros(max(n_kernels, 1), dtype=np.int64),
@@ -333,7 +341,11 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0, tables=None):
         **dict(zip(("table_ints", "table_floats"),
                    pack_tables(empty_tables() if tables is None else tables))),
         # the compiled Jacobian's work arrays (no allocation per step)
-        scratch=np.zeros(0 if tables is None else int(tables.dims[DIMS.index("SCRATCH")])))
+        scratch=np.zeros(0 if tables is None else int(tables.dims[DIMS.index("SCRATCH")])),
+        lapack=np.array([_dsyevd_address() if nmh and tables is not None else 0],
+                        dtype=np.int64),
+        lapack_chars=np.array([ord("V"), ord("L")], dtype=np.uint8),
+        lapack_ints=np.zeros(5 + 3 + 5 * nmat, dtype=np.int32))
 
 
 def _grow(W):

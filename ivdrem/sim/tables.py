@@ -40,7 +40,8 @@ DiagramTables = namedtuple("DiagramTables", [f for f, _, _ in TABLES_LAYOUT])
 INT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "int64")
 FLOAT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "float64")
 #: entries of DiagramTables.dims
-DIMS = ("ND", "NJB", "MAXX", "MAXU", "MAXYF", "MAXCOL", "NSLOTS", "SCRATCH")
+DIMS = ("ND", "NJB", "MAXX", "MAXU", "MAXYF", "MAXCOL", "NSLOTS", "SCRATCH", "SCR_HOLD",
+        "SCR_JAC")
 _FD_COLUMNS = _diagram.N_FD_COLUMNS
 _P_INDEX = re.compile(r"^P\[(\d+)\]$")
 
@@ -57,6 +58,11 @@ def empty_tables():
         out[name] = np.zeros(shape, dtype=dtype)
     out["dims"] = np.zeros(len(DIMS), dtype=np.int64)
     return DiagramTables(**out)
+
+
+def hold_nmat(plan):
+    """The largest matrix order of the diagram's max-holds (1 without one)."""
+    return max([hd["nmat"] for hd in plan.holds] + [1])
 
 
 def _i64(v, cols=None):
@@ -163,12 +169,16 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     maxyf = int(max((prog.fd_ny + prog.fd_nx).max(initial=0), 1))
     maxcol = int(max((prog.fd_nx + prog.fd_nu).max(initial=0), 1))
     # the work arrays carved from the workspace field scratch, in this order: the
-    # history's values, slopes and slope flags (push_history), then the Jacobian's
+    # history's values, slopes and slope flags (push_history); from SCR_HOLD the max-holds'
+    # matrix, eigenvalues and dsyevd work (lowest_eigenpair); from SCR_JAC the Jacobian's
     # (diagram_jacobian_at) F, xb, xb0, ub, ub0, yp, y0, ym, hh, the local Jacobian, S
-    scratch = (3 * plan.nd + prog.n_jb + len(prog.gains) + 2 * maxx + 2 * maxu + 3 * maxyf
+    nm = hold_nmat(plan)
+    scr_hold = 3 * plan.nd
+    scr_jac = scr_hold + nm * nm + nm + 1 + 6 * nm + 2 * nm * nm
+    scratch = (scr_jac + prog.n_jb + len(prog.gains) + 2 * maxx + 2 * maxu + 3 * maxyf
                + max(len(prog.col), 1) + maxyf * maxcol + prog.n_slots)
     dims = dict(ND=plan.nd, NJB=prog.n_jb, MAXX=maxx, MAXU=maxu, MAXYF=maxyf, MAXCOL=maxcol,
-                NSLOTS=prog.n_slots, SCRATCH=scratch)
+                NSLOTS=prog.n_slots, SCRATCH=scratch, SCR_HOLD=scr_hold, SCR_JAC=scr_jac)
     return with_fill_runs(DiagramTables(
         fill_runs=np.zeros((0, _diagram.N_RUN_COLUMNS), dtype=np.int64),
         fill_run_gain=np.zeros(0), fill_run_ranges=np.zeros(0, dtype=np.int64),
