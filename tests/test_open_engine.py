@@ -193,12 +193,13 @@ def raising_diagram():
 def test_a_numba_block_that_raises_names_the_block_and_the_time(raising_diagram):
     LIMIT.t_max = 10.0
     with pytest.warns(PythonBlockNotice, match="'python_block'"):
-        with pytest.raises(BlockError, match=r"block 'numba_block' raised at t = 0\.5\d* s: "
+        # the time named: the first evaluation after t_fail, a stage of the step across it
+        with pytest.raises(BlockError, match=r"block 'numba_block' raised at t = 0\.[5-7]\d* s: "
                                              r"ValueError: joint limit exceeded") as info:
             simulate(raising_diagram, 1.0, params={"t_fail": 0.5}, progress=False)
     assert isinstance(info.value, SimulationError)
     assert isinstance(info.value.__cause__, ValueError)
-    assert 0.5 < info.value.t < 0.6 and info.value.block == "numba_block"
+    assert 0.5 < info.value.t < 0.75 and info.value.block == "numba_block"
     # the same diagram runs to the end when nothing raises (the bookkeeping is harmless)
     with pytest.warns(PythonBlockNotice):
         resp = simulate(raising_diagram, 1.0, progress=False)
@@ -210,7 +211,7 @@ def test_a_python_block_that_raises_names_the_block_and_chains_its_exception(rai
     try:
         with pytest.warns(PythonBlockNotice):
             with pytest.raises(BlockError, match=r"block 'python_block' \(running in Python\) "
-                                                 r"raised at t = 0\.5\d* s: KeyError") as info:
+                                                 r"raised at t = 0\.[5-7]\d* s: KeyError") as info:
                 simulate(raising_diagram, 1.0, progress=False)
     finally:
         LIMIT.t_max = 10.0

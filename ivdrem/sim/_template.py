@@ -755,12 +755,15 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
         else:
             t1 = t0 + (stats[S_STEPS] + 1) * h
         # slope at the new point: the FSAL stage of DP45, else one evaluation (it is the
-        # first stage of the next step)
+        # first stage of the next step).  Rodas5P's dense output does not read it, so it
+        # is evaluated last, after the outputs and the history point inside the step: the
+        # signals are then those of the step's end and the after-step sweep is not needed
         swept = False
+        late_slope = m == RODAS5P
         if m == DP45:
             for i in range(n):
                 f1[i] = K[6][i]
-        else:
+        elif not late_slope:
             diagram_eval(RHS, t1, xn, P, W, f1)
             stats[S_RHS] += 1
         if nmh > 0 and adaptive:
@@ -821,6 +824,10 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
             W[14][0] = tm
             diagram_eval(HISTORY_POINT, tm, xg, P, W, xg)
             swept = True
+        if late_slope:
+            diagram_eval(RHS, t1, xn, P, W, f1)
+            stats[S_RHS] += 1
+            swept = False
         # accepted
         t_prev = t
         t = t1
