@@ -814,9 +814,10 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
                 dense_eval(m, h_use, (to - t) / (t1 - t), x, xn, K[0], f1, K, xg)
                 emit(to, xg, P, W, out_y, out_x, io)
                 swept = True
-        if dense_out and W[1].shape[1] > 0:
+        if dense_out and W[1].shape[1] > 0 and m == mid:
             # the delay history gets the step's midpoint from the dense output too, so that
-            # its cubic Hermite pieces stay short when the steps are long
+            # its cubic Hermite pieces stay short when the steps are long (not for the
+            # explicit steps of a pinned run: they end on the 1-sample grid)
             for k in range(nmh):
                 W[10][k] = HOLD_SKIP
             tm = t + 0.5 * (t1 - t)
