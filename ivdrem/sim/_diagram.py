@@ -27,7 +27,7 @@ from numba import uint64        # an index type without wraparound code (see _ji
 NO_REFCOUNT = ("kernel_call", "row_sum", "fill_input", "fill_runs", "diagram_eval",
                "diagram_jacobian_at", "push_history", "lowest_eigenpair", "newton_factor",
                "newton_solve")
-INLINE = ("int_table", "float_table")
+INLINE = ("int_table", "float_table", "scratch_part")
 
 # columns of DiagramTables.blocks
 B_KIND = 0      # 0 ode, 1 delay, 2 max-hold
@@ -59,6 +59,26 @@ FR_REST = 0
 FR_PROBE = 1
 FR_RECORD = 2
 FR_HISTORY = 3
+
+# the work arrays in the workspace field scratch, in this order; DiagramTables.
+# scratch_offsets holds where each starts (and the end), sized by ivdrem.sim.tables
+SC_V = 0          # history push: the delays' inputs, their slopes (push_history)
+SC_DV = 1
+SC_HOLD_A = 2     # max-hold eigensolver: the matrix, its eigenvalues, dsyevd's work
+SC_HOLD_W = 3
+SC_HOLD_WORK = 4
+SC_F = 5          # Jacobian (diagram_jacobian_at): block entries, base and shifted
+SC_XB = 6         # block vectors, steps, the local Jacobian, the chain's slots
+SC_XB0 = 7
+SC_UB = 8
+SC_UB0 = 9
+SC_YP = 10
+SC_Y0 = 11
+SC_YM = 12
+SC_HH = 13
+SC_JL = 14
+SC_S = 15
+N_SCRATCH = 16
 
 N_DELAY_COLUMNS = 6
 N_HOLD_COLUMNS = 7
@@ -102,6 +122,16 @@ def float_table(ti, tf, f):
     """The float64 table number f (TF_*) as a view of the packed floats."""
     base = N_INT_TABLES + 1
     return tf[ti[base + f]:ti[base + f + 1]]
+
+
+def scratch_part(W, part):
+    """Work array `part` (SC_*) of the workspace's scratch, as a view (inlined: no
+    allocation, no reference count)."""
+    so = int_table(W[FIELD_TABLE_INTS], T_SCRATCH_OFFSETS)
+    sc = W[FIELD_SCRATCH]
+    if so[part + 1] > sc.shape[0]:
+        raise RuntimeError("ivdrem: the workspace's scratch is smaller than its tables")
+    return sc[so[part]:so[part + 1]]
 
 
 def kernel_call(kernels, failure, wrapper_nx, j, t, x, x0, u, u0, out, o0, P, p0):
@@ -251,33 +281,23 @@ def diagram_eval(mode, t, x, P, W, out):
 
 def push_history(t, P, W):
     """Append the delays' inputs at the accepted point t (the signals in W[7]) to the
-    history and forget what no lookup can need any more.  Its work vectors (values,
-    slopes, 1.0 where a slope is to be estimated) are the first 3 nd entries of the
-    workspace's scratch (ivdrem.sim.tables sums the sizes)."""
+    history and forget what no lookup can need any more (work vectors from the scratch;
+    the slopes to estimate, where no derivative is wired, are a table)."""
     ti = W[FIELD_TABLE_INTS]
     us = W[7]
     delays = int_table(ti, T_DELAYS)
-    nd = int_table(ti, T_DIMS)[DIM_ND]
-    sc = W[FIELD_SCRATCH]
-    if 3 * nd > sc.shape[0]:
-        raise RuntimeError("ivdrem: the history's scratch is smaller than its tables")
-    v = sc[0:nd]
-    dv = sc[nd:2 * nd]
-    est = sc[2 * nd:3 * nd]
-    for i in range(nd):
+    v = scratch_part(W, SC_V)
+    dv = scratch_part(W, SC_DV)
+    for i in range(dv.shape[0]):
         dv[i] = 0.0
-        est[i] = 0.0
     t_max = 0.0
     for r in range(delays.shape[0] // N_DELAY_COLUMNS):
         dl = delays[r * N_DELAY_COLUMNS:]
         copy_into(v, dl[D_OFF], us, dl[D_U], dl[D_SIZE])
         if dl[D_HERMITE] != 0:
             copy_into(dv, dl[D_OFF], us, dl[D_DU], dl[D_SIZE])
-        else:
-            for i in range(dl[D_OFF], dl[D_OFF] + dl[D_SIZE]):
-                est[i] = 1.0
         t_max = max(t_max, P[dl[D_TP]])
-    st = hist_push(W, t, v, dv, est)
+    st = hist_push(W, t, v, dv, int_table(ti, T_SLOPE_FLAGS))
     if st != OK:
         return st
     hist_trim(W, t - t_max)
@@ -291,18 +311,16 @@ def lowest_eigenpair(W, u, nvec, nmat):
     arrays in the scratch and lapack_ints: np.linalg.eigh allocated seven arrays and asked
     for the workspace size on every call, a quarter of composite learning's time while its
     hold updates every sample (the template's version, for the reference engine)."""
-    ti = W[FIELD_TABLE_INTS]
-    dims = int_table(ti, T_DIMS)
-    sc = W[FIELD_SCRATCH]
     iw = W[FIELD_LAPACK_INTS]
-    o = dims[DIM_SCR_HOLD]
+    A = scratch_part(W, SC_HOLD_A)
+    w = scratch_part(W, SC_HOLD_W)
+    work = scratch_part(W, SC_HOLD_WORK)
     nn = nmat * nmat
     lwork = 1 + 6 * nmat + 2 * nn          # dsyevd's minimum for jobz 'V'
     liwork = 3 + 5 * nmat
-    if o + nn + nmat + lwork > dims[DIM_SCR_JAC] or 5 + liwork > iw.shape[0]:
+    if (A.shape[0] < nn or w.shape[0] < nmat or work.shape[0] < lwork
+            or 5 + liwork > iw.shape[0]):
         raise RuntimeError("ivdrem: the max-hold's LAPACK work arrays are too small")
-    A = sc[o:o + nn]
-    w = sc[o + nn:o + nn + nmat]
     for i in range(nmat):
         for j in range(nmat):
             a = 0.5 * (u[nvec + i * nmat + j] + u[nvec + j * nmat + i])
@@ -320,7 +338,7 @@ def lowest_eigenpair(W, u, nvec, nmat):
     call_c(W[FIELD_LAPACK][0], (element_address(ch, 0), element_address(ch, 1),
                                 element_address(iw, 0), element_address(A, 0),
                                 element_address(iw, 1), element_address(w, 0),
-                                element_address(sc, o + nn + nmat), element_address(iw, 2),
+                                element_address(work, 0), element_address(iw, 2),
                                 element_address(iw, 5), element_address(iw, 3),
                                 element_address(iw, 4)))
     if iw[4] != 0:
@@ -355,9 +373,6 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
     jac_gains = float_table(ti, tf, TF_JAC_GAINS)
     njb = dims[DIM_NJB]
     ng = jac_gains.shape[0]
-    maxx = dims[DIM_MAXX]
-    maxu = dims[DIM_MAXU]
-    maxyf = dims[DIM_MAXYF]
     fd_g_ptr = int_table(ti, T_FD_G_PTR)
     fd_g_kind = int_table(ti, T_FD_G_KIND)
     fd_gc_ptr = int_table(ti, T_FD_GC_PTR)
@@ -365,36 +380,18 @@ def diagram_jacobian_at(t, x, P, W, J, f0):
     fd_e_ptr = int_table(ti, T_FD_E_PTR)
     fd_e_row = int_table(ti, T_FD_E_ROW)
     fd_e_slot = int_table(ti, T_FD_E_SLOT)
-    # work arrays carved from the workspace's scratch after the history's, in the order
-    # its size was summed (ivdrem.sim.tables): no allocation per Jacobian
-    sc = W[FIELD_SCRATCH]
-    ncol = max(fd_col.shape[0], 1)
-    nl = maxyf * dims[DIM_MAXCOL]
-    o = dims[DIM_SCR_JAC]         # (after the history's and the max-holds' work arrays)
-    if (o + njb + ng + 2 * maxx + 2 * maxu + 3 * maxyf + ncol + nl + dims[DIM_NSLOTS]
-            > sc.shape[0]):
-        raise RuntimeError("ivdrem: the Jacobian's scratch is smaller than its tables")
-    F = sc[o:o + njb + ng]
-    o += njb + ng
-    xb = sc[o:o + maxx]
-    o += maxx
-    xb0 = sc[o:o + maxx]
-    o += maxx
-    ub = sc[o:o + maxu]
-    o += maxu
-    ub0 = sc[o:o + maxu]
-    o += maxu
-    yp = sc[o:o + maxyf]
-    o += maxyf
-    y0 = sc[o:o + maxyf]
-    o += maxyf
-    ym = sc[o:o + maxyf]
-    o += maxyf
-    hh = sc[o:o + ncol]
-    o += ncol
-    jl = sc[o:o + nl]             # a block's local Jacobian, row-major
-    o += nl
-    S = sc[o:o + dims[DIM_NSLOTS]]
+    # work arrays from the workspace's scratch: no allocation per Jacobian
+    F = scratch_part(W, SC_F)
+    xb = scratch_part(W, SC_XB)
+    xb0 = scratch_part(W, SC_XB0)
+    ub = scratch_part(W, SC_UB)
+    ub0 = scratch_part(W, SC_UB0)
+    yp = scratch_part(W, SC_YP)
+    y0 = scratch_part(W, SC_Y0)
+    ym = scratch_part(W, SC_YM)
+    hh = scratch_part(W, SC_HH)
+    jl = scratch_part(W, SC_JL)   # a block's local Jacobian, row-major
+    S = scratch_part(W, SC_S)
     for i in range(ng):
         F[njb + i] = jac_gains[i]
     fd = int_table(ti, T_FD)

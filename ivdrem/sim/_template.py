@@ -188,8 +188,7 @@ def quad_slope(ta, va, tb, vb, tc, vc):
 
 def hist_push(W, t, v, d, estimate_slope):
     """Append an accepted point (t, v, dv/dt).  Where no derivative is wired
-    (estimate_slope[j] = 1; int or float flags) the slope comes from a quadratic through
-    the last 3 points."""
+    (estimate_slope[j] = 1) the slope comes from a quadratic through the last 3 points."""
     if W[13][0] != 0:
         return OK                  # probing a max-hold at an interpolated point: no history
     ht = W[0]

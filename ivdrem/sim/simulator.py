@@ -34,7 +34,7 @@ import control as ct
 
 from .plan import DiagramPlan
 from . import _template as tpl
-from .tables import DIMS, empty_tables, hold_nmat, pack as pack_tables
+from .tables import empty_tables, hold_nmat, pack as pack_tables, scratch_size, slope_flags
 from ..blocks._core import active_feeds
 
 __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METHODS",
@@ -147,7 +147,7 @@ class ReferenceEngine:
         self.integrate = ns["integrate"]
         self._inputs_at = ns["external_inputs"]     # the diagram inputs at t (into W[8])
         self.P = ()
-        self._est = _slope_flags(plan)
+        self._est = slope_flags(plan)
         self._feeds = {}
 
     def _eval(self, mode, t, x, P, W, out):
@@ -308,14 +308,6 @@ def _validate_params(diagram, params):
                          f"take {sorted(known)}")
 
 
-def _slope_flags(plan):
-    est = np.zeros(plan.nd, dtype=np.int64)
-    for d in plan.delays:
-        if not d["hermite"]:
-            est[d["off"]:d["off"] + d["size"]] = 1
-    return est
-
-
 # --------------------------------------------------------------------------- driver
 def _dsyevd_address():
     """Address of LAPACK's dsyevd in scipy (the compiled max-hold calls it by address, see
@@ -340,8 +332,8 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0, tables=None):
         failure=np.full(2 + max([b.sys.nstates for b in plan.blocks] + [0]), -1.0),
         **dict(zip(("table_ints", "table_floats"),
                    pack_tables(empty_tables() if tables is None else tables))),
-        # the compiled Jacobian's work arrays (no allocation per step)
-        scratch=np.zeros(0 if tables is None else int(tables.dims[DIMS.index("SCRATCH")])),
+        # the compiled engine's work arrays (no allocation per step)
+        scratch=np.zeros(0 if tables is None else scratch_size(tables)),
         lapack=np.array([_dsyevd_address() if nmh and tables is not None else 0],
                         dtype=np.int64),
         lapack_chars=np.array([ord("V"), ord("L")], dtype=np.uint8),

@@ -34,14 +34,14 @@ TABLES_LAYOUT = (
     ("jac_j_col", "int64", 1), ("jac_j_slot", "int64", 1), ("jac_gains", "float64", 1),
     ("lu_perm", "int64", 1), ("lu_rowptr", "int64", 1), ("lu_colidx", "int64", 1),
     ("lu_diagp", "int64", 1), ("fill_runs", "int64", 2), ("fill_run_gain", "float64", 1),
-    ("fill_run_ranges", "int64", 1))
+    ("fill_run_ranges", "int64", 1), ("scratch_offsets", "int64", 1),
+    ("slope_flags", "int64", 1))
 DiagramTables = namedtuple("DiagramTables", [f for f, _, _ in TABLES_LAYOUT])
 #: the int64 and float64 fields, in the order pack() concatenates them
 INT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "int64")
 FLOAT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "float64")
-#: entries of DiagramTables.dims
-DIMS = ("ND", "NJB", "MAXX", "MAXU", "MAXYF", "MAXCOL", "NSLOTS", "SCRATCH", "SCR_HOLD",
-        "SCR_JAC")
+#: entries of DiagramTables.dims (scalars of the diagram the compiled code reads)
+DIMS = ("NJB",)
 _FD_COLUMNS = _diagram.N_FD_COLUMNS
 _P_INDEX = re.compile(r"^P\[(\d+)\]$")
 
@@ -58,6 +58,22 @@ def empty_tables():
         out[name] = np.zeros(shape, dtype=dtype)
     out["dims"] = np.zeros(len(DIMS), dtype=np.int64)
     return DiagramTables(**out)
+
+
+def slope_flags(plan):
+    """1 for each delayed entry whose slope the history estimates (no derivative wired to
+    its delay), else 0: what both engines hand the history push."""
+    est = np.zeros(plan.nd, dtype=np.int64)
+    for d in plan.delays:
+        if not d["hermite"]:
+            est[d["off"]:d["off"] + d["size"]] = 1
+    return est
+
+
+def scratch_size(tables):
+    """Length of the workspace field scratch for `tables` (0 for empty tables)."""
+    so = tables.scratch_offsets
+    return int(so[-1]) if so.size else 0
 
 
 def hold_nmat(plan):
@@ -168,17 +184,20 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     maxu = int(max(prog.fd_nu.max(initial=0), 1))
     maxyf = int(max((prog.fd_ny + prog.fd_nx).max(initial=0), 1))
     maxcol = int(max((prog.fd_nx + prog.fd_nu).max(initial=0), 1))
-    # the work arrays carved from the workspace field scratch, in this order: the
-    # history's values, slopes and slope flags (push_history); from SCR_HOLD the max-holds'
-    # matrix, eigenvalues and dsyevd work (lowest_eigenpair); from SCR_JAC the Jacobian's
-    # (diagram_jacobian_at) F, xb, xb0, ub, ub0, yp, y0, ym, hh, the local Jacobian, S
+    # the sizes of the work arrays in the workspace field scratch (_diagram.SC_*), the one
+    # place they are laid out: the history push's vectors, the max-hold eigensolver's
+    # matrix, eigenvalues and dsyevd work (its minimum for eigenvectors), the Jacobian's
     nm = hold_nmat(plan)
-    scr_hold = 3 * plan.nd
-    scr_jac = scr_hold + nm * nm + nm + 1 + 6 * nm + 2 * nm * nm
-    scratch = (scr_jac + prog.n_jb + len(prog.gains) + 2 * maxx + 2 * maxu + 3 * maxyf
-               + max(len(prog.col), 1) + maxyf * maxcol + prog.n_slots)
-    dims = dict(ND=plan.nd, NJB=prog.n_jb, MAXX=maxx, MAXU=maxu, MAXYF=maxyf, MAXCOL=maxcol,
-                NSLOTS=prog.n_slots, SCRATCH=scratch, SCR_HOLD=scr_hold, SCR_JAC=scr_jac)
+    sizes = {_diagram.SC_V: plan.nd, _diagram.SC_DV: plan.nd,
+             _diagram.SC_HOLD_A: nm * nm, _diagram.SC_HOLD_W: nm,
+             _diagram.SC_HOLD_WORK: 1 + 6 * nm + 2 * nm * nm,
+             _diagram.SC_F: prog.n_jb + len(prog.gains), _diagram.SC_XB: maxx,
+             _diagram.SC_XB0: maxx, _diagram.SC_UB: maxu, _diagram.SC_UB0: maxu,
+             _diagram.SC_YP: maxyf, _diagram.SC_Y0: maxyf, _diagram.SC_YM: maxyf,
+             _diagram.SC_HH: max(len(prog.col), 1), _diagram.SC_JL: maxyf * maxcol,
+             _diagram.SC_S: prog.n_slots}
+    scratch_offsets = np.cumsum([0] + [sizes[i] for i in range(_diagram.N_SCRATCH)])
+    dims = dict(NJB=prog.n_jb)
     return with_fill_runs(DiagramTables(
         fill_runs=np.zeros((0, _diagram.N_RUN_COLUMNS), dtype=np.int64),
         fill_run_gain=np.zeros(0), fill_run_ranges=np.zeros(0, dtype=np.int64),
@@ -197,7 +216,8 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         jac_ins_f=_i64(prog.ins_f), jac_ins_src=_i64(prog.ins_src),
         jac_j_row=_i64(prog.j_row), jac_j_col=_i64(prog.j_col), jac_j_slot=_i64(prog.j_slot),
         jac_gains=np.asarray(prog.gains, dtype=float), lu_perm=_i64(slu.perm),
-        lu_rowptr=_i64(slu.rowptr), lu_colidx=_i64(slu.colidx), lu_diagp=_i64(slu.diagp)))
+        lu_rowptr=_i64(slu.rowptr), lu_colidx=_i64(slu.colidx), lu_diagp=_i64(slu.diagp),
+        scratch_offsets=_i64(scratch_offsets), slope_flags=slope_flags(plan)))
 
 
 def _runs(seq, in_ptr, in_src, in_gain):
