@@ -80,6 +80,10 @@ def test_declared_functions_are_compiled_so():
         opts = getattr(mod, name).targetoptions
         assert opts["_nrt"] is (name not in no_rc), name
         assert opts["inline"] == ("always" if name in inline else "never"), name
+    # integrate only allocates the loop's work arrays: plain Python, calling the loop
+    for name in _template.PYTHON_LEVEL:
+        assert name not in mod._JIT and not hasattr(getattr(mod, name), "targetoptions")
+    assert "step_loop" in mod._JIT and "step_loop" in no_rc
     # what allocates keeps its counts
     for name in ("integrate", "diagram_jacobian", "fd_jacobian"):
         assert name not in no_rc

@@ -163,7 +163,14 @@ NO_REFCOUNT = ("copy_into", "hist_index", "quad_slope", "hist_push", "hist_trim"
                "rodas5p_step", "method_step", "dense_eval", "on_grid", "next_grid",
                "probe_holds", "set_hold_modes", "step_loop", "dense_factor", "dense_solve",
                "hold_update")
-INLINE = ("external_inputs",)
+#
+# numba gives every compiled function its own machine code, holding a copy of all its callees:
+# a chain of wrappers compiles the stepper once per link.  So the steps and the max-hold
+# helpers, each called from one place, are inlined into the loop, and integrate (it only
+# allocates the loop's work arrays) stays Python in both engines.
+INLINE = ("external_inputs", "method_step", "rodas5p_step", "dp45_step", "rk4_step",
+          "probe_holds", "set_hold_modes")
+PYTHON_LEVEL = ("integrate",)
 
 
 def copy_into(dst, d0, src, s0, n):

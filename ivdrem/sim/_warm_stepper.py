@@ -31,9 +31,9 @@ WAIT_LIMIT_S = 900.0
 
 def stepper_cached(module) -> bool:
     """Whether numba's on-disk cache already holds the stepper's loop (its index file for
-    ``integrate`` exists).  Unknown (numba internals moved) counts as cached: no child."""
+    ``step_loop`` exists).  Unknown (numba internals moved) counts as cached: no child."""
     try:
-        cache = module.integrate._cache
+        cache = module.step_loop._cache
         path = Path(cache._cache_path) / cache._cache_file._index_name
         return path.exists()
     except Exception:        # pragma: no cover - numba internals changed

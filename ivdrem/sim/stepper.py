@@ -34,9 +34,10 @@ def stepper_source():
     names = re.findall(r"^def\s+(\w+)\s*\(", tsrc + "\n" + dsrc, flags=re.M)
     no_refcount = set(_template.NO_REFCOUNT) | set(_diagram.NO_REFCOUNT)
     inline = set(_template.INLINE) | set(_diagram.INLINE)
-    unknown = (no_refcount | inline) - set(names)
+    unknown = (no_refcount | inline | set(_template.PYTHON_LEVEL)) - set(names)
     if unknown:
-        raise RuntimeError(f"NO_REFCOUNT / INLINE name no function: {sorted(unknown)}")
+        raise RuntimeError("NO_REFCOUNT / INLINE / PYTHON_LEVEL name no function: "
+                           f"{sorted(unknown)}")
     consts = [f"FIELD_{name.upper()} = {i}" for i, (name, _, _) in enumerate(WORKSPACE_LAYOUT)]
     consts += [f"DIM_{d} = {i}" for i, d in enumerate(DIMS)]
     consts += [f"T_{f.upper()} = {i}" for i, f in enumerate(INT_FIELDS)]
@@ -57,12 +58,15 @@ def stepper_source():
            "# mode, int_table once per table); as np.int64 they are runtime values",
            f"for _n in {_RUNTIME_INTS!r} + [_n for _n in dir() if _n.startswith(('T_', 'TF_', 'DIM_'))]:",
            "    globals()[_n] = np.int64(globals()[_n])",
-           f"_JIT = {sorted(set(names))!r}",
-           "# without reference counts / inlined: the lists in _template and _diagram",
+           f"_JIT = {sorted(set(names) - set(_template.PYTHON_LEVEL))!r}",
+           "# without reference counts / inlined: the lists in _template and _diagram; no",
+           "# C-callable (cfunc) wrapper: the stepper's functions are called from Python and",
+           "# from each other only",
            f"_NO_REFCOUNT = {sorted(no_refcount)!r}",
            f"_INLINE = {sorted(inline)!r}",
            "for _n in _JIT:",
            "    globals()[_n] = njit(cache=True, _nrt=_n not in _NO_REFCOUNT,",
-           "                         inline='always' if _n in _INLINE else 'never')(globals()[_n])",
+           "                         inline='always' if _n in _INLINE else 'never',",
+           "                         no_cfunc_wrapper=True)(globals()[_n])",
            ""]
     return "\n".join(out)
