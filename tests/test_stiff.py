@@ -275,14 +275,53 @@ def test_rodas5p_loop_on_a_stiff_problem_with_analytic_solution():
     assert np.abs(x - exact(10.0)).max() < 1e-6
 
 
+def test_bs23_converges_with_order_3_and_estimates_its_error_with_order_3():
+    """Bogacki-Shampine 3(2), fixed steps on the smooth problem: the error at t = 2 falls by
+    ~2^3 per halving, and one step's error estimate (x_new minus the order-2 solution) is
+    O(h^3) and bounds the true local error (O(h^4)) from above."""
+    ns = _template_ns(_f_smooth, _j_smooth)
+    errs = []
+    for nstep in (20, 40, 80, 160):
+        h = 2.0 / nstep
+        x = _exact_smooth(0.0)
+        for k in range(nstep):
+            x, _, _ = _one_step(ns, "bs23_step", k * h, h, x)
+        errs.append(np.abs(x - _exact_smooth(2.0)).max())
+    ratios = [errs[i] / errs[i + 1] for i in range(3)]
+    assert all(6.5 < r < 9.5 for r in ratios), (errs, ratios)
+    est, loc = [], []
+    for h in (0.2, 0.1, 0.05):
+        x0 = _exact_smooth(0.3)
+        xn, err, K = _one_step(ns, "bs23_step", 0.3, h, x0)
+        loc.append(np.abs(xn - _exact_smooth(0.3 + h)).max())
+        # the weighted norm back to the largest component: estimate = err * scale
+        f0, f1 = K[0], K[6]
+        e = h * (-5 / 72 * f0 + 1 / 12 * K[1] + 1 / 9 * K[5] - 1 / 8 * f1)
+        est.append(np.abs(e).max())
+        sc = 1e-8 + 1e-6 * np.maximum(np.abs(x0), np.abs(xn))
+        assert err == pytest.approx(np.sqrt(np.mean((e / sc) ** 2)), rel=1e-12)
+        # FSAL: the last stage is f at the new point
+        out = np.zeros(2)
+        _f_smooth(0.3 + h, xn, out)
+        assert np.array_equal(out, f1)
+    for e, p in ((est, 3), (loc, 4)):
+        r = [math.log2(e[i] / e[i + 1]) for i in range(2)]
+        assert all(p - 0.6 < ri < p + 0.8 for ri in r), (p, e, r)
+    assert all(a > b for a, b in zip(est, loc))
+
+
 def test_dp45_through_the_loop_matches_the_smooth_solution():
-    """The same loop with DP45 (landing on outputs) and RK4 (fixed step) on the smooth
-    problem: both within their accuracy of the exact solution at the outputs."""
+    """The same loop with DP45 and BS23 (landing on outputs; BS23 as a loop method only
+    here) and RK4 (fixed step) on the smooth problem: each within its accuracy of the exact
+    solution at the outputs."""
     ns = _template_ns(_f_smooth, _j_smooth)
     out_t = np.linspace(0.0, 2.0, 21)[1:]
     ex = np.array([_exact_smooth(t) for t in out_t])
     _, y, _ = _run_loop(ns, tpl.DP45, _exact_smooth(0.0), 2.0, out_t, 1e-9, 1e-12, dense=False)
     assert np.abs(y - ex).max() < 1e-8
+    _, y, st = _run_loop(ns, tpl.BS23, _exact_smooth(0.0), 2.0, out_t, 1e-8, 1e-11,
+                         dense=False)
+    assert np.abs(y - ex).max() < 1e-7 and st[tpl.S_REJECTED] < st[tpl.S_STEPS] / 10
     _, y, st = _run_loop(ns, tpl.RK4, _exact_smooth(0.0), 2.0, out_t, 1e-9, 1e-12, h0=1e-2,
                          adaptive=False, dense=False)
     assert st[tpl.S_STEPS] == 200
@@ -300,6 +339,10 @@ def test_method_table_is_the_one_source_of_names():
     for name, info in METHOD_TABLE.items():
         assert f"def {info.step}(" in src
         assert info.id in (tpl.RK4, tpl.DP45, tpl.RODAS5P)
+    assert len({info.id for info in METHOD_TABLE.values()}) == len(METHOD_TABLE)
+    assert set(sim.DEFAULT_TOLERANCES) == set(METHODS)
+    # BS23 only takes a Rodas5P run's pinned steps: no user method
+    assert tpl.BS23 not in {info.id for info in METHOD_TABLE.values()}
     from ivdrem.experiments.config import SOLVER_METHODS
     assert tuple(SOLVER_METHODS) == METHODS
     d = build_lab()
@@ -322,8 +365,37 @@ def test_rodas5p_and_dp45_agree_on_the_lab_diagram_reference_engine():
     assert a.hold_times[0] == b.hold_times[0]
     # t_e is a sampling time (multiple of dt_sample = 1 ms)
     assert abs(a.hold_times[0] * 1e3 - round(a.hold_times[0] * 1e3)) < 1e-6
-    # steps pinned to the sampling grid by hold updates may be explicit (DP45) steps
+    # steps pinned to the sampling grid by hold updates may be explicit (BS23) steps
     assert b.stats["jacobians"] + b.stats["explicit_steps"] >= b.stats["steps"] > 0
+
+
+def test_pinned_explicit_steps_give_way_to_rodas5p_on_a_stiff_mode():
+    """The lab diagram plus a Prothero-Robinson block with a mode at -1e4, outside BS23's
+    stability region at the 1 ms grid (h*lambda = -10): while the hold pins the steps, the
+    explicit steps are rejected and Rodas5P takes them; the stiff state stays on sin t
+    and the hold fires at the same sampling time as without that block."""
+    import control as ct
+
+    def upd(t, x, u, params):
+        return [-1e4 * (x[0] - np.sin(t)) + np.cos(t)]
+    import conftest
+    pr = ct.nlsys(upd, lambda t, x, u, params: x, states=1, outputs=["pr_y"], inputs=0,
+                  name="pr")
+    lab = build_lab()
+    d = conftest.assemble(conftest.lab_blocks() + [pr], conftest.LAB_OUTPUTS + ["pr_y"],
+                          name="lab_pr")
+    kw = dict(engine="reference", rtol=1e-7, atol=1e-10, h_max=2e-3, dt_out=0.01,
+              progress=False)
+    a = simulate(lab, 2.0, method="rodas5p", **kw)
+    b = simulate(d, 2.0, method="rodas5p", **kw)
+    assert b.hold_times[0] == a.hold_times[0]
+    assert a.stats["explicit_steps"] > 100                # the lab alone: BS23 steps
+    assert b.stats["explicit_steps"] < a.stats["explicit_steps"] / 10
+    assert b.stats["rejected"] >= 1
+    t = np.asarray(b.time)
+    assert np.abs(sig(b, "pr_y")[0] - np.sin(t)).max() < 1e-6
+    A, Bo = np.asarray(a.outputs), np.asarray(b.outputs)[:-1]
+    assert np.abs(A - Bo).max() <= 1e-6 * max(1.0, np.abs(A).max())
 
 
 def test_growth_rate_divergence_is_reported_before_the_absolute_limit():

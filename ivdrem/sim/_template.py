@@ -65,6 +65,7 @@ BLOCK_RAISED = 8      # a block's compiled kernel raised (compiled engine, ivdre
 RK4 = 0
 DP45 = 1
 RODAS5P = 2
+BS23 = 3      # not a user method: the explicit steps of a Rodas5P run pinned by max-holds
 
 # max-hold modes for the next after-step evaluation
 HOLD_SKIP = 0
@@ -83,7 +84,7 @@ S_CUTS = 7         # steps cut to land on a max-hold update
 S_PROBES = 8       # max-hold evaluations at interpolated grid times
 S_STIFF_RUN = 9    # accepted steps with h*rho(J) beyond the stability bound (DOPRI5's IASTI)
 S_NONSTIFF = 10    # consecutive accepted steps within it (NONSTI)
-S_EXPLICIT = 11    # DP45 steps a Rodas5P run took while max-hold updates pinned its steps
+S_EXPLICIT = 11    # BS23 steps a Rodas5P run took while max-hold updates pinned its steps
 S_FRESH = 12       # 1: K[0] = f(t, x) and the signals W[6], W[7] are still those of (t, x)
 N_STATS = 13
 
@@ -160,7 +161,7 @@ K_ROWS = 11
 # external_inputs, which returns a workspace array, inlined into its callers.
 NO_REFCOUNT = ("copy_into", "hist_index", "quad_slope", "hist_push", "hist_trim",
                "hist_lookup", "emit", "check_state", "err_norm", "rk4_step", "dp45_step",
-               "rodas5p_step", "method_step", "dense_eval", "on_grid", "next_grid",
+               "bs23_step", "rodas5p_step", "method_step", "dense_eval", "on_grid", "next_grid",
                "probe_holds", "set_hold_modes", "step_loop", "dense_factor", "dense_solve",
                "hold_update")
 #
@@ -168,8 +169,8 @@ NO_REFCOUNT = ("copy_into", "hist_index", "quad_slope", "hist_push", "hist_trim"
 # a chain of wrappers compiles the stepper once per link.  So the steps and the max-hold
 # helpers, each called from one place, are inlined into the loop, and integrate (it only
 # allocates the loop's work arrays) stays Python in both engines.
-INLINE = ("external_inputs", "method_step", "rodas5p_step", "dp45_step", "rk4_step",
-          "probe_holds", "set_hold_modes")
+INLINE = ("external_inputs", "method_step", "rodas5p_step", "dp45_step", "bs23_step",
+          "rk4_step", "probe_holds", "set_hold_modes")
 PYTHON_LEVEL = ("integrate",)
 
 
@@ -492,6 +493,36 @@ def dp45_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats):
     return np.sqrt(s / n)
 
 
+def bs23_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats):
+    """Bogacki-Shampine 3(2) (FSAL; Bogacki & Shampine 1989, as in MATLAB's ode23), the
+    explicit method of a Rodas5P run's pinned steps.  K[0] = f(t, x) on entry; on return
+    K[6] = f(t + h, xn); K[1], K[5] the stages at c = 1/2, 3/4."""
+    n = x.shape[0]
+    k1 = K[0]
+    k2 = K[1]
+    k3 = K[5]
+    k4 = K[6]
+    xt = K[7]
+    for i in range(n):
+        xt[i] = x[i] + h * (0.5 * k1[i])
+    diagram_eval(RHS, t + 0.5 * h, xt, P, W, k2)
+    for i in range(n):
+        xt[i] = x[i] + h * (0.75 * k2[i])
+    diagram_eval(RHS, t + 0.75 * h, xt, P, W, k3)
+    for i in range(n):
+        xn[i] = x[i] + h * (2.0 / 9.0 * k1[i] + 1.0 / 3.0 * k2[i] + 4.0 / 9.0 * k3[i])
+    diagram_eval(RHS, t + h, xn, P, W, k4)
+    stats[S_RHS] += 3
+    s = 0.0
+    for i in range(n):
+        # x_new minus the order-2 solution x + h (7/24 k1 + 1/4 k2 + 1/3 k3 + 1/8 k4)
+        e = h * (-5.0 / 72.0 * k1[i] + 1.0 / 12.0 * k2[i] + 1.0 / 9.0 * k3[i]
+                 - 1.0 / 8.0 * k4[i])
+        sc = atol + rtol * max(abs(x[i]), abs(xn[i]))
+        s += (e / sc) ** 2
+    return np.sqrt(s / n)
+
+
 def rodas5p_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats):
     """Rodas5P (coefficients above), a fresh Jacobian every step (it is not a W-method).
 
@@ -557,6 +588,8 @@ def method_step(mid, t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats):
         return rodas5p_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
     if mid == DP45:
         return dp45_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
+    if mid == BS23:
+        return bs23_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
     return rk4_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
 
 
@@ -691,7 +724,7 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
     err_acc = 1.0
     t_cut = -1.0
     pinned = False         # the last step ended on a max-hold update: the next ends on the grid
-    explicit_ok = True     # ... and may be an explicit DP45 step while that stays stable
+    explicit_ok = True     # ... and may be an explicit BS23 step while that stays stable
     while True:
         landing = False
         if adaptive:
@@ -731,11 +764,12 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
             tf[F_H] = h
             return HISTORY_FULL
         # while max-hold updates pin a Rodas5P run's steps to the 1-sample grid, a fresh
-        # Jacobian per sample costs ~8 explicit steps: take DP45 steps where they are stable
-        # (same error control; back to Rodas5P at a rejection or h*rho(J) > 2.5)
+        # Jacobian per sample costs as much as ~8 explicit stages: take Bogacki-Shampine
+        # steps (3 stages) while they pass the same error control (back to Rodas5P at a
+        # rejection, until the next pinned stretch)
         m = mid
         if mid == RODAS5P and pinned and explicit_ok:
-            m = DP45
+            m = BS23
         err = method_step(m, t, h_use, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
         stats[S_FRESH] = 0       # the stages moved the signals
         if m != mid and not (err <= 1.0):
@@ -760,13 +794,13 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
             t1 = t_target if landing else t + h_use
         else:
             t1 = t0 + (stats[S_STEPS] + 1) * h
-        # slope at the new point: the FSAL stage of DP45, else one evaluation (it is the
+        # slope at the new point: the FSAL stage of DP45 / BS23, else one evaluation (it is the
         # first stage of the next step).  Rodas5P's dense output does not read it, so it
         # is evaluated last, after the outputs and the history point inside the step: the
         # signals are then those of the step's end and the after-step sweep is not needed
         swept = False
         late_slope = m == RODAS5P
-        if m == DP45:
+        if m == DP45 or m == BS23:
             for i in range(n):
                 f1[i] = K[6][i]
         elif not late_slope:
@@ -782,14 +816,10 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
                 continue
         cut_landed = t_cut >= 0.0 and t1 >= t_cut - 1e-12 * max(1.0, abs(t1))
         if m != mid:
+            # no h*rho(J) estimate for BS23 (no two of its stages share a time, so the
+            # drift of a time-dependent loop swamps DOPRI5's estimate): an unstable mode
+            # grows into the error estimate, and a rejection returns the run to Rodas5P
             stats[S_EXPLICIT] += 1
-            num = 0.0
-            den = 0.0
-            for i in range(n):
-                num += (K[6][i] - K[5][i]) ** 2
-                den += (xn[i] - K[7][i]) ** 2
-            if den > 0.0 and h_use * np.sqrt(num / den) > 2.5:
-                explicit_ok = False
         if check_stiff and mid == DP45 and not (landing and h_use < h):
             # Hairer's DOPRI5 test: h*rho(J) ~ h |f(xn) - f(x6)| / |xn - x6| with x6 the
             # stage at c = 1; beyond 3.25 (the stability boundary) 15 times before 6 in a
