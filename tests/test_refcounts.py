@@ -87,3 +87,25 @@ def test_declared_functions_are_compiled_so():
     # what allocates keeps its counts
     for name in ("integrate", "diagram_jacobian", "fd_jacobian"):
         assert name not in no_rc
+
+
+def test_kernels_are_inlined_into_their_wrappers_unless_they_raise():
+    """Each block kernel is compiled inside its C-callable wrapper only (inline='always'),
+    but a kernel with a raise of its own is compiled apart (numba cannot raise an exception
+    with runtime arguments directly inside the wrapper's try)."""
+    import re
+    import sys as _sys
+    sim = Simulator(closed_loop("iv-drem"))
+    kernels = [_sys.modules[name] for name, _ in sim.engine.program.deps
+               if name.startswith("ivdrem_kernel_")]
+    assert len(kernels) > 10
+    inlined = 0
+    for mod in kernels:
+        src = open(mod.__file__).read()
+        fn_name = re.findall(r"^(\w+) = njit\(", src, flags=re.M)[-1]
+        opts = getattr(mod, fn_name).targetoptions
+        body = src.split(f"def {fn_name}(", 1)[1].split(f"\n{fn_name} = njit(", 1)[0]
+        expect = "never" if re.search(r"\braise\b", body) else "always"
+        assert opts["inline"] == expect, (fn_name, opts["inline"])
+        inlined += expect == "always"
+    assert inlined > 10

@@ -131,7 +131,13 @@ def _kernel_module(fn, src, model_module):
              *_HEADER]
     if model_module is not None:
         lines.append(f"import {model_module} as model")
-    lines += ["", src, "", f"{fn.__name__} = njit(cache=True)({fn.__name__})", ""]
+    # inlined into its one caller, the C-callable wrapper (compiled alone, it would be
+    # compiled to machine code twice: by itself and again inside the wrapper); not a kernel
+    # that raises: numba cannot build an exception with runtime arguments raised directly
+    # inside the wrapper's try (a kernel compiled apart hands it over as a status)
+    inline = "never" if re.search(r"\braise\b", src) else "always"
+    lines += ["", src, "", f"{fn.__name__} = njit(cache=True, inline={inline!r})({fn.__name__})",
+              ""]
     body = "\n".join(lines)
     return f"ivdrem_kernel_{_hash(body)}", body
 
