@@ -185,18 +185,24 @@ def _exact_smooth(t):
     return np.array([math.sin(t), math.exp(-t)])
 
 
-def test_rodas5p_converges_with_order_5():
-    """Fixed steps on a nonlinear, time-dependent problem (exact solution y = (sin t, e^-t)):
-    the error at t = 2 falls by ~2^5 per halving.  Measured ratios 31-33."""
-    ns = _template_ns(_f_smooth, _j_smooth)
+def _refinement(ns, step, nsteps):
+    """Errors at t = 2 of fixed steps of `step` from the exact value at 0 (the smooth
+    problem), one per number of steps, and the ratios of consecutive errors."""
     errs = []
-    for nstep in (10, 20, 40, 80):
+    for nstep in nsteps:
         h = 2.0 / nstep
         x = _exact_smooth(0.0)
         for k in range(nstep):
-            x, _, _ = _one_step(ns, "rodas5p_step", k * h, h, x)
+            x, _, _ = _one_step(ns, step, k * h, h, x)
         errs.append(np.abs(x - _exact_smooth(2.0)).max())
-    ratios = [errs[i] / errs[i + 1] for i in range(3)]
+    return errs, [errs[i] / errs[i + 1] for i in range(len(errs) - 1)]
+
+
+def test_rodas5p_converges_with_order_5():
+    """Fixed steps on a nonlinear, time-dependent problem (exact solution y = (sin t, e^-t)):
+    the error at t = 2 falls by ~2^5 per halving.  Measured ratios 31-33."""
+    errs, ratios = _refinement(_template_ns(_f_smooth, _j_smooth), "rodas5p_step",
+                               (10, 20, 40, 80))
     assert all(26 < r < 40 for r in ratios), (errs, ratios)
 
 
@@ -280,14 +286,7 @@ def test_bs23_converges_with_order_3_and_estimates_its_error_with_order_3():
     ~2^3 per halving, and one step's error estimate (x_new minus the order-2 solution) is
     O(h^3) and bounds the true local error (O(h^4)) from above."""
     ns = _template_ns(_f_smooth, _j_smooth)
-    errs = []
-    for nstep in (20, 40, 80, 160):
-        h = 2.0 / nstep
-        x = _exact_smooth(0.0)
-        for k in range(nstep):
-            x, _, _ = _one_step(ns, "bs23_step", k * h, h, x)
-        errs.append(np.abs(x - _exact_smooth(2.0)).max())
-    ratios = [errs[i] / errs[i + 1] for i in range(3)]
+    errs, ratios = _refinement(ns, "bs23_step", (20, 40, 80, 160))
     assert all(6.5 < r < 9.5 for r in ratios), (errs, ratios)
     est, loc = [], []
     for h in (0.2, 0.1, 0.05):
