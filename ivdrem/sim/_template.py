@@ -21,10 +21,12 @@ stepper module whose diagram functions call each diagram's compiled functions by
 Structure (integrator apart from the loop): each method is a step function
 ``*_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)`` that leaves the new state in
 xn, returns its error estimate (weighted RMS norm, accept when <= 1; 0 for a fixed-step
-method) and leaves in K / D what its dense output needs.  ``integrate`` owns everything
-else: step-size control and acceptance, landing on output times and max-hold updates,
-dense output, the after-step work (delay history, holds), output rows, divergence and
-stiffness checks.  The method table (name -> id, step function, order, properties) lives
+method) and leaves in K / D what its dense output needs.  ``integrate`` (which allocates
+the work arrays) and ``step_loop`` (the loop on them) own everything else: step-size
+control and acceptance, landing on output times and max-hold updates, dense output, the
+after-step work (delay history, holds), output rows, divergence and stiffness checks.
+Bogacki-Shampine 3(2) (``bs23_step``) is no user method: it takes a Rodas5P run's steps
+while max-hold updates pin them to the sampling grid.  The method table (name -> id, step function, order, properties) lives
 in ``ivdrem.sim.simulator``; ``method_step`` dispatches on the id.
 
 Workspace ``W`` (a namedtuple ``ivdrem.sim.simulator.Workspace``; the compiled code indexes
