@@ -23,7 +23,7 @@ from ivdrem.sim import _template as tpl
 from ivdrem.sim.tables import empty_tables, pack, with_fill_runs
 from ivdrem.sim import (METHODS, METHOD_TABLE, SimulationError, StiffnessWarning, simulate)
 
-from conftest import build_lab, paper_loop, sig
+from conftest import LAB_OUTPUTS, build_lab, lab_blocks, paper_loop, sig
 
 
 # ----------------------------------------------------------------- the tableau, symbolically
@@ -375,14 +375,14 @@ def test_pinned_explicit_steps_give_way_to_rodas5p_on_a_stiff_mode():
     and the hold fires at the same sampling time as without that block."""
     import control as ct
 
+    from ivdrem.diagrams import assemble
+
     def upd(t, x, u, params):
         return [-1e4 * (x[0] - np.sin(t)) + np.cos(t)]
-    import conftest
     pr = ct.nlsys(upd, lambda t, x, u, params: x, states=1, outputs=["pr_y"], inputs=0,
                   name="pr")
     lab = build_lab()
-    d = conftest.assemble(conftest.lab_blocks() + [pr], conftest.LAB_OUTPUTS + ["pr_y"],
-                          name="lab_pr")
+    d = assemble(lab_blocks() + [pr], LAB_OUTPUTS + ["pr_y"], name="lab_pr")
     kw = dict(engine="reference", rtol=1e-7, atol=1e-10, h_max=2e-3, dt_out=0.01,
               progress=False)
     a = simulate(lab, 2.0, method="rodas5p", **kw)

@@ -27,7 +27,7 @@ from numba import uint64        # an index type without wraparound code (see _ji
 NO_REFCOUNT = ("kernel_call", "row_sum", "fill_input", "fill_runs", "diagram_eval",
                "diagram_jacobian_at", "push_history", "lowest_eigenpair", "newton_factor",
                "newton_solve")
-INLINE = ("int_table", "float_table", "scratch_part")
+INLINE = ("int_table", "float_table", "scratch_part", "dsyevd_lwork", "dsyevd_liwork")
 
 # columns of DiagramTables.blocks
 B_KIND = 0      # 0 ode, 1 delay, 2 max-hold
@@ -304,6 +304,16 @@ def push_history(t, P, W):
     return OK
 
 
+def dsyevd_lwork(n):
+    """dsyevd's minimum double work length for eigenvectors (jobz 'V') of order n."""
+    return 1 + 6 * n + 2 * n * n
+
+
+def dsyevd_liwork(n):
+    """dsyevd's minimum integer work length for jobz 'V' and order n."""
+    return 3 + 5 * n
+
+
 def lowest_eigenpair(W, u, nvec, nmat):
     """lambda_min of the symmetric part of the nmat x nmat matrix in u[nvec:] and its unit
     eigenvector (into the last row of W[12]), by LAPACK's dsyevd (jobz 'V', uplo 'L', as
@@ -316,8 +326,8 @@ def lowest_eigenpair(W, u, nvec, nmat):
     w = scratch_part(W, SC_HOLD_W)
     work = scratch_part(W, SC_HOLD_WORK)
     nn = nmat * nmat
-    lwork = 1 + 6 * nmat + 2 * nn          # dsyevd's minimum for jobz 'V'
-    liwork = 3 + 5 * nmat
+    lwork = dsyevd_lwork(nmat)
+    liwork = dsyevd_liwork(nmat)
     if (A.shape[0] < nn or w.shape[0] < nmat or work.shape[0] < lwork
             or 5 + liwork > iw.shape[0]):
         raise RuntimeError("ivdrem: the max-hold's LAPACK work arrays are too small")

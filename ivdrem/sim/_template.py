@@ -26,8 +26,9 @@ the work arrays) and ``step_loop`` (the loop on them) own everything else: step-
 control and acceptance, landing on output times and max-hold updates, dense output, the
 after-step work (delay history, holds), output rows, divergence and stiffness checks.
 Bogacki-Shampine 3(2) (``bs23_step``) is no user method: it takes a Rodas5P run's steps
-while max-hold updates pin them to the sampling grid.  The method table (name -> id, step function, order, properties) lives
-in ``ivdrem.sim.simulator``; ``method_step`` dispatches on the id.
+while max-hold updates pin them to the sampling grid.  The method table (name -> id, step
+function, order, properties) lives in ``ivdrem.sim.simulator``; ``method_step``
+dispatches on the id.
 
 Workspace ``W`` (a namedtuple ``ivdrem.sim.simulator.Workspace``; the compiled code indexes
 it by position): 0 hist_t[cap], 1 hist_v[cap, nd], 2 hist_d[cap, nd], 3 hist_meta[int64:
@@ -794,8 +795,8 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
             t1 = t_target if landing else t + h_use
         else:
             t1 = t0 + (stats[S_STEPS] + 1) * h
-        # slope at the new point: the FSAL stage of DP45 / BS23, else one evaluation (it is the
-        # first stage of the next step).  Rodas5P's dense output does not read it, so it
+        # slope at the new point: the FSAL stage of DP45 / BS23, else one evaluation (it is
+        # the first stage of the next step).  Rodas5P's dense output does not read it, so it
         # is evaluated last, after the outputs and the history point inside the step: the
         # signals are then those of the step's end and the after-step sweep is not needed
         swept = False

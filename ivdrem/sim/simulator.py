@@ -19,6 +19,7 @@ the state.  An explicit method held back by stability rather than accuracy emits
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 import sys
@@ -33,7 +34,7 @@ import scipy.linalg
 import control as ct
 
 from .plan import DiagramPlan
-from . import _template as tpl
+from . import _diagram, _template as tpl
 from .tables import empty_tables, hold_nmat, pack as pack_tables, scratch_size, slope_flags
 from ..blocks._core import active_feeds
 
@@ -309,6 +310,7 @@ def _validate_params(diagram, params):
 
 
 # --------------------------------------------------------------------------- driver
+@functools.lru_cache(maxsize=None)
 def _dsyevd_address():
     """Address of LAPACK's dsyevd in scipy (the compiled max-hold calls it by address, see
     _diagram.lowest_eigenpair; a runtime value, so cached machine code stays valid)."""
@@ -337,7 +339,8 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0, tables=None):
         lapack=np.array([_dsyevd_address() if nmh and tables is not None else 0],
                         dtype=np.int64),
         lapack_chars=np.array([ord("V"), ord("L")], dtype=np.uint8),
-        lapack_ints=np.zeros(5 + 3 + 5 * nmat, dtype=np.int32))
+        # dsyevd's five scalar arguments, then its integer work
+        lapack_ints=np.zeros(5 + _diagram.dsyevd_liwork(nmat), dtype=np.int32))
 
 
 def _grow(W):

@@ -190,7 +190,7 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     nm = hold_nmat(plan)
     sizes = {_diagram.SC_V: plan.nd, _diagram.SC_DV: plan.nd,
              _diagram.SC_HOLD_A: nm * nm, _diagram.SC_HOLD_W: nm,
-             _diagram.SC_HOLD_WORK: 1 + 6 * nm + 2 * nm * nm,
+             _diagram.SC_HOLD_WORK: _diagram.dsyevd_lwork(nm),
              _diagram.SC_F: prog.n_jb + len(prog.gains), _diagram.SC_XB: maxx,
              _diagram.SC_XB0: maxx, _diagram.SC_UB: maxu, _diagram.SC_UB0: maxu,
              _diagram.SC_YP: maxyf, _diagram.SC_Y0: maxyf, _diagram.SC_YM: maxyf,
