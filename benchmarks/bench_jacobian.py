@@ -6,6 +6,8 @@ fallbacks) and against LAPACK (scipy.linalg.lu_factor / lu_solve, from Python).
 
 Each compiled function is timed inside a numba loop (so numba's per-call dispatch from
 Python is not counted), at a state reached by a 2 s run, c = 1/(gamma h) for h = 1 ms.
+The functions are the numba stepper's (``IVDREM_STEPPER=numba``, set here: numba loops
+can call them); the C stepper runs the same algorithms line for line.
 
 Usage::
 
@@ -22,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+os.environ["IVDREM_STEPPER"] = "numba"      # numba-compiled functions, callable from numba loops
 try:
     import ivdrem  # noqa: F401
 except ImportError:

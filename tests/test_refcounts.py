@@ -50,8 +50,11 @@ def test_the_check_sees_a_reference_taken_and_not_released():
 @pytest.mark.parametrize("law, method, t_end", [("composite-learning", "rodas5p", 22.0),
                                                 ("iv-drem", "dp45", 3.0),
                                                 ("iv-drem", "rodas5p", 25.0)])
-def test_a_run_leaves_every_count_as_it_was(law, method, t_end):
+@pytest.mark.parametrize("stepper", ["numba", "c"])
+def test_a_run_leaves_every_count_as_it_was(law, method, t_end, stepper, monkeypatch):
+    monkeypatch.setenv("IVDREM_STEPPER", stepper)
     sim = Simulator(closed_loop(law), method=method)
+    assert sim.engine.stepper == stepper
     sim.advance(0.05)                                      # compiled, started
     arrays = _arrays(sim)
     history = {id(getattr(sim.W, f)) for f in ("hist_t", "hist_v", "hist_d", "hist_meta")}
@@ -69,9 +72,10 @@ def test_a_run_leaves_every_count_as_it_was(law, method, t_end):
         assert np.isfinite(sim.W.hold_time).all()
 
 
-def test_declared_functions_are_compiled_so():
-    """The stepper module compiles exactly the declared functions without reference
+def test_declared_functions_are_compiled_so(monkeypatch):
+    """The numba stepper module compiles exactly the declared functions without reference
     counts and inlines the declared ones (Drake-style: test the declarations)."""
+    monkeypatch.setenv("IVDREM_STEPPER", "numba")
     sim = Simulator(closed_loop("iv-drem"))
     mod = sim.engine.module
     no_rc = set(_template.NO_REFCOUNT) | set(_diagram.NO_REFCOUNT)

@@ -59,6 +59,7 @@ from .simulator import BLOCK_RAISED_MESSAGE, SimulationError
 from .tables import build_tables
 from . import foreign
 from . import _warm_stepper
+from . import _cstepper
 
 __all__ = ["CompiledEngine", "generate_source", "cache_dir", "CompileError", "BlockError"]
 
@@ -423,6 +424,43 @@ def _load(deps):
     return stepper
 
 
+#: which shared stepper the compiled engine runs: "c" (stepper.c, the default) or "numba"
+STEPPER_ENV = "IVDREM_STEPPER"
+STEPPERS = ("c", "numba")
+
+
+class StepperFallbackWarning(RuntimeWarning):
+    """The C stepper could not be built here; the numba stepper runs instead (the same
+    numbers, a longer first compile)."""
+
+
+def stepper_choice():
+    """The stepper $IVDREM_STEPPER asks for ("c" unless set); another value is an error."""
+    v = os.environ.get(STEPPER_ENV, "c").strip().lower() or "c"
+    if v not in STEPPERS:
+        raise ValueError(f"{STEPPER_ENV}={v!r}: choose one of {', '.join(STEPPERS)}")
+    return v
+
+
+def _c_stepper():
+    """The C stepper (built and cached on first use), or None for the numba stepper: when
+    asked for, or (with a warning, once per process) when no C compiler builds it."""
+    if stepper_choice() != "c":
+        return None
+    try:
+        return _cstepper.load(cache_dir())
+    except _cstepper.CStepperUnavailable as e:
+        if not _fallback_warned:
+            _fallback_warned.append(str(e))
+            warnings.warn(f"the C stepper is unavailable, running the numba stepper (same "
+                          f"results; ~25 s more on the first compile): {e}",
+                          StepperFallbackWarning, stacklevel=4)
+        return None
+
+
+_fallback_warned = []
+
+
 class CompiledEngine:
     """Runs the shared compiled stepper on this diagram's tables and kernel wrappers; same
     interface as the reference engine."""
@@ -433,7 +471,16 @@ class CompiledEngine:
         self.plan = plan
         param_exprs, self.P = _param_layout(plan)
         self.program = generate_source(plan, param_exprs)
-        self.module = _load(self.program.deps)
+        c_stepper = _c_stepper()
+        if c_stepper is not None:
+            cdir = cache_dir()
+            cdir.mkdir(parents=True, exist_ok=True)
+            for name, dsrc in self.program.deps[:-1]:      # the kernels (no numba stepper)
+                _import(cdir, name, dsrc)
+            self.module = c_stepper
+        else:
+            self.module = _load(self.program.deps)
+        self.stepper = self.module.name if c_stepper is not None else "numba"
         self.integrate = self.module.integrate
         self.tables = self.program.tables
         self.wrappers = self.program.wrappers

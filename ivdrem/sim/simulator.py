@@ -643,6 +643,8 @@ class Simulator:
         """Counters of the run; wall_s = sim_s + compile_s (kept for older callers)."""
         st = self.stats
         return {"method": self.method, "engine": self.engine_name,
+                # the compiled engine's shared stepper: "c" (stepper.c) or "numba"
+                "stepper": getattr(self.engine, "stepper", "python"),
                 "steps": int(st[tpl.S_STEPS]), "rejected": int(st[tpl.S_REJECTED]),
                 "rhs_calls": int(st[tpl.S_RHS]), "jacobians": int(st[tpl.S_JAC]),
                 "factorizations": int(st[tpl.S_LU]), "hold_cuts": int(st[tpl.S_CUTS]),

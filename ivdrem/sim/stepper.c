@@ -1,0 +1,1321 @@
+/* The compiled engine's stepper in C: the stepping template (ivdrem/sim/_template.py), the
+ * table-driven diagram functions (ivdrem/sim/_diagram.py) and the sparse kernels
+ * (ivdrem/sim/_jit_sparse.py), line for line, so that a run gives the same numbers as
+ * those functions compiled by numba (tests/test_cstepper.py checks it bit for bit).
+ *
+ * Why C: numba spent ~25 s compiling the stepper on a first run; a C compiler builds this
+ * file in ~2 s (ivdrem/sim/_cstepper.py builds and caches it).  The blocks' kernels stay
+ * numba C-callable wrappers, called here by address, exactly as the numba stepper calls
+ * them.
+ *
+ * Every enumeration (modes, status codes, method ids, stats and tf entries, workspace
+ * fields, table numbers and columns, Rodas5P's coefficients) comes from the Python
+ * modules through the generated header stepper_consts.h: one source of truth.
+ *
+ * Semantics kept from the Python source:
+ *   max(a, b) / min(a, b) are Python's (b > a ? b : a), also for NaN;
+ *   no fused multiply-adds (built with -ffp-contract=off), no reassociation;
+ *   a failure that the Python source raises (a kernel that raised: BLOCK_RAISED; a work
+ *   array too small, a max-hold matrix that is not finite, dsyevd failing: ERR_*, from
+ *   _cstepper.FAILURES) ends the call with longjmp to the entry point, which returns its
+ *   code; _cstepper.py raises the Python source's RuntimeError for it.
+ */
+#include <math.h>
+#include <setjmp.h>
+#include <stddef.h>
+#include <stdint.h>
+
+#include "stepper_consts.h"
+
+typedef int64_t i64;
+
+#define EXPORT __attribute__((visibility("default")))
+
+typedef struct { const i64 *p; i64 n; } ivec;
+typedef struct { const double *p; i64 n; } fvec;
+
+/* the workspace (fields in the order of WORKSPACE_LAYOUT), the parameters, the exit */
+typedef struct {
+    double *hist_t; double *hist_v; double *hist_d; i64 *hist_meta; i64 nd;
+    double *held; double *score; i64 nmh;
+    double *ys; double *us; double *u_ext; i64 nue;
+    double *hold_dt; i64 *hold_mode; double *hold_time;
+    double *hold_vec; i64 hv_rows; i64 hv_cols;
+    i64 *probing; double *clock;
+    double *u_times; i64 nut; double *u_values; i64 uv_cols;
+    i64 *kernels; double *failure; i64 nfailure;
+    i64 *ti; double *tfl;
+    double *scratch; i64 nscratch;
+    i64 *lapack; uint8_t *lapack_chars; int32_t *lapack_ints; i64 nlapack_ints;
+    double *P;
+    jmp_buf exit;
+} Ctx;
+
+static void fail(Ctx *c, int code) { longjmp(c->exit, code); }
+
+static inline double pmax(double a, double b) { return b > a ? b : a; }
+static inline double pmin(double a, double b) { return b < a ? b : a; }
+static inline i64 imax(i64 a, i64 b) { return b > a ? b : a; }
+static inline i64 imin(i64 a, i64 b) { return b < a ? b : a; }
+
+/* addresses and shapes ([field][2]) of the workspace arrays, from _cstepper.py */
+static void bind(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
+#define F_PTR(type, f) ((type *)(intptr_t)addr[f])
+    c->hist_t = F_PTR(double, FIELD_HIST_T);
+    c->hist_v = F_PTR(double, FIELD_HIST_V);
+    c->nd = shape[2 * FIELD_HIST_V + 1];
+    c->hist_d = F_PTR(double, FIELD_HIST_D);
+    c->hist_meta = F_PTR(i64, FIELD_HIST_META);
+    c->held = F_PTR(double, FIELD_HELD);
+    c->score = F_PTR(double, FIELD_SCORE);
+    c->nmh = shape[2 * FIELD_SCORE];
+    c->ys = F_PTR(double, FIELD_YS);
+    c->us = F_PTR(double, FIELD_US);
+    c->u_ext = F_PTR(double, FIELD_U_EXT);
+    c->nue = shape[2 * FIELD_U_EXT];
+    c->hold_dt = F_PTR(double, FIELD_HOLD_DT);
+    c->hold_mode = F_PTR(i64, FIELD_HOLD_MODE);
+    c->hold_time = F_PTR(double, FIELD_HOLD_TIME);
+    c->hold_vec = F_PTR(double, FIELD_HOLD_VEC);
+    c->hv_rows = shape[2 * FIELD_HOLD_VEC];
+    c->hv_cols = shape[2 * FIELD_HOLD_VEC + 1];
+    c->probing = F_PTR(i64, FIELD_PROBING);
+    c->clock = F_PTR(double, FIELD_CLOCK);
+    c->u_times = F_PTR(double, FIELD_U_TIMES);
+    c->nut = shape[2 * FIELD_U_TIMES];
+    c->u_values = F_PTR(double, FIELD_U_VALUES);
+    c->uv_cols = shape[2 * FIELD_U_VALUES + 1];
+    c->kernels = F_PTR(i64, FIELD_KERNELS);
+    c->failure = F_PTR(double, FIELD_FAILURE);
+    c->nfailure = shape[2 * FIELD_FAILURE];
+    c->ti = F_PTR(i64, FIELD_TABLE_INTS);
+    c->tfl = F_PTR(double, FIELD_TABLE_FLOATS);
+    c->scratch = F_PTR(double, FIELD_SCRATCH);
+    c->nscratch = shape[2 * FIELD_SCRATCH];
+    c->lapack = F_PTR(i64, FIELD_LAPACK);
+    c->lapack_chars = F_PTR(uint8_t, FIELD_LAPACK_CHARS);
+    c->lapack_ints = F_PTR(int32_t, FIELD_LAPACK_INTS);
+    c->nlapack_ints = shape[2 * FIELD_LAPACK_INTS];
+    c->P = P;
+#undef F_PTR
+}
+
+/* ---------------------------------------------------------------- tables (_diagram.py) */
+static inline ivec int_table(const Ctx *c, int f) {
+    ivec v = {c->ti + c->ti[f], c->ti[f + 1] - c->ti[f]};
+    return v;
+}
+
+static inline fvec float_table(const Ctx *c, int f) {
+    const i64 base = N_INT_TABLES + 1;
+    fvec v = {c->tfl + c->ti[base + f], c->ti[base + f + 1] - c->ti[base + f]};
+    return v;
+}
+
+static double *scratch_part(Ctx *c, int part, i64 *len) {
+    ivec so = int_table(c, T_SCRATCH_OFFSETS);
+    if (so.p[part + 1] > c->nscratch) fail(c, ERR_SCRATCH);
+    if (len) *len = so.p[part + 1] - so.p[part];
+    return c->scratch + so.p[part];
+}
+
+/* ------------------------------------------------------- template helpers (_template.py) */
+static inline void copy_into(double *dst, i64 d0, const double *src, i64 s0, i64 n) {
+    for (i64 i = 0; i < n; i++) dst[d0 + i] = src[s0 + i];
+}
+
+static inline i64 hist_index(const i64 *meta, i64 i) { return (meta[0] + i) % meta[2]; }
+
+static double quad_slope(double ta, double va, double tb, double vb, double tc, double vc) {
+    return (va * (2.0 * ta - tb - tc) / ((ta - tb) * (ta - tc))
+            + vb * (ta - tc) / ((tb - ta) * (tb - tc))
+            + vc * (ta - tb) / ((tc - ta) * (tc - tb)));
+}
+
+static int hist_push(Ctx *c, double t, const double *v, i64 nd, const double *d,
+                     const i64 *estimate_slope) {
+    if (c->probing[0] != 0) return OK;
+    double *ht = c->hist_t, *hv = c->hist_v, *hd = c->hist_d;
+    i64 *meta = c->hist_meta;
+    const i64 w = c->nd;     /* row length of the history arrays */
+    if (meta[1] > 0 && t <= ht[hist_index(meta, meta[1] - 1)]) {
+        i64 k = hist_index(meta, meta[1] - 1);
+        for (i64 j = 0; j < nd; j++) {
+            hv[k * w + j] = v[j];
+            if (estimate_slope[j] == 0) hd[k * w + j] = d[j];
+        }
+        return OK;
+    }
+    if (meta[1] >= meta[2]) return HISTORY_FULL;
+    i64 k = hist_index(meta, meta[1]);
+    ht[k] = t;
+    for (i64 j = 0; j < nd; j++) {
+        hv[k * w + j] = v[j];
+        hd[k * w + j] = d[j];
+    }
+    i64 cnt = meta[1] + 1;
+    int any_est = 0;
+    for (i64 j = 0; j < nd; j++)
+        if (estimate_slope[j] == 1) any_est = 1;
+    if (!any_est) {
+        meta[1] = cnt;
+        return OK;
+    }
+    if (cnt >= 3) {
+        i64 k1 = hist_index(meta, cnt - 2);
+        i64 k2 = hist_index(meta, cnt - 3);
+        for (i64 j = 0; j < nd; j++) {
+            if (estimate_slope[j] == 1) {
+                hd[k * w + j] = quad_slope(t, v[j], ht[k1], hv[k1 * w + j], ht[k2],
+                                           hv[k2 * w + j]);
+                if (cnt == 3) {
+                    hd[k1 * w + j] = quad_slope(ht[k1], hv[k1 * w + j], t, v[j], ht[k2],
+                                                hv[k2 * w + j]);
+                    hd[k2 * w + j] = quad_slope(ht[k2], hv[k2 * w + j], t, v[j], ht[k1],
+                                                hv[k1 * w + j]);
+                }
+            }
+        }
+    } else if (cnt == 2) {
+        i64 k1 = hist_index(meta, 0);
+        for (i64 j = 0; j < nd; j++)
+            if (estimate_slope[j] == 1) hd[k * w + j] = (v[j] - hv[k1 * w + j]) / (t - ht[k1]);
+    } else {
+        for (i64 j = 0; j < nd; j++)
+            if (estimate_slope[j] == 1) hd[k * w + j] = 0.0;
+    }
+    meta[1] = cnt;
+    return OK;
+}
+
+static void hist_trim(Ctx *c, double t_keep) {
+    if (c->probing[0] != 0) return;
+    i64 *meta = c->hist_meta;
+    while (meta[1] > 2 && c->hist_t[hist_index(meta, 1)] <= t_keep) {
+        meta[0] = (meta[0] + 1) % meta[2];
+        meta[1] -= 1;
+    }
+}
+
+static void hist_lookup(Ctx *c, double tq, i64 off, i64 size, double *out) {
+    const double *ht = c->hist_t, *hv = c->hist_v, *hd = c->hist_d;
+    const i64 *meta = c->hist_meta;
+    const i64 w = c->nd;
+    i64 cnt = meta[1];
+    if (cnt == 0) {
+        for (i64 j = 0; j < size; j++) out[j] = 0.0;
+        return;
+    }
+    i64 kf = hist_index(meta, 0);
+    if (tq <= ht[kf] || cnt == 1) {
+        copy_into(out, 0, hv + kf * w, off, size);
+        return;
+    }
+    i64 kl = hist_index(meta, cnt - 1);
+    if (tq >= ht[kl]) {
+        copy_into(out, 0, hv + kl * w, off, size);
+        return;
+    }
+    i64 lo = 0, hi = cnt - 1;
+    while (hi - lo > 1) {
+        i64 mid = (lo + hi) / 2;
+        if (ht[hist_index(meta, mid)] <= tq) lo = mid;
+        else hi = mid;
+    }
+    i64 a = hist_index(meta, lo), b = hist_index(meta, hi);
+    double h = ht[b] - ht[a];
+    double s = (tq - ht[a]) / h;
+    double s2 = s * s, s3 = s2 * s;
+    double h00 = 2.0 * s3 - 3.0 * s2 + 1.0;
+    double h10 = s3 - 2.0 * s2 + s;
+    double h01 = -2.0 * s3 + 3.0 * s2;
+    double h11 = s3 - s2;
+    const double *va = hv + a * w + off, *da = hd + a * w + off;
+    const double *vb = hv + b * w + off, *db = hd + b * w + off;
+    for (i64 j = 0; j < size; j++)
+        out[j] = h00 * va[j] + h10 * h * da[j] + h01 * vb[j] + h11 * h * db[j];
+}
+
+static double *external_inputs(Ctx *c, double t) {
+    double *ue = c->u_ext;
+    const double *tt = c->u_times;
+    i64 nt = c->nut;
+    if (nt < 2) return ue;
+    i64 lo = 0, hi = nt;
+    while (lo < hi) {
+        i64 mid = (lo + hi) / 2;
+        if (tt[mid] < t) lo = mid + 1;
+        else hi = mid;
+    }
+    i64 i = imin(imax(lo, 1), nt - 1);
+    double s = (t - tt[i - 1]) / (tt[i] - tt[i - 1]);
+    const double *uu = c->u_values;
+    const i64 w = c->uv_cols;
+    for (i64 j = 0; j < c->nue; j++)
+        ue[j] = uu[(i - 1) * w + j] * (1.0 - s) + uu[i * w + j] * s;
+    return ue;
+}
+
+/* dsyevd(jobz, uplo, n, a, lda, w, work, lwork, iwork, liwork, info), all by reference */
+typedef void (*dsyevd_fn)(char *, char *, int32_t *, double *, int32_t *, double *, double *,
+                          int32_t *, int32_t *, int32_t *, int32_t *);
+
+static double lowest_eigenpair(Ctx *c, const double *u, i64 nvec, i64 nmat) {
+    int32_t *iw = c->lapack_ints;
+    i64 nA, nw, nwork;
+    double *A = scratch_part(c, SC_HOLD_A, &nA);
+    double *w = scratch_part(c, SC_HOLD_W, &nw);
+    double *work = scratch_part(c, SC_HOLD_WORK, &nwork);
+    i64 nn = nmat * nmat;
+    i64 lwork = 1 + 6 * nmat + 2 * nmat * nmat;     /* _diagram.dsyevd_lwork */
+    i64 liwork = 3 + 5 * nmat;                      /* _diagram.dsyevd_liwork */
+    if (nA < nn || nw < nmat || nwork < lwork || 5 + liwork > c->nlapack_ints)
+        fail(c, ERR_LAPACK_SIZE);
+    for (i64 i = 0; i < nmat; i++) {
+        for (i64 j = 0; j < nmat; j++) {
+            double a = 0.5 * (u[nvec + i * nmat + j] + u[nvec + j * nmat + i]);
+            if (!isfinite(a)) fail(c, ERR_HOLD_NAN);
+            A[j * nmat + i] = a;
+        }
+    }
+    iw[0] = (int32_t)nmat;
+    iw[1] = (int32_t)nmat;
+    iw[2] = (int32_t)lwork;
+    iw[3] = (int32_t)liwork;
+    iw[4] = 0;
+    char *ch = (char *)c->lapack_chars;
+    dsyevd_fn f = (dsyevd_fn)(intptr_t)c->lapack[0];
+    f(ch, ch + 1, iw, A, iw + 1, w, work, iw + 2, iw + 5, iw + 3, iw + 4);
+    if (iw[4] != 0) fail(c, ERR_DSYEVD);
+    double *cand = c->hold_vec + (c->hv_rows - 1) * c->hv_cols;
+    for (i64 i = 0; i < nmat; i++) cand[i] = A[i];
+    return w[0];
+}
+
+static int hold_update(Ctx *c, i64 k, i64 off, i64 size, i64 nvec, i64 nmat, const double *u,
+                       double epsilon) {
+    i64 mode = c->hold_mode[k];
+    if (mode == HOLD_SKIP) return 0;
+    double *score = c->score;
+    double bound = u[nvec];
+    for (i64 i = 0; i < nmat; i++)
+        if (u[nvec + i * nmat + i] < bound) bound = u[nvec + i * nmat + i];
+    double *vec = c->hold_vec;
+    const i64 vw = c->hv_cols;
+    if (score[k] > 0.0 && bound > score[k]) {
+        double r = 0.0;
+        for (i64 i = 0; i < nmat; i++) {
+            double ri = 0.0;
+            for (i64 j = 0; j < nmat; j++) ri += u[nvec + i * nmat + j] * vec[k * vw + j];
+            r += vec[k * vw + i] * ri;
+        }
+        if (r < bound) bound = r;
+    }
+    if (!(bound > epsilon && bound > score[k])) return 0;
+    double lam = lowest_eigenpair(c, u, nvec, nmat);
+    if (lam > epsilon && lam > score[k]) {
+        if (mode == HOLD_PROBE) return 1;
+        score[k] = lam;
+        for (i64 j = 0; j < size; j++) c->held[off + j] = u[j];
+        const double *cand = vec + (c->hv_rows - 1) * vw;
+        for (i64 i = 0; i < nmat; i++) vec[k * vw + i] = cand[i];
+        c->hold_time[k] = c->clock[0];
+        return 1;
+    }
+    return 0;
+}
+
+/* ----------------------------------------------------------- diagram functions (_diagram.py) */
+typedef int32_t (*kernel_fn)(double, i64, i64, i64, i64);
+
+static void kernel_call(Ctx *c, ivec wnx, i64 j, double t, const double *x, i64 x0,
+                        const double *u, i64 u0, double *out, i64 o0, i64 p0) {
+    kernel_fn f = (kernel_fn)(intptr_t)c->kernels[j];
+    int32_t st = f(t, (i64)(intptr_t)(x + x0), (i64)(intptr_t)(u + u0),
+                   (i64)(intptr_t)(out + o0), (i64)(intptr_t)(c->P + p0));
+    if (st != 0) {
+        c->failure[0] = (double)j;
+        c->failure[1] = t;
+        i64 m = imin(wnx.p[j], c->nfailure - 2);
+        for (i64 i = 0; i < m; i++) c->failure[2 + i] = x[x0 + i];
+        fail(c, BLOCK_RAISED);
+    }
+}
+
+static double row_sum(ivec ptr, ivec src, fvec gain, i64 r, const double *pos,
+                      const double *neg) {
+    double s = 0.0;
+    for (i64 e = ptr.p[r]; e < ptr.p[r + 1]; e++) {
+        i64 j = src.p[e];
+        if (j >= 0) s += gain.p[e] * pos[j];
+        else s += gain.p[e] * neg[-1 - j];
+    }
+    return s;
+}
+
+static void fill_runs(ivec runs, fvec gains, i64 r0, i64 r1, ivec in_ptr, ivec in_src,
+                      fvec in_gain, const double *ys, double *us, const double *ue) {
+    for (i64 r = r0; r < r1; r++) {
+        i64 kind = runs.p[r * N_RUN_COLUMNS + RUN_KIND];
+        i64 d0 = runs.p[r * N_RUN_COLUMNS + RUN_D0];
+        i64 s0 = runs.p[r * N_RUN_COLUMNS + RUN_S0];
+        i64 n = runs.p[r * N_RUN_COLUMNS + RUN_N];
+        double g = gains.p[r];
+        if (kind == RUN_SIGNALS || kind == RUN_INPUTS) {
+            double *dst = us + d0;
+            const double *src = (kind == RUN_SIGNALS ? ys : ue) + s0;
+            for (i64 i = 0; i < n; i++) dst[i] = 0.0 + g * src[i];
+        } else {
+            us[d0] = row_sum(in_ptr, in_src, in_gain, d0, ys, ue);
+        }
+    }
+}
+
+static int push_history(Ctx *c, double t);
+
+static int diagram_eval(Ctx *c, i64 mode, double t, const double *x, double *out) {
+    double *ys = c->ys, *us = c->us;
+    const double *ue = external_inputs(c, t);
+    ivec B = int_table(c, T_BLOCKS);
+    i64 nb = B.n / N_BLOCK_COLUMNS;
+    ivec order = int_table(c, T_ORDER);
+    ivec runs = int_table(c, T_FILL_RUNS);
+    fvec run_gain = float_table(c, TF_FILL_RUN_GAIN);
+    ivec ranges = int_table(c, T_FILL_RUN_RANGES);
+    i64 rest = 2 * nb + 2 * FR_REST;
+    ivec delays = int_table(c, T_DELAYS);
+    ivec holds = int_table(c, T_HOLDS);
+    ivec wnx = int_table(c, T_WRAPPER_NX);
+    ivec in_ptr = int_table(c, T_IN_PTR);
+    ivec in_src = int_table(c, T_IN_SRC);
+    fvec in_gain = float_table(c, TF_IN_GAIN);
+    if (mode == AFTER_STEP_EVALUATED) {
+        mode = AFTER_STEP;
+    } else {
+        if (mode == AFTER_STEP && c->probing[0] != 0) {
+            order = int_table(c, T_PROBE_ORDER);
+            rest = 2 * nb + 2 * FR_PROBE;
+        } else if (mode == RECORD) {
+            order = int_table(c, T_RECORD_ORDER);
+            rest = 2 * nb + 2 * FR_RECORD;
+        } else if (mode == HISTORY_POINT) {
+            order = int_table(c, T_HISTORY_ORDER);
+            rest = 2 * nb + 2 * FR_HISTORY;
+        }
+        for (i64 i = 0; i < order.n; i++) {
+            i64 k = order.p[i];
+            const i64 *b = B.p + k * N_BLOCK_COLUMNS;
+            fill_runs(runs, run_gain, ranges.p[2 * k], ranges.p[2 * k + 1], in_ptr, in_src,
+                      in_gain, ys, us, ue);
+            i64 kind = b[B_KIND];
+            if (kind == 0) {
+                if (b[B_OUT] >= 0)
+                    kernel_call(c, wnx, b[B_OUT], t, x, b[B_X0], us, b[B_U0], ys, b[B_Y0],
+                                b[B_P0]);
+            } else if (kind == 1) {
+                const i64 *dl = delays.p + b[B_SPECIAL] * N_DELAY_COLUMNS;
+                i64 y0 = b[B_Y0];
+                hist_lookup(c, t - c->P[dl[D_TP]], dl[D_OFF], dl[D_SIZE], ys + y0);
+            } else {
+                const i64 *hd = holds.p + b[B_SPECIAL] * N_HOLD_COLUMNS;
+                i64 y0 = b[B_Y0];
+                copy_into(ys, y0, c->held, hd[H_OFF], hd[H_SIZE]);
+                ys[y0 + hd[H_SIZE]] = c->score[hd[H_K]];
+            }
+        }
+        fill_runs(runs, run_gain, ranges.p[rest], ranges.p[rest + 1], in_ptr, in_src, in_gain,
+                  ys, us, ue);
+    }
+    if (mode == RHS) {
+        for (i64 k = 0; k < nb; k++) {
+            const i64 *b = B.p + k * N_BLOCK_COLUMNS;
+            if (b[B_UPD] >= 0)
+                kernel_call(c, wnx, b[B_UPD], t, x, b[B_X0], us, b[B_U0], out, b[B_X0],
+                            b[B_P0]);
+        }
+        return OK;
+    }
+    if (mode == AFTER_STEP || mode == HISTORY_POINT) {
+        if (delays.n > 0 && c->probing[0] == 0) {
+            int st = push_history(c, t);
+            if (st != OK) return st;
+        }
+        if (mode == HISTORY_POINT) return OK;
+        int upd = 0;
+        for (i64 r = 0; r < holds.n / N_HOLD_COLUMNS; r++) {
+            const i64 *hd = holds.p + r * N_HOLD_COLUMNS;
+            upd |= hold_update(c, hd[H_K], hd[H_OFF], hd[H_SIZE], hd[H_NVEC], hd[H_NMAT],
+                               us + hd[H_U], c->P[hd[H_EP]]);
+        }
+        return upd ? HOLD_UPDATED : OK;
+    }
+    ivec rec_ptr = int_table(c, T_REC_PTR);
+    ivec rec_src = int_table(c, T_REC_SRC);
+    fvec rec_gain = float_table(c, TF_REC_GAIN);
+    for (i64 r = 0; r < rec_ptr.n - 1; r++) out[r] = row_sum(rec_ptr, rec_src, rec_gain, r, ys, us);
+    return OK;
+}
+
+static int push_history(Ctx *c, double t) {
+    ivec delays = int_table(c, T_DELAYS);
+    i64 nv, ndv;
+    double *v = scratch_part(c, SC_V, &nv);
+    double *dv = scratch_part(c, SC_DV, &ndv);
+    for (i64 i = 0; i < ndv; i++) dv[i] = 0.0;
+    double t_max = 0.0;
+    for (i64 r = 0; r < delays.n / N_DELAY_COLUMNS; r++) {
+        const i64 *dl = delays.p + r * N_DELAY_COLUMNS;
+        copy_into(v, dl[D_OFF], c->us, dl[D_U], dl[D_SIZE]);
+        if (dl[D_HERMITE] != 0) copy_into(dv, dl[D_OFF], c->us, dl[D_DU], dl[D_SIZE]);
+        t_max = pmax(t_max, c->P[dl[D_TP]]);
+    }
+    int st = hist_push(c, t, v, nv, dv, int_table(c, T_SLOPE_FLAGS).p);
+    if (st != OK) return st;
+    hist_trim(c, t - t_max);
+    return OK;
+}
+
+/* ------------------------------------------------------------ sparse kernels (_jit_sparse.py) */
+static void jac_chain(double *F, double *S, i64 nS, ivec dst, ivec fidx, ivec src, ivec j_row,
+                      ivec j_col, ivec j_slot, double *J, i64 n) {
+    for (i64 i = 0; i < nS; i++) S[i] = 0.0;
+    for (i64 i = 0; i < dst.n; i++) {
+        i64 s = src.p[i];
+        i64 d = dst.p[i];
+        if (s < 0) S[d] += F[fidx.p[i]];
+        else S[d] += F[fidx.p[i]] * S[s];
+    }
+    for (i64 e = 0; e < j_row.n; e++) J[j_row.p[e] * n + j_col.p[e]] = S[j_slot.p[e]];
+}
+
+static void fd_shift(double *xb, double *ub, const double *xb0, const double *ub0, i64 nx,
+                     ivec col, i64 c0, i64 c1, double sign, double *hh) {
+    for (i64 c = c0; c < c1; c++) {
+        i64 j = col.p[c];
+        double v = j < nx ? xb0[j] : ub0[j - nx];
+        double h = 6.055454452393343e-06 * pmax(fabs(v), 1.0);
+        double w = v + sign * h;
+        if (sign > 0) hh[c] = (v + h) - (v - h);
+        if (j < nx) xb[j] = w;
+        else ub[j - nx] = w;
+    }
+}
+
+static void fd_scatter(const double *yp, const double *ym, const double *hh, i64 c0, i64 c1,
+                       ivec e_ptr, ivec e_row, ivec e_slot, double *JB) {
+    for (i64 c = c0; c < c1; c++) {
+        double inv = 1.0 / hh[c];
+        for (i64 e = e_ptr.p[c]; e < e_ptr.p[c + 1]; e++) {
+            i64 r = e_row.p[e];
+            JB[e_slot.p[e]] = (yp[r] - ym[r]) * inv;
+        }
+    }
+}
+
+static void fd_forward(double *xb, double *ub, const double *xb0, const double *ub0, i64 nx,
+                       ivec col, i64 c0, i64 c1, double on, double *hh) {
+    for (i64 c = c0; c < c1; c++) {
+        i64 j = col.p[c];
+        double v = j < nx ? xb0[j] : ub0[j - nx];
+        double w = v;
+        if (on != 0.0) {
+            w = v + 1.4901161193847656e-08 * pmax(fabs(v), 1.0);
+            hh[c] = w - v;
+        }
+        if (j < nx) xb[j] = w;
+        else ub[j - nx] = w;
+    }
+}
+
+static void fd_forward_scatter(const double *yp, const double *y0, const double *hh, i64 c0,
+                               i64 c1, ivec e_ptr, ivec e_row, ivec e_slot, double *JB) {
+    for (i64 c = c0; c < c1; c++) {
+        double inv = 1.0 / hh[c];
+        for (i64 e = e_ptr.p[c]; e < e_ptr.p[c + 1]; e++) {
+            i64 r = e_row.p[e];
+            JB[e_slot.p[e]] = (yp[r] - y0[r]) * inv;
+        }
+    }
+}
+
+static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv, const i64 *perm,
+                      const i64 *rowptr, const i64 *colidx, const i64 *diagp) {
+    double *vals = LU;
+    double *inv = LU + n * n;
+    double *w = LU + (n + 1) * n;
+    for (i64 i = 0; i < n; i++) piv[i] = perm[i];
+    for (i64 i = 0; i < n; i++) {
+        i64 pi = perm[i];
+        double rmax = 0.0;
+        for (i64 p = rowptr[i]; p < rowptr[i + 1]; p++) {
+            i64 j = colidx[p];
+            double a = -J[pi * n + perm[j]];
+            if (j == i) a += cc;
+            w[j] = a;
+            if (!(fabs(a) <= rmax)) rmax = fabs(a);
+        }
+        for (i64 p = rowptr[i]; p < diagp[i]; p++) {
+            i64 k = colidx[p];
+            double l = w[k] * inv[k];
+            w[k] = l;
+            if (l != 0.0)
+                for (i64 q = diagp[k] + 1; q < rowptr[k + 1]; q++) w[colidx[q]] -= l * vals[q];
+        }
+        for (i64 p = rowptr[i]; p < rowptr[i + 1]; p++) vals[p] = w[colidx[p]];
+        double d = vals[diagp[i]];
+        if (!(fabs(d) > PIVOT_RTOL * rmax) || !isfinite(d) || !isfinite(rmax)) return SINGULAR;
+        inv[i] = 1.0 / d;
+    }
+    return OK;
+}
+
+static void slu_solve(double *LU, i64 n, const i64 *perm, const i64 *rowptr, const i64 *colidx,
+                      const i64 *diagp, double *b) {
+    const double *vals = LU;
+    const double *inv = LU + n * n;
+    double *y = LU + (n + 1) * n;
+    for (i64 i = 0; i < n; i++) y[i] = b[perm[i]];
+    for (i64 i = 0; i < n; i++) {
+        double s = y[i];
+        for (i64 p = rowptr[i]; p < diagp[i]; p++) s -= vals[p] * y[colidx[p]];
+        y[i] = s;
+    }
+    for (i64 i = n - 1; i >= 0; i--) {
+        double s = y[i];
+        for (i64 p = diagp[i] + 1; p < rowptr[i + 1]; p++) s -= vals[p] * y[colidx[p]];
+        y[i] = s * inv[i];
+    }
+    for (i64 i = 0; i < n; i++) b[perm[i]] = y[i];
+}
+
+/* ------------------------------------------------------ the Jacobian (_diagram.py) */
+static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64 n,
+                               const double *f0) {
+    ivec dims = int_table(c, T_DIMS);
+    const double *ys = c->ys, *us = c->us;
+    ivec wnx = int_table(c, T_WRAPPER_NX);
+    fvec jac_gains = float_table(c, TF_JAC_GAINS);
+    i64 njb = dims.p[DIM_NJB];
+    i64 ng = jac_gains.n;
+    ivec fd_g_ptr = int_table(c, T_FD_G_PTR);
+    ivec fd_g_kind = int_table(c, T_FD_G_KIND);
+    ivec fd_gc_ptr = int_table(c, T_FD_GC_PTR);
+    ivec fd_col = int_table(c, T_FD_COL);
+    ivec fd_e_ptr = int_table(c, T_FD_E_PTR);
+    ivec fd_e_row = int_table(c, T_FD_E_ROW);
+    ivec fd_e_slot = int_table(c, T_FD_E_SLOT);
+    double *F = scratch_part(c, SC_F, NULL);
+    double *xb = scratch_part(c, SC_XB, NULL);
+    double *xb0 = scratch_part(c, SC_XB0, NULL);
+    double *ub = scratch_part(c, SC_UB, NULL);
+    double *ub0 = scratch_part(c, SC_UB0, NULL);
+    double *yp = scratch_part(c, SC_YP, NULL);
+    double *y0 = scratch_part(c, SC_Y0, NULL);
+    double *ym = scratch_part(c, SC_YM, NULL);
+    double *hh = scratch_part(c, SC_HH, NULL);
+    double *jl = scratch_part(c, SC_JL, NULL);
+    i64 nS;
+    double *S = scratch_part(c, SC_S, &nS);
+    for (i64 i = 0; i < ng; i++) F[njb + i] = jac_gains.p[i];
+    ivec fd = int_table(c, T_FD);
+    for (i64 kb = 0; kb < fd.n / N_FD_COLUMNS; kb++) {
+        const i64 *r = fd.p + kb * N_FD_COLUMNS;
+        i64 nx = r[FD_NX], nu = r[FD_NU], ny = r[FD_NY];
+        copy_into(xb0, 0, x, r[FD_X0], nx);
+        copy_into(xb, 0, xb0, 0, nx);
+        copy_into(ub0, 0, us, r[FD_U0], nu);
+        copy_into(ub, 0, ub0, 0, nu);
+        i64 p0 = r[FD_P0];
+        if (r[FD_WJAC] >= 0) {
+            for (i64 i = 0; i < (ny + nx) * (nx + nu); i++) jl[i] = 0.0;
+            kernel_call(c, wnx, r[FD_WJAC], t, xb, 0, ub, 0, jl, 0, p0);
+            for (i64 g = fd_g_ptr.p[kb]; g < fd_g_ptr.p[kb + 1]; g++)
+                for (i64 cc = fd_gc_ptr.p[g]; cc < fd_gc_ptr.p[g + 1]; cc++) {
+                    i64 col = fd_col.p[cc];
+                    for (i64 e = fd_e_ptr.p[cc]; e < fd_e_ptr.p[cc + 1]; e++)
+                        F[fd_e_slot.p[e]] = jl[fd_e_row.p[e] * (nx + nu) + col];
+                }
+            continue;
+        }
+        int central = r[FD_CENTRAL] != 0;
+        if (!central) {
+            copy_into(y0, 0, ys, r[FD_Y0], ny);
+            copy_into(y0, ny, f0, r[FD_X0], nx);
+        }
+        for (i64 g = fd_g_ptr.p[kb]; g < fd_g_ptr.p[kb + 1]; g++) {
+            i64 c0 = fd_gc_ptr.p[g], c1 = fd_gc_ptr.p[g + 1];
+            i64 w, o0;
+            if (fd_g_kind.p[g] == 0) {
+                w = r[FD_WOUT];
+                o0 = 0;
+            } else {
+                w = r[FD_WUPD];
+                o0 = ny;
+            }
+            if (central) {
+                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh);
+                kernel_call(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
+                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, -1.0, hh);
+                kernel_call(c, wnx, w, t, xb, 0, ub, 0, ym, o0, p0);
+                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh);
+                fd_scatter(yp, ym, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
+            } else {
+                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh);
+                kernel_call(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
+                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh);
+                fd_forward_scatter(yp, y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
+            }
+        }
+    }
+    jac_chain(F, S, nS, int_table(c, T_JAC_INS_DST), int_table(c, T_JAC_INS_F),
+              int_table(c, T_JAC_INS_SRC), int_table(c, T_JAC_J_ROW), int_table(c, T_JAC_J_COL),
+              int_table(c, T_JAC_J_SLOT), J, n);
+    return OK;
+}
+
+/* df/dx with f(t, x) evaluated first, into tmp (n entries) */
+static int diagram_jacobian(Ctx *c, double t, const double *x, double *J, i64 n, double *tmp) {
+    diagram_eval(c, RHS, t, x, tmp);
+    return diagram_jacobian_at(c, t, x, J, n, tmp);
+}
+
+static int newton_factor(Ctx *c, const double *J, i64 n, double cc, double *LU, i64 *piv) {
+    return slu_factor(J, n, cc, LU, piv, int_table(c, T_LU_PERM).p, int_table(c, T_LU_ROWPTR).p,
+                      int_table(c, T_LU_COLIDX).p, int_table(c, T_LU_DIAGP).p);
+}
+
+static void newton_solve(Ctx *c, double *LU, i64 n, double *b) {
+    slu_solve(LU, n, int_table(c, T_LU_PERM).p, int_table(c, T_LU_ROWPTR).p,
+              int_table(c, T_LU_COLIDX).p, int_table(c, T_LU_DIAGP).p, b);
+}
+
+/* ----------------------------------------------------------------- methods (_template.py) */
+static void emit(Ctx *c, double t, const double *x, i64 n, double *out_y, i64 ycols,
+                 double *out_x, i64 xcols, i64 *io) {
+    i64 k = io[0];
+    diagram_eval(c, RECORD, t, x, out_y + k * ycols);
+    if (xcols == n)
+        for (i64 i = 0; i < n; i++) out_x[k * xcols + i] = x[i];
+    io[0] = k + 1;
+}
+
+static i64 check_state(const double *x, i64 n, double x_limit) {
+    for (i64 i = 0; i < n; i++) {
+        double v = x[i];
+        if (!(fabs(v) <= x_limit)) return i;
+    }
+    return -1;
+}
+
+static double err_norm(const double *x, const double *xn, const double *e, i64 n, double rtol,
+                       double atol) {
+    double s = 0.0;
+    for (i64 i = 0; i < n; i++) {
+        double sc = atol + rtol * pmax(fabs(x[i]), fabs(xn[i]));
+        double r = e[i] / sc;
+        s += r * r;
+    }
+    return sqrt(s / (double)n);
+}
+
+#define ROW(K, r) ((K) + (r) * n)
+
+static double rk4_step(Ctx *c, double t, double h, const double *x, double *xn, double *K, i64 n,
+                       i64 *stats) {
+    double *k1 = ROW(K, 0), *k2 = ROW(K, 1), *k3 = ROW(K, 2), *k4 = ROW(K, 3), *xt = ROW(K, 4);
+    for (i64 i = 0; i < n; i++) xt[i] = x[i] + 0.5 * h * k1[i];
+    diagram_eval(c, RHS, t + 0.5 * h, xt, k2);
+    for (i64 i = 0; i < n; i++) xt[i] = x[i] + 0.5 * h * k2[i];
+    diagram_eval(c, RHS, t + 0.5 * h, xt, k3);
+    for (i64 i = 0; i < n; i++) xt[i] = x[i] + h * k3[i];
+    diagram_eval(c, RHS, t + h, xt, k4);
+    for (i64 i = 0; i < n; i++)
+        xn[i] = x[i] + h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
+    stats[S_RHS] += 3;
+    return 0.0;
+}
+
+static double dp45_step(Ctx *c, double t, double h, const double *x, double *xn, double *K,
+                        i64 n, double rtol, double atol, i64 *stats) {
+    double *k1 = ROW(K, 0), *k2 = ROW(K, 1), *k3 = ROW(K, 2), *k4 = ROW(K, 3);
+    double *k5 = ROW(K, 4), *k6 = ROW(K, 5), *k7 = ROW(K, 6), *xt = ROW(K, 7);
+    for (i64 i = 0; i < n; i++) xt[i] = x[i] + h * (0.2 * k1[i]);
+    diagram_eval(c, RHS, t + 0.2 * h, xt, k2);
+    for (i64 i = 0; i < n; i++) xt[i] = x[i] + h * (3.0 / 40.0 * k1[i] + 9.0 / 40.0 * k2[i]);
+    diagram_eval(c, RHS, t + 0.3 * h, xt, k3);
+    for (i64 i = 0; i < n; i++)
+        xt[i] = x[i] + h * (44.0 / 45.0 * k1[i] - 56.0 / 15.0 * k2[i] + 32.0 / 9.0 * k3[i]);
+    diagram_eval(c, RHS, t + 0.8 * h, xt, k4);
+    for (i64 i = 0; i < n; i++)
+        xt[i] = x[i] + h * (19372.0 / 6561.0 * k1[i] - 25360.0 / 2187.0 * k2[i]
+                            + 64448.0 / 6561.0 * k3[i] - 212.0 / 729.0 * k4[i]);
+    diagram_eval(c, RHS, t + 8.0 / 9.0 * h, xt, k5);
+    for (i64 i = 0; i < n; i++)
+        xt[i] = x[i] + h * (9017.0 / 3168.0 * k1[i] - 355.0 / 33.0 * k2[i]
+                            + 46732.0 / 5247.0 * k3[i] + 49.0 / 176.0 * k4[i]
+                            - 5103.0 / 18656.0 * k5[i]);
+    diagram_eval(c, RHS, t + h, xt, k6);
+    for (i64 i = 0; i < n; i++)
+        xn[i] = x[i] + h * (35.0 / 384.0 * k1[i] + 500.0 / 1113.0 * k3[i]
+                            + 125.0 / 192.0 * k4[i] - 2187.0 / 6784.0 * k5[i]
+                            + 11.0 / 84.0 * k6[i]);
+    diagram_eval(c, RHS, t + h, xn, k7);
+    stats[S_RHS] += 6;
+    double s = 0.0;
+    for (i64 i = 0; i < n; i++) {
+        double e = h * (71.0 / 57600.0 * k1[i] - 71.0 / 16695.0 * k3[i] + 71.0 / 1920.0 * k4[i]
+                        - 17253.0 / 339200.0 * k5[i] + 22.0 / 525.0 * k6[i]
+                        - 1.0 / 40.0 * k7[i]);
+        double sc = atol + rtol * pmax(fabs(x[i]), fabs(xn[i]));
+        double r = e / sc;
+        s += r * r;
+    }
+    return sqrt(s / (double)n);
+}
+
+static double bs23_step(Ctx *c, double t, double h, const double *x, double *xn, double *K,
+                        i64 n, double rtol, double atol, i64 *stats) {
+    double *k1 = ROW(K, 0), *k2 = ROW(K, 1), *k3 = ROW(K, 5), *k4 = ROW(K, 6), *xt = ROW(K, 7);
+    for (i64 i = 0; i < n; i++) xt[i] = x[i] + h * (0.5 * k1[i]);
+    diagram_eval(c, RHS, t + 0.5 * h, xt, k2);
+    for (i64 i = 0; i < n; i++) xt[i] = x[i] + h * (0.75 * k2[i]);
+    diagram_eval(c, RHS, t + 0.75 * h, xt, k3);
+    for (i64 i = 0; i < n; i++)
+        xn[i] = x[i] + h * (2.0 / 9.0 * k1[i] + 1.0 / 3.0 * k2[i] + 4.0 / 9.0 * k3[i]);
+    diagram_eval(c, RHS, t + h, xn, k4);
+    stats[S_RHS] += 3;
+    double *e = ROW(K, 2);
+    for (i64 i = 0; i < n; i++)
+        e[i] = h * (-5.0 / 72.0 * k1[i] + 1.0 / 12.0 * k2[i] + 1.0 / 9.0 * k3[i]
+                    - 1.0 / 8.0 * k4[i]);
+    return err_norm(x, xn, e, n, rtol, atol);
+}
+
+static double rodas5p_step(Ctx *c, double t, double h, const double *x, double *xn, double *K,
+                           i64 n, double *J, double *LU, i64 *piv, double rtol, double atol,
+                           i64 *stats) {
+    double *f0 = ROW(K, 0), *ft = ROW(K, 9), *fs = ROW(K, 10);
+    if (stats[S_FRESH] == 1) diagram_jacobian_at(c, t, x, J, n, f0);
+    else diagram_jacobian(c, t, x, J, n, fs);     /* fs: scratch until the stages */
+    stats[S_FRESH] = 0;
+    stats[S_JAC] += 1;
+    double dt = 1.4901161193847656e-08 * pmax(1.0, fabs(t));
+    diagram_eval(c, RHS, t + dt, x, ft);
+    for (i64 i = 0; i < n; i++) ft[i] = (ft[i] - f0[i]) / dt;
+    int st = newton_factor(c, J, n, 1.0 / (RODAS5P_GAMMA * h), LU, piv);
+    stats[S_LU] += 1;
+    stats[S_RHS] += 1;
+    if (st != OK) return INFINITY;
+    for (int s = 0; s < 8; s++) {
+        double *U = ROW(K, 1 + s);
+        if (s == 0) {
+            for (i64 i = 0; i < n; i++) U[i] = f0[i] + RODAS5P_D[0] * h * ft[i];
+        } else {
+            for (i64 i = 0; i < n; i++) xn[i] = x[i];
+            for (int j = 0; j < s; j++) {
+                double a = RODAS5P_A[s * 8 + j];
+                const double *Uj = ROW(K, 1 + j);
+                if (a != 0.0)
+                    for (i64 i = 0; i < n; i++) xn[i] += a * Uj[i];
+            }
+            diagram_eval(c, RHS, t + RODAS5P_CT[s] * h, xn, fs);
+            stats[S_RHS] += 1;
+            double dh = RODAS5P_D[s] * h;
+            for (i64 i = 0; i < n; i++) U[i] = fs[i] + dh * ft[i];
+            for (int j = 0; j < s; j++) {
+                double cj = RODAS5P_C[s * 8 + j] / h;
+                const double *Uj = ROW(K, 1 + j);
+                for (i64 i = 0; i < n; i++) U[i] += cj * Uj[i];
+            }
+        }
+        newton_solve(c, LU, n, U);
+    }
+    for (i64 i = 0; i < n; i++) {
+        double v = x[i];
+        for (int j = 0; j < 8; j++) v += RODAS5P_B[j] * K[(1 + j) * n + i];
+        xn[i] = v;
+    }
+    return err_norm(x, xn, ROW(K, 8), n, rtol, atol);
+}
+
+static double method_step(Ctx *c, i64 mid, double t, double h, const double *x, double *xn,
+                          double *K, i64 n, double *J, double *LU, i64 *piv, double rtol,
+                          double atol, i64 *stats) {
+    if (mid == RODAS5P) return rodas5p_step(c, t, h, x, xn, K, n, J, LU, piv, rtol, atol, stats);
+    if (mid == DP45) return dp45_step(c, t, h, x, xn, K, n, rtol, atol, stats);
+    if (mid == BS23) return bs23_step(c, t, h, x, xn, K, n, rtol, atol, stats);
+    return rk4_step(c, t, h, x, xn, K, n, stats);
+}
+
+/* Rodas5P's dense-output coefficients H_0 U, H_1 U, H_2 U of the step just taken, into
+ * D[0:n], D[n:2n], D[2n:3n]: computed once per step rather than once per output time and
+ * max-hold probe (the same sums, so the same values as the template's dense_eval) */
+static void dense_prepare(const double *K, i64 n, double *D) {
+    for (i64 i = 0; i < n; i++) {
+        double d0 = 0.0, d1 = 0.0, d2 = 0.0;
+        for (int j = 0; j < 8; j++) {
+            double u = K[(1 + j) * n + i];
+            d0 += RODAS5P_H[0 * 8 + j] * u;
+            d1 += RODAS5P_H[1 * 8 + j] * u;
+            d2 += RODAS5P_H[2 * 8 + j] * u;
+        }
+        D[i] = d0;
+        D[n + i] = d1;
+        D[2 * n + i] = d2;
+    }
+}
+
+/* the template's dense_eval; *ready says whether D holds this step's coefficients */
+static void dense_eval(i64 mid, double h, double s, const double *x, const double *xn,
+                       const double *f0, const double *f1, const double *K, i64 n, double *out,
+                       double *D, int *ready) {
+    double s1 = 1.0 - s;
+    if (mid == RODAS5P) {
+        if (!*ready) {
+            dense_prepare(K, n, D);
+            *ready = 1;
+        }
+        for (i64 i = 0; i < n; i++)
+            out[i] = s1 * x[i] + s * (xn[i] + s1 * (D[i] + s * (D[n + i] + s * D[2 * n + i])));
+        return;
+    }
+    double h00 = (1.0 + 2.0 * s) * s1 * s1;
+    double h10 = s * s1 * s1;
+    double h01 = s * s * (3.0 - 2.0 * s);
+    double h11 = -s * s * s1;
+    for (i64 i = 0; i < n; i++)
+        out[i] = h00 * x[i] + h10 * h * f0[i] + h01 * xn[i] + h11 * h * f1[i];
+}
+
+static int on_grid(double t, double t0, double dt) {
+    double m = floor((t - t0) / dt + 0.5);
+    return fabs(t - (t0 + m * dt)) <= 1e-9 * pmax(1.0, fabs(t));
+}
+
+static double next_grid(double t, double t0, double dt) {
+    double m = floor((t - t0) / dt + 0.5);
+    double tg = t0 + m * dt;
+    if (tg <= t + 1e-9 * pmax(1.0, fabs(t))) tg = t0 + (m + 1.0) * dt;
+    return tg;
+}
+
+static double probe_holds(Ctx *c, i64 mid, double t, double t1, const double *x,
+                          const double *xn, const double *f0, const double *f1, const double *K,
+                          i64 n, double *xg, i64 *stats, double t0, double *D, int *ready) {
+    i64 nmh = c->nmh;
+    double h = t1 - t;
+    double first = -1.0;
+    c->probing[0] = 1;
+    for (i64 k = 0; k < nmh; k++) c->hold_mode[k] = HOLD_SKIP;
+    for (i64 k = 0; k < nmh; k++) {
+        double dt = c->hold_dt[k];
+        double tg = next_grid(t, t0, dt);
+        c->hold_mode[k] = HOLD_PROBE;
+        while (tg < t1 - 1e-9 * pmax(1.0, fabs(t1))) {
+            if (first >= 0.0 && tg >= first) break;
+            dense_eval(mid, h, (tg - t) / h, x, xn, f0, f1, K, n, xg, D, ready);
+            c->clock[0] = tg;
+            stats[S_PROBES] += 1;
+            if (diagram_eval(c, AFTER_STEP, tg, xg, xg) == HOLD_UPDATED) {
+                first = tg;
+                break;
+            }
+            tg = next_grid(tg, t0, dt);
+        }
+        c->hold_mode[k] = HOLD_SKIP;
+    }
+    c->probing[0] = 0;
+    return first;
+}
+
+static void set_hold_modes(Ctx *c, double t_prev, double t, double t0, int fixed) {
+    for (i64 k = 0; k < c->nmh; k++) {
+        double dt = c->hold_dt[k];
+        if (on_grid(t, t0, dt) || (fixed && next_grid(t_prev, t0, dt) <= t))
+            c->hold_mode[k] = HOLD_COMMIT;
+        else
+            c->hold_mode[k] = HOLD_SKIP;
+    }
+    c->clock[0] = t;
+}
+
+static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 n,
+                     const double *out_t, double *out_y, i64 ycols, double *out_x, i64 xcols,
+                     i64 *io, i64 *stats, const double *ctl, double *K, double *J, double *LU,
+                     i64 *piv, double *xn, double *f1, double *xg, double *D) {
+    double rtol = ctl[0], atol = ctl[1], h_max = ctl[2], max_steps = ctl[3], x_limit = ctl[4];
+    int adaptive = ctl[5] != 0.0;
+    int dense_out = ctl[6] != 0.0;
+    int check_stiff = ctl[7] != 0.0;
+    i64 nmh = c->nmh;
+    double t = tf[F_T], h = tf[F_H], t0 = tf[F_T0];
+    diagram_eval(c, RHS, t, x, ROW(K, 0));
+    stats[S_RHS] += 1;
+    stats[S_FRESH] = 1;
+    double fac_max = 5.0;
+    double h_acc = -1.0, err_acc = 1.0, t_cut = -1.0;
+    int pinned = 0, explicit_ok = 1;
+    for (;;) {
+        int landing = 0;
+        double h_use, t_target = 0.0;
+        if (adaptive) {
+            if (t >= t_stop - 1e-12 * pmax(1.0, fabs(t))) break;
+            if ((double)(stats[S_STEPS] + stats[S_REJECTED]) >= max_steps) {
+                tf[F_T] = t;
+                return MAX_STEPS;
+            }
+            h = pmin(h, h_max);
+            t_target = t_stop;
+            if (!dense_out && io[0] < io[1] && out_t[io[0]] < t_target) t_target = out_t[io[0]];
+            if (t_cut > t && t_cut < t_target) t_target = t_cut;
+            if (t + h >= t_target - 1e-12 * pmax(1.0, fabs(t))) {
+                h_use = t_target - t;
+                landing = 1;
+            } else {
+                h_use = h;
+            }
+            if (h_use < 1e-13 * pmax(1.0, fabs(t))) {
+                if (landing && io[0] < io[1] && t_target == out_t[io[0]]) {
+                    emit(c, t, x, n, out_y, ycols, out_x, xcols, io);
+                    continue;
+                }
+                stats[S_BAD] = -1;
+                tf[F_T] = t;
+                return STEP_TOO_SMALL;
+            }
+        } else {
+            i64 kstep = stats[S_STEPS];
+            t = t0 + (double)kstep * h;
+            if (t >= t_stop - 1e-9 * h) break;
+            h_use = h;
+        }
+        if (dense_out && c->nd > 0 && c->hist_meta[1] + 2 > c->hist_meta[2]) {
+            tf[F_T] = t;
+            tf[F_H] = h;
+            return HISTORY_FULL;
+        }
+        i64 m = mid;
+        if (mid == RODAS5P && pinned && explicit_ok) m = BS23;
+        double err = method_step(c, m, t, h_use, x, xn, K, n, J, LU, piv, rtol, atol, stats);
+        stats[S_FRESH] = 0;
+        int dense_ready = 0;      /* D is not this step's yet */
+        if (m != mid && !(err <= 1.0)) {
+            explicit_ok = 0;
+            stats[S_REJECTED] += 1;
+            continue;
+        }
+        if (adaptive && !(err <= 1.0)) {
+            double fac;
+            if (!(err == err)) {
+                i64 bad = check_state(xn, n, x_limit);
+                if (bad >= 0 && h_use < 1e-10 * pmax(1.0, fabs(t))) {
+                    stats[S_BAD] = bad;
+                    tf[F_T] = t;
+                    return DIVERGED;
+                }
+                fac = 0.1;
+            } else {
+                fac = pmax(0.1, 0.9 * pow(err, -0.2));
+            }
+            h = h_use * fac;
+            fac_max = 1.0;
+            stats[S_REJECTED] += 1;
+            continue;
+        }
+        double t1;
+        if (adaptive) t1 = landing ? t_target : t + h_use;
+        else t1 = t0 + (double)(stats[S_STEPS] + 1) * h;
+        int swept = 0;
+        int late_slope = m == RODAS5P;
+        if (m == DP45 || m == BS23) {
+            for (i64 i = 0; i < n; i++) f1[i] = K[6 * n + i];
+        } else if (!late_slope) {
+            diagram_eval(c, RHS, t1, xn, f1);
+            stats[S_RHS] += 1;
+        }
+        if (nmh > 0 && adaptive) {
+            double tg = probe_holds(c, m, t, t1, x, xn, ROW(K, 0), f1, K, n, xg, stats, t0, D,
+                                    &dense_ready);
+            swept = 1;
+            if (tg > 0.0) {
+                t_cut = tg;
+                h = tg - t;
+                stats[S_CUTS] += 1;
+                continue;
+            }
+        }
+        int cut_landed = t_cut >= 0.0 && t1 >= t_cut - 1e-12 * pmax(1.0, fabs(t1));
+        if (m != mid) stats[S_EXPLICIT] += 1;
+        if (check_stiff && mid == DP45 && !(landing && h_use < h)) {
+            double num = 0.0, den = 0.0;
+            for (i64 i = 0; i < n; i++) {
+                double a = K[6 * n + i] - K[5 * n + i];
+                double b = xn[i] - K[7 * n + i];
+                num += a * a;
+                den += b * b;
+            }
+            if (den > 0.0) {
+                double hrho = h_use * sqrt(num / den);
+                tf[F_HRHO] = hrho;
+                if (hrho > 3.25) {
+                    stats[S_NONSTIFF] = 0;
+                    stats[S_STIFF_RUN] += 1;
+                    if (stats[S_STIFF_RUN] >= 15 && stats[S_STIFF] == 0) {
+                        stats[S_STIFF] = 1;
+                        tf[F_T_STIFF] = t1;
+                        tf[F_HRHO_STIFF] = hrho;
+                    }
+                } else {
+                    stats[S_NONSTIFF] += 1;
+                    if (stats[S_NONSTIFF] >= 6) stats[S_STIFF_RUN] = 0;
+                }
+            }
+        }
+        if (dense_out) {
+            while (io[0] < io[1] && out_t[io[0]] < t1 - 1e-12 * pmax(1.0, fabs(t1))) {
+                double to = out_t[io[0]];
+                dense_eval(m, h_use, (to - t) / (t1 - t), x, xn, ROW(K, 0), f1, K, n, xg, D,
+                           &dense_ready);
+                emit(c, to, xg, n, out_y, ycols, out_x, xcols, io);
+                swept = 1;
+            }
+        }
+        if (dense_out && c->nd > 0 && m == mid) {
+            for (i64 k = 0; k < nmh; k++) c->hold_mode[k] = HOLD_SKIP;
+            double tm = t + 0.5 * (t1 - t);
+            dense_eval(m, h_use, 0.5, x, xn, ROW(K, 0), f1, K, n, xg, D, &dense_ready);
+            c->clock[0] = tm;
+            diagram_eval(c, HISTORY_POINT, tm, xg, xg);
+            swept = 1;
+        }
+        if (late_slope) {
+            diagram_eval(c, RHS, t1, xn, f1);
+            stats[S_RHS] += 1;
+            swept = 0;
+        }
+        double t_prev = t;
+        t = t1;
+        for (i64 i = 0; i < n; i++) {
+            x[i] = xn[i];
+            K[i] = f1[i];
+        }
+        stats[S_STEPS] += 1;
+        tf[F_T] = t;
+        i64 bad = check_state(x, n, x_limit);
+        if (bad >= 0) {
+            stats[S_BAD] = bad;
+            return DIVERGED;
+        }
+        double nrm = 0.0;
+        for (i64 i = 0; i < n; i++) {
+            if (fabs(x[i]) > nrm) {
+                nrm = fabs(x[i]);
+                bad = i;
+            }
+        }
+        double ref = pmax(tf[F_GROW_N], 1.0);
+        if (nrm > GROWTH_FACTOR * ref && t - tf[F_GROW_T] <= GROWTH_WINDOW) {
+            stats[S_BAD] = bad;
+            tf[F_GROW_RATE] = log(nrm / ref) / pmax(t - tf[F_GROW_T], 1e-300);
+            return DIVERGED_GROWTH;
+        }
+        if (t - tf[F_GROW_T] >= GROWTH_WINDOW) {
+            tf[F_GROW_T] = t;
+            tf[F_GROW_N] = nrm;
+        }
+        if (nmh > 0) set_hold_modes(c, t_prev, t, t0, !adaptive);
+        int st;
+        if (swept) st = diagram_eval(c, AFTER_STEP, t, x, x);
+        else st = diagram_eval(c, AFTER_STEP_EVALUATED, t, x, x);
+        if (st == HISTORY_FULL) {
+            tf[F_H] = h;
+            return HISTORY_FULL;
+        }
+        if (st == HOLD_UPDATED) {
+            diagram_eval(c, RHS, t, x, ROW(K, 0));
+            stats[S_RHS] += 1;
+        }
+        stats[S_FRESH] = 1;
+        if (adaptive) {
+            while (io[0] < io[1] && out_t[io[0]] <= t + 1e-12 * pmax(1.0, fabs(t)))
+                emit(c, t, x, n, out_y, ycols, out_x, xcols, io);
+            if (!landing || h_use >= h) {
+                double fac = err == 0.0 ? 5.0 : pmin(fac_max, pmax(0.2, 0.9 * pow(err, -0.2)));
+                if (m == RODAS5P) {
+                    if (h_acc > 0.0 && err > 0.0) {
+                        double fac_p = 0.9 * (h_use / h_acc) * pow(err_acc / (err * err), 0.2);
+                        fac = pmin(fac, pmax(0.2, fac_p));
+                    }
+                    h_acc = h_use;
+                    err_acc = pmax(1e-2, err);
+                }
+                h = h_use * fac;
+            }
+            fac_max = 5.0;
+            if (cut_landed || st == HOLD_UPDATED) {
+                t_cut = -1.0;
+                if (!pinned) explicit_ok = 1;
+                pinned = 1;
+                for (i64 k = 0; k < nmh; k++) {
+                    double hg = next_grid(t, t0, c->hold_dt[k]) - t;
+                    if (hg < h) h = hg;
+                }
+            } else {
+                pinned = 0;
+            }
+        } else {
+            /* out_t is the caller's output times: a fixed-step run records each at the
+               first step at or after it, and reports that step's time (as the template) */
+            while (io[0] < io[1] && out_t[io[0]] <= t + 1e-9 * h) {
+                ((double *)out_t)[io[0]] = t;
+                emit(c, t, x, n, out_y, ycols, out_x, xcols, io);
+            }
+        }
+    }
+    tf[F_T] = t;
+    tf[F_H] = h;
+    return OK;
+}
+
+/* ---------------------------------------------------- generic versions (_template.py) */
+static int fd_jacobian(Ctx *c, double t, const double *x, double *J, i64 n, double *f0,
+                       double *fp, double *xp) {
+    for (i64 i = 0; i < n; i++) xp[i] = x[i];
+    diagram_eval(c, RHS, t, x, f0);
+    for (i64 j = 0; j < n; j++) {
+        double d = 1.4901161193847656e-08 * pmax(1.0, fabs(x[j]));
+        xp[j] = x[j] + d;
+        d = xp[j] - x[j];
+        diagram_eval(c, RHS, t, xp, fp);
+        for (i64 i = 0; i < n; i++) J[i * n + j] = (fp[i] - f0[i]) / d;
+        xp[j] = x[j];
+    }
+    return OK;
+}
+
+static int dense_factor(const double *J, i64 n, double cc, double *LU, i64 *piv) {
+    for (i64 i = 0; i < n; i++) {
+        for (i64 j = 0; j < n; j++) LU[i * n + j] = -J[i * n + j];
+        LU[i * n + i] += cc;
+    }
+    for (i64 k = 0; k < n; k++) {
+        i64 p = k;
+        double m = fabs(LU[k * n + k]);
+        for (i64 i = k + 1; i < n; i++) {
+            if (fabs(LU[i * n + k]) > m) {
+                m = fabs(LU[i * n + k]);
+                p = i;
+            }
+        }
+        piv[k] = p;
+        if (!(m > 0.0) || !isfinite(m)) return SINGULAR;
+        if (p != k) {
+            for (i64 j = 0; j < n; j++) {
+                double tmp = LU[k * n + j];
+                LU[k * n + j] = LU[p * n + j];
+                LU[p * n + j] = tmp;
+            }
+        }
+        double inv = 1.0 / LU[k * n + k];
+        for (i64 i = k + 1; i < n; i++) {
+            double l = LU[i * n + k] * inv;
+            LU[i * n + k] = l;
+            if (l != 0.0)
+                for (i64 j = k + 1; j < n; j++) LU[i * n + j] -= l * LU[k * n + j];
+        }
+    }
+    return OK;
+}
+
+static void dense_solve(const double *LU, i64 n, const i64 *piv, double *b) {
+    for (i64 k = 0; k < n; k++) {
+        i64 p = piv[k];
+        if (p != k) {
+            double tmp = b[k];
+            b[k] = b[p];
+            b[p] = tmp;
+        }
+    }
+    for (i64 i = 0; i < n; i++) {
+        double s = b[i];
+        for (i64 j = 0; j < i; j++) s -= LU[i * n + j] * b[j];
+        b[i] = s;
+    }
+    for (i64 i = n - 1; i >= 0; i--) {
+        double s = b[i];
+        for (i64 j = i + 1; j < n; j++) s -= LU[i * n + j] * b[j];
+        b[i] = s / LU[i * n + i];
+    }
+}
+
+/* ------------------------------------------------------------------------ entry points
+ * Each returns its result (a status), or the code of a failure the Python source raises
+ * (BLOCK_RAISED, ERR_*), which _cstepper.py turns into the same RuntimeError. */
+EXPORT int ivdrem_step_loop(const i64 *waddr, const i64 *wshape, double *P, i64 mid,
+                            double *tf, double t_stop, double *x, i64 n, double *out_t,
+                            double *out_y, i64 ycols, double *out_x, i64 xcols, i64 *io,
+                            i64 *stats, double *ctl, double *K, double *J, double *LU,
+                            i64 *piv, double *xn, double *f1, double *xg, double *D) {
+    Ctx c;
+    bind(&c, waddr, wshape, P);
+    int code = setjmp(c.exit);
+    if (code) return code;
+    return step_loop(&c, mid, tf, t_stop, x, n, out_t, out_y, ycols, out_x, xcols, io, stats,
+                     ctl, K, J, LU, piv, xn, f1, xg, D);
+}
+
+EXPORT int ivdrem_diagram_eval(const i64 *waddr, const i64 *wshape, double *P, i64 mode,
+                               double t, double *x, double *out) {
+    Ctx c;
+    bind(&c, waddr, wshape, P);
+    int code = setjmp(c.exit);
+    if (code) return code;
+    return diagram_eval(&c, mode, t, x, out);
+}
+
+EXPORT int ivdrem_diagram_jacobian(const i64 *waddr, const i64 *wshape, double *P, double t,
+                                   double *x, i64 n, double *J, double *tmp) {
+    Ctx c;
+    bind(&c, waddr, wshape, P);
+    int code = setjmp(c.exit);
+    if (code) return code;
+    return diagram_jacobian(&c, t, x, J, n, tmp);
+}
+
+EXPORT int ivdrem_fd_jacobian(const i64 *waddr, const i64 *wshape, double *P, double t,
+                              double *x, i64 n, double *J, double *f0, double *fp, double *xp) {
+    Ctx c;
+    bind(&c, waddr, wshape, P);
+    int code = setjmp(c.exit);
+    if (code) return code;
+    return fd_jacobian(&c, t, x, J, n, f0, fp, xp);
+}
+
+EXPORT int ivdrem_lowest_eigenpair(const i64 *waddr, const i64 *wshape, double *u, i64 nvec,
+                                   i64 nmat, double *lam) {
+    Ctx c;
+    bind(&c, waddr, wshape, NULL);
+    int code = setjmp(c.exit);
+    if (code) return code;
+    lam[0] = lowest_eigenpair(&c, u, nvec, nmat);
+    return OK;
+}
+
+EXPORT int ivdrem_slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv,
+                             const i64 *perm, const i64 *rowptr, const i64 *colidx,
+                             const i64 *diagp) {
+    return slu_factor(J, n, cc, LU, piv, perm, rowptr, colidx, diagp);
+}
+
+EXPORT void ivdrem_slu_solve(double *LU, i64 n, const i64 *perm, const i64 *rowptr,
+                             const i64 *colidx, const i64 *diagp, double *b) {
+    slu_solve(LU, n, perm, rowptr, colidx, diagp, b);
+}
+
+EXPORT int ivdrem_dense_factor(const double *J, i64 n, double cc, double *LU, i64 *piv) {
+    return dense_factor(J, n, cc, LU, piv);
+}
+
+EXPORT void ivdrem_dense_solve(const double *LU, i64 n, const i64 *piv, double *b) {
+    dense_solve(LU, n, piv, b);
+}

@@ -1,0 +1,153 @@
+"""The C stepper (ivdrem/sim/stepper.c) against the numba stepper that compiles the Python
+template: bit for bit on the paper's loops and the lab diagram with every method, the
+enumerations from one place, its errors, the build cache and the fallback."""
+import os
+import re
+import warnings
+
+import control as ct
+import numpy as np
+import pytest
+
+from ivdrem.diagrams import closed_loop
+from ivdrem.sim import _cstepper, _template, compiled, simulate
+from ivdrem.sim.simulator import WORKSPACE_LAYOUT, Simulator
+from ivdrem.sim.tables import INT_FIELDS
+
+from conftest import build_lab
+
+
+def _run(diagram, t_end, stepper, monkeypatch, **kw):
+    monkeypatch.setenv("IVDREM_STEPPER", stepper)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = simulate(diagram, t_end, progress=False, **kw)
+    return r
+
+
+def _same(a, b):
+    for name in ("time", "outputs", "states"):
+        x, y = np.asarray(getattr(a, name)), np.asarray(getattr(b, name))
+        assert x.shape == y.shape and np.array_equal(x, y, equal_nan=True), name
+    for k in ("steps", "rejected", "rhs_calls", "jacobians", "hold_cuts", "hold_samples",
+              "explicit_steps"):
+        assert a.stats.get(k) == b.stats.get(k), k
+    assert np.array_equal(np.asarray(a.hold_times, float), np.asarray(b.hold_times, float),
+                          equal_nan=True)
+
+
+@pytest.mark.parametrize("law", ["iv-drem", "composite-learning"])
+@pytest.mark.parametrize("method", ["rodas5p", "dp45", "rk4"])
+def test_c_stepper_runs_the_paper_loop_bit_for_bit_as_the_numba_stepper(law, method, monkeypatch):
+    # 2.5 s: the delay history, Jacobians and LU, and (composite learning) the max-hold's
+    # probes, cuts and the pinned explicit steps all run
+    d = closed_loop(law)
+    kw = dict(method=method, dt_out=0.01)
+    if method == "rk4":
+        kw["h"] = 5e-4
+    c = _run(d, 2.5, "c", monkeypatch, **kw)
+    nb = _run(d, 2.5, "numba", monkeypatch, **kw)
+    _same(c, nb)
+    if law == "composite-learning" and method == "rodas5p":
+        assert c.stats["hold_samples"] > 0 and c.stats["explicit_steps"] > 0
+
+
+@pytest.mark.parametrize("method", ["rodas5p", "dp45", "rk4"])
+def test_c_stepper_runs_the_lab_diagram_bit_for_bit(method, monkeypatch):
+    # the lab: a delay without a wired derivative (slopes from the history), a skew max-hold
+    kw = dict(method=method, dt_out=0.01, h=1e-3) if method == "rk4" else \
+        dict(method=method, dt_out=0.01)
+    lab = build_lab()
+    _same(_run(lab, 3.0, "c", monkeypatch, **kw), _run(lab, 3.0, "numba", monkeypatch, **kw))
+
+
+def test_c_stepper_follows_an_input_table_bit_for_bit(monkeypatch):
+    # a table of external inputs over time (linear interpolation, steps cut at its kinks)
+    lag = ct.ss([[-2.0, 1.0], [0.0, -30.0]], [[0.0], [30.0]], [[1.0, 0.0]], [[0.0]],
+                inputs="u", outputs="y", name="lag")
+    loop = ct.interconnect([lag], inputs="u", outputs="y", name="lag_loop")
+    t = np.linspace(0.0, 2.0, 9)
+    u = np.sin(3.0 * t)[None, :]
+    for method in ("rodas5p", "dp45"):
+        a = _run(loop, t, "c", monkeypatch, inputs=u, method=method)
+        b = _run(loop, t, "numba", monkeypatch, inputs=u, method=method)
+        _same(a, b)
+
+
+def test_every_enumeration_of_stepper_c_comes_from_the_generated_header():
+    """stepper.c defines no constant of its own that Python has (one source of truth),
+    and every upper-case name it uses is in the header or a C-local macro."""
+    src = _cstepper.SOURCE.read_text()
+    header = _cstepper.header_source()
+    defined = set(re.findall(r"#define (\w+)", header))
+    defined |= set(re.findall(r"static const double (\w+)", header))
+    local = set(re.findall(r"#define (\w+)", src))
+    assert local <= {"EXPORT", "F_PTR", "ROW"}, local
+    code = re.sub(r"/\*.*?\*/", "", src, flags=re.S)
+    used = set(re.findall(r"\b([A-Z][A-Z0-9_]{2,})\b", code))
+    c_names = {"INFINITY", "NULL", "EXPORT", "F_PTR", "ROW"}
+    assert used - c_names <= defined, sorted(used - c_names - defined)
+    # values: the header's are the Python modules' (spot checks of each source)
+    vals = dict(re.findall(r"#define (\w+) (-?\d+)", header))
+    assert int(vals["RODAS5P"]) == _template.RODAS5P and int(vals["S_FRESH"]) == _template.S_FRESH
+    fields = [f for f, _, _ in WORKSPACE_LAYOUT]
+    assert int(vals["FIELD_LAPACK_INTS"]) == fields.index("lapack_ints")
+    assert int(vals["T_SLOPE_FLAGS"]) == INT_FIELDS.index("slope_flags")
+    for name, (code_, _) in _cstepper.FAILURES.items():
+        assert int(vals[name]) == code_
+    # coefficients exactly (repr round-trips)
+    m = re.search(r"RODAS5P_C\[64\] = \{([^}]*)\}", header)
+    assert np.array_equal(np.array([float(v) for v in m.group(1).split(",")]),
+                          _template.RODAS5P_C.reshape(-1))
+
+
+def test_a_failure_raised_in_c_is_the_python_source_s_error(monkeypatch):
+    monkeypatch.setenv("IVDREM_STEPPER", "c")
+    sim = Simulator(closed_loop("composite-learning"))
+    assert sim.engine.stepper == "c"
+    sim.advance(0.01)
+    W = sim.W
+    small = W._replace(scratch=np.zeros(3))         # smaller than the tables say
+    out = np.zeros(sim.x.size)
+    with pytest.raises(RuntimeError, match="scratch is smaller than its tables"):
+        sim.engine.module.diagram_jacobian(sim.t, sim.x, sim.engine.P, small,
+                                           np.zeros((sim.x.size,) * 2))
+    # arrays C would read raw are checked: dtype, contiguity, writeability
+    bad = W._replace(ys=W.ys.astype(np.float32))
+    with pytest.raises(TypeError, match="workspace field ys"):
+        sim.engine.module.diagram_eval(_template.RHS, sim.t, sim.x, sim.engine.P, bad, out)
+    with pytest.raises(TypeError, match="out"):
+        sim.engine.module.diagram_eval(_template.RHS, sim.t, sim.x, sim.engine.P, W, out[::2])
+    # and the state is untouched by those refusals: the run goes on as before
+    before = sim.x.copy()
+    sim.advance(0.02)
+    assert np.all(np.isfinite(sim.x)) and not np.array_equal(before, sim.x)
+
+
+def test_the_library_is_built_once_into_the_cache(tmp_path):
+    p1 = _cstepper.build(tmp_path)
+    m1 = p1.stat().st_mtime_ns
+    p2 = _cstepper.build(tmp_path)
+    assert p1 == p2 and p2.stat().st_mtime_ns == m1
+    assert [q.name for q in tmp_path.iterdir()] == [p1.name]     # no temporary left behind
+
+
+def test_an_unknown_stepper_is_an_error_naming_the_choices(monkeypatch):
+    monkeypatch.setenv("IVDREM_STEPPER", "fortran")
+    with pytest.raises(ValueError, match="IVDREM_STEPPER='fortran'.*c, numba"):
+        Simulator(closed_loop("iv-drem"))
+
+
+def test_without_a_c_compiler_the_numba_stepper_runs_with_a_warning(monkeypatch):
+    monkeypatch.setenv("IVDREM_STEPPER", "c")
+    monkeypatch.setenv("CC", os.path.join(os.sep, "nonexistent", "cc"))
+    monkeypatch.setattr(compiled, "_fallback_warned", [])
+    with pytest.warns(compiled.StepperFallbackWarning, match="not found"):
+        sim = Simulator(closed_loop("iv-drem"))
+    assert sim.engine.stepper == "numba"
+    sim.advance(0.05)
+    monkeypatch.delenv("CC")
+    ref = Simulator(closed_loop("iv-drem"))
+    assert ref.engine.stepper == "c"
+    ref.advance(0.05)
+    assert np.array_equal(sim.x, ref.x)
