@@ -66,6 +66,12 @@ class Warmup:
         return rc == 0
 
 
+# what ``python -m ivdrem.sim._warm_stepper`` runs, but with this process's ivdrem first on
+# the path (-m would put the working directory first, and with it any other ivdrem there)
+_BOOT = ("import sys; sys.path.insert(0, sys.argv.pop(1)); "
+         "from ivdrem.sim._warm_stepper import main; sys.exit(main())")
+
+
 def start(module) -> Warmup:
     """Launch the child when the stepper `module` is not cached yet (and this process is
     not itself that child, and the switch is not off); else a Warmup with nothing to wait
@@ -80,9 +86,8 @@ def start(module) -> Warmup:
     env[_CHILD_ENV] = "1"
     env["IVDREM_CACHE_DIR"] = str(cache_dir())
     root = str(Path(ivdrem.__file__).resolve().parents[1])   # the same ivdrem in the child
-    env["PYTHONPATH"] = os.pathsep.join([root] + [p for p in [env.get("PYTHONPATH")] if p])
     try:
-        proc = subprocess.Popen([sys.executable, "-m", "ivdrem.sim._warm_stepper"], env=env,
+        proc = subprocess.Popen([sys.executable, "-c", _BOOT, root], env=env,
                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
     except OSError:                # pragma: no cover - cannot start a process here
