@@ -403,23 +403,134 @@ def _import(cdir, name, src):
     return mod
 
 
+# A wrapper's compile time, estimated: measured for IV-DREM's 31 wrappers on the 2-core
+# development machine, about 0.11 s plus 0.33 ms per character of its kernel's module (a
+# Jacobian kernel no dearer than its size says).  A function the kernel calls that numba
+# compiles on its own (a robot-model function, an ivdrem.blocks._kernels helper) costs
+# the same per character, once in every process that compiles a caller.
+_S_PER_WRAPPER, _S_PER_CHAR = 0.11, 3.3e-4
+#: the child's late start, in the same units: its interpreter, numba, its first compile
+_CHILD_START_S = 0.75
+_GENERATED_IMPORT = re.compile(r"^(?:from|import) (ivdrem_\w+)", flags=re.M)
+
+
+def _callees(cdir, ksrc, sources):
+    """{callee: estimated seconds} of the separately compiled functions a kernel module's
+    source calls that numba's cache does not hold yet."""
+    out = {}
+    model = re.search(r"^import (ivdrem_model_\w+) as model$", ksrc, flags=re.M)
+    if model:
+        mname = model.group(1)
+        defs = {m.group(1): m for m in re.finditer(r"^def (\w+)\(.*?(?=^def |^\S|\Z)",
+                                                    sources[mname], flags=re.M | re.S)}
+        for f in sorted(set(re.findall(r"\bmodel\.(\w+)", ksrc)) & defs.keys()):
+            if not _warm_stepper.function_cached(cdir / f"{mname}.py", f):
+                out[(mname, f)] = _S_PER_CHAR * len(defs[f].group(0))
+    for f in sorted(_ALLOWED_GLOBALS - {"np", "math", "model", "call_c"}):
+        helper = getattr(_kernels, f)
+        if not (hasattr(helper, "py_func") and re.search(rf"(?<![\w.]){f}\s*\(", ksrc)):
+            continue
+        try:
+            if not _warm_stepper.index_exists(helper._cache):
+                out[("_kernels", f)] = _S_PER_CHAR * len(inspect.getsource(helper.py_func))
+        except Exception:     # pragma: no cover - numba internals changed
+            pass
+    return out
+
+
+def _uncached_wrappers(cdir, deps):
+    """{wrapper module: (estimated seconds, {callee: estimated seconds})} of the written
+    wrapper modules in deps that numba's cache does not hold yet."""
+    sources = dict(deps)
+    out = {}
+    for name, src in deps:
+        if not name.startswith("ivdrem_wrapper_") or name in sys.modules:
+            continue
+        if _warm_stepper.function_cached(cdir / f"{name}.py", "wrapper"):
+            continue
+        kernel = _GENERATED_IMPORT.findall(src)[0]
+        ksrc = sources[kernel]
+        out[name] = (_S_PER_WRAPPER + _S_PER_CHAR * len(ksrc), _callees(cdir, ksrc, sources))
+    return out
+
+
+def _split(costs, head_start=_CHILD_START_S):
+    """(this process's, the child's) shares of the modules `costs` ({name: (seconds,
+    {callee: seconds})}): the dearest first, each to the process that would finish it
+    first (the child starting `head_start` late; a callee costs a process only once), so
+    both finish together."""
+    load, have, shares = [0.0, head_start], [set(), set()], ([], [])
+
+    def total(name):
+        own, callees = costs[name]
+        return own + sum(callees.values())
+
+    for name in sorted(costs, key=lambda n: (-total(n), n)):
+        own, callees = costs[name]
+        ends = [load[k] + own + sum(c for f, c in callees.items() if f not in have[k])
+                for k in (0, 1)]
+        k = int(ends[1] < ends[0])
+        load[k] = ends[k]
+        have[k].update(callees)
+        shares[k].append(name)
+    return shares
+
+
+def _with_imports(names, deps):
+    """`names` and the generated modules they import (recursively), in the order of deps."""
+    sources = dict(deps)
+    need, todo = set(), list(names)
+    while todo:
+        n = todo.pop()
+        if n not in need:
+            need.add(n)
+            todo += _GENERATED_IMPORT.findall(sources[n])
+    return [n for n, _ in deps if n in need]
+
+
+def _start_child(cdir, deps, stepper):
+    """The child's job (a Warmup) and the modules this process imports only after it: the
+    stepper when numba's cache does not hold it (it costs more than all kernels), else
+    about half the wrappers not cached yet."""
+    if not _warm_stepper.enabled():
+        return _warm_stepper.Warmup(), []
+    if not _warm_stepper.stepper_cached(stepper):
+        return _warm_stepper.start(stepper), []
+    for name, src in deps:
+        _write(cdir, name, src)
+    later = _split(_uncached_wrappers(cdir, deps), _CHILD_START_S)[1]
+    if not later:
+        return _warm_stepper.Warmup(), []
+    return _warm_stepper.start_modules(_with_imports(later, deps)), later
+
+
 def _load(deps):
     """Import the modules in order (models before the kernels that import them, then the
     wrappers: their import compiles them); returns the stepper module (the last of deps).
 
-    The stepper is imported first (its functions compile at their first call): when numba's
-    cache does not hold it yet, a child process compiles it meanwhile
-    (:mod:`ivdrem.sim._warm_stepper`) and this one loads it from the cache afterwards."""
+    The stepper is imported first (its functions compile at their first call).  When
+    numba's cache does not hold it yet, a child process compiles it meanwhile; when it
+    does, a child compiles about half the wrappers numba's cache does not hold, and this
+    process imports those (loads them from the cache) after the child has finished
+    (:mod:`ivdrem.sim._warm_stepper`)."""
     cdir = cache_dir()
     cdir.mkdir(parents=True, exist_ok=True)
     sname, ssrc = deps[-1]
     stepper = _import(cdir, sname, ssrc)
-    warmup = _warm_stepper.start(stepper)
+    rest = deps[:-1]
+    warmup, later = _start_child(cdir, rest, stepper)
+    later = set(later)
     try:
-        for name, dsrc in deps[:-1]:
+        for name, dsrc in rest:
+            if name not in later:
+                _import(cdir, name, dsrc)
+    except BaseException:
+        warmup.cancel()               # failed or interrupted: do not leave the child running
+        raise
+    warmup.wait()
+    for name, dsrc in rest:           # the child's (from the cache if it finished cleanly)
+        if name in later:
             _import(cdir, name, dsrc)
-    finally:
-        warmup.wait()
     return stepper
 
 
