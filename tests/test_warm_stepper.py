@@ -225,11 +225,19 @@ def test_with_the_stepper_not_cached_the_child_compiles_the_stepper(monkeypatch)
     # parent imports every kernel module itself
     _pretend_uncached(monkeypatch)
     monkeypatch.setattr(_warm_stepper, "stepper_cached", lambda module: False)
-    loop, _ = _lags(5, "stepper_job")
-    from ivdrem.sim.plan import DiagramPlan
-    deps = compiled.generate_source(DiagramPlan.from_diagram(loop, None, None)).deps
-    w, later = compiled._start_child(cache_dir(), deps[:-1], _stepper())
-    try:
-        assert later == [] and w.modules == [] and "--modules" not in w.proc.args
-    finally:
-        assert w.wait(limit=600) is True
+    jobs = []
+    start_stepper = _warm_stepper.start
+
+    def spy_start(module):
+        w = start_stepper(module)
+        jobs.append((w, w.proc))
+        return w
+
+    monkeypatch.setattr(_warm_stepper, "start", spy_start)
+    monkeypatch.setattr(_warm_stepper, "start_modules", lambda names: 1 / 0)
+    loop, k = _lags(5, "stepper_job")
+    _check(loop, k)
+    assert len(jobs) == 1
+    w, proc = jobs[0]
+    assert w.modules == [] and "--modules" not in proc.args
+    assert proc.returncode == 0 and w.proc is None                          # waited for

@@ -488,14 +488,12 @@ def _with_imports(names, deps):
     return [n for n, _ in deps if n in need]
 
 
-def _start_child(cdir, deps, stepper):
-    """The child's job (a Warmup) and the modules this process imports only after it: the
-    stepper when numba's cache does not hold it (it costs more than all kernels), else
-    about half the wrappers not cached yet."""
+def _start_split(cdir, deps):
+    """(a child compiling about half the wrappers of deps that numba's cache does not hold,
+    the wrappers this process imports only after the child); deps: models, kernels and
+    wrappers, without the stepper."""
     if not _warm_stepper.enabled():
         return _warm_stepper.Warmup(), []
-    if not _warm_stepper.stepper_cached(stepper):
-        return _warm_stepper.start(stepper), []
     for name, src in deps:
         _write(cdir, name, src)
     later = _split(_uncached_wrappers(cdir, deps), _CHILD_START_S)[1]
@@ -504,33 +502,50 @@ def _start_child(cdir, deps, stepper):
     return _warm_stepper.start_modules(_with_imports(later, deps)), later
 
 
+def _import_all(cdir, deps, warmup, later=()):
+    """Import deps in order, those in `later` only after the child `warmup` has finished
+    (from numba's cache then, or compiled here if it failed); a failure or an interrupt
+    here kills the child."""
+    later = set(later)
+    try:
+        for name, dsrc in deps:
+            if name not in later:
+                _import(cdir, name, dsrc)
+    except BaseException:
+        warmup.cancel()
+        raise
+    warmup.wait()
+    for name, dsrc in deps:
+        if name in later:
+            _import(cdir, name, dsrc)
+
+
+def _load_kernels(deps):
+    """Import the models, kernels and wrappers `deps` (no stepper; their import compiles
+    the wrappers), about half the wrappers numba's cache does not hold compiled by a child
+    process meanwhile (:mod:`ivdrem.sim._warm_stepper`)."""
+    cdir = cache_dir()
+    cdir.mkdir(parents=True, exist_ok=True)
+    _import_all(cdir, deps, *_start_split(cdir, deps))
+
+
 def _load(deps):
     """Import the modules in order (models before the kernels that import them, then the
     wrappers: their import compiles them); returns the stepper module (the last of deps).
 
     The stepper is imported first (its functions compile at their first call).  When
-    numba's cache does not hold it yet, a child process compiles it meanwhile; when it
-    does, a child compiles about half the wrappers numba's cache does not hold, and this
-    process imports those (loads them from the cache) after the child has finished
-    (:mod:`ivdrem.sim._warm_stepper`)."""
+    numba's cache does not hold it yet, a child process compiles it meanwhile (it costs
+    more than all kernels); when it does, a child compiles about half the wrappers numba's
+    cache does not hold (:func:`_load_kernels`).  This process then loads the child's work
+    from the cache (:mod:`ivdrem.sim._warm_stepper`)."""
     cdir = cache_dir()
     cdir.mkdir(parents=True, exist_ok=True)
     sname, ssrc = deps[-1]
     stepper = _import(cdir, sname, ssrc)
-    rest = deps[:-1]
-    warmup, later = _start_child(cdir, rest, stepper)
-    later = set(later)
-    try:
-        for name, dsrc in rest:
-            if name not in later:
-                _import(cdir, name, dsrc)
-    except BaseException:
-        warmup.cancel()               # failed or interrupted: do not leave the child running
-        raise
-    warmup.wait()
-    for name, dsrc in rest:           # the child's (from the cache if it finished cleanly)
-        if name in later:
-            _import(cdir, name, dsrc)
+    if _warm_stepper.enabled() and not _warm_stepper.stepper_cached(stepper):
+        _import_all(cdir, deps[:-1], _warm_stepper.start(stepper))
+    else:
+        _load_kernels(deps[:-1])
     return stepper
 
 
