@@ -69,10 +69,12 @@ def _check(loop, k):
 
 def _pretend_uncached(monkeypatch):
     """Every generated function counts as not in numba's cache, and the child starts
-    without a head start: a small diagram then gets a child for some of its wrappers."""
+    without a head start and takes any share: a small diagram then gets a child for some
+    of its wrappers."""
     monkeypatch.setattr(_warm_stepper, "function_cached", lambda path, qualname: False)
     monkeypatch.setattr(_warm_stepper, "stepper_cached", lambda module: True)
     monkeypatch.setattr(compiled, "_CHILD_START_S", 0.0)
+    monkeypatch.setattr(compiled, "_CHILD_MIN_S", 0.0)
     monkeypatch.delenv("IVDREM_STEPPER_CHILD", raising=False)
     monkeypatch.delenv("IVDREM_STEPPER_PREFETCH", raising=False)
     monkeypatch.delenv("IVDREM_COMPILE_CHILD", raising=False)
@@ -241,3 +243,13 @@ def test_with_the_stepper_not_cached_the_child_compiles_the_stepper(monkeypatch)
     w, proc = jobs[0]
     assert w.modules == [] and "--modules" not in proc.args
     assert proc.returncode == 0 and w.proc is None                          # waited for
+
+
+def test_no_child_for_a_small_share(monkeypatch):
+    # a few cheap wrappers: the child's start would cost what it saves
+    _pretend_uncached(monkeypatch)
+    monkeypatch.setattr(compiled, "_CHILD_START_S", 0.75)
+    monkeypatch.setattr(compiled, "_CHILD_MIN_S", 1.0)
+    monkeypatch.setattr(_warm_stepper, "start_modules", lambda names: 1 / 0)
+    loop, k = _lags(6, "small_share")
+    _check(loop, k)

@@ -411,6 +411,8 @@ def _import(cdir, name, src):
 _S_PER_WRAPPER, _S_PER_CHAR = 0.11, 3.3e-4
 #: the child's late start, in the same units: its interpreter, numba, its first compile
 _CHILD_START_S = 0.75
+#: no child for a smaller share than this: its start would eat what it saves
+_CHILD_MIN_S = 1.0
 _GENERATED_IMPORT = re.compile(r"^(?:from|import) (ivdrem_\w+)", flags=re.M)
 
 
@@ -496,8 +498,9 @@ def _start_split(cdir, deps):
         return _warm_stepper.Warmup(), []
     for name, src in deps:
         _write(cdir, name, src)
-    later = _split(_uncached_wrappers(cdir, deps), _CHILD_START_S)[1]
-    if not later:
+    costs = _uncached_wrappers(cdir, deps)
+    later = _split(costs, _CHILD_START_S)[1]
+    if sum(costs[n][0] + sum(costs[n][1].values()) for n in later) < _CHILD_MIN_S:
         return _warm_stepper.Warmup(), []
     return _warm_stepper.start_modules(_with_imports(later, deps)), later
 
