@@ -404,23 +404,152 @@ def _import(cdir, name, src):
     return mod
 
 
+# A wrapper's compile time, estimated: measured for IV-DREM's 31 wrappers on the 2-core
+# development machine, about 0.11 s plus 0.33 ms per character of its kernel's module (a
+# Jacobian kernel no dearer than its size says).  A function the kernel calls that numba
+# compiles on its own (a robot-model function, an ivdrem.blocks._kernels helper) costs
+# the same per character, once in every process that compiles a caller.
+_S_PER_WRAPPER, _S_PER_CHAR = 0.11, 3.3e-4
+#: the child's late start, in the same units: its interpreter, numba, its first compile
+_CHILD_START_S = 0.75
+#: no child for a smaller share than this: its start would eat what it saves
+_CHILD_MIN_S = 1.0
+_GENERATED_IMPORT = re.compile(r"^(?:from|import) (ivdrem_\w+)", flags=re.M)
+
+
+def _callees(cdir, ksrc, sources):
+    """{callee: estimated seconds} of the separately compiled functions a kernel module's
+    source calls that numba's cache does not hold yet."""
+    out = {}
+    model = re.search(r"^import (ivdrem_model_\w+) as model$", ksrc, flags=re.M)
+    if model:
+        mname = model.group(1)
+        defs = {m.group(1): m for m in re.finditer(r"^def (\w+)\(.*?(?=^def |^\S|\Z)",
+                                                    sources[mname], flags=re.M | re.S)}
+        for f in sorted(set(re.findall(r"\bmodel\.(\w+)", ksrc)) & defs.keys()):
+            if not _warm_stepper.function_cached(cdir / f"{mname}.py", f):
+                out[(mname, f)] = _S_PER_CHAR * len(defs[f].group(0))
+    for f in sorted(_ALLOWED_GLOBALS - {"np", "math", "model", "call_c"}):
+        helper = getattr(_kernels, f)
+        if not (hasattr(helper, "py_func") and re.search(rf"(?<![\w.]){f}\s*\(", ksrc)):
+            continue
+        try:
+            if not _warm_stepper.index_exists(helper._cache):
+                out[("_kernels", f)] = _S_PER_CHAR * len(inspect.getsource(helper.py_func))
+        except Exception:     # pragma: no cover - numba internals changed
+            pass
+    return out
+
+
+def _uncached_wrappers(cdir, deps):
+    """{wrapper module: (estimated seconds, {callee: estimated seconds})} of the written
+    wrapper modules in deps that numba's cache does not hold yet."""
+    sources = dict(deps)
+    out = {}
+    for name, src in deps:
+        if not name.startswith("ivdrem_wrapper_") or name in sys.modules:
+            continue
+        if _warm_stepper.function_cached(cdir / f"{name}.py", "wrapper"):
+            continue
+        kernel = _GENERATED_IMPORT.findall(src)[0]
+        ksrc = sources[kernel]
+        out[name] = (_S_PER_WRAPPER + _S_PER_CHAR * len(ksrc), _callees(cdir, ksrc, sources))
+    return out
+
+
+def _split(costs, head_start=_CHILD_START_S):
+    """(this process's, the child's) shares of the modules `costs` ({name: (seconds,
+    {callee: seconds})}): the dearest first, each to the process that would finish it
+    first (the child starting `head_start` late; a callee costs a process only once), so
+    both finish together."""
+    load, have, shares = [0.0, head_start], [set(), set()], ([], [])
+
+    def total(name):
+        own, callees = costs[name]
+        return own + sum(callees.values())
+
+    for name in sorted(costs, key=lambda n: (-total(n), n)):
+        own, callees = costs[name]
+        ends = [load[k] + own + sum(c for f, c in callees.items() if f not in have[k])
+                for k in (0, 1)]
+        k = int(ends[1] < ends[0])
+        load[k] = ends[k]
+        have[k].update(callees)
+        shares[k].append(name)
+    return shares
+
+
+def _with_imports(names, deps):
+    """`names` and the generated modules they import (recursively), in the order of deps."""
+    sources = dict(deps)
+    need, todo = set(), list(names)
+    while todo:
+        n = todo.pop()
+        if n not in need:
+            need.add(n)
+            todo += _GENERATED_IMPORT.findall(sources[n])
+    return [n for n, _ in deps if n in need]
+
+
+def _start_split(cdir, deps):
+    """(a child compiling about half the wrappers of deps that numba's cache does not hold,
+    the wrappers this process imports only after the child); deps: models, kernels and
+    wrappers, without the stepper."""
+    if not _warm_stepper.enabled():
+        return _warm_stepper.Warmup(), []
+    for name, src in deps:
+        _write(cdir, name, src)
+    costs = _uncached_wrappers(cdir, deps)
+    later = _split(costs, _CHILD_START_S)[1]
+    if sum(costs[n][0] + sum(costs[n][1].values()) for n in later) < _CHILD_MIN_S:
+        return _warm_stepper.Warmup(), []
+    return _warm_stepper.start_modules(_with_imports(later, deps)), later
+
+
+def _import_all(cdir, deps, warmup, later=()):
+    """Import deps in order, those in `later` only after the child `warmup` has finished
+    (from numba's cache then, or compiled here if it failed); a failure or an interrupt
+    here kills the child."""
+    later = set(later)
+    try:
+        for name, dsrc in deps:
+            if name not in later:
+                _import(cdir, name, dsrc)
+    except BaseException:
+        warmup.cancel()
+        raise
+    warmup.wait()
+    for name, dsrc in deps:
+        if name in later:
+            _import(cdir, name, dsrc)
+
+
+def _load_kernels(deps):
+    """Import the models, kernels and wrappers `deps` (no stepper; their import compiles
+    the wrappers), about half the wrappers numba's cache does not hold compiled by a child
+    process meanwhile (:mod:`ivdrem.sim._warm_stepper`)."""
+    cdir = cache_dir()
+    cdir.mkdir(parents=True, exist_ok=True)
+    _import_all(cdir, deps, *_start_split(cdir, deps))
+
+
 def _load(deps):
     """Import the modules in order (models before the kernels that import them, then the
     wrappers: their import compiles them); returns the stepper module (the last of deps).
 
-    The stepper is imported first (its functions compile at their first call): when numba's
-    cache does not hold it yet, a child process compiles it meanwhile
-    (:mod:`ivdrem.sim._warm_stepper`) and this one loads it from the cache afterwards."""
+    The stepper is imported first (its functions compile at their first call).  When
+    numba's cache does not hold it yet, a child process compiles it meanwhile (it costs
+    more than all kernels); when it does, a child compiles about half the wrappers numba's
+    cache does not hold (:func:`_load_kernels`).  This process then loads the child's work
+    from the cache (:mod:`ivdrem.sim._warm_stepper`)."""
     cdir = cache_dir()
     cdir.mkdir(parents=True, exist_ok=True)
     sname, ssrc = deps[-1]
     stepper = _import(cdir, sname, ssrc)
-    warmup = _warm_stepper.start(stepper)
-    try:
-        for name, dsrc in deps[:-1]:
-            _import(cdir, name, dsrc)
-    finally:
-        warmup.wait()
+    if _warm_stepper.enabled() and not _warm_stepper.stepper_cached(stepper):
+        _import_all(cdir, deps[:-1], _warm_stepper.start(stepper))
+    else:
+        _load_kernels(deps[:-1])
     return stepper
 
 
