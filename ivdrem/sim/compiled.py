@@ -602,10 +602,7 @@ class CompiledEngine:
         self.program = generate_source(plan, param_exprs)
         c_stepper = _c_stepper()
         if c_stepper is not None:
-            cdir = cache_dir()
-            cdir.mkdir(parents=True, exist_ok=True)
-            for name, dsrc in self.program.deps[:-1]:      # the kernels (no numba stepper)
-                _import(cdir, name, dsrc)
+            _load_kernels(self.program.deps[:-1])          # the kernels (no numba stepper)
             self.module = c_stepper
         else:
             self.module = _load(self.program.deps)
