@@ -13,8 +13,9 @@ for 0.2 s each with the default method, and prints per case: the Python-side cod
 first integrate call (``stats["compile_s"]``), and the simulation time (``sim_s``).  A
 second child with the same (now warm) cache directories shows the cache-load cost.
 
-Targets: both default laws from empty caches <= 20 s in all; a second law or a rewired
-diagram <= 8 s.
+Targets: both default laws from empty caches <= 20 s in all (import included); a second
+law or a rewired diagram <= 8 s.  The compiled engine's default C stepper is built by the
+C compiler inside law 1's compile (``IVDREM_STEPPER=numba`` measures the numba stepper).
 
 Usage::
 
@@ -96,8 +97,10 @@ def main(argv=None):
                       f"{c['compile_s']:8.2f} {c['sim_s']:6.2f}")
             if title.startswith("cold"):
                 both = r["cases"][0]["total_s"] + r["cases"][1]["total_s"]
-                print(f"  both default laws: {both:.2f} s (target <= 20 s: "
-                      f"{'PASS' if both <= 20 else 'MISS'}); second law "
+                everything = r["import_s"] + both
+                print(f"  both default laws: {both:.2f} s, with the import {everything:.2f} s "
+                      f"(target <= 20 s in all: {'PASS' if everything <= 20 else 'MISS'}); "
+                      f"second law "
                       f"{r['cases'][1]['total_s']:.2f} s, rewired "
                       f"{r['cases'][2]['total_s']:.2f} s (target <= 8 s: "
                       f"{'PASS' if max(r['cases'][1]['total_s'], r['cases'][2]['total_s']) <= 8 else 'MISS'})")

@@ -224,7 +224,9 @@ def test_no_split_child_from_a_child_or_when_switched_off(monkeypatch):
 
 def test_with_the_stepper_not_cached_the_child_compiles_the_stepper(monkeypatch):
     # the stepper costs more than all kernels: then the child's job is the stepper and the
-    # parent imports every kernel module itself
+    # parent imports every kernel module itself (the numba stepper's job: the C stepper
+    # is built by the C compiler in the parent)
+    monkeypatch.setenv("IVDREM_STEPPER", "numba")
     _pretend_uncached(monkeypatch)
     monkeypatch.setattr(_warm_stepper, "stepper_cached", lambda module: False)
     jobs = []

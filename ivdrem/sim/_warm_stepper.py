@@ -1,8 +1,9 @@
 """Compile in a second process while this one compiles: the shared stepper, or half the kernels.
 
-The first compiled run on a machine (empty numba cache) compiles two independent things:
-the shared stepper (:mod:`ivdrem.sim.stepper`, the same for every diagram, about 60 % of
-the time) and the diagram's own kernels and their wrappers.  numba compiles under one
+The first compiled run on a machine (empty numba cache) compiles the diagram's own kernels
+and their wrappers and, with the numba stepper (``IVDREM_STEPPER=numba``; the default C
+stepper is built by the C compiler in ~1 s), the shared stepper (:mod:`ivdrem.sim.stepper`,
+the same for every diagram, more than all kernels).  numba compiles under one
 process-wide lock, so a thread cannot overlap them; a child process can.  The child is
 ``python -m ivdrem.sim._warm_stepper`` with one of two jobs:
 
@@ -180,7 +181,9 @@ def start(module) -> Warmup:
 
 
 def main():
-    """The child: one step of a one-state linear system on the compiled engine."""
+    """The child: one step of a one-state linear system on the compiled engine with the
+    numba stepper (the one this job compiles; the C stepper needs no child)."""
+    os.environ["IVDREM_STEPPER"] = "numba"
     import control as ct
     from ivdrem.sim import simulate
     lag = ct.ss([[-1.0]], [[1.0]], [[1.0]], [[0.0]], inputs="u", outputs="y", name="lag")
