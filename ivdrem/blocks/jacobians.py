@@ -396,3 +396,23 @@ def instrument_jacobian(t, x, u, jac, l):
                 jac[m + k, m + c] = l * dP[i, j, c]
                 jac[m + k, m + n + c] = l * (dP[i, j, n + c] + dP[i, j, 2 * n + c])
                 jac[m + k, m + 2 * n + c] = l * dP[i, j, 3 * n + c]
+
+
+def tracking_error_jacobian(t, x, u, jac, alpha):
+    # inputs   u = [q, dq, q_d, dq_d, ddq_d] (n each);  outputs [e, r, v, dv] (n each)
+    #          e = q_d - q, r = de + alpha e, v = dq_d + alpha e, dv = ddq_d + alpha de  (3)-(4)
+    n = u.shape[0] // 5
+    for i in range(n):
+        jac[i, i] = -1.0                       # de/dq
+        jac[i, 2 * n + i] = 1.0                # de/dq_d
+        jac[n + i, i] = -alpha                 # dr/dq
+        jac[n + i, n + i] = -1.0               # dr/ddq
+        jac[n + i, 2 * n + i] = alpha          # dr/dq_d
+        jac[n + i, 3 * n + i] = 1.0            # dr/ddq_d
+        jac[2 * n + i, i] = -alpha             # dv/dq
+        jac[2 * n + i, 2 * n + i] = alpha      # dv/dq_d
+        jac[2 * n + i, 3 * n + i] = 1.0        # dv/ddq_d
+        jac[3 * n + i, n + i] = -alpha         # d(dv)/ddq
+        jac[3 * n + i, 3 * n + i] = alpha      # d(dv)/ddq_d
+        jac[3 * n + i, 4 * n + i] = 1.0        # d(dv)/dddq_d
+

@@ -5,6 +5,7 @@ import numpy as np
 
 from ._core import BlockSpec, make_block
 from . import _validate as checks
+from .jacobians import tracking_error_jacobian
 
 
 def tracking_error_output(t, x, u, y, alpha):
@@ -38,5 +39,5 @@ def tracking_error(n, alpha=1.0, *, name="tracking_error"):
                      outputs=[("e", n), ("r", n), ("v", n), ("dv", n)], states=[],
                      x0=np.zeros(0), param_names=("alpha",), output=tracking_error_output,
                      direct=("q", "dq", "q_d", "dq_d", "ddq_d"), validate=validate,
-                     named_ports=True)
+                     named_ports=True, jacobian=tracking_error_jacobian)
     return make_block(spec, {"alpha": alpha})
