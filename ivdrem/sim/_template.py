@@ -808,8 +808,11 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
             diagram_eval(RHS, t1, xn, P, W, f1)
             stats[S_RHS] += 1
         if nmh > 0 and adaptive:
+            probes = stats[S_PROBES]
             tg = probe_holds(m, t, t1, x, xn, K[0], f1, K, xg, P, W, stats, t0)
-            swept = True
+            # a probe moved the signals; a step that ends on the grid (a pinned step) has
+            # none inside it, and its signals are still those of the FSAL stage at t1
+            swept = stats[S_PROBES] != probes
             if tg > 0.0:
                 t_cut = tg
                 h = tg - t

@@ -1034,9 +1034,10 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
             stats[S_RHS] += 1;
         }
         if (nmh > 0 && adaptive) {
+            i64 probes = stats[S_PROBES];
             double tg = probe_holds(c, m, t, t1, x, xn, ROW(K, 0), f1, K, n, xg, stats, t0, D,
                                     &dense_ready);
-            swept = 1;
+            swept = stats[S_PROBES] != probes;
             if (tg > 0.0) {
                 t_cut = tg;
                 h = tg - t;
