@@ -151,3 +151,20 @@ def test_without_a_c_compiler_the_numba_stepper_runs_with_a_warning(monkeypatch)
     assert ref.engine.stepper == "c"
     ref.advance(0.05)
     assert np.array_equal(sim.x, ref.x)
+
+
+def test_a_damaged_library_in_the_cache_is_built_again(tmp_path):
+    lib = _cstepper.build(tmp_path)
+    lib.write_bytes(b"not an ELF file")            # e.g. a disk that filled up mid-copy
+    st = _cstepper.load(tmp_path)
+    assert st.path == lib and lib.stat().st_size > 1000
+    # and it runs: the sparse LU of a 2 x 2 system against numpy
+    J = np.array([[1.0, 2.0], [0.5, -3.0]])
+    LU, piv = np.zeros((4, 2)), np.zeros(2, dtype=np.int64)
+    perm, rowptr = np.array([0, 1]), np.array([0, 2, 4])
+    colidx, diagp = np.array([0, 1, 0, 1]), np.array([0, 3])
+    assert st.slu_factor(J, 10.0, LU, piv, perm, rowptr, colidx, diagp) == _template.OK
+    b = np.array([1.0, -2.0])
+    x = b.copy()
+    st.slu_solve(LU, perm, rowptr, colidx, diagp, x)
+    np.testing.assert_allclose(x, np.linalg.solve(10.0 * np.eye(2) - J, b), rtol=1e-14)
