@@ -27,6 +27,7 @@ import ctypes
 import functools
 import hashlib
 import os
+import platform
 import shutil
 import subprocess
 import sys
@@ -135,8 +136,9 @@ def build(cache):
     cc, ver = _compiler()
     hdr = header_source()
     src = SOURCE.read_text()
-    key = hashlib.sha256("\0".join([src, hdr, ver, " ".join(CFLAGS), sys.platform])
-                         .encode()).hexdigest()[:20]
+    # the architecture too: a cache directory shared by the hosts of a cluster
+    key = hashlib.sha256("\0".join([src, hdr, ver, " ".join(CFLAGS), sys.platform,
+                                    platform.machine()]).encode()).hexdigest()[:20]
     lib = Path(cache) / f"ivdrem_cstepper_{key}.so"
     if lib.exists():
         return lib
