@@ -137,7 +137,8 @@ def test_the_split_is_balanced_and_covers_every_uncached_wrapper_once(monkeypatc
         monkeypatch.delitem(sys.modules, name, raising=False)   # imported by another test
     costs = compiled._uncached_wrappers(cdir, deps)
     wrappers = [n for n, _ in deps if n.startswith("ivdrem_wrapper_")]
-    assert sorted(costs) == sorted(wrappers) and len(wrappers) == 31
+    assert len(wrappers) == len(compiled.generate_source(plan).wrappers) > 20
+    assert sorted(costs) == sorted(wrappers)
     head = compiled._CHILD_START_S
     parent, child = compiled._split(costs, head)
     assert sorted(parent + child) == sorted(wrappers)          # each exactly once

@@ -42,6 +42,7 @@ import os
 import re
 import sys
 import textwrap
+import threading
 import warnings
 from pathlib import Path
 
@@ -571,20 +572,41 @@ def stepper_choice():
     return v
 
 
-def _c_stepper():
-    """The C stepper (built and cached on first use), or None for the numba stepper: when
-    asked for, or (with a warning, once per process) when no C compiler builds it."""
+def _c_stepper_pending():
+    """A thread building (or loading) the C stepper while this process compiles its
+    kernels (the C compiler is a process of its own), or None for the numba stepper."""
     if stepper_choice() != "c":
         return None
-    try:
-        return _cstepper.load(cache_dir())
-    except _cstepper.CStepperUnavailable as e:
-        if not _fallback_warned:
-            _fallback_warned.append(str(e))
-            warnings.warn(f"the C stepper is unavailable, running the numba stepper (same "
-                          f"results; ~25 s more on the first compile): {e}",
-                          StepperFallbackWarning, stacklevel=4)
+    box = {}
+
+    def build():
+        try:
+            box["stepper"] = _cstepper.load(cache_dir())
+        except BaseException as e:       # handed to the caller by _c_stepper
+            box["error"] = e
+    th = threading.Thread(target=build, name="ivdrem-cstepper", daemon=True)
+    th.start()
+    return th, box
+
+
+def _c_stepper(pending):
+    """The C stepper of `pending` (see _c_stepper_pending), or None for the numba stepper:
+    when asked for, or (with a warning, once per process) when no C compiler builds it."""
+    if pending is None:
         return None
+    th, box = pending
+    th.join()
+    e = box.get("error")
+    if e is None:
+        return box["stepper"]
+    if not isinstance(e, _cstepper.CStepperUnavailable):
+        raise e
+    if not _fallback_warned:
+        _fallback_warned.append(str(e))
+        warnings.warn(f"the C stepper is unavailable, running the numba stepper (same "
+                      f"results; ~25 s more on the first compile): {e}",
+                      StepperFallbackWarning, stacklevel=4)
+    return None
 
 
 _fallback_warned = []
@@ -600,9 +622,15 @@ class CompiledEngine:
         self.plan = plan
         param_exprs, self.P = _param_layout(plan)
         self.program = generate_source(plan, param_exprs)
-        c_stepper = _c_stepper()
+        pending = _c_stepper_pending()
+        if pending is not None:
+            try:
+                _load_kernels(self.program.deps[:-1])      # the kernels (no numba stepper)
+            finally:
+                c_stepper = _c_stepper(pending)
+        else:
+            c_stepper = None
         if c_stepper is not None:
-            _load_kernels(self.program.deps[:-1])          # the kernels (no numba stepper)
             self.module = c_stepper
         else:
             self.module = _load(self.program.deps)
