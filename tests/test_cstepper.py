@@ -168,3 +168,13 @@ def test_a_damaged_library_in_the_cache_is_built_again(tmp_path):
     x = b.copy()
     st.slu_solve(LU, perm, rowptr, colidx, diagp, x)
     np.testing.assert_allclose(x, np.linalg.solve(10.0 * np.eye(2) - J, b), rtol=1e-14)
+
+
+def test_dsyevd_work_lengths_in_c_are_the_python_functions():
+    header = _cstepper.header_source()
+    from ivdrem.sim import _diagram
+    for fn in (_diagram.dsyevd_lwork, _diagram.dsyevd_liwork):
+        m = re.search(rf"{fn.__name__}\(int64_t n\) {{ return (-?\d+) \+ (-?\d+) \* n \+ "
+                      r"(-?\d+) \* n \* n; }", header)
+        c0, c1, c2 = (int(v) for v in m.groups())
+        assert all(c0 + c1 * n + c2 * n * n == fn(n) for n in range(1, 50))

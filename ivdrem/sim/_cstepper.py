@@ -39,7 +39,7 @@ import numpy as np
 from .. import __version__
 from . import _diagram, _jit_sparse, _template
 from .simulator import BLOCK_RAISED_MESSAGE, WORKSPACE_LAYOUT
-from .tables import DIMS, FLOAT_FIELDS, INT_FIELDS
+from .stepper import layout_constants
 
 __all__ = ["CStepper", "header_source", "load", "CStepperUnavailable", "SOURCE"]
 
@@ -100,18 +100,25 @@ def header_source():
     for mod in (_template, _diagram, _jit_sparse):
         for name, v in _constants(mod).items():
             put(name, v)
-    for i, (name, _, _) in enumerate(WORKSPACE_LAYOUT):
-        put(f"FIELD_{name.upper()}", i)
-    for i, d in enumerate(DIMS):
-        put(f"DIM_{d}", i)
-    for i, f in enumerate(INT_FIELDS):
-        put(f"T_{f.upper()}", i)
-    for i, f in enumerate(FLOAT_FIELDS):
-        put(f"TF_{f.upper()}", i)
-    put("N_INT_TABLES", len(INT_FIELDS))
+    for name, v in layout_constants():
+        put(name, v)
     for name, (code, _) in FAILURES.items():
         put(name, code)
+    for fn in (_diagram.dsyevd_lwork, _diagram.dsyevd_liwork):
+        lines.append(_quadratic_c(fn))
     return "\n".join(lines) + "\n"
+
+
+def _quadratic_c(fn):
+    """C of the integer quadratic `fn` (dsyevd's work lengths in _diagram, the one place
+    they are written), its coefficients read from fn and checked on 0..64."""
+    f0, f1, f2 = fn(0), fn(1), fn(2)
+    c2 = (f2 - 2 * f1 + f0) // 2
+    c1 = f1 - f0 - c2
+    if any(fn(n) != f0 + c1 * n + c2 * n * n for n in range(65)):
+        raise RuntimeError(f"{fn.__name__} is not a quadratic in n")
+    return (f"static inline int64_t {fn.__name__}(int64_t n) {{ return {f0} + {c1} * n + "
+            f"{c2} * n * n; }}")
 
 
 def _compiler():
@@ -246,7 +253,7 @@ class CStepper:
 
     @staticmethod
     def _status(code):
-        if code in _ERRORS and code != _template.OK:
+        if code in _ERRORS:
             raise RuntimeError(_ERRORS[code])
         return code
 
@@ -254,13 +261,7 @@ class CStepper:
     def integrate(self, mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
         addr, shape = self._workspace(W)
         n = x.shape[0]
-        K = np.empty((_template.K_ROWS, n))
-        J = np.zeros((n, n))          # a structured Jacobian writes only its pattern
-        LU = np.empty((n + 2, n))     # the factor in rows < n; the sparse LU uses the other two
-        piv = np.zeros(n, dtype=np.int64)
-        xn = np.empty(n)
-        f1 = np.empty(n)
-        xg = np.empty(n)
+        K, J, LU, piv, xn, f1, xg = _template.work_arrays(n)
         D = np.empty((3, n))          # Rodas5P's dense-output coefficients, once per step
         f, i = np.float64, np.int64
         if out_y.ndim != 2 or out_x.ndim != 2:

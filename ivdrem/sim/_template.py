@@ -170,11 +170,11 @@ NO_REFCOUNT = ("copy_into", "hist_index", "quad_slope", "hist_push", "hist_trim"
 #
 # numba gives every compiled function its own machine code, holding a copy of all its callees:
 # a chain of wrappers compiles the stepper once per link.  So the steps and the max-hold
-# helpers, each called from one place, are inlined into the loop, and integrate (it only
-# allocates the loop's work arrays) stays Python in both engines.
+# helpers, each called from one place, are inlined into the loop, and integrate and
+# work_arrays (they only allocate the loop's work arrays) stay Python in both engines.
 INLINE = ("external_inputs", "method_step", "rodas5p_step", "dp45_step", "bs23_step",
           "rk4_step", "probe_holds", "set_hold_modes")
-PYTHON_LEVEL = ("integrate",)
+PYTHON_LEVEL = ("integrate", "work_arrays")
 
 
 def copy_into(dst, d0, src, s0, n):
@@ -686,16 +686,19 @@ def integrate(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
     in which one would update is cut to end at that sampling time (the update is a
     discontinuity of the right-hand side) and the method restarts there.
     """
-    n = x.shape[0]
+    K, J, LU, piv, xn, f1, xg = work_arrays(x.shape[0])
+    return step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
+                     K, J, LU, piv, xn, f1, xg)
+
+
+def work_arrays(n):
+    """The loop's work arrays for n states: stages K, Jacobian J, factor LU, pivots, the
+    new state, the end slope and an interpolated state (C stepper's integrate too)."""
     K = np.empty((K_ROWS, n))
     J = np.zeros((n, n))          # a structured Jacobian writes only its pattern
     LU = np.empty((n + 2, n))     # the factor in rows < n; the sparse LU uses the other two
     piv = np.zeros(n, dtype=np.int64)
-    xn = np.empty(n)
-    f1 = np.empty(n)
-    xg = np.empty(n)
-    return step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
-                     K, J, LU, piv, xn, f1, xg)
+    return K, J, LU, piv, np.empty(n), np.empty(n), np.empty(n)
 
 
 def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,

@@ -267,8 +267,8 @@ static double lowest_eigenpair(Ctx *c, const double *u, i64 nvec, i64 nmat) {
     double *w = scratch_part(c, SC_HOLD_W, &nw);
     double *work = scratch_part(c, SC_HOLD_WORK, &nwork);
     i64 nn = nmat * nmat;
-    i64 lwork = 1 + 6 * nmat + 2 * nmat * nmat;     /* _diagram.dsyevd_lwork */
-    i64 liwork = 3 + 5 * nmat;                      /* _diagram.dsyevd_liwork */
+    i64 lwork = dsyevd_lwork(nmat);        /* from _diagram, through the header */
+    i64 liwork = dsyevd_liwork(nmat);
     if (nA < nn || nw < nmat || nwork < lwork || 5 + liwork > c->nlapack_ints)
         fail(c, ERR_LAPACK_SIZE);
     for (i64 i = 0; i < nmat; i++) {
