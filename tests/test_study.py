@@ -367,3 +367,27 @@ def test_non_utf8_study_file_is_a_clear_error(tmp_path):
     f.write_bytes(b"[study.grid]\n# caf\xe9\n")
     with pytest.raises(StudyError, match=r"study file .* is not UTF-8 text.*0xe9"):
         read_study(f)
+
+
+def test_study_paths_are_the_callers(tmp_path, monkeypatch, capsys):
+    """`ivdrem study FILE --out DIR` resolves both against the directory the user started
+    from (IVDREM_CALLER_CWD, set by ./run), as every other command does, not against the
+    clone ./run changes into."""
+    caller = tmp_path / "caller"
+    (caller / "mine").mkdir(parents=True)
+    (caller / "s.toml").write_text('[experiment]\nt_end = 5.0\n[study.grid]\n"iv_drem.T" = [5.0]\n',
+                                   encoding="utf-8")
+    (caller / "mine" / "results.csv").write_text("mine\n", encoding="utf-8")
+    elsewhere = tmp_path / "clone"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    monkeypatch.setenv("IVDREM_CALLER_CWD", str(caller))
+    # the study file is found in the caller's directory, and --out names the caller's
+    # directory `mine`, whose foreign file is refused (nothing is run or written)
+    rc = main(["study", "s.toml", "--out", "mine", "--quiet", "--workers", "1"])
+    assert rc == 2
+    msg = capsys.readouterr().err
+    assert "not one of ivdrem's study directories" in msg, msg
+    assert str(caller / "mine") in msg
+    assert (caller / "mine" / "results.csv").read_text(encoding="utf-8") == "mine\n"
+    assert list(elsewhere.iterdir()) == []

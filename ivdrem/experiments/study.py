@@ -42,6 +42,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from .._atomic import write_text_atomic, new_tempfile, fsync_file
+from .._paths import user_path
 from .study_spec import RunSpec, StudyError, StudySpec, expand_study, read_study
 
 __all__ = ["run_study", "StudyError", "run_one", "results_table", "CURVE_DT",
@@ -486,9 +487,11 @@ def add_study_arguments(parser):
 
 def run_study_command(args) -> int:
     """``ivdrem study``: 0 when every run has a record, 1 when runs were lost, 2 for bad input."""
-    out = args.out if args.out is not None else Path("studies") / Path(args.study).stem
+    # Paths on the command line are the caller's (see ivdrem._paths), as for every command.
+    study = user_path(args.study)
+    out = user_path(args.out if args.out is not None else Path("studies") / study.stem)
     try:
-        df = run_study(args.study, out, workers=args.workers, scheduler=args.scheduler,
+        df = run_study(study, out, workers=args.workers, scheduler=args.scheduler,
                        resume=args.resume, progress=False if args.quiet else None,
                        report=not args.no_report)
     except StudyError as exc:
