@@ -101,7 +101,7 @@ def mixed_regression_blocks(ctx: LawContext, *, instrument: bool = True):
                block_library.mixing(nth)]
     # z, phi (and zeta) are recorded so that the diagnostics can form w = z - phi^T theta
     # (13), the excitation of (18) and the products of (19) offline
-    outputs = ["Delta", "calY", "z", "phi"] + (["zeta"] if instrument else [])
+    outputs = ["Delta", "Delta_log10", "calY", "z", "phi"] + (["zeta"] if instrument else [])
     return blocks, outputs
 
 

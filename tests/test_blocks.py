@@ -21,7 +21,7 @@ from scipy.integrate import quad, solve_ivp
 
 import ivdrem.blocks as block_library
 from ivdrem.blocks import ParameterError
-from ivdrem.blocks._core import flat_kernel
+from ivdrem.blocks._core import flat_kernel, kernel_args
 from ivdrem.blocks._kernels import det_adj
 from ivdrem.blocks.mixing import mixing_output
 from ivdrem.models import two_link
@@ -376,9 +376,10 @@ def test_det_adj_property(A):
 def run_mixing(Y, Psi):
     nth = Y.size
     u = np.concatenate([Y, np.asarray(Psi, float).ravel()])
-    y = np.full(1 + nth, np.nan)
-    kernel(block_library.mixing(nth), "output")(0.0, np.zeros(0), u, y, nth)
-    return y[0], y[1:]
+    blk = block_library.mixing(nth)
+    y = np.full(2 + nth, np.nan)
+    kernel(blk, "output")(0.0, np.zeros(0), u, y, *kernel_args(blk.ivdrem, {}))
+    return y[0], y[1:1 + nth]
 
 
 @pytest.mark.parametrize("nth", [1, 2, 3, 5])
@@ -451,7 +452,8 @@ def test_mixing_block_declaration():
     spec = blk.ivdrem
     assert spec.named_kernels["output"] is mixing_output and spec.output.named_kernel is mixing_output
     assert [p for p, _ in spec.inputs] == ["avg"] and spec.ninputs == 5 + 25
-    assert spec.outputs == [("Delta", 1), ("calY", 5)] and spec.direct == ("avg",)
+    assert spec.outputs == [("Delta", 1), ("calY", 5), ("Delta_log10", 1)]
+    assert spec.direct == ("avg",)
 
 
 # ============================================================ controller in the paper loop

@@ -31,46 +31,121 @@ def matT_mat(A, B, out):
             out[a, b] = s
 
 
-@njit(cache=True)
-def det_adj(A, adj):
-    """det(A) and adj(A) by the Faddeev-LeVerrier recursion; returns det(A).
+# ------------------------------------------------------------------ determinant, adjugate
+# By the singular value decomposition A = U diag(sigma) V^T (G. W. Stewart, "On the
+# adjugate matrix", Linear Algebra Appl. 283, 1998): with s_UV = det(U) det(V) = +-1,
+#     det A = s_UV prod_j sigma_j,      adj A = s_UV V diag(pi) U^T,  pi_i = prod_{j!=i} sigma_j,
+# products over the other singular values formed from prefix and suffix products (no
+# division), so the adjugate of a singular A (rank n-1: rank one; rank <= n-2 or A = 0:
+# zero) is as accurate as that of a regular one.  O(n^3); docs/mixing.md.
 
-    A polynomial identity, so it is exact in exact arithmetic for singular A too (the
-    mixing step (17) meets a singular Psi at the start of every run); adj(A) A = det(A) I.
-    """
-    n = A.shape[0]
-    Mk = np.zeros((n, n))      # M_1 = I
-    tmp = np.zeros((n, n))
-    AM = np.zeros((n, n))
+@njit(cache=True)
+def svd_signed(A):
+    """(U, sigma, Vt, s_UV) with A = U diag(sigma) Vt, sigma descending, s_UV = det(U) det(Vt)."""
+    U, sig, Vt = np.linalg.svd(A)
+    s = 1.0
+    if np.linalg.det(U) < 0.0:
+        s = -s
+    if np.linalg.det(Vt) < 0.0:
+        s = -s
+    return U, sig, Vt, s
+
+
+@njit(cache=True)
+def products_without(sig, skip, out):
+    """out[i] = prod_{j != i, j != skip} sig[j] (skip < 0: leave none out besides i);
+    out[skip] = 0.  Prefix and suffix products, O(n), no division."""
+    n = sig.shape[0]
+    pre = 1.0
     for i in range(n):
-        Mk[i, i] = 1.0
-    c = 1.0
-    for k in range(1, n + 1):
-        # AM = A M_k ; c_{n-k} = -tr(AM)/k ; M_{k+1} = AM + c I
-        for i in range(n):
-            for j in range(n):
-                s = 0.0
-                for l in range(n):
-                    s += A[i, l] * Mk[l, j]
-                AM[i, j] = s
-        tr = 0.0
-        for i in range(n):
-            tr += AM[i, i]
-        c = -tr / k
-        if k < n:
-            for i in range(n):
-                for j in range(n):
-                    tmp[i, j] = AM[i, j]
-                tmp[i, i] += c
-            for i in range(n):
-                for j in range(n):
-                    Mk[i, j] = tmp[i, j]
-    # p(A) = 0 gives A M_n = -c_0 I, so adj(A) = (-1)^(n+1) M_n and det(A) = (-1)^n c_0.
-    sign = 1.0 if (n % 2 == 1) else -1.0
+        out[i] = pre
+        if i != skip:
+            pre *= sig[i]
+    suf = 1.0
+    for i in range(n - 1, -1, -1):
+        out[i] *= suf
+        if i != skip:
+            suf *= sig[i]
+    if skip >= 0:
+        out[skip] = 0.0
+
+
+@njit(cache=True)
+def adj_from_svd(U, sig, Vt, s_uv, adj):
+    """adj = s_UV V diag(pi) U^T; returns det = s_UV prod sigma."""
+    n = sig.shape[0]
+    pi = np.empty(n)
+    products_without(sig, -1, pi)
     for i in range(n):
         for j in range(n):
-            adj[i, j] = sign * Mk[i, j]
-    return -sign * c
+            acc = 0.0
+            for k in range(n):
+                acc += Vt[k, i] * pi[k] * U[j, k]
+            adj[i, j] = s_uv * acc
+    d = s_uv
+    for k in range(n):
+        d *= sig[k]
+    return d
+
+
+@njit(cache=True)
+def det_adj(A, adj):
+    """det(A) and adj(A) (written into adj) by the signed SVD above; returns det(A).
+
+    Exact in the sense of the SVD's backward error for singular A too (the mixing step
+    (17) meets Psi = 0 at the start of every run, then rank-deficient Psi); adj(A) A = det(A) I.
+    """
+    U, sig, Vt, s = svd_signed(A)
+    return adj_from_svd(U, sig, Vt, s, adj)
+
+
+@njit(cache=True)
+def log10_abs_det(sig):
+    """log10 |det A| = sum log10 sigma_j, finite where det A underflows; a zero singular
+    value counts as LOG10_ZERO_SIGMA (a finite stand-in for -inf, see docs/mixing.md)."""
+    acc = 0.0
+    for k in range(sig.shape[0]):
+        if sig[k] > 0.0:
+            acc += np.log10(sig[k])
+        else:
+            acc += -400.0
+    return acc
+
+
+@njit(cache=True)
+def adj_derivative_parts(U, sig, Vt):
+    """(A, G, B) with d adj(A)[E_ab] = s_UV sum over three rank-one pieces, O(n^3):
+
+        d adj[E_ab]_ij = s_UV [ (G_ab + B_ba) A_ij - A_ia (G_jb + B_bj) + A_ba B_ij - B_ia A_bj ]
+
+    A = V diag(w) U^T, G = U diag(rho) V^T, B = v_m u_m^T, m the smallest singular value,
+    w_i = prod_{l != i, m} sigma_l (w_m = 0), rho_k = sigma_m / sigma_k (rho_m = 0).  From
+    adj(P + E) = s_UV V adj(Sigma + U^T E V) U^T and the derivative of the adjugate of a
+    diagonal matrix, whose second-order products prod_{l != i, k} sigma_l are the rank-three
+    matrix w rho^T + e_m w^T + w e_m^T off the diagonal (the diagonal cancels); no division
+    by a singular value that can vanish alone.  docs/mixing.md derives it."""
+    n = sig.shape[0]
+    m = n - 1
+    w = np.empty(n)
+    products_without(sig, m, w)
+    rho = np.zeros(n)
+    for k in range(m):
+        if sig[k] > 0.0:
+            rho[k] = sig[m] / sig[k]
+    A = np.empty((n, n))
+    G = np.empty((n, n))
+    B = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            a = 0.0
+            g = 0.0
+            for k in range(n):
+                a += Vt[k, i] * w[k] * U[j, k]
+                g += U[i, k] * rho[k] * Vt[k, j]
+            A[i, j] = a
+            G[i, j] = g
+            B[i, j] = Vt[m, i] * U[j, m]
+    return A, G, B
 
 
 @njit(cache=True)
@@ -104,3 +179,367 @@ def spd_solve(A, B):
             for l in range(i + 1, n):
                 s -= L[l, i] * B[l, c]
             B[i, c] = s / L[i, i]
+
+
+# ------------------------------------------------------------------ the mixing step (17)
+# Variants (docs/mixing.md), with s = 1 + ||Psi||_F, P = Psi / s (singular values <= 1):
+#   0 "paper"    Delta = det P,                      calY = adj(P) Y / s           (17), E4
+#   1 "eigen"    Delta = prod sigma_j / (sigma_j + f), calY = adj(P) Y / (s prod (sigma_j + f)),
+#                f = f_rel ||P||_F: the per-eigenvalue least-squares-type normalisation
+#   2 "channel"  Delta_i = s det P / c_i,            calY_i = (adj(P) Y)_i / c_i,
+#                c_i = sqrt(C_ii^2 + eps^2 ||C_i,:||^2), C = adj(P): the (i, i) cofactor,
+#                guarded by its row (it can vanish for the instrumental, non-symmetric Psi)
+# Every variant divides det P and adj(P) Y by the same known positive signal per channel,
+# so calY_i = Delta_i theta_i + calW_i holds exactly.  log10 |Delta| is computed from the
+# singular values, so it is finite where Delta underflows.
+MIXING_VARIANTS = ("paper", "eigen", "channel")
+LOG10_ZERO_SIGMA = -400.0          # log10 of a singular value that is exactly zero
+
+
+@njit(cache=True)
+def _frobenius(Psi):
+    big = 0.0
+    for k in range(Psi.shape[0]):
+        big = max(big, abs(Psi[k]))
+    ss = 0.0
+    if big > 0.0:
+        for k in range(Psi.shape[0]):
+            r = Psi[k] / big                             # scaled: no overflow for huge Psi
+            ss += r * r
+    return big * np.sqrt(ss)
+
+
+@njit(cache=True)
+def _log10_sum(sig):
+    acc = 0.0
+    for k in range(sig.shape[0]):
+        acc += np.log10(sig[k]) if sig[k] > 0.0 else LOG10_ZERO_SIGMA
+    return acc
+
+
+@njit(cache=True)
+def _scaled_adjugate(U, Vt, coef, s_uv, out):
+    """out = s_UV V diag(coef) U^T."""
+    n = coef.shape[0]
+    for i in range(n):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += Vt[k, i] * coef[k] * U[j, k]
+            out[i, j] = s_uv * acc
+
+
+@njit(cache=True)
+def _channel_divisors(C, guard, c):
+    """c_i = sqrt(C_ii^2 + guard^2 ||C_i,:||^2) (any positive common factor of C cancels)."""
+    n = C.shape[0]
+    for i in range(n):
+        r2 = 0.0
+        for j in range(n):
+            r2 += C[i, j] * C[i, j]
+        c[i] = np.sqrt(C[i, i] * C[i, i] + guard * guard * r2)
+
+
+@njit(cache=True)
+def _channel_coefficients(sig, coef):
+    """pi_k / K with K = prod_{j != m} sigma_j: sigma_m / sigma_k, 1 at k = m; all zero when
+    rank <= n - 2 (then adj = 0 and K = 0)."""
+    n = sig.shape[0]
+    m = n - 1
+    coef[m] = 1.0
+    if n > 1 and not sig[m - 1] > 0.0:
+        for k in range(n):
+            coef[k] = 0.0
+        return False
+    for k in range(m):
+        coef[k] = sig[m] / sig[k]
+    return True
+
+
+@njit(cache=True)
+def mixing_values(code, Y, Psi, f_rel, guard, Delta, calY, logD):
+    """The mixing step (17) in variant `code` (MIXING_VARIANTS): writes Delta, calY and
+    logD = log10 |Delta| (finite where Delta underflows)."""
+    n = Y.shape[0]
+    nrm = _frobenius(Psi)
+    s = 1.0 + nrm
+    P = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            P[i, j] = Psi[i * n + j] / s
+    U, sig, Vt, s_uv = svd_signed(P)
+    coef = np.empty(n)
+    C = np.empty((n, n))
+    if code == 0:
+        products_without(sig, -1, coef)
+        _scaled_adjugate(U, Vt, coef, s_uv, C)
+        d = s_uv
+        for k in range(n):
+            d *= sig[k]
+        Delta[0] = d
+        logD[0] = _log10_sum(sig)
+        for i in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += C[i, j] * Y[j]
+            calY[i] = acc / s
+    elif code == 1:
+        if nrm == 0.0:
+            Delta[0] = 0.0
+            logD[0] = n * LOG10_ZERO_SIGMA
+            calY[:] = 0.0
+            return
+        f = f_rel * nrm / s
+        r = np.empty(n)
+        for k in range(n):
+            r[k] = sig[k] / (sig[k] + f)
+        products_without(r, -1, coef)
+        for k in range(n):
+            coef[k] /= sig[k] + f                       # pi_k / prod_j (sigma_j + f)
+        _scaled_adjugate(U, Vt, coef, s_uv, C)
+        d = s_uv
+        for k in range(n):
+            d *= r[k]
+        Delta[0] = d
+        acc = 0.0                                       # log10 r_j = -log1p(f/sigma_j)/ln 10
+        for k in range(n):
+            acc += -np.log1p(f / sig[k]) / np.log(10.0) if sig[k] > 0.0 else LOG10_ZERO_SIGMA
+        logD[0] = acc
+        for i in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += C[i, j] * Y[j]
+            calY[i] = acc / s
+    else:
+        # normalised by K = prod_{j != m} sigma_j (m the smallest): C/K has entries <= 1
+        m = n - 1
+        _channel_coefficients(sig, coef)
+        _scaled_adjugate(U, Vt, coef, s_uv, C)
+        c = np.empty(n)
+        _channel_divisors(C, guard, c)
+        logK = _log10_sum(sig[:m])
+        for i in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += C[i, j] * Y[j]
+            if c[i] > 0.0:
+                calY[i] = acc / c[i]
+                Delta[i] = s * s_uv * sig[m] / c[i]
+                logD[i] = (np.log10(s) + (np.log10(sig[m]) if sig[m] > 0.0
+                                          else LOG10_ZERO_SIGMA) - np.log10(c[i]))
+            else:
+                calY[i] = 0.0
+                Delta[i] = 0.0
+                logD[i] = np.log10(s) + logK + LOG10_ZERO_SIGMA
+
+
+@njit(cache=True)
+def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
+    """Jacobian of mixing_values: jac[(k + n + k), (n + n*n)] over (Y, Psi), rows Delta (k
+    entries: 1, or n for "channel"), calY, logD; O(n^3) (docs/mixing.md).
+
+    Each output is o = h(P, Y) s^e with h homogeneous of degree q in P (P = Psi/s,
+    s = 1 + ||Psi||_F, g = ds/dPsi = Psi/||Psi||_F), so by Euler's identity
+        do/dPsi_ab = s^(e-1) (dh/dP_ab - (q - e) h g_ab),      do/dY = s^e dh/dY.
+    dh/dP comes from d det = tr(adj dP) and the adjugate's derivative in
+    adj_derivative_parts; at Psi = 0 the kink of ||Psi||_F is taken as g = 0."""
+    n = Y.shape[0]
+    nn = n * n
+    k = n if code == 2 else 1
+    nrm = _frobenius(Psi)
+    s = 1.0 + nrm
+    P = np.empty((n, n))
+    g = np.zeros(nn)
+    for i in range(n):
+        for j in range(n):
+            P[i, j] = Psi[i * n + j] / s
+            if nrm > 0.0:
+                g[i * n + j] = Psi[i * n + j] / nrm
+    U, sig, Vt, s_uv = svd_signed(P)
+    m = n - 1
+    ln10 = np.log(10.0)
+    C = np.empty((n, n))                  # adj(P), scaled per variant (below)
+    coef = np.empty(n)
+    A, G, B = adj_derivative_parts(U, sig, Vt)
+    # dlogsig[a, b] = sum_j u_aj v_bj / sigma_j = d sum_j log sigma_j / dP_ab
+    dls = np.zeros((n, n))
+    for a in range(n):
+        for b in range(n):
+            acc = 0.0
+            for j in range(n):
+                if sig[j] > 0.0:
+                    acc += U[a, j] * Vt[j, b] / sig[j]
+            dls[a, b] = acc
+    scale_A = 1.0                          # A (and C) carry this factor: N or K below
+    rows_D = 0
+    rows_Y = k
+    rows_L = k + n
+    if code == 1 and nrm == 0.0:
+        return                             # all outputs are 0 near Psi = 0 along rays
+    if code == 0:
+        products_without(sig, -1, coef)
+    elif code == 1:
+        f = f_rel * nrm / s
+        r = np.empty(n)
+        tau = np.empty(n)
+        for j in range(n):
+            tau[j] = sig[j] + f
+            r[j] = sig[j] / tau[j]
+        products_without(r, -1, coef)
+        for j in range(n):
+            coef[j] /= tau[j]
+        # A / N: w_i / N = (1/(tau_i tau_m)) prod_{l != i, m} r_l
+        wN = np.empty(n)
+        products_without(r, m, wN)
+        for i in range(m):
+            wN[i] /= tau[i] * tau[m]
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for l in range(n):
+                    acc += Vt[l, i] * wN[l] * U[j, l]
+                A[i, j] = acc
+        # Lam = d log N / dP = U diag(1/tau) V^T + f_rel P/||P||_F sum 1/tau
+        # (||P||_F = nrm / s and f = f_rel ||P||_F, so df/dP = f_rel P / ||P||_F)
+        sinv = 0.0
+        for j in range(n):
+            sinv += 1.0 / tau[j]
+        Lam = np.empty((n, n))
+        pn = nrm / s
+        for a in range(n):
+            for b in range(n):
+                acc = 0.0
+                for j in range(n):
+                    acc += U[a, j] * Vt[j, b] / tau[j]
+                Lam[a, b] = acc + f_rel * P[a, b] / pn * sinv
+        # d log10 Delta / dP without the cancellation of dls - Lam:
+        # 1/sigma_j - 1/tau_j = f / (sigma_j tau_j)
+        for a in range(n):
+            for b in range(n):
+                acc = 0.0
+                for j in range(n):
+                    if sig[j] > 0.0:
+                        acc += U[a, j] * Vt[j, b] * (f / (sig[j] * tau[j]))
+                    else:
+                        acc -= U[a, j] * Vt[j, b] / tau[j]
+                dls[a, b] = acc - f_rel * P[a, b] / pn * sinv
+    else:
+        full = _channel_coefficients(sig, coef)
+        if not full:
+            return                         # rank <= n - 2: outputs 0, a kink
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for l in range(m):
+                    acc += Vt[l, i] * U[j, l] / sig[l]      # A / K: w_l / K = 1 / sigma_l
+                A[i, j] = acc
+    _scaled_adjugate(U, Vt, coef, s_uv, C)
+    CY = np.empty(n)
+    AY = np.empty(n)
+    BY = np.empty(n)
+    GtY = np.empty(n)
+    for i in range(n):
+        a1 = 0.0
+        a2 = 0.0
+        a3 = 0.0
+        a4 = 0.0
+        for j in range(n):
+            a1 += C[i, j] * Y[j]
+            a2 += A[i, j] * Y[j]
+            a3 += B[i, j] * Y[j]
+            a4 += G[j, i] * Y[j]
+        CY[i] = a1
+        AY[i] = a2
+        BY[i] = a3
+        GtY[i] = a4
+    # dF[c, a, b] = d (C Y)_c / dP_ab, C = adj(P) (times the variant's 1/N or 1/K)
+    dF = np.empty((n, n, n))
+    for a in range(n):
+        for b in range(n):
+            gb = G[a, b] + B[b, a]
+            aba = A[b, a]
+            t2 = GtY[b] + BY[b]
+            for c in range(n):
+                dF[c, a, b] = s_uv * (gb * AY[c] + aba * BY[c] - A[c, a] * t2 - B[c, a] * AY[b])
+    if code == 0 or code == 1:
+        if code == 0:
+            D = s_uv
+            for j in range(n):
+                D *= sig[j]
+            qD, qF, eF, qL = float(n), float(n - 1), -1.0, n / ln10
+        else:
+            D = s_uv
+            for j in range(n):
+                D *= r[j]
+            qD, qF, eF, qL = 0.0, -1.0, -1.0, 0.0
+        for a in range(n):
+            for b in range(n):
+                col = n + a * n + b
+                dD = C[b, a]
+                dL = dls[a, b] / ln10
+                if code == 1:
+                    # C^T/N - D Lam cancels: D dlog|D| (dls, computed directly) when D != 0
+                    dD = D * dls[a, b] if sig[m] > 0.0 else dD - D * Lam[a, b]
+                jac[rows_D, col] = (dD - qD * D * g[col - n]) / s
+                jac[rows_L, col] = (dL - qL * g[col - n]) / s
+                for c in range(n):
+                    dFc = dF[c, a, b]
+                    if code == 1:
+                        dFc -= CY[c] * Lam[a, b]
+                    # calY = F s^-1, F of degree qF: s^-2 (dF - (qF + 1) F g)
+                    jac[rows_Y + c, col] = (dFc - (qF - eF) * CY[c] * g[col - n]) / (s * s)
+        for i in range(n):
+            for j in range(n):
+                jac[rows_Y + i, j] = C[i, j] / s
+        return
+    # "channel", with C, A and c divided by K = prod_{j != m} sigma_j:
+    # Delta_i = s Di, Di = s_uv sigma_m / c_i (degree 1); calY_i = (C Y)_i / c_i (degree 0)
+    c = np.empty(n)
+    _channel_divisors(C, guard, c)
+    # d c_i / c_i = [C_ii dC_ii + guard^2 sum_j C_ij dC_ij] / c_i^2, with
+    # dC_ij/dP_ab = s_uv [(G_ab + B_ba) A_ij - A_ia (G_jb + B_bj) + A_ba B_ij - B_ia A_bj]
+    ACt = np.zeros(n)
+    BCt = np.zeros(n)
+    CG = np.zeros((n, n))
+    CBt = np.zeros((n, n))
+    CAt = np.zeros((n, n))
+    for i in range(n):
+        for j in range(n):
+            ACt[i] += A[i, j] * C[i, j]
+            BCt[i] += B[i, j] * C[i, j]
+        for b in range(n):
+            a1 = 0.0
+            a2 = 0.0
+            a3 = 0.0
+            for j in range(n):
+                a1 += C[i, j] * G[j, b]
+                a2 += C[i, j] * B[b, j]
+                a3 += C[i, j] * A[b, j]
+            CG[i, b] = a1
+            CBt[i, b] = a2
+            CAt[i, b] = a3
+    g2 = guard * guard
+    for a in range(n):
+        for b in range(n):
+            col = n + a * n + b
+            gb = G[a, b] + B[b, a]
+            aba = A[b, a]
+            for i in range(n):
+                if not c[i] > 0.0:
+                    continue
+                dCii = s_uv * (gb * A[i, i] - A[i, a] * (G[i, b] + B[b, i]) + aba * B[i, i]
+                               - B[i, a] * A[b, i])
+                dR = s_uv * (gb * ACt[i] - A[i, a] * (CG[i, b] + CBt[i, b]) + aba * BCt[i]
+                             - B[i, a] * CAt[i, b])
+                dlc = (C[i, i] * dCii + g2 * dR) / (c[i] * c[i])
+                Di = s_uv * sig[m] / c[i]
+                # Delta_i = s Di(P), Di of degree 1: q - e = 0, do/dPsi = dDi/dP
+                jac[rows_D + i, col] = C[b, a] / c[i] - Di * dlc
+                yi = CY[i] / c[i]
+                jac[rows_Y + i, col] = (dF[i, a, b] / c[i] - yi * dlc) / s
+                # log10 |Delta_i| = log10 s + log10 |Di|: the s terms cancel
+                jac[rows_L + i, col] = (dls[a, b] - dlc) / (ln10 * s)
+    for i in range(n):
+        if c[i] > 0.0:
+            for j in range(n):
+                jac[rows_Y + i, j] = C[i, j] / c[i]

@@ -16,105 +16,16 @@ import math
 
 import numpy as np
 
-from ._kernels import spd_solve
+from ._kernels import spd_solve, mixing_derivatives
 
 
-def mixing_jacobian(t, x, u, jac, ntheta):
-    # inputs   u = [Y (nθ), Psi (nθ*nθ row-major)];  outputs y = [Delta, calY (nθ)]
-    # With s = 1 + ||Psi||_F, P = Psi/s, A = adj(P), Delta = det P, calY = A Y / s (eq. 17):
-    #   dDelta/dPsi_kl = A_lk / s - nθ Delta g_kl / s             (d det = tr(A dP))
-    #   dcalY/dY       = A / s
-    #   dcalY/dPsi_kl  = (A'[E_kl] Y) / s^2 - nθ (A Y) g_kl / s^2   (adj homogeneous, degree nθ-1)
-    # g_kl = ds/dPsi_kl = Psi_kl / ||Psi||_F (0 at Psi = 0), and A'[E] the derivative of the
-    # adjugate in the direction E, from the Faddeev-LeVerrier recursion differentiated
-    # (a polynomial identity, exact for singular P too: Psi is singular at every start),
-    # applied to Y as it goes (vectors, O(n^2) per step and direction, not O(n^3)).
-    n = ntheta
-    nn = n * n
-    big = 0.0
-    for k in range(nn):
-        big = max(big, abs(u[n + k]))
-    ss = 0.0
-    if big > 0.0:
-        for k in range(nn):
-            r = u[n + k] / big
-            ss += r * r
-    nrm = big * math.sqrt(ss)
-    s = 1.0 + nrm
-    P = np.empty((n, n))
-    for i in range(n):
-        for j in range(n):
-            P[i, j] = u[n + i * n + j] / s
-    # Faddeev-LeVerrier: M_1 = I, M_{k+1} = P M_k - tr(P M_k)/k I; adj(P) = (-1)^(n+1) M_n
-    Ms = np.zeros((n + 1, n, n))
-    for i in range(n):
-        Ms[1, i, i] = 1.0
-    AM = np.empty((n, n))
-    c = 0.0
-    for k in range(1, n + 1):
-        tr = 0.0
-        for i in range(n):
-            for j in range(n):
-                acc = 0.0
-                for l in range(n):
-                    acc += P[i, l] * Ms[k, l, j]
-                AM[i, j] = acc
-            tr += AM[i, i]
-        c = -tr / k
-        if k < n:
-            for i in range(n):
-                for j in range(n):
-                    Ms[k + 1, i, j] = AM[i, j]
-                Ms[k + 1, i, i] += c
-    sign = 1.0 if n % 2 == 1 else -1.0
-    det = -sign * c
-    A = np.empty((n, n))
-    AY = np.empty(n)
-    for i in range(n):
-        acc = 0.0
-        for j in range(n):
-            A[i, j] = sign * Ms[n, i, j]
-            acc += A[i, j] * u[j]
-        AY[i] = acc
-    inv_s = 1.0 / s
-    inv_s2 = inv_s * inv_s
-    for i in range(n):                     # dcalY / dY
-        for j in range(n):
-            jac[1 + i, j] = A[i, j] * inv_s
-    # Only A'[E_ab] Y is needed: with w_k = dM_k Y the recursion runs on vectors,
-    #   w_1 = 0,  w_{k+1} = e_a (M_k Y)_b + P w_k + dc_k Y,  A'[E_ab] Y = sign w_n,
-    # where dc_k = dc_k/dP_ab = -(M_k)_ba in closed form (c_k is the coefficient of
-    # lambda^(n-k) of det(lambda I - P) = sum_k lambda^(n-k) M_k by Faddeev-LeVerrier, and
-    # d det(lambda I - P)/dP_ab = -adj(lambda I - P)_ba, Jacobi): exact for singular P too.
-    MY = np.zeros((n + 1, n))
-    for k in range(1, n):
-        for i in range(n):
-            acc = 0.0
-            for j in range(n):
-                acc += Ms[k, i, j] * u[j]
-            MY[k, i] = acc
-    w = np.empty(n)
-    wn = np.empty(n)
-    for a in range(n):
-        for b in range(n):
-            col = n + a * n + b
-            g = u[col] / nrm if nrm > 0.0 else 0.0
-            jac[0, col] = A[b, a] * inv_s - n * det * g * inv_s
-            for i in range(n):
-                w[i] = 0.0
-            for k in range(1, n):
-                dc = -Ms[k, b, a]
-                for i in range(n):
-                    acc = dc * u[i]
-                    if k > 1:
-                        for l in range(n):
-                            acc += P[i, l] * w[l]
-                    wn[i] = acc
-                wn[a] += MY[k, b]
-                for i in range(n):
-                    w[i] = wn[i]
-            for i in range(n):
-                jac[1 + i, col] = (sign * w[i] - n * AY[i] * g) * inv_s2
+def mixing_jacobian(t, x, u, jac, ntheta, variant, f_rel, guard):
+    # inputs   u = [Y (nθ), Psi (nθ*nθ row-major)];  outputs y = [Delta, calY (nθ), log10|Delta|]
+    # Closed form at O(nθ^3) from the signed SVD of Psi/s (eq. 17 and its variants,
+    # docs/mixing.md): d det = tr(adj dP), the adjugate's derivative as three rank-one
+    # pieces (exact at singular Psi: no division by a singular value that can vanish alone)
+    mixing_derivatives(variant, u[0:ntheta], u[ntheta:ntheta + ntheta * ntheta], f_rel,
+                       guard, jac)
 
 
 def control_law_jacobian(t, x, u, jac, K, delta_mu, ntheta):
