@@ -76,12 +76,7 @@ def adj_from_svd(U, sig, Vt, s_uv, adj):
     n = sig.shape[0]
     pi = np.empty(n)
     products_without(sig, -1, pi)
-    for i in range(n):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += Vt[k, i] * pi[k] * U[j, k]
-            adj[i, j] = s_uv * acc
+    _scaled_adjugate(U, Vt, pi, s_uv, adj)
     d = s_uv
     for k in range(n):
         d *= sig[k]
