@@ -96,9 +96,9 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
 
     model = _model(config)
     exp = config["experiment"]
-    solver = solver_kwargs(config)
     diagrams = {}
     for law in exp["laws"]:
+        solver = solver_kwargs(config, law)
         diagrams[law] = d = closed_loop(law, model, **closed_loop_kwargs(config, law))
         check_diagram_cost(d, float(exp["t_end"]), engine=engine, dt_out=float(exp["dt_out"]),
                            method=solver["method"], h=solver["h"], h_max=solver["h_max"],

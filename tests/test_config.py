@@ -251,6 +251,31 @@ def test_solver_kwargs():
     assert solver_kwargs(load_config()) == {"method": "rodas5p", "rtol": 2e-4, "atol": 2e-6, "h": 1e-3, "h_max": 5.0}
 
 
+def test_solver_h_max_is_held_below_each_laws_window():
+    """A step must not read a window's delay history beyond t: h_max <= T/2 of the law's
+    window (eq. 14).  The paper's h_max = 5 s is below its T/2 = 10 s: unchanged."""
+    c = load_config()
+    for law in ("iv-drem", "composite-learning", "drem"):
+        assert solver_kwargs(c, law)["h_max"] == 5.0
+    assert solver_kwargs(c, "none")["h_max"] == 5.0
+    short = load_config(overrides={"iv_drem.T": 5.0})
+    assert solver_kwargs(short, "iv-drem")["h_max"] == 2.5
+    assert solver_kwargs(short, "drem")["h_max"] == 2.5
+    # composite learning has its own window: it is not held by iv_drem.T
+    assert solver_kwargs(short, "composite-learning")["h_max"] == 5.0
+    assert solver_kwargs(short)["h_max"] == 5.0
+
+
+def test_a_short_window_runs(tmp_path):
+    """iv_drem.T = 5 s with the default h_max = 5 s ran into "the step must stay below the
+    shortest transport delay" before any step; now it simulates past one window."""
+    from ivdrem.experiments.paper import run_law
+    c = load_config(overrides={"iv_drem.T": 5.0, "experiment.t_end": 6.0})
+    run = run_law(c, "iv-drem", progress=False)
+    assert run.stats["h_max"] == 2.5
+    assert np.all(np.isfinite(run.response.states[:, -1]))
+
+
 def test_dump_toml_round_trip(tmp_path):
     c = load_config(overrides={"controller": {"Gamma": [0.1, 0.2, 0.3, 0.4, 0.5]}, "experiment": {"laws": ["drem"]}})
     p = write(tmp_path, dump_toml(c))

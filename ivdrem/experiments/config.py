@@ -578,15 +578,26 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
     return kw
 
 
-def solver_kwargs(config: Mapping) -> dict:
-    """Keyword arguments of the simulator: method, rtol, atol, h, h_max."""
+def solver_kwargs(config: Mapping, law: str | None = None) -> dict:
+    """Keyword arguments of the simulator: method, rtol, atol, h, h_max.
+
+    With `law` given, ``h_max`` is also held to half the law's sliding window T (eq. 14):
+    a step must not read the window's delay history beyond t (docs/simulation.md).  The
+    paper's h_max = 5 s and T = 20 s are unchanged by it; a study that shortens T to 5 s
+    runs with h_max = 2.5 s instead of being refused.
+    """
     s = config["solver"]
+    h_max = float(s["h_max"])
+    if law is not None:
+        window = closed_loop_kwargs(config, law).get("T")
+        if window is not None:
+            h_max = min(h_max, float(window) / 2)
     return {
         "method": s["method"],
         "rtol": float(s["rtol"]),
         "atol": float(s["atol"]),
         "h": float(s["h"]),
-        "h_max": float(s["h_max"]),
+        "h_max": h_max,
     }
 
 

@@ -48,7 +48,7 @@ def run_law(config, law, *, model=None, progress=True, engine="compiled", log=No
     """
     model = _model(config) if model is None else model
     kw = closed_loop_kwargs(config, law)
-    solver = solver_kwargs(config)
+    solver = solver_kwargs(config, law)
     if kw.get("gamma") == "auto":
         kw["calibration"] = dict(engine=engine, dt_out=float(config["experiment"]["dt_out"]),
                                  **solver)

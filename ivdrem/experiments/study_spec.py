@@ -140,7 +140,7 @@ def config_hash(config: Mapping, law: str) -> str:
         "model": config["model"],
         "experiment": {k: v for k, v in config["experiment"].items() if k != "laws"},
         "closed_loop": plain(closed_loop_kwargs(config, law)),
-        "solver": plain(solver_kwargs(config)),
+        "solver": plain(solver_kwargs(config, law)),
     }
     text = json.dumps(what, sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
