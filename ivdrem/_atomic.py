@@ -8,7 +8,8 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["new_tempfile", "fsync_file", "write_text_atomic", "written_together"]
+__all__ = ["new_tempfile", "remove_stale_tempfiles", "fsync_file", "write_text_atomic",
+           "written_together"]
 
 
 def _umask() -> int:
@@ -17,10 +18,38 @@ def _umask() -> int:
     return mask
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True    # exists (another user's), or cannot tell: keep its file
+    return True
+
+
+def remove_stale_tempfiles(directory, name: str) -> None:
+    """Remove the temporaries of `name` left in `directory` by a process that was killed
+    before it could (``.NAME.PID.*.tmp`` whose PID is no longer running)."""
+    try:
+        entries = list(Path(directory).glob(f".{name}.*.tmp"))
+    except OSError:
+        return
+    for p in entries:
+        pid = p.name[len(name) + 2:].split(".", 1)[0]
+        if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+            try:
+                p.unlink()
+            except OSError:
+                pass
+
+
 def new_tempfile(directory, name: str) -> Path:
-    """A new hidden file in `directory`, with the mode a plain open() would give
-    (mkstemp alone would leave it 0600)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=directory)
+    """A new hidden file ``.NAME.PID.*.tmp`` in `directory`, with the mode a plain open()
+    would give (mkstemp alone would leave it 0600).  The PID in its name lets a later
+    write remove what a killed process left behind."""
+    remove_stale_tempfiles(directory, name)
+    fd, tmp = tempfile.mkstemp(prefix=f".{name}.{os.getpid()}.", suffix=".tmp", dir=directory)
     try:
         os.fchmod(fd, 0o666 & ~_umask())
     except (AttributeError, OSError):  # pragma: no cover - platforms without fchmod

@@ -18,7 +18,7 @@ from pathlib import Path
 from ._atomic import write_text_atomic
 
 __all__ = ["caller_cwd", "user_path", "OutputLocationError", "check_writable",
-           "check_writable_file", "check_writable_dir", "write_text_or_keep"]
+           "check_writable_file", "check_writable_dir", "check_replaceable", "write_text_or_keep"]
 
 CALLER_CWD_ENV = "IVDREM_CALLER_CWD"
 
@@ -92,29 +92,51 @@ def check_writable_file(path, what: str) -> Path:
     return path
 
 
-def fallback_path(path: Path) -> Path:
-    """A new file for results that could not be written to `path`: next to it if that
-    directory takes it, else in the temporary directory."""
+def _keep_text(path: Path, text: str) -> Path:
+    """Write `text` to a new file next to `path` or, if that directory does not take it
+    (full, read-only), in the temporary directory; a place that fails keeps no empty file."""
     name = path.name or "ivdrem-output"
+    errors = []
     for d in (path.parent, Path(tempfile.gettempdir())):
         try:
             fd, tmp = tempfile.mkstemp(prefix=f"{name}.unsaved-", suffix=path.suffix, dir=d)
-        except OSError:
+        except OSError as exc:
+            errors.append(f"{d}: {exc.strerror or exc}")
             continue
-        os.close(fd)
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(text)
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as exc:
+            errors.append(f"{d}: {exc.strerror or exc}")
+            Path(tmp).unlink(missing_ok=True)
+            continue
         return Path(tmp)
-    raise OSError(f"no writable place for the results of {path}")
+    raise OSError(f"no writable place for the results of {path} ({'; '.join(errors)})")
 
 
 def write_text_or_keep(path, text: str) -> tuple[Path, Exception | None]:
-    """Write `text` to `path` atomically; if that fails, write it to a fallback file.
+    """Write `text` to `path` atomically; if that fails, keep it in a new file next to
+    `path` or in the temporary directory (``$TMPDIR``).
 
-    Returns (where the text is, the error writing `path` or None).
+    Returns (where the text is, the error writing `path` or None).  Raises OSError only
+    when no place takes it; no empty file is left anywhere.
     """
     path = Path(path)
     try:
         return write_text_atomic(path, text), None
     except OSError as exc:
-        keep = fallback_path(path)
-        keep.write_text(text, encoding="utf-8")
-        return keep, exc
+        return _keep_text(path, text), exc
+
+
+def check_replaceable(path, what: str, *, overwrite: bool, ours=None) -> Path:
+    """The one rule for every output file: an existing file is replaced only if ivdrem
+    wrote it (``ours(path)`` is true) or the user passed ``--overwrite``; otherwise
+    :class:`OutputLocationError` before any work.  Also checks :func:`check_writable_file`."""
+    path = check_writable_file(path, what)
+    if os.path.lexists(path) and not overwrite and not (ours is not None and ours(path)):
+        raise OutputLocationError(
+            f"refusing to overwrite {path}: it exists and was not written by ivdrem; move it, "
+            f"choose another name, or pass --overwrite")
+    return path

@@ -4,13 +4,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 __all__ = ["main"]
 
 
 def _cmd_paper(args):
     from .experiments.config import ConfigError, load_config
-    from ._paths import OutputLocationError, check_writable_file, user_path
+    from ._paths import OutputLocationError, check_replaceable, user_path
     from ._preflight import (PreflightError, check_cache_dir, check_runs, method_overrides,
                              horizon_note, timing_text)
     from ._progress import want_progress
@@ -27,7 +28,8 @@ def _cmd_paper(args):
         config = load_config(None if args.config is None else user_path(args.config),
                              overrides or None)
         if args.json:
-            json_path = check_writable_file(user_path(args.json), "JSON file")
+            json_path = check_replaceable(user_path(args.json), "JSON file",
+                                          overwrite=args.overwrite, ours=_is_paper_json)
         check_cache_dir(args.engine)
         check_runs(config, engine=args.engine, allow_long=args.allow_long)
     except (ConfigError, PreflightError, OutputLocationError, ValueError) as e:
@@ -73,6 +75,17 @@ def _cmd_paper(args):
     return 0
 
 
+def _is_paper_json(path) -> bool:
+    """Whether `path` holds what ``ivdrem paper --json`` writes (per law: its summary)."""
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return (isinstance(data, dict) and bool(data)
+            and all(isinstance(v, dict) and {"theta_err_norm", "theta_hat"} <= set(v)
+                    for v in data.values()))
+
+
 def _cmd_study(args):
     from .experiments.study import run_study_command
     return run_study_command(args)
@@ -97,7 +110,11 @@ def build_parser():
                          "conclusions C1-C3 need)")
     pp.add_argument("--law", nargs="+", default=None, metavar="NAME",
                     help="laws to run, or 'all' (default: iv-drem composite-learning)")
-    pp.add_argument("--json", default=None, metavar="FILE", help="write per-law numbers as JSON")
+    pp.add_argument("--json", default=None, metavar="FILE",
+                    help="write per-law numbers as JSON (an existing file only if ivdrem "
+                         "wrote it, or with --overwrite)")
+    pp.add_argument("--overwrite", action="store_true",
+                    help="replace an existing --json file that ivdrem did not write")
     pp.add_argument("--config", default=None, metavar="FILE.toml",
                     help="experiment configuration (see examples/paper.toml)")
     pp.add_argument("--engine", choices=("compiled", "reference"), default="compiled")

@@ -563,6 +563,6 @@ def test_fmu_export_failing_mid_write_leaves_nothing(tmp_path, monkeypatch):
         raise OSError(28, "No space left on device (simulated)")
     monkeypatch.setattr(zipfile.ZipFile, "write", full)
     with pytest.raises(OSError, match="No space left"):
-        export_fmu("two-link", target, compile=False)
+        export_fmu("two-link", target, compile=False, overwrite=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["Plant.fmu"]
     assert target.read_bytes() == b"the previous FMU"

@@ -16,7 +16,11 @@ def _parser() -> argparse.ArgumentParser:
                                    "FMU (model exchange + co-simulation).")
     e.add_argument("--model", default="two-link",
                    help="model name: two-link (default) or planar-N, e.g. planar-3")
-    e.add_argument("-o", "--output", required=True, metavar="FILE.fmu", help="output file")
+    e.add_argument("-o", "--output", required=True, metavar="FILE.fmu",
+                   help="output file (an existing one only if ivdrem exported it, or with "
+                        "--overwrite)")
+    e.add_argument("--overwrite", action="store_true",
+                   help="replace an existing output file that ivdrem did not write")
     e.add_argument("--q0", type=float, nargs="+", metavar="Q", help="start values of q")
     e.add_argument("--dq0", type=float, nargs="+", metavar="DQ", help="start values of dq")
     e.add_argument("--substep", type=float, default=DEFAULT_SUBSTEP,
@@ -37,7 +41,8 @@ def main_fmu(argv=None) -> int:
         try:
             model = get_model(args.model)
             path = export_fmu(model, user_path(args.output), q0=args.q0, dq0=args.dq0,
-                              substep=args.substep, cc=args.cc, compile=not args.no_compile)
+                              substep=args.substep, cc=args.cc, compile=not args.no_compile,
+                              overwrite=args.overwrite)
         except (ValueError, RuntimeError, NotImplementedError, OSError) as exc:
             print(f"ivdrem fmu export: error: {exc}", file=sys.stderr)
             return 2

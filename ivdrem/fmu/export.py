@@ -66,7 +66,7 @@ import numpy as np
 import sympy as sp
 
 from .._atomic import new_tempfile
-from .._paths import check_writable_file
+from .._paths import check_replaceable
 
 __all__ = ["export_fmu", "generate_sources", "fmi2_header_dir", "FMU_SOURCE_FILES",
            "DEFAULT_SUBSTEP"]
@@ -627,8 +627,19 @@ def compile_binary(src_dir, out_file, *, cc=None, extra_flags=()):
     return res.stderr  # warnings, if any
 
 
+def is_ivdrem_fmu(path) -> bool:
+    """Whether `path` is an FMU that ivdrem exported (its modelDescription.xml names
+    ivdrem as the generation tool), so that a new export may replace it."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            head = zf.read("modelDescription.xml")[:4096]
+    except (OSError, KeyError, zipfile.BadZipFile):
+        return False
+    return b'generationTool="ivdrem ' in head
+
+
 def export_fmu(model, path, *, q0=None, dq0=None, substep=DEFAULT_SUBSTEP, cc=None,
-               compile=True, model_identifier=None):
+               compile=True, model_identifier=None, overwrite=False):
     """Write the plant of ``model`` as an FMI 2.0 FMU (model exchange + co-simulation).
 
     Parameters
@@ -648,6 +659,9 @@ def export_fmu(model, path, *, q0=None, dq0=None, substep=DEFAULT_SUBSTEP, cc=No
         If False, ship sources only (build later with ``fmpy compile``).
     model_identifier : str, optional
         Name of the binary (default ``ivdrem_<model name>``).
+    overwrite : bool
+        Replace an existing `path` that is not an FMU ivdrem exported (an earlier export is
+        replaced without it; anything else is refused before any work).
 
     Returns the path of the FMU.  Build files live in a temporary directory.
     """
@@ -655,7 +669,8 @@ def export_fmu(model, path, *, q0=None, dq0=None, substep=DEFAULT_SUBSTEP, cc=No
     if path.is_dir():
         raise ValueError(f"the FMU path {path} is a directory; give a file name, e.g. "
                          f"{path / 'Plant.fmu'}")
-    check_writable_file(path, "FMU file")   # before generating and compiling
+    check_replaceable(path, "FMU file", overwrite=overwrite,   # before generating
+                      ours=is_ivdrem_fmu)                       # and compiling
     files = generate_sources(model, q0=q0, dq0=dq0, substep=substep,
                              model_identifier=model_identifier)
     ident = re.search(r'modelIdentifier="([^"]+)"', files["modelDescription.xml"]).group(1)
