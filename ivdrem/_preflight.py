@@ -30,9 +30,11 @@ class PreflightError(ValueError):
 
 def add_run_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options that ``paper`` and ``report`` share: --method, --allow-long."""
+    from .experiments.config import SOLVER_METHODS, load_config
+    default = load_config()["solver"]["method"]
     parser.add_argument("--method", default=None, metavar="NAME",
                         help="integration method, overrides solver.method (default from the "
-                             "config: dp45); one of ivdrem.sim.METHODS")
+                             f"config: {default}); one of: {', '.join(SOLVER_METHODS)}")
     parser.add_argument("--allow-long", action="store_true", dest="allow_long",
                         help="run even when the estimated output memory or step count "
                              "exceeds the limits of ivdrem.sim.guards")

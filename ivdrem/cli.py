@@ -97,19 +97,23 @@ def _cmd_report(args):
 
 
 def build_parser():
+    from . import __version__
     from ._preflight import add_run_options
+    from .laws import law_names
     from .reports.cli import add_report_arguments
     p = argparse.ArgumentParser(prog="ivdrem", description=(
         "Composite adaptive disturbance rejection via IV-based DREM "
         "(Glushchenko & Lastochkin): paper experiment, report, plant FMU."))
+    p.add_argument("--version", action="version", version=f"ivdrem {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     pp = sub.add_parser("paper", help="run the paper experiment and print/write its numbers")
     pp.add_argument("--t-end", type=float, default=None, metavar="SECONDS",
                     help="horizon (default from the config: 300 s, the horizon "
                          "conclusions C1-C3 need)")
-    pp.add_argument("--law", nargs="+", default=None, metavar="NAME",
-                    help="laws to run, or 'all' (default: iv-drem composite-learning)")
+    pp.add_argument("--laws", "--law", dest="law", nargs="+", default=None, metavar="NAME",
+                    help="laws to run, overrides experiment.laws; 'all' or any of: "
+                         + ", ".join(law_names()) + " (default: iv-drem composite-learning)")
     pp.add_argument("--json", default=None, metavar="FILE",
                     help="write per-law numbers as JSON (an existing file only if ivdrem "
                          "wrote it, or with --overwrite)")

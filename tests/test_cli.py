@@ -67,3 +67,26 @@ def test_method_option_brings_its_tolerances(tmp_path):
     f.write_text("[solver]\nrtol = 3e-7\n")
     o = method_overrides("dp45", f)
     assert "solver.rtol" not in o and o["solver.atol"] == DEFAULT_TOLERANCES["dp45"][1]
+
+
+def test_version_and_consistent_law_option(capsys):
+    import ivdrem
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"ivdrem {ivdrem.__version__}"
+    # paper takes --laws as report does (--law stays as an alias)
+    from ivdrem.cli import build_parser
+    p = build_parser()
+    assert p.parse_args(["paper", "--laws", "drem", "none"]).law == ["drem", "none"]
+    assert p.parse_args(["paper", "--law", "drem"]).law == ["drem"]
+    assert p.parse_args(["report", "--laws", "drem"]).laws == ["drem"]
+
+
+def test_method_help_names_the_real_default(capsys):
+    from ivdrem.experiments.config import load_config
+    default = load_config()["solver"]["method"]
+    for cmd in ("paper", "report"):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert f"(default from the config: {default})" in text, text

@@ -52,9 +52,10 @@ def paper_runs(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def grid_study(paper_runs, tmp_path_factory):
-    """GRID on the default local cluster: 2 single-threaded worker processes, TCP on 127.0.0.1."""
+    """GRID on the default local cluster: 2 single-threaded worker processes (one per core),
+    TCP on 127.0.0.1."""
     out = tmp_path_factory.mktemp("grid")
-    df = run_study(GRID, out, workers=2, progress=False)
+    df = run_study(GRID, out, workers=min(2, os.cpu_count() or 1), progress=False)
     return out, df
 
 
@@ -391,3 +392,35 @@ def test_study_paths_are_the_callers(tmp_path, monkeypatch, capsys):
     assert str(caller / "mine") in msg
     assert (caller / "mine" / "results.csv").read_text(encoding="utf-8") == "mine\n"
     assert list(elsewhere.iterdir()) == []
+
+
+@pytest.mark.parametrize("address, fragment", [
+    ("notaurl", "missing port number"),
+    ("tcp://host:notaport", "notaport"),
+])
+def test_a_malformed_scheduler_address_is_one_clear_line(tmp_path, capsys, address, fragment):
+    study = tmp_path / "s.toml"
+    study.write_text('[experiment]\nt_end = 5.0\n[study.grid]\n"iv_drem.T" = [5.0]\n',
+                     encoding="utf-8")
+    t0 = time.perf_counter()
+    rc = main(["study", str(study), "--out", str(tmp_path / "out"), "--quiet",
+               "--scheduler", address])
+    assert rc == 2
+    assert time.perf_counter() - t0 < 10       # refused before any client is made
+    err = capsys.readouterr().err
+    assert "is not a Dask scheduler address" in err and fragment in err, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out" / "runs").exists()
+
+
+def test_more_workers_than_cores_is_refused(tmp_path, capsys):
+    study = tmp_path / "s.toml"
+    study.write_text('[experiment]\nt_end = 5.0\n[study.grid]\n"iv_drem.T" = [5.0]\n',
+                     encoding="utf-8")
+    n = (os.cpu_count() or 1) * 32
+    rc = main(["study", str(study), "--out", str(tmp_path / "out"), "--quiet",
+               "--workers", str(n)])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert f"--workers {n} exceeds the {os.cpu_count() or 1} cores" in err, err
+    assert not (tmp_path / "out" / "runs").exists()

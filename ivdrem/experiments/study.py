@@ -287,6 +287,14 @@ def _connect(workers: int | None, scheduler: str | None):
                              "has the workers its cluster started")
         if "://" not in scheduler:
             scheduler = "tcp://" + scheduler
+        from distributed.comm import parse_address, parse_host_port
+        try:   # a malformed address is refused before a client exists (no late traceback)
+            protocol, loc = parse_address(scheduler)
+            if protocol in ("tcp", "tls"):
+                parse_host_port(loc)
+        except ValueError as exc:
+            raise StudyError(f"--scheduler {scheduler!r} is not a Dask scheduler address "
+                             f"({exc}); give e.g. tcp://HOST:8786") from None
         try:
             client = Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S}s",
                             set_as_default=False)
@@ -295,9 +303,16 @@ def _connect(workers: int | None, scheduler: str | None):
                              f"{SCHEDULER_TIMEOUT_S:g} s ({type(exc).__name__}: {exc}); "
                              "is it running, and is the address right?") from None
         return client, None
-    n = (os.cpu_count() or 1) if workers is None else int(workers)
+    cores = os.cpu_count() or 1
+    n = cores if workers is None else int(workers)
     if n < 1:
         raise StudyError(f"--workers must be >= 1, got {workers}")
+    if n > cores:
+        # each worker is a process with its own compiled engine: more than one per core
+        # only adds memory and start-up, never speed
+        raise StudyError(f"--workers {n} exceeds the {cores} cores of this machine; the local "
+                         f"cluster runs one worker process per core at most (use --scheduler "
+                         "for a larger cluster)")
     with warnings.catch_warnings():
         # "Port 8787 is already in use": the scheduler's HTTP endpoint moves to a free port
         warnings.filterwarnings("ignore", message="Port .* is already in use")
