@@ -90,3 +90,18 @@ def test_method_help_names_the_real_default(capsys):
             main([cmd, "--help"])
         text = " ".join(capsys.readouterr().out.split())
         assert f"(default from the config: {default})" in text, text
+
+
+def test_paper_prints_the_conclusions_its_laws_allow(tmp_path, monkeypatch, capsys):
+    """examples/instrument.toml runs iv-drem and drem: its own command prints C4, the
+    conclusion it is about, and C2 (iv-drem alone), not C1 and C3 (composite learning is
+    not run)."""
+    import ivdrem.experiments.paper as paper
+    from ivdrem.reports.synthetic import synthetic_paper_run
+    monkeypatch.setattr(paper, "run_paper",
+                        lambda config, **kw: synthetic_paper_run(config, dt=0.05,
+                                                                 laws=["iv-drem", "drem"]))
+    assert main(["paper", "--laws", "iv-drem", "drem", "--t-end", "30", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    lines = [ln.split()[0] for ln in out.splitlines() if ln[:2] in ("C1", "C2", "C3", "C4")]
+    assert lines == ["C2", "C4"], out

@@ -5,11 +5,13 @@ stays selectable and searchable.
 """
 from __future__ import annotations
 
-import textwrap
+from functools import lru_cache
 
 from matplotlib.figure import Figure
+from matplotlib.font_manager import FontProperties
 from matplotlib.lines import Line2D
 from matplotlib.patches import Rectangle
+from matplotlib.textpath import TextToPath
 
 from .content import ReportContent, Table
 
@@ -17,7 +19,8 @@ __all__ = ["TextPages", "write_text_pages", "PAGE_W", "PAGE_H"]
 
 PAGE_W, PAGE_H = 8.27, 11.69  # A4, inches
 MARGIN_X, MARGIN_TOP, MARGIN_BOTTOM = 0.7, 0.75, 0.75
-EM = 0.56  # average glyph width of DejaVu Sans in em (a slight over-estimate)
+EM = 0.56  # average glyph width of DejaVu Sans in em (only for the narrowest column)
+_TEXT_TO_PATH = TextToPath()
 
 _VERDICT_COLORS = {"PASS": ("#dff3e0", "#1b5e20"), "FAIL": ("#fde0dc", "#b71c1c"),
                    "HOLDS": ("#dff3e0", "#1b5e20"), "FAILS": ("#fde0dc", "#b71c1c"),
@@ -33,11 +36,38 @@ def _tex(s: str) -> str:
     return s
 
 
-def _wrap(text: str, width_in: float, size: float) -> list[str]:
-    chars = max(int(width_in * 72.0 / (EM * size)), 4)
+@lru_cache(maxsize=None)
+def _width_in(s: str, size: float, bold: bool) -> float:
+    """Width of `s` as drawn (DejaVu Sans, matplotlib's default), in inches: measured, so a
+    bold header wraps where it really ends (an average glyph width let them collide)."""
+    for a, _ in _MATH:
+        s = s.replace(a, "W")
+    prop = FontProperties(family="DejaVu Sans", size=size, weight="bold" if bold else "normal")
+    w, _, _ = _TEXT_TO_PATH.get_text_width_height_descent(s, prop, ismath=False)
+    return w / 72.0
+
+
+def _wrap(text: str, width_in: float, size: float, bold: bool = False) -> list[str]:
+    """Greedy word wrap of `text` to lines no wider than `width_in` inches."""
+    width_in = max(width_in, 4 * EM * size / 72.0)
     lines: list[str] = []
     for para in str(text).split("\n"):
-        lines += textwrap.wrap(para, chars, break_long_words=True, break_on_hyphens=False) or [""]
+        line = ""
+        for word in para.split():
+            trial = f"{line} {word}" if line else word
+            if _width_in(trial, size, bold) <= width_in:
+                line = trial
+                continue
+            if line:
+                lines.append(line)
+            while _width_in(word, size, bold) > width_in and len(word) > 1:
+                k = len(word) - 1          # a word wider than the column: break it
+                while k > 1 and _width_in(word[:k], size, bold) > width_in:
+                    k -= 1
+                lines.append(word[:k])
+                word = word[k:]
+            line = word
+        lines.append(line)
     return lines
 
 
@@ -133,7 +163,7 @@ class TextPages:
 
     def paragraph(self, text: str, size: float = 9, **kw):
         width = PAGE_W - 2 * MARGIN_X
-        for line in _wrap(text, width, size):
+        for line in _wrap(text, width, size, kw.get("fontweight") == "bold"):
             self._ensure(self._lh(size))
             self._text(MARGIN_X, self.y, line, size, **kw)
             self.y -= self._lh(size)
@@ -146,11 +176,11 @@ class TextPages:
         lh = self._lh(size)
         pad = 0.04
 
-        def row_lines(cells):
-            return [_wrap(c, w - 2 * pad, size) for c, w in zip(cells, colw)]
+        def row_lines(cells, bold=False):
+            return [_wrap(c, w - 2 * pad, size, bold) for c, w in zip(cells, colw)]
 
         def draw_row(cells, *, bold=False, shade=None):
-            lines = row_lines(cells)
+            lines = row_lines(cells, bold)
             h = max(len(x) for x in lines) * lh + 2 * pad
             x = MARGIN_X
             if shade:
@@ -177,7 +207,7 @@ class TextPages:
                                        color="#555555", transform=self.fig.dpi_scale_trans))
             draw_row(t.header, bold=True, shade="#eeeeee")
 
-        head_h = max(len(x) for x in row_lines(t.header)) * lh + 2 * pad
+        head_h = max(len(x) for x in row_lines(t.header, True)) * lh + 2 * pad
         heights = [max(len(x) for x in row_lines(row)) * lh + 2 * pad for row in t.rows]
         if not t.rows:  # empty table
             self.heading(t.title, 11)
@@ -242,6 +272,8 @@ def write_text_pages(pdf, content: ReportContent, figure_titles: list[str]) -> i
             tp.new_page()
         tp.table(tables[key])
         if key == "summary" and figure_titles:
+            # the list of figures stays on one page (it was split after its first lines)
+            tp._ensure(tp._lh(11) * 3 + len(figure_titles) * (tp._lh(9) + 0.05))
             tp.heading("Figures", 11)
             for title in figure_titles:
                 tp.paragraph(title, 9)
