@@ -9,6 +9,7 @@ the shared disk cache.
 from __future__ import annotations
 
 import json
+import re
 import math
 import os
 import signal
@@ -424,3 +425,20 @@ def test_more_workers_than_cores_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"--workers {n} exceeds the {os.cpu_count() or 1} cores" in err, err
     assert not (tmp_path / "out" / "runs").exists()
+
+
+@pytest.mark.parametrize("table, fragment", [
+    ('[study.random]\nsamples = 1000000000\n[study.random."controller.alpha"]\n'
+     'distribution = "uniform"\nlow = 1.0\nhigh = 2.0\n', "'samples' = 1000000000 exceeds 100000"),
+    ('[study.grid]\n"controller.alpha" = [' + ", ".join(f"{1 + k / 1000}" for k in range(400))
+     + ']\n"iv_drem.p" = [' + ", ".join(f"{1 + k / 100}" for k in range(400)) + ']\n',
+     "the study has 320000 runs (400 x 400"),
+])
+def test_an_absurd_study_size_is_refused_at_once(tmp_path, table, fragment):
+    from ivdrem.experiments.study_spec import expand_study, read_study
+    study = tmp_path / "s.toml"
+    study.write_text('[experiment]\nt_end = 5.0\n' + table, encoding="utf-8")
+    t0 = time.perf_counter()
+    with pytest.raises(StudyError, match=re.escape(fragment)):
+        expand_study(read_study(study))
+    assert time.perf_counter() - t0 < 5

@@ -54,6 +54,10 @@ __all__ = ["StudyError", "StudySpec", "RunSpec", "DISTRIBUTIONS", "read_study", 
 #: distributions of [study.random] and their parameters
 DISTRIBUTIONS = ("uniform", "loguniform", "normal", "choice")
 
+#: the most runs one study may have: each is a configuration held in memory and a record
+#: on disk, so a mistyped sample count is refused before it fills the memory
+MAX_RUNS = 100_000
+
 _INDEXED = re.compile(r"^([A-Za-z_][\w]*)\.([A-Za-z_][\w]*)(?:\[(\d+)\])?$")
 
 
@@ -199,6 +203,9 @@ def read_study(source) -> StudySpec:
             raise StudyError("[study.random] needs 'samples' (the number of draws)")
         if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
             raise StudyError(f"[study.random] 'samples' must be an integer >= 1, got {samples!r}")
+        if samples > MAX_RUNS:
+            raise StudyError(f"[study.random] 'samples' = {samples} exceeds {MAX_RUNS} (the most "
+                             "runs a study may have); split it into several studies")
         if seed is None:
             raise StudyError("[study.random] needs 'seed' (an integer >= 0), so that the draws "
                              "can be repeated")
@@ -384,6 +391,13 @@ def expand_study(spec: StudySpec) -> list[RunSpec]:
     """
     runs: list[RunSpec] = []
     grid_keys = list(spec.grid)
+    n_points = math.prod(len(spec.grid[k]) for k in grid_keys) * max(spec.samples, 1)
+    n_laws = len(spec.base["experiment"]["laws"])
+    if n_points * n_laws > MAX_RUNS:   # refused before any configuration is built
+        sizes = " x ".join([str(len(spec.grid[k])) for k in grid_keys]
+                           + ([f"{spec.samples} samples"] if spec.random else []))
+        raise StudyError(f"the study has {n_points * n_laws} runs ({sizes} points x {n_laws} "
+                         f"law(s)); at most {MAX_RUNS} are allowed: split it into several studies")
     points = list(itertools.product(*(spec.grid[k] for k in grid_keys))) if grid_keys else [()]
     samples = _draws(spec)
     point = 0
