@@ -8,7 +8,8 @@ Two engines evaluate the same diagram with the same stepping code (``_template``
 * ``engine="compiled"`` (default): one numba module generated from the diagram's
   subsystem list and connection map (:mod:`ivdrem.sim.compiled`), cached on disk.
 
-The methods are step functions of the template, listed in :data:`METHOD_TABLE`; one loop
+The methods are step functions of the template, listed in the method registry
+(:mod:`ivdrem.sim.methods`); one loop
 (``_template.integrate``) owns step-size control, outputs, the after-step work and the
 divergence and stiffness checks.  Delay blocks are fed from a dense history of accepted
 steps (cubic Hermite); max-holds sample lambda_min on their own fixed grid from the dense
@@ -26,7 +27,6 @@ import sys
 import time as _time
 import warnings
 from collections import namedtuple
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,8 @@ import control as ct
 
 from .plan import DiagramPlan
 from . import _diagram, _template as tpl
+from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,
+                      DEFAULT_TOLERANCES, MethodInfo, method_info)
 from .tables import empty_tables, hold_nmat, pack as pack_tables, scratch_size, slope_flags
 from ..blocks._core import active_feeds
 
@@ -43,34 +45,6 @@ __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METH
            "MethodInfo"]
 
 
-@dataclass(frozen=True)
-class MethodInfo:
-    """One row of the method table."""
-    name: str
-    id: int               # dispatch id in the template (method_step)
-    step: str             # the template's step function
-    order: int
-    error_order: int      # order of the embedded solution (0: no error estimate)
-    adaptive: bool
-    l_stable: bool
-    dense_order: int      # order of the interpolant used for outputs / max-hold samples
-    dense_outputs: bool   # outputs read from the dense output (else the steps land on them)
-    description: str
-
-
-#: The integration methods, by name (the first is the default).
-METHOD_TABLE = {
-    "rodas5p": MethodInfo("rodas5p", tpl.RODAS5P, "rodas5p_step", 5, 4, True, True, 4, True,
-                          "Rodas5P: L-stable, stiffly accurate Rosenbrock 5(4) with a fresh "
-                          "Jacobian each step, dense output of order 4"),
-    "dp45": MethodInfo("dp45", tpl.DP45, "dp45_step", 5, 4, True, False, 3, False,
-                       "Dormand-Prince 5(4), explicit, error-controlled"),
-    "rk4": MethodInfo("rk4", tpl.RK4, "rk4_step", 4, 0, False, False, 3, False,
-                      "classical Runge-Kutta 4, fixed step h"),
-}
-METHODS = tuple(METHOD_TABLE)
-DEFAULT_METHOD = "rodas5p"
-STIFF_METHOD = "rodas5p"
 ENGINES = ("compiled", "reference")
 _TEMPLATE_PATH = Path(tpl.__file__)
 
@@ -95,25 +69,12 @@ Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
 BLOCK_RAISED_MESSAGE = "ivdrem: a block kernel raised inside the compiled stepper"
 
 
-def method_info(method) -> MethodInfo:
-    """The table row of a method name; an unknown name is an error naming the valid ones."""
-    if not isinstance(method, str) or method not in METHOD_TABLE:
-        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    return METHOD_TABLE[method]
-
-
 class StiffnessWarning(RuntimeWarning):
     """An explicit method's steps are limited by stability, not accuracy: use a stiff one."""
 
 
 class SimulationError(RuntimeError):
     """A run that diverged, hit a singular model, or could not continue."""
-
-
-#: Default (rtol, atol) per method: for the stiff method, the paper run's theta_hat(300 s)
-#: is within 1e-6 relative of a 100x tighter run (benchmarks/bench_paper.py measures it:
-#: 5.0e-7 in 5 863 steps; 1e-4 gave 1.9e-7 in 7 165 steps, 3e-4 1.1e-6: too loose).
-DEFAULT_TOLERANCES = {"rodas5p": (2e-4, 2e-6), "dp45": (1e-6, 1e-8), "rk4": (1e-6, 1e-8)}
 
 
 def _check_positive(name, v):
@@ -375,7 +336,7 @@ class Simulator:
             _validate_params(diagram, params)
         self.plan = plan = DiagramPlan.from_diagram(diagram, x0, params)
         self.method, self.engine_name = method, engine
-        rtol_d, atol_d = DEFAULT_TOLERANCES[method]
+        rtol_d, atol_d = info.rtol, info.atol
         self.h = _check_positive("h", h)
         self.rtol = _check_positive("rtol", rtol_d if rtol is None else rtol)
         self.atol = _check_positive("atol", atol_d if atol is None else atol)
@@ -633,6 +594,10 @@ class Simulator:
         if st == tpl.MAX_STEPS:
             raise SimulationError(f"more than max_steps = {self.max_steps} steps before "
                                   f"t = {self.t:.6g} s")
+        if st == tpl.UNKNOWN_METHOD:
+            raise NotImplementedError(
+                f"method {self.info.name!r} (dispatch id {self.info.id} in "
+                "ivdrem.sim.methods) has no step function in the stepper's method_step")
         raise SimulationError(f"unexpected status {st} at t = {self.t:.6g} s")
 
     def close(self):
