@@ -102,7 +102,8 @@ F_GROW_N = 5
 F_GROW_RATE = 6    # e-folding rate (1/s) at a DIVERGED_GROWTH stop
 F_HRHO = 7         # last h*rho(J) estimate of DP45
 F_HRHO_STIFF = 8   # the estimate when S_STIFF was set
-N_TF = 9
+F_ERR = 9          # error estimate (weighted RMS norm) of the last accepted step; 0: none
+N_TF = 10
 
 # growth-rate divergence: a state norm (>= 1) growing by GROWTH_FACTOR within GROWTH_WINDOW
 GROWTH_FACTOR = 1e6
@@ -886,6 +887,7 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
             K[0][i] = f1[i]
         stats[S_STEPS] += 1
         tf[F_T] = t
+        tf[F_ERR] = err
         bad = check_state(x, x_limit)
         if bad >= 0:
             stats[S_BAD] = bad

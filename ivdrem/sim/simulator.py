@@ -329,7 +329,10 @@ class Simulator:
     def __init__(self, diagram, *, method=DEFAULT_METHOD, engine="compiled", h=1e-3,
                  rtol=None, atol=None, h_max=None, params=None, x0=None, x_limit=1e10,
                  max_steps=50_000_000, t0=0.0):
-        self.info = info = method_info(method)
+        # a name of a user method, or a registry row (the generic method suite runs the
+        # stepper-internal methods this way)
+        self.info = info = method if isinstance(method, MethodInfo) else method_info(method)
+        method = info.name
         if engine not in ENGINES:
             raise ValueError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
         if params:
@@ -619,6 +622,7 @@ class Simulator:
                 "sim_s": self.wall, "compile_s": self.compile_s,
                 "wall_s": self.wall + self.compile_s, "rtol": self.rtol,
                 "atol": self.atol, "h": self.h if not self.info.adaptive else float(self.tf[1]),
+                "last_error": float(self.tf[tpl.F_ERR]),
                 "h_max": self.h_max}
 
     def hold_times(self):

@@ -1107,6 +1107,7 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
         }
         stats[S_STEPS] += 1;
         tf[F_T] = t;
+        tf[F_ERR] = err;
         i64 bad = check_state(x, n, x_limit);
         if (bad >= 0) {
             stats[S_BAD] = bad;
