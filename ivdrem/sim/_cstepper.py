@@ -38,8 +38,8 @@ import numpy as np
 
 from .. import __version__
 from . import _diagram, _jit_sparse, _template, methods
-from .simulator import BLOCK_RAISED_MESSAGE, WORKSPACE_LAYOUT
-from .stepper import layout_constants
+from .errors import BLOCK_RAISED_MESSAGE
+from .layout import WORKSPACE_LAYOUT, layout_constants
 
 __all__ = ["CStepper", "header_source", "load", "CStepperUnavailable", "SOURCE"]
 

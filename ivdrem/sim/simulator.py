@@ -26,7 +26,6 @@ import os
 import sys
 import time as _time
 import warnings
-from collections import namedtuple
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +37,10 @@ from . import _diagram, _template as tpl
 from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,
                       DEFAULT_TOLERANCES, MethodInfo, method_info)
 from .tables import empty_tables, hold_nmat, pack as pack_tables, scratch_size, slope_flags
+from .layout import WORKSPACE_LAYOUT, Workspace  # noqa: F401  (WORKSPACE_LAYOUT re-exported)
+from .errors import BlockError, SimulationError, StiffnessWarning, BLOCK_RAISED_MESSAGE  # noqa: F401
+from .guards import check_diagram_cost
+from .compiled import CompiledEngine
 from ..blocks._core import active_feeds
 
 __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METHODS",
@@ -47,35 +50,6 @@ __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METH
 
 ENGINES = ("compiled", "reference")
 _TEMPLATE_PATH = Path(tpl.__file__)
-
-#: The workspace of a run: (field, dtype, ndim), in order (the compiled code indexes the
-#: fields by position).  The input table (u_times, u_values) is empty while the inputs are
-#: held at u_ext (set_inputs replaces it).  Compiled engine only: ``kernels`` the addresses of the blocks'
-#: kernel wrappers, ``failure`` [wrapper index, t, states] of a kernel that raised, and
-#: ``table_ints`` / ``table_floats`` the diagram as tables (ivdrem.sim.tables, packed;
-#: empty on the reference engine).
-WORKSPACE_LAYOUT = (
-    ("hist_t", "float64", 1), ("hist_v", "float64", 2), ("hist_d", "float64", 2),
-    ("hist_meta", "int64", 1), ("held", "float64", 1), ("score", "float64", 1),
-    ("ys", "float64", 1), ("us", "float64", 1), ("u_ext", "float64", 1),
-    ("hold_dt", "float64", 1), ("hold_mode", "int64", 1), ("hold_time", "float64", 1),
-    ("hold_vec", "float64", 2), ("probing", "int64", 1), ("clock", "float64", 1),
-    ("u_times", "float64", 1), ("u_values", "float64", 2), ("kernels", "int64", 1), ("failure", "float64", 1), ("table_ints", "int64", 1),
-    ("table_floats", "float64", 1), ("scratch", "float64", 1), ("lapack", "int64", 1),
-    ("lapack_chars", "uint8", 1), ("lapack_ints", "int32", 1))
-Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
-#: what the compiled stepper raises when a block's kernel raised (the simulator turns it
-#: into a SimulationError naming the block and the time)
-BLOCK_RAISED_MESSAGE = "ivdrem: a block kernel raised inside the compiled stepper"
-
-
-class StiffnessWarning(RuntimeWarning):
-    """An explicit method's steps are limited by stability, not accuracy: use a stiff one."""
-
-
-class SimulationError(RuntimeError):
-    """A run that diverged, hit a singular model, or could not continue."""
-
 
 def _check_positive(name, v):
     if v is None:
@@ -209,7 +183,6 @@ class ReferenceEngine:
             tb = tb.tb_next
         if found is None:
             return None
-        from .compiled import BlockError
         b, t = found
         err = BlockError(f"block '{b.sys.name}' raised at t = {float(t):.9g} s: "
                          f"{type(exc).__name__}: {exc}")
@@ -362,7 +335,6 @@ class Simulator:
             self.engine = ReferenceEngine(plan, params)
             self._integrate = self.engine.integrate
         else:
-            from .compiled import CompiledEngine
             self.engine = CompiledEngine(plan, params)
             self._integrate = self.engine.integrate
         self.compile_s = _time.perf_counter() - c0
@@ -913,7 +885,6 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
         _validate_params(diagram, params)
     state0 = _initial_state(diagram, x0 if x0 is not None else initial_state,
                             "x0" if x0 is not None else "initial_state", params)
-    from .guards import check_diagram_cost
     check_diagram_cost(diagram, t_end - t0, method=method, engine=engine, h=h, h_max=h_max,
                        dt_out=dt_grid, samples=None if out_t is None else out_t.size,
                        return_states=return_states, max_steps=max_steps,
