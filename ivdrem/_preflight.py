@@ -30,25 +30,30 @@ class PreflightError(ValueError):
 
 def add_run_options(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options that ``paper`` and ``report`` share: --method, --allow-long."""
-    from .experiments.config import SOLVER_METHODS, load_config
-    default = load_config()["solver"]["method"]
     parser.add_argument("--method", default=None, metavar="NAME",
                         help="integration method, overrides solver.method (default from the "
-                             f"config: {default}); one of: {', '.join(SOLVER_METHODS)}")
+                             f"config: {_config_method()}); one of: {', '.join(solver_methods())}")
     parser.add_argument("--allow-long", action="store_true", dest="allow_long",
                         help="run even when the estimated output memory or step count "
                              "exceeds the limits of ivdrem.sim.guards")
     return parser
 
 
-def solver_methods() -> tuple:
-    """The simulator's method names (ivdrem.sim.METHODS, else the config's table)."""
+def _config_method() -> str:
+    """solver.method of the built-in configuration (the --method help names it)."""
+    from importlib import resources
     try:
-        from .sim import METHODS
-        return tuple(METHODS)
-    except ImportError:  # pragma: no cover - a simulator without the table
-        from .experiments.config import SOLVER_METHODS
-        return tuple(SOLVER_METHODS)
+        import tomllib
+    except ImportError:  # pragma: no cover - Python < 3.11
+        import tomli as tomllib
+    text = resources.files("ivdrem.experiments").joinpath("default.toml").read_text()
+    return str(tomllib.loads(text)["solver"]["method"])
+
+
+def solver_methods() -> tuple:
+    """The simulator's method names (the method registry, ivdrem.sim.methods)."""
+    from .sim.methods import METHODS
+    return tuple(METHODS)
 
 
 def check_method(name):
@@ -67,7 +72,7 @@ def method_overrides(name, config_path=None) -> dict:
     (Rodas5P runs at rtol 2e-4, DP45 needs 1e-6) unless the user's file sets them."""
     if check_method(name) is None:
         return {}
-    from .sim.simulator import DEFAULT_TOLERANCES
+    from .sim.methods import method_info
     user = {}
     if config_path is not None:
         try:   # a broken file is reported by load_config, with its own message
@@ -77,7 +82,8 @@ def method_overrides(name, config_path=None) -> dict:
         except Exception:
             user = {}
     out = {"solver.method": name}
-    for key, value in zip(("rtol", "atol"), DEFAULT_TOLERANCES[name]):
+    info = method_info(name)
+    for key, value in zip(("rtol", "atol"), (info.rtol, info.atol)):
         if key not in user:
             out[f"solver.{key}"] = value
     return out
@@ -95,6 +101,7 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
     from .diagrams import closed_loop
     from .experiments.config import closed_loop_kwargs, solver_kwargs
     from .sim.guards import check_diagram_cost
+    from .sim.methods import REFERENCE_METHOD
 
     model = _model(config)
     exp = config["experiment"]
@@ -108,8 +115,8 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
     if fmu_check_t_end is not None:
         d = diagrams.get("iv-drem") or closed_loop("iv-drem", model,
                                                     **closed_loop_kwargs(config, "iv-drem"))
-        h = min(FMU_CHECK_COMM_STEPS)   # its Python reference: RK4 at the finest step
-        check_diagram_cost(d, float(fmu_check_t_end), engine=engine, method="rk4", h=h,
+        h = min(FMU_CHECK_COMM_STEPS)   # its Python reference: fixed steps, the finest
+        check_diagram_cost(d, float(fmu_check_t_end), engine=engine, method=REFERENCE_METHOD, h=h,
                            dt_out=h, return_states=False, allow_long=allow_long,
                            what="the FMU check")
 

@@ -362,3 +362,62 @@ def test_output_sampling_and_stats(lab):
     s = r.stats
     assert s["rejected"] >= 0 and s["rhs_calls"] >= 6 * s["steps"]
     assert 0 < s["h_max"] <= LAB_T / 4
+
+
+# ------------------------------------------------------------------ structure of ivdrem.sim
+def _sim_imports():
+    """{module: (modules of ivdrem.sim it imports at its top level, those it imports inside
+    a function)}, read from the sources."""
+    import ast
+    from pathlib import Path
+    import ivdrem.sim
+    root = Path(ivdrem.sim.__file__).parent
+    mods = {p.stem for p in root.glob("*.py")}
+    out = {}
+    for p in root.glob("*.py"):
+        tree = ast.parse(p.read_text())
+        top, inner = set(), set()
+
+        def names(node):
+            if isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level == 1:
+                    if base:
+                        return {base.split(".")[0]}
+                    return {a.name for a in node.names}
+                if base.startswith("ivdrem.sim."):
+                    return {base.split(".")[2]}
+                if base == "ivdrem.sim":
+                    return {"__init__"}
+            return set()
+        for node in tree.body:
+            top |= names(node)
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for sub in ast.walk(node):
+                    inner |= names(sub)
+        out[p.stem] = (top & mods, inner & mods)
+    return out
+
+
+def test_no_import_circle_in_sim():
+    """The modules of ivdrem.sim import each other without a circle, and no import sits
+    inside a function to dodge one (the one exception: the warm-up child's job imports the
+    package only when it runs, so that its other job starts without it)."""
+    graph = _sim_imports()
+    state = {}
+
+    def visit(m, path):
+        if state.get(m) == 1:
+            raise AssertionError("import circle: " + " -> ".join(path + [m]))
+        if state.get(m) == 2:
+            return
+        state[m] = 1
+        for d in sorted(graph.get(m, ((), ()))[0] - {"__init__"}):
+            visit(d, path + [m])
+        state[m] = 2
+    for m in sorted(graph):
+        if m != "__init__":
+            visit(m, [])
+    inner = {m: sorted(v[1]) for m, v in graph.items() if v[1]}
+    assert inner == {"_warm_stepper": ["__init__"]}, inner

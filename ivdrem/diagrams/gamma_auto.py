@@ -64,7 +64,7 @@ def gamma_from_delta(t, delta, T, Gamma, *, rate=DEFAULT_RATE, ntheta=None):
 
 
 def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1,
-                    engine="compiled", method="dp45", rtol=1e-6, atol=1e-8, h=1e-3,
+                    engine="compiled", method="dp45", rtol=None, atol=None, h=1e-3,
                     h_max=0.01, dt_out=0.01):
     """Run the closed loop of ``law`` over ``t_cal`` (default 2T) and return the γ of the
     rule above, with the numbers it came from.

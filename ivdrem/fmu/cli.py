@@ -124,9 +124,10 @@ def main_cosim(argv=None) -> int:
             from .describe import read_description
             _check_interface(fmu_path, read_description(fmu_path, "co-simulation"), two_link())
         from ivdrem.sim.guards import check_diagram_cost
+        from ivdrem.sim.methods import REFERENCE_METHOD
         # the all-Python reference: RK4 at the finest H, sampled there
         check_diagram_cost(closed_loop(args.law, two_link()), args.t_end, engine=args.engine,
-                           method="rk4", h=min(steps), dt_out=min(steps),
+                           method=REFERENCE_METHOD, h=min(steps), dt_out=min(steps),
                            return_states=False, allow_long=args.allow_long,
                            what="the reference run")
     except (ValueError, OSError) as exc:   # OSError: missing FMU, unwritable cache

@@ -56,6 +56,7 @@ from pathlib import Path
 import numpy as np
 import control as ct
 from .._progress import want_progress
+from ..sim.methods import REFERENCE_METHOD, method_info
 from .describe import read_description
 from .instance import FmuError, FmuInstance
 
@@ -210,9 +211,10 @@ def cosimulate(fmu_path, t_end, *, law="iv-drem", comm_step=1e-3, model=None,
         Robot model (default :func:`ivdrem.models.two_link`); the FMU must have its ``n``.
     engine : "compiled" (default) or "reference"
         Controller simulator engine.
-    method : "rk4" (default) or "dp45"
-        Controller integrator.  RK4 takes ``ceil(H / ctrl_step)`` equal sub-steps per
-        communication step; DP45 uses ``rtol``, ``atol`` and lands on every ``t_k``.
+    method : a name of :data:`ivdrem.sim.METHODS`, default "rk4"
+        Controller integrator.  A fixed-step method (RK4) takes ``ceil(H / ctrl_step)``
+        equal sub-steps per communication step; an adaptive one (DP45) uses ``rtol``,
+        ``atol`` and lands on every ``t_k``.
     fmu_substep : float, optional
         The FMU's ``cs_substep`` (RK4 sub-step bound in ``fmi2DoStep``); default
         ``min(FMU start value, H)``.  Must be ``<= H``.
@@ -292,7 +294,7 @@ def cosimulate(fmu_path, t_end, *, law="iv-drem", comm_step=1e-3, model=None,
     t_lo = take[0] if take == list(range(take[0], take[0] + len(take))) else None
     take = np.array(take)
     labels = in_labels + c_labels                  # = closed_loop(law).output_labels order
-    if method == "rk4":
+    if method_info(method).fixed_step:     # equal sub-steps that land on every t_k
         h = H / max(1, math.ceil(H / float(ctrl_step) - 1e-9))
     else:
         h = min(H, float(ctrl_step))
@@ -435,7 +437,7 @@ class CosimComparison:
 
 
 def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="iv-drem",
-                      model=None, engine="compiled", ref_method="rk4", ref_h=None,
+                      model=None, engine="compiled", ref_method=REFERENCE_METHOD, ref_h=None,
                       ref_rtol=1e-11, ref_atol=1e-13, signals=COMPARED_SIGNALS,
                       progress=None, allow_long=False, **config):
     """Co-simulate at each communication step and compare with the all-Python closed loop.
@@ -493,21 +495,19 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
     show = _want_progress(progress)
     wall = {}
     t0 = _time.perf_counter()
-    if ref_method == "rk4":
+    if method_info(ref_method).fixed_step:
         h = h_min if ref_h is None else float(ref_h)
         r = h_min / h if h > 0 else math.nan
         if not (math.isfinite(h) and h > 0 and abs(r - round(r)) < 1e-9 * max(1.0, r)):
             raise ValueError(f"ref_h = {h:g} s must divide the smallest communication step "
                              f"{h_min:g} s (the reference is sampled there)")
-        ref = simulate(full, t_end, method="rk4", h=h, dt_out=h_min, engine=engine,
+        ref = simulate(full, t_end, method=ref_method, h=h, dt_out=h_min, engine=engine,
                        return_states=False, progress=show, desc=f"Python {law}",
                        allow_long=allow_long)
-    elif ref_method == "dp45":
-        ref = simulate(full, t_end, method="dp45", rtol=ref_rtol, atol=ref_atol,
+    else:
+        ref = simulate(full, t_end, method=ref_method, rtol=ref_rtol, atol=ref_atol,
                        dt_out=h_min, engine=engine, return_states=False, progress=show,
                        desc=f"Python {law}", allow_long=allow_long)
-    else:
-        raise ValueError(f"ref_method must be 'rk4' or 'dp45', got {ref_method!r}")
     wall["python"] = _time.perf_counter() - t0
     Yref = np.asarray(ref.outputs)
     results = []

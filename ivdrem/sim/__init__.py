@@ -1,7 +1,7 @@
 """Simulators for diagrams with transport delays and max-holds (reference + compiled)."""
-from .simulator import (simulate, Simulator, SimulationError, StiffnessWarning, METHODS,
-                        METHOD_TABLE, DEFAULT_METHOD, STIFF_METHOD, DEFAULT_TOLERANCES,
-                        ENGINES, MethodInfo, Workspace, method_info)
+from .methods import (METHODS, METHOD_TABLE, DEFAULT_METHOD, STIFF_METHOD,
+                      DEFAULT_TOLERANCES, MethodInfo, method_info)
+from .simulator import simulate, Simulator, SimulationError, StiffnessWarning, ENGINES, Workspace
 from .plan import DiagramPlan, AlgebraicLoopError, SignalSizeError
 from .foreign import declare_feedthrough, PythonBlockNotice
 

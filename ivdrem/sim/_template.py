@@ -27,8 +27,8 @@ control and acceptance, landing on output times and max-hold updates, dense outp
 after-step work (delay history, holds), output rows, divergence and stiffness checks.
 Bogacki-Shampine 3(2) (``bs23_step``) is no user method: it takes a Rodas5P run's steps
 while max-hold updates pin them to the sampling grid.  The method table (name -> id, step
-function, order, properties) lives in ``ivdrem.sim.simulator``; ``method_step``
-dispatches on the id.
+function, order, properties) is ``ivdrem.sim.methods``; ``method_step``
+dispatches on the id, and an id it has no branch for stops the loop with UNKNOWN_METHOD.
 
 Workspace ``W`` (a namedtuple ``ivdrem.sim.simulator.Workspace``; the compiled code indexes
 it by position): 0 hist_t[cap], 1 hist_v[cap, nd], 2 hist_d[cap, nd], 3 hist_meta[int64:
@@ -64,11 +64,12 @@ SINGULAR = 6
 DIVERGED_GROWTH = 7
 BLOCK_RAISED = 8      # a block's compiled kernel raised (compiled engine, ivdrem.sim.stepper)
 
-# method ids (the table in ivdrem.sim.simulator maps names to these)
-RK4 = 0
-DP45 = 1
-RODAS5P = 2
-BS23 = 3      # not a user method: the explicit steps of a Rodas5P run pinned by max-holds
+UNKNOWN_METHOD = 9    # a method id method_step has no branch for (never a fallback)
+
+# method ids: the registry's (ivdrem.sim.methods), imported by absolute name (this source
+# also runs as the generated numba stepper module); BS23 is no user method: the explicit
+# steps of a Rodas5P run pinned by max-holds
+from ivdrem.sim.methods import RK4, DP45, RODAS5P, BS23  # noqa: E402
 
 # max-hold modes for the next after-step evaluation
 HOLD_SKIP = 0
@@ -101,7 +102,8 @@ F_GROW_N = 5
 F_GROW_RATE = 6    # e-folding rate (1/s) at a DIVERGED_GROWTH stop
 F_HRHO = 7         # last h*rho(J) estimate of DP45
 F_HRHO_STIFF = 8   # the estimate when S_STIFF was set
-N_TF = 9
+F_ERR = 9          # error estimate (weighted RMS norm) of the last accepted step; 0: none
+N_TF = 10
 
 # growth-rate divergence: a state norm (>= 1) growing by GROWTH_FACTOR within GROWTH_WINDOW
 GROWTH_FACTOR = 1e6
@@ -591,7 +593,9 @@ def method_step(mid, t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats):
         return dp45_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
     if mid == BS23:
         return bs23_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
-    return rk4_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
+    if mid == RK4:
+        return rk4_step(t, h, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
+    return -1.0        # no step function for this id: step_loop returns UNKNOWN_METHOD
 
 
 def dense_eval(mid, h, s, x, xn, f0, f1, K, out):
@@ -775,6 +779,9 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
         if mid == RODAS5P and pinned and explicit_ok:
             m = BS23
         err = method_step(m, t, h_use, x, xn, K, J, LU, piv, P, W, rtol, atol, stats)
+        if err < 0.0:
+            tf[F_T] = t
+            return UNKNOWN_METHOD
         stats[S_FRESH] = 0       # the stages moved the signals
         if m != mid and not (err <= 1.0):
             explicit_ok = False
@@ -880,6 +887,7 @@ def step_loop(mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl,
             K[0][i] = f1[i]
         stats[S_STEPS] += 1
         tf[F_T] = t
+        tf[F_ERR] = err
         bad = check_state(x, x_limit)
         if bad >= 0:
             stats[S_BAD] = bad

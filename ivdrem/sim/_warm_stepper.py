@@ -31,6 +31,8 @@ import time
 import types
 from pathlib import Path
 
+from .cache import cache_dir
+
 _CHILD_ENV = "IVDREM_STEPPER_CHILD"
 _SWITCH_ENVS = ("IVDREM_COMPILE_CHILD", "IVDREM_STEPPER_PREFETCH")
 #: how long the parent waits for the child before compiling the child's work itself
@@ -121,12 +123,10 @@ sys.exit(_job(sys.argv[1:]))
 
 def _launch(args, modules=()) -> Warmup:
     """The child running `args` (see :func:`_job`) on this ivdrem and cache directory."""
-    import ivdrem
-    from .compiled import cache_dir
     env = dict(os.environ)
     env[_CHILD_ENV] = "1"
     env["IVDREM_CACHE_DIR"] = str(cache_dir())
-    root = str(Path(ivdrem.__file__).resolve().parents[1])   # the same ivdrem in the child
+    root = str(Path(__file__).resolve().parents[2])   # the same ivdrem in the child
     try:
         proc = subprocess.Popen([sys.executable, "-c", _BOOT, root, *args], env=env,
                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
@@ -149,10 +149,7 @@ def compile_modules(names):
     directory the parent has written them to (what compiled._import does, without
     importing the compiled engine)."""
     import importlib.util
-    cdir = os.environ.get("IVDREM_CACHE_DIR")
-    if not cdir:
-        from .compiled import cache_dir
-        cdir = cache_dir()
+    cdir = cache_dir()       # the parent's, passed as IVDREM_CACHE_DIR
     for name in names:
         spec = importlib.util.spec_from_file_location(name, Path(cdir) / f"{name}.py")
         mod = sys.modules[name] = importlib.util.module_from_spec(spec)

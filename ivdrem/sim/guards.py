@@ -4,15 +4,16 @@ Two numbers are known before the first step:
 
 * the memory of the output grid: ``ceil(t_end / dt_out) + 1`` samples of every output (and
   of every state when ``return_states``), 8 bytes each;
-* a lower bound on the number of steps: ``t_end / h`` for fixed-step RK4, ``t_end / h_max``
-  for Dormand-Prince (its steps never exceed ``h_max``; the loop's stiffness makes the real
-  count larger: ~140 000 steps against the bound 30 000 for the paper's 300 s run, README
-  "Performance").
+* the number of steps: exactly ``ceil(t_end / h)`` for a fixed-step method (RK4), a lower
+  bound ``t_end / h_max`` for an adaptive one (its steps never exceed ``h_max``; for
+  Dormand-Prince the loop's stiffness makes the real count larger: ~140 000 steps against
+  the bound 30 000 for the paper's 300 s run, README "Performance").  Which of the two a
+  method is, the method registry says (:mod:`ivdrem.sim.methods`, ``adaptive``).
 
 A run beyond :data:`MAX_OUTPUT_BYTES` or :data:`MAX_STEPS` (per engine) is refused with
 :class:`CostLimitError` giving the numbers; ``allow_long=True`` (``--allow-long`` on the
-command line) lifts both limits.  A Dormand-Prince run whose lower bound already exceeds
-its ``max_steps`` cannot finish and is refused regardless.  ``h_max`` and ``dt_out`` have
+command line) lifts both limits.  An adaptive run whose lower bound already exceeds its
+``max_steps`` cannot finish and is refused regardless.  ``h_max`` and ``dt_out`` have
 fixed lower bounds (:data:`H_MAX_MIN`, :data:`DT_OUT_MIN`) that no flag lifts: below them
 the step or the sample spacing is a typo, not a plan.
 """
@@ -20,6 +21,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+from .methods import DEFAULT_METHOD, method_info
 
 __all__ = ["CostLimitError", "CostEstimate", "estimate_cost", "check_cost",
            "check_bounds", "MAX_OUTPUT_BYTES", "MAX_STEPS", "H_MAX_MIN", "DT_OUT_MIN",
@@ -85,27 +88,38 @@ def check_bounds(*, h_max=None, dt_out=None) -> None:
                              f"{low:g} s (ivdrem.sim.guards)")
 
 
-def estimate_cost(t_end, *, noutputs, nstates=0, method="dp45", h=1e-3, h_max=None,
+def estimate_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, h=1e-3, h_max=None,
                   dt_out=0.01, return_states=True, samples=None) -> CostEstimate:
-    """Lower bounds on what simulating ``t_end`` seconds costs (see the module docstring);
-    ``samples``: the number of output times when they are given as an array."""
+    """What simulating ``t_end`` seconds costs at least (see the module docstring);
+    ``samples``: the number of output times when they are given as an array.  An unknown
+    method is a ValueError naming the valid ones."""
+    info = method_info(method)
     t_end = float(t_end)
     dt_out = min(_positive(dt_out) or t_end, t_end)
     if samples is None:
         samples = math.ceil(t_end / dt_out * (1 - 1e-12)) + 1
     columns = int(noutputs) + (int(nstates) if return_states else 0)
-    step = _positive(h) if method == "rk4" else \
+    name = _step_name(info)
+    step = _positive(h) if info.fixed_step else \
         (DEFAULT_H_MAX if h_max is None else _positive(h_max))
-    name = "h" if method == "rk4" else "h_max"
     if step is None:
         steps, src = 0.0, f"{name} invalid"
+    elif info.fixed_step:
+        # the loop's own count: steps at t0 + k h until t_end - 1e-9 h (_template.step_loop)
+        steps = float(max(math.ceil(t_end / step - 1e-9), 1))
+        src = f"t_end / h = {t_end:g} / {step:g} rounded up: fixed-step {info.name}"
     else:
         steps, src = t_end / step, f"t_end / {name} = {t_end:g} / {step:g}"
     return CostEstimate(t_end, float(samples), columns, float(samples) * columns * 8.0,
                         steps, src)
 
 
-def check_cost(t_end, *, noutputs, nstates=0, method="dp45", engine="compiled", h=1e-3,
+def _step_name(info) -> str:
+    """The argument that sets a method's step count: h (fixed step) or h_max."""
+    return "h" if info.fixed_step else "h_max"
+
+
+def check_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, engine="compiled", h=1e-3,
                h_max=None, dt_out=0.01, return_states=True, max_steps=None,
                allow_long=False, max_bytes=None, max_steps_estimate=None,
                what="the run", samples=None) -> CostEstimate:
@@ -119,7 +133,8 @@ def check_cost(t_end, *, noutputs, nstates=0, method="dp45", engine="compiled", 
     est = estimate_cost(t_end, noutputs=noutputs, nstates=nstates, method=method, h=h,
                         h_max=h_max, dt_out=dt_out, return_states=return_states,
                         samples=samples)
-    if method != "rk4" and max_steps is not None and est.steps_min > max_steps:
+    info = method_info(method)
+    if info.adaptive and max_steps is not None and est.steps_min > max_steps:
         raise CostLimitError(
             f"{what} cannot finish: it needs at least {est.steps_min:.3g} steps "
             f"({est.step_source}), more than max_steps = {int(max_steps)}; raise h_max "
@@ -139,7 +154,7 @@ def check_cost(t_end, *, noutputs, nstates=0, method="dp45", engine="compiled", 
         raise CostLimitError(
             f"{what} needs at least {est.steps_min:.3g} steps ({est.step_source}), above "
             f"the limit of {limit_s:.3g} steps for the {engine} engine: raise "
-            f"{'h' if method == 'rk4' else 'h_max'}, shorten t_end, or allow it with "
+            f"{_step_name(info)}, shorten t_end, or allow it with "
             f"allow_long=True (command line: --allow-long)")
     return est
 

@@ -8,7 +8,8 @@ Two engines evaluate the same diagram with the same stepping code (``_template``
 * ``engine="compiled"`` (default): one numba module generated from the diagram's
   subsystem list and connection map (:mod:`ivdrem.sim.compiled`), cached on disk.
 
-The methods are step functions of the template, listed in :data:`METHOD_TABLE`; one loop
+The methods are step functions of the template, listed in the method registry
+(:mod:`ivdrem.sim.methods`); one loop
 (``_template.integrate``) owns step-size control, outputs, the after-step work and the
 divergence and stiffness checks.  Delay blocks are fed from a dense history of accepted
 steps (cubic Hermite); max-holds sample lambda_min on their own fixed grid from the dense
@@ -25,8 +26,6 @@ import os
 import sys
 import time as _time
 import warnings
-from collections import namedtuple
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +34,13 @@ import control as ct
 
 from .plan import DiagramPlan
 from . import _diagram, _template as tpl
+from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,
+                      DEFAULT_TOLERANCES, MethodInfo, method_info)
 from .tables import empty_tables, hold_nmat, pack as pack_tables, scratch_size, slope_flags
+from .layout import WORKSPACE_LAYOUT, Workspace  # noqa: F401  (WORKSPACE_LAYOUT re-exported)
+from .errors import BlockError, SimulationError, StiffnessWarning, BLOCK_RAISED_MESSAGE  # noqa: F401
+from .guards import check_diagram_cost
+from .compiled import CompiledEngine
 from ..blocks._core import active_feeds
 
 __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METHODS",
@@ -43,78 +48,8 @@ __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METH
            "MethodInfo"]
 
 
-@dataclass(frozen=True)
-class MethodInfo:
-    """One row of the method table."""
-    name: str
-    id: int               # dispatch id in the template (method_step)
-    step: str             # the template's step function
-    order: int
-    error_order: int      # order of the embedded solution (0: no error estimate)
-    adaptive: bool
-    l_stable: bool
-    dense_order: int      # order of the interpolant used for outputs / max-hold samples
-    dense_outputs: bool   # outputs read from the dense output (else the steps land on them)
-    description: str
-
-
-#: The integration methods, by name (the first is the default).
-METHOD_TABLE = {
-    "rodas5p": MethodInfo("rodas5p", tpl.RODAS5P, "rodas5p_step", 5, 4, True, True, 4, True,
-                          "Rodas5P: L-stable, stiffly accurate Rosenbrock 5(4) with a fresh "
-                          "Jacobian each step, dense output of order 4"),
-    "dp45": MethodInfo("dp45", tpl.DP45, "dp45_step", 5, 4, True, False, 3, False,
-                       "Dormand-Prince 5(4), explicit, error-controlled"),
-    "rk4": MethodInfo("rk4", tpl.RK4, "rk4_step", 4, 0, False, False, 3, False,
-                      "classical Runge-Kutta 4, fixed step h"),
-}
-METHODS = tuple(METHOD_TABLE)
-DEFAULT_METHOD = "rodas5p"
-STIFF_METHOD = "rodas5p"
 ENGINES = ("compiled", "reference")
 _TEMPLATE_PATH = Path(tpl.__file__)
-
-#: The workspace of a run: (field, dtype, ndim), in order (the compiled code indexes the
-#: fields by position).  The input table (u_times, u_values) is empty while the inputs are
-#: held at u_ext (set_inputs replaces it).  Compiled engine only: ``kernels`` the addresses of the blocks'
-#: kernel wrappers, ``failure`` [wrapper index, t, states] of a kernel that raised, and
-#: ``table_ints`` / ``table_floats`` the diagram as tables (ivdrem.sim.tables, packed;
-#: empty on the reference engine).
-WORKSPACE_LAYOUT = (
-    ("hist_t", "float64", 1), ("hist_v", "float64", 2), ("hist_d", "float64", 2),
-    ("hist_meta", "int64", 1), ("held", "float64", 1), ("score", "float64", 1),
-    ("ys", "float64", 1), ("us", "float64", 1), ("u_ext", "float64", 1),
-    ("hold_dt", "float64", 1), ("hold_mode", "int64", 1), ("hold_time", "float64", 1),
-    ("hold_vec", "float64", 2), ("probing", "int64", 1), ("clock", "float64", 1),
-    ("u_times", "float64", 1), ("u_values", "float64", 2), ("kernels", "int64", 1), ("failure", "float64", 1), ("table_ints", "int64", 1),
-    ("table_floats", "float64", 1), ("scratch", "float64", 1), ("lapack", "int64", 1),
-    ("lapack_chars", "uint8", 1), ("lapack_ints", "int32", 1))
-Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
-#: what the compiled stepper raises when a block's kernel raised (the simulator turns it
-#: into a SimulationError naming the block and the time)
-BLOCK_RAISED_MESSAGE = "ivdrem: a block kernel raised inside the compiled stepper"
-
-
-def method_info(method) -> MethodInfo:
-    """The table row of a method name; an unknown name is an error naming the valid ones."""
-    if not isinstance(method, str) or method not in METHOD_TABLE:
-        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    return METHOD_TABLE[method]
-
-
-class StiffnessWarning(RuntimeWarning):
-    """An explicit method's steps are limited by stability, not accuracy: use a stiff one."""
-
-
-class SimulationError(RuntimeError):
-    """A run that diverged, hit a singular model, or could not continue."""
-
-
-#: Default (rtol, atol) per method: for the stiff method, the paper run's theta_hat(300 s)
-#: is within 1e-6 relative of a 100x tighter run (benchmarks/bench_paper.py measures it:
-#: 5.0e-7 in 5 863 steps; 1e-4 gave 1.9e-7 in 7 165 steps, 3e-4 1.1e-6: too loose).
-DEFAULT_TOLERANCES = {"rodas5p": (2e-4, 2e-6), "dp45": (1e-6, 1e-8), "rk4": (1e-6, 1e-8)}
-
 
 def _check_positive(name, v):
     if v is None:
@@ -248,7 +183,6 @@ class ReferenceEngine:
             tb = tb.tb_next
         if found is None:
             return None
-        from .compiled import BlockError
         b, t = found
         err = BlockError(f"block '{b.sys.name}' raised at t = {float(t):.9g} s: "
                          f"{type(exc).__name__}: {exc}")
@@ -368,14 +302,17 @@ class Simulator:
     def __init__(self, diagram, *, method=DEFAULT_METHOD, engine="compiled", h=1e-3,
                  rtol=None, atol=None, h_max=None, params=None, x0=None, x_limit=1e10,
                  max_steps=50_000_000, t0=0.0):
-        self.info = info = method_info(method)
+        # a name of a user method, or a registry row (the generic method suite runs the
+        # stepper-internal methods this way)
+        self.info = info = method if isinstance(method, MethodInfo) else method_info(method)
+        method = info.name
         if engine not in ENGINES:
             raise ValueError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
         if params:
             _validate_params(diagram, params)
         self.plan = plan = DiagramPlan.from_diagram(diagram, x0, params)
         self.method, self.engine_name = method, engine
-        rtol_d, atol_d = DEFAULT_TOLERANCES[method]
+        rtol_d, atol_d = info.rtol, info.atol
         self.h = _check_positive("h", h)
         self.rtol = _check_positive("rtol", rtol_d if rtol is None else rtol)
         self.atol = _check_positive("atol", atol_d if atol is None else atol)
@@ -398,7 +335,6 @@ class Simulator:
             self.engine = ReferenceEngine(plan, params)
             self._integrate = self.engine.integrate
         else:
-            from .compiled import CompiledEngine
             self.engine = CompiledEngine(plan, params)
             self._integrate = self.engine.integrate
         self.compile_s = _time.perf_counter() - c0
@@ -633,6 +569,10 @@ class Simulator:
         if st == tpl.MAX_STEPS:
             raise SimulationError(f"more than max_steps = {self.max_steps} steps before "
                                   f"t = {self.t:.6g} s")
+        if st == tpl.UNKNOWN_METHOD:
+            raise NotImplementedError(
+                f"method {self.info.name!r} (dispatch id {self.info.id} in "
+                "ivdrem.sim.methods) has no step function in the stepper's method_step")
         raise SimulationError(f"unexpected status {st} at t = {self.t:.6g} s")
 
     def close(self):
@@ -654,6 +594,7 @@ class Simulator:
                 "sim_s": self.wall, "compile_s": self.compile_s,
                 "wall_s": self.wall + self.compile_s, "rtol": self.rtol,
                 "atol": self.atol, "h": self.h if not self.info.adaptive else float(self.tf[1]),
+                "last_error": float(self.tf[tpl.F_ERR]),
                 "h_max": self.h_max}
 
     def hold_times(self):
@@ -944,7 +885,6 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
         _validate_params(diagram, params)
     state0 = _initial_state(diagram, x0 if x0 is not None else initial_state,
                             "x0" if x0 is not None else "initial_state", params)
-    from .guards import check_diagram_cost
     check_diagram_cost(diagram, t_end - t0, method=method, engine=engine, h=h, h_max=h_max,
                        dt_out=dt_grid, samples=None if out_t is None else out_t.size,
                        return_states=return_states, max_steps=max_steps,

@@ -844,7 +844,8 @@ static double method_step(Ctx *c, i64 mid, double t, double h, const double *x, 
     if (mid == RODAS5P) return rodas5p_step(c, t, h, x, xn, K, n, J, LU, piv, rtol, atol, stats);
     if (mid == DP45) return dp45_step(c, t, h, x, xn, K, n, rtol, atol, stats);
     if (mid == BS23) return bs23_step(c, t, h, x, xn, K, n, rtol, atol, stats);
-    return rk4_step(c, t, h, x, xn, K, n, stats);
+    if (mid == RK4) return rk4_step(c, t, h, x, xn, K, n, stats);
+    return -1.0;   /* no step function for this id: step_loop returns UNKNOWN_METHOD */
 }
 
 /* Rodas5P's dense-output coefficients H_0 U, H_1 U, H_2 U of the step just taken, into
@@ -997,6 +998,10 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
         i64 m = mid;
         if (mid == RODAS5P && pinned && explicit_ok) m = BS23;
         double err = method_step(c, m, t, h_use, x, xn, K, n, J, LU, piv, rtol, atol, stats);
+        if (err < 0.0) {
+            tf[F_T] = t;
+            return UNKNOWN_METHOD;
+        }
         stats[S_FRESH] = 0;
         int dense_ready = 0;      /* D is not this step's yet */
         if (m != mid && !(err <= 1.0)) {
@@ -1102,6 +1107,7 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
         }
         stats[S_STEPS] += 1;
         tf[F_T] = t;
+        tf[F_ERR] = err;
         i64 bad = check_state(x, n, x_limit);
         if (bad >= 0) {
             stats[S_BAD] = bad;

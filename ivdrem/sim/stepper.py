@@ -16,25 +16,14 @@ from pathlib import Path
 
 from .. import __version__
 from . import _diagram, _template
-from .simulator import BLOCK_RAISED_MESSAGE, WORKSPACE_LAYOUT
-from .tables import DIMS, FLOAT_FIELDS, INT_FIELDS
+from .errors import BLOCK_RAISED_MESSAGE
+from .layout import layout_constants
 
 __all__ = ["stepper_source", "layout_constants"]
 
 # mode and literal arguments of the template's and diagram functions' calls (see below)
 _RUNTIME_INTS = ["RHS", "AFTER_STEP", "RECORD", "AFTER_STEP_EVALUATED", "HISTORY_POINT",
                  "ZERO"]
-
-
-def layout_constants():
-    """[(name, value)] of the positions both stepper builds index by: workspace fields
-    (FIELD_*), table dimensions (DIM_*), int and float tables (T_*, TF_*)."""
-    out = [(f"FIELD_{name.upper()}", i) for i, (name, _, _) in enumerate(WORKSPACE_LAYOUT)]
-    out += [(f"DIM_{d}", i) for i, d in enumerate(DIMS)]
-    out += [(f"T_{f.upper()}", i) for i, f in enumerate(INT_FIELDS)]
-    out += [(f"TF_{f.upper()}", i) for i, f in enumerate(FLOAT_FIELDS)]
-    out.append(("N_INT_TABLES", len(INT_FIELDS)))
-    return out
 
 
 def stepper_source():

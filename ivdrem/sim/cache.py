@@ -1,0 +1,65 @@
+"""The compile cache: where generated modules (robot models, block kernels, their
+C-callable wrappers, the numba stepper) and the C stepper's shared library live, and how a
+generated module is written and imported.  A leaf of ``sim``: the compiled engine, the
+foreign-block adapter and the warm-up child all use it without importing each other.
+
+A generated module is named by the hash of its source, written atomically (a concurrent
+process never reads half a file) and imported from the cache directory; numba keeps its
+machine code beside it (``cache=True``), so a second process loads instead of compiling.
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import sys
+from pathlib import Path
+
+from .._atomic import write_text_atomic
+
+__all__ = ["cache_dir", "source_hash", "write_generated", "import_generated",
+           "GENERATED_HEADER"]
+
+#: the first lines of every generated kernel module: what a kernel may call
+GENERATED_HEADER = ["import math", "import numpy as np", "from numba import njit",
+                    "from ivdrem.blocks._kernels import *",
+                    "from ivdrem.sim._native import call_c"]
+
+
+def cache_dir() -> Path:
+    """$IVDREM_CACHE_DIR, else $XDG_CACHE_HOME/ivdrem (default ~/.cache/ivdrem)."""
+    d = os.environ.get("IVDREM_CACHE_DIR")
+    if d:
+        return Path(d)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "ivdrem"
+
+
+def source_hash(text):
+    """The 20 hex digits that name a generated module after its source."""
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def write_generated(cdir, name, src):
+    """Path of module `name` in `cdir`, (re)written when its text differs from `src`."""
+    path = Path(cdir) / f"{name}.py"
+    if not path.exists() or path.read_text() != src:
+        write_text_atomic(path, src)   # a concurrent process never sees half a file
+    return path
+
+
+def import_generated(cdir, name, src):
+    """The module `name` of source `src`, written to `cdir` and imported (once per
+    process); a module whose import failed is not left in sys.modules."""
+    if name in sys.modules:
+        return sys.modules[name]
+    path = write_generated(cdir, name, src)
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    try:
+        spec.loader.exec_module(mod)
+    except BaseException:
+        sys.modules.pop(name, None)
+        raise
+    return mod

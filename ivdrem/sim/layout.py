@@ -1,0 +1,45 @@
+"""The workspace of a run, declared once: its fields (name, dtype, ndim) in the order the
+stepping code indexes them, and the integer positions the steppers are built with
+(``FIELD_*``, the diagram tables' ``DIM_*``, ``T_*``, ``TF_*``): the numba stepper's module
+and the C stepper's generated header both read :func:`layout_constants`.
+
+The fields (``_template``'s docstring says what the stepping code keeps in each): the
+delay history (hist_*), the max-holds' records (held, score, hold_*), the signals (ys, us,
+u_ext), the diagram inputs' table (u_times, u_values: empty while the inputs are held at
+u_ext), and, compiled engine only, ``kernels`` the addresses of the blocks' kernel
+wrappers, ``failure`` [wrapper index, t, states] of a kernel that raised, ``table_ints`` /
+``table_floats`` the diagram as tables (:mod:`ivdrem.sim.tables`, packed; empty on the
+reference engine) and the work arrays of the diagram functions and LAPACK.
+"""
+from __future__ import annotations
+
+from collections import namedtuple
+
+from .tables import DIMS, FLOAT_FIELDS, INT_FIELDS
+
+__all__ = ["WORKSPACE_LAYOUT", "Workspace", "layout_constants"]
+
+#: The workspace of a run: (field, dtype, ndim), in order (the compiled code indexes the
+#: fields by position).
+WORKSPACE_LAYOUT = (
+    ("hist_t", "float64", 1), ("hist_v", "float64", 2), ("hist_d", "float64", 2),
+    ("hist_meta", "int64", 1), ("held", "float64", 1), ("score", "float64", 1),
+    ("ys", "float64", 1), ("us", "float64", 1), ("u_ext", "float64", 1),
+    ("hold_dt", "float64", 1), ("hold_mode", "int64", 1), ("hold_time", "float64", 1),
+    ("hold_vec", "float64", 2), ("probing", "int64", 1), ("clock", "float64", 1),
+    ("u_times", "float64", 1), ("u_values", "float64", 2), ("kernels", "int64", 1),
+    ("failure", "float64", 1), ("table_ints", "int64", 1),
+    ("table_floats", "float64", 1), ("scratch", "float64", 1), ("lapack", "int64", 1),
+    ("lapack_chars", "uint8", 1), ("lapack_ints", "int32", 1))
+Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
+
+
+def layout_constants():
+    """[(name, value)] of the positions both stepper builds index by: workspace fields
+    (FIELD_*), table dimensions (DIM_*), int and float tables (T_*, TF_*)."""
+    out = [(f"FIELD_{name.upper()}", i) for i, (name, _, _) in enumerate(WORKSPACE_LAYOUT)]
+    out += [(f"DIM_{d}", i) for i, d in enumerate(DIMS)]
+    out += [(f"T_{f.upper()}", i) for i, f in enumerate(INT_FIELDS)]
+    out += [(f"TF_{f.upper()}", i) for i, f in enumerate(FLOAT_FIELDS)]
+    out.append(("N_INT_TABLES", len(INT_FIELDS)))
+    return out
