@@ -42,7 +42,7 @@ __all__ = ["from_urdf", "arm", "ARM_NAMES", "RigidBodyModel", "URDFError", "RANK
            "DEFAULT_FRICTION_WIDTH"]
 
 #: Version of the generated rigid-body code and of the cached build; part of the key.
-RIGID_BODY_CODEGEN_VERSION = "1"
+RIGID_BODY_CODEGEN_VERSION = "2"
 
 #: Relative rank tolerance of the pivoted QR: |R_kk| > RANK_RTOL |R_00| counts.
 RANK_RTOL = 1e-10
@@ -401,7 +401,9 @@ def _base_parameters(W, rtol=RANK_RTOL):
     if r == 0:
         raise ValueError("the regressor is zero: no parameter is identifiable")
     beta = sl.solve_triangular(R[:r, :r], R[:r, r:]) if r < ns else np.zeros((r, 0))
-    beta[np.abs(beta) < 1e-10] = 0.0
+    # round-off of exact zeros (|beta| ~ 1e-20) out of the parameter table; a coefficient
+    # this small changes Y theta by less than the rounding of Y itself
+    beta[np.abs(beta) < 1e-13] = 0.0
     order = np.argsort(piv[:r])
     cols = piv[:r][order]
     K = np.zeros((r, ns))
@@ -633,21 +635,20 @@ class RigidBodyModel(RobotModel):
             f"{K}GRAV = {_array_literal(c['gravity'], float)}",
             f"{K}BASE = {_array_literal(self.base_columns, int)}",
         ]
-        kern = []
-        for fn in rigid_body.KERNELS:
-            src = inspect.getsource(fn)
-            src = src.replace("raise ValueError(SINGULAR_INERTIA_MESSAGE)",
-                              f"raise ValueError({rigid_body.SINGULAR_INERTIA_MESSAGE!r})")
-            kern.append(re.sub(r"\b_rb_(\w+)", lambda m: f"{P}_rb_{m.group(1)}", src))
+        # the kernels: compiled once for all models (ivdrem.models._rigid_body_jit); the
+        # plain-Python reference path (``functions``) binds the name to rigid_body instead
+        kmod = f"{P}_rbk"
+        imports = f"import ivdrem.models._rigid_body_jit as {kmod}"
         chain_args = f"{K}PARENT, {K}JTYPE, {K}AXIS, {K}RP, {K}PP, {K}GRAV"
         r = f"{P}_rb_"
+        k = f"{kmod}._rb_"
         W = repr(self.friction_width)
         h = repr(_COMPLEX_STEP)
         t = f'''
 def {r}std(q, x, y, acc, grav, fdq, fric, arm, tangent, d, Y, dY):
     # the standard regressor ({n}, {ns}) of C(q, x) y + M(q) acc + grav G(q)
     # (+ F(fdq) if fric, + armature acc if arm) and its tangent along d
-    {r}links(q, x, y, acc, grav, tangent, d, {chain_args}, Y, dY)
+    {k}links(q, x, y, acc, grav, tangent, d, {chain_args}, Y, dY)
     for i in range({n}):
         for k in range({nl}, {ns}):
             Y[i, k] = 0.0
@@ -753,7 +754,7 @@ def {P}M(q, theta, out):
     tau = np.empty({n})
     for k in range({n}):
         e = {r}unit(k)
-        {r}rnea(q, z, z, e, 0.0, pi, {chain_args}, tau)
+        {k}rnea(q, z, z, e, 0.0, pi, {chain_args}, tau)
         for i in range({n}):
             out[i, k] = tau[i]
         if {ia} >= 0:
@@ -768,7 +769,7 @@ def {P}C(q, dq, theta, out):
     tau = np.empty({n})
     for k in range({n}):
         e = {r}unit(k)
-        {r}rnea(q, dq, e, z, 0.0, pi, {chain_args}, tau)
+        {k}rnea(q, dq, e, z, 0.0, pi, {chain_args}, tau)
         for i in range({n}):
             out[i, k] = tau[i]
     return None
@@ -778,7 +779,7 @@ def {P}G(q, theta, out):
     """gravity G(q); out ({n},)"""
     pi = {r}pi(theta)
     z = np.zeros({n})
-    {r}rnea(q, z, z, z, 1.0, pi, {chain_args}, out)
+    {k}rnea(q, z, z, z, 1.0, pi, {chain_args}, out)
     return None
 
 
@@ -801,12 +802,12 @@ def {P}forward_dynamics(q, dq, tau, theta, out):
     f = np.empty({n})
     pi = {r}pi(theta)
     z = np.zeros({n})
-    {r}rnea(q, dq, dq, z, 1.0, pi, {chain_args}, b)
+    {k}rnea(q, dq, dq, z, 1.0, pi, {chain_args}, b)
     {P}F(dq, theta, f)
     for i in range({n}):
         out[i] = tau[i] - b[i] - f[i]
     {P}M(q, theta, Mq)
-    {r}spd_solve(Mq, out)
+    {k}spd_solve(Mq, out)
     return None
 
 
@@ -916,7 +917,16 @@ def {P}Phi_jac(q, dq, v, dv, out):
         {r}select3(Y, out, {3 * n} + m)
     return None
 '''
-        return ("\n".join(consts) + "\n\n\n" + "\n\n".join(kern) + "\n" + t)
+        return imports + "\n" + "\n".join(consts) + "\n\n" + t
+
+    def _namespace(self, jit):
+        if jit:
+            return super()._namespace(jit)
+        ns = super()._namespace(False)
+        # the reference path: the same functions, calling the kernels as plain Python
+        for f in FUNCTION_NAMES:
+            getattr(ns, f).__globals__["_rbk"] = rigid_body
+        return ns
 
     @cached_property
     def jit_functions(self):
