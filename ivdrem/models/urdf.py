@@ -176,9 +176,18 @@ def _link_has_inertia(root, link, seen=None):
     return False
 
 
+def _pinocchio():
+    try:
+        import pinocchio
+    except ImportError:
+        raise ImportError("URDF models need Pinocchio (the PyPI package 'pin'): "
+                          "pip install 'ivdrem[urdf]'") from None
+    return pinocchio
+
+
 def _parse(path, joints, gravity, friction, friction_width, armature):
     """The chain data of the URDF at ``path`` (a dict; see :class:`RigidBodyModel`)."""
-    import pinocchio as pin
+    pin = _pinocchio()
 
     path = Path(path)
     if not path.exists():
@@ -413,7 +422,7 @@ def _base_parameters(W, rtol=RANK_RTOL):
 
 
 def _build(path, joints, gravity, friction, friction_width, armature, base):
-    import pinocchio as pin
+    pin = _pinocchio()
     chain = _parse(path, joints, gravity, friction, friction_width, armature)
     std_names, std_units = _standard_names(chain)
     ns = len(std_names)
@@ -435,7 +444,7 @@ def _build(path, joints, gravity, friction, friction_width, armature, base):
 
 def _cache_file(text, options):
     from ..sim.compiled import cache_dir
-    import pinocchio as pin
+    pin = _pinocchio()
     h = hashlib.sha256()
     for part in (text, repr(options), pin.__version__, RIGID_BODY_CODEGEN_VERSION):
         h.update(part.encode())
