@@ -250,7 +250,7 @@ def test_plain_python_path_equals_compiled(models):
     m = _model(models, "iiwa")
     q, dq, v, dv = next(_states(m, 1, 9))
     P1, P2 = np.empty((m.n, m.ntheta)), np.empty((m.n, m.ntheta))
-    m.functions.Phi(q, dq, v, dv, P1)
+    m.python_functions.Phi(q, dq, v, dv, P1)
     m.jit_functions.Phi(q, dq, v, dv, P2)
     assert np.array_equal(P1, P2) or np.max(np.abs(P1 - P2)) < 1e-13
     assert np.allclose(m.inverse_dynamics(q, dq, dv),

@@ -645,7 +645,7 @@ class RigidBodyModel(RobotModel):
             f"{K}BASE = {_array_literal(self.base_columns, int)}",
         ]
         # the kernels: compiled once for all models (ivdrem.models._rigid_body_jit); the
-        # plain-Python reference path (``functions``) binds the name to rigid_body instead
+        # plain-Python path (``python_functions``) binds the name to rigid_body instead
         kmod = f"{P}_rbk"
         imports = f"import ivdrem.models._rigid_body_jit as {kmod}"
         chain_args = f"{K}PARENT, {K}JTYPE, {K}AXIS, {K}RP, {K}PP, {K}GRAV"
@@ -674,15 +674,12 @@ def {r}std(q, x, y, acc, grav, fdq, fric, arm, tangent, d, Y, dY):
 
 
 def {r}select(Y, out):
-    for i in range({n}):
-        for b in range({nb}):
-            out[i, b] = Y[i, {K}BASE[b]]
+    # the base columns (one indexing operation: cheap on the Python path too)
+    out[:, :] = Y[:, {K}BASE]
 
 
 def {r}select3(Y, out, col):
-    for i in range({n}):
-        for b in range({nb}):
-            out[i, b, col] = Y[i, {K}BASE[b]]
+    out[:, :, col] = Y[:, {K}BASE]
 
 
 def {r}pi(theta):
@@ -928,11 +925,18 @@ def {P}Phi_jac(q, dq, v, dv, out):
 '''
         return imports + "\n" + "\n".join(consts) + "\n\n" + t
 
-    def _namespace(self, jit):
-        if jit:
-            return super()._namespace(jit)
-        ns = super()._namespace(False)
-        # the reference path: the same functions, calling the kernels as plain Python
+    @cached_property
+    def functions(self):
+        """The generated functions as Python, calling the compiled rigid-body kernels
+        (``ivdrem.models._rigid_body_jit``): the reference engine's path, and what the
+        compiled engine's sparsity probe evaluates (all plain Python, one regressor costs
+        milliseconds: :attr:`python_functions`)."""
+        return self._namespace(jit=False)
+
+    @cached_property
+    def python_functions(self):
+        """The generated functions and the kernels all as plain Python (no numba)."""
+        ns = self._namespace(jit=False)
         for f in FUNCTION_NAMES:
             getattr(ns, f).__globals__["_rbk"] = rigid_body
         return ns
