@@ -517,6 +517,10 @@ def from_urdf(path, *, base=True, friction=None, joints=None, gravity=9.81, arma
 
 
 # ----------------------------------------------------------------------------- model
+def _kernels_hash():
+    return hashlib.sha256(inspect.getsource(rigid_body).encode()).hexdigest()[:16]
+
+
 def _array_literal(a, dtype):
     a = np.asarray(a, dtype=dtype)
     body = json.dumps(a.tolist()) if a.size else "[]"
@@ -647,7 +651,10 @@ class RigidBodyModel(RobotModel):
         # the kernels: compiled once for all models (ivdrem.models._rigid_body_jit); the
         # plain-Python path (``python_functions``) binds the name to rigid_body instead
         kmod = f"{P}_rbk"
-        imports = f"import ivdrem.models._rigid_body_jit as {kmod}"
+        # numba's cache of these functions holds the kernels' machine code too: the
+        # kernels' own hash in the source renames the module when they change
+        imports = (f"# kernels: ivdrem.models.rigid_body {_kernels_hash()}\n"
+                   f"import ivdrem.models._rigid_body_jit as {kmod}")
         chain_args = f"{K}PARENT, {K}JTYPE, {K}AXIS, {K}RP, {K}PP, {K}GRAV"
         r = f"{P}_rb_"
         k = f"{kmod}._rb_"
