@@ -104,27 +104,10 @@ _UNITS = {
 
 
 def _default_parameter_units(model) -> dict:
-    """Units of the parameters of the models in :mod:`ivdrem.models` (by name).
-
-    A model may declare its own with an attribute ``parameter_units`` {name: unit}.
-    Names not covered get no unit (rather than a wrong one).
-    """
-    units = {}
-    if model.name == "two-link":
-        # M entries (theta1..3) are inertias, theta4,5 multiply g in G: first moments
-        units.update({"theta1": "kg.m2", "theta2": "kg.m2", "theta3": "kg.m2",
-                      "theta4": "kg.m", "theta5": "kg.m"})
-    elif re.fullmatch(r"planar-\d+", model.name):
-        for nm in model.theta_names:
-            kind = re.fullmatch(r"([mhJf])\d+", nm)
-            if kind:
-                units[nm] = {"m": "kg", "h": "kg.m", "J": "kg.m2", "f": "N.m.s/rad"}[kind.group(1)]
-        for s in model.constants:
-            if re.fullmatch(r"l\d+", str(s)):
-                units[str(s)] = "m"
-    for s in model.constants:
-        if str(s) == "g":
-            units["g"] = "m/s2"
+    """Units of the model's parameters and constants: its ``parameter_units`` {name: unit}
+    (every model of :mod:`ivdrem.models` declares them), and ``m/s2`` for a constant named
+    ``g`` it leaves out.  Names not covered get no unit (rather than a wrong one)."""
+    units = {str(s): "m/s2" for s in model.constants if str(s) == "g"}
     units.update(getattr(model, "parameter_units", None) or {})
     return units
 
