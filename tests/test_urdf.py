@@ -281,6 +281,18 @@ def test_names_and_limits(models):
         m.source("0bad")
 
 
+def test_pickle(models):
+    import pickle
+    if not _available("ur5"):
+        pytest.skip("arms extra missing")
+    m = _model(models, "ur5")
+    m.jit_functions                       # cached compiled functions do not travel
+    m2 = pickle.loads(pickle.dumps(m))
+    assert m2.key == m.key and m2.theta_names == m.theta_names
+    q, dq, v, dv = next(_states(m, 1, 7))
+    assert np.array_equal(m2.regressor(q, dq, v, dv), m.regressor(q, dq, v, dv))
+
+
 def test_cache(tmp_path, monkeypatch):
     if not _available("ur5"):
         pytest.skip("arms extra missing")

@@ -444,9 +444,12 @@ def _build(path, joints, gravity, friction, friction_width, armature, base):
 
 def _cache_file(text, options):
     from ..sim.compiled import cache_dir
-    pin = _pinocchio()
+    try:    # the installed version, without importing Pinocchio (a cached load needs none)
+        pin_version = importlib.metadata.version("pin")
+    except importlib.metadata.PackageNotFoundError:
+        pin_version = _pinocchio().__version__
     h = hashlib.sha256()
-    for part in (text, repr(options), pin.__version__, RIGID_BODY_CODEGEN_VERSION):
+    for part in (text, repr(options), pin_version, RIGID_BODY_CODEGEN_VERSION):
         h.update(part.encode())
         h.update(b"\0")
     return cache_dir() / "urdf" / f"{h.hexdigest()[:24]}.json"
@@ -578,6 +581,10 @@ class RigidBodyModel(RobotModel):
 
     def __repr__(self):
         return f"RigidBodyModel({self.name!r}, n={self.n}, ntheta={self.ntheta})"
+
+    def __reduce__(self):
+        # the chain's data is the whole model (a worker process rebuilds the rest)
+        return (RigidBodyModel, (self.name, self._chain))
 
     # ------------------------------------------------------------------ parameters
     def parameter_table(self):
