@@ -263,7 +263,12 @@ def test_plain_python_path_equals_compiled(models):
 def test_names_and_limits(models):
     names = model_names()
     assert "two-link" in names and all(a in names for a in ("panda", "ur5", "iiwa", "xarm7"))
-    assert get_model("two-link").name == two_link().name
+    tl = get_model("two-link")
+    assert tl.name == two_link().name
+    # symbolic models have the same attributes, without limits
+    assert tl.joint_names == ["joint1", "joint2"] and np.isinf(tl.position_limits).all()
+    assert np.isinf(tl.velocity_limits).all() and np.isinf(tl.effort_limits).all()
+    assert tl.parameter_units["theta1"] == "kg.m2"
     if not _available("panda"):
         return
     m = get_model("panda")

@@ -78,3 +78,16 @@ def test_fmu_derivatives_vs_aba(tmp_path, name, options):
     # co-simulation runs (RK4 sub-steps) and stays finite
     res = simulate_fmu(str(path), fmi_type="CoSimulation", stop_time=0.2, output_interval=0.01)
     assert np.all(np.isfinite(res["q[0]"]))
+
+
+@pytest.mark.skipif(not _available("panda"), reason="arms extra")
+def test_cli_export_panda(tmp_path, capsys):
+    from ivdrem.fmu.cli import main_fmu
+    out = tmp_path / "panda.fmu"
+    assert main_fmu(["export", "--model", "panda", "-o", str(out)]) == 0
+    assert "model panda, n = 7, ntheta = 43" in capsys.readouterr().out
+    md = read_model_description(str(out))
+    names = [v.name for v in md.modelVariables]
+    assert "Izz1R" in names and "tau[6]" in names
+    units = {v.name: v.unit for v in md.modelVariables}
+    assert units["mx2"] == "kg.m" and units["Izz1R"] == "kg.m2"
