@@ -6,15 +6,24 @@ import re
 import numpy as np
 import sympy as sp
 
+from .base import RobotModel
 from .euler_lagrange import EulerLagrangeModel
+from .urdf import ARM_NAMES, arm
 
-__all__ = ["two_link", "planar_arm", "get_model", "MODEL_NAMES", "TWO_LINK_THETA"]
+__all__ = ["two_link", "planar_arm", "get_model", "model_names", "MODEL_NAMES",
+           "TWO_LINK_THETA"]
 
 #: The paper's parameter values (Section 4).
 TWO_LINK_THETA = (1.3, 0.28, 0.32, 0.4, 1.4)
 
-#: Names accepted by :func:`get_model`.
-MODEL_NAMES = ("two-link", "planar-N (N >= 1, e.g. planar-3)")
+#: Names accepted by :func:`get_model` (the URDF arms need the ``arms`` extra).
+MODEL_NAMES = ("two-link", "planar-N (N >= 1, e.g. planar-3)", *ARM_NAMES)
+
+
+def model_names():
+    """The names :func:`get_model` accepts: ``"two-link"``, the pattern ``"planar-N"``
+    (N >= 1) and the named URDF arms (:func:`ivdrem.models.arm`)."""
+    return MODEL_NAMES
 
 
 def two_link(theta=None, g=9.81):
@@ -38,7 +47,10 @@ def two_link(theta=None, g=9.81):
         "two-link", [q1, q2], list(th), M, potential=P, dq=[dq1, dq2],
         constants={gs: float(g)},
         theta_values=TWO_LINK_THETA if theta is None else theta,
-        theta_names=[f"theta{i}" for i in range(1, 6)])
+        theta_names=[f"theta{i}" for i in range(1, 6)],
+        # M entries (theta1..3) are inertias, theta4,5 multiply g in G: first moments
+        parameter_units={"theta1": "kg.m2", "theta2": "kg.m2", "theta3": "kg.m2",
+                         "theta4": "kg.m", "theta5": "kg.m", "g": "m/s2"})
 
 
 def _planar_energies(n, dq, q, m, h, J, l, g):
@@ -175,14 +187,18 @@ def planar_arm(n, lengths=None, g=9.81, friction=False, theta_values=None, *,
         theta_values = planar_physical_theta(masses, lengths, friction=fric, parameters=parameters)
     constants = {gs: float(g)}
     constants.update({ls[i]: float(lengths[i]) for i in range(n)})
+    kinds = {"m": "kg", "h": "kg.m", "J": "kg.m2", "f": "N.m.s/rad"}
+    units = {str(s): kinds[str(s)[0]] for s in theta}
+    units.update({str(s): "m" for s in ls}, g="m/s2")
     return EulerLagrangeModel(f"planar-{n}", q, theta, M, potential=P, F=F, dq=dq,
                               constants=constants, theta_values=theta_values,
-                              theta_names=[str(s) for s in theta])
+                              theta_names=[str(s) for s in theta], parameter_units=units)
 
 
 def get_model(name, **kwargs):
-    """Model by name: ``"two-link"`` or ``"planar-N"`` (keyword arguments are passed on)."""
-    if isinstance(name, EulerLagrangeModel):
+    """Model by name: ``"two-link"``, ``"planar-N"`` or a named arm (``"panda"``, ``"ur5"``,
+    ``"iiwa"``, ``"xarm7"``); keyword arguments are passed on.  A model is returned as is."""
+    if isinstance(name, RobotModel):
         return name
     key = str(name).strip().lower()
     if key in ("two-link", "two_link", "2-link"):
@@ -190,4 +206,8 @@ def get_model(name, **kwargs):
     mt = re.fullmatch(r"planar[-_](\d+)", key)
     if mt and int(mt.group(1)) >= 1:
         return planar_arm(int(mt.group(1)), **kwargs)
+    if key in ARM_NAMES:
+        if "g" in kwargs:
+            kwargs["gravity"] = kwargs.pop("g")
+        return arm(key, **kwargs)
     raise ValueError(f"unknown model {name!r}; valid names: " + ", ".join(MODEL_NAMES))
