@@ -7,6 +7,13 @@ import sys
 from .export import DEFAULT_SUBSTEP
 
 
+def _model_names() -> list[str]:
+    """The names ``ivdrem.models.get_model`` accepts, from the models package itself."""
+    from ivdrem import models
+    names = getattr(models, "model_names", None)
+    return list(names()) if callable(names) else list(models.MODEL_NAMES)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ivdrem fmu", description="Plant FMU (FMI 2.0, ME + CS)")
     sub = p.add_subparsers(dest="command", required=True)
@@ -15,7 +22,8 @@ def _parser() -> argparse.ArgumentParser:
                                    "compile it with the system C compiler and write an FMI 2.0 "
                                    "FMU (model exchange + co-simulation).")
     e.add_argument("--model", default="two-link",
-                   help="model name: two-link (default) or planar-N, e.g. planar-3")
+                   help="model name (default two-link), any of ivdrem.models: "
+                        + ", ".join(_model_names()))
     e.add_argument("-o", "--output", required=True, metavar="FILE.fmu", help="output file")
     e.add_argument("--q0", type=float, nargs="+", metavar="Q", help="start values of q")
     e.add_argument("--dq0", type=float, nargs="+", metavar="DQ", help="start values of dq")
