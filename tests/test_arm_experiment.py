@@ -223,3 +223,38 @@ def test_short_closed_loop_on_a_planar_arm(law):
     e = out[[lab.index(f"e[{i}]") for i in range(2)]]
     assert np.max(np.abs(e[:, 0])) < 1e-12                     # q(0) = q_d(0)
     assert np.max(np.abs(e)) < 0.2                              # rad, over 1.5 s
+
+
+# --------------------------------------------------------------------------- report
+def _run_of(config, model=None):
+    class Run:
+        pass
+    r = Run()
+    r.config, r.theta = config, np.asarray(config["model"]["theta"], float)
+    r.model = model_from_config(config) if model is None else model
+    return r
+
+
+def test_report_model_table_of_the_paper_arm():
+    """The paper's Section 4: M = [[θ1 + 2θ2 c2, θ3 + θ2 c2], [., θ3]],
+    G = [θ4 g c12 + θ5 g c1, θ4 g c12]: where each θ enters, read off by hand."""
+    from ivdrem.reports.content import _model_table
+    t = _model_table(_run_of(load_config()))
+    assert t.key == "model" and "two-link" in t.title and "nθ = 5" in t.title
+    assert [r[1:] for r in t.rows] == [["θ1", "M11", "1.3"], ["θ2", "M11, M12", "0.28"],
+                                       ["θ3", "M12, M22", "0.32"], ["θ4", "G1, G2", "0.4"],
+                                       ["θ5", "G1", "1.4"]]
+
+
+def test_report_model_table_takes_the_models_own_table():
+    from ivdrem.reports.content import _model_table
+
+    class WithTable(_Limited):
+        parameter_names = ["a1", "b1", "a2", "b2"]
+
+        def parameter_table(self):
+            return [("a1", ["m1", "m2"]), ("b1", "I1"), ("a2", "m2 c2"), ("b2", ["I2", "m2"])]
+    t = _model_table(_run_of(load_config(overrides={"model.name": "planar-2"}), WithTable()))
+    assert t.header[2] == "standard parameters it groups"
+    assert [r[1:3] for r in t.rows] == [["a1", "m1 + m2"], ["b1", "I1"], ["a2", "m2 c2"],
+                                        ["b2", "I2 + m2"]]

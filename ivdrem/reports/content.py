@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import platform
+import re
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -153,6 +154,65 @@ def _parameters(cfg: Mapping) -> Table:
                       "The full TOML is in the HTML report.")
 
 
+def _where_it_enters(model) -> list[str]:
+    """For each parameter θ_j, the entries of M, G and F it enters (∂/∂θ_j ≠ 0), from the
+    model's symbolic matrices: what a parameter groups when the model has no table."""
+    out = []
+    mats = [("M", getattr(model, "M", None)), ("G", getattr(model, "G", None)),
+            ("F", getattr(model, "F", None))]
+    for th in model.theta:
+        where = []
+        for label, mat in mats:
+            if mat is None:
+                continue
+            for i in range(mat.rows):
+                for j in range(mat.cols):
+                    if label == "M" and j < i:
+                        continue                     # symmetric
+                    if mat[i, j].has(th):
+                        where.append(f"{label}{i + 1}{j + 1}" if label == "M" else f"{label}{i + 1}")
+        out.append(", ".join(where) or "–")
+    return out
+
+
+def _model_table(run) -> Table | None:
+    """The model's parameters: name, what it groups, true value (small: one row each)."""
+    from ..experiments.config import model_label
+    model = getattr(run, "model", None)
+    if model is None:
+        try:
+            from ..experiments.config import model_from_config
+            model = model_from_config(run.config)
+        except Exception:        # a synthetic run's made-up model: no table
+            return None
+    names = list(getattr(model, "parameter_names", None) or getattr(model, "theta_names", None)
+                 or [str(t) for t in model.theta])
+    groups = None
+    table = getattr(model, "parameter_table", None)
+    table = table() if callable(table) else table
+    if table is not None:
+        try:   # rows (name, groups) or {name: groups}
+            items = table.items() if isinstance(table, Mapping) else table
+            groups = [g if isinstance(g, str) else " + ".join(map(str, g)) for _, g in
+                      ((r if isinstance(r, (tuple, list)) else (r.get("name"), r.get("groups")))
+                       for r in items)]
+        except Exception:
+            groups = None
+    if groups is None or len(groups) != len(names):
+        groups = _where_it_enters(model)
+        what = "entries of M, G, F it enters"
+    else:
+        what = "standard parameters it groups"
+    theta = np.asarray(run.theta, dtype=float)
+    names = [re.sub(r"^theta(\d+)$", r"θ\1", n) for n in names]    # the paper's θ1 ... θ5
+    rows = [[str(j + 1), names[j], groups[j], fmt(float(theta[j])) if j < theta.size else "–"]
+            for j in range(len(names))]
+    return Table("model", f"Model {model_label(run.config)}: n = {model.n}, nθ = {model.ntheta}",
+                 ["", "parameter", what, "true value"], rows, [0.06, 0.18, 0.58, 0.18],
+                 note="θ of the paper's Property 1: M(q)v̇ + C(q, q̇)v + F(q̇) + G(q) = "
+                      "Φᵀ(q, q̇, v, v̇)θ.")
+
+
 _STATS = ["method", "steps", "rejected", "rhs_calls", "wall_s", "rtol", "atol", "h"]
 
 
@@ -289,7 +349,7 @@ def _engine(run) -> str:
 
 
 def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
-    from ..experiments.config import dump_toml
+    from ..experiments.config import dump_toml, model_label
 
     cfg = run.config
     laws = list(run.runs)
@@ -301,7 +361,7 @@ def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
     meta = [
         ("generated", when),
         ("git commit", commit),
-        ("model", f"{cfg['model']['name']}, θ = {fmt(cfg['model']['theta'])}"),
+        ("model", f"{model_label(cfg)}, θ = {fmt(cfg['model']['theta'])}"),
         ("laws", ", ".join(laws)),
         ("simulated horizon", f"{fmt(t_end)} s"),
         ("engine", _engine(run)),
@@ -319,6 +379,7 @@ def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
         _summary(run),
         *_diagnostics_tables(run, diags),
         _parameters(cfg),
+        *([t] if (t := _model_table(run)) is not None else []),
         _errata(cfg, laws),
         _solver(run),
         Table("versions", "Software versions", ["package", "version"],
