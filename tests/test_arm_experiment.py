@@ -253,8 +253,10 @@ def test_report_model_table_takes_the_models_own_table():
         parameter_names = ["a1", "b1", "a2", "b2"]
 
         def parameter_table(self):
-            return [("a1", ["m1", "m2"]), ("b1", "I1"), ("a2", "m2 c2"), ("b2", ["I2", "m2"])]
+            return [("a1", ["m1", "m2"]), ("b1", "I1"), ("a2", 0.5, "kg m", [(1.0, "mx2")]),
+                    ("b2", 0.1, "kg m2", [(1.0, "I2")] + [(0.25, f"m{k}") for k in range(7)])]
     t = _model_table(_run_of(load_config(overrides={"model.name": "planar-2"}), WithTable()))
     assert t.header[2] == "standard parameters it groups"
-    assert [r[1:3] for r in t.rows] == [["a1", "m1 + m2"], ["b1", "I1"], ["a2", "m2 c2"],
-                                        ["b2", "I2 + m2"]]
+    assert [r[1:3] for r in t.rows] == [
+        ["a1", "m1 + m2"], ["b1", "I1"], ["a2", "mx2"],
+        ["b2", "I2 + 0.25 m0 + 0.25 m1 + 0.25 m2 + 0.25 m3 + 0.25 m4 + … (2 more)"]]

@@ -152,7 +152,7 @@ SCHEMA: dict[str, dict[str, _Key]] = {
 }
 
 #: Friction options of a URDF model (``ivdrem.models.from_urdf(friction=...)``).
-FRICTION = ("none", "viscous", "viscous+coulomb")
+FRICTION = ("none", "viscous", "coulomb", "viscous+coulomb")
 #: Kinds of reference trajectory and the keys of [trajectory] each one uses.
 TRAJECTORY_KINDS = {
     "sinusoid": ("amplitude", "omega", "phase", "offset"),   # the paper's (no `kind` key)
@@ -197,6 +197,8 @@ def _build(name, urdf, stamp, g, friction, joints):
         if from_urdf is None:
             raise ConfigError("config key 'model.urdf': this ivdrem has no URDF models "
                               "(ivdrem.models.from_urdf)")
+        if g is not None:
+            opts["gravity"] = g
         try:
             return from_urdf(urdf, **opts)
         except (ValueError, OSError, ImportError) as exc:

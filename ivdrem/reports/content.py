@@ -160,6 +160,8 @@ def _where_it_enters(model) -> list[str]:
     out = []
     mats = [("M", getattr(model, "M", None)), ("G", getattr(model, "G", None)),
             ("F", getattr(model, "F", None))]
+    if not hasattr(model, "theta") or not all(hasattr(m, "has") for _, m in mats if m is not None):
+        return ["–"] * model.ntheta           # no symbolic matrices to read
     for th in model.theta:
         where = []
         for label, mat in mats:
@@ -175,6 +177,35 @@ def _where_it_enters(model) -> list[str]:
     return out
 
 
+def _term(t) -> str:
+    """One standard parameter of a group: a name, or (coefficient, name)."""
+    if isinstance(t, (tuple, list)) and len(t) == 2 and not isinstance(t[0], str):
+        c, name = t
+        return str(name) if float(c) == 1.0 else f"{float(c):.4g} {name}"
+    return str(t)
+
+
+def _groups(model, count, max_terms=6) -> list[str] | None:
+    """What each parameter groups, from the model's ``parameter_table()`` (rows whose first
+    entry is the name and last the standard parameters: a text, or a list of names or of
+    (coefficient, name)); None if the model has none.  Long groups are cut after
+    `max_terms` terms (the table stays small)."""
+    table = getattr(model, "parameter_table", None)
+    table = table() if callable(table) else table
+    if table is None:
+        return None
+    out = []
+    for row in (table.items() if isinstance(table, Mapping) else table):
+        g = row[-1]
+        if isinstance(g, str):
+            out.append(g)
+            continue
+        terms = [_term(t) for t in g]
+        more = len(terms) - max_terms
+        out.append(" + ".join(terms[:max_terms]) + (f" + … ({more} more)" if more > 0 else ""))
+    return out if len(out) == count else None
+
+
 def _model_table(run) -> Table | None:
     """The model's parameters: name, what it groups, true value (small: one row each)."""
     from ..experiments.config import model_label
@@ -186,23 +217,12 @@ def _model_table(run) -> Table | None:
         except Exception:        # a synthetic run's made-up model: no table
             return None
     names = list(getattr(model, "parameter_names", None) or getattr(model, "theta_names", None)
-                 or [str(t) for t in model.theta])
-    groups = None
-    table = getattr(model, "parameter_table", None)
-    table = table() if callable(table) else table
-    if table is not None:
-        try:   # rows (name, groups) or {name: groups}
-            items = table.items() if isinstance(table, Mapping) else table
-            groups = [g if isinstance(g, str) else " + ".join(map(str, g)) for _, g in
-                      ((r if isinstance(r, (tuple, list)) else (r.get("name"), r.get("groups")))
-                       for r in items)]
-        except Exception:
-            groups = None
-    if groups is None or len(groups) != len(names):
+                 or [f"theta{j + 1}" for j in range(model.ntheta)])
+    groups = _groups(model, len(names))
+    what = "standard parameters it groups"
+    if groups is None:
         groups = _where_it_enters(model)
         what = "entries of M, G, F it enters"
-    else:
-        what = "standard parameters it groups"
     theta = np.asarray(run.theta, dtype=float)
     names = [re.sub(r"^theta(\d+)$", r"θ\1", n) for n in names]    # the paper's θ1 ... θ5
     rows = [[str(j + 1), names[j], groups[j], fmt(float(theta[j])) if j < theta.size else "–"]
