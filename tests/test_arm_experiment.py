@@ -82,7 +82,7 @@ def test_urdf_path_is_relative_to_the_config_file(tmp_path, fake_urdf, monkeypat
     assert "name" not in c["model"]
     assert Path(c["model"]["urdf"]) == (tmp_path / "robots" / "arm.urdf").resolve()
     assert fake_urdf[-1] == ((tmp_path / "robots" / "arm.urdf").resolve(),
-                             {"friction": "viscous", "joints": ["j1", "j2"]})
+                             {"friction": "viscous", "joints": ["j1", "j2"], "gravity": 9.81})
     # the dumped configuration loads again to the same one (absolute path)
     again = load_config(write(tmp_path, dump_toml(c), "dumped.toml"))
     assert again == c
