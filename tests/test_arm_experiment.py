@@ -260,3 +260,53 @@ def test_report_model_table_takes_the_models_own_table():
     assert [r[1:3] for r in t.rows] == [
         ["a1", "m1 + m2"], ["b1", "I1"], ["a2", "mx2"],
         ["b2", "I2 + 0.25 m0 + 0.25 m1 + 0.25 m2 + 0.25 m3 + 0.25 m4 + … (2 more)"]]
+
+
+# --------------------------------------------------------------------------- named arms
+def _arm_available(name):
+    names = models.model_names() if hasattr(models, "model_names") else models.MODEL_NAMES
+    if name not in names:
+        return False
+    try:
+        models.get_model(name)
+    except ImportError:          # the URDF package (the `arms` extra) is not installed
+        return False
+    return True
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name, ntheta", [("panda", 43), ("ur5", 36)])
+def test_example_of_a_named_arm_loads_inside_its_limits(name, ntheta):
+    if not _arm_available(name):
+        pytest.skip(f"arm {name!r} not available (ivdrem.models / the arms extra)")
+    c = load_config(ROOT / "examples" / f"{name}.toml")
+    m = model_from_config(c)
+    assert (m.ntheta, c["trajectory"]["kind"]) == (ntheta, "fourier")
+    d = arm.design_trajectory(m)
+    assert d["rank"] == ntheta                       # every base parameter excited
+    t = np.linspace(0.0, arm.PERIOD, 5001)
+    q, dq, _ = fourier_series(t, d["omega_f"], d["a"], d["b"], d["offset"])
+    lo, hi = np.asarray(m.position_limits, float).T
+    assert np.all(q >= lo) and np.all(q <= hi)
+    assert np.all(np.abs(dq) <= np.asarray(m.velocity_limits, float))
+    assert np.all(np.asarray(c["disturbance"]["amplitude"])
+                  <= arm.EFFORT_FRACTION * np.asarray(m.effort_limits, float) + 1e-12)
+    np.testing.assert_allclose(c["initial"]["q0"], q[0], atol=1e-14)
+
+
+@pytest.mark.slow
+def test_short_closed_loop_on_the_panda():
+    """1 s of law `none` on the Panda (the compile of its 7-DoF loop dominates)."""
+    if not _arm_available("panda"):
+        pytest.skip("arm 'panda' not available (ivdrem.models / the arms extra)")
+    from ivdrem.experiments.paper import run_law
+    c = load_config(ROOT / "examples" / "panda.toml",
+                    overrides={"experiment.t_end": 1.0, "experiment.laws": ["none"]})
+    r = run_law(c, "none", progress=False).response
+    out = np.asarray(r.outputs)
+    assert np.all(np.isfinite(out))
+    lab = list(r.output_labels)
+    e = out[[lab.index(f"e[{i}]") for i in range(7)]]
+    assert np.max(np.abs(e[:, 0])) < 1e-12 and np.max(np.abs(e)) < 0.3

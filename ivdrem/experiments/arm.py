@@ -42,10 +42,10 @@ HARMONICS = 5
 #: Fraction of each joint's range and velocity limit kept free (both sides).
 LIMIT_MARGIN = 0.1
 #: Random coefficient sets compared by the excitation criterion; the seed of the first.
-CANDIDATES = 8
+CANDIDATES = 4
 SEED = 0
 #: Samples per period of the stacked regressor (excitation criterion, disturbance scale).
-SAMPLES = 200
+SAMPLES = 100
 #: Disturbance amplitude as a fraction of the largest torque the reference needs
 #: (the paper: 7.5 and 1.5 N m against 13-18 and 4 N m of gravity torque: about 0.4).
 DISTURBANCE_FRACTION = 0.4
@@ -111,7 +111,7 @@ def excitation(model, trajectory, samples=SAMPLES):
     return rank, float(s[0] / s[-1]) if s[-1] > 0 else math.inf
 
 
-#: Designed references by model key (the design evaluates the regressor 1,600 times).
+#: Designed references by model key (the design evaluates the regressor 400 times).
 _DESIGNS: dict = {}
 
 

@@ -272,14 +272,23 @@ MODEL_FOLLOWING = {
 }
 #: Keys whose default follows the Fourier reference (the real-arm experiment of
 #: docs/experiment.md, :mod:`ivdrem.experiments.arm`): q(0) on the reference, the
-#: disturbance scaled to the arm, gains per joint.  Each gets (model, config).
+#: disturbance scaled to the arm, gains per joint.  Each gets (model, config, a memo
+#: shared by one filling).
 ARM_FOLLOWING = {
-    ("initial", "q0"): lambda m, c: _arm().initial_state(c["trajectory"])[0],
-    ("initial", "dq0"): lambda m, c: _arm().initial_state(c["trajectory"])[1],
-    ("controller", "K"): lambda m, c: _arm().design_gains(m, c["initial"]["q0"], c["model"]["theta"]),
-    **{("disturbance", k): (lambda k: lambda m, c: _arm().design_disturbance(
-        m, c["trajectory"], c["model"]["theta"])[k])(k) for k in ("amplitude", "omega", "phase", "offset")},
+    ("initial", "q0"): lambda m, c, memo: _memo(memo, "x0", lambda: _arm().initial_state(c["trajectory"]))[0],
+    ("initial", "dq0"): lambda m, c, memo: _memo(memo, "x0", lambda: _arm().initial_state(c["trajectory"]))[1],
+    ("controller", "K"): lambda m, c, memo: _arm().design_gains(m, c["initial"]["q0"], c["model"]["theta"]),
+    **{("disturbance", k): (lambda k: lambda m, c, memo: _memo(memo, "tau_d", lambda: _arm().design_disturbance(
+        m, c["trajectory"], c["model"]["theta"]))[k])(k) for k in ("amplitude", "omega", "phase", "offset")},
 }
+
+
+def _memo(memo: dict, key: str, fn):
+    if key not in memo:
+        memo[key] = fn()
+    return memo[key]
+
+
 #: The model the embedded default is written for.
 DEFAULT_MODEL = "two-link"
 
@@ -321,9 +330,10 @@ def _follow_model(cfg: dict, user_set: set) -> None:
         if a.shape != b.shape or a.ndim != 2 or a.shape[0] != model.n or \
                 np.shape(tr["offset"]) != (model.n,):
             return
+        memo: dict = {}
         for (section, key), fn in ARM_FOLLOWING.items():
             if (section, key) not in user_set:
-                cfg[section][key] = fn(model, cfg)
+                cfg[section][key] = fn(model, cfg, memo)
     except (TypeError, ValueError, IndexError, KeyError):
         pass
 
