@@ -260,6 +260,9 @@ def test_report_model_table_takes_the_models_own_table():
     assert [r[1:3] for r in t.rows] == [
         ["a1", "m1 + m2"], ["b1", "I1"], ["a2", "mx2"],
         ["b2", "I2 + 0.25 m0 + 0.25 m1 + 0.25 m2 + 0.25 m3 + 0.25 m4 + … (2 more)"]]
+    from ivdrem.reports.content import _terms
+    assert _terms([(1.0, "Izz1"), (0.9999999999999999, "Ixx2"), (-1.0, "Izz2"), (-0.5, "m")]) == "Izz1 + Ixx2 − Izz2 − 0.5 m"
+    assert _terms([(-1.0, "my2"), (0.316, "m3")]) == "−my2 + 0.316 m3"
 
 
 # --------------------------------------------------------------------------- named arms

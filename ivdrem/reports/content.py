@@ -177,12 +177,22 @@ def _where_it_enters(model) -> list[str]:
     return out
 
 
-def _term(t) -> str:
-    """One standard parameter of a group: a name, or (coefficient, name)."""
-    if isinstance(t, (tuple, list)) and len(t) == 2 and not isinstance(t[0], str):
-        c, name = t
-        return str(name) if float(c) == 1.0 else f"{float(c):.4g} {name}"
-    return str(t)
+def _terms(terms) -> str:
+    """A group as text: names, or (coefficient, name) pairs, as a signed sum
+    ("Izz1 + Ixx2 − Izz2", "mx3 + 0.0825 m4"); coefficients ±1 to 1e-9 are left out."""
+    out = []
+    for t in terms:
+        if isinstance(t, (tuple, list)) and len(t) == 2 and not isinstance(t[0], str):
+            c, name = float(t[0]), str(t[1])
+            sign, c = ("−" if c < 0 else "+"), abs(c)
+            text = name if abs(c - 1.0) < 1e-9 else f"{c:.4g} {name}"
+        else:
+            sign, text = "+", str(t)
+        out.append((sign, text))
+    if not out:
+        return "–"
+    first = ("−" if out[0][0] == "−" else "") + out[0][1]
+    return " ".join([first] + [f"{sg} {tx}" for sg, tx in out[1:]])
 
 
 def _groups(model, count, max_terms=6) -> list[str] | None:
@@ -200,9 +210,9 @@ def _groups(model, count, max_terms=6) -> list[str] | None:
         if isinstance(g, str):
             out.append(g)
             continue
-        terms = [_term(t) for t in g]
-        more = len(terms) - max_terms
-        out.append(" + ".join(terms[:max_terms]) + (f" + … ({more} more)" if more > 0 else ""))
+        g = list(g)
+        more = len(g) - max_terms
+        out.append(_terms(g[:max_terms]) + (f" + … ({more} more)" if more > 0 else ""))
     return out if len(out) == count else None
 
 
