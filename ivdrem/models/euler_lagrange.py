@@ -67,21 +67,13 @@ import numpy as np
 import sympy as sp
 from sympy.printing.pycode import PythonCodePrinter
 
+from .base import (FUNCTION_NAMES as _FUNCTION_NAMES, REGRESSOR_ARGS,
+                   SINGULAR_INERTIA_MESSAGE, RobotModel)
+
 __all__ = ["EulerLagrangeModel", "CODEGEN_VERSION", "REGRESSOR_ARGS"]
 
 #: Bumped whenever the generated source changes shape; part of :attr:`EulerLagrangeModel.key`.
 CODEGEN_VERSION = "2"
-
-SINGULAR_INERTIA_MESSAGE = "inertia matrix M(q) is not positive definite (singular inertia)"
-
-#: The regressors and their vector arguments, in signature order.
-REGRESSOR_ARGS = {"Phi_M": ("q", "a"), "Phi_C": ("q", "dq", "v"), "Phi_dM": ("q", "dq", "a"),
-                  "Phi_G": ("q",), "Phi_F": ("dq",), "Phi": ("q", "dq", "v", "dv")}
-
-_FUNCTION_NAMES = ("Phi_M", "Phi_C", "Phi_dM", "Phi_G", "Phi_F", "Phi",
-                   "M", "C", "G", "F", "forward_dynamics",
-                   *(f"{r}_jac" for r in REGRESSOR_ARGS))
-
 
 # ----------------------------------------------------------------------------- helpers
 def _is_zero(expr) -> bool:
@@ -139,7 +131,7 @@ class _Printer(PythonCodePrinter):
 
 
 # ----------------------------------------------------------------------------- model
-class EulerLagrangeModel:
+class EulerLagrangeModel(RobotModel):
     """An n-DoF Euler-Lagrange robot ``M q'' + C q' + F + G = tau`` linear in ``theta``.
 
     Parameters
@@ -620,52 +612,3 @@ class EulerLagrangeModel:
             "    return None",
         ]
         return "\n".join(lines)
-
-    # ------------------------------------------------------------------ numeric
-    def _namespace(self, jit):
-        glb = {"math": math, "np": np, "__name__": f"ivdrem_generated_{self.key[:12]}"}
-        exec(compile(self.source(""), f"<ivdrem model {self.name} {self.key[:12]}>", "exec"), glb)
-        funcs = {name: glb[name] for name in _FUNCTION_NAMES}
-        if jit:
-            import numba
-            funcs = {name: numba.njit(f) for name, f in funcs.items()}
-        return types.SimpleNamespace(**funcs)
-
-    @cached_property
-    def functions(self):
-        """Namespace of the generated functions as plain Python (reference path)."""
-        return self._namespace(jit=False)
-
-    @cached_property
-    def jit_functions(self):
-        """Namespace of ``numba.njit`` versions of the generated functions (compiled lazily)."""
-        return self._namespace(jit=True)
-
-    # convenience helpers: allocate and return arrays (not for inner loops)
-    def _theta(self, theta):
-        if theta is None:
-            if self.theta_values is None:
-                raise ValueError(f"model {self.name!r} has no theta_values; pass theta")
-            return np.asarray(self.theta_values, dtype=float)
-        th = np.asarray(theta, dtype=float)
-        if th.shape != (self.ntheta,):
-            raise ValueError(f"theta must have shape ({self.ntheta},), got {th.shape}")
-        return th
-
-    def regressor(self, q, dq, v, dv):
-        """Phi^T(q, dq, v, dv) as a new (n, ntheta) array."""
-        out = np.empty((self.n, self.ntheta))
-        self.functions.Phi(np.asarray(q, float), np.asarray(dq, float), np.asarray(v, float),
-                           np.asarray(dv, float), out)
-        return out
-
-    def inverse_dynamics(self, q, dq, ddq, theta=None):
-        """tau = M ddq + C dq + F + G (= Phi^T(q, dq, dq, ddq) theta) as a new array."""
-        return self.regressor(q, dq, dq, ddq) @ self._theta(theta)
-
-    def acceleration(self, q, dq, tau, theta=None):
-        """qdd from forward dynamics as a new array."""
-        out = np.empty(self.n)
-        self.functions.forward_dynamics(np.asarray(q, float), np.asarray(dq, float),
-                                        np.asarray(tau, float), self._theta(theta), out)
-        return out

@@ -1,0 +1,449 @@
+"""Rigid-body kernels of a serial (or tree) arm: a recursive Newton-Euler formulation that is
+linear in the link parameters, written once as numba-compilable Python.
+
+Conventions (the same as Pinocchio's, so that its functions check these):
+
+* body ``j`` has the frame of joint ``j`` (after the joint's motion); its pose in the frame
+  of its parent body ``parent[j]`` is ``(Rp[j] E_j(q_j), pp[j])`` for a revolute joint of
+  unit axis ``axis[j]`` (``E_j = exp([axis] q_j)``), ``(Rp[j], pp[j] + Rp[j] axis q_j)`` for
+  a prismatic one; ``parent[j] < j`` and ``-1`` is the fixed base;
+* spatial vectors are 6-vectors, linear part first: a motion ``(v, w)``, a force ``(f, n)``;
+* the 10 standard parameters of a link, about the origin of its joint frame (Pinocchio's
+  ``Inertia.toDynamicParameters``):
+  ``(m, m c_x, m c_y, m c_z, I_xx, I_xy, I_yy, I_xz, I_yz, I_zz)``.
+
+With ``V_j``, ``A_j`` the spatial velocity and acceleration of body ``j`` (the base
+accelerates at ``-g``: gravity enters as a base acceleration), the body force is linear in
+the link's parameters ``pi_j`` (docs/models.md):
+
+    f_j = I_j A_j + V_j x* (I_j V_j) = Phi_b(V_j, A_j) pi_j          (6 x 10)
+
+and the joint torque is ``tau_i = S_i^T sum_{j in subtree(i)} X*_{i<-j} f_j``, so the joint
+torque regressor ``Y(q, w, a)`` (rnea = ``Y pi``) has blocks
+``Y[i, 10 j : 10 j + 10] = S_i^T X*_{i<-j} Phi_b(V_j, A_j)``.  The regressors of the paper
+(Property 1) follow from it: with the velocity terms ``c(w) = C(q, w) w`` a quadratic form
+and ``C`` Christoffel-consistent (``C(q, x) y = C(q, y) x``), ``C(q, x) y`` is its polar form
+
+    C(q, x) y = (s_x s_y / 4) [c(x/s_x + y/s_y) - c(x/s_x - y/s_y)]    (any s_x, s_y != 0)
+
+(scaled by the largest entries, so that neither difference cancels).  Derivatives with
+respect to ``q`` are exact forward-mode derivatives of the recursion (``_rb_forward`` and
+``_rb_project`` with ``tangent=True``): along a direction ``d``, ``dX_j = -d_j (S_j x) X_j``
+for the motion transform of every joint type, so that
+
+    dV_j = X_j dV_p - d_j S_j x (X_j V_p)
+    dA_j = X_j dA_p - d_j S_j x (X_j A_p) + dV_j x (S_j w_j)
+    d(X_j^T F) = X_j^T dF + d_j X_j^T (S_j x* F).
+
+Every function takes its arrays with the dtype of ``q`` (float64, or complex128 for the one
+second derivative taken by the complex step, ``Phi_dM_jac`` with respect to ``q``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["KERNELS", "SINGULAR_INERTIA_MESSAGE"]
+
+from .base import SINGULAR_INERTIA_MESSAGE
+
+
+def _rb_kinematics(q, jtype, axis, Rp, pp, R, p):
+    # pose (R[j], p[j]) of body j in its parent's frame
+    n = q.shape[0]
+    for j in range(n):
+        ux = axis[j, 0]
+        uy = axis[j, 1]
+        uz = axis[j, 2]
+        if jtype[j] == 0:
+            c = np.cos(q[j])
+            s = np.sin(q[j])
+            t = 1.0 - c
+            # Rodrigues: E = c I + s [u]x + t u u^T
+            e00 = c + t * ux * ux
+            e01 = t * ux * uy - s * uz
+            e02 = t * ux * uz + s * uy
+            e10 = t * ux * uy + s * uz
+            e11 = c + t * uy * uy
+            e12 = t * uy * uz - s * ux
+            e20 = t * ux * uz - s * uy
+            e21 = t * uy * uz + s * ux
+            e22 = c + t * uz * uz
+            for r in range(3):
+                a0 = Rp[j, r, 0]
+                a1 = Rp[j, r, 1]
+                a2 = Rp[j, r, 2]
+                R[j, r, 0] = a0 * e00 + a1 * e10 + a2 * e20
+                R[j, r, 1] = a0 * e01 + a1 * e11 + a2 * e21
+                R[j, r, 2] = a0 * e02 + a1 * e12 + a2 * e22
+                p[j, r] = pp[j, r]
+        else:
+            for r in range(3):
+                for c2 in range(3):
+                    R[j, r, c2] = Rp[j, r, c2]
+                p[j, r] = pp[j, r] + (Rp[j, r, 0] * ux + Rp[j, r, 1] * uy
+                                      + Rp[j, r, 2] * uz) * q[j]
+
+
+def _rb_xmotion(R, p, j, m, out):
+    # motion m (parent frame) in the frame of body j: (R^T (m_l - p x m_a), R^T m_a)
+    tl0 = m[0] - (p[j, 1] * m[5] - p[j, 2] * m[4])
+    tl1 = m[1] - (p[j, 2] * m[3] - p[j, 0] * m[5])
+    tl2 = m[2] - (p[j, 0] * m[4] - p[j, 1] * m[3])
+    for r in range(3):
+        out[r] = R[j, 0, r] * tl0 + R[j, 1, r] * tl1 + R[j, 2, r] * tl2
+        out[3 + r] = R[j, 0, r] * m[3] + R[j, 1, r] * m[4] + R[j, 2, r] * m[5]
+
+
+def _rb_cross_motion(a, b, out, scale):
+    # out += scale * (a x b) for motions: (a_w x b_l + a_v x b_w, a_w x b_w)
+    out[0] += scale * (a[4] * b[2] - a[5] * b[1] + a[1] * b[5] - a[2] * b[4])
+    out[1] += scale * (a[5] * b[0] - a[3] * b[2] + a[2] * b[3] - a[0] * b[5])
+    out[2] += scale * (a[3] * b[1] - a[4] * b[0] + a[0] * b[4] - a[1] * b[3])
+    out[3] += scale * (a[4] * b[5] - a[5] * b[4])
+    out[4] += scale * (a[5] * b[3] - a[3] * b[5])
+    out[5] += scale * (a[3] * b[4] - a[4] * b[3])
+
+
+def _rb_subspace(jtype, axis, j, s, out):
+    # out = S_j s (the joint's motion for joint velocity s)
+    for r in range(6):
+        out[r] = 0.0
+    off = 3 if jtype[j] == 0 else 0
+    for r in range(3):
+        out[off + r] = axis[j, r] * s
+
+
+def _rb_forward(R, p, parent, jtype, axis, w, acc, a0, tangent, d, V, A, dV, dA):
+    # V_j = X_j V_p + S_j w_j;  A_j = X_j A_p + S_j acc_j + V_j x (S_j w_j); tangents along d
+    n = w.shape[0]
+    t6 = np.empty(6, dtype=V.dtype)
+    sw = np.empty(6, dtype=V.dtype)
+    sa = np.empty(6, dtype=V.dtype)
+    for j in range(n):
+        pa = parent[j]
+        _rb_subspace(jtype, axis, j, w[j], sw)
+        _rb_subspace(jtype, axis, j, acc[j], sa)
+        if pa < 0:
+            for r in range(6):
+                V[j, r] = sw[r]
+            _rb_xmotion(R, p, j, a0, t6)
+            for r in range(6):
+                A[j, r] = t6[r] + sa[r]
+            if tangent:
+                for r in range(6):
+                    dV[j, r] = 0.0
+                    dA[j, r] = 0.0
+                # d(X_j a0) = -d_j S_j x (X_j a0)
+                _rb_subspace(jtype, axis, j, 1.0, sa)
+                _rb_cross_motion(sa, t6, dA[j], -d[j])
+        else:
+            _rb_xmotion(R, p, j, V[pa], t6)
+            for r in range(6):
+                V[j, r] = t6[r] + sw[r]
+            if tangent:
+                _rb_xmotion(R, p, j, dV[pa], dV[j])
+                _rb_subspace(jtype, axis, j, 1.0, sa)
+                _rb_cross_motion(sa, t6, dV[j], -d[j])
+                _rb_subspace(jtype, axis, j, acc[j], sa)
+            _rb_xmotion(R, p, j, A[pa], t6)
+            for r in range(6):
+                A[j, r] = t6[r] + sa[r]
+            if tangent:
+                _rb_xmotion(R, p, j, dA[pa], dA[j])
+                _rb_subspace(jtype, axis, j, 1.0, sa)
+                _rb_cross_motion(sa, t6, dA[j], -d[j])
+        _rb_cross_motion(V[j], sw, A[j], 1.0)
+        if tangent:
+            _rb_cross_motion(dV[j], sw, dA[j], 1.0)
+
+
+def _rb_body_regressor(V1, V2, A, scale, out):
+    # out (6 x 10) += scale * [L(A) + Q(V1, V2)]: the body force regressor
+    # Phi_b(V, A) = L(A) + Q(V, V), linear part L and bilinear part Q of
+    # f = m a - h x al + w x (m v - h x w),
+    # n = I al + h x a + w x (I w + h x v) + v x (m v - h x w)    (V = (v, w), A = (a, al))
+    v0 = V2[0]
+    v1 = V2[1]
+    v2 = V2[2]
+    w0 = V2[3]
+    w1 = V2[4]
+    w2 = V2[5]
+    x0 = V1[0]
+    x1 = V1[1]
+    x2 = V1[2]
+    o0 = V1[3]
+    o1 = V1[4]
+    o2 = V1[5]
+    a0 = A[0]
+    a1 = A[1]
+    a2 = A[2]
+    b0 = A[3]
+    b1 = A[4]
+    b2 = A[5]
+    # mass: f = a + o x v
+    out[0, 0] += scale * (a0 + o1 * v2 - o2 * v1)
+    out[1, 0] += scale * (a1 + o2 * v0 - o0 * v2)
+    out[2, 0] += scale * (a2 + o0 * v1 - o1 * v0)
+    # first moment h = e_k: f = al x e + o x (w x e); n = e x a + o x (e x v) + x x (w x e)
+    for k in range(3):
+        e0 = 1.0 if k == 0 else 0.0
+        e1 = 1.0 if k == 1 else 0.0
+        e2 = 1.0 if k == 2 else 0.0
+        # w x e
+        c0 = w1 * e2 - w2 * e1
+        c1 = w2 * e0 - w0 * e2
+        c2 = w0 * e1 - w1 * e0
+        out[0, 1 + k] += scale * (b1 * e2 - b2 * e1 + o1 * c2 - o2 * c1)
+        out[1, 1 + k] += scale * (b2 * e0 - b0 * e2 + o2 * c0 - o0 * c2)
+        out[2, 1 + k] += scale * (b0 * e1 - b1 * e0 + o0 * c1 - o1 * c0)
+        # e x v
+        d0 = e1 * v2 - e2 * v1
+        d1 = e2 * v0 - e0 * v2
+        d2 = e0 * v1 - e1 * v0
+        out[3, 1 + k] += scale * (e1 * a2 - e2 * a1 + o1 * d2 - o2 * d1 + x1 * c2 - x2 * c1)
+        out[4, 1 + k] += scale * (e2 * a0 - e0 * a2 + o2 * d0 - o0 * d2 + x2 * c0 - x0 * c2)
+        out[5, 1 + k] += scale * (e0 * a1 - e1 * a0 + o0 * d1 - o1 * d0 + x0 * c1 - x1 * c0)
+    # rotational inertia (Ixx, Ixy, Iyy, Ixz, Iyz, Izz): n = E al + o x (E w)
+    for k in range(6):
+        # E = symmetric unit matrix of entry (r, c)
+        r = 0 if k < 2 else (1 if k == 2 else (0 if k == 3 else (1 if k == 4 else 2)))
+        c = 0 if k == 0 else (1 if k < 3 else 2)
+        eb0 = 0.0 * b0
+        eb1 = 0.0 * b0
+        eb2 = 0.0 * b0
+        ew0 = 0.0 * w0
+        ew1 = 0.0 * w0
+        ew2 = 0.0 * w0
+        # (E x)_r += x_c, (E x)_c += x_r (once if r == c)
+        bc = b0 if c == 0 else (b1 if c == 1 else b2)
+        br = b0 if r == 0 else (b1 if r == 1 else b2)
+        wc = w0 if c == 0 else (w1 if c == 1 else w2)
+        wr = w0 if r == 0 else (w1 if r == 1 else w2)
+        if r == 0:
+            eb0 += bc
+            ew0 += wc
+        elif r == 1:
+            eb1 += bc
+            ew1 += wc
+        else:
+            eb2 += bc
+            ew2 += wc
+        if r != c:
+            if c == 0:
+                eb0 += br
+                ew0 += wr
+            elif c == 1:
+                eb1 += br
+                ew1 += wr
+            else:
+                eb2 += br
+                ew2 += wr
+        out[3, 4 + k] += scale * (eb0 + o1 * ew2 - o2 * ew1)
+        out[4, 4 + k] += scale * (eb1 + o2 * ew0 - o0 * ew2)
+        out[5, 4 + k] += scale * (eb2 + o0 * ew1 - o1 * ew0)
+
+
+def _rb_project(R, p, parent, jtype, axis, Pb, tangent, d, dPb, Y, dY):
+    # Y[i, 10 j + c] = S_i^T X*_{i<-j} Pb[j][:, c] over the ancestors i of j (and tangents)
+    n = Pb.shape[0]
+    F = np.empty((6, 10), dtype=Pb.dtype)
+    G = np.empty((6, 10), dtype=Pb.dtype)
+    for i in range(n):
+        for c in range(10 * n):
+            Y[i, c] = 0.0
+            if tangent:
+                dY[i, c] = 0.0
+    for j in range(n):
+        for r in range(6):
+            for c in range(10):
+                F[r, c] = Pb[j, r, c]
+                if tangent:
+                    G[r, c] = dPb[j, r, c]
+        k = j
+        while k >= 0:
+            off = 3 if jtype[k] == 0 else 0
+            ux = axis[k, 0]
+            uy = axis[k, 1]
+            uz = axis[k, 2]
+            for c in range(10):
+                Y[k, 10 * j + c] = ux * F[off, c] + uy * F[off + 1, c] + uz * F[off + 2, c]
+                if tangent:
+                    dY[k, 10 * j + c] = ux * G[off, c] + uy * G[off + 1, c] + uz * G[off + 2, c]
+            pk = parent[k]
+            if pk < 0:
+                break
+            dk = d[k]
+            for c in range(10):
+                f0 = F[0, c]
+                f1 = F[1, c]
+                f2 = F[2, c]
+                n0 = F[3, c]
+                n1 = F[4, c]
+                n2 = F[5, c]
+                if tangent:
+                    # G <- G + d_k (S_k x* F), then both to the parent frame
+                    if jtype[k] == 0:     # S = (0, u): S x* F = (u x f, u x n)
+                        G[0, c] += dk * (uy * f2 - uz * f1)
+                        G[1, c] += dk * (uz * f0 - ux * f2)
+                        G[2, c] += dk * (ux * f1 - uy * f0)
+                        G[3, c] += dk * (uy * n2 - uz * n1)
+                        G[4, c] += dk * (uz * n0 - ux * n2)
+                        G[5, c] += dk * (ux * n1 - uy * n0)
+                    else:                 # S = (u, 0): S x* F = (0, u x f)
+                        G[3, c] += dk * (uy * f2 - uz * f1)
+                        G[4, c] += dk * (uz * f0 - ux * f2)
+                        G[5, c] += dk * (ux * f1 - uy * f0)
+                    g0 = G[0, c]
+                    g1 = G[1, c]
+                    g2 = G[2, c]
+                    h0 = G[3, c]
+                    h1 = G[4, c]
+                    h2 = G[5, c]
+                    for r in range(3):
+                        G[r, c] = R[k, r, 0] * g0 + R[k, r, 1] * g1 + R[k, r, 2] * g2
+                        G[3 + r, c] = R[k, r, 0] * h0 + R[k, r, 1] * h1 + R[k, r, 2] * h2
+                    G[3, c] += p[k, 1] * G[2, c] - p[k, 2] * G[1, c]
+                    G[4, c] += p[k, 2] * G[0, c] - p[k, 0] * G[2, c]
+                    G[5, c] += p[k, 0] * G[1, c] - p[k, 1] * G[0, c]
+                # f_p = R f;  n_p = R n + p x f_p
+                for r in range(3):
+                    F[r, c] = R[k, r, 0] * f0 + R[k, r, 1] * f1 + R[k, r, 2] * f2
+                    F[3 + r, c] = R[k, r, 0] * n0 + R[k, r, 1] * n1 + R[k, r, 2] * n2
+                F[3, c] += p[k, 1] * F[2, c] - p[k, 2] * F[1, c]
+                F[4, c] += p[k, 2] * F[0, c] - p[k, 0] * F[2, c]
+                F[5, c] += p[k, 0] * F[1, c] - p[k, 1] * F[0, c]
+            k = pk
+
+
+def _rb_scale(x):
+    # largest modulus of x (a constant factor of the polar form, never differentiated)
+    s = 0.0
+    for i in range(x.shape[0]):
+        ai = abs(x[i])
+        if ai > s:
+            s = ai
+    return s
+
+
+def _rb_bodies(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec, Pb, dPb):
+    # body regressors (and tangents along d) of C(q, x) y + M(q) acc + grav * G(q)
+    n = q.shape[0]
+    dt = Pb.dtype
+    R = np.empty((n, 3, 3), dtype=dt)
+    p = np.empty((n, 3), dtype=dt)
+    _rb_kinematics(q, jtype, axis, Rp, pp, R, p)
+    V = np.empty((n, 6), dtype=dt)
+    A = np.empty((n, 6), dtype=dt)
+    dV = np.empty((n, 6), dtype=dt)
+    dA = np.empty((n, 6), dtype=dt)
+    w = np.empty(n, dtype=dt)
+    z = np.zeros(n, dtype=dt)
+    a0 = np.zeros(6, dtype=dt)
+    z6 = np.zeros(6, dtype=dt)
+    for j in range(n):
+        for r in range(6):
+            for c in range(10):
+                Pb[j, r, c] = 0.0
+                if tangent:
+                    dPb[j, r, c] = 0.0
+    # acceleration and gravity pass (the base accelerates at -g)
+    for r in range(3):
+        a0[r] = -grav * gvec[r]
+    _rb_forward(R, p, parent, jtype, axis, z, acc, a0, tangent, d, V, A, dV, dA)
+    for j in range(n):
+        _rb_body_regressor(z6, z6, A[j], 1.0, Pb[j])
+        if tangent:
+            _rb_body_regressor(z6, z6, dA[j], 1.0, dPb[j])
+    # velocity terms: the polar form of c(w) = C(q, w) w
+    sx = _rb_scale(x)
+    sy = _rb_scale(y)
+    if sx > 0.0 and sy > 0.0:
+        for r in range(6):
+            a0[r] = 0.0
+        for sgn in (1.0, -1.0):
+            for i in range(n):
+                w[i] = x[i] / sx + sgn * y[i] / sy
+            _rb_forward(R, p, parent, jtype, axis, w, z, a0, tangent, d, V, A, dV, dA)
+            wt = sgn * 0.25 * sx * sy
+            for j in range(n):
+                _rb_body_regressor(V[j], V[j], A[j], wt, Pb[j])
+                if tangent:
+                    _rb_body_regressor(dV[j], V[j], dA[j], wt, dPb[j])
+                    _rb_body_regressor(V[j], dV[j], z6, wt, dPb[j])
+    return R, p
+
+
+def _rb_links(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec, Y, dY):
+    # the link part Y[:, :10 n] of the regressor of C(q, x) y + M(q) acc + grav * G(q)
+    n = q.shape[0]
+    Pb = np.empty((n, 6, 10), dtype=Y.dtype)
+    dPb = np.empty((n, 6, 10), dtype=Y.dtype)
+    R, p = _rb_bodies(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec, Pb,
+                      dPb)
+    _rb_project(R, p, parent, jtype, axis, Pb, tangent, d, dPb, Y, dY)
+
+
+def _rb_rnea(q, x, y, acc, grav, pi, parent, jtype, axis, Rp, pp, gvec, tau):
+    # tau = C(q, x) y + M(q) acc + grav G(q) of the links with standard parameters pi:
+    # the body forces Phi_b pi_j, accumulated towards the base (children have higher index)
+    n = q.shape[0]
+    Pb = np.empty((n, 6, 10))
+    R, p = _rb_bodies(q, x, y, acc, grav, False, q, parent, jtype, axis, Rp, pp, gvec, Pb, Pb)
+    f = np.zeros((n, 6))
+    for j in range(n):
+        for r in range(6):
+            s = 0.0
+            for c in range(10):
+                s += Pb[j, r, c] * pi[10 * j + c]
+            f[j, r] = s
+    for j in range(n - 1, -1, -1):
+        off = 3 if jtype[j] == 0 else 0
+        tau[j] = axis[j, 0] * f[j, off] + axis[j, 1] * f[j, off + 1] + axis[j, 2] * f[j, off + 2]
+        pa = parent[j]
+        if pa >= 0:
+            fl0 = R[j, 0, 0] * f[j, 0] + R[j, 0, 1] * f[j, 1] + R[j, 0, 2] * f[j, 2]
+            fl1 = R[j, 1, 0] * f[j, 0] + R[j, 1, 1] * f[j, 1] + R[j, 1, 2] * f[j, 2]
+            fl2 = R[j, 2, 0] * f[j, 0] + R[j, 2, 1] * f[j, 1] + R[j, 2, 2] * f[j, 2]
+            f[pa, 0] += fl0
+            f[pa, 1] += fl1
+            f[pa, 2] += fl2
+            f[pa, 3] += (R[j, 0, 0] * f[j, 3] + R[j, 0, 1] * f[j, 4] + R[j, 0, 2] * f[j, 5]
+                         + p[j, 1] * fl2 - p[j, 2] * fl1)
+            f[pa, 4] += (R[j, 1, 0] * f[j, 3] + R[j, 1, 1] * f[j, 4] + R[j, 1, 2] * f[j, 5]
+                         + p[j, 2] * fl0 - p[j, 0] * fl2)
+            f[pa, 5] += (R[j, 2, 0] * f[j, 3] + R[j, 2, 1] * f[j, 4] + R[j, 2, 2] * f[j, 5]
+                         + p[j, 0] * fl1 - p[j, 1] * fl0)
+
+
+def _rb_spd_solve(Mq, b):
+    # b <- Mq^-1 b by Cholesky (Mq is overwritten by its factor)
+    n = b.shape[0]
+    for j in range(n):
+        dd = Mq[j, j]
+        for k in range(j):
+            dd -= Mq[j, k] * Mq[j, k]
+        if not (dd > 0.0 and dd < np.inf):
+            raise ValueError(SINGULAR_INERTIA_MESSAGE)
+        dd = np.sqrt(dd)
+        Mq[j, j] = dd
+        for i in range(j + 1, n):
+            s = Mq[i, j]
+            for k in range(j):
+                s -= Mq[i, k] * Mq[j, k]
+            Mq[i, j] = s / dd
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= Mq[i, k] * b[k]
+        b[i] = s / Mq[i, i]
+    for i in range(n - 1, -1, -1):
+        s = b[i]
+        for k in range(i + 1, n):
+            s -= Mq[k, i] * b[k]
+        b[i] = s / Mq[i, i]
+
+
+#: The kernels, in dependency order (their source goes into every rigid-body model's code).
+KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
+           _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_rnea,
+           _rb_spd_solve)
