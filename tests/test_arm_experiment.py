@@ -44,7 +44,7 @@ def fake_urdf(monkeypatch):
         if Path(path).read_text() == "bad":
             raise ValueError(f"{path} is not URDF")
         return _Limited()
-    monkeypatch.setattr(models, "from_urdf", from_urdf, raising=False)
+    monkeypatch.setattr(models, "from_urdf", from_urdf)
     return calls
 
 
@@ -93,7 +93,7 @@ def test_urdf_path_is_relative_to_the_config_file(tmp_path, fake_urdf, monkeypat
 
 @pytest.mark.parametrize("text, fragment", [
     ('[model]\nurdf = "missing.urdf"\n', "config key 'model.urdf': file"),
-    ('[model]\nurdf = "bad.urdf"\n', "'model.urdf' = "),
+    ('[model]\nurdf = "bad.urdf"\n', "config key 'model.urdf'"),
     ('[model]\nurdf = "arm.urdf"\nname = "planar-2"\n', "'model.name' and 'model.urdf' are both set"),
     ('[model]\nurdf = "arm.urdf"\nfriction = "dry"\n', "'model.friction' = 'dry' is not valid"),
     ('[model]\nurdf = "arm.urdf"\njoints = "j1"\n', "'model.joints' must be a non-empty list of names"),
@@ -106,13 +106,6 @@ def test_bad_model_sections_name_the_key(tmp_path, fake_urdf, text, fragment):
     with pytest.raises(ConfigError) as exc:
         load_config(write(tmp_path, text))
     assert fragment in str(exc.value)
-
-
-def test_urdf_without_from_urdf_is_a_clear_error(tmp_path, monkeypatch):
-    monkeypatch.delattr(models, "from_urdf", raising=False)
-    (tmp_path / "arm.urdf").write_text("<robot/>")
-    with pytest.raises(ConfigError, match="model.urdf"):
-        load_config(write(tmp_path, '[model]\nurdf = "arm.urdf"\n'))
 
 
 # --------------------------------------------------------------------------- the experiment
@@ -267,9 +260,6 @@ def test_report_model_table_takes_the_models_own_table():
 
 # --------------------------------------------------------------------------- named arms
 def _arm_available(name):
-    names = models.model_names() if hasattr(models, "model_names") else models.MODEL_NAMES
-    if name not in names:
-        return False
     try:
         models.get_model(name)
     except ImportError:          # the URDF package (the `arms` extra) is not installed
@@ -313,3 +303,23 @@ def test_short_closed_loop_on_the_panda():
     lab = list(r.output_labels)
     e = out[[lab.index(f"e[{i}]") for i in range(7)]]
     assert np.max(np.abs(e[:, 0])) < 1e-12 and np.max(np.abs(e)) < 0.3
+
+
+def test_a_real_urdf_file_relative_to_the_config(tmp_path):
+    """A URDF written by others (example-robot-data's UR5), copied next to the
+    configuration, with the from_urdf options."""
+    try:
+        src = models.urdf.arm_urdf("ur5")
+    except ImportError:
+        pytest.skip("example-robot-data (the arms extra) is not installed")
+    (tmp_path / "robots").mkdir()
+    (tmp_path / "robots" / "ur5.urdf").write_bytes(Path(src).read_bytes())
+    (tmp_path / "cfg").mkdir()
+    p = write(tmp_path / "cfg", '[model]\nurdf = "../robots/ur5.urdf"\nfriction = "viscous"\n'
+                                '[experiment]\nt_end = 5.0\nlaws = ["none"]\n')
+    c = load_config(p)
+    m = model_from_config(c)
+    assert (m.n, m.ntheta) == (6, 36 + 6)              # 36 base parameters + viscous friction
+    assert c["trajectory"]["kind"] == "fourier" and len(c["model"]["theta"]) == 42
+    with pytest.raises(ConfigError, match="config key 'model.joints'.*no_such_joint.*shoulder_pan_joint"):
+        load_config(p, overrides={"model.joints": ["no_such_joint"]})

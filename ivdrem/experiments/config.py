@@ -179,9 +179,8 @@ OPTIONAL: dict[str, dict[str, _Key]] = {
 # --------------------------------------------------------------------------- the model
 def _model_names() -> list[str]:
     """The names ``ivdrem.models.get_model`` accepts (its own list)."""
-    from .. import models
-    names = getattr(models, "model_names", None)
-    return list(names()) if callable(names) else list(models.MODEL_NAMES)
+    from ..models import model_names
+    return list(model_names())
 
 
 @functools.lru_cache(maxsize=16)
@@ -193,16 +192,14 @@ def _build(name, urdf, stamp, g, friction, joints):
     if joints is not None:
         opts["joints"] = list(joints)
     if urdf is not None:
-        from_urdf = getattr(models, "from_urdf", None)
-        if from_urdf is None:
-            raise ConfigError("config key 'model.urdf': this ivdrem has no URDF models "
-                              "(ivdrem.models.from_urdf)")
         if g is not None:
             opts["gravity"] = g
         try:
-            return from_urdf(urdf, **opts)
+            return models.from_urdf(urdf, **opts)
         except (ValueError, OSError, ImportError) as exc:
-            raise ConfigError(f"config key 'model.urdf' = '{urdf}': {exc}") from None
+            key = "model.joints" if joints is not None and "joint" in str(exc) else "model.urdf"
+            where = "" if str(urdf) in str(exc) else f" ({urdf})"
+            raise ConfigError(f"config key '{key}'{where}: {exc}") from None
     if g is not None:
         opts["g"] = g
     try:

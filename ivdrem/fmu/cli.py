@@ -9,9 +9,8 @@ from .export import DEFAULT_SUBSTEP
 
 def _model_names() -> list[str]:
     """The names ``ivdrem.models.get_model`` accepts, from the models package itself."""
-    from ivdrem import models
-    names = getattr(models, "model_names", None)
-    return list(names()) if callable(names) else list(models.MODEL_NAMES)
+    from ivdrem.models import model_names
+    return list(model_names())
 
 
 def _parser() -> argparse.ArgumentParser:
