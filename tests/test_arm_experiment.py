@@ -98,7 +98,7 @@ def test_urdf_path_is_relative_to_the_config_file(tmp_path, fake_urdf, monkeypat
     ('[model]\nurdf = "arm.urdf"\nfriction = "dry"\n', "'model.friction' = 'dry' is not valid"),
     ('[model]\nurdf = "arm.urdf"\njoints = "j1"\n', "'model.joints' must be a non-empty list of names"),
     ('[model]\nurdf = "arm.urdf"\nfrcition = "viscous"\n', "did you mean 'model.friction'?"),
-    ('[model]\nname = "two-link"\nfriction = "viscous"\n', "does not take the option(s) friction"),
+    ('[model]\nname = "two-link"\nfriction = "viscous"\n', "model 'two-link' does not take model.friction"),
 ])
 def test_bad_model_sections_name_the_key(tmp_path, fake_urdf, text, fragment):
     (tmp_path / "arm.urdf").write_text("<robot/>")

@@ -205,8 +205,9 @@ def _build(name, urdf, stamp, g, friction, joints):
     try:
         return models.get_model(name, **opts)
     except TypeError as exc:          # an option this model does not take
-        raise ConfigError(f"config section [model]: model {name!r} does not take the "
-                          f"option(s) {', '.join(sorted(opts))}: {exc}") from None
+        given = ", ".join(f"model.{k}" for k in sorted(opts) if k != "g")
+        raise ConfigError(f"config section [model]: model {name!r} does not take "
+                          f"{given or 'model.g'}: {exc}") from None
     except ValueError as exc:
         names = _model_names()
         if not any(str(name).lower() == n.lower() for n in names) and "unknown model" in str(exc):
