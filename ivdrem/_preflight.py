@@ -89,21 +89,15 @@ def method_overrides(name, config_path=None) -> dict:
     return out
 
 
-def _model(config):
-    from .models import get_model
-    m = config["model"]
-    return get_model(m["name"], **({"g": float(m["g"])} if "g" in m else {}))
-
-
 def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=None):
     """Price every law's run of `config` (and the FMU check's, if a horizon is given)
     before any of them starts; raises ValueError (CostLimitError) with the numbers."""
     from .diagrams import closed_loop
-    from .experiments.config import closed_loop_kwargs, solver_kwargs
+    from .experiments.config import closed_loop_kwargs, model_from_config, solver_kwargs
     from .sim.guards import check_diagram_cost
     from .sim.methods import REFERENCE_METHOD
 
-    model = _model(config)
+    model = model_from_config(config)
     exp = config["experiment"]
     diagrams = {}
     for law in exp["laws"]:

@@ -161,7 +161,7 @@ def test_missing_file_and_bad_toml(tmp_path):
 def test_planar_model_checks_n_and_ntheta():
     vec3 = [0.0, 0.0, 0.0]
     with pytest.raises(ConfigError, match="'initial.q0' must have 3 entries"):
-        load_config(overrides={"model": {"name": "planar-3"}})
+        load_config(overrides={"model": {"name": "planar-3"}, "initial": {"q0": [0.0, 0.0]}})
     ov = {
         "model": {"name": "planar-3", "theta": [1.0] * 6},
         "initial": {"q0": vec3, "dq0": vec3, "theta_hat0": [0.0] * 6},

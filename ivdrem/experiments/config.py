@@ -15,7 +15,6 @@ import copy
 import difflib
 import functools
 import math
-import re
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -69,7 +68,7 @@ class ConfigError(ValueError):
 # --------------------------------------------------------------------------- schema
 @dataclass(frozen=True)
 class _Key:
-    kind: str  # "float", "str", "strlist", "vec", "float_or_vec", "float_or_auto"
+    kind: str  # "float", "str", "strlist", "names", "vec", "mat", "float_or_vec", "float_or_auto"
     length: str | None = None  # "n" or "ntheta" for vectors
     check: Callable[[float], bool] | None = None  # applied to every number
     requirement: str = ""  # text of the check, for messages
@@ -152,40 +151,110 @@ SCHEMA: dict[str, dict[str, _Key]] = {
     },
 }
 
-#: Models whose dimensions are known here: name -> (n, nθ).
-_KNOWN_MODELS = {"two-link": (2, 5)}
-_PLANAR = re.compile(r"^planar-(\d+)$")
+#: Friction options of a URDF model (``ivdrem.models.from_urdf(friction=...)``).
+FRICTION = ("none", "viscous", "coulomb", "viscous+coulomb")
+#: Kinds of reference trajectory and the keys of [trajectory] each one uses.
+TRAJECTORY_KINDS = {
+    "sinusoid": ("amplitude", "omega", "phase", "offset"),   # the paper's (no `kind` key)
+    "fourier": ("kind", "omega_f", "a", "b", "offset"),      # docs/experiment.md
+}
+
+#: Keys a section may hold beyond :data:`SCHEMA`'s (none of them in the paper's
+#: configuration): the model from a URDF file and its options, the Fourier reference.
+OPTIONAL: dict[str, dict[str, _Key]] = {
+    "model": {
+        "urdf": _Key("str"),            # a path, relative to the configuration file
+        "friction": _Key("str", choices=FRICTION),
+        "joints": _Key("names"),
+    },
+    "trajectory": {
+        "kind": _Key("str", choices=tuple(TRAJECTORY_KINDS)),
+        "omega_f": _Key("float", **_POS),
+        "a": _Key("mat", "n"),
+        "b": _Key("mat", "n"),
+    },
+}
 
 
-def model_dims(name: str) -> tuple[int, int | None]:
-    """(n, nθ) of a model name; nθ is None when only the models package knows it.
-
-    "two-link" is the paper's arm (n = 2, nθ = 5); "planar-N" is an N-link planar arm
-    (n = N).  Vector lengths against nθ are checked only where nθ is known here.
-    """
-    if name in _KNOWN_MODELS:
-        return _KNOWN_MODELS[name]
-    m = _PLANAR.match(name)
-    if m and int(m.group(1)) >= 1:
-        return int(m.group(1)), _model_ntheta(name)
-    raise ConfigError(
-        f"config key 'model.name' = {name!r} is not a known model"
-        + _suggest(name, ["two-link", "planar-2", "planar-3"])
-        + "; valid: 'two-link', 'planar-N' (an N-link planar arm, N >= 1, e.g. 'planar-3')"
-    )
+# --------------------------------------------------------------------------- the model
+def _model_names() -> list[str]:
+    """The names ``ivdrem.models.get_model`` accepts (its own list)."""
+    from ..models import model_names
+    return list(model_names())
 
 
-@functools.lru_cache(maxsize=8)
-def _model(name: str):
-    from ..models import get_model
-    return get_model(name)
-
-
-def _model_ntheta(name: str) -> int | None:
+@functools.lru_cache(maxsize=16)
+def _build(name, urdf, stamp, g, friction, joints):
+    from .. import models
+    opts = {}
+    if friction is not None:
+        opts["friction"] = None if friction == "none" else friction
+    if joints is not None:
+        opts["joints"] = list(joints)
+    if urdf is not None:
+        if g is not None:
+            opts["gravity"] = g
+        try:
+            return models.from_urdf(urdf, **opts)
+        except (ValueError, OSError, ImportError) as exc:
+            key = "model.joints" if joints is not None and "joint" in str(exc) else "model.urdf"
+            where = "" if str(urdf) in str(exc) else f" ({urdf})"
+            raise ConfigError(f"config key '{key}'{where}: {exc}") from None
+    if g is not None:
+        opts["g"] = g
     try:
-        return int(_model(name).ntheta)
-    except Exception:  # pragma: no cover - the run reports the model error itself
-        return None
+        return models.get_model(name, **opts)
+    except TypeError as exc:          # an option this model does not take
+        given = ", ".join(f"model.{k}" for k in sorted(opts) if k != "g")
+        raise ConfigError(f"config section [model]: model {name!r} does not take "
+                          f"{given or 'model.g'}: {exc}") from None
+    except ValueError as exc:
+        names = _model_names()
+        if not any(str(name).lower() == n.lower() for n in names) and "unknown model" in str(exc):
+            raise ConfigError(f"config key 'model.name' = {name!r} is not a known model"
+                              + _suggest(str(name), names) + "; valid: "
+                              + ", ".join(names)) from None
+        raise ConfigError(f"config key 'model.name' = {name!r}: {exc}") from None
+
+
+def model_from_config(config: Mapping):
+    """The robot model of a configuration's [model] section: ``name`` (any name of
+    ``ivdrem.models.get_model``) or ``urdf`` (a file; made absolute by :func:`load_config`),
+    with ``g`` and the URDF options ``friction`` and ``joints``.  Built once per process
+    and options (a URDF file also by its modification time).  Raises :class:`ConfigError`
+    naming the key."""
+    m = config["model"]
+    urdf = m.get("urdf")
+    stamp = None
+    if urdf is not None:
+        p = Path(urdf)
+        if not p.is_file():
+            raise ConfigError(f"config key 'model.urdf': file '{p}' not found"
+                              + (" (a directory)" if p.is_dir() else ""))
+        stamp = p.stat().st_mtime_ns
+    elif not isinstance(m.get("name"), str):
+        raise ConfigError(f"config key 'model.name' must be a string, got {m.get('name')!r}")
+    joints = m.get("joints")
+    g = m.get("g")
+    return _build(m.get("name"), None if urdf is None else str(urdf), stamp,
+                  None if g is None else float(g), m.get("friction"),
+                  None if joints is None else tuple(joints))
+
+
+def model_label(config: Mapping) -> str:
+    """The model of a configuration in words: its name, or the URDF file."""
+    m = config["model"]
+    return f"URDF {m['urdf']}" if "urdf" in m else str(m["name"])
+
+
+def model_dims(config_or_name) -> tuple[int, int]:
+    """(n, nθ) of the configured model (a configuration, its [model] table or a name)."""
+    if isinstance(config_or_name, str):
+        config_or_name = {"model": {"name": config_or_name}}
+    elif "model" not in config_or_name:
+        config_or_name = {"model": config_or_name}
+    model = model_from_config(config_or_name)
+    return int(model.n), int(model.ntheta)
 
 
 #: Keys whose default follows the model when the configuration names a model other than
@@ -199,23 +268,106 @@ MODEL_FOLLOWING = {
     ("sigma_modification", "theta_star"): lambda m: [0.0] * m.ntheta,
     ("iv_drem", "gamma"): lambda m: "auto",
 }
+#: Keys whose default follows the Fourier reference (the real-arm experiment of
+#: docs/experiment.md, :mod:`ivdrem.experiments.arm`): q(0) on the reference, the
+#: disturbance scaled to the arm, gains per joint.  Each gets (model, config, a memo
+#: shared by one filling).
+ARM_FOLLOWING = {
+    ("initial", "q0"): lambda m, c, memo: _memo(memo, "x0", lambda: _arm().initial_state(c["trajectory"]))[0],
+    ("initial", "dq0"): lambda m, c, memo: _memo(memo, "x0", lambda: _arm().initial_state(c["trajectory"]))[1],
+    ("controller", "K"): lambda m, c, memo: _arm().design_gains(m, c["initial"]["q0"], c["model"]["theta"]),
+    **{("disturbance", k): (lambda k: lambda m, c, memo: _memo(memo, "tau_d", lambda: _arm().design_disturbance(
+        m, c["trajectory"], c["model"]["theta"]))[k])(k) for k in ("amplitude", "omega", "phase", "offset")},
+}
+
+
+def _memo(memo: dict, key: str, fn):
+    if key not in memo:
+        memo[key] = fn()
+    return memo[key]
+
+
 #: The model the embedded default is written for.
 DEFAULT_MODEL = "two-link"
 
 
+def _arm():
+    from . import arm
+    return arm
+
+
+def _user_traj_keys(user_set: set) -> set:
+    return {k for s, k in user_set if s == "trajectory"}
+
+
 def _follow_model(cfg: dict, user_set: set) -> None:
-    """Fill the MODEL_FOLLOWING keys the user did not set from the configured model."""
-    name = cfg["model"]["name"]
-    if not isinstance(name, str) or name == DEFAULT_MODEL:
+    """Fill the keys the user did not set from the configured model: MODEL_FOLLOWING for a
+    model other than the paper's arm; with no [trajectory] key set for such a model (or
+    ``trajectory.kind = "fourier"``), the real-arm experiment's reference and ARM_FOLLOWING."""
+    mcfg = cfg["model"]
+    is_default = "urdf" not in mcfg and mcfg.get("name") == DEFAULT_MODEL
+    user_traj = _user_traj_keys(user_set)
+    fourier = cfg["trajectory"].get("kind") == "fourier" or (not is_default and not user_traj)
+    if is_default and not fourier:
         return
-    model_dims(name)  # a clear error for an unknown model name
-    try:
-        model = _model(name)
-    except Exception as exc:
-        raise ConfigError(f"config key 'model.name' = {name!r}: cannot build the model: {exc}") from None
-    for (section, key), fn in MODEL_FOLLOWING.items():
-        if (section, key) not in user_set:
-            cfg[section][key] = fn(model)
+    model = model_from_config(cfg)
+    if not is_default:
+        for (section, key), fn in MODEL_FOLLOWING.items():
+            if (section, key) not in user_set:
+                cfg[section][key] = fn(model)
+    if not fourier:
+        return
+    design = None
+    for key in TRAJECTORY_KINDS["fourier"]:
+        if key not in user_traj:
+            design = _arm().design_trajectory(model) if design is None else design
+            cfg["trajectory"][key] = design[key]
+    tr = cfg["trajectory"]
+    try:   # needs numbers of the right shapes: otherwise validation names the key
+        a, b = np.asarray(tr["a"], float), np.asarray(tr["b"], float)
+        if a.shape != b.shape or a.ndim != 2 or a.shape[0] != model.n or \
+                np.shape(tr["offset"]) != (model.n,):
+            return
+        memo: dict = {}
+        for (section, key), fn in ARM_FOLLOWING.items():
+            if (section, key) not in user_set:
+                cfg[section][key] = fn(model, cfg, memo)
+    except (TypeError, ValueError, IndexError, KeyError):
+        pass
+
+
+def _settle_variants(cfg: dict, user_set: set) -> None:
+    """One [model] source (name or urdf) and one kind of [trajectory]: the default's keys
+    of the other variant go, the user's are checked."""
+    if ("model", "urdf") in user_set:
+        if ("model", "name") in user_set:
+            raise ConfigError("config keys 'model.name' and 'model.urdf' are both set: "
+                              "give one (a model name, or a URDF file)")
+        cfg["model"].pop("name", None)
+    traj = cfg["trajectory"]
+    kind = traj.get("kind", "sinusoid")
+    if kind not in TRAJECTORY_KINDS:
+        return            # validation names the bad kind
+    own = set(TRAJECTORY_KINDS[kind]) | {"kind"}
+    for key in list(traj):
+        if key not in own:
+            if ("trajectory", key) in user_set:
+                raise ConfigError(
+                    f"config key 'trajectory.{key}' is not a key of trajectory.kind = "
+                    f"{kind!r}; its keys: " + ", ".join(k for k in TRAJECTORY_KINDS[kind] if k != "kind"))
+            del traj[key]
+
+
+def _resolve_urdf(user: Mapping, base: Path | None) -> None:
+    """A relative ``model.urdf`` is relative to the configuration file (`base` its
+    directory), or to the caller's directory for overrides."""
+    m = user.get("model")
+    if isinstance(m, Mapping) and isinstance(m.get("urdf"), str):
+        from .._paths import user_path
+        p = Path(m["urdf"]).expanduser()
+        if base is not None and not p.is_absolute():
+            p = base / p
+        m["urdf"] = str(user_path(p))          # absolute, normalised
 
 
 # --------------------------------------------------------------------------- loading
@@ -253,11 +405,30 @@ def load_config(path: str | Path | None = None, overrides: Mapping | None = None
     if path is not None:
         p = Path(path)
         user, _ = read_toml(p)
+        _resolve_urdf(user, p.resolve().parent)
         _merge(cfg, user, where=str(p), user_set=user_set)
     if overrides:
-        _merge(cfg, _undot(overrides), where="overrides", user_set=user_set)
+        over = _undot(overrides)
+        _resolve_urdf(over, None)
+        _merge(cfg, over, where="overrides", user_set=user_set)
+    _settle_variants(cfg, user_set)
     _follow_model(cfg, user_set)
-    return validate_config(cfg)
+    _settle_variants(cfg, user_set)
+    out = validate_config(cfg)
+    _check_reference_limits(out)
+    return out
+
+
+def _check_reference_limits(config: Mapping) -> None:
+    """The configured reference stays inside the model's position and velocity limits
+    over the run (models without limits pass); a ConfigError names joint and time."""
+    model = model_from_config(config)
+    if not any(hasattr(model, a) for a in ("position_limits", "velocity_limits")):
+        return
+    try:
+        _arm().check_limits(model, config["trajectory"], float(config["experiment"]["t_end"]))
+    except _arm().LimitError as exc:
+        raise ConfigError(f"config section [trajectory]: {exc}") from None
 
 
 def read_toml(path, what: str = "config file", error=None) -> tuple[dict, str]:
@@ -365,7 +536,7 @@ def _check_section(section: str) -> None:
 
 
 def _check_key(section: str, key: str) -> None:
-    valid = schema()[section]
+    valid = {**schema()[section], **OPTIONAL.get(section, {})}
     if key not in valid:
         full = [f"{section}.{k}" for k in valid]
         raise ConfigError(
@@ -388,11 +559,33 @@ def _number(name: str, value: Any) -> float:
     return x
 
 
+def _section_keys(section: str, table: Mapping, keys: Mapping) -> dict:
+    """{key: spec} a section must (SCHEMA, per variant) and may (OPTIONAL) hold."""
+    extra = OPTIONAL.get(section, {})
+    if section == "model" and "urdf" in table:
+        if "name" in table:
+            raise ConfigError("config keys 'model.name' and 'model.urdf' are both set: "
+                              "give one (a model name, or a URDF file)")
+        keys = {k: v for k, v in keys.items() if k != "name"}
+    if section == "trajectory":
+        kind = _validate_value("trajectory.kind", extra["kind"], table.get("kind", "sinusoid"))
+        want = TRAJECTORY_KINDS[kind]
+        every = {**keys, **extra}
+        for key in table:
+            if key not in want and key != "kind":
+                raise ConfigError(
+                    f"config key 'trajectory.{key}' is not a key of trajectory.kind = "
+                    f"{kind!r}; its keys: " + ", ".join(k for k in want if k != "kind"))
+        keys = {k: every[k] for k in want if k != "kind"}
+    return {**keys, **{k: v for k, v in extra.items() if k in table and k not in keys}}
+
+
 def validate_config(cfg: Mapping) -> dict:
     """Check a complete configuration dict; return a normalized deep copy.
 
     Every section and key of the schema must be present (use :func:`load_config`
-    to fill missing ones from the default).  Raises :class:`ConfigError`.
+    to fill missing ones from the default); the keys of :data:`OPTIONAL` may be.
+    Raises :class:`ConfigError`.
     """
     if not isinstance(cfg, Mapping):
         raise ConfigError(f"configuration must be a table, got {type(cfg).__name__}")
@@ -405,47 +598,39 @@ def validate_config(cfg: Mapping) -> dict:
             _check_key(section, key)
     sch = schema()
     law_defaults = _law_sections()
+    specs: dict = {}
     for section, keys in sch.items():
         if section in law_defaults:       # a registered law's own table: defaults fill gaps
             cfg = {**cfg, section: {**law_defaults[section], **cfg.get(section, {})}}
         if section not in cfg:
             raise ConfigError(f"config section '{section}' is missing")
         out[section] = {}
-        for key, spec in keys.items():
+        specs[section] = _section_keys(section, cfg[section], keys)
+        for key, spec in specs[section].items():
             if key not in cfg[section]:
                 raise ConfigError(f"config key '{section}.{key}' is missing")
             out[section][key] = _validate_value(f"{section}.{key}", spec, cfg[section][key])
 
-    n, ntheta = model_dims(out["model"]["name"])
+    n, ntheta = model_dims(out)
     dims = {"n": n, "ntheta": ntheta}
-    for section, keys in sch.items():
+    label = model_label(out)
+    for section, keys in specs.items():
         for key, spec in keys.items():
             value = out[section][key]
             if spec.length is None or not isinstance(value, list):
                 continue
             want = dims[spec.length]
-            if want is None:
-                continue  # nθ of this model is known only to ivdrem.models
             if len(value) != want:
                 what = "n" if spec.length == "n" else "nθ"
+                rows = " rows" if spec.kind == "mat" else " entries"
                 raise ConfigError(
-                    f"config key '{section}.{key}' must have {want} entries "
-                    f"(model '{out['model']['name']}' has {what} = {want}), got {len(value)}"
+                    f"config key '{section}.{key}' must have {want}{rows} "
+                    f"(model '{label}' has {what} = {want}), got {len(value)}"
                 )
-    if ntheta is None:
-        # lengths against nθ cannot be checked here; at least they must agree
-        lengths = {
-            f"{s}.{k}": len(out[s][k])
-            for s, keys in sch.items()
-            for k, spec in keys.items()
-            if spec.length == "ntheta" and isinstance(out[s][k], list)
-        }
-        ref = len(out["model"]["theta"])
-        for name, length in lengths.items():
-            if length != ref:
-                raise ConfigError(
-                    f"config key '{name}' has {length} entries but model.theta has {ref}"
-                )
+    tr = out["trajectory"]
+    if "a" in tr and len(tr["a"][0]) != len(tr["b"][0]):
+        raise ConfigError(f"config keys 'trajectory.a' and 'trajectory.b' must have the same "
+                          f"number of harmonics (columns), got {len(tr['a'][0])} and {len(tr['b'][0])}")
     exp = out["experiment"]
     if exp["dt_out"] > exp["t_end"]:
         raise ConfigError(
@@ -466,6 +651,22 @@ def _validate_value(name: str, spec: _Key, value: Any):
                 + "; valid: " + ", ".join(repr(c) for c in spec.choices)
             )
         return value
+    if spec.kind == "names":
+        if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"config key '{name}' must be a non-empty list of names, got {value!r}")
+        if len(set(value)) != len(value):
+            raise ConfigError(f"config key '{name}' lists a name twice: {value}")
+        return list(value)
+    if spec.kind == "mat":
+        if (not isinstance(value, list) or not value
+                or not all(isinstance(r, list) and r for r in value)):
+            raise ConfigError(f"config key '{name}' must be a list of rows (one per joint), "
+                              f"each a non-empty list of numbers, got {value!r}")
+        rows = [[_number(f"{name}[{i}][{j}]", v) for j, v in enumerate(r)] for i, r in enumerate(value)]
+        if len({len(r) for r in rows}) != 1:
+            raise ConfigError(f"config key '{name}': every row must have the same length, "
+                              f"got lengths {[len(r) for r in rows]}")
+        return rows
     if spec.kind == "strlist":
         if isinstance(value, str):
             value = [value]
@@ -572,10 +773,20 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
         q0=np.asarray(c["initial"]["q0"], dtype=float),
         dq0=np.asarray(c["initial"]["dq0"], dtype=float),
         theta=theta,
-        trajectory={k: np.asarray(c["trajectory"][k], dtype=float) for k in _TRAJ_KEYS},
+        trajectory=_trajectory(c["trajectory"], len(c["initial"]["q0"])),
         disturbance={k: np.asarray(c["disturbance"][k], dtype=float) for k in _TRAJ_KEYS},
     )
     return kw
+
+
+def _trajectory(table: Mapping, n: int):
+    """closed_loop's `trajectory`: the sinusoid's parameters, or the Fourier block."""
+    if table.get("kind", "sinusoid") == "fourier":
+        from ..blocks.sources import fourier_trajectory
+        return fourier_trajectory(n, float(table["omega_f"]), np.asarray(table["a"], float),
+                                  np.asarray(table["b"], float),
+                                  np.asarray(table["offset"], float))
+    return {k: np.asarray(table[k], dtype=float) for k in _TRAJ_KEYS}
 
 
 def solver_kwargs(config: Mapping, law: str | None = None) -> dict:

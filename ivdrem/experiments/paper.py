@@ -7,9 +7,8 @@ import numpy as np
 
 from .._progress import want_progress
 from ..diagrams import closed_loop
-from ..models import get_model
 from ..sim import simulate
-from .config import closed_loop_kwargs, load_config, solver_kwargs
+from .config import closed_loop_kwargs, load_config, model_from_config, solver_kwargs
 
 __all__ = ["LawRun", "PaperRun", "run_paper", "run_law"]
 
@@ -31,12 +30,6 @@ class PaperRun:
     runs: dict = field(default_factory=dict)
 
 
-def _model(config):
-    m = config["model"]
-    kwargs = {"g": float(m["g"])} if "g" in m else {}
-    return get_model(m["name"], **kwargs)
-
-
 def run_law(config, law, *, model=None, progress=True, engine="compiled", log=None,
             allow_long=False):
     """Build the closed loop of `law` from `config` and simulate it (`allow_long`: beyond
@@ -46,7 +39,7 @@ def run_law(config, law, *, model=None, progress=True, engine="compiled", log=No
     (``ivdrem.diagrams.gamma_auto``); the choice is printed to ``log`` (a callable, default
     none) and stored in ``stats["gamma_choice"]`` and ``LawRun.gamma``.
     """
-    model = _model(config) if model is None else model
+    model = model_from_config(config) if model is None else model
     kw = closed_loop_kwargs(config, law)
     solver = solver_kwargs(config, law)
     if kw.get("gamma") == "auto":
@@ -76,7 +69,7 @@ def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=N
     """
     config = load_config() if config is None else config
     laws = list(config["experiment"]["laws"] if laws is None else laws)
-    model = _model(config)
+    model = model_from_config(config)
     run = PaperRun(config=config, theta=np.asarray(config["model"]["theta"], float),
                    model=model)
     show = want_progress(progress)   # one rule for every bar (ivdrem._progress)

@@ -70,13 +70,14 @@ def run_one(config: Mapping, law: str) -> dict:
     inertia, a compile error): the record has ``status = "failed"`` and the message.
     """
     from . import metrics
-    from .paper import PaperRun, _model, run_law
+    from .config import model_from_config
+    from .paper import PaperRun, run_law
 
     t0 = time.perf_counter()
     rec: dict[str, Any] = {"law": law, "status": "ok", "error": "", "pid": os.getpid(),
                            "host": socket.gethostname()}
     try:
-        model = _model(config)
+        model = model_from_config(config)
         lr = run_law(config, law, model=model, progress=False)
         task_s = time.perf_counter() - t0
         theta = np.asarray(config["model"]["theta"], dtype=float)

@@ -7,6 +7,12 @@ import sys
 from .export import DEFAULT_SUBSTEP
 
 
+def _model_names() -> list[str]:
+    """The names ``ivdrem.models.get_model`` accepts, from the models package itself."""
+    from ivdrem.models import model_names
+    return list(model_names())
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ivdrem fmu", description="Plant FMU (FMI 2.0, ME + CS)")
     sub = p.add_subparsers(dest="command", required=True)
@@ -15,7 +21,8 @@ def _parser() -> argparse.ArgumentParser:
                                    "compile it with the system C compiler and write an FMI 2.0 "
                                    "FMU (model exchange + co-simulation).")
     e.add_argument("--model", default="two-link",
-                   help="model name: two-link (default) or planar-N, e.g. planar-3")
+                   help="model name (default two-link), any of ivdrem.models: "
+                        + ", ".join(_model_names()))
     e.add_argument("-o", "--output", required=True, metavar="FILE.fmu",
                    help="output file (an existing one only if ivdrem exported it, or with "
                         "--overwrite)")

@@ -53,12 +53,11 @@ def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False, allow_lo
     import tempfile
     from pathlib import Path
 
-    from ..experiments.config import closed_loop_kwargs
-    from ..experiments.paper import _model
+    from ..experiments.config import closed_loop_kwargs, model_from_config
     from ..fmu import export_fmu
     from ..fmu.cosim import compare_to_python
 
-    model = _model(config)
+    model = model_from_config(config)
     kw = closed_loop_kwargs(config, "iv-drem")
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "Plant.fmu"

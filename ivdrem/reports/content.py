@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import platform
+import re
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -151,6 +152,95 @@ def _parameters(cfg: Mapping) -> Table:
                  rows, [0.25, 0.2, 0.55],
                  note="Vectors are per joint (n entries) or per parameter (nθ entries). "
                       "The full TOML is in the HTML report.")
+
+
+def _where_it_enters(model) -> list[str]:
+    """For each parameter θ_j, the entries of M, G and F it enters (∂/∂θ_j ≠ 0), from the
+    model's symbolic matrices: what a parameter groups when the model has no table."""
+    out = []
+    mats = [("M", getattr(model, "M", None)), ("G", getattr(model, "G", None)),
+            ("F", getattr(model, "F", None))]
+    if not hasattr(model, "theta") or not all(hasattr(m, "has") for _, m in mats if m is not None):
+        return ["–"] * model.ntheta           # no symbolic matrices to read
+    for th in model.theta:
+        where = []
+        for label, mat in mats:
+            if mat is None:
+                continue
+            for i in range(mat.rows):
+                for j in range(mat.cols):
+                    if label == "M" and j < i:
+                        continue                     # symmetric
+                    if mat[i, j].has(th):
+                        where.append(f"{label}{i + 1}{j + 1}" if label == "M" else f"{label}{i + 1}")
+        out.append(", ".join(where) or "–")
+    return out
+
+
+def _terms(terms) -> str:
+    """A group as text: names, or (coefficient, name) pairs, as a signed sum
+    ("Izz1 + Ixx2 − Izz2", "mx3 + 0.0825 m4"); coefficients ±1 to 1e-9 are left out."""
+    out = []
+    for t in terms:
+        if isinstance(t, (tuple, list)) and len(t) == 2 and not isinstance(t[0], str):
+            c, name = float(t[0]), str(t[1])
+            sign, c = ("−" if c < 0 else "+"), abs(c)
+            text = name if abs(c - 1.0) < 1e-9 else f"{c:.4g} {name}"
+        else:
+            sign, text = "+", str(t)
+        out.append((sign, text))
+    if not out:
+        return "–"
+    first = ("−" if out[0][0] == "−" else "") + out[0][1]
+    return " ".join([first] + [f"{sg} {tx}" for sg, tx in out[1:]])
+
+
+def _groups(model, count, max_terms=6) -> list[str] | None:
+    """What each parameter groups, from the model's ``parameter_table()`` (rows whose first
+    entry is the name and last the standard parameters: a text, or a list of names or of
+    (coefficient, name)); None if the model has none.  Long groups are cut after
+    `max_terms` terms (the table stays small)."""
+    table = getattr(model, "parameter_table", None)
+    table = table() if callable(table) else table
+    if table is None:
+        return None
+    out = []
+    for row in (table.items() if isinstance(table, Mapping) else table):
+        g = row[-1]
+        if isinstance(g, str):
+            out.append(g)
+            continue
+        g = list(g)
+        more = len(g) - max_terms
+        out.append(_terms(g[:max_terms]) + (f" + … ({more} more)" if more > 0 else ""))
+    return out if len(out) == count else None
+
+
+def _model_table(run) -> Table | None:
+    """The model's parameters: name, what it groups, true value (small: one row each)."""
+    from ..experiments.config import model_label
+    model = getattr(run, "model", None)
+    if model is None:
+        try:
+            from ..experiments.config import model_from_config
+            model = model_from_config(run.config)
+        except Exception:        # a synthetic run's made-up model: no table
+            return None
+    names = list(getattr(model, "parameter_names", None) or getattr(model, "theta_names", None)
+                 or [f"theta{j + 1}" for j in range(model.ntheta)])
+    groups = _groups(model, len(names))
+    what = "standard parameters it groups"
+    if groups is None:
+        groups = _where_it_enters(model)
+        what = "entries of M, G, F it enters"
+    theta = np.asarray(run.theta, dtype=float)
+    names = [re.sub(r"^theta(\d+)$", r"θ\1", n) for n in names]    # the paper's θ1 ... θ5
+    rows = [[str(j + 1), names[j], groups[j], fmt(float(theta[j])) if j < theta.size else "–"]
+            for j in range(len(names))]
+    return Table("model", f"Model {model_label(run.config)}: n = {model.n}, nθ = {model.ntheta}",
+                 ["", "parameter", what, "true value"], rows, [0.06, 0.18, 0.58, 0.18],
+                 note="θ of the paper's Property 1: M(q)v̇ + C(q, q̇)v + F(q̇) + G(q) = "
+                      "Φᵀ(q, q̇, v, v̇)θ.")
 
 
 #: (stats key, column header) of the solver table; integration and compile/load apart
@@ -329,7 +419,7 @@ def _engine(run) -> str:
 
 
 def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
-    from ..experiments.config import dump_toml
+    from ..experiments.config import dump_toml, model_label
 
     cfg = run.config
     laws = list(run.runs)
@@ -341,7 +431,7 @@ def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
     meta = [
         ("generated", when),
         ("git commit", commit),
-        ("model", f"{cfg['model']['name']}, θ = {fmt(cfg['model']['theta'])}"),
+        ("model", f"{model_label(cfg)}, θ = {fmt(cfg['model']['theta'])}"),
         ("laws", ", ".join(laws)),
         ("simulated horizon", f"{fmt(t_end)} s"),
         ("engine", _engine(run)),
@@ -359,6 +449,7 @@ def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
         _summary(run),
         *_diagnostics_tables(run, diags),
         _parameters(cfg),
+        *([t] if (t := _model_table(run)) is not None else []),
         _errata(cfg, laws),
         _solver(run),
         Table("versions", "Software versions", ["package", "version"],
