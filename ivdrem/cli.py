@@ -40,9 +40,13 @@ def _cmd_paper(args):
     from .experiments.metrics import conclusions, format_conclusions, summary
     from .experiments.paper import run_paper
     from .sim import SimulationError
+    from .diagrams.gamma_auto import GainRuleError
     try:
         run = run_paper(config, progress=want_progress(not args.quiet), engine=args.engine,
                         allow_long=args.allow_long, log=print)
+    except GainRuleError as e:       # refused after the calibration, before the run
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
     except SimulationError as e:
         print(f"{prog}: simulation failed: {e}", file=sys.stderr)
         return 1

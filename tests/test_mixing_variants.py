@@ -198,3 +198,16 @@ def test_closed_loop_jacobian_of_every_variant(variant):
     sim, (x,) = _loop_at_random_states(loop, [3], t_run=21.0)
     J = sim.engine.jacobian(sim.t, x, sim.W)
     assert_jacobian_close(J, central_fd(sim.engine, sim.t, x, sim.W), rtol=1e-5)
+
+
+def test_ivdrem_paper_refuses_a_gain_that_would_overflow(tmp_path, capsys):
+    """γ = κ/(λ_max(Γ) mean Δ²) above 1e300 (here from Γ = 1e-295 I on the paper's arm):
+    refused after the calibration, before the run, naming variant, model and number."""
+    from ivdrem.cli import main
+    p = tmp_path / "c.toml"
+    p.write_text("[experiment]\nt_end = 60.0\nlaws = [\"iv-drem\"]\n"
+                 "[controller]\nGamma = 1e-295\n[iv_drem]\ngamma = \"auto\"\n")
+    assert main(["paper", "--config", str(p), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "gamma='auto' refused for mixing 'paper' on model 'two-link'" in err
+    assert "above 1e+300" in err and "eigen" in err
