@@ -211,3 +211,29 @@ def test_ivdrem_paper_refuses_a_gain_that_would_overflow(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "gamma='auto' refused for mixing 'paper' on model 'two-link'" in err
     assert "above 1e+300" in err and "eigen" in err
+
+
+def test_at_the_size_of_the_panda_paper_is_refused_and_eigen_channel_are_not():
+    """A Ψ with the Panda's singular values (nθ = 43, 2e-5 … 809, notes on real arms): the
+    paper's Δ ≈ 1e-160 (mean Δ² subnormal) is refused by the rule; "eigen" and "channel"
+    give finite gains below GAMMA_MAX."""
+    from ivdrem.blocks._kernels import mixing_values
+    n = 43
+    rng = np.random.default_rng(43)
+    U, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    V, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    Psi = U @ np.diag(np.logspace(np.log10(809.0), np.log10(2e-5), n)) @ V.T
+    t = np.linspace(0.0, 40.0, 41)
+    for code, v in enumerate(VARIANTS):
+        k = n if v == "channel" else 1
+        D, calY, L = np.empty(k), np.empty(n), np.empty(k)
+        mixing_values(code, np.zeros(n), Psi.ravel().copy(), 1e-6, 1e-3, D, calY, L)
+        Dt, Lt = np.repeat(D[:, None], t.size, 1), np.repeat(L[:, None], t.size, 1)
+        if v == "paper":
+            assert -175 < L[0] < -145 and abs(D[0]) < 1e-140
+            with pytest.raises(GainRuleError, match=r"mixing 'paper' on model 'panda'.*below the smallest double"):
+                gamma_from_delta(t, Dt, 20.0, 0.01, delta_log10=Lt, variant=v, model_name="panda")
+        else:
+            g = np.atleast_1d(gamma_from_delta(t, Dt, 20.0, 0.01, delta_log10=Lt, variant=v,
+                                               model_name="panda")["gamma"])
+            assert np.all(np.isfinite(g)) and np.all(g < GAMMA_MAX), v
