@@ -237,3 +237,25 @@ def test_at_the_size_of_the_panda_paper_is_refused_and_eigen_channel_are_not():
             g = np.atleast_1d(gamma_from_delta(t, Dt, 20.0, 0.01, delta_log10=Lt, variant=v,
                                                model_name="panda")["gamma"])
             assert np.all(np.isfinite(g)) and np.all(g < GAMMA_MAX), v
+
+
+def test_diagnostics_figures_and_report_take_a_per_channel_delta():
+    """The "channel" run (Δ has nθ rows) through diagnose, Figure 1, the summary and the
+    report's content: the weakest channel stands for KA1/PE, ‖(𝒲_i/Δ_i)‖ for the bias."""
+    from ivdrem.experiments import diagnostics
+    from ivdrem.experiments.paper import run_paper
+    from ivdrem.reports.content import build_content
+    from ivdrem.reports.figures import fig_delta_W
+    cfg = load_config(overrides={"experiment.t_end": 45.0, "experiment.laws": ["iv-drem"],
+                                 "iv_drem.mixing": "channel", "iv_drem.gamma": "auto"})
+    run = run_paper(cfg, progress=False)
+    lr = run.runs["iv-drem"]
+    assert np.ndim(lr.gamma) == 1 and len(lr.gamma) == 5
+    d = diagnostics.diagnose_run(run)["iv-drem"]
+    ids = {c["id"]: c for c in d["checks"]}
+    assert 1 <= ids["KA1"]["measured"]["channel"] <= 5
+    assert ids["LEARN"]["verdict"] == diagnostics.HOLDS, ids["LEARN"]
+    assert np.isfinite(ids["LEARN"]["measured"]["bias_floor_last_window"])
+    assert fig_delta_W(run) is not None
+    meta = dict(build_content(run).meta)
+    assert meta["mixing of (17)"].startswith("channel")
