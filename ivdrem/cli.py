@@ -50,8 +50,6 @@ def _cmd_paper(args):
     except SimulationError as e:
         print(f"{prog}: simulation failed: {e}", file=sys.stderr)
         return 1
-    from .experiments.diagnostics import diagnose_run, format_diagnostics, learning_warnings, to_json
-    diags = diagnose_run(run)                  # the assumptions of Theorem 2 on this run
     out = {law: summary(lr, run.theta) for law, lr in run.runs.items()}
     for law, s in out.items():
         st = run.runs[law].stats
@@ -59,20 +57,23 @@ def _cmd_paper(args):
               f"max|e| last 20% = {s['e_max_last20']:.3g} rad, "
               f"RMS tau_d err last 20% = {s['tau_d_err_rms_last20']:.4g} N m  "
               f"({st['steps']} steps, {timing_text(st)})")
-        # a run that does not learn says so next to its numbers (docs/diagnostics.md, LEARN)
-        s["warnings"] = learning_warnings(diags[law])
-        for w in s["warnings"]:
-            print(f"{'':>20s}  WARNING: {w}")
     if set(run.runs) >= {"iv-drem", "composite-learning"}:
         print(format_conclusions(conclusions(run)))
-    for law, d in diags.items():
+    from .experiments.diagnostics import diagnose_run, format_diagnostics, to_json
+    for law, d in diagnose_run(run).items():   # the assumptions of Theorem 2 on this run
+        from .experiments.diagnostics import learning_warnings
         print(format_diagnostics(d))
         out[law]["diagnostics"] = to_json(d)
+        out[law]["warnings"] = learning_warnings(d)
         gamma = getattr(run.runs[law], "gamma", None)
         if isinstance(gamma, (int, float)):
             out[law]["gamma"] = float(gamma)
         elif isinstance(gamma, (list, tuple)):          # one γ_i per channel ("channel")
             out[law]["gamma"] = [float(g) for g in gamma]
+    # a run that does not learn says so last, under its numbers (docs/diagnostics.md, LEARN)
+    for law in out:
+        for w in out[law]["warnings"]:
+            print(f"{law}: WARNING: {w}")
     if json_path is not None:
         from ._paths import write_text_or_keep
         where, failed = write_text_or_keep(json_path, json.dumps(out, indent=2) + "\n")
