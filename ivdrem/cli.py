@@ -42,9 +42,13 @@ def _cmd_paper(args):
     from .experiments.metrics import conclusions, format_conclusions, summary
     from .experiments.paper import run_paper
     from .sim import SimulationError
+    from .diagrams.gamma_auto import GainRuleError
     try:
         run = run_paper(config, progress=want_progress(not args.quiet), engine=args.engine,
                         allow_long=args.allow_long, log=print)
+    except GainRuleError as e:       # refused after the calibration, before the run
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
     except SimulationError as e:
         print(f"{prog}: simulation failed: {e}", file=sys.stderr)
         return 1
@@ -61,11 +65,19 @@ def _cmd_paper(args):
         print(format_conclusions(evaluated))
     from .experiments.diagnostics import diagnose_run, format_diagnostics, to_json
     for law, d in diagnose_run(run).items():   # the assumptions of Theorem 2 on this run
+        from .experiments.diagnostics import learning_warnings
         print(format_diagnostics(d))
         out[law]["diagnostics"] = to_json(d)
+        out[law]["warnings"] = learning_warnings(d)
         gamma = getattr(run.runs[law], "gamma", None)
         if isinstance(gamma, (int, float)):
             out[law]["gamma"] = float(gamma)
+        elif isinstance(gamma, (list, tuple)):          # one γ_i per channel ("channel")
+            out[law]["gamma"] = [float(g) for g in gamma]
+    # a run that does not learn says so last, under its numbers (docs/diagnostics.md, LEARN)
+    for law in out:
+        for w in out[law]["warnings"]:
+            print(f"{law}: WARNING: {w}")
     if json_path is not None:
         from ._paths import write_text_or_keep
         where, failed = write_text_or_keep(json_path, json.dumps(out, indent=2) + "\n")

@@ -25,9 +25,10 @@ from typing import Callable
 import numpy as np
 
 from . import blocks as block_library
+from .blocks._kernels import MIXING_VARIANTS as _VARIANTS
 
 __all__ = ["Law", "LawContext", "LAWS", "register_law", "get_law", "law_names",
-           "mixed_regression_blocks"]
+           "mixed_regression_blocks", "MIXING_VARIANTS", "default_mixing", "is_paper_arm"]
 
 
 @dataclass
@@ -98,7 +99,7 @@ def mixed_regression_blocks(ctx: LawContext, *, instrument: bool = True):
     blocks += [block_library.extension(n, nth, instrument=instrument),
                *block_library.windowed_integral(m, p["T"]),
                block_library.averaging(m, p["p"], p["F0"]),
-               block_library.mixing(nth)]
+               block_library.mixing(nth, p.get("mixing") or "paper")]
     # z, phi (and zeta) are recorded so that the diagnostics can form w = z - phi^T theta
     # (13), the excitation of (18) and the products of (19) offline
     outputs = ["Delta", "Delta_log10", "calY", "z", "phi"] + (["zeta"] if instrument else [])
@@ -106,9 +107,14 @@ def mixed_regression_blocks(ctx: LawContext, *, instrument: bool = True):
 
 
 def _drem_blocks(ctx: LawContext, *, iv: bool):
-    """(17) and the composite term (21)."""
+    """(17) and the composite term (21); one Δ_i and γ_i per channel for the "channel"
+    mixing (docs/mixing.md)."""
     blocks, outputs = mixed_regression_blocks(ctx, instrument=iv)
-    return blocks + [block_library.drem_term(ctx.ntheta, ctx.params["gamma"])], outputs
+    if (ctx.params.get("mixing") or "paper") == "channel":
+        term = block_library.drem_channel_term(ctx.ntheta, ctx.params["gamma"])
+    else:
+        term = block_library.drem_term(ctx.ntheta, ctx.params["gamma"])
+    return blocks + [term], outputs
 
 
 def _build_iv_drem(ctx):
@@ -144,14 +150,14 @@ def _build_none(ctx):
 for _law in (
     Law("iv-drem", _build_iv_drem, "IV-DREM, (11)+(21)", "#0072B2", "eqs. (11) + (21)",
         "proposed: instrumental-variables DREM, ζ from the reference trajectory (14)",
-        section="iv_drem", defaults=dict(T=20.0, p=2.0, F0=1.0, gamma=1e10),
+        section="iv_drem", defaults=dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, mixing="paper"),
         uses_delta=True, instrument="zeta"),
     Law("composite-learning", _build_composite_learning, "composite learning, (35)", "#E69F00",
         "eq. (35)", "baseline of Pan & Yu: max-held window integrals of φ",
         section="composite_learning", defaults=dict(T=20.0, gamma=1.0, epsilon=1e-9)),
     Law("drem", _build_drem, "DREM without IV", "#009E73", "eqs. (11) + (21), ζ := φ",
         "DREM with the measured regressor φ in place of the instrument",
-        section="iv_drem", defaults=dict(T=20.0, p=2.0, F0=1.0, gamma=1e10),
+        section="iv_drem", defaults=dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, mixing="paper"),
         uses_delta=True, instrument="phi"),
     Law("sigma-modification", _build_sigma, "σ-modification", "#CC79A7",
         "ϑ_c = σ(θ* − θ̂) (erratum E5)", "leakage toward a prior guess θ*",
@@ -161,6 +167,23 @@ for _law in (
 ):
     register_law(_law)
 del _law
+
+
+#: the mixing variants of (17) (ivdrem.blocks.mixing, docs/mixing.md)
+MIXING_VARIANTS = _VARIANTS
+#: the paper's arm keeps the paper's mixing; every other arm gets this one by default
+DEFAULT_MIXING_OTHER_ARMS = "eigen"
+
+
+def is_paper_arm(model) -> bool:
+    """The paper's 2-link arm (its experiment and γ = 1e10 are the paper's)."""
+    return getattr(model, "name", None) == "two-link" and getattr(model, "n", None) == 2
+
+
+def default_mixing(model) -> str:
+    """The mixing of (17) that works at this model's size: the paper's for its own arm,
+    DEFAULT_MIXING_OTHER_ARMS otherwise (measured in docs/mixing.md)."""
+    return "paper" if is_paper_arm(model) else DEFAULT_MIXING_OTHER_ARMS
 
 
 def resolve_params(law: Law, given: dict) -> dict:

@@ -38,7 +38,7 @@ def test_default_is_section_8_of_spec():
         "mu0": 1.0, "mu1": 15.0, "observer_variant": "corrected",
     }
     assert c["filters"] == {"l": 50.0}
-    assert c["iv_drem"] == {"T": 20.0, "p": 2.0, "F0": 1.0, "gamma": 1e10}
+    assert c["iv_drem"] == {"T": 20.0, "p": 2.0, "F0": 1.0, "gamma": 1e10, "mixing": "paper"}
     assert c["composite_learning"] == {"T": 20.0, "gamma": 1.0, "epsilon": 1e-9}
     assert c["sigma_modification"] == {"sigma": 0.1, "theta_star": [1.0, 0.2, 0.3, 0.3, 1.0]}
     tr = c["trajectory"]
@@ -219,8 +219,8 @@ def test_closed_loop_kwargs_per_law():
     common = {"alpha", "K", "delta_mu", "Gamma", "mu0", "mu1", "observer_variant", "l",
               "theta_hat0", "q0", "dq0", "theta", "trajectory", "disturbance"}
     expect = {
-        "iv-drem": common | {"T", "p", "F0", "gamma"},
-        "drem": common | {"T", "p", "F0", "gamma"},
+        "iv-drem": common | {"T", "p", "F0", "gamma", "mixing"},
+        "drem": common | {"T", "p", "F0", "gamma", "mixing"},
         "composite-learning": common | {"T", "gamma", "epsilon"},
         "sigma-modification": common | {"T", "p", "F0", "sigma", "theta_star"},
         "none": common | {"T", "p", "F0"},

@@ -216,3 +216,75 @@ def test_paper_json_has_diagnostics_per_law(tmp_path, monkeypatch, capsys):
         assert all(c["verdict"] in (diagnostics.HOLDS, diagnostics.FAILS, diagnostics.UNDECIDED, diagnostics.NA)
                    for c in data[law]["diagnostics"]["checks"])
     assert "diagnostics of iv-drem" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ a run that does not learn
+def _err(t, kind):
+    if kind == "grows":
+        return 2.0 * (1.0 + 0.05 * t)                      # ‖θ̃‖ moves away from θ
+    return 2.0 / (1.0 + 0.2 * t)                           # converging
+
+
+def test_learning_check_names_the_cause_and_a_remedy_that_is_not_auto():
+    t = np.linspace(0.0, 60.0, 6001)
+    logd = -20.0 - 0.12 * t                               # the paper's Δ: 7 decades over [T, t_end]
+    c = diagnostics.check_learning(t, _err(t, "grows"), 20.0, delta_log10=logd,
+                                   mixing="paper", gamma=1e42, gamma_auto=True)
+    assert c["verdict"] == diagnostics.FAILS
+    assert "spans 4.8 decades" in c["note"] and 'mixing = "eigen"' in c["note"]
+    assert 'gamma = "auto"' not in c["note"]
+    # a mixing that keeps Δ near 1, under the calibrated γ: a smaller numeric γ, named
+    c = diagnostics.check_learning(t, _err(t, "grows"), 20.0, delta_log10=0 * t - 0.1,
+                                   mixing="eigen", gamma=50.0, gamma_auto=True)
+    assert "100x below the calibrated one" in c["note"] and "try 0.5" in c["note"]
+    # the bias floor above ‖θ̃(0)‖: the excitation's, whatever the mixing
+    c = diagnostics.check_learning(t, _err(t, "converges"), 20.0,
+                                   calW_over_Delta=3.0 + 0 * t, mixing="eigen")
+    assert c["verdict"] == diagnostics.FAILS and "bias floor" in c["note"]
+    assert "no mixing changes 𝒲/Δ" in c["note"]
+    ok = diagnostics.check_learning(t, _err(t, "converges"), 20.0,
+                                    calW_over_Delta=0.01 + 0 * t, delta_log10=logd,
+                                    mixing="paper")
+    assert ok["verdict"] == diagnostics.HOLDS and ok["note"] == ""
+
+
+def test_inactive_term_under_auto_does_not_advise_auto():
+    t = np.linspace(0, 120, 12_001)
+    delta = np.where(t > 20, 2.5e-12, 0.0)
+    c = diagnostics.check_active(t, delta, 1e10, 0.01, 20.0, gamma_auto=True, mixing="paper")
+    assert c["verdict"] == diagnostics.FAILS
+    assert 'gamma = "auto"' not in c["note"] and 'mixing = "eigen"' in c["note"]
+
+
+def _shared_frequency_config(tmp_path):
+    """The paper's arm with a 40 N·m disturbance at the reference's own 2 rad/s: condition
+    (19) fails, W of (16) does not fade, and θ̂ settles away from θ (measured: ‖θ̃‖ 2.0 →
+    7.8 over 60 s, bias floor 7.8)."""
+    p = tmp_path / "shared.toml"
+    p.write_text("[experiment]\nt_end = 60.0\nlaws = [\"iv-drem\"]\n"
+                 "[disturbance]\namplitude = [40.0, 1.5]\nomega = [2.0, 0.15707963267948966]\n")
+    return p
+
+
+def test_a_closed_loop_that_does_not_learn_warns_in_run_summary_and_report(tmp_path, capsys):
+    import json
+    from ivdrem.cli import main
+    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.paper import run_paper
+    from ivdrem.reports.content import build_content
+    cfg_path = _shared_frequency_config(tmp_path)
+    out = tmp_path / "o.json"
+    assert main(["paper", "--config", str(cfg_path), "--json", str(out), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "WARNING: the run does not learn: the bias floor" in text
+    data = json.loads(out.read_text())
+    assert any("does not learn" in w for w in data["iv-drem"]["warnings"])
+    run = run_paper(load_config(cfg_path), progress=False)
+    meta = dict(build_content(run).meta)
+    assert "does not learn" in meta["WARNING (iv-drem)"]
+    # the paper's own experiment over the same horizon learns: no warning
+    good = run_paper(load_config(overrides={"experiment.t_end": 60.0,
+                                            "experiment.laws": ["iv-drem"]}), progress=False)
+    d = diagnostics.diagnose_run(good)["iv-drem"]
+    assert diagnostics.learning_warnings(d) == []
+    assert not any(k.startswith("WARNING") for k, _ in build_content(good).meta)

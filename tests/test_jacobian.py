@@ -211,7 +211,8 @@ def test_generated_jacobian_planar_arm_3():
     traj = dict(amplitude=0.5 * ones, omega=[1.0, 0.7, 0.4], phase=0 * ones, offset=0.2 * ones)
     dist = dict(amplitude=[2.0, 1.0, 0.5], omega=[0.5, 0.3, 0.2], phase=0 * ones,
                 offset=0 * ones)
-    loop = closed_loop("iv-drem", model=planar_arm(3), trajectory=traj, disturbance=dist)
+    loop = closed_loop("iv-drem", model=planar_arm(3), trajectory=traj, disturbance=dist,
+                       mixing="paper", gamma=1e10)
     sim, states = _loop_at_random_states(loop, [5], t_run=0.5)
     J = sim.engine.jacobian(sim.t, states[0], sim.W)
     assert_jacobian_close(J, central_fd(sim.engine, sim.t, states[0], sim.W))
@@ -306,7 +307,9 @@ def _planar3_loop(law):
     traj = dict(amplitude=0.5 * ones, omega=[1.0, 0.7, 0.4], phase=0 * ones, offset=0.2 * ones)
     dist = dict(amplitude=[2.0, 1.0, 0.5], omega=[0.5, 0.3, 0.2], phase=0 * ones,
                 offset=0 * ones)
-    return closed_loop(law, model=planar_arm(3), trajectory=traj, disturbance=dist)
+    # the paper's mixing (17) and γ (every arm but the paper's defaults to "eigen", "auto")
+    pinned = dict(mixing="paper", gamma=1e10) if law == "iv-drem" else {}
+    return closed_loop(law, model=planar_arm(3), trajectory=traj, disturbance=dist, **pinned)
 
 
 @pytest.mark.parametrize("case", ["iv-drem", "composite-learning", "planar3-iv-drem",

@@ -37,6 +37,57 @@ def drem_term(ntheta, gamma=1e10, *, name="drem_term"):
     return make_block(spec, {"gamma": gamma})
 
 
+def drem_channel_term_output(t, x, u, y, gamma):
+    # inputs   u.Delta (nθ), u.calY (nθ), u.theta_hat (nθ)
+    # outputs  y.theta_c_i = gamma_i Delta_i (calY_i - Delta_i theta_hat_i)     (eq. 21 per channel)
+    # params   gamma (nθ) > 0
+    for i in range(y.theta_c.shape[0]):
+        D = u.Delta[i]
+        y.theta_c[i] = gamma[i] * D * (u.calY[i] - D * u.theta_hat[i])
+
+
+def drem_channel_term_jacobian(t, x, u, jac, gamma):
+    # inputs   u = [Delta (nθ), calY (nθ), theta_hat (nθ)]
+    # output   theta_c_i = gamma_i Delta_i (calY_i - Delta_i theta_hat_i)
+    nth = jac.shape[0]
+    for i in range(nth):
+        D = u[i]
+        jac[i, i] = gamma[i] * (u[nth + i] - 2.0 * D * u[2 * nth + i])
+        jac[i, nth + i] = gamma[i] * D
+        jac[i, 2 * nth + i] = -gamma[i] * D * D
+
+
+def drem_channel_term(ntheta, gamma=1.0, *, name="drem_term"):
+    """The composite term (21) channel by channel, for a mixing with one Δ_i per channel
+    ("channel" of docs/mixing.md): ϑ_c,i = γ_i Δ_i (𝒴_i − Δ_i θ̂_i) = γ_i Δ_i² θ̃_i + γ_i Δ_i 𝒲_i,
+    so each channel is the scalar regression of (17) with its own gain.
+
+    ======  ==========================================================
+    states  none
+    inputs  Delta[nθ], calY[nθ], theta_hat[nθ]
+    output  theta_c[nθ]
+    params  gamma[nθ] > 0 (a number is used for every channel)
+    ======  ==========================================================
+    """
+    def validate(p):
+        g = np.asarray(p["gamma"], dtype=float)
+        if g.ndim == 0 or g.size == 1:
+            g = np.full(ntheta, float(g.reshape(-1)[0]))
+        g = checks.vector(name, "gamma", g, ntheta)
+        if not np.all(g > 0):
+            raise checks.ParameterError(f"block '{name}': parameter 'gamma' must be > 0 in "
+                                        f"every channel, got {g}")
+        return {**p, "gamma": g}
+    spec = BlockSpec(name=name, inputs=[("Delta", ntheta), ("calY", ntheta),
+                                        ("theta_hat", ntheta)],
+                     outputs=[("theta_c", ntheta)], states=[], x0=np.zeros(0),
+                     param_names=("gamma",), output=drem_channel_term_output,
+                     direct=("Delta", "calY", "theta_hat"), validate=validate,
+                     named_ports=True, jacobian=drem_channel_term_jacobian)
+    g = np.asarray(gamma, dtype=float)
+    return make_block(spec, {"gamma": np.full(ntheta, float(g)) if g.ndim == 0 else g})
+
+
 def composite_learning_term_output(t, x, u, y, gamma):
     # inputs   u.held = [Y_b(t_e) (nθ), Psi_b(t_e) (nθ*nθ row-major)], u.theta_hat (nθ)
     # outputs  y.theta_c = gamma (Y_b(t_e) - Psi_b(t_e) theta_hat)           (eq. 35)

@@ -56,7 +56,7 @@ def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
 
 def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Gamma=0.01,
                 mu0=1.0, mu1=15.0, observer_variant="corrected", l=50.0, T=None, p=None,
-                F0=None, gamma=None, epsilon=None, sigma=None, theta_star=None,
+                F0=None, gamma=None, mixing=None, epsilon=None, sigma=None, theta_star=None,
                 theta_hat0=None, q0=None, dq0=None, theta=None, trajectory=None,
                 disturbance=None, replace=None, external_plant=False, law_params=None,
                 calibration=None):
@@ -73,6 +73,10 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
     law (``ivdrem.laws``): Delta, calY, z, phi (and zeta) for "iv-drem"/"drem",
     lambda_min_held for "composite-learning".
 
+    ``mixing`` (laws with the mixed regression (17)) is "paper" (eq. 17), "eigen" or
+    "channel" (docs/mixing.md).  For every model but the paper's 2-link arm, ``mixing`` and
+    ``gamma`` left at None default to :func:`ivdrem.laws.default_mixing` and "auto".
+
     ``gamma="auto"`` (laws with the mixed regression (17)) picks γ of (21) from the loop's
     own Δ in a short calibration run (``ivdrem.diagrams.gamma_auto``; ``calibration`` is a
     dict of its options); the choice is ``diagram.gamma_choice``.  ``law_params`` passes
@@ -87,6 +91,17 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
         from ..models import two_link
         model = two_link()
     n, nth = model.n, model.ntheta
+    if "mixing" in spec.defaults and not law_registry.is_paper_arm(model):
+        # every arm but the paper's: the mixing and gain rule that work at its size
+        mixing = law_registry.default_mixing(model) if mixing is None else mixing
+        gamma = "auto" if gamma is None and "gamma" in spec.defaults else gamma
+    if mixing is not None and "mixing" not in spec.defaults:
+        raise ValueError(f"law {law!r} has no mixing step (17); mixing={mixing!r} applies to "
+                         "laws with the mixed regression (iv-drem, drem)")
+    if mixing is not None and mixing not in law_registry.MIXING_VARIANTS:
+        raise ValueError(f"unknown mixing {mixing!r}; choose one of "
+                         + ", ".join(repr(v) for v in law_registry.MIXING_VARIANTS)
+                         + " (docs/mixing.md)")
     if isinstance(gamma, str):
         if gamma != "auto":
             raise ValueError(f"gamma must be a positive number or 'auto', got {gamma!r}")
@@ -94,7 +109,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
             raise ValueError(f"gamma='auto' needs the mixed regression (17); law {law!r} has none")
         from .gamma_auto import calibrate_gamma
         args = dict(alpha=alpha, K=K, delta_mu=delta_mu, Gamma=Gamma, mu0=mu0, mu1=mu1,
-                    observer_variant=observer_variant, l=l, T=T, p=p, F0=F0,
+                    observer_variant=observer_variant, l=l, T=T, p=p, F0=F0, mixing=mixing,
                     epsilon=epsilon, sigma=sigma, theta_star=theta_star,
                     theta_hat0=theta_hat0, q0=q0, dq0=dq0, theta=theta,
                     trajectory=trajectory, disturbance=disturbance, replace=replace,
@@ -135,7 +150,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
                "Pi", "v", "dv"]  # Pi, v, dv: the observer (7) with the true θ, offline
     # the law's own gains: explicit arguments of closed_loop, then law_params, over the
     # registry's defaults
-    given = dict(T=T, p=p, F0=F0, gamma=gamma, epsilon=epsilon, sigma=sigma,
+    given = dict(T=T, p=p, F0=F0, gamma=gamma, mixing=mixing, epsilon=epsilon, sigma=sigma,
                  theta_star=theta_star)
     given = {k: v for k, v in given.items() if k in spec.defaults}
     given.update(law_params or {})

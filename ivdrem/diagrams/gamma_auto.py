@@ -20,14 +20,26 @@ the order of the paper's 1e10.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-__all__ = ["calibrate_gamma", "gamma_from_delta", "DEFAULT_RATE"]
+__all__ = ["calibrate_gamma", "gamma_from_delta", "GainRuleError", "DEFAULT_RATE",
+           "GAMMA_MAX", "DELTA2_MIN"]
 
 #: target contraction rate κ = γ Δ² λ_max(Γ) of the composite term, 1/s
 DEFAULT_RATE = 0.5
 #: γ of the calibration run: the composite term is off
 _GAMMA_OFF = 1e-300
+#: largest γ the rule hands out: γΔ(𝒴 − Δθ̂) must stay a finite double (docs/mixing.md)
+GAMMA_MAX = 1e300
+#: smallest mean Δ² the rule scales by: below it Δ² is subnormal (fewer than 53 bits), so
+#: γΔ² is no longer the rate the rule aims at
+DELTA2_MIN = float(np.finfo(float).tiny)
+
+
+class GainRuleError(ValueError):
+    """gamma = "auto" refuses a mixing whose Δ underflows or a γ that would overflow."""
 
 
 def _lambda_max(Gamma, ntheta):
@@ -39,28 +51,82 @@ def _lambda_max(Gamma, ntheta):
     return float(np.max(np.linalg.eigvalsh(0.5 * (G + G.T))))
 
 
-def gamma_from_delta(t, delta, T, Gamma, *, rate=DEFAULT_RATE, ntheta=None):
+def _remedy(variant):
+    """The mixing to use instead of one the rule refuses (docs/mixing.md)."""
+    if variant == "eigen":
+        return ("use mixing = \"channel\" (one Δ_i per parameter, docs/mixing.md) or a "
+                "larger f_rel")
+    return "use mixing = \"eigen\" (Δ = ∏ σ_j/(σ_j + f₀), near 1 at any size; docs/mixing.md)"
+
+
+def _log10_mean_square(t, log10_abs):
+    """log10 of the time mean of 10^(2 L) (trapezoid), finite where 10^(2 L) underflows."""
+    a = 2.0 * np.asarray(log10_abs, dtype=float)
+    top = float(np.max(a))
+    if not np.isfinite(top):
+        return -math.inf
+    mean = float(np.trapezoid(10.0 ** (a - top), t) / (t[-1] - t[0]))
+    return top + math.log10(mean) if mean > 0 else -math.inf
+
+
+def gamma_from_delta(t, delta, T, Gamma, *, rate=DEFAULT_RATE, ntheta=None,
+                     delta_log10=None, variant="paper", model_name=None):
     """γ = rate / (λ_max(Γ) · mean Δ² over [T, t_end]) of a recorded Δ(t); with the numbers.
 
-    Raises ValueError when Δ is identically zero there (no excitation to scale by).
+    ``delta`` is one row (Δ of the "paper" and "eigen" mixings) or one row per channel
+    ("channel": then γ is a vector, γ_i from the mean of Δ_i²).  ``delta_log10``
+    (log10 |Δ|, the mixing's output Delta_log10) lets the rule measure a Δ² below the
+    smallest double.  Raises :class:`GainRuleError`, naming the variant, the model and the
+    number, when mean Δ² is subnormal or γ would exceed GAMMA_MAX, and ValueError when Δ is
+    identically zero (no excitation to scale by).
     """
     t = np.asarray(t, dtype=float)
-    d = np.asarray(delta, dtype=float)
+    d = np.atleast_2d(np.asarray(delta, dtype=float))
+    logd = None if delta_log10 is None else np.atleast_2d(np.asarray(delta_log10, dtype=float))
     t_from = T if t[-1] > T else 0.5 * t[-1]
     sel = t >= t_from
     if np.count_nonzero(sel) < 2:
         raise ValueError("gamma='auto': calibration run too short to measure Δ")
-    d2 = d[sel] ** 2
-    mean_d2 = float(np.trapezoid(d2, t[sel]) / (t[sel][-1] - t[sel][0]))
     lam = _lambda_max(Gamma, ntheta)
-    if not np.isfinite(mean_d2) or mean_d2 <= 0.0:
-        raise ValueError(
-            "gamma='auto': Δ is zero over the calibration run (the regressor of (17) is "
-            "not excited by this trajectory); choose another trajectory or a numeric gamma")
-    gamma = rate / (lam * mean_d2)
-    return {"gamma": float(gamma), "rule": f"gamma = {rate:g} / (lambda_max(Gamma) * mean Delta^2)",
-            "rate": float(rate), "mean_Delta2": mean_d2, "lambda_max_Gamma": lam,
-            "window": [float(t[sel][0]), float(t[sel][-1])]}
+    where = f"mixing {variant!r}" + (f" on model {model_name!r}" if model_name else "")
+    gammas, means, logs = [], [], []
+    for k in range(d.shape[0]):
+        d2 = d[k, sel] ** 2
+        mean_d2 = float(np.trapezoid(d2, t[sel]) / (t[sel][-1] - t[sel][0]))
+        if logd is not None and np.all(np.isfinite(logd[k, sel])):
+            log_mean = _log10_mean_square(t[sel], logd[k, sel])
+        else:
+            log_mean = math.log10(mean_d2) if mean_d2 > 0 else -math.inf
+        if not np.isfinite(mean_d2) or (mean_d2 <= 0.0 and log_mean == -math.inf) \
+                or log_mean < -600.0:
+            raise ValueError(
+                f"gamma='auto' ({where}): Δ{'_%d' % (k + 1) if d.shape[0] > 1 else ''} is zero "
+                "over the calibration run (the regressor of (17) is not excited by this "
+                "trajectory); choose another trajectory or a numeric gamma")
+        chan = f"Δ_{k + 1}" if d.shape[0] > 1 else "Δ"
+        if mean_d2 < DELTA2_MIN:
+            raise GainRuleError(
+                f"gamma='auto' refused for {where}: mean {chan}² over the calibration run is "
+                f"1e{log_mean:.1f}, below the smallest double ({DELTA2_MIN:.3g}), so the "
+                f"composite term (21) cannot be formed; {_remedy(variant)}")
+        log_gamma = math.log10(rate) - math.log10(lam) - log_mean
+        if log_gamma > math.log10(GAMMA_MAX):
+            raise GainRuleError(
+                f"gamma='auto' refused for {where}: the rule would give γ = 1e{log_gamma:.1f}"
+                f" (mean {chan}² = 1e{log_mean:.1f}), above {GAMMA_MAX:.0e}; {_remedy(variant)}")
+        gammas.append(rate / (lam * mean_d2))
+        means.append(mean_d2)
+        logs.append(log_mean)
+    per_channel = d.shape[0] > 1
+    out = {"gamma": [float(g) for g in gammas] if per_channel else float(gammas[0]),
+           "rule": (f"gamma_i = {rate:g} / (lambda_max(Gamma) * mean Delta_i^2)" if per_channel
+                    else f"gamma = {rate:g} / (lambda_max(Gamma) * mean Delta^2)"),
+           "rate": float(rate),
+           "mean_Delta2": [float(m) for m in means] if per_channel else float(means[0]),
+           "log10_mean_Delta2": [float(v) for v in logs] if per_channel else float(logs[0]),
+           "lambda_max_Gamma": lam, "variant": variant,
+           "window": [float(t[sel][0]), float(t[sel][-1])]}
+    return out
 
 
 def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1,
@@ -86,18 +152,19 @@ def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1
         raise ValueError(f"gamma='auto': calibration horizon must be > 0, got {t_cal}")
     if passes not in (1, 2):
         raise ValueError(f"gamma='auto': passes must be 1 or 2, got {passes!r}")
+    variant = args.get("mixing") or "paper"
     diagram = closed_loop(law, model, gamma=1.0, **args)
     gamma, history = _GAMMA_OFF, []
     for k in range(passes):
         resp = simulate(diagram, t_cal, engine=engine, method=method, rtol=rtol, atol=atol,
                         h=h, h_max=h_max, dt_out=dt_out, params={"gamma": gamma},
                         progress=False, return_states=False)
-        labels = list(resp.output_labels)
-        y = np.asarray(resp.outputs, dtype=float).reshape(len(labels), -1)
-        delta = y[labels.index("Delta")]
-        out = gamma_from_delta(resp.time, delta, T, args.get("Gamma", 0.01), rate=rate)
-        history.append({"gamma_run": float(gamma), "mean_Delta2": out["mean_Delta2"],
-                        "gamma": out["gamma"]})
+        from ..experiments.metrics import signal
+        out = gamma_from_delta(resp.time, signal(resp, "Delta"), T, args.get("Gamma", 0.01),
+                               rate=rate, delta_log10=signal(resp, "Delta_log10"),
+                               variant=variant, model_name=getattr(model, "name", None))
+        history.append({"gamma_run": gamma if isinstance(gamma, float) else list(gamma),
+                        "mean_Delta2": out["mean_Delta2"], "gamma": out["gamma"]})
         gamma = out["gamma"]
     out["t_cal"] = t_cal
     out["passes"] = history

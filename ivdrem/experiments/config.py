@@ -22,7 +22,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ..laws import LAWS as _LAW_REGISTRY, get_law, law_names
+from ..laws import LAWS as _LAW_REGISTRY, MIXING_VARIANTS, default_mixing, get_law, law_names
 
 try:  # Python >= 3.11
     import tomllib
@@ -120,6 +120,7 @@ SCHEMA: dict[str, dict[str, _Key]] = {
         "p": _Key("float", check=lambda x: x >= 1, requirement=">= 1"),
         "F0": _Key("float", **_POS),
         "gamma": _Key("float_or_auto", **_POS),
+        "mixing": _Key("str", choices=MIXING_VARIANTS),
     },
     "composite_learning": {
         "T": _Key("float", **_POS),
@@ -267,6 +268,7 @@ MODEL_FOLLOWING = {
     ("controller", "K"): lambda m: [2.0] * m.n,
     ("sigma_modification", "theta_star"): lambda m: [0.0] * m.ntheta,
     ("iv_drem", "gamma"): lambda m: "auto",
+    ("iv_drem", "mixing"): lambda m: default_mixing(m),
 }
 #: Keys whose default follows the Fourier reference (the real-arm experiment of
 #: docs/experiment.md, :mod:`ivdrem.experiments.arm`): q(0) on the reference, the
@@ -721,7 +723,7 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
 
     Common keys: alpha, K (n×n), delta_mu, Gamma (nθ×nθ), mu0, mu1, observer_variant,
     l, theta_hat0, q0, dq0, theta, trajectory, disturbance.  Law-specific keys:
-    "iv-drem"/"drem": T, p, F0, gamma of [iv_drem]; "composite-learning": T, gamma,
+    "iv-drem"/"drem": T, p, F0, gamma, mixing of [iv_drem]; "composite-learning": T, gamma,
     epsilon of [composite_learning]; "sigma-modification": T, p, F0 of [iv_drem] and
     sigma, theta_star; "none": T, p, F0 of [iv_drem].
     """
@@ -750,7 +752,8 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
     ivd = c["iv_drem"]
     if law in ("iv-drem", "drem"):
         gamma = ivd["gamma"] if ivd["gamma"] == "auto" else float(ivd["gamma"])
-        kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]), gamma=gamma)
+        kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]), gamma=gamma,
+                  mixing=ivd["mixing"])
     elif law == "composite-learning":
         cl = c["composite_learning"]
         kw.update(T=float(cl["T"]), gamma=float(cl["gamma"]), epsilon=float(cl["epsilon"]))

@@ -17,6 +17,8 @@ P4.2       Property 4.2 for the chosen μ(t) and δ_μ: ρ, δ_ρ, μ_LB        
 RATE       ‖θ̃(t)‖ ≈ C t^(−a) over the last half                                  (e)
 V          Lyapunov function (23) against the bound of the proof of Theorem 2     (f)
 ACTIVE     the composite term γΔ²λ_max(Γ) is large enough to act on this horizon   (a)
+LEARN      the run learns: ‖θ̃‖ does not grow and the bias floor ‖𝒲‖/|Δ| of (17)   (e)
+           stays below ‖θ̃(0)‖; otherwise a warning naming the cause and a remedy
 =========  ===================================================================  ========
 
 Verdicts are "holds", "fails", "not decided" (the horizon is too short to tell, e.g. a
@@ -37,7 +39,7 @@ from scipy.integrate import cumulative_trapezoid
 
 __all__ = ["diagnose", "diagnose_run", "tau_d_decomposition", "observer_error_true_theta", "decay_exponent", "power_fit", "check_ka1", "check_pe",
            "check_ka2", "check_ka3", "check_prop2", "check_property42", "check_rate",
-           "check_lyapunov", "check_active", "filtered_disturbance", "excitation_beta",
+           "check_lyapunov", "check_active", "check_learning", "learning_warnings", "filtered_disturbance", "excitation_beta",
            "HOLDS", "FAILS", "UNDECIDED", "NA", "to_json", "format_diagnostics"]
 
 HOLDS, FAILS, UNDECIDED, NA = "holds", "fails", "not decided", "not applicable"
@@ -56,6 +58,11 @@ P2_GROWTH = 1.5
 ACTIVE_EFOLDS = 1.0
 #: number of windows the last half is cut into for the windowed means
 N_BINS = 8
+#: LEARN: ‖θ̃‖ grows when its last window's mean exceeds the first window's of the last
+#: half by this factor (or ‖θ̃(t_end)‖ ≥ ‖θ̃(0)‖)
+LEARN_GROWTH = 1.5
+#: LEARN: decades of |Δ| over [T, t_end] past which a fixed γ cannot hold the rate γΔ²
+DELTA_SPAN_DECADES = 4.0
 
 
 # --------------------------------------------------------------------------- helpers
@@ -512,12 +519,20 @@ def observer_error_true_theta(resp, model, theta):
 
 
 # --------------------------------------------------------------------------- activity
-def check_active(t, delta, gamma, lam_max_Gamma, T, figure=None):
-    """Is the composite term (21) active: γ λ_max(Γ) ∫Δ² ds, the e-folds it can give θ̃."""
+def check_active(t, delta, gamma, lam_max_Gamma, T, figure=None, *, gamma_auto=False,
+                 mixing=None):
+    """Is the composite term (21) active: γ λ_max(Γ) ∫Δ² ds, the e-folds it can give θ̃
+    (the weakest channel for a per-channel Δ_i, γ_i)."""
     from ..diagrams.gamma_auto import DEFAULT_RATE, gamma_from_delta
 
     t = np.asarray(t, dtype=float)
-    d2 = np.asarray(delta, dtype=float) ** 2
+    D2 = np.atleast_2d(np.asarray(delta, dtype=float)) ** 2
+    g = np.atleast_1d(np.asarray(gamma, dtype=float)).reshape(-1, 1)
+    per = g * lam_max_Gamma * _cum(t, D2)[:, -1:] if D2.shape[0] > 1 else None
+    k = int(np.argmin(per[:, 0])) if per is not None else 0
+    gamma = float(g[min(k, g.shape[0] - 1), 0])
+    d2 = D2[k]
+    delta = np.sqrt(d2)
     efolds = float(gamma * lam_max_Gamma * _cum(t, d2)[-1])
     rate = gamma * lam_max_Gamma * float(np.mean(d2[t >= _half(t)]))
     measured = {"gamma": float(gamma), "efolds_over_run": efolds,
@@ -529,14 +544,89 @@ def check_active(t, delta, gamma, lam_max_Gamma, T, figure=None):
     except ValueError:
         suggest = None
     verdict = HOLDS if efolds >= ACTIVE_EFOLDS else FAILS
-    if verdict == FAILS:
-        note = (f"composite term inactive: γ λ_max(Γ) ∫Δ² ds = {efolds:.3g} e-folds over the "
-                f"run (< {ACTIVE_EFOLDS:g}); set iv_drem.gamma = \"auto\""
+    chan = f" (channel {k + 1}, the weakest)" if per is not None else ""
+    if verdict == FAILS and gamma_auto:
+        # "auto" is what left it inactive: Δ fell below its calibration level
+        note = (f"composite term inactive{chan}: γ λ_max(Γ) ∫Δ² ds = {efolds:.3g} e-folds over "
+                f"the run (< {ACTIVE_EFOLDS:g}) with the γ \"auto\" calibrated over [T, 2T]: "
+                "Δ fell below its calibration level"
+                + ("; set iv_drem.mixing = \"eigen\" (Δ near 1 keeps the calibrated rate, "
+                   "docs/mixing.md)" if mixing in (None, "paper") else
+                   f"; a numeric gamma ≈ {suggest:.3g} (from this run's Δ)" if suggest else ""))
+    elif verdict == FAILS:
+        note = (f"composite term inactive{chan}: γ λ_max(Γ) ∫Δ² ds = {efolds:.3g} e-folds over "
+                f"the run (< {ACTIVE_EFOLDS:g}); set iv_drem.gamma = \"auto\""
                 + (f" (γ ≈ {suggest:.3g} from this run's Δ)" if suggest else "")
                 + " or a larger number")
     return _check("ACTIVE", "composite term active", "γΔ²λ_max(Γ) against the horizon", verdict,
                   measured, f"γ λ_max(Γ) ∫₀^t_end Δ² ds ≥ {ACTIVE_EFOLDS:g} (at least one e-fold "
                   "of θ̃ from the composite term over the run)", figure, note)
+
+
+# --------------------------------------------------------------------------- learning
+def check_learning(t, theta_err_norm, T, *, calW_over_Delta=None, delta_log10=None,
+                   mixing=None, gamma=None, gamma_auto=False):
+    """Does the run learn?  It does not where ‖θ̃‖ grows (‖θ̃(t_end)‖ ≥ ‖θ̃(0)‖, or the
+    last window's mean is LEARN_GROWTH × the first of the last half) or where the bias
+    floor ‖𝒲‖/|Δ| of (17) (= ‖Ψ⁻¹W‖ in every mixing, docs/mixing.md) over the last window
+    is at least ‖θ̃(0)‖.  The note names the cause and a remedy that addresses it: the
+    bias floor is the excitation's (no mixing changes 𝒲/Δ); a |Δ| spanning
+    DELTA_SPAN_DECADES or more under one γ is the paper's mixing's ("eigen" keeps Δ near 1);
+    growth under a calibrated γ with a mixing that keeps Δ near 1 asks for a smaller γ."""
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(theta_err_norm, dtype=float)
+    e0, e_end = float(y[0]), float(y[-1])
+    bins = _bins(t, _half(t))
+    means = [float(np.mean(y[b])) for b in bins]
+    growth = means[-1] / means[0] if len(means) >= 2 and means[0] > 0 else float("nan")
+    measured = {"theta_err_0": e0, "theta_err_end": e_end, "growth_last_half": growth}
+    floor = float("nan")
+    if calW_over_Delta is not None and bins:
+        v = np.asarray(calW_over_Delta, dtype=float)[bins[-1]]
+        v = v[np.isfinite(v)]
+        floor = float(np.median(v)) if v.size else float("nan")
+        measured["bias_floor_last_window"] = floor
+    span = float("nan")
+    if delta_log10 is not None:
+        L = np.atleast_2d(np.asarray(delta_log10, dtype=float))[:, t >= min(T, _half(t))]
+        L = L[:, np.all(L > -399.0, axis=0)] if L.size else L
+        if L.size:
+            span = float(np.max(np.max(L, axis=1) - np.min(L, axis=1)))
+            measured["log10_Delta_span_decades"] = span
+    grows = e_end >= e0 or (np.isfinite(growth) and growth >= LEARN_GROWTH)
+    biased = np.isfinite(floor) and floor >= e0
+    note = ""
+    if biased:
+        note = (f"the run does not learn: the bias floor ‖𝒲‖/|Δ| of (17) over the last window "
+                f"is {floor:.3g}, above ‖θ̃(0)‖ = {e0:.3g}, so θ̂ settles near θ + Ψ⁻¹W "
+                f"(‖θ̃(t_end)‖ = {e_end:.3g}); the disturbance W of (16) outweighs the excitation "
+                "of Ψ, and no mixing changes 𝒲/Δ: give every joint a reference frequency of "
+                "its own that τ_d does not have (condition (19), check KA3; "
+                "examples/planar3.toml), or run longer (𝒲 decays like Ḟ/F, Proposition 2)")
+    elif grows:
+        what = (f"‖θ̃‖ grows from {e0:.3g} to {e_end:.3g}" if e_end >= e0 else
+                f"‖θ̃‖ grows by {growth:.2f}x over the last half (to {e_end:.3g})")
+        if mixing == "paper" and np.isfinite(span) and span >= DELTA_SPAN_DECADES:
+            note = (f"the run does not learn: {what}; the paper's Δ spans {span:.1f} decades "
+                    f"over the run, so the rate γΔ²λ_max(Γ) of the one γ"
+                    + (" that \"auto\" calibrated" if gamma_auto else "")
+                    + " does too (stiff where Δ is large, inactive where it is small); set "
+                    "iv_drem.mixing = \"eigen\" (Δ = ∏σ_j/(σ_j + f₀) stays near 1, docs/mixing.md)")
+        elif mixing == "paper":
+            note = (f"the run does not learn: {what}; set iv_drem.mixing = \"eigen\" "
+                    "(docs/mixing.md) with gamma = \"auto\"")
+        else:
+            g = np.atleast_1d(np.asarray(gamma, dtype=float)) if gamma is not None else None
+            gtxt = (f" (γ = {np.max(g):.3g} now; try {np.max(g) / 100:.3g})"
+                    if g is not None and g.size else "")
+            note = (f"the run does not learn: {what} with mixing {mixing!r}; the composite term "
+                    f"drives θ̂ faster than Ψ settles: a numeric iv_drem.gamma 100x below "
+                    + ("the calibrated one" if gamma_auto else "this one") + gtxt)
+    verdict = FAILS if note else HOLDS
+    return _check("LEARN", "the run learns", "θ̃ → 0 (Theorem 2) observed, not presumed",
+                  verdict, measured,
+                  f"‖θ̃(t_end)‖ < ‖θ̃(0)‖, last/first window of the last half < {LEARN_GROWTH}, "
+                  "and the bias floor ‖𝒲‖/|Δ| (last window, median) < ‖θ̃(0)‖", None, note)
 
 
 # --------------------------------------------------------------------------- a whole run
@@ -581,11 +671,19 @@ def diagnose(lawrun, config, model=None, *, theta=None, figure=None):
     checks, series, warnings = [], {"t": t}, []
 
     has_delta = _has(resp, "Delta")
+    stats = getattr(lawrun, "stats", None) or {}
+    choice = stats.get("gamma_choice") if isinstance(stats, Mapping) else None
+    mixing = (choice or {}).get("variant") or ivd.get("mixing", "paper")
     if has_delta:
-        delta = _sig(resp, "Delta")
+        delta_all = np.atleast_2d(_sig(resp, "Delta"))       # one row, or one per channel
+        # KA1 and (18) on the weakest channel (the smallest ∫Δ_i²) of a per-channel Δ_i
+        weakest = int(np.argmin(_cum(t, delta_all ** 2)[:, -1])) if delta_all.shape[0] > 1 else 0
+        delta = delta_all[weakest]
         c, S = check_ka1(t, delta, figure)
+        if delta_all.shape[0] > 1:
+            c["measured"]["channel"] = weakest + 1
         checks.append(c)
-        series.update(Delta=delta, int_Delta2=S)
+        series.update(Delta=delta, Delta_channels=delta_all, int_Delta2=S)
         beta = None
         inst = spec.instrument if spec is not None else None
         if inst and _has(resp, inst) and _has(resp, "phi"):
@@ -628,9 +726,11 @@ def diagnose(lawrun, config, model=None, *, theta=None, figure=None):
 
     ratio = None
     if W is not None:
+        # ‖(𝒲_i/Δ_i)_i‖ = ‖Ψ⁻¹W‖: ‖𝒲‖/|Δ| for one Δ, per channel for Δ_i
+        D = series["Delta_channels"]
         with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(np.abs(series["Delta"]) > 0,
-                             np.sqrt(np.sum(W ** 2, axis=0)) / np.abs(series["Delta"]), np.nan)
+            ratio = np.where(np.all(np.abs(D) > 0, axis=0),
+                             np.sqrt(np.sum((W / D) ** 2, axis=0)), np.nan)
     c, fit = check_rate(t, np.sqrt(np.sum(th_err ** 2, axis=0)), figure, ratio)
     checks.append(c)
     series.update(theta_err_norm=np.sqrt(np.sum(th_err ** 2, axis=0)), rate_fit=fit)
@@ -638,6 +738,7 @@ def diagnose(lawrun, config, model=None, *, theta=None, figure=None):
     gamma = getattr(lawrun, "gamma", None)
     if gamma is None or isinstance(gamma, str):
         gamma = ivd["gamma"] if not isinstance(ivd["gamma"], str) else None
+    gvec = None if gamma is None else np.atleast_1d(np.asarray(gamma, dtype=float))
     if model is not None and _has(resp, "r") and _has(resp, "q"):
         q = np.atleast_2d(_sig(resp, "q"))
         Mq = np.empty((n, n, t.size))
@@ -652,7 +753,12 @@ def diagnose(lawrun, config, model=None, *, theta=None, figure=None):
                else tau_d - np.atleast_2d(_sig(resp, "tau_d_hat")))
         V = lyapunov(np.atleast_2d(_sig(resp, "r")), Mq, th_err, Gamma, err, mu, rho)
         use_bound = has_delta and W is not None and gamma is not None and p42 is not None
-        c, bound = check_lyapunov(t, V, W if use_bound else None, gamma if use_bound else None,
+        if use_bound and gvec.size > 1:
+            # per-channel γ_i: the proof's γ‖𝒲‖² term is Σ γ_i 𝒲_i²
+            W_b, g_b = W * np.sqrt(gvec)[:, None], 1.0
+        else:
+            W_b, g_b = W, (float(gvec[0]) if gvec is not None else None)
+        c, bound = check_lyapunov(t, V, W_b if use_bound else None, g_b if use_bound else None,
                                   lam2 if use_bound else None, rho,
                                   p42["delta_rho"] if p42 else None, figure)
         c["measured"]["f_n_from"] = "true θ (as in the proof)" if exact else "θ̂ of the run"
@@ -661,11 +767,24 @@ def diagnose(lawrun, config, model=None, *, theta=None, figure=None):
         series.update(V=V, V_bound=bound)
 
     if has_delta and gamma is not None:
-        c = check_active(t, series["Delta"], float(gamma), lam_max, T, figure)
+        c = check_active(t, series["Delta_channels"], gvec if gvec.size > 1 else float(gvec[0]),
+                         lam_max, T, figure, gamma_auto=choice is not None, mixing=mixing)
         checks.append(c)
         if c["note"]:
             warnings.append(c["note"])
+    logd = _sig(resp, "Delta_log10") if _has(resp, "Delta_log10") else None
+    c = check_learning(t, series["theta_err_norm"], T, calW_over_Delta=ratio,
+                       delta_log10=logd, mixing=mixing if has_delta else None, gamma=gamma,
+                       gamma_auto=choice is not None)
+    checks.append(c)
+    if c["note"]:
+        warnings.insert(0, c["note"])
     return {"law": law, "checks": checks, "warnings": warnings, "series": series}
+
+
+def learning_warnings(diag: Mapping) -> list:
+    """The warning of the LEARN check of one law's diagnostics (empty when the run learns)."""
+    return [c["note"] for c in diag["checks"] if c["id"] == "LEARN" and c["note"]]
 
 
 def diagnose_run(run, *, figure_prefix="figD-"):

@@ -173,9 +173,10 @@ def tau_d_error(run_or_lawrun):
 
 
 def calW(lawrun, theta):
-    """𝒲 = 𝒴 − Δθ (nθ × n_t) of an "iv-drem" or "drem" run (𝒴_i = Δθ_i + 𝒲_i)."""
+    """𝒲 = 𝒴 − Δθ (nθ × n_t) of an "iv-drem" or "drem" run (𝒴_i = Δ_iθ_i + 𝒲_i; one Δ, or
+    one Δ_i per channel for the "channel" mixing)."""
     theta = np.asarray(theta, dtype=float).reshape(-1, 1)
-    return signal(lawrun, "calY") - signal(lawrun, "Delta")[None, :] * theta
+    return signal(lawrun, "calY") - np.atleast_2d(signal(lawrun, "Delta")) * theta
 
 
 # --------------------------------------------------------------------------- summary

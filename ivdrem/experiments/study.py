@@ -120,7 +120,7 @@ def _curves(lawrun, theta) -> dict:
     th = metrics.norm(metrics.theta_error(lawrun, theta))
     e = metrics.norm(metrics.signal(lawrun, "e"))
     try:
-        delta = np.abs(metrics.signal(lawrun, "Delta"))
+        delta = np.min(np.abs(np.atleast_2d(metrics.signal(lawrun, "Delta"))), axis=0)  # weakest Δ_i
     except KeyError:
         delta = np.full(t.shape, np.nan)
     return {"t": [float(v) for v in t[idx]], "theta_err_norm": [float(v) for v in th[idx]],

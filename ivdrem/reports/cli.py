@@ -142,6 +142,9 @@ def run_report_command(args) -> int:
     except SimulationError as exc:
         print(f"ivdrem report: simulation failed: {exc}", file=sys.stderr)
         return 1
+    except ValueError as exc:        # gamma = "auto" refused (diagrams.gamma_auto.GainRuleError)
+        print(f"ivdrem report: error: {exc}", file=sys.stderr)
+        return 2
     for law, lr in run.runs.items():
         print(f"{law:>20s}: {lr.stats.get('steps', '?')} steps, {timing_text(lr.stats)}")
     check = None

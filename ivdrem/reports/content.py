@@ -418,6 +418,11 @@ def _engine(run) -> str:
     return ", ".join(sorted(seen)) or "–"
 
 
+def registry_law(name):
+    from ..laws import LAWS
+    return LAWS.get(name)
+
+
 def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
     from ..experiments.config import dump_toml, model_label
 
@@ -441,9 +446,17 @@ def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
     from ..experiments.diagnostics import diagnose_run
     diags = diagnose_run(run)
     gammas = [f"{law}: γ = {fmt(lr.gamma)}" + (" (auto)" if "gamma_choice" in (lr.stats or {}) else "")
-              for law, lr in run.runs.items() if isinstance(getattr(lr, "gamma", None), (int, float))]
+              for law, lr in run.runs.items()
+              if isinstance(getattr(lr, "gamma", None), (int, float, list, tuple))]
     if gammas:
         meta.append(("composite gain", "; ".join(gammas)))
+    if "mixing" in cfg.get("iv_drem", {}) and any(getattr(registry_law(law), "uses_delta", False)
+                                                 for law in laws):
+        meta.append(("mixing of (17)", f"{cfg['iv_drem']['mixing']} (docs/mixing.md)"))
+    from ..experiments.diagnostics import learning_warnings
+    for law, d in diags.items():   # a run that does not learn says so on the first page
+        for w in learning_warnings(d):
+            meta.append((f"WARNING ({law})", w))
     tables = [
         _conclusions_table(concl),
         _summary(run),

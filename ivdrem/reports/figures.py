@@ -279,13 +279,17 @@ def fig_delta_W(run):
     for law in laws:
         lr = run.runs[law]
         t = _t(lr)
-        D = metrics.signal(lr, "Delta")
-        W = metrics.norm(metrics.calW(lr, theta))
+        Dc = np.atleast_2d(metrics.signal(lr, "Delta"))    # one row, or one per channel
+        Wc = metrics.calW(lr, theta)
+        D = np.min(np.abs(Dc), axis=0)                      # the weakest channel's |Δ_i|
+        W = metrics.norm(Wc)
         k = order.index(law)
         _plot(axes[0], t, D, law, k, log=True)
         _plot(axes[1], t, W, law, k, log=True)
         with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(np.abs(D) > 0, W / np.abs(D), np.nan)
+            # ‖(𝒲_i/Δ_i)_i‖, = ‖𝒲‖/|Δ| for one Δ (docs/mixing.md)
+            ratio = np.where(np.all(np.abs(Dc) > 0, axis=0),
+                             np.sqrt(np.sum((Wc / Dc) ** 2, axis=0)), np.nan)
         _plot(axes[2], t, ratio, law, k, log=True)
     axes[0].set_ylabel(r"$|\Delta(t)|$")
     axes[1].set_ylabel(r"$\|\mathcal{W}(t)\|$")
