@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ivdrem.diagrams import closed_loop
-from ivdrem.sim import _cstepper, _template, compiled, simulate
+from ivdrem.sim import _cstepper, _template, compiled
 from ivdrem.sim.simulator import WORKSPACE_LAYOUT, Simulator
 from ivdrem.sim.tables import INT_FIELDS
 

@@ -27,7 +27,6 @@ What the registry says of a method and what is measured:
 from __future__ import annotations
 
 import dataclasses
-import math
 import re
 import warnings
 

@@ -36,13 +36,11 @@ loads them without compiling.
 from __future__ import annotations
 
 import inspect
-import os
 import re
 import sys
 import textwrap
 import threading
 import warnings
-from pathlib import Path
 
 import numpy as np
 

@@ -28,15 +28,14 @@ import os
 import sys
 import time as _time
 import warnings
-from pathlib import Path
 
 import numpy as np
 import control as ct
 
 from .plan import DiagramPlan
 from . import _diagram, _template as tpl
-from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,
-                      DEFAULT_TOLERANCES, MethodInfo, method_info)
+from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,  # noqa: F401
+                      DEFAULT_TOLERANCES, MethodInfo, method_info)  # (re-exported)
 from .tables import hold_nmat, pack as pack_tables, scratch_size
 from .layout import WORKSPACE_LAYOUT, Workspace  # noqa: F401  (WORKSPACE_LAYOUT re-exported)
 from .errors import BlockError, SimulationError, StiffnessWarning, BLOCK_RAISED_MESSAGE  # noqa: F401
