@@ -14,8 +14,8 @@ first integrate call (``stats["compile_s"]``), and the simulation time (``sim_s`
 second child with the same (now warm) cache directories shows the cache-load cost.
 
 Targets: both default laws from empty caches <= 20 s in all (import included); a second
-law or a rewired diagram <= 8 s.  The compiled engine's default C stepper is built by the
-C compiler inside law 1's compile (``IVDREM_STEPPER=numba`` measures the numba stepper).
+law or a rewired diagram <= 8 s.  The stepper (stepper.c) is built by the C compiler
+inside law 1's compile, on a thread, while numba compiles the kernels.
 
 Usage::
 

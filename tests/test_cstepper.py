@@ -1,77 +1,19 @@
-"""The C stepper (ivdrem/sim/stepper.c) against the numba stepper that compiles the Python
-template: bit for bit on the paper's loops and the lab diagram with every method, the
-enumerations from one place, its errors, the build cache and the fallback."""
+"""The C stepper (ivdrem/sim/stepper.c), the one stepper of both engines: the enumerations
+from one place, its errors, the build cache, and a clear error where no C compiler is.
+(Its numbers: tests/test_methods.py, tests/test_independent.py, and
+benchmarks/record_theta.py against the numba build it replaced.)"""
 import os
 import re
-import warnings
 
-import control as ct
 import numpy as np
 import pytest
 
 from ivdrem.diagrams import closed_loop
-from ivdrem.sim import _cstepper, _template, compiled, simulate
+from ivdrem.sim import _cstepper, _template, compiled
 from ivdrem.sim.simulator import WORKSPACE_LAYOUT, Simulator
 from ivdrem.sim.tables import INT_FIELDS
 
 from conftest import build_lab
-
-
-def _run(diagram, t_end, stepper, monkeypatch, **kw):
-    monkeypatch.setenv("IVDREM_STEPPER", stepper)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        r = simulate(diagram, t_end, progress=False, **kw)
-    return r
-
-
-def _same(a, b):
-    for name in ("time", "outputs", "states"):
-        x, y = np.asarray(getattr(a, name)), np.asarray(getattr(b, name))
-        assert x.shape == y.shape and np.array_equal(x, y, equal_nan=True), name
-    for k in ("steps", "rejected", "rhs_calls", "jacobians", "hold_cuts", "hold_samples",
-              "explicit_steps"):
-        assert a.stats.get(k) == b.stats.get(k), k
-    assert np.array_equal(np.asarray(a.hold_times, float), np.asarray(b.hold_times, float),
-                          equal_nan=True)
-
-
-@pytest.mark.parametrize("law", ["iv-drem", "composite-learning"])
-@pytest.mark.parametrize("method", ["rodas5p", "dp45", "rk4"])
-def test_c_stepper_runs_the_paper_loop_bit_for_bit_as_the_numba_stepper(law, method, monkeypatch):
-    # 2.5 s: the delay history, Jacobians and LU, and (composite learning) the max-hold's
-    # probes, cuts and the pinned explicit steps all run
-    d = closed_loop(law)
-    kw = dict(method=method, dt_out=0.01)
-    if method == "rk4":
-        kw["h"] = 5e-4
-    c = _run(d, 2.5, "c", monkeypatch, **kw)
-    nb = _run(d, 2.5, "numba", monkeypatch, **kw)
-    _same(c, nb)
-    if law == "composite-learning" and method == "rodas5p":
-        assert c.stats["hold_samples"] > 0 and c.stats["explicit_steps"] > 0
-
-
-@pytest.mark.parametrize("method", ["rodas5p", "dp45", "rk4"])
-def test_c_stepper_runs_the_lab_diagram_bit_for_bit(method, monkeypatch):
-    # the lab: a delay without a wired derivative (slopes from the history), a skew max-hold
-    kw = dict(method=method, dt_out=0.01, h=1e-3) if method == "rk4" else \
-        dict(method=method, dt_out=0.01)
-    lab = build_lab()
-    _same(_run(lab, 3.0, "c", monkeypatch, **kw), _run(lab, 3.0, "numba", monkeypatch, **kw))
-
-
-def test_c_stepper_follows_an_input_table_bit_for_bit(monkeypatch):
-    # a table of external inputs over time (linear interpolation, steps cut at its kinks)
-    lag = ct.ss([[-2.0, 1.0], [0.0, -30.0]], [[0.0], [30.0]], [[1.0, 0.0]], [[0.0]],
-                inputs="u", outputs="y", name="lag")
-    loop = ct.interconnect([lag], inputs="u", outputs="y", name="lag_loop")
-    t = np.linspace(0.0, 2.0, 9)
-    u = np.sin(3.0 * t)[None, :]
-    for method in ("rodas5p", "dp45"):
-        a = _run(loop, t, "c", monkeypatch, inputs=u, method=method)
-        b = _run(loop, t, "numba", monkeypatch, inputs=u, method=method)
-        _same(a, b)
 
 
 def test_every_enumeration_of_stepper_c_comes_from_the_generated_header():
@@ -101,8 +43,7 @@ def test_every_enumeration_of_stepper_c_comes_from_the_generated_header():
                           _template.RODAS5P_C.reshape(-1))
 
 
-def test_a_failure_raised_in_c_is_the_python_source_s_error(monkeypatch):
-    monkeypatch.setenv("IVDREM_STEPPER", "c")
+def test_a_failure_raised_in_c_is_a_clear_error():
     sim = Simulator(closed_loop("composite-learning"))
     assert sim.engine.stepper == "c"
     sim.advance(0.01)
@@ -132,25 +73,13 @@ def test_the_library_is_built_once_into_the_cache(tmp_path):
     assert [q.name for q in tmp_path.iterdir()] == [p1.name]     # no temporary left behind
 
 
-def test_an_unknown_stepper_is_an_error_naming_the_choices(monkeypatch):
-    monkeypatch.setenv("IVDREM_STEPPER", "fortran")
-    with pytest.raises(ValueError, match="IVDREM_STEPPER='fortran'.*c, numba"):
-        Simulator(closed_loop("iv-drem"))
-
-
-def test_without_a_c_compiler_the_numba_stepper_runs_with_a_warning(monkeypatch):
-    monkeypatch.setenv("IVDREM_STEPPER", "c")
+@pytest.mark.parametrize("engine", ["compiled", "reference"])
+def test_without_a_c_compiler_simulating_is_an_error_naming_what_to_install(engine,
+                                                                           monkeypatch):
     monkeypatch.setenv("CC", os.path.join(os.sep, "nonexistent", "cc"))
-    monkeypatch.setattr(compiled, "_fallback_warned", [])
-    with pytest.warns(compiled.StepperFallbackWarning, match="not found"):
-        sim = Simulator(closed_loop("iv-drem"))
-    assert sim.engine.stepper == "numba"
-    sim.advance(0.05)
-    monkeypatch.delenv("CC")
-    ref = Simulator(closed_loop("iv-drem"))
-    assert ref.engine.stepper == "c"
-    ref.advance(0.05)
-    assert np.array_equal(sim.x, ref.x)
+    with pytest.raises(compiled.CCompilerMissing, match=r"needs a C compiler.*apt-get "
+                       r"install gcc.*\$CC.*not found"):
+        Simulator(build_lab(), engine=engine)
 
 
 def test_a_damaged_library_in_the_cache_is_built_again(tmp_path):

@@ -1,5 +1,5 @@
-"""The block inputs filled by runs (ivdrem.sim.tables.with_fill_runs, _diagram.fill_runs)
-equal the row-by-row fill over the connection map (_diagram.fill_input), entry for entry,
+"""The block inputs filled by runs (ivdrem.sim.tables.with_fill_runs, the C stepper's
+fill_runs, written out below) equal the row-by-row fill over the connection map, entry for entry,
 for every fill sequence of the paper's loops and for a map with sums, unconnected rows,
 diagram inputs and gains other than one."""
 import numpy as np
@@ -11,17 +11,42 @@ from ivdrem.sim.simulator import Simulator
 from ivdrem.sim.tables import _runs, with_fill_runs
 
 
+def _fill_input(in_ptr, in_src, in_gain, k, ys, us, ue):
+    """us[k] from the connection map's row k: the sum of gain * source (a source j >= 0 is
+    block output ys[j], a negative one diagram input ue[-1 - j])."""
+    s = 0.0
+    for e in range(in_ptr[k], in_ptr[k + 1]):
+        j = in_src[e]
+        s += in_gain[e] * (ys[j] if j >= 0 else ue[-1 - j])
+    us[k] = s
+
+
+def _fill_runs(runs, gains, r0, r1, in_ptr, in_src, in_gain, ys, us, ue):
+    """What the C stepper's fill_runs does with runs r0..r1-1: a run copies consecutive
+    sources times its gain (0.0 + g y, as the row sum gives it), a RUN_ROW sums its row."""
+    C = _diagram.N_RUN_COLUMNS
+    for r in range(r0, r1):
+        kind, d0, s0, n = (int(runs[r * C + c]) for c in (_diagram.RUN_KIND, _diagram.RUN_D0,
+                                                           _diagram.RUN_S0, _diagram.RUN_N))
+        if kind in (_diagram.RUN_SIGNALS, _diagram.RUN_INPUTS):
+            src = ys if kind == _diagram.RUN_SIGNALS else ue
+            for i in range(n):
+                us[d0 + i] = 0.0 + gains[r] * src[s0 + i]
+        else:
+            _fill_input(in_ptr, in_src, in_gain, d0, ys, us, ue)
+
+
 def _by_rows(seq, ptr, src, gain, ys, ue, nu):
     us = np.full(nu, np.nan)
     for k in seq:
-        _diagram.fill_input(ptr, src, gain, int(k), ys, us, ue)
+        _fill_input(ptr, src, gain, int(k), ys, us, ue)
     return us
 
 
 def _by_runs(seq, ptr, src, gain, ys, ue, nu):
     runs, gains = _runs(seq, ptr, src, gain)
     us = np.full(nu, np.nan)
-    _diagram.fill_runs(np.asarray(runs, dtype=np.int64).reshape(-1), np.asarray(gains),
+    _fill_runs(np.asarray(runs, dtype=np.int64).reshape(-1), np.asarray(gains),
                        0, len(runs), ptr, src, gain, ys, us, ue)
     return us, len(runs)
 

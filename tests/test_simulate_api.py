@@ -15,7 +15,6 @@ import control as ct
 from ivdrem.blocks import BlockSpec, make_block
 from ivdrem.sim import simulate, Simulator
 from ivdrem.sim.simulator import input_kinks, interpolate_inputs
-from ivdrem.sim import _template
 
 
 # ----------------------------------------------------------------------------- blocks
@@ -232,24 +231,36 @@ def test_plain_python_control_blocks_reference_engine():
 
 
 # ----------------------------------------------------------------- the input interpolant
+def _passthrough(t, x, u, params):
+    return u
+
+
 def test_interpolant_is_python_controls():
-    """interpolate_inputs and the template's external_inputs (what both engines call at
-    every stage) = python-control's own interpolant, read off a static passthrough system,
-    at the nodes, between them and beyond the ends (linear extrapolation)."""
+    """interpolate_inputs and the stepper's external inputs (what both engines evaluate at
+    every stage, read here through a static passthrough block) = python-control's own
+    interpolant, read off the same passthrough, at the nodes, between them and beyond the
+    ends (linear extrapolation)."""
     rng = np.random.default_rng(1)
     T = np.cumsum(rng.uniform(0.05, 0.3, 12))
     U = rng.normal(size=(2, T.size))
     t = np.r_[T, rng.uniform(T[0] - 0.5, T[-1] + 0.5, 40)]
-    passthrough = ct.nlsys(None, lambda t, x, u, p: u, inputs=2, outputs=2, name="pass")
+    passthrough = ct.nlsys(None, _passthrough, inputs=2, outputs=2, name="pass")
     expected = ct.input_output_response(passthrough, T, U, t_eval=t).outputs
     assert np.array_equal(interpolate_inputs(T, U, t), expected)
-    W = dict(enumerate([None] * 17))
-    W[8], W[15], W[16] = np.zeros(2), T, np.ascontiguousarray(U.T)
-    got = np.array([_template.external_inputs(W, ti).copy() for ti in t]).T
-    assert np.array_equal(got, expected)
-    W[15] = np.zeros(0)                       # no table: W[8] held as it is
-    W[8][:] = [1.5, -2.0]
-    assert list(_template.external_inputs(W, 3.0)) == [1.5, -2.0]
+    loop = ct.interconnect([passthrough], inputs=passthrough.input_labels,
+                           outputs=passthrough.output_labels, name="pass_loop")
+    for engine in ("compiled", "reference"):
+        s = Simulator(loop, engine=engine)
+        s.set_inputs(U, T)
+        got = np.zeros((t.size, 2))
+        for i, ti in enumerate(t):
+            s.engine.record(float(ti), s.x, s.W, got[i])
+        assert np.array_equal(got.T, expected), engine
+        s.set_inputs(np.array([1.5, -2.0]))       # no table: held as they are
+        row = np.zeros(2)
+        s.engine.record(3.0, s.x, s.W, row)
+        assert list(row) == [1.5, -2.0]
+        s.close()
 
 
 def test_kinks_where_the_slope_changes():

@@ -1,6 +1,5 @@
-"""A child process compiling while the parent compiles its kernels
-(ivdrem/sim/_warm_stepper.py, compiled._load): the shared stepper, or half the kernel
-wrappers numba's cache does not hold."""
+"""A child process compiling half the kernel wrappers numba's cache does not hold while the
+parent compiles the other half (ivdrem/sim/_warm_stepper.py, compiled._load_kernels)."""
 import signal
 import sys
 
@@ -9,43 +8,12 @@ import pytest
 
 from ivdrem.sim import _warm_stepper, simulate
 from ivdrem.sim import compiled
-from ivdrem.sim.compiled import _import, cache_dir, stepper_module
+from ivdrem.sim.cache import cache_dir
 
 
-def _stepper():
-    name, src = stepper_module()
-    return _import(cache_dir(), name, src)
-
-
-def test_a_compiled_run_leaves_the_stepper_in_numbas_cache():
-    import control as ct
-    lag = ct.ss([[-2.0]], [[1.0]], [[1.0]], [[0.0]], inputs="u", outputs="y", name="lag2")
-    loop = ct.interconnect([lag], inputs="u", outputs="y", name="lag_loop")
-    r = simulate(loop, [0.0, 0.5], inputs=1.0, progress=False)
-    # y' = -2 y + 1 from 0: y(0.5) = (1 - e^-1) / 2
-    np.testing.assert_allclose(r.outputs[-1], (1.0 - np.exp(-1.0)) / 2.0, rtol=1e-6)
-    assert _warm_stepper.stepper_cached(_stepper())
-    # nothing to do then: no child process
-    assert _warm_stepper.start(_stepper()).proc is None
-
-
-def test_the_child_runs_and_the_parent_waits_for_it(monkeypatch):
-    # pretend the cache is cold: the child starts, compiles (here: loads) the stepper and
-    # exits cleanly; the parent's wait reports it
-    monkeypatch.setattr(_warm_stepper, "stepper_cached", lambda module: False)
-    w = _warm_stepper.start(_stepper())
-    assert w.proc is not None
-    assert w.wait(limit=600) is True
-    assert w.proc is None and w.wait() is False       # waited once; nothing left
-
-
-def test_no_child_from_a_child_or_when_switched_off(monkeypatch):
-    monkeypatch.setattr(_warm_stepper, "stepper_cached", lambda module: False)
-    monkeypatch.setenv("IVDREM_STEPPER_CHILD", "1")
-    assert _warm_stepper.start(_stepper()).proc is None
-    monkeypatch.delenv("IVDREM_STEPPER_CHILD")
-    monkeypatch.setenv("IVDREM_STEPPER_PREFETCH", "0")
-    assert _warm_stepper.start(_stepper()).proc is None
+def test_the_child_refuses_any_other_job():
+    with pytest.raises(SystemExit, match="--modules"):
+        _warm_stepper._job([])
 
 
 # ---- half the uncached kernel wrappers compiled in a child (ivdrem/sim/compiled._load)
@@ -72,7 +40,6 @@ def _pretend_uncached(monkeypatch):
     without a head start and takes any share: a small diagram then gets a child for some
     of its wrappers."""
     monkeypatch.setattr(_warm_stepper, "function_cached", lambda path, qualname: False)
-    monkeypatch.setattr(_warm_stepper, "stepper_cached", lambda module: True)
     monkeypatch.setattr(compiled, "_CHILD_START_S", 0.0)
     monkeypatch.setattr(compiled, "_CHILD_MIN_S", 0.0)
     monkeypatch.delenv("IVDREM_STEPPER_CHILD", raising=False)
@@ -130,7 +97,7 @@ def test_the_split_is_balanced_and_covers_every_uncached_wrapper_once(monkeypatc
     from ivdrem.sim.plan import DiagramPlan
     monkeypatch.setattr(_warm_stepper, "function_cached", lambda path, qualname: False)
     plan = DiagramPlan.from_diagram(closed_loop(law="iv-drem"), None, None)
-    deps = compiled.generate_source(plan).deps[:-1]
+    deps = compiled.generate_source(plan).deps
     cdir = cache_dir()
     for name, src in deps:
         compiled._write(cdir, name, src)
@@ -221,31 +188,6 @@ def test_no_split_child_from_a_child_or_when_switched_off(monkeypatch):
         monkeypatch.delenv(name)
     assert _warm_stepper.enabled()
     assert _warm_stepper.start_modules([]).proc is None            # nothing to do
-
-
-def test_with_the_stepper_not_cached_the_child_compiles_the_stepper(monkeypatch):
-    # the stepper costs more than all kernels: then the child's job is the stepper and the
-    # parent imports every kernel module itself (the numba stepper's job: the C stepper
-    # is built by the C compiler in the parent)
-    monkeypatch.setenv("IVDREM_STEPPER", "numba")
-    _pretend_uncached(monkeypatch)
-    monkeypatch.setattr(_warm_stepper, "stepper_cached", lambda module: False)
-    jobs = []
-    start_stepper = _warm_stepper.start
-
-    def spy_start(module):
-        w = start_stepper(module)
-        jobs.append((w, w.proc))
-        return w
-
-    monkeypatch.setattr(_warm_stepper, "start", spy_start)
-    monkeypatch.setattr(_warm_stepper, "start_modules", lambda names: 1 / 0)
-    loop, k = _lags(5, "stepper_job")
-    _check(loop, k)
-    assert len(jobs) == 1
-    w, proc = jobs[0]
-    assert w.modules == [] and "--modules" not in proc.args
-    assert proc.returncode == 0 and w.proc is None                          # waited for
 
 
 def test_no_child_for_a_small_share(monkeypatch):

@@ -4,8 +4,9 @@ from .methods import (METHODS, METHOD_TABLE, DEFAULT_METHOD, STIFF_METHOD,
 from .simulator import simulate, Simulator, SimulationError, StiffnessWarning, ENGINES, Workspace
 from .plan import DiagramPlan, AlgebraicLoopError, SignalSizeError
 from .foreign import declare_feedthrough, PythonBlockNotice
+from .compiled import CCompilerMissing
 
 __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METHODS",
            "METHOD_TABLE", "DEFAULT_METHOD", "STIFF_METHOD", "DEFAULT_TOLERANCES", "ENGINES",
            "MethodInfo", "Workspace", "method_info", "DiagramPlan", "AlgebraicLoopError",
-           "SignalSizeError", "declare_feedthrough", "PythonBlockNotice"]
+           "SignalSizeError", "declare_feedthrough", "PythonBlockNotice", "CCompilerMissing"]

@@ -13,7 +13,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic, overload
 
-__all__ = ["call_c", "float_pointer", "int_pointer", "element_address"]
+__all__ = ["call_c", "float_pointer"]
 
 _CTYPES_FUNCTIONS = {}
 
@@ -83,22 +83,5 @@ def _pointer_intrinsic(dtype):
     return to_pointer
 
 
-#: float64 pointer / int64 pointer from an address (for numba.carray in C-callable wrappers)
+#: a float64 pointer from an address (for numba.carray in C-callable wrappers)
 float_pointer = _pointer_intrinsic(types.float64)
-int_pointer = _pointer_intrinsic(types.int64)
-
-
-@intrinsic
-def element_address(typingctx, array, index):
-    """Address (int64) of array.flat[index] for a C-contiguous array: a pointer into an
-    array for call_c without making a view."""
-    if not isinstance(array, types.Array) or not isinstance(index, types.Integer):
-        return None
-    sig = types.int64(array, index)
-
-    def codegen(context, builder, signature, llargs):
-        ary = context.make_array(array)(context, builder, value=llargs[0])
-        idx = context.cast(builder, llargs[1], index, types.int64)
-        ptr = builder.gep(ary.data, [idx])
-        return builder.ptrtoint(ptr, ir.IntType(64))
-    return sig, codegen

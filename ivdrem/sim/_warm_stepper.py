@@ -1,20 +1,13 @@
-"""Compile in a second process while this one compiles: the shared stepper, or half the kernels.
+"""Compile in a second process while this one compiles: half the kernel wrappers.
 
 The first compiled run on a machine (empty numba cache) compiles the diagram's own kernels
-and their wrappers and, with the numba stepper (``IVDREM_STEPPER=numba``; the default C
-stepper is built by the C compiler in ~1 s), the shared stepper (:mod:`ivdrem.sim.stepper`,
-the same for every diagram, more than all kernels).  numba compiles under one
-process-wide lock, so a thread cannot overlap them; a child process can.  The child is
-``python -m ivdrem.sim._warm_stepper`` with one of two jobs:
-
-* no arguments: the stepper.  When it is not in numba's on-disk cache yet, :func:`start`
-  launches the child, which runs a one-state linear system for one step on the compiled
-  engine (:func:`main`: that compiles the stepper with the same argument types as every
-  diagram and writes it to the cache) while the parent compiles its kernels;
-* ``--modules name ...``: import (and so compile into numba's cache) those generated
-  modules, in that order, from the cache directory the parent has written them to
-  (:func:`start_modules`).  With the stepper cached, the parent gives the child about half
-  of the kernel wrappers that are not cached yet and compiles the other half itself.
+and their C-callable wrappers.  numba compiles under one process-wide lock, so a thread
+cannot overlap them; a child process can.  The child (``python -m
+ivdrem.sim._warm_stepper --modules name ...``) imports, and so compiles into numba's
+cache, those generated modules, in that order, from the cache directory the parent has
+written them to (:func:`start_modules`): the parent gives it about half of the kernel
+wrappers that are not cached yet and compiles the other half itself.  (The stepper is C,
+built by the C compiler in ~2 s on a thread of the parent: no child.)
 
 The parent :meth:`Warmup.wait` s for the child before it needs the child's work, and then
 loads the machine code from the cache instead of compiling it.  Any failure of the child
@@ -69,8 +62,7 @@ def function_cached(path, qualname) -> bool:
 
 
 class Warmup:
-    """A running child (or nothing to wait for); `modules` names what it compiles (empty
-    for the stepper)."""
+    """A running child (or nothing to wait for); `modules` names what it compiles."""
 
     def __init__(self, proc=None, modules=()):
         self.proc = proc
@@ -157,43 +149,11 @@ def compile_modules(names):
     return 0
 
 
-# ---- the stepper job
-
-
-def stepper_cached(module) -> bool:
-    """Whether numba's on-disk cache already holds the stepper's loop (its index file for
-    ``step_loop`` exists).  Unknown (numba internals moved) counts as cached: no child."""
-    try:
-        return index_exists(module.step_loop._cache)
-    except Exception:        # pragma: no cover - numba internals changed
-        return True
-
-
-def start(module) -> Warmup:
-    """Launch the child compiling the stepper when the stepper `module` is not cached yet
-    (and :func:`enabled`); else a Warmup with nothing to wait for."""
-    if not enabled() or stepper_cached(module):
-        return Warmup()
-    return _launch([])
-
-
-def main():
-    """The child: one step of a one-state linear system on the compiled engine with the
-    numba stepper (the one this job compiles; the C stepper needs no child)."""
-    os.environ["IVDREM_STEPPER"] = "numba"
-    import control as ct
-    from ivdrem.sim import simulate
-    lag = ct.ss([[-1.0]], [[1.0]], [[1.0]], [[0.0]], inputs="u", outputs="y", name="lag")
-    loop = ct.interconnect([lag], inputs="u", outputs="y", name="stepper_warmup")
-    simulate(loop, [0.0, 1e-3], inputs=1.0, method="rodas5p", progress=False)
-    return 0
-
-
 def _job(argv):
-    """The child's job from its command line: ``--modules name ...`` or the stepper."""
-    if argv[:1] == ["--modules"]:
-        return compile_modules(argv[1:])
-    return main()
+    """The child's job from its command line: ``--modules name ...``."""
+    if argv[:1] != ["--modules"]:
+        raise SystemExit("usage: python -m ivdrem.sim._warm_stepper --modules NAME ...")
+    return compile_modules(argv[1:])
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
 """The compile cache: where generated modules (robot models, block kernels, their
-C-callable wrappers, the numba stepper) and the C stepper's shared library live, and how a
+C-callable wrappers) and the C stepper's shared library live, and how a
 generated module is written and imported.  A leaf of ``sim``: the compiled engine, the
 foreign-block adapter and the warm-up child all use it without importing each other.
 

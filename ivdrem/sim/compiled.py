@@ -14,9 +14,9 @@ connection map (through :class:`~ivdrem.sim.plan.DiagramPlan`) and produces:
   Jacobian's finite-difference program (:mod:`ivdrem.sim.jacobian`) and the static LU
   pattern of c I - J (:mod:`ivdrem.sim.sparse_lu`).
 
-The shared stepper (:mod:`ivdrem.sim.stepper`: the stepping template and the table-driven
-diagram functions of ``_diagram.py``, compiled once) runs any diagram from its tables,
-calling the wrappers by address.  A rewired diagram, another law or another robot compiles
+The C stepper (``stepper.c``, built once by :mod:`ivdrem.sim._cstepper`; a C compiler is
+required, :class:`CCompilerMissing` says what to install) runs any diagram from its
+tables, calling the wrappers by address.  A rewired diagram, another law or another robot compiles
 only the kernels it is the first to use.  A block ivdrem did not write (``ct.ss``,
 ``ct.tf``, a summing junction, a plain ``ct.nlsys``) is turned into kernels first by
 :mod:`ivdrem.sim.foreign`: linear kernels from its matrices, the user's own functions
@@ -36,13 +36,11 @@ loads them without compiling.
 from __future__ import annotations
 
 import inspect
-import os
 import re
 import sys
 import textwrap
 import threading
 import warnings
-from pathlib import Path
 
 import numpy as np
 
@@ -55,7 +53,6 @@ from .cache import (GENERATED_HEADER, cache_dir, import_generated as _import,  #
 from .errors import BLOCK_RAISED_MESSAGE, BlockError, CompileError  # noqa: F401
 from .jacobian import JacobianProgram
 from .sparse_lu import symbolic_lu
-from .stepper import stepper_source
 from .tables import build_tables
 from . import foreign
 from .foreign import foreign_module as _foreign_module
@@ -192,7 +189,7 @@ def _wrapper_module(b, role, kmod, fn_name, rel_exprs, npar):
 
 class DiagramProgram:
     """What the compiled engine needs for one diagram: the modules to load (robot models,
-    kernels, the kernels' C-callable wrappers, the shared stepper) and the diagram's tables."""
+    kernels, the kernels' C-callable wrappers) and the diagram's tables."""
 
     def __init__(self, deps, wrappers, tables):
         self.deps = deps              # [(module name, source)], in import order
@@ -267,21 +264,7 @@ def generate_source(plan, param_exprs=None):
     prog = JacobianProgram(plan)
     slu = symbolic_lu(prog.pattern)
     tables = build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu)
-    smod, ssrc = stepper_module()
-    deps[smod] = ssrc
     return DiagramProgram(list(deps.items()), wrappers, tables)
-
-
-_stepper = {}
-
-
-def stepper_module():
-    """(module name, source) of the shared stepper (ivdrem.sim.stepper), one per version
-    of the template and the diagram functions: every diagram runs on it."""
-    if "src" not in _stepper:
-        src = stepper_source()
-        _stepper["src"] = (f"ivdrem_stepper_{_hash(src)}", src)
-    return _stepper["src"]
 
 
 def _param_values(plan, b):
@@ -437,7 +420,7 @@ def _with_imports(names, deps):
 def _start_split(cdir, deps):
     """(a child compiling about half the wrappers of deps that numba's cache does not hold,
     the wrappers this process imports only after the child); deps: models, kernels and
-    wrappers, without the stepper."""
+    wrappers."""
     if not _warm_stepper.enabled():
         return _warm_stepper.Warmup(), []
     for name, src in deps:
@@ -468,7 +451,7 @@ def _import_all(cdir, deps, warmup, later=()):
 
 
 def _load_kernels(deps):
-    """Import the models, kernels and wrappers `deps` (no stepper; their import compiles
+    """Import the models, kernels and wrappers `deps` (their import compiles
     the wrappers), about half the wrappers numba's cache does not hold compiled by a child
     process meanwhile (:mod:`ivdrem.sim._warm_stepper`)."""
     cdir = cache_dir()
@@ -476,54 +459,34 @@ def _load_kernels(deps):
     _import_all(cdir, deps, *_start_split(cdir, deps))
 
 
-def _load(deps):
-    """Import the modules in order (models before the kernels that import them, then the
-    wrappers: their import compiles them); returns the stepper module (the last of deps).
-
-    The stepper is imported first (its functions compile at their first call).  When
-    numba's cache does not hold it yet, a child process compiles it meanwhile (it costs
-    more than all kernels); when it does, a child compiles about half the wrappers numba's
-    cache does not hold (:func:`_load_kernels`).  This process then loads the child's work
-    from the cache (:mod:`ivdrem.sim._warm_stepper`)."""
-    cdir = cache_dir()
-    cdir.mkdir(parents=True, exist_ok=True)
-    sname, ssrc = deps[-1]
-    stepper = _import(cdir, sname, ssrc)
-    if _warm_stepper.enabled() and not _warm_stepper.stepper_cached(stepper):
-        _import_all(cdir, deps[:-1], _warm_stepper.start(stepper))
-    else:
-        _load_kernels(deps[:-1])
-    return stepper
+#: what to install where no C compiler builds the stepper
+C_COMPILER_HINT = ("ivdrem needs a C compiler to simulate (it builds ivdrem/sim/stepper.c "
+                   "once into its cache): install one (Debian/Ubuntu: apt-get install gcc; "
+                   "Fedora: dnf install gcc; macOS: xcode-select --install; conda: conda "
+                   "install c-compiler) or point $CC at one")
 
 
-#: which shared stepper the compiled engine runs: "c" (stepper.c, the default) or "numba"
-STEPPER_ENV = "IVDREM_STEPPER"
-STEPPERS = ("c", "numba")
+class CCompilerMissing(RuntimeError):
+    """No C compiler builds the stepper here (the message says what to install)."""
 
 
-class StepperFallbackWarning(RuntimeWarning):
-    """The C stepper could not be built here; the numba stepper runs instead (the same
-    numbers, a longer first compile)."""
-
-
-def stepper_choice():
-    """The stepper $IVDREM_STEPPER asks for ("c" unless set); another value is an error."""
-    v = os.environ.get(STEPPER_ENV, "c").strip().lower() or "c"
-    if v not in STEPPERS:
-        raise ValueError(f"{STEPPER_ENV}={v!r}: choose one of {', '.join(STEPPERS)}")
-    return v
+def load_c_stepper():
+    """The C stepper (ivdrem.sim._cstepper), built into the cache on first use; no C
+    compiler is a :class:`CCompilerMissing` naming what to install."""
+    try:
+        return _cstepper.load(cache_dir())
+    except _cstepper.CStepperUnavailable as e:
+        raise CCompilerMissing(f"{C_COMPILER_HINT}. ({e})") from e
 
 
 def _c_stepper_pending():
     """A thread building (or loading) the C stepper while this process compiles its
-    kernels (the C compiler is a process of its own), or None for the numba stepper."""
-    if stepper_choice() != "c":
-        return None
+    kernels (the C compiler is a process of its own)."""
     box = {}
 
     def build():
         try:
-            box["stepper"] = _cstepper.load(cache_dir())
+            box["stepper"] = load_c_stepper()
         except BaseException as e:       # handed to the caller by _c_stepper
             box["error"] = e
     th = threading.Thread(target=build, name="ivdrem-cstepper", daemon=True)
@@ -532,26 +495,12 @@ def _c_stepper_pending():
 
 
 def _c_stepper(pending):
-    """The C stepper of `pending` (see _c_stepper_pending), or None for the numba stepper:
-    when asked for, or (with a warning, once per process) when no C compiler builds it."""
-    if pending is None:
-        return None
+    """The C stepper of `pending` (see _c_stepper_pending), its error raised here."""
     th, box = pending
     th.join()
-    e = box.get("error")
-    if e is None:
-        return box["stepper"]
-    if not isinstance(e, _cstepper.CStepperUnavailable):
-        raise e
-    if not _fallback_warned:
-        _fallback_warned.append(str(e))
-        warnings.warn(f"the C stepper is unavailable, running the numba stepper (same "
-                      f"results; ~25 s more on the first compile): {e}",
-                      StepperFallbackWarning, stacklevel=4)
-    return None
-
-
-_fallback_warned = []
+    if "error" in box:
+        raise box["error"]
+    return box["stepper"]
 
 
 class CompiledEngine:
@@ -565,18 +514,11 @@ class CompiledEngine:
         param_exprs, self.P = _param_layout(plan)
         self.program = generate_source(plan, param_exprs)
         pending = _c_stepper_pending()
-        if pending is not None:
-            try:
-                _load_kernels(self.program.deps[:-1])      # the kernels (no numba stepper)
-            finally:
-                c_stepper = _c_stepper(pending)
-        else:
-            c_stepper = None
-        if c_stepper is not None:
-            self.module = c_stepper
-        else:
-            self.module = _load(self.program.deps)
-        self.stepper = self.module.name if c_stepper is not None else "numba"
+        try:
+            _load_kernels(self.program.deps)
+        finally:
+            self.module = _c_stepper(pending)
+        self.stepper = self.module.name
         self.integrate = self.module.integrate
         self.tables = self.program.tables
         self.wrappers = self.program.wrappers

@@ -35,7 +35,7 @@ today, or a diagonal matrix parameter, does not hide an entry once it changes; p
 values are not part of the compiled code).  An entry is structural when a difference of
 the kernel's output is not exactly zero at any probe.  The Jacobian then only
 touches structural nonzeros: the chain is a list of multiply-adds over slots of a flat
-array, run by :func:`ivdrem.sim._jit_sparse.jac_chain`.
+array, run by ``jac_chain`` in ``stepper.c``.
 """
 from __future__ import annotations
 

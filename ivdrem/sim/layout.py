@@ -1,7 +1,7 @@
 """The workspace of a run, declared once: its fields (name, dtype, ndim) in the order the
-stepping code indexes them, and the integer positions the steppers are built with
-(``FIELD_*``, the diagram tables' ``DIM_*``, ``T_*``, ``TF_*``): the numba stepper's module
-and the C stepper's generated header both read :func:`layout_constants`.
+stepper indexes them, and the integer positions it is built with (``FIELD_*``, the
+diagram tables' ``DIM_*``, ``T_*``, ``TF_*``): the C stepper's generated header reads
+:func:`layout_constants`.
 
 The fields (``_template``'s docstring says what the stepping code keeps in each): the
 delay history (hist_*), the max-holds' records (held, score, hold_*), the signals (ys, us,
@@ -9,7 +9,9 @@ u_ext), the diagram inputs' table (u_times, u_values: empty while the inputs are
 u_ext), and, compiled engine only, ``kernels`` the addresses of the blocks' kernel
 wrappers, ``failure`` [wrapper index, t, states] of a kernel that raised, ``table_ints`` /
 ``table_floats`` the diagram as tables (:mod:`ivdrem.sim.tables`, packed; empty on the
-reference engine) and the work arrays of the diagram functions and LAPACK.
+reference engine) and the work arrays of the diagram functions and LAPACK; ``callbacks``:
+[the address of the reference engine's diagram function (python-control through a ctypes
+callback), or 0: the diagram is the tables].
 """
 from __future__ import annotations
 
@@ -30,12 +32,12 @@ WORKSPACE_LAYOUT = (
     ("u_times", "float64", 1), ("u_values", "float64", 2), ("kernels", "int64", 1),
     ("failure", "float64", 1), ("table_ints", "int64", 1),
     ("table_floats", "float64", 1), ("scratch", "float64", 1), ("lapack", "int64", 1),
-    ("lapack_chars", "uint8", 1), ("lapack_ints", "int32", 1))
+    ("lapack_chars", "uint8", 1), ("lapack_ints", "int32", 1), ("callbacks", "int64", 1))
 Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
 
 
 def layout_constants():
-    """[(name, value)] of the positions both stepper builds index by: workspace fields
+    """[(name, value)] of the positions the stepper indexes by: workspace fields
     (FIELD_*), table dimensions (DIM_*), int and float tables (T_*, TF_*)."""
     out = [(f"FIELD_{name.upper()}", i) for i, (name, _, _) in enumerate(WORKSPACE_LAYOUT)]
     out += [(f"DIM_{d}", i) for i, d in enumerate(DIMS)]

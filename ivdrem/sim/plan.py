@@ -223,10 +223,6 @@ class DiagramPlan:
                 nh += size
         self.nd, self.nh = nd, nh
 
-    @property
-    def T_max(self):
-        return max((d["T"] for d in self.delays), default=0.0)
-
     def state_labels(self):
         return list(self.diagram.state_labels)
 

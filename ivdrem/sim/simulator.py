@@ -1,46 +1,48 @@
 """ivdrem's simulator: transport delays, max-holds and growing stiffness (README, "How the
 simulator works").
 
-Two engines evaluate the same diagram with the same stepping code (``_template``):
+Two engines evaluate the same diagram and run the same stepper (``stepper.c``, built by
+:mod:`ivdrem.sim._cstepper`; a C compiler is required):
 
 * ``engine="reference"``: the right-hand side is python-control's own
-  ``InterconnectedSystem`` evaluation, with the block kernels running in Python;
-* ``engine="compiled"`` (default): one numba module generated from the diagram's
-  subsystem list and connection map (:mod:`ivdrem.sim.compiled`), cached on disk.
+  ``InterconnectedSystem`` evaluation, with the block kernels running in Python, called
+  back from the stepper;
+* ``engine="compiled"`` (default): the diagram as tables and its blocks' kernels as numba
+  C-callable wrappers (:mod:`ivdrem.sim.compiled`), cached on disk.
 
-The methods are step functions of the template, listed in the method registry
-(:mod:`ivdrem.sim.methods`); one loop
-(``_template.integrate``) owns step-size control, outputs, the after-step work and the
-divergence and stiffness checks.  Delay blocks are fed from a dense history of accepted
-steps (cubic Hermite); max-holds sample lambda_min on their own fixed grid from the dense
-output.  A state that becomes non-finite, exceeds ``x_limit`` or grows by orders of
-magnitude within a second stops the run with :class:`SimulationError` naming the time and
-the state.  An explicit method held back by stability rather than accuracy emits one
+The methods are step functions of the stepper, listed in the method registry
+(:mod:`ivdrem.sim.methods`); one loop owns step-size control, outputs, the after-step work
+and the divergence and stiffness checks.  Delay blocks are fed from a dense history of
+accepted steps (cubic Hermite); max-holds sample lambda_min on their own fixed grid from
+the dense output.  A state that becomes non-finite, exceeds ``x_limit`` or grows by orders
+of magnitude within a second stops the run with :class:`SimulationError` naming the time
+and the state.  An explicit method held back by stability rather than accuracy emits one
 :class:`StiffnessWarning`.
 """
 from __future__ import annotations
 
+import ctypes
 import functools
 import math
 import os
 import sys
 import time as _time
 import warnings
-from pathlib import Path
 
 import numpy as np
-import scipy.linalg
 import control as ct
 
 from .plan import DiagramPlan
 from . import _diagram, _template as tpl
-from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,
-                      DEFAULT_TOLERANCES, MethodInfo, method_info)
-from .tables import empty_tables, hold_nmat, pack as pack_tables, scratch_size, slope_flags
+from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,  # noqa: F401
+                      DEFAULT_TOLERANCES, MethodInfo, method_info)  # (re-exported)
+from .tables import hold_nmat, pack as pack_tables, scratch_size
 from .layout import WORKSPACE_LAYOUT, Workspace  # noqa: F401  (WORKSPACE_LAYOUT re-exported)
 from .errors import BlockError, SimulationError, StiffnessWarning, BLOCK_RAISED_MESSAGE  # noqa: F401
 from .guards import check_diagram_cost
-from .compiled import CompiledEngine
+from .compiled import CompiledEngine, load_c_stepper
+from .foreign import _view
+from .tables import reference_tables
 from ..blocks._core import active_feeds
 
 __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METHODS",
@@ -49,7 +51,6 @@ __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METH
 
 
 ENGINES = ("compiled", "reference")
-_TEMPLATE_PATH = Path(tpl.__file__)
 
 def _check_positive(name, v):
     if v is None:
@@ -65,7 +66,10 @@ def _check_positive(name, v):
 
 # --------------------------------------------------------------------------- reference
 class ReferenceEngine:
-    """python-control evaluates the diagram; the stepping template runs in Python."""
+    """python-control evaluates the diagram; the C stepper (the compiled engine's) steps it,
+    calling that evaluation back through a ctypes function as the compiled engine calls a
+    Python block.  The delay history, the max-holds, the forward-difference Jacobian and the
+    dense LU of the Newton matrix are the stepper's own (``stepper.c``)."""
 
     name = "reference"
 
@@ -73,100 +77,68 @@ class ReferenceEngine:
         self.plan = plan
         d = plan.diagram
         d._update_params(params or {})
-        ns = {"__name__": "ivdrem_reference_template"}
-        exec(compile(_TEMPLATE_PATH.read_text(), str(_TEMPLATE_PATH), "exec"), ns)
-        ns["diagram_eval"] = self._eval
-        ns["diagram_jacobian"] = self._jacobian
-        ns["newton_factor"] = lambda W, J, c, LU, piv: self._factor(J, c, LU, piv)
-        ns["newton_solve"] = lambda W, LU, piv, b: self._solve(LU, piv, b)
-        self.ns = ns
-        self.integrate = ns["integrate"]
-        self._inputs_at = ns["external_inputs"]     # the diagram inputs at t (into W[8])
-        self.P = ()
-        self._est = slope_flags(plan)
+        self.module = load_c_stepper()
+        self.stepper = self.module.name
+        self.tables, self.P = reference_tables(plan)
+        self.n_kernels = 0
         self._feeds = {}
+        self._W = None            # the workspace of the current run (set by install_feeds)
+        self._error = []          # the exception a callback caught, re-raised after the call
+        n, ny, nu = d.nstates, d.noutputs, sum(b.sys.ninputs for b in plan.blocks)
+        nue = d.ninputs
 
-    def _eval(self, mode, t, x, P, W, out):
-        """The template's single entry point into the diagram (see _template)."""
-        if mode == tpl.RHS:
-            self._rhs(t, x, P, W, out)
-            return tpl.OK
-        if mode in (tpl.AFTER_STEP, tpl.AFTER_STEP_EVALUATED, tpl.HISTORY_POINT):
-            return self._after_step(t, x, P, W)
-        self._record(t, x, P, W, out)
-        return tpl.OK
+        def evaluate(mode, t, px, pue, pout):
+            x, ue = _view(px, n), _view(pue, nue)
+            if mode == tpl.RHS:
+                out = _view(pout, n)
+                try:
+                    out[:] = d._rhs(t, x, ue)
+                except RuntimeError as e:
+                    # The plan has already shown the diagram has no algebraic loop, so
+                    # python-control's fixed-point sweep failing to settle means a NaN in a
+                    # signal (NaN != NaN): return NaN like the compiled path, and the step
+                    # control reports the divergence.
+                    if "algebraic loop" not in str(e):
+                        raise
+                    out[:] = np.nan
+            elif mode == tpl.RECORD:
+                _view(pout, ny)[:] = d._out(t, x, ue)
+            else:                   # the block inputs, for the history and the max-holds
+                _view(pout, nu)[:] = d._compute_static_io(t, x, ue)[0]
 
-    def _rhs(self, t, x, P, W, dx):
+        def callback(mode, t, px, pue, pout):
+            try:
+                evaluate(mode, t, px, pue, pout)
+                return 0
+            except BaseException as e:      # noqa: BLE001 - re-raised by integrate
+                self._error[:] = [e]
+                return 1
+        self._callback = _DIAGRAM_CALLBACK(callback)       # kept alive with the engine
+        self.address = ctypes.cast(self._callback, ctypes.c_void_p).value
+
+    def bind(self, W):
+        """Put this engine's diagram function into workspace W."""
+        W.callbacks[0] = self.address
+
+    def _run(self, fn, *args):
+        """fn(*args), the exception a callback caught re-raised (its traceback names the
+        block python-control was evaluating)."""
         try:
-            dx[:] = self.plan.diagram._rhs(t, x, self._inputs_at(W, t))
-        except RuntimeError as e:
-            # The plan has already shown the diagram has no algebraic loop, so python-control's
-            # fixed-point sweep failing to settle means a NaN in a signal (NaN != NaN): return
-            # NaN like the compiled path, and the step control reports the divergence.
-            if "algebraic loop" not in str(e):
-                raise
-            dx[:] = np.nan
+            return fn(*args)
+        except RuntimeError:
+            if self._error:
+                e = self._error.pop()
+                raise e
+            raise
 
-    def _jacobian(self, t, x, P, W, J):
-        """df/dx of python-control's right-hand side by forward differences (the delay and
-        max-hold outputs come from the history and the held values, as in _rhs)."""
-        n = x.size
-        f0 = np.empty(n)
-        fp = np.empty(n)
-        self._rhs(t, x, P, W, f0)
-        xp = x.copy()
-        for j in range(n):
-            d = 1.4901161193847656e-08 * max(1.0, abs(x[j]))
-            xp[j] = x[j] + d
-            d = xp[j] - x[j]
-            self._rhs(t, xp, P, W, fp)
-            J[:, j] = (fp - f0) / d
-            xp[j] = x[j]
-        return tpl.OK
+    def integrate(self, *args):
+        return self._run(self.module.integrate, *args)
 
-    @staticmethod
-    def _factor(J, c, LU, piv):
-        """LAPACK LU (scipy) of c I - J into LU, piv."""
-        A = c * np.eye(J.shape[0]) - J
-        if not np.all(np.isfinite(A)):
-            return tpl.SINGULAR
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", scipy.linalg.LinAlgWarning)
-            lu, p = scipy.linalg.lu_factor(A, check_finite=False)
-        d = np.abs(np.diag(lu))
-        if not (np.all(d > 0) and np.all(np.isfinite(d))):
-            return tpl.SINGULAR
-        LU[:lu.shape[0]] = lu          # (the template's LU has two spare rows)
-        piv[:] = p
-        return tpl.OK
+    def after_step(self, t, x, W):
+        return self._run(self.module.diagram_eval, tpl.AFTER_STEP, t, x, self.P, W, x)
 
-    @staticmethod
-    def _solve(LU, piv, b):
-        b[:] = scipy.linalg.lu_solve((LU[:b.shape[0]], piv), b, check_finite=False)
-
-    def _after_step(self, t, x, P, W):
-        plan = self.plan
-        ulist, _ = plan.diagram._compute_static_io(t, x, self._inputs_at(W, t))
-        if plan.delays and not W.probing[0]:
-            v = np.empty(plan.nd)
-            dv = np.zeros(plan.nd)
-            for d in plan.delays:
-                v[d["off"]:d["off"] + d["size"]] = ulist[d["u"]:d["u"] + d["size"]]
-                if d["hermite"]:
-                    dv[d["off"]:d["off"] + d["size"]] = ulist[d["du"]:d["du"] + d["size"]]
-            st = self.ns["hist_push"](W, t, v, dv, self._est)
-            if st != tpl.OK:
-                return st
-            self.ns["hist_trim"](W, t - plan.T_max)
-        upd = 0
-        for hd in plan.holds:
-            u = ulist[hd["u"]:hd["u"] + hd["size"]]
-            upd |= self.ns["hold_update"](W, hd["k"], hd["off"], hd["size"], hd["nvec"],
-                                         hd["nmat"], u, hd["eps"])
-        return tpl.HOLD_UPDATED if upd else tpl.OK
-
-    def _record(self, t, x, P, W, row):
-        row[:] = self.plan.diagram._out(t, x, self._inputs_at(W, t))
+    def record(self, t, x, W, row):
+        self._run(self.module.diagram_eval, tpl.RECORD, t, x, self.P, W, row)
 
     def block_failure(self, exc, W=None):
         """(BlockError, cause) naming the block whose function raised `exc`, found in the
@@ -190,10 +162,10 @@ class ReferenceEngine:
         return err, exc
 
     def install_feeds(self, W_ref):
-        """Let the delay / max-hold nlsys blocks read the simulator's history."""
+        """Let the delay / max-hold nlsys blocks read the stepper's history and records."""
         feeds = active_feeds()
         plan = self.plan
-        lookup = self.ns["hist_lookup"]
+        lookup = self.module.hist_lookup
         for d in plan.delays:
             spec = plan.blocks[d["block"]].spec
 
@@ -219,11 +191,10 @@ class ReferenceEngine:
             feeds.pop(k, None)
         self._feeds = {}
 
-    def after_step(self, t, x, W):
-        return self._after_step(t, x, self.P, W)
 
-    def record(self, t, x, W, row):
-        self._record(t, x, self.P, W, row)
+#: the reference engine's diagram function: int32 f(mode, t, x*, ue*, out*) (stepper.c)
+_DIAGRAM_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_int64, ctypes.c_double,
+                                     ctypes.c_int64, ctypes.c_int64, ctypes.c_int64)
 
 
 def _validate_params(diagram, params):
@@ -252,7 +223,7 @@ def _dsyevd_address():
     return get_cython_function_address("scipy.linalg.cython_lapack", "dsyevd")
 
 
-def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0, tables=None):
+def _workspace(plan, cap, nu_ext, ny, nu, n_kernels, tables):
     nmh = len(plan.holds)
     nmat = hold_nmat(plan)
     return Workspace(
@@ -267,14 +238,15 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels=0, tables=None):
         kernels=np.zeros(max(n_kernels, 1), dtype=np.int64),
         failure=np.full(2 + max([b.sys.nstates for b in plan.blocks] + [0]), -1.0),
         **dict(zip(("table_ints", "table_floats"),
-                   pack_tables(empty_tables() if tables is None else tables))),
+                   pack_tables(tables))),
         # the compiled engine's work arrays (no allocation per step)
-        scratch=np.zeros(0 if tables is None else scratch_size(tables)),
-        lapack=np.array([_dsyevd_address() if nmh and tables is not None else 0],
+        scratch=np.zeros(scratch_size(tables)),
+        lapack=np.array([_dsyevd_address() if nmh else 0],
                         dtype=np.int64),
         lapack_chars=np.array([ord("V"), ord("L")], dtype=np.uint8),
         # dsyevd's five scalar arguments, then its integer work
-        lapack_ints=np.zeros(5 + _diagram.dsyevd_liwork(nmat), dtype=np.int32))
+        lapack_ints=np.zeros(5 + _diagram.dsyevd_liwork(nmat), dtype=np.int32),
+        callbacks=np.zeros(1, dtype=np.int64))
 
 
 def _grow(W):
@@ -342,12 +314,9 @@ class Simulator:
         self.ny, self.nu = sum(b.sys.noutputs for b in plan.blocks), \
             sum(b.sys.ninputs for b in plan.blocks)
         cap = 4096 if plan.delays else 4
-        compiled = engine != "reference"
-        self.W = _workspace(plan, cap, d.ninputs, self.ny, self.nu,
-                            self.engine.n_kernels if compiled else 0,
-                            self.engine.tables if compiled else None)
-        if engine != "reference":
-            self.engine.bind(self.W)
+        self.W = _workspace(plan, cap, d.ninputs, self.ny, self.nu, self.engine.n_kernels,
+                            self.engine.tables)
+        self.engine.bind(self.W)
         self._Wref = [self.W]
         self.x = plan.x0.copy()
         self.t = float(t0)
@@ -442,16 +411,6 @@ class Simulator:
         self.W.clock[0] = self.t
         self.W.hold_mode[:] = tpl.HOLD_COMMIT      # t0 is a sampling time of every hold
         self._after_step_with_room()
-        if self.engine_name == "compiled":
-            # compile (or load from numba's cache) the loop now, with a zero-length run on
-            # copies, so that compile_s and sim_s are reported apart
-            W = self.W._replace(ys=self.W.ys.copy(), us=self.W.us.copy())
-            tf = self.tf.copy()
-            tf[tpl.F_T] = self.t
-            self._run_integrate(self.info.id, tf, self.t, self.x.copy(), self.engine.P, W,
-                            np.zeros(0), np.zeros((0, self.plan.diagram.noutputs)),
-                            np.zeros((0, 0)), np.zeros(2, dtype=np.int64),
-                            np.zeros(tpl.N_STATS, dtype=np.int64), self.ctl)
         self.compile_s += _time.perf_counter() - c0
         self._started = True
 
@@ -583,7 +542,7 @@ class Simulator:
         """Counters of the run; wall_s = sim_s + compile_s (kept for older callers)."""
         st = self.stats
         return {"method": self.method, "engine": self.engine_name,
-                # the compiled engine's shared stepper: "c" (stepper.c) or "numba"
+                # the stepper both engines run: "c" (stepper.c)
                 "stepper": getattr(self.engine, "stepper", "python"),
                 "steps": int(st[tpl.S_STEPS]), "rejected": int(st[tpl.S_REJECTED]),
                 "rhs_calls": int(st[tpl.S_RHS]), "jacobians": int(st[tpl.S_JAC]),
@@ -851,7 +810,8 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
     ----------------
     method : a name of :data:`METHOD_TABLE`: "rodas5p" (L-stable Rosenbrock 5(4), the
         default), "dp45" (Dormand-Prince 5(4)) or "rk4" (fixed step h).
-    engine : "compiled" (numba, default) or "reference" (python-control evaluation).
+    engine : "compiled" (tables and numba kernels, default) or "reference" (python-control
+        evaluation); both run the C stepper.
     h : RK4 step, or the initial step of an adaptive method.
     rtol, atol : tolerances of an adaptive method (default per method,
         ``DEFAULT_TOLERANCES``).

@@ -5,7 +5,7 @@ JacobianProgram`) plus the diagonal.  A fill-reducing symmetric permutation P is
 among SuperLU's orderings (scipy.sparse.linalg.splu: COLAMD and minimum degree on A^T + A),
 keeping the one with the least fill under elimination in the diagonal order, and the
 filled pattern of L + U of P A P^T is stored row by row (CSR, columns sorted).  The
-numeric factorisation (:func:`ivdrem.sim._jit_sparse.slu_factor`) then pivots statically
+numeric factorisation (``slu_factor`` in ``stepper.c``) then pivots statically
 on the diagonal: for the small steps a stiff method takes, c = 1/(gamma h) dominates
 |J| and A is strongly diagonally dominant; a pivot that is tiny or not finite returns
 SINGULAR so that the integrator shrinks the step.

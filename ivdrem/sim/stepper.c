@@ -1,24 +1,28 @@
-/* The compiled engine's stepper in C: the stepping template (ivdrem/sim/_template.py), the
- * table-driven diagram functions (ivdrem/sim/_diagram.py) and the sparse kernels
- * (ivdrem/sim/_jit_sparse.py), line for line, so that a run gives the same numbers as
- * those functions compiled by numba (tests/test_cstepper.py checks it bit for bit).
+/* The stepper: the stepping loop, the methods (Rodas5P, DP45, RK4, and BS23 for a Rodas5P
+ * run's pinned steps), dense output, the transport-delay history and the max-holds, written
+ * once for both engines (ivdrem/sim/_cstepper.py builds and caches it; docs/simulation.md
+ * describes it).
  *
- * Why C: numba spent ~25 s compiling the stepper on a first run; a C compiler builds this
- * file in ~2 s (ivdrem/sim/_cstepper.py builds and caches it).  The blocks' kernels stay
- * numba C-callable wrappers, called here by address, exactly as the numba stepper calls
- * them.
+ * It sees a diagram through diagram_eval (modes RHS, AFTER_STEP, HISTORY_POINT, RECORD),
+ * diagram_jacobian(_at), newton_factor and newton_solve.  The compiled engine's diagram is
+ * its tables (the table-driven functions below) and its blocks' kernels, numba C-callable
+ * wrappers called by address; the reference engine's is one Python function
+ * (python-control's evaluation) called back through ctypes (Ctx.callback), whose
+ * Jacobian is forward differences of the whole right-hand side and whose Newton matrix is
+ * factored dense.  A method is a step function and its row in ivdrem/sim/methods.py;
+ * method_step dispatches on the row's id, and an id it has no branch for stops the run
+ * (UNKNOWN_METHOD), never another method.
  *
  * Every enumeration (modes, status codes, method ids, stats and tf entries, workspace
  * fields, table numbers and columns, Rodas5P's coefficients) comes from the Python
  * modules through the generated header stepper_consts.h: one source of truth.
  *
- * Semantics kept from the Python source:
- *   max(a, b) / min(a, b) are Python's (b > a ? b : a), also for NaN;
- *   no fused multiply-adds (built with -ffp-contract=off), no reassociation;
- *   a failure that the Python source raises (a kernel that raised: BLOCK_RAISED; a work
- *   array too small, a max-hold matrix that is not finite, dsyevd failing: ERR_*, from
- *   _cstepper.FAILURES) ends the call with longjmp to the entry point, which returns its
- *   code; _cstepper.py raises the Python source's RuntimeError for it.
+ * Conventions: max(a, b) / min(a, b) are Python's (b > a ? b : a), also for NaN; no fused
+ * multiply-adds (built with -ffp-contract=off), no reassociation; a failure (a kernel or
+ * the reference engine's callback that raised: BLOCK_RAISED; a work array too small, a
+ * max-hold matrix that is not finite, dsyevd failing: ERR_*, from _cstepper.FAILURES) ends
+ * the call with longjmp to the entry point, which returns its code; _cstepper.py raises a
+ * RuntimeError for it.
  */
 #include <math.h>
 #include <setjmp.h>
@@ -34,6 +38,13 @@ typedef int64_t i64;
 typedef struct { const i64 *p; i64 n; } ivec;
 typedef struct { const double *p; i64 n; } fvec;
 
+/* the reference engine's diagram: one Python function, called through a ctypes callback as
+ * the compiled engine calls a Python block, evaluating the diagram with python-control:
+ * mode RHS writes dx/dt into out, RECORD the diagram outputs, AFTER_STEP the block inputs
+ * (the workspace's us, which the history push and the max-holds read); ue the external
+ * inputs at t.  Nonzero: the Python side raised (it keeps the exception). */
+typedef int32_t (*diagram_fn)(i64 mode, double t, i64 x, i64 ue, i64 out);
+
 /* the workspace (fields in the order of WORKSPACE_LAYOUT), the parameters, the exit */
 typedef struct {
     double *hist_t; double *hist_v; double *hist_d; i64 *hist_meta; i64 nd;
@@ -47,6 +58,7 @@ typedef struct {
     i64 *ti; double *tfl;
     double *scratch; i64 nscratch;
     i64 *lapack; uint8_t *lapack_chars; int32_t *lapack_ints; i64 nlapack_ints;
+    diagram_fn callback;     /* NULL: the diagram is the tables (compiled engine) */
     double *P;
     jmp_buf exit;
 } Ctx;
@@ -59,7 +71,7 @@ static inline i64 imax(i64 a, i64 b) { return b > a ? b : a; }
 static inline i64 imin(i64 a, i64 b) { return b < a ? b : a; }
 
 /* addresses and shapes ([field][2]) of the workspace arrays, from _cstepper.py */
-static void bind(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
+static void bind_ctx(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
 #define F_PTR(type, f) ((type *)(intptr_t)addr[f])
     c->hist_t = F_PTR(double, FIELD_HIST_T);
     c->hist_v = F_PTR(double, FIELD_HIST_V);
@@ -96,11 +108,12 @@ static void bind(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
     c->lapack_chars = F_PTR(uint8_t, FIELD_LAPACK_CHARS);
     c->lapack_ints = F_PTR(int32_t, FIELD_LAPACK_INTS);
     c->nlapack_ints = shape[2 * FIELD_LAPACK_INTS];
+    c->callback = (diagram_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[0];
     c->P = P;
 #undef F_PTR
 }
 
-/* ---------------------------------------------------------------- tables (_diagram.py) */
+/* ---------------------------------------------------------------- tables (ivdrem/sim/tables.py) */
 static inline ivec int_table(const Ctx *c, int f) {
     ivec v = {c->ti + c->ti[f], c->ti[f + 1] - c->ti[f]};
     return v;
@@ -119,7 +132,7 @@ static double *scratch_part(Ctx *c, int part, i64 *len) {
     return c->scratch + so.p[part];
 }
 
-/* ------------------------------------------------------- template helpers (_template.py) */
+/* ------------------------------------------------------- history, inputs, max-holds */
 static inline void copy_into(double *dst, i64 d0, const double *src, i64 s0, i64 n) {
     for (i64 i = 0; i < n; i++) dst[d0 + i] = src[s0 + i];
 }
@@ -325,10 +338,10 @@ static int hold_update(Ctx *c, i64 k, i64 off, i64 size, i64 nvec, i64 nmat, con
     return 0;
 }
 
-/* ----------------------------------------------------------- diagram functions (_diagram.py) */
+/* ----------------------------------------------------------- diagram functions */
 typedef int32_t (*kernel_fn)(double, i64, i64, i64, i64);
 
-static void kernel_call(Ctx *c, ivec wnx, i64 j, double t, const double *x, i64 x0,
+static void call_kernel(Ctx *c, ivec wnx, i64 j, double t, const double *x, i64 x0,
                         const double *u, i64 u0, double *out, i64 o0, i64 p0) {
     kernel_fn f = (kernel_fn)(intptr_t)c->kernels[j];
     int32_t st = f(t, (i64)(intptr_t)(x + x0), (i64)(intptr_t)(u + u0),
@@ -373,7 +386,39 @@ static void fill_runs(ivec runs, fvec gains, i64 r0, i64 r1, ivec in_ptr, ivec i
 
 static int push_history(Ctx *c, double t);
 
+/* the after-step work on the block inputs us of (t, x): the delay history's point (not
+ * while probing a max-hold), then (mode AFTER_STEP) the max-holds; HOLD_UPDATED if one
+ * updated */
+static int history_and_holds(Ctx *c, i64 mode, double t) {
+    ivec delays = int_table(c, T_DELAYS);
+    ivec holds = int_table(c, T_HOLDS);
+    if (delays.n > 0 && c->probing[0] == 0) {
+        int st = push_history(c, t);
+        if (st != OK) return st;
+    }
+    if (mode == HISTORY_POINT) return OK;
+    int upd = 0;
+    for (i64 r = 0; r < holds.n / N_HOLD_COLUMNS; r++) {
+        const i64 *hd = holds.p + r * N_HOLD_COLUMNS;
+        upd |= hold_update(c, hd[H_K], hd[H_OFF], hd[H_SIZE], hd[H_NVEC], hd[H_NMAT],
+                           c->us + hd[H_U], c->P[hd[H_EP]]);
+    }
+    return upd ? HOLD_UPDATED : OK;
+}
+
+/* the reference engine's diagram_eval: the Python callback, then the same after-step work */
+static int callback_eval(Ctx *c, i64 mode, double t, const double *x, double *out) {
+    const double *ue = external_inputs(c, t);
+    int after = mode == AFTER_STEP || mode == AFTER_STEP_EVALUATED || mode == HISTORY_POINT;
+    if (c->callback(after ? AFTER_STEP : mode, t, (i64)(intptr_t)x, (i64)(intptr_t)ue,
+                    (i64)(intptr_t)(after ? c->us : out)) != 0)
+        fail(c, BLOCK_RAISED);
+    if (!after) return OK;
+    return history_and_holds(c, mode == HISTORY_POINT ? HISTORY_POINT : AFTER_STEP, t);
+}
+
 static int diagram_eval(Ctx *c, i64 mode, double t, const double *x, double *out) {
+    if (c->callback) return callback_eval(c, mode, t, x, out);
     double *ys = c->ys, *us = c->us;
     const double *ue = external_inputs(c, t);
     ivec B = int_table(c, T_BLOCKS);
@@ -410,7 +455,7 @@ static int diagram_eval(Ctx *c, i64 mode, double t, const double *x, double *out
             i64 kind = b[B_KIND];
             if (kind == 0) {
                 if (b[B_OUT] >= 0)
-                    kernel_call(c, wnx, b[B_OUT], t, x, b[B_X0], us, b[B_U0], ys, b[B_Y0],
+                    call_kernel(c, wnx, b[B_OUT], t, x, b[B_X0], us, b[B_U0], ys, b[B_Y0],
                                 b[B_P0]);
             } else if (kind == 1) {
                 const i64 *dl = delays.p + b[B_SPECIAL] * N_DELAY_COLUMNS;
@@ -430,25 +475,12 @@ static int diagram_eval(Ctx *c, i64 mode, double t, const double *x, double *out
         for (i64 k = 0; k < nb; k++) {
             const i64 *b = B.p + k * N_BLOCK_COLUMNS;
             if (b[B_UPD] >= 0)
-                kernel_call(c, wnx, b[B_UPD], t, x, b[B_X0], us, b[B_U0], out, b[B_X0],
+                call_kernel(c, wnx, b[B_UPD], t, x, b[B_X0], us, b[B_U0], out, b[B_X0],
                             b[B_P0]);
         }
         return OK;
     }
-    if (mode == AFTER_STEP || mode == HISTORY_POINT) {
-        if (delays.n > 0 && c->probing[0] == 0) {
-            int st = push_history(c, t);
-            if (st != OK) return st;
-        }
-        if (mode == HISTORY_POINT) return OK;
-        int upd = 0;
-        for (i64 r = 0; r < holds.n / N_HOLD_COLUMNS; r++) {
-            const i64 *hd = holds.p + r * N_HOLD_COLUMNS;
-            upd |= hold_update(c, hd[H_K], hd[H_OFF], hd[H_SIZE], hd[H_NVEC], hd[H_NMAT],
-                               us + hd[H_U], c->P[hd[H_EP]]);
-        }
-        return upd ? HOLD_UPDATED : OK;
-    }
+    if (mode == AFTER_STEP || mode == HISTORY_POINT) return history_and_holds(c, mode, t);
     ivec rec_ptr = int_table(c, T_REC_PTR);
     ivec rec_src = int_table(c, T_REC_SRC);
     fvec rec_gain = float_table(c, TF_REC_GAIN);
@@ -475,7 +507,7 @@ static int push_history(Ctx *c, double t) {
     return OK;
 }
 
-/* ------------------------------------------------------------ sparse kernels (_jit_sparse.py) */
+/* ------------------------------------------------------------ sparse kernels */
 static void jac_chain(double *F, double *S, i64 nS, ivec dst, ivec fidx, ivec src, ivec j_row,
                       ivec j_col, ivec j_slot, double *J, i64 n) {
     for (i64 i = 0; i < nS; i++) S[i] = 0.0;
@@ -588,9 +620,18 @@ static void slu_solve(double *LU, i64 n, const i64 *perm, const i64 *rowptr, con
     for (i64 i = 0; i < n; i++) b[perm[i]] = y[i];
 }
 
-/* ------------------------------------------------------ the Jacobian (_diagram.py) */
+/* ------------------------------------------------------ the Jacobian */
+static int fd_columns(Ctx *c, double t, const double *x, double *J, i64 n, const double *f0,
+                      double *fp, double *xp);
+
 static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64 n,
                                const double *f0) {
+    if (c->callback) {     /* the reference engine: forward differences of the whole f */
+        i64 nfp, nxp;
+        double *fp = scratch_part(c, SC_YP, &nfp), *xp = scratch_part(c, SC_YM, &nxp);
+        if (nfp < n || nxp < n) fail(c, ERR_SCRATCH);
+        return fd_columns(c, t, x, J, n, f0, fp, xp);
+    }
     ivec dims = int_table(c, T_DIMS);
     const double *ys = c->ys, *us = c->us;
     ivec wnx = int_table(c, T_WRAPPER_NX);
@@ -628,7 +669,7 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
         i64 p0 = r[FD_P0];
         if (r[FD_WJAC] >= 0) {
             for (i64 i = 0; i < (ny + nx) * (nx + nu); i++) jl[i] = 0.0;
-            kernel_call(c, wnx, r[FD_WJAC], t, xb, 0, ub, 0, jl, 0, p0);
+            call_kernel(c, wnx, r[FD_WJAC], t, xb, 0, ub, 0, jl, 0, p0);
             for (i64 g = fd_g_ptr.p[kb]; g < fd_g_ptr.p[kb + 1]; g++)
                 for (i64 cc = fd_gc_ptr.p[g]; cc < fd_gc_ptr.p[g + 1]; cc++) {
                     i64 col = fd_col.p[cc];
@@ -654,14 +695,14 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
             }
             if (central) {
                 fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh);
-                kernel_call(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
+                call_kernel(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
                 fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, -1.0, hh);
-                kernel_call(c, wnx, w, t, xb, 0, ub, 0, ym, o0, p0);
+                call_kernel(c, wnx, w, t, xb, 0, ub, 0, ym, o0, p0);
                 fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh);
                 fd_scatter(yp, ym, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
             } else {
                 fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh);
-                kernel_call(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
+                call_kernel(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
                 fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh);
                 fd_forward_scatter(yp, y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
             }
@@ -679,17 +720,25 @@ static int diagram_jacobian(Ctx *c, double t, const double *x, double *J, i64 n,
     return diagram_jacobian_at(c, t, x, J, n, tmp);
 }
 
+static int dense_factor(const double *J, i64 n, double cc, double *LU, i64 *piv);
+static void dense_solve(const double *LU, i64 n, const i64 *piv, double *b);
+
 static int newton_factor(Ctx *c, const double *J, i64 n, double cc, double *LU, i64 *piv) {
+    if (c->callback) return dense_factor(J, n, cc, LU, piv);
     return slu_factor(J, n, cc, LU, piv, int_table(c, T_LU_PERM).p, int_table(c, T_LU_ROWPTR).p,
                       int_table(c, T_LU_COLIDX).p, int_table(c, T_LU_DIAGP).p);
 }
 
-static void newton_solve(Ctx *c, double *LU, i64 n, double *b) {
+static void newton_solve(Ctx *c, double *LU, const i64 *piv, i64 n, double *b) {
+    if (c->callback) {
+        dense_solve(LU, n, piv, b);
+        return;
+    }
     slu_solve(LU, n, int_table(c, T_LU_PERM).p, int_table(c, T_LU_ROWPTR).p,
               int_table(c, T_LU_COLIDX).p, int_table(c, T_LU_DIAGP).p, b);
 }
 
-/* ----------------------------------------------------------------- methods (_template.py) */
+/* ----------------------------------------------------------------- methods */
 static void emit(Ctx *c, double t, const double *x, i64 n, double *out_y, i64 ycols,
                  double *out_x, i64 xcols, i64 *io) {
     i64 k = io[0];
@@ -828,7 +877,7 @@ static double rodas5p_step(Ctx *c, double t, double h, const double *x, double *
                 for (i64 i = 0; i < n; i++) U[i] += cj * Uj[i];
             }
         }
-        newton_solve(c, LU, n, U);
+        newton_solve(c, LU, piv, n, U);
     }
     for (i64 i = 0; i < n; i++) {
         double v = x[i];
@@ -1184,11 +1233,17 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
     return OK;
 }
 
-/* ---------------------------------------------------- generic versions (_template.py) */
+/* ---------------------------------------------------- generic versions */
 static int fd_jacobian(Ctx *c, double t, const double *x, double *J, i64 n, double *f0,
                        double *fp, double *xp) {
-    for (i64 i = 0; i < n; i++) xp[i] = x[i];
     diagram_eval(c, RHS, t, x, f0);
+    return fd_columns(c, t, x, J, n, f0, fp, xp);
+}
+
+/* J = df/dx by forward differences given f0 = f(t, x) (n evaluations) */
+static int fd_columns(Ctx *c, double t, const double *x, double *J, i64 n, const double *f0,
+                      double *fp, double *xp) {
+    for (i64 i = 0; i < n; i++) xp[i] = x[i];
     for (i64 j = 0; j < n; j++) {
         double d = 1.4901161193847656e-08 * pmax(1.0, fabs(x[j]));
         xp[j] = x[j] + d;
@@ -1264,7 +1319,7 @@ EXPORT int ivdrem_step_loop(const i64 *waddr, const i64 *wshape, double *P, i64 
                             i64 *stats, double *ctl, double *K, double *J, double *LU,
                             i64 *piv, double *xn, double *f1, double *xg, double *D) {
     Ctx c;
-    bind(&c, waddr, wshape, P);
+    bind_ctx(&c, waddr, wshape, P);
     int code = setjmp(c.exit);
     if (code) return code;
     return step_loop(&c, mid, tf, t_stop, x, n, out_t, out_y, ycols, out_x, xcols, io, stats,
@@ -1274,7 +1329,7 @@ EXPORT int ivdrem_step_loop(const i64 *waddr, const i64 *wshape, double *P, i64 
 EXPORT int ivdrem_diagram_eval(const i64 *waddr, const i64 *wshape, double *P, i64 mode,
                                double t, double *x, double *out) {
     Ctx c;
-    bind(&c, waddr, wshape, P);
+    bind_ctx(&c, waddr, wshape, P);
     int code = setjmp(c.exit);
     if (code) return code;
     return diagram_eval(&c, mode, t, x, out);
@@ -1283,7 +1338,7 @@ EXPORT int ivdrem_diagram_eval(const i64 *waddr, const i64 *wshape, double *P, i
 EXPORT int ivdrem_diagram_jacobian(const i64 *waddr, const i64 *wshape, double *P, double t,
                                    double *x, i64 n, double *J, double *tmp) {
     Ctx c;
-    bind(&c, waddr, wshape, P);
+    bind_ctx(&c, waddr, wshape, P);
     int code = setjmp(c.exit);
     if (code) return code;
     return diagram_jacobian(&c, t, x, J, n, tmp);
@@ -1292,7 +1347,7 @@ EXPORT int ivdrem_diagram_jacobian(const i64 *waddr, const i64 *wshape, double *
 EXPORT int ivdrem_fd_jacobian(const i64 *waddr, const i64 *wshape, double *P, double t,
                               double *x, i64 n, double *J, double *f0, double *fp, double *xp) {
     Ctx c;
-    bind(&c, waddr, wshape, P);
+    bind_ctx(&c, waddr, wshape, P);
     int code = setjmp(c.exit);
     if (code) return code;
     return fd_jacobian(&c, t, x, J, n, f0, fp, xp);
@@ -1301,10 +1356,18 @@ EXPORT int ivdrem_fd_jacobian(const i64 *waddr, const i64 *wshape, double *P, do
 EXPORT int ivdrem_lowest_eigenpair(const i64 *waddr, const i64 *wshape, double *u, i64 nvec,
                                    i64 nmat, double *lam) {
     Ctx c;
-    bind(&c, waddr, wshape, NULL);
+    bind_ctx(&c, waddr, wshape, NULL);
     int code = setjmp(c.exit);
     if (code) return code;
     lam[0] = lowest_eigenpair(&c, u, nvec, nmat);
+    return OK;
+}
+
+EXPORT int ivdrem_hist_lookup(const i64 *waddr, const i64 *wshape, double tq, i64 off,
+                              i64 size, double *out) {
+    Ctx c;
+    bind_ctx(&c, waddr, wshape, NULL);
+    hist_lookup(&c, tq, off, size, out);
     return OK;
 }
 

@@ -323,3 +323,26 @@ def pack(tables):
     ints = np.concatenate([np.asarray(ioff + foff, dtype=np.int64)] + iparts)
     floats = np.concatenate(fparts) if fparts else np.zeros(0)
     return ints, floats
+
+
+def reference_tables(plan):
+    """(tables, P) of the reference engine, whose diagram is python-control's evaluation
+    (a callback): only what the stepper's own after-step work and Jacobian read, the delays
+    and max-holds (their T and epsilon in P), the history's slope flags and the scratch for
+    the history push, the max-hold eigensolver and the forward-difference Jacobian."""
+    P = [float(d["T"]) for d in plan.delays] + [float(hd["eps"]) for hd in plan.holds]
+    nd = len(plan.delays)
+    delays = [[d["off"], d["size"], k, int(bool(d["hermite"])), d["u"], d["du"]]
+              for k, d in enumerate(plan.delays)]
+    holds = [[hd["k"], hd["off"], hd["size"], hd["nvec"], hd["nmat"], hd["u"], nd + k]
+             for k, hd in enumerate(plan.holds)]
+    nm = hold_nmat(plan)
+    n = plan.diagram.nstates
+    sizes = {_diagram.SC_V: plan.nd, _diagram.SC_DV: plan.nd, _diagram.SC_HOLD_A: nm * nm,
+             _diagram.SC_HOLD_W: nm, _diagram.SC_HOLD_WORK: _diagram.dsyevd_lwork(nm),
+             _diagram.SC_YP: n, _diagram.SC_YM: n}
+    offsets = np.cumsum([0] + [sizes.get(i, 0) for i in range(_diagram.N_SCRATCH)])
+    tables = empty_tables()._replace(
+        delays=_i64(delays, _diagram.N_DELAY_COLUMNS), holds=_i64(holds, _diagram.N_HOLD_COLUMNS),
+        slope_flags=slope_flags(plan), scratch_offsets=_i64(offsets))
+    return tables, np.asarray(P, dtype=float)
