@@ -89,7 +89,8 @@ def law_names() -> tuple[str, ...]:
 def mixed_regression_blocks(ctx: LawContext, *, instrument: bool = True):
     """The blocks that produce the scalar regressions 𝒴_i = Δθ_i + 𝒲_i (17): regression
     filters (13), [instrument (14)], extension (15a) over a window T (``params["T"]``),
-    averaging (15b) (``p``, ``F0``) and mixing.  Outputs Delta, calY for a composite term
+    averaging (15b) (``p``, ``F0``) and mixing (``mixing``: "paper", "eigen" or "channel",
+    docs/mixing.md).  Outputs Delta (one, or one per channel), calY for a composite term
     to use; returns (blocks, recorded outputs).  A user law built on (17) starts here."""
     model, n, nth, p = ctx.model, ctx.n, ctx.ntheta, ctx.params
     m = nth + nth * nth
@@ -147,17 +148,21 @@ def _build_none(ctx):
     return [block_library.zero_term(ctx.ntheta)], []
 
 
+#: the gains of [iv_drem], shared by "iv-drem" and "drem": window T of (15a), averaging p,
+#: F0 of (15b), γ of (21) (the paper's 1e10) and the mixing of (17) (docs/mixing.md)
+_IV_DREM_DEFAULTS = dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, mixing="paper")
+
 for _law in (
     Law("iv-drem", _build_iv_drem, "IV-DREM, (11)+(21)", "#0072B2", "eqs. (11) + (21)",
         "proposed: instrumental-variables DREM, ζ from the reference trajectory (14)",
-        section="iv_drem", defaults=dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, mixing="paper"),
+        section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS),
         uses_delta=True, instrument="zeta"),
     Law("composite-learning", _build_composite_learning, "composite learning, (35)", "#E69F00",
         "eq. (35)", "baseline of Pan & Yu: max-held window integrals of φ",
         section="composite_learning", defaults=dict(T=20.0, gamma=1.0, epsilon=1e-9)),
     Law("drem", _build_drem, "DREM without IV", "#009E73", "eqs. (11) + (21), ζ := φ",
         "DREM with the measured regressor φ in place of the instrument",
-        section="iv_drem", defaults=dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, mixing="paper"),
+        section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS),
         uses_delta=True, instrument="phi"),
     Law("sigma-modification", _build_sigma, "σ-modification", "#CC79A7",
         "ϑ_c = σ(θ* − θ̂) (erratum E5)", "leakage toward a prior guess θ*",

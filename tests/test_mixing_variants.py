@@ -259,3 +259,17 @@ def test_diagnostics_figures_and_report_take_a_per_channel_delta():
     assert fig_delta_W(run) is not None
     meta = dict(build_content(run).meta)
     assert meta["mixing of (17)"].startswith("channel")
+
+
+def test_a_controller_for_an_external_plant_is_calibrated_on_the_whole_loop():
+    """closed_loop(external_plant=True) on an arm other than the paper's: "eigen" and
+    gamma = "auto", the calibration run with ivdrem's own plant of the model (the
+    controller alone has no motion to measure Δ on); the same γ as the whole loop's."""
+    exp = _bench_arms().planar_experiment(3)
+    kw = dict(trajectory=exp["trajectory"], disturbance=exp["disturbance"], q0=exp["q0"])
+    ctrl = closed_loop("iv-drem", planar_arm(3), external_plant=True, **kw)
+    assert sorted(ctrl.input_labels) == sorted([f"q[{i}]" for i in range(3)]
+                                               + [f"dq[{i}]" for i in range(3)])
+    assert ctrl.gamma_choice["variant"] == "eigen"
+    whole = closed_loop("iv-drem", planar_arm(3), **kw)
+    assert ctrl.gamma_choice["gamma"] == pytest.approx(whole.gamma_choice["gamma"], rel=1e-12)

@@ -153,7 +153,9 @@ def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1
     if passes not in (1, 2):
         raise ValueError(f"gamma='auto': passes must be 1 or 2, got {passes!r}")
     variant = args.get("mixing") or "paper"
-    diagram = closed_loop(law, model, gamma=1.0, **args)
+    # the calibration needs the motion: the whole loop with ivdrem's own plant of the model,
+    # also for a controller built for an external plant (an FMU of the same model)
+    diagram = closed_loop(law, model, gamma=1.0, **{**args, "external_plant": False})
     gamma, history = _GAMMA_OFF, []
     for k in range(passes):
         resp = simulate(diagram, t_cal, engine=engine, method=method, rtol=rtol, atol=atol,
