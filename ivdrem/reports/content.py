@@ -14,6 +14,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..experiments import metrics
+from ..experiments.diagnostics import measured_label
 
 __all__ = ["Table", "ReportContent", "build_content", "versions", "git_commit", "fmt"]
 
@@ -299,38 +300,6 @@ def _fmu(fmu_check: Any) -> Table:
 
 _DIAG_VERDICT = {"holds": "HOLDS", "fails": "FAILS", "not decided": "NOT DECIDED",
                  "not applicable": "n/a"}
-
-
-#: what the diagnostics' measured quantities are, for a reader (docs/diagnostics.md)
-_MEASURED_LABELS = {
-    "int_Delta2_end": "∫Δ² dt to t_end", "int_Delta2_growth_last_half": "its growth, last half",
-    "slope_last_half": "slope, last half", "decay_exponent_Delta2": "decay exponent of Δ²",
-    "decay_exponent_abs_Delta": "decay exponent of |Δ|", "Delta_min_last_half": "min |Δ|, last half",
-    "beta_min": "min β", "beta_min_last_half": "min β, last half",
-    "decay_exponent_beta": "decay exponent of β", "int_lambda2_end": "∫λ² dt to t_end",
-    "decay_exponent_integrand": "decay exponent of λ²", "tail_estimate": "tail estimate",
-    "normalised_mean_max": "max normalised mean", "worst_pair": "worst pair",
-    "max_abs_integral": "max |∫|", "frequency_gap": "frequency gap",
-    "max_second_quarter": "max, second quarter", "max_last_quarter": "max, last quarter",
-    "growth_exponent": "growth exponent", "rho": "ρ", "delta_rho": "δ_μ ρ", "best_rho": "best ρ",
-    "mu_LB_min": "min μ_LB", "int_mu_LB_end": "∫μ_LB dt to t_end", "mu_min": "min μ",
-    "mu_end": "μ(t_end)", "a": "fitted exponent a", "r2": "r²", "floor": "floor",
-    "V_0": "V(0)", "V_end": "V(t_end)", "bound_end": "bound at t_end", "gamma": "γ",
-    "efolds_over_run": "e-folds over the run", "rate_last_half": "rate, last half",
-    "one_over_t_end": "1/t_end", "calW_over_Delta_last_window": "‖𝒲‖/|Δ|, last window",
-    "gamma_auto_from_this_run": "γ \"auto\" from this run",
-    "theta_err_norm_end": "‖θ̃(t_end)‖", "theta_err_norm_mid": "‖θ̃(t_end/2)‖",
-    "tau_d_err_rms": "RMS ‖τ̃_d‖", "observer_error_true_theta_rms": "RMS observer error (true θ)",
-    "theta_err_part_rms": "RMS part carried by θ̃", "window_mean_first": "mean, first window",
-    "window_mean_last": "mean, last window", "min_left_side": "min of the left side",
-    "f_n_from": "f_n from",
-}
-
-
-def measured_label(key: str) -> str:
-    """A reader's name for a measured quantity of the diagnostics (its key otherwise,
-    without underscores)."""
-    return _MEASURED_LABELS.get(key, key.replace("_", " "))
 
 
 def _key(measured: Mapping, limit: int = 4) -> str:
