@@ -27,7 +27,6 @@ import importlib.metadata
 import inspect
 import json
 import math
-import re
 import sysconfig
 import xml.etree.ElementTree as ET
 from functools import cached_property
