@@ -11,6 +11,7 @@ Per named arm, a fresh child process with empty ivdrem and numba cache directori
 and a second child with the same (now warm) directories measures
   build        arm(name) from the cache                                  target <= 2 s
   load         loading every compiled function from numba's cache
+  imports      importing ivdrem.models and ivdrem.sim.compiled (python-control, numba)
   process      the child's whole time: imports, build, load
   Phi          one compiled Phi(q, dq, v, dv) call (median of 20,000)     target <= 20 us (Panda)
   Phi_jac      one compiled Phi_jac call (median of 500)
@@ -40,6 +41,8 @@ t0 = time.perf_counter()
 import numpy as np
 from ivdrem.models import arm
 from ivdrem.models.base import FUNCTION_NAMES, REGRESSOR_ARGS
+import ivdrem.sim.compiled   # imported by any simulation (python-control, numba): apart
+imports = time.perf_counter() - t0
 name = sys.argv[1]
 t = time.perf_counter()
 m = arm(name)
@@ -65,7 +68,7 @@ J = m.jit_functions
 for f, (args, out) in calls.items():
     getattr(J, f)(*args, out)
 compile_s = time.perf_counter() - t
-res = dict(name=name, n=n, ntheta=nt, build=build, compile=compile_s,
+res = dict(name=name, n=n, ntheta=nt, build=build, compile=compile_s, imports=imports,
            total=time.perf_counter() - t0)
 if len(sys.argv) > 2:
     def per_call(f, N):
@@ -113,7 +116,7 @@ def main():
     env = dict(os.environ, PYTHONPATH=str(REPO))
     print(f"{'':<17}|  empty caches      | warm caches")
     print(f"{'arm':<7} {'n':>2} {'ntheta':>6} | {'build s':>7} {'compile s':>9} | "
-          f"{'build s':>7} {'load s':>6} {'process s':>9} | {'Phi us':>7} {'Phi_jac us':>10} "
+          f"{'build s':>7} {'load s':>6} {'imports s':>9} {'process s':>9} | {'Phi us':>7} {'Phi_jac us':>10} "
           f"{'fwd dyn us':>10}")
     with tempfile.TemporaryDirectory(prefix="ivdrem_bench_urdf_") as tmp:
         for k, name in enumerate(a.arms):
@@ -124,7 +127,7 @@ def main():
             warm = _run(_CHILD, [name, "time"], e)
             print(f"{name:<7} {cold['n']:>2} {cold['ntheta']:>6} | {cold['build']:>7.2f} "
                   f"{cold['compile']:>9.1f} | {warm['build']:>7.3f} {warm['compile']:>6.2f} "
-                  f"{warm['total']:>9.2f} | {warm['Phi_us']:>7.2f} {warm['Phi_jac_us']:>10.1f} "
+                  f"{warm['imports']:>9.2f} {warm['total']:>9.2f} | {warm['Phi_us']:>7.2f} {warm['Phi_jac_us']:>10.1f} "
                   f"{warm['forward_dynamics_us']:>10.2f}")
         sym = _run(_SYMPY, [], env)
     print("targets: build <= 60 s (Panda) from empty caches, <= 2 s from the cache, "

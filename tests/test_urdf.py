@@ -433,3 +433,20 @@ def test_bad_options(tmp_path):
         from_urdf(p, gravity=[0, 1], cache=False)
     with pytest.raises(ValueError, match="unknown model"):
         get_model("pandas")
+
+
+@pytest.mark.parametrize("options", [
+    dict(gravity=[1.0, -2.0, -9.0]),            # a gravity vector
+    dict(joints=[f"panda_joint{i}" for i in range(1, 5)]),   # a shorter chain, rest locked
+    dict(base=False),                           # the standard parameters themselves
+])
+def test_options_against_pinocchio(models, options):
+    if not _available("panda"):
+        pytest.skip("arms extra missing")
+    m = _model(models, "panda", **options)
+    if "joints" in options:
+        assert m.n == 4 and m.joint_names == options["joints"]
+    if options.get("base") is False:
+        assert m.ntheta == 70 and np.array_equal(m.theta_values, m.theta_standard)
+    err = _errors(m, m.pinocchio_model(), N=100, seed=6)
+    assert all(v <= 1e-10 for v in err.values()), err

@@ -27,7 +27,6 @@ import importlib.metadata
 import inspect
 import json
 import math
-import re
 import sysconfig
 import xml.etree.ElementTree as ET
 from functools import cached_property
@@ -770,14 +769,9 @@ def {P}Phi(q, dq, v, dv, out):
 def {P}M(q, theta, out):
     """inertia matrix M(q); out ({n}, {n})"""
     pi = {r}pi(theta)
-    z = np.zeros({n})
-    tau = np.empty({n})
-    for k in range({n}):
-        e = {r}unit(k)
-        {k}rnea(q, z, z, e, 0.0, pi, {chain_args}, tau)
-        for i in range({n}):
-            out[i, k] = tau[i]
-        if {ia} >= 0:
+    {k}mass(q, pi, {K}PARENT, {K}JTYPE, {K}AXIS, {K}RP, {K}PP, out)
+    if {ia} >= 0:
+        for k in range({n}):
             out[k, k] += pi[{ia} + k]
     return None
 
