@@ -32,7 +32,7 @@ def _cmd_paper(args):
                                           overwrite=args.overwrite, ours=_is_paper_json)
         check_cache_dir(args.engine)
         check_runs(config, engine=args.engine, allow_long=args.allow_long)
-    except (ConfigError, PreflightError, OutputLocationError, ValueError) as e:
+    except (ConfigError, PreflightError, OutputLocationError, ValueError, ImportError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     note = horizon_note(config)

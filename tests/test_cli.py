@@ -105,3 +105,18 @@ def test_paper_prints_the_conclusions_its_laws_allow(tmp_path, monkeypatch, caps
     out = capsys.readouterr().out
     lines = [ln.split()[0] for ln in out.splitlines() if ln[:2] in ("C1", "C2", "C3", "C4")]
     assert lines == ["C2", "C4"], out
+
+
+def test_a_missing_optional_extra_is_one_line_not_a_traceback(tmp_path, monkeypatch, capsys):
+    """An arm whose URDF package is not installed: the commands print the model layer's
+    message (which names the pip extra) and exit 2."""
+    import ivdrem.models as models
+    msg = "arm 'panda' needs the URDF files of the package 'example-robot-data' (simulated)"
+
+    def missing(name, *a, **k):
+        raise ImportError(msg)
+    monkeypatch.setattr(models, "get_model", missing)
+    assert main(["fmu", "export", "--model", "panda", "-o", str(tmp_path / "p.fmu")]) == 2
+    err = capsys.readouterr().err
+    assert msg in err and "Traceback" not in err
+    assert not (tmp_path / "p.fmu").exists()

@@ -50,7 +50,7 @@ def main_fmu(argv=None) -> int:
             path = export_fmu(model, user_path(args.output), q0=args.q0, dq0=args.dq0,
                               substep=args.substep, cc=args.cc, compile=not args.no_compile,
                               overwrite=args.overwrite)
-        except (ValueError, RuntimeError, NotImplementedError, OSError) as exc:
+        except (ValueError, RuntimeError, NotImplementedError, OSError, ImportError) as exc:
             print(f"ivdrem fmu export: error: {exc}", file=sys.stderr)
             return 2
         print(f"wrote {path} (model {model.name}, n = {model.n}, ntheta = {model.ntheta})")

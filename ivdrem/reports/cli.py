@@ -124,7 +124,8 @@ def run_report_command(args) -> int:
     args.allow_long = getattr(args, "allow_long", False)
     try:
         config, html_path, pdf_path = _preflight(args)
-    except (ConfigError, PreflightError, ReportError, OutputLocationError, ValueError) as exc:
+    except (ConfigError, PreflightError, ReportError, OutputLocationError, ValueError,
+            ImportError) as exc:
         print(f"ivdrem report: error: {exc}", file=sys.stderr)
         return 2
     note = horizon_note(config)
