@@ -159,6 +159,12 @@ def build_parser():
 
 
 def main(argv=None):
+    from ._threads import one_blas_thread
+    with one_blas_thread():   # ivdrem's own process: small LAPACK calls, one thread each
+        return _main(argv)
+
+
+def _main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     # sub-commands owned by ivdrem.fmu parse their own arguments
     if argv and argv[0] in ("fmu", "cosim"):
