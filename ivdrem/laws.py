@@ -56,6 +56,7 @@ class Law:
     defaults: dict = field(default_factory=dict)
     uses_delta: bool = False               # has the mixed regression (17): Delta, calY
     instrument: str | None = None          # recorded instrument signal (zeta or phi)
+    linestyle: str = "-"                   # with the colour: five laws told apart in grey too
 
 
 #: the registry, in report order
@@ -163,12 +164,13 @@ for _law in (
     Law("drem", _build_drem, "DREM without IV", "#009E73", "eqs. (11) + (21), ζ := φ",
         "DREM with the measured regressor φ in place of the instrument",
         section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS),
-        uses_delta=True, instrument="phi"),
-    Law("sigma-modification", _build_sigma, "σ-modification", "#CC79A7",
+        uses_delta=True, instrument="phi", linestyle="--"),
+    Law("sigma-modification", _build_sigma, "σ-modification", "#D55E00",
         "ϑ_c = σ(θ* − θ̂) (erratum E5)", "leakage toward a prior guess θ*",
-        section="sigma_modification", defaults=dict(sigma=0.1, theta_star=None)),
-    Law("none", _build_none, "no composite term", "#7F7F7F", "ϑ_c = 0",
-        "plain disturbance-rejection adaptive control"),
+        section="sigma_modification", defaults=dict(sigma=0.1, theta_star=None),
+        linestyle="-."),
+    Law("none", _build_none, "no composite term", "#000000", "ϑ_c = 0",
+        "plain disturbance-rejection adaptive control", linestyle=":"),
 ):
     register_law(_law)
 del _law

@@ -19,7 +19,7 @@ from matplotlib.lines import Line2D
 
 from ..experiments import metrics
 
-__all__ = ["FigureSpec", "FIGURES", "LAW_STYLE", "law_label", "law_color", "iter_figures",
+__all__ = ["FigureSpec", "FIGURES", "LAW_STYLE", "law_label", "law_color", "law_linestyle", "iter_figures",
            "figure_to_svg", "decimate", "RC"]
 
 #: matplotlib settings of every report figure (used with ``rc_context``).
@@ -83,6 +83,14 @@ def law_color(law: str, order: int = 0) -> str:
     return LAW_STYLE.get(law, (_EXTRA_COLORS[order % len(_EXTRA_COLORS)], law))[0]
 
 
+def law_linestyle(law: str) -> str:
+    """The law's line style (ivdrem.laws): with the colour, so that five laws are told apart
+    by colour-blind readers and in print."""
+    from ..laws import LAWS as registry
+    got = registry.get(law)
+    return got.linestyle if got is not None else "-"
+
+
 def law_label(law: str) -> str:
     return LAW_STYLE.get(law, (None, law))[1]
 
@@ -144,6 +152,7 @@ def _plot(ax, t, y, law, order, *, log=False, label=None, **kw):
         y = np.where(y > 0, y, np.nan)
     td, yd = decimate(t, y)
     kw.setdefault("color", law_color(law, order))
+    kw.setdefault("ls", law_linestyle(law))
     kw.setdefault("zorder", 2.5 if law == "iv-drem" else 2.0)  # the proposed law on top
     ax.plot(td, yd, label=label, **kw)
     if log:
@@ -214,7 +223,8 @@ def _finish(fig, axes, title, caption, laws, run, *, extra_handles=()):
     for ax in axes:
         if ax.get_yscale() == "log":
             _tidy_log(ax, t0 + 0.02 * (t1 - t0))
-    handles = [Line2D([], [], color=law_color(law, i), label=law_label(law)) for i, law in enumerate(laws)]
+    handles = [Line2D([], [], color=law_color(law, i), ls=law_linestyle(law), label=law_label(law))
+               for i, law in enumerate(laws)]
     handles += list(extra_handles)
     if handles:
         fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 1 - 0.36 / h),
