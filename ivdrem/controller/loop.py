@@ -20,7 +20,7 @@ import tempfile
 
 import numpy as np
 
-__all__ = ["FmuPlant", "sampled_loop", "PAPER_DISTURBANCE", "PAPER_Q0"]
+__all__ = ["FmuPlant", "sampled_loop", "as_response", "PAPER_DISTURBANCE", "PAPER_Q0"]
 
 PAPER_DISTURBANCE = dict(amplitude=[7.5, 1.5], omega=[0.5 * np.pi, 0.05 * np.pi],
                          phase=[0.0, 0.0], offset=[0.0, 0.0])
@@ -78,37 +78,64 @@ def disturbance_at(t, d=PAPER_DISTURBANCE):
 
 
 def sampled_loop(controller, plant, t_end, *, disturbance=PAPER_DISTURBANCE, every=100,
-                 outputs=("theta_hat",)):
+                 outputs=("theta_hat", "tau_d_hat")):
     """Run ``controller`` around ``plant`` (an :class:`FmuPlant`) for t_end seconds.
 
-    Returns a dict of arrays recorded every ``every`` samples: t, q, dq, tau and the
-    controller attributes named in ``outputs``; the last sample (t_end) is recorded too,
-    with q, dq there and the outputs of the last step.  A controller with ``delay = 1``
-    outputs tau_k for the next sample: the torque applied is then its previous output.
+    Returns a dict of arrays sampled at t_k, every ``every`` samples and at t_end: t, q,
+    dq, tau_d, the torque tau applied over [t_k, t_k+1], theta_hat(t_k) and the
+    controller's other ``outputs`` of step k (tau_d_hat(t_k), Delta(t_k)); at t_end the
+    controller takes one more step for them.  A controller with ``delay = 1`` outputs tau_k
+    for the next sample: the torque applied is then its previous output.
     """
     h = controller.h
     N = int(round(t_end / h))
     if N < 1 or abs(N * h - t_end) > 1e-9 * max(1.0, t_end):
         raise ValueError(f"t_end = {t_end} must be a whole number of samples h = {h}")
     delay = getattr(controller, "delay", 0)
-    rec = {k: [] for k in ("t", "q", "dq", "tau", *outputs)}
+    rec = {k: [] for k in ("t", "q", "dq", "tau", "tau_d", "theta_hat", *outputs)}
     applied = np.zeros(controller.n)
     for k in range(N + 1):
         t = k * h
         q, dq = plant.outputs()
-        if k == N or k % every == 0:
-            rec["t"].append(t)
-            rec["q"].append(q)
-            rec["dq"].append(dq)
-            for o in outputs:
-                rec[o].append(np.copy(getattr(controller, o)))
-            rec["tau"].append(applied.copy())
-        if k == N:
-            break
+        keep = k == N or k % every == 0
+        if keep:
+            rec["theta_hat"].append(np.copy(controller.theta_hat))
         tau = controller.step(t, q, dq)
         if delay == 0:
             applied = tau
-        plant.step(t, h, applied, disturbance_at(t, disturbance))
+        tau_d = disturbance_at(t, disturbance)
+        if keep:
+            rec["t"].append(t)
+            rec["q"].append(q)
+            rec["dq"].append(dq)
+            rec["tau"].append(np.copy(applied))
+            rec["tau_d"].append(tau_d)
+            for o in outputs:
+                if o != "theta_hat":
+                    rec[o].append(np.copy(getattr(controller, o)))
+        if k == N:
+            break
+        plant.step(t, h, applied, tau_d)
         if delay == 1:
             applied = tau
     return {k: np.array(v) for k, v in rec.items()}
+
+
+def as_response(rec):
+    """The record of :func:`sampled_loop` as a response that ivdrem.experiments.metrics
+    reads (time, outputs, output_labels)."""
+    from types import SimpleNamespace
+    rows, labels = [], []
+    for name, v in rec.items():
+        if name == "t":
+            continue
+        v = np.asarray(v, dtype=float)
+        if v.ndim == 1:
+            rows.append(v)
+            labels.append(name)
+        else:
+            for i in range(v.shape[1]):
+                rows.append(v[:, i])
+                labels.append(f"{name}[{i}]")
+    return SimpleNamespace(time=np.asarray(rec["t"]), outputs=np.array(rows),
+                           output_labels=labels)

@@ -1,0 +1,96 @@
+"""The closed loop of two FMUs, controller and plant, in FMPy (own FMU2Slave loop) and in
+libcosim (``libcosimpy``), both Jacobi: at t_k every FMU's outputs are read, then passed
+on, then every FMU steps over [t_k, t_k + h].  The controller FMU has delay 1 (its torque
+output after the step at t_k is meant for [t_k+1, t_k+2]), so both hosts compute the loop
+of the Python reference with ``delay=1`` (docs/controller.md).
+
+The disturbance tau_d(t) of the paper's experiment is an input of the plant FMU, set at
+each t_k by the master (FMPy), or by a third FMU-less source in libcosim: a libcosim
+"manipulator" is not available from Python, so the libcosim loop sets tau_d through
+``real_initial_value`` only at t0 (zero disturbance); see :func:`libcosim_closed_loop`.
+"""
+from __future__ import annotations
+
+import shutil
+import tempfile
+
+import numpy as np
+
+from .loop import PAPER_DISTURBANCE, disturbance_at
+
+__all__ = ["fmpy_closed_loop"]
+
+
+class _Slave:
+    def __init__(self, path, name, start):
+        from fmpy import extract, read_model_description
+        from fmpy.fmi2 import FMU2Slave
+        md = read_model_description(str(path))
+        self.vr = {v.name: v.valueReference for v in md.modelVariables}
+        self.dir = extract(str(path), unzipdir=tempfile.mkdtemp(prefix="ivdrem_loop_"))
+        self.messages = []
+
+        def logger(env, inst, status, cat, msg):
+            self.messages.append(msg.decode() if isinstance(msg, bytes) else str(msg))
+        self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=self.dir,
+                             modelIdentifier=md.coSimulation.modelIdentifier, instanceName=name)
+        self.fmu.instantiate(callbacks=None)
+        if start:
+            self.fmu.setReal([self.vr[k] for k in start], [float(v) for v in start.values()])
+        self.fmu.setupExperiment(startTime=0.0)
+        self.fmu.enterInitializationMode()
+        self.fmu.exitInitializationMode()
+
+    def refs(self, names):
+        return [self.vr[n] for n in names]
+
+    def close(self):
+        try:
+            self.fmu.terminate()
+            self.fmu.freeInstance()
+        finally:
+            shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def fmpy_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0.3 * np.pi),
+                     dq0=None, disturbance=PAPER_DISTURBANCE, every=100, controller_start=None):
+    """Controller FMU + plant FMU in FMPy, Jacobi, communication step h; the record of
+    :func:`ivdrem.controller.loop.sampled_loop` (t, q, dq, tau, tau_d, theta_hat)."""
+    n = len(q0)
+    dq0 = np.zeros(n) if dq0 is None else dq0
+    start = {f"q[{i}]": q0[i] for i in range(n)}
+    start.update({f"dq[{i}]": dq0[i] for i in range(n)})
+    plant = _Slave(plant_fmu, "plant", start)
+    ctrl = _Slave(controller_fmu, "controller", dict(controller_start or {}))
+    try:
+        nth = sum(1 for k in ctrl.vr if k.startswith("theta_hat["))
+        p_out = plant.refs([f"q[{i}]" for i in range(n)] + [f"dq[{i}]" for i in range(n)])
+        p_in = plant.refs([f"tau[{i}]" for i in range(n)] + [f"tau_d[{i}]" for i in range(n)])
+        c_in = ctrl.refs([f"q[{i}]" for i in range(n)] + [f"dq[{i}]" for i in range(n)])
+        c_out = ctrl.refs([f"tau[{i}]" for i in range(n)] + [f"theta_hat[{j}]" for j in range(nth)]
+)
+        N = int(round(t_end / h))
+        rec = {k: [] for k in ("t", "q", "dq", "tau", "tau_d", "theta_hat")}
+        for k in range(N + 1):
+            t = k * h
+            y = np.array(plant.fmu.getReal(p_out))
+            c = np.array(ctrl.fmu.getReal(c_out))
+            tau, th = c[:n], c[n:n + nth]
+            tau_d = disturbance_at(t, disturbance)
+            if k == N or k % every == 0:
+                rec["t"].append(t)
+                rec["q"].append(y[:n])
+                rec["dq"].append(y[n:])
+                rec["tau"].append(tau)
+                rec["tau_d"].append(tau_d)
+                rec["theta_hat"].append(th)
+            if k == N:
+                break
+            ctrl.fmu.setReal(c_in, list(y))
+            plant.fmu.setReal(p_in, [*tau, *tau_d])
+            ctrl.fmu.doStep(t, h)
+            plant.fmu.doStep(t, h)
+        return {k: np.array(v) for k, v in rec.items()}
+    finally:
+        ctrl.close()
+        plant.close()
