@@ -5,9 +5,7 @@ output after the step at t_k is meant for [t_k+1, t_k+2]), so both hosts compute
 of the Python reference with ``delay=1`` (docs/controller.md).
 
 The disturbance tau_d(t) of the paper's experiment is an input of the plant FMU, set at
-each t_k by the master (FMPy), or by a third FMU-less source in libcosim: a libcosim
-"manipulator" is not available from Python, so the libcosim loop sets tau_d through
-``real_initial_value`` only at t0 (zero disturbance); see :func:`libcosim_closed_loop`.
+each t_k by the master: FMPy's loop here, libcosim's override manipulator.
 """
 from __future__ import annotations
 
@@ -18,7 +16,7 @@ import numpy as np
 
 from .loop import PAPER_DISTURBANCE, disturbance_at
 
-__all__ = ["fmpy_closed_loop"]
+__all__ = ["fmpy_closed_loop", "libcosim_closed_loop"]
 
 
 class _Slave:
@@ -94,3 +92,68 @@ def fmpy_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0.3 *
     finally:
         ctrl.close()
         plant.close()
+
+
+def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0.3 * np.pi),
+                         dq0=None, disturbance=PAPER_DISTURBANCE, every=100):
+    """Controller FMU + plant FMU in libcosim (``libcosimpy``, its fixed-step algorithm):
+    q, dq and tau connected FMU to FMU by libcosim; the disturbance tau_d(t_k) set on the
+    plant before each step by an override manipulator.  Same record as
+    :func:`fmpy_closed_loop` (t, q, dq, tau, tau_d, theta_hat)."""
+    from fmpy import read_model_description
+    from libcosimpy.CosimExecution import CosimExecution
+    from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
+    from libcosimpy.CosimManipulator import CosimManipulator
+    from libcosimpy.CosimObserver import CosimObserver
+    from libcosimpy.CosimSlave import CosimLocalSlave
+    n = len(q0)
+    dq0 = np.zeros(n) if dq0 is None else dq0
+    vr_p = {v.name: v.valueReference for v in read_model_description(str(plant_fmu)).modelVariables}
+    vr_c = {v.name: v.valueReference for v in
+            read_model_description(str(controller_fmu)).modelVariables}
+    nth = sum(1 for k in vr_c if k.startswith("theta_hat["))
+    steps = int(round(t_end / h))
+    step_ns = int(round(h * 1e9))
+    if abs(step_ns * 1e-9 - h) > 1e-15:
+        raise ValueError(f"libcosim steps in whole nanoseconds; h = {h} is not")
+    log_output_level(CosimLogLevel.ERROR)        # libcosim logs every FMU load at debug
+    ex = CosimExecution.from_step_size(step_ns)
+    ip = ex.add_local_slave(CosimLocalSlave(fmu_path=str(plant_fmu), instance_name="plant"))
+    ic = ex.add_local_slave(CosimLocalSlave(fmu_path=str(controller_fmu),
+                                            instance_name="controller"))
+    for i in range(n):
+        ex.real_initial_value(ip, vr_p[f"q[{i}]"], float(q0[i]))
+        ex.real_initial_value(ip, vr_p[f"dq[{i}]"], float(dq0[i]))
+        for name in (f"q[{i}]", f"dq[{i}]"):
+            ex.connect_real_variables(ip, vr_p[name], ic, vr_c[name])
+        ex.connect_real_variables(ic, vr_c[f"tau[{i}]"], ip, vr_p[f"tau[{i}]"])
+    manip = CosimManipulator.create_override()
+    ex.add_manipulator(manipulator=manip)
+    obs = CosimObserver.create_last_value()
+    ex.add_observer(observer=obs)
+    p_out = [vr_p[f"q[{i}]"] for i in range(n)] + [vr_p[f"dq[{i}]"] for i in range(n)]
+    c_out = [vr_c[f"tau[{i}]"] for i in range(n)] + [vr_c[f"theta_hat[{j}]"] for j in range(nth)]
+    tau_d_vr = [vr_p[f"tau_d[{i}]"] for i in range(n)]
+    rec = {k: [] for k in ("t", "q", "dq", "tau", "tau_d", "theta_hat")}
+    for k in range(steps + 1):
+        t = k * h
+        tau_d = disturbance_at(t, disturbance)
+        if k == steps or k % every == 0:
+            if k == 0:
+                y = np.concatenate([np.asarray(q0, float), np.asarray(dq0, float)])
+                c = np.zeros(n + nth)
+            else:
+                y = np.array(obs.last_real_values(ip, p_out))
+                c = np.array(obs.last_real_values(ic, c_out))
+            rec["t"].append(t)
+            rec["q"].append(y[:n])
+            rec["dq"].append(y[n:])
+            rec["tau"].append(c[:n])
+            rec["tau_d"].append(tau_d)
+            rec["theta_hat"].append(c[n:])
+        if k == steps:
+            break
+        manip.slave_real_values(ip, tau_d_vr, list(tau_d))
+        if not ex.step():
+            raise RuntimeError(f"libcosim: step {k} (t = {t}) failed")
+    return {k: np.array(v) for k, v in rec.items()}
