@@ -265,3 +265,19 @@ def test_fmu_loops_in_fmpy_and_libcosim_equal_the_reference_over_300_s(controlle
         assert np.abs(r["theta_hat"] - ref["theta_hat"]).max() < 1e-6, host.__name__
         assert np.abs(r["q"] - ref["q"]).max() < 1e-6, host.__name__
     assert np.linalg.norm(ref["theta_hat"][-1] - THETA) < 0.1 * np.linalg.norm(THETA)
+
+
+def test_cli_exports_the_controller_fmu(tmp_path, capsys):
+    from fmpy.validation import validate_fmu
+    from ivdrem.fmu.cli import main_fmu
+    out = tmp_path / "Controller.fmu"
+    assert main_fmu(["export", "--controller", "--law", "none", "-o", str(out)]) == 0
+    assert validate_fmu(str(out)) == []
+    assert main_fmu(["export", "--controller", "-o", str(out)]) == 0      # ours: replaced
+    other = tmp_path / "notes.fmu"
+    other.write_text("not an FMU")
+    assert main_fmu(["export", "--controller", "-o", str(other)]) == 2
+    assert other.read_text() == "not an FMU"
+    assert main_fmu(["export", "--controller", "--law", "pid", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "law 'pid'" in err and "notes.fmu" in err

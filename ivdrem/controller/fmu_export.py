@@ -266,3 +266,22 @@ def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=Fals
             tmp_zip.unlink(missing_ok=True)
             raise
     return path
+
+
+def main_export_controller(args) -> int:
+    """``ivdrem fmu export --controller``: the parsed arguments of ivdrem.fmu.cli."""
+    import sys
+    from .._paths import user_path
+    from ..models import get_model
+    try:
+        if args.no_compile:
+            raise ValueError("--no-compile is for the plant FMU; the controller FMU is compiled")
+        model = get_model(args.model)
+        path = export_controller_fmu(model, user_path(args.output), law=args.law, cc=args.cc,
+                                     overwrite=args.overwrite, mu_max=args.mu_max)
+    except (ValueError, RuntimeError, NotImplementedError, OSError) as exc:
+        print(f"ivdrem fmu export: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {path} (controller, law {args.law}, model {model.name}, n = {model.n}, "
+          f"ntheta = {model.ntheta}, h = 1 ms, mu_max = {args.mu_max:g})")
+    return 0

@@ -56,6 +56,13 @@ PAPER_TRAJECTORY = dict(amplitude=[0.4 * np.pi, 0.3 * np.pi], omega=[2.0, 0.3],
                         phase=[0.0, np.pi / 2], offset=[0.2 * np.pi, 0.3 * np.pi])
 
 
+def generic_trajectory(n):
+    """A reference for an n-joint arm without the paper's: q_d,i = 0.3 sin((0.5 + 0.25 i) t)
+    (tunable: the ``trajectory`` argument, the FMU's tr_* parameters)."""
+    return dict(amplitude=[0.3] * n, omega=[0.5 + 0.25 * i for i in range(n)],
+                phase=[0.0] * n, offset=[0.0] * n)
+
+
 def phi1(z):
     """(e^z - 1)/z, 1 at z = 0 (accurate near 0 by expm1)."""
     return 1.0 if z == 0.0 else math.expm1(z) / z
@@ -170,7 +177,9 @@ class SampledController:
         self.theta_star = _vector("theta_star", ts if ts is not None else np.zeros(nth), nth)
         self.theta_hat0 = (np.zeros(nth) if theta_hat0 is None
                            else _vector("theta_hat0", theta_hat0, nth))
-        tr = PAPER_TRAJECTORY if trajectory is None else trajectory
+        if trajectory is None:
+            trajectory = PAPER_TRAJECTORY if n == 2 else generic_trajectory(n)
+        tr = trajectory
         unknown = set(tr) - {"amplitude", "omega", "phase", "offset"}
         if unknown:
             raise ValueError(f"unknown trajectory parameter(s) {sorted(unknown)}")

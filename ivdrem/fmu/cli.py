@@ -28,12 +28,20 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--cc", default=None, help="C compiler (default $CC or cc)")
     e.add_argument("--no-compile", action="store_true",
                    help="ship sources only (build later with `fmpy compile`)")
+    e.add_argument("--controller", action="store_true",
+                   help="export the sampled controller (co-simulation FMU) instead of the plant")
+    e.add_argument("--law", default="iv-drem", help="--controller: the law (default iv-drem)")
+    e.add_argument("--mu-max", type=float, default=135.0, dest="mu_max",
+                   help="--controller: saturation of mu (default %(default)g)")
     return p
 
 
 def main_fmu(argv=None) -> int:
     """Entry point of ``ivdrem fmu``; ``argv`` excludes the leading ``fmu``. Returns exit code."""
     args = _parser().parse_args(argv)
+    if args.command == "export" and args.controller:
+        from ivdrem.controller.fmu_export import main_export_controller
+        return main_export_controller(args)
     if args.command == "export":
         from ivdrem.models import get_model
         from .._paths import user_path
