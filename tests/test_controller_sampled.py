@@ -281,3 +281,14 @@ def test_cli_exports_the_controller_fmu(tmp_path, capsys):
     assert main_fmu(["export", "--controller", "--law", "pid", "-o", str(out)]) == 2
     err = capsys.readouterr().err
     assert "law 'pid'" in err and "notes.fmu" in err
+
+
+def test_cli_cosim_controller_fmu(controller_fmu, plant_fmu, tmp_path, capsys):
+    from ivdrem.fmu.cli import main_cosim
+    assert main_cosim(["--controller-fmu", str(controller_fmu), "--fmu", str(plant_fmu),
+                       "--t-end", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "max |theta_hat - theta_hat_ref| = 0" in out
+    assert main_cosim(["--controller-fmu", str(tmp_path / "none.fmu"), "--t-end", "2"]) == 2
+    assert main_cosim(["--controller-fmu", str(plant_fmu), "--t-end", "2"]) == 2
+    assert "not a controller FMU" in capsys.readouterr().err

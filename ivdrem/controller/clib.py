@@ -78,6 +78,32 @@ class CController:
         self._p = [a.ctypes.data_as(_c_double_p) for a in
                    (self._q, self._dq, self._tau, self._th, self._tdh, self._D, self._tau_o)]
 
+    @classmethod
+    def from_params(cls, model, law, par):
+        """The controller of a flat parameter vector (ivdrem_controller.h's layout), e.g.
+        the start values of a controller FMU."""
+        from .codegen import LAW_CODES
+        idx, off = {}, 0
+        for name, size, _ in param_layout(model):
+            idx[name] = slice(off, off + size)
+            off += size
+        par = np.asarray(par, dtype=float)
+        if par.size != off or LAW_CODES[law] != par[idx["law"]][0]:
+            raise ValueError(f"parameter vector of {par.size} entries (expected {off}) or "
+                             f"law code does not match {law!r}")
+        g = lambda k: par[idx[k]]  # noqa: E731
+        s = lambda k: float(par[idx[k]][0])  # noqa: E731
+        return cls(model, law, h=s("h"), alpha=s("alpha"),
+                   K=g("K").reshape(model.n, model.n), delta_mu=s("delta_mu"),
+                   Gamma=g("Gamma_diag"), mu0=s("mu0"), mu1=s("mu1"), mu_max=s("mu_max"),
+                   observer_variant="corrected" if s("corrected") else "literal",
+                   l=s("l"), T=s("T"), p=s("p"), F0=s("F0"), gamma=s("gamma"),
+                   sigma=s("sigma"), epsilon=s("epsilon"), theta_star=g("theta_star"),
+                   theta_hat0=g("theta_hat0"), tau_max=s("tau_max"), delay=int(s("delay")),
+                   block=int(s("block")),
+                   trajectory=dict(amplitude=g("tr_amplitude"), omega=g("tr_omega"),
+                                   phase=g("tr_phase"), offset=g("tr_offset")))
+
     def __del__(self):
         c = getattr(self, "_c", None)
         if c:

@@ -84,6 +84,9 @@ def _cosim_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-long", action="store_true", dest="allow_long",
                    help="run even when the reference run's estimated memory or step count "
                         "exceeds the limits of ivdrem.sim.guards")
+    p.add_argument("--controller-fmu", default=None, metavar="FILE", dest="controller_fmu",
+                   help="close this controller FMU (ivdrem fmu export --controller) around the "
+                        "plant FMU in FMPy and compare with the C reference controller")
     return p
 
 
@@ -105,6 +108,9 @@ def main_cosim(argv=None) -> int:
     except SystemExit as exc:           # --help (0) or an argparse error (2, already printed)
         return int(exc.code or 0)
     prog = "ivdrem cosim"
+    if args.controller_fmu is not None:
+        from ivdrem.controller.fmu_loop import main_cosim_controller
+        return main_cosim_controller(args)
     H = args.comm_step
     if not (math.isfinite(args.t_end) and args.t_end > 0):
         print(f"{prog}: error: --t-end must be a finite number > 0, got {args.t_end:g}",
