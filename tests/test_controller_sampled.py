@@ -292,3 +292,21 @@ def test_cli_cosim_controller_fmu(controller_fmu, plant_fmu, tmp_path, capsys):
     assert main_cosim(["--controller-fmu", str(tmp_path / "none.fmu"), "--t-end", "2"]) == 2
     assert main_cosim(["--controller-fmu", str(plant_fmu), "--t-end", "2"]) == 2
     assert "not a controller FMU" in capsys.readouterr().err
+
+
+def test_ssp_file_runs_in_libcosim_as_the_fmpy_loop(controller_fmu, plant_fmu, tmp_path):
+    pytest.importorskip("libcosimpy")
+    import zipfile
+    from ivdrem.controller.fmu_loop import fmpy_closed_loop
+    from ivdrem.controller.ssp import libcosim_ssp_loop, write_ssp
+    ssp = write_ssp(controller_fmu, plant_fmu, tmp_path / "loop.ssp")
+    with zipfile.ZipFile(ssp) as zf:
+        names = set(zf.namelist())
+        ssd = zf.read("SystemStructure.ssd").decode()
+    assert {"SystemStructure.ssd", "resources/Plant.fmu", "resources/Controller.fmu"} <= names
+    assert ssd.count("<ssd:Connection ") == 6
+    r = libcosim_ssp_loop(ssp, 3.0)
+    a = fmpy_closed_loop(controller_fmu, plant_fmu, 3.0)
+    assert np.array_equal(r["t"], a["t"][1:])
+    assert np.abs(r["theta_hat"] - a["theta_hat"][1:]).max() < 1e-12
+    assert np.abs(r["q"] - a["q"][1:]).max() < 1e-12
