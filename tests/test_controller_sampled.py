@@ -286,6 +286,7 @@ def test_cli_exports_the_controller_fmu(tmp_path, capsys):
     assert main_fmu(["export", "--controller", "-o", str(other)]) == 2
     assert other.read_text() == "not an FMU"
     assert main_fmu(["export", "--controller", "--law", "pid", "-o", str(out)]) == 2
+    assert main_fmu(["export", "--controller", "--q0", "0", "1", "-o", str(out)]) == 2
     err = capsys.readouterr().err
     assert "law 'pid'" in err and "notes.fmu" in err
 

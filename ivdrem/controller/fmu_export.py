@@ -274,8 +274,9 @@ def main_export_controller(args) -> int:
     from .._paths import user_path
     from ..models import get_model
     try:
-        if args.no_compile:
-            raise ValueError("--no-compile is for the plant FMU; the controller FMU is compiled")
+        if args.no_compile or args.q0 is not None or args.dq0 is not None:
+            raise ValueError("--no-compile, --q0 and --dq0 are options of the plant FMU, not "
+                             "of --controller")
         model = get_model(args.model)
         path = export_controller_fmu(model, user_path(args.output), law=args.law, cc=args.cc,
                                      overwrite=args.overwrite, mu_max=args.mu_max)
