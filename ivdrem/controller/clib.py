@@ -3,13 +3,12 @@
 ``CController(model, law, **gains)`` validates the gains as
 :class:`~ivdrem.controller.sampled.SampledController` does, builds the library of
 :mod:`ivdrem.controller.codegen` for the model (cached by the hash of its sources under
-``$IVDREM_CACHE`` or ``~/.cache/ivdrem/controller``) and drives it: ``step(t, q, dq) ->
+``$IVDREM_CACHE_DIR/controller``, default ``~/.cache/ivdrem/controller``) and drives it: ``step(t, q, dq) ->
 tau``, ``theta_hat``, ``tau_d_hat``, ``Delta``, ``state()`` / ``set_state()``.
 """
 from __future__ import annotations
 
 import ctypes
-import os
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +22,10 @@ _c_double_p = ctypes.POINTER(ctypes.c_double)
 
 
 def cache_dir() -> Path:
-    root = os.environ.get("IVDREM_CACHE")
-    return Path(root) / "controller" if root else Path.home() / ".cache" / "ivdrem" / "controller"
+    """``controller/`` in ivdrem's compile cache (``$IVDREM_CACHE_DIR``, default
+    ``~/.cache/ivdrem``, as ivdrem.sim.compiled)."""
+    from ..sim.compiled import cache_dir as ivdrem_cache
+    return ivdrem_cache() / "controller"
 
 
 def load_library(model, *, flags=("-O2",)):

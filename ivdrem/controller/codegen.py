@@ -273,8 +273,8 @@ def _compiler(cc=None):
 
 
 def build_library(model, directory, *, defaults=None, cc=None, flags=("-O2",)):
-    """Write the sources into ``directory`` and compile them into a shared library;
-    returns its path (cached by the hash of the sources)."""
+    """Compile the sources into a shared library in ``directory``; returns its path
+    (cached by the hash of the sources and flags)."""
     files = generate_controller_sources(model, defaults)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -284,13 +284,20 @@ def build_library(model, directory, *, defaults=None, cc=None, flags=("-O2",)):
     lib = directory / f"libivdrem_controller_{digest}{ext}"
     if lib.exists():
         return lib
-    for name, text in files.items():
-        (directory / name).write_text(text)
-    cmd = [_compiler(cc), "-shared", "-fPIC", "-std=c99", *flags, "-Wall", "-Wextra",
-           "-I", str(directory), str(directory / "ivdrem_controller.c"),
-           str(directory / "controller_model.c"), "-o", str(lib) + ".tmp", "-lm"]
-    res = subprocess.run(cmd, capture_output=True, text=True)
-    if res.returncode != 0:
-        raise RuntimeError(f"compiling the controller failed ({' '.join(cmd)}):\n{res.stderr}")
-    os.replace(str(lib) + ".tmp", lib)
+    import tempfile
+    # sources and binary in a private folder, then one rename: concurrent builds of the
+    # same library (pytest workers) never see half-written files
+    with tempfile.TemporaryDirectory(prefix="build_", dir=directory) as tmp:
+        tmp = Path(tmp)
+        for name, text in files.items():
+            (tmp / name).write_text(text)
+        out = tmp / lib.name
+        cmd = [_compiler(cc), "-shared", "-fPIC", "-std=c99", *flags, "-Wall", "-Wextra",
+               "-I", str(tmp), str(tmp / "ivdrem_controller.c"), str(tmp / "controller_model.c"),
+               "-o", str(out), "-lm"]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"compiling the controller failed ({' '.join(cmd)}):\n"
+                               f"{res.stderr}")
+        os.replace(out, lib)
     return lib
