@@ -382,3 +382,21 @@ int main(void) {
         t = k * 1e-3
         tau = py.step(t, [0.3 * math.sin(t), 0.9 + 0.1 * t], [0.3 * math.cos(t), 0.1])
     assert np.abs(got - tau).max() <= 1e-12 * np.abs(tau).max()
+
+
+@pytest.mark.slow
+def test_sampled_loop_against_the_continuous_loop_over_300_s(plant_fmu):
+    """theta_hat(300 s) of the 1 kHz loop (C library) against ivdrem's continuous loop with
+    the same saturated mu: measured 0.032 at h = 1 ms and half that at 0.5 ms (first order;
+    the issue's 1e-3 would need h of about 30 us, docs/controller.md)."""
+    from ivdrem.controller.clib import CController
+    from ivdrem.controller.continuous import continuous_closed_loop
+    from ivdrem.sim import simulate
+    r = simulate(continuous_closed_loop("iv-drem", mu_max=135.0), 300.0, dt_out=1.0,
+                 rtol=1e-7, atol=1e-9, h_max=0.5)
+    lab = list(r.output_labels)
+    th = r.outputs[[lab.index(f"theta_hat[{j}]") for j in range(5)], -1]
+    errs = [np.abs(_loop(CController(mu_max=135.0, h=h), plant_fmu, 300.0,
+                         every=10 ** 6)["theta_hat"][-1] - th).max() for h in (1e-3, 5e-4)]
+    assert errs[0] < 0.05
+    assert 1.7 < errs[0] / errs[1] < 2.3, errs
