@@ -21,7 +21,7 @@
 typedef struct {
     double k;                                   /* samples taken (exact below 2^53) */
     double Phi_f[NQT], Phi_Mf[NQT], u_f[IVC_NQ], theta_hat[IVC_NTHETA];
-    double zf[IVC_NQ], xi[NQT], eta[NQT], zeta[NQT], Yavg[NM];
+    double zf[IVC_NQ], xi[NQT], eta[NQT], X_xi[NQT], X_eta[NQT], zeta[NQT], Yavg[NM];
     double tau_prev[IVC_NQ], tau[IVC_NQ], tau_d_hat[IVC_NQ], Delta;
     double held[NM], lambda_min_held;           /* composite learning: (Y_b, Psi_b)(t_e) */
     /* window (15a): partial block, running sum, shadow sum, previous sample */
@@ -413,7 +413,8 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
     const double *par;
     ivc_state *s;
     double qd[n], dqd[n], ddqd[n], e[n], de[n], r[n], v[n], dv[n], tau[n], applied[n];
-    double A[NQT], B[NQT], C[NQT], D[NQT], PM[NQT], E[NQT], Pi[NQT], obs[NQT], phi[NQT];
+    double A[NQT], B[NQT], C[NQT], PM[NQT], E[NQT], Pi[NQT], obs[NQT], phi[NQT];
+    double F1[NQT], F2[NQT], F3[NQT], F4[NQT];
     double theta_c[nth], b[nth], g[NM], y[NM], calY[nth];
     double h, tk, mu, alpha, l, a = 0.0, I, d1, d2, dl, tmax;
     int i, j, k;
@@ -490,9 +491,27 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
         s->tau_d_hat[i] = -ot + s->u_f[i];                               /* Section 4 */
     }
     for (i = 0; i < n; i++) applied[i] = c->delay == 0 ? tau[i] : s->tau_prev[i];
-    /* regression (13) at t_k: phi^T = l (Phi_M^T(q, dq) - xi) + eta */
+    /* regression (13) at t_k: xi, eta advanced from t_k-1 with their inputs linear
+     * between the samples (first-order hold), then phi^T = l (Phi_M^T(q, dq) - xi) + eta */
     ivc_Phi_M(q, dq, E);
-    for (k = 0; k < NQT; k++) phi[k] = l * (E[k] - s->xi[k]) + s->eta[k];
+    ivc_Phi_C(q, dq, dq, F1);
+    ivc_Phi_dM(q, dq, dq, F2);
+    ivc_Phi_F(dq, F3);
+    ivc_Phi_G(q, F4);
+    dl = exp(-l * h);
+    for (k = 0; k < NQT; k++) {
+        double Xe = ((F1[k] - F2[k]) + F3[k]) + F4[k];
+        if (s->k > 0) {
+            double w = h * phi1(-l * h), sl;                       /* (1 - d)/l */
+            sl = (E[k] - s->X_xi[k]) / h;
+            s->xi[k] = (E[k] - sl * w) + dl * (s->xi[k] - s->X_xi[k]);
+            sl = (Xe - s->X_eta[k]) / h;
+            s->eta[k] = (Xe - sl * w) + dl * (s->eta[k] - s->X_eta[k]);
+        }
+        s->X_xi[k] = E[k];
+        s->X_eta[k] = Xe;
+        phi[k] = l * (E[k] - s->xi[k]) + s->eta[k];
+    }
     if (c->nb) {
         const double *inst = c->law == IVC_LAW_IV_DREM ? s->zeta : phi;
         for (i = 0; i < nth; i++) {                                      /* (15a) */
@@ -518,24 +537,14 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
     I = mu_integral(par, tk, h);
     d1 = exp(-I);
     d2 = c->corrected ? d1 * (mu / mu_sat(par, tk + h)) : d1;            /* E1 */
-    dl = exp(-l * h);
     for (k = 0; k < NQT; k++) {
         double X = A[k] - B[k] + C[k];
         s->Phi_f[k] = X + d1 * (s->Phi_f[k] - X);                         /* (7) */
         s->Phi_Mf[k] = PM[k] + d2 * (s->Phi_Mf[k] - PM[k]);
-        s->xi[k] = E[k] + dl * (s->xi[k] - E[k]);                         /* (13) */
     }
     for (i = 0; i < n; i++) {
         s->u_f[i] = -applied[i] + d1 * (s->u_f[i] + applied[i]);
         s->zf[i] = applied[i] + dl * (s->zf[i] - applied[i]);
-    }
-    ivc_Phi_C(q, dq, dq, A);
-    ivc_Phi_dM(q, dq, dq, B);
-    ivc_Phi_F(dq, C);
-    ivc_Phi_G(q, D);
-    for (k = 0; k < NQT; k++) {
-        double X = ((A[k] - B[k]) + C[k]) + D[k];
-        s->eta[k] = X + dl * (s->eta[k] - X);
     }
     if (c->law == IVC_LAW_IV_DREM) {
         ivc_Phi(qd, dqd, dqd, ddqd, A);                                  /* (14) */
