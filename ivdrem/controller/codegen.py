@@ -151,10 +151,7 @@ def generate_controller_sources(model, defaults=None) -> dict:
     model = get_model(model)
     n, nth = model.n, model.ntheta
     if defaults is None:
-        try:
-            defaults = param_vector(SampledController(model, law="iv-drem"))
-        except ValueError:
-            raise
+        defaults = param_vector(SampledController(model, law="iv-drem"))
     layout = param_layout(model)
     npar = sum(s for _, s, _ in layout)
     defaults = np.asarray(defaults, dtype=float).reshape(-1)

@@ -37,8 +37,8 @@ import numpy as np
 from .._atomic import new_tempfile
 from .._paths import check_replaceable
 from ..fmu.export import _platform, fmi2_header_dir, is_ivdrem_fmu
-from .codegen import (LAW_CODES, STRUCTURAL, _c_double, _version, generate_controller_sources,
-                      param_layout, param_vector)
+from .codegen import (LAW_CODES, _version, generate_controller_sources, param_layout,
+                      param_vector)
 from .sampled import SampledController
 
 __all__ = ["export_controller_fmu", "generate_controller_fmu_sources", "TUNABLE"]

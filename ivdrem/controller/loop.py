@@ -14,7 +14,6 @@ applied over the next sample, as a Jacobi host does (docs/controller.md).
 """
 from __future__ import annotations
 
-import math
 import shutil
 import tempfile
 
