@@ -35,12 +35,20 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--cc", default=None, help="C compiler (default $CC or cc)")
     e.add_argument("--no-compile", action="store_true",
                    help="ship sources only (build later with `fmpy compile`)")
+    e.add_argument("--controller", action="store_true",
+                   help="export the sampled controller (co-simulation FMU) instead of the plant")
+    e.add_argument("--law", default="iv-drem", help="--controller: the law (default iv-drem)")
+    e.add_argument("--mu-max", type=float, default=135.0, dest="mu_max",
+                   help="--controller: saturation of mu (default %(default)g)")
     return p
 
 
 def main_fmu(argv=None) -> int:
     """Entry point of ``ivdrem fmu``; ``argv`` excludes the leading ``fmu``. Returns exit code."""
     args = _parser().parse_args(argv)
+    if args.command == "export" and args.controller:
+        from ivdrem.controller.fmu_export import main_export_controller
+        return main_export_controller(args)
     if args.command == "export":
         from ivdrem.models import get_model
         from .._paths import user_path
@@ -83,6 +91,9 @@ def _cosim_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-long", action="store_true", dest="allow_long",
                    help="run even when the reference run's estimated memory or step count "
                         "exceeds the limits of ivdrem.sim.guards")
+    p.add_argument("--controller-fmu", default=None, metavar="FILE", dest="controller_fmu",
+                   help="close this controller FMU (ivdrem fmu export --controller) around the "
+                        "plant FMU in FMPy and compare with the C reference controller")
     return p
 
 
@@ -104,6 +115,9 @@ def main_cosim(argv=None) -> int:
     except SystemExit as exc:           # --help (0) or an argparse error (2, already printed)
         return int(exc.code or 0)
     prog = "ivdrem cosim"
+    if args.controller_fmu is not None:
+        from ivdrem.controller.fmu_loop import main_cosim_controller
+        return main_cosim_controller(args)
     H = args.comm_step
     if not (math.isfinite(args.t_end) and args.t_end > 0):
         print(f"{prog}: error: --t-end must be a finite number > 0, got {args.t_end:g}",

@@ -1,0 +1,163 @@
+"""The generated C controller library through ctypes, with the Python reference's interface.
+
+``CController(model, law, **gains)`` validates the gains as
+:class:`~ivdrem.controller.sampled.SampledController` does, builds the library of
+:mod:`ivdrem.controller.codegen` for the model (cached by the hash of its sources under
+``$IVDREM_CACHE_DIR/controller``, default ``~/.cache/ivdrem/controller``) and drives it: ``step(t, q, dq) ->
+tau``, ``theta_hat``, ``tau_d_hat``, ``Delta``, ``state()`` / ``set_state()``.
+"""
+from __future__ import annotations
+
+import ctypes
+from pathlib import Path
+
+import numpy as np
+
+from .codegen import build_library, param_layout, param_vector
+from .sampled import SampledController
+
+__all__ = ["CController", "load_library", "cache_dir"]
+
+_c_double_p = ctypes.POINTER(ctypes.c_double)
+
+
+def cache_dir() -> Path:
+    """``controller/`` in ivdrem's compile cache (``$IVDREM_CACHE_DIR``, default
+    ``~/.cache/ivdrem``, as ivdrem.sim.compiled)."""
+    from ..sim.compiled import cache_dir as ivdrem_cache
+    return ivdrem_cache() / "controller"
+
+
+def load_library(model, *, flags=("-O2",)):
+    lib = ctypes.CDLL(str(build_library(model, cache_dir() / model.key[:16], flags=flags)))
+    lib.ivc_init.restype = ctypes.c_void_p
+    lib.ivc_init.argtypes = [_c_double_p, ctypes.c_char_p, ctypes.c_size_t]
+    lib.ivc_step.restype = ctypes.c_int
+    lib.ivc_step.argtypes = [ctypes.c_void_p, ctypes.c_double, _c_double_p, _c_double_p,
+                             _c_double_p]
+    lib.ivc_outputs.argtypes = [ctypes.c_void_p] + [_c_double_p] * 4
+    lib.ivc_state_size.restype = ctypes.c_size_t
+    lib.ivc_state_size.argtypes = [ctypes.c_void_p]
+    lib.ivc_get_state.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_size_t]
+    lib.ivc_set_state.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_size_t]
+    lib.ivc_set_param.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_double]
+    lib.ivc_message.restype = ctypes.c_char_p
+    lib.ivc_message.argtypes = [ctypes.c_void_p]
+    lib.ivc_window_bytes.restype = ctypes.c_size_t
+    lib.ivc_window_bytes.argtypes = [ctypes.c_void_p]
+    lib.ivc_free.argtypes = [ctypes.c_void_p]
+    lib.ivc_reset.argtypes = [ctypes.c_void_p]
+    return lib
+
+
+class CControllerError(RuntimeError):
+    """The C controller refused a call (its message says why)."""
+
+
+class CController:
+    """The C library of the sampled controller (same arguments as SampledController)."""
+
+    def __init__(self, model=None, law="iv-drem", **kwargs):
+        ref = SampledController(model, law, **kwargs)       # validation, defaults
+        self.model, self.law, self.n, self.ntheta = ref.model, law, ref.n, ref.ntheta
+        self.h, self.delay = ref.h, ref.delay
+        self.lib = load_library(self.model)
+        self.par = param_vector(ref)
+        self.index = {}
+        off = 0
+        for name, size, _ in param_layout(self.model):
+            self.index[name] = off
+            off += size
+        msg = ctypes.create_string_buffer(256)
+        self._c = self.lib.ivc_init(self.par.ctypes.data_as(_c_double_p), msg, 256)
+        if not self._c:
+            raise ValueError(f"C controller: {msg.value.decode()}")
+        n, nth = self.n, self.ntheta
+        self._q, self._dq, self._tau = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._th, self._tdh, self._D, self._tau_o = np.zeros(nth), np.zeros(n), np.zeros(1), \
+            np.zeros(n)
+        self._p = [a.ctypes.data_as(_c_double_p) for a in
+                   (self._q, self._dq, self._tau, self._th, self._tdh, self._D, self._tau_o)]
+
+    @classmethod
+    def from_params(cls, model, law, par):
+        """The controller of a flat parameter vector (ivdrem_controller.h's layout), e.g.
+        the start values of a controller FMU."""
+        from .codegen import LAW_CODES
+        idx, off = {}, 0
+        for name, size, _ in param_layout(model):
+            idx[name] = slice(off, off + size)
+            off += size
+        par = np.asarray(par, dtype=float)
+        if par.size != off or LAW_CODES[law] != par[idx["law"]][0]:
+            raise ValueError(f"parameter vector of {par.size} entries (expected {off}) or "
+                             f"law code does not match {law!r}")
+        g = lambda k: par[idx[k]]  # noqa: E731
+        s = lambda k: float(par[idx[k]][0])  # noqa: E731
+        return cls(model, law, h=s("h"), alpha=s("alpha"),
+                   K=g("K").reshape(model.n, model.n), delta_mu=s("delta_mu"),
+                   Gamma=g("Gamma_diag"), mu0=s("mu0"), mu1=s("mu1"), mu_max=s("mu_max"),
+                   observer_variant="corrected" if s("corrected") else "literal",
+                   l=s("l"), T=s("T"), p=s("p"), F0=s("F0"), gamma=s("gamma"),
+                   sigma=s("sigma"), epsilon=s("epsilon"), theta_star=g("theta_star"),
+                   theta_hat0=g("theta_hat0"), tau_max=s("tau_max"), delay=int(s("delay")),
+                   block=int(s("block")),
+                   trajectory=dict(amplitude=g("tr_amplitude"), omega=g("tr_omega"),
+                                   phase=g("tr_phase"), offset=g("tr_offset")))
+
+    def __del__(self):
+        c = getattr(self, "_c", None)
+        if c:
+            self.lib.ivc_free(c)
+            self._c = None
+
+    @property
+    def window_bytes(self):
+        return int(self.lib.ivc_window_bytes(self._c))
+
+    def step(self, t, q, dq):
+        self._q[:] = q
+        self._dq[:] = dq
+        st = self.lib.ivc_step(self._c, float(t), self._p[0], self._p[1], self._p[2])
+        if st != 0:
+            raise CControllerError(f"ivc_step: {self.lib.ivc_message(self._c).decode()} "
+                                   f"(status {st})")
+        return self._tau.copy()
+
+    def _outputs(self):
+        self.lib.ivc_outputs(self._c, *self._p[3:])
+
+    @property
+    def theta_hat(self):
+        self._outputs()
+        return self._th.copy()
+
+    @property
+    def tau_d_hat(self):
+        self._outputs()
+        return self._tdh.copy()
+
+    @property
+    def Delta(self):
+        self._outputs()
+        return float(self._D[0])
+
+    def set_param(self, name, value, i=0):
+        st = self.lib.ivc_set_param(self._c, self.index[name] + i, float(value))
+        if st != 0:
+            raise CControllerError(self.lib.ivc_message(self._c).decode())
+
+    def state(self):
+        size = self.lib.ivc_state_size(self._c)
+        buf = ctypes.create_string_buffer(size)
+        if self.lib.ivc_get_state(self._c, buf, size) != 0:
+            raise CControllerError("ivc_get_state failed")
+        return buf.raw
+
+    def set_state(self, raw):
+        buf = ctypes.create_string_buffer(raw, len(raw))
+        if self.lib.ivc_set_state(self._c, buf, len(raw)) != 0:
+            raise CControllerError(self.lib.ivc_message(self._c).decode())
+
+    def reset(self):
+        self.lib.ivc_reset(self._c)

@@ -1,0 +1,300 @@
+"""The sampled controller as a self-contained C library, generated for any model.
+
+``generate_controller_sources(model)`` returns the files of the library:
+
+* ``ivdrem_controller.h``: the one header: sizes, the parameter vector's layout (index
+  macros ``IVC_P_<NAME>`` and defaults ``IVC_PAR_DEFAULTS``: the paper's experiment), law
+  codes and the documented API (``ivc_init / ivc_step / ivc_get_state / ivc_set_state /
+  ivc_free`` ...);
+* ``controller_model.c``: the regressors Phi_M, Phi_C, Phi_dM, Phi_G, Phi_F, Phi of
+  Property 1, printed from the sympy model by ``sympy.cse`` + ``sympy.ccode`` (C99), as
+  ivdrem.fmu.export prints the plant;
+* ``ivdrem_controller.c``: the hand-written core (this folder), the algorithm of
+  :mod:`ivdrem.controller.sampled`.
+
+``build_library(model, directory)`` compiles them into a shared library (plain C99, libm
+only) for :class:`ivdrem.controller.clib.CController` (ctypes).
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import sympy as sp
+
+__all__ = ["param_layout", "generate_controller_sources", "build_library", "LAW_CODES",
+           "CORE_SOURCE"]
+
+_HERE = Path(__file__).resolve().parent
+CORE_SOURCE = _HERE / "ivdrem_controller.c"
+
+#: law name -> code of the parameter ``law``
+LAW_CODES = {"iv-drem": 0, "composite-learning": 1, "drem": 2, "sigma-modification": 3,
+             "none": 4}
+
+#: parameters that fix the memory or the meaning of the state (set before ivc_init)
+STRUCTURAL = ("h", "T", "block", "law", "delay", "corrected")
+
+
+def param_layout(model):
+    """[(name, size, description)] of the flat parameter vector, in order."""
+    n, nth = model.n, model.ntheta
+    return [
+        ("h", 1, "sample period (s)"),
+        ("alpha", 1, "tracking error filter alpha: r = de + alpha e"),
+        ("K", n * n, "feedback gain K (n x n, row major), control law (9)"),
+        ("delta_mu", 1, "delta_mu in (0, 1), control law (9)"),
+        ("Gamma_diag", nth, "adaptation gain Gamma (diagonal), (11)"),
+        ("mu0", 1, "mu(t) = min(mu0 t + mu1, mu_max)"),
+        ("mu1", 1, "mu(0) > 0"),
+        ("mu_max", 1, "saturation of mu (docs/controller.md)"),
+        ("l", 1, "filter gain l of (13), (14)"),
+        ("T", 1, "window length T of (15a) (s)"),
+        ("p", 1, "averaging F(t) = t^p + F0 (15b)"),
+        ("F0", 1, "averaging F0 > 0 (erratum E3)"),
+        ("gamma", 1, "gain gamma of the composite term (21) or (35)"),
+        ("sigma", 1, "sigma-modification gain (erratum E5)"),
+        ("epsilon", 1, "composite learning: threshold of lambda_min"),
+        ("theta_star", nth, "sigma-modification prior theta*"),
+        ("theta_hat0", nth, "initial estimate theta_hat(0)"),
+        ("tau_max", 1, "torque saturation |tau_i| <= tau_max (inf: none)"),
+        ("delay", 1, "0: tau_k applied over [t_k, t_k+1]; 1: over [t_k+1, t_k+2]"),
+        ("block", 1, "samples per block sum of the window"),
+        ("law", 1, "0 iv-drem, 1 composite-learning, 2 drem, 3 sigma-modification, 4 none"),
+        ("corrected", 1, "1: observer gain mu + dmu/mu for Phi_Mf (erratum E1); 0: mu"),
+        ("tr_amplitude", n, "reference q_d = A sin(w t + phi) + c: A"),
+        ("tr_omega", n, "reference: w (rad/s)"),
+        ("tr_phase", n, "reference: phi"),
+        ("tr_offset", n, "reference: c"),
+    ]
+
+
+def param_vector(ctrl):
+    """The flat parameter vector of a :class:`~ivdrem.controller.sampled.SampledController`."""
+    vals = {"h": ctrl.h, "alpha": ctrl.alpha, "K": ctrl.K.reshape(-1),
+            "delta_mu": ctrl.delta_mu, "Gamma_diag": ctrl.Gamma, "mu0": ctrl.mu0,
+            "mu1": ctrl.mu1, "mu_max": ctrl.mu_max, "l": ctrl.l, "T": ctrl.T, "p": ctrl.p,
+            "F0": ctrl.F0, "gamma": ctrl.gamma, "sigma": ctrl.sigma,
+            "epsilon": ctrl.epsilon, "theta_star": ctrl.theta_star,
+            "theta_hat0": ctrl.theta_hat0, "tau_max": ctrl.tau_max, "delay": ctrl.delay,
+            "block": ctrl.block, "law": LAW_CODES[ctrl.law],
+            "corrected": 1.0 if ctrl.corrected else 0.0, "tr_amplitude": ctrl.tr_A,
+            "tr_omega": ctrl.tr_w, "tr_phase": ctrl.tr_phi, "tr_offset": ctrl.tr_c}
+    out = []
+    for name, size, _ in param_layout(ctrl.model):
+        v = np.atleast_1d(np.asarray(vals[name], dtype=float)).reshape(-1)
+        assert v.size == size, name
+        out.extend(v.tolist())
+    return np.array(out)
+
+
+def _c_double(x: float) -> str:
+    if math.isinf(x):
+        return "INFINITY" if x > 0 else "(-INFINITY)"
+    s = repr(float(x))
+    return s if ("e" in s or "." in s) else s + ".0"
+
+
+def _regressor_code(model):
+    """C functions ivc_<R>(args..., out) of the regressors, out row major n x ntheta."""
+    n, nth = model.n, model.ntheta
+    csub = {k: sp.Float(v, 17) for k, v in model.constants.items()}
+    groups = {"q": model.q, "dq": model.dq, "a": model.a, "v": model.v, "dv": model.dv}
+    specs = [("Phi_M", model.Phi_M, ("q", "a")), ("Phi_C", model.Phi_C, ("q", "dq", "v")),
+             ("Phi_dM", model.Phi_dM, ("q", "dq", "a")), ("Phi_G", model.Phi_G, ("q",)),
+             ("Phi_F", model.Phi_F, ("dq",)), ("Phi", model.Phi, ("q", "dq", "v", "dv"))]
+    funcs = []
+    for name, expr, args in specs:
+        ren = dict(csub)
+        for g, syms in groups.items():
+            for i, s in enumerate(syms):
+                ren[s] = sp.Symbol(f"{g}[{i}]")
+        E = sp.Matrix(expr).xreplace(ren)
+        allowed = {sp.Symbol(f"{g}[{i}]") for g in args for i in range(n)}
+        extra = set().union(*(e.free_symbols for e in E)) - allowed
+        if extra:
+            raise ValueError(f"model {model.name!r}: {name} has unexpected symbols "
+                             f"{sorted(map(str, extra))}")
+        exprs = [E[i, j] for i in range(n) for j in range(nth)]
+        repl, red = sp.cse(exprs, symbols=sp.numbered_symbols("w"), order="none")
+        body = [f"    const double {s} = {sp.ccode(e, standard='C99')};" for s, e in repl]
+        body += [f"    out[{k}] = {sp.ccode(e, standard='C99')};" for k, e in enumerate(red)]
+        text = "\n".join(body)
+        unused = [f"    (void){a};" for a in args
+                  if not re.search(rf"(?<![A-Za-z_]){a}\[", text)]
+        sig = ", ".join(f"const double *{a}" for a in args)
+        funcs.append(f"void ivc_{name}({sig}, double *out) {{\n"
+                     + "\n".join(unused + body) + "\n}\n")
+    return funcs, specs
+
+
+def _version():
+    try:
+        from importlib.metadata import version
+        return version("ivdrem")
+    except Exception:  # pragma: no cover
+        return "0"
+
+
+def generate_controller_sources(model, defaults=None) -> dict:
+    """{file name: text} of the C library for ``model``; ``defaults`` is a flat parameter
+    vector (default: the paper's experiment for the 2-link arm, see ``param_vector``)."""
+    from ..models import get_model
+    from .sampled import SampledController
+    model = get_model(model)
+    n, nth = model.n, model.ntheta
+    if defaults is None:
+        defaults = param_vector(SampledController(model, law="iv-drem"))
+    layout = param_layout(model)
+    npar = sum(s for _, s, _ in layout)
+    defaults = np.asarray(defaults, dtype=float).reshape(-1)
+    if defaults.size != npar:
+        raise ValueError(f"defaults must have {npar} entries, got {defaults.size}")
+    funcs, specs = _regressor_code(model)
+    idx, off = [], 0
+    for name, size, descr in layout:
+        idx.append(f"#define IVC_P_{name.upper():<14} {off:4d}  /* [{size}] {descr} */")
+        off += size
+    protos = "\n".join(
+        f"IVC_INTERNAL void ivc_{name}(" + ", ".join(f"const double *{a}" for a in args)
+        + ", double *out);" for name, _, args in specs)
+    laws = "\n".join(f"#define IVC_LAW_{k}  {v}" for k, v in
+                     (("IV_DREM", 0), ("COMPOSITE", 1), ("DREM", 2), ("SIGMA", 3), ("NONE", 4)))
+    header = f"""/* ivdrem_controller.h: the sampled IV-DREM controller (Glushchenko & Lastochkin,
+ * eqs. 7-21) for the robot model "{model.name}" (n = {n} joints, ntheta = {nth} parameters).
+ * Generated by ivdrem {_version()} (model key {model.key}). Do not edit.
+ *
+ * Usage (plain C99, no dependency but libm, no allocation after ivc_init):
+ *
+ *     double par[IVC_NPAR];
+ *     ivc_default_params(par);             the paper's experiment; edit par[IVC_P_...]
+ *     char msg[256];
+ *     ivc_controller *c = ivc_init(par, msg, sizeof msg);     NULL: msg says why
+ *     for (k = 0; ; k++) {{                 t_k = k h, every h seconds:
+ *         if (ivc_step(c, k * h, q, dq, tau) != IVC_OK) ... ivc_message(c)
+ *         apply tau (delay 0) ...
+ *     }}
+ *     ivc_free(c);
+ *
+ * ivc_step(c, t_k, q, dq, tau): one sample.  q, dq: measured joint positions and velocities
+ *   at t_k = k h (k counts the calls: any other t is refused); tau: the torque tau_k
+ *   (with delay 1 it is meant for [t_k+1, t_k+2]).  Returns IVC_OK, or an error with the
+ *   state unchanged: IVC_ERR_ARG (wrong t), IVC_ERR_NONFINITE (NaN/Inf in q, dq),
+ *   IVC_ERR_DIVERGED (non-finite torque).
+ * ivc_outputs(c, theta_hat, tau_d_hat, Delta, tau): the estimate theta_hat(t_k+1), the
+ *   disturbance estimate tau_d_hat(t_k), Delta(t_k) of (17), tau_k (any may be NULL).
+ * ivc_state_size / ivc_get_state / ivc_set_state: the whole state (window included) as
+ *   bytes, for save and restore; a restored controller continues bit for bit.
+ * ivc_set_param(c, IVC_P_x, value): change a gain between steps (not h, T, block, law,
+ *   delay, corrected, which fix the memory: give those to ivc_init).
+ * ivc_reset(c): back to t = 0.  ivc_window_bytes(c): memory of the window.
+ */
+#ifndef IVDREM_CONTROLLER_H
+#define IVDREM_CONTROLLER_H
+
+#include <stddef.h>
+
+#define IVC_NQ {n}
+#define IVC_NTHETA {nth}
+#define IVC_NPAR {npar}
+
+/* parameter vector layout: par[IVC_P_NAME + i] */
+{chr(10).join(idx)}
+
+/* law codes (par[IVC_P_LAW]) */
+{laws}
+
+/* return codes */
+#define IVC_OK 0
+#define IVC_ERR_ARG 1
+#define IVC_ERR_NONFINITE 2
+#define IVC_ERR_DIVERGED 3
+#define IVC_ERR_STATE 4
+
+#if defined(__GNUC__) && !defined(_WIN32)
+#define IVC_INTERNAL __attribute__((visibility("hidden")))
+#else
+#define IVC_INTERNAL
+#endif
+#ifndef IVC_API
+#define IVC_API
+#endif
+
+typedef struct ivc_controller ivc_controller;
+
+IVC_API void ivc_default_params(double *par);
+IVC_API int ivc_check_params(const double *par, char *msg, size_t len);
+IVC_API ivc_controller *ivc_init(const double *par, char *msg, size_t len);
+IVC_API int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, double *tau);
+IVC_API int ivc_outputs(const ivc_controller *c, double *theta_hat, double *tau_d_hat,
+                        double *Delta, double *tau);
+IVC_API size_t ivc_state_size(const ivc_controller *c);
+IVC_API int ivc_get_state(const ivc_controller *c, void *buf, size_t size);
+IVC_API int ivc_set_state(ivc_controller *c, const void *buf, size_t size);
+IVC_API int ivc_set_param(ivc_controller *c, int index, double value);
+IVC_API double ivc_get_param(const ivc_controller *c, int index);
+IVC_API int ivc_reset(ivc_controller *c);
+IVC_API double ivc_time(const ivc_controller *c);
+IVC_API size_t ivc_window_bytes(const ivc_controller *c);
+IVC_API const char *ivc_message(const ivc_controller *c);
+IVC_API void ivc_free(ivc_controller *c);
+
+/* generated: regressors of Property 1, out row major n x ntheta (controller_model.c) */
+{protos}
+IVC_INTERNAL extern const double IVC_PAR_DEFAULTS[IVC_NPAR];
+
+#endif
+"""
+    source = (f"/* controller_model.c: generated by ivdrem {_version()} from the sympy model "
+              f"\"{model.name}\"\n * (model key {model.key}) with sympy {sp.__version__}: "
+              "sympy.cse + sympy.ccode (C99). Do not edit. */\n"
+              "#include <math.h>\n#include \"ivdrem_controller.h\"\n\n"
+              "const double IVC_PAR_DEFAULTS[IVC_NPAR] = {"
+              + ", ".join(_c_double(v) for v in defaults) + "};\n\n" + "\n".join(funcs))
+    return {"ivdrem_controller.h": header, "controller_model.c": source,
+            "ivdrem_controller.c": CORE_SOURCE.read_text()}
+
+
+def _compiler(cc=None):
+    cc = cc or os.environ.get("CC") or "cc"
+    if shutil.which(cc) is None:
+        raise RuntimeError(f"C compiler {cc!r} not found (set CC or pass cc=...)")
+    return cc
+
+
+def build_library(model, directory, *, defaults=None, cc=None, flags=("-O2",)):
+    """Compile the sources into a shared library in ``directory``; returns its path
+    (cached by the hash of the sources and flags)."""
+    files = generate_controller_sources(model, defaults)
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    digest = hashlib.sha256("\0".join(files[k] for k in sorted(files)).encode()
+                            + " ".join(flags).encode()).hexdigest()[:16]
+    ext = ".dylib" if sys.platform == "darwin" else ".so"
+    lib = directory / f"libivdrem_controller_{digest}{ext}"
+    if lib.exists():
+        return lib
+    import tempfile
+    # sources and binary in a private folder, then one rename: concurrent builds of the
+    # same library (pytest workers) never see half-written files
+    with tempfile.TemporaryDirectory(prefix="build_", dir=directory) as tmp:
+        tmp = Path(tmp)
+        for name, text in files.items():
+            (tmp / name).write_text(text)
+        out = tmp / lib.name
+        cmd = [_compiler(cc), "-shared", "-fPIC", "-std=c99", *flags, "-Wall", "-Wextra",
+               "-I", str(tmp), str(tmp / "ivdrem_controller.c"), str(tmp / "controller_model.c"),
+               "-o", str(out), "-lm"]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"compiling the controller failed ({' '.join(cmd)}):\n"
+                               f"{res.stderr}")
+        os.replace(out, lib)
+    return lib

@@ -1,0 +1,288 @@
+"""Export the sampled controller as an FMI 2.0 co-simulation FMU (generated C).
+
+The FMU is the C library of :mod:`ivdrem.controller.codegen` (regressors printed from the
+sympy model, hand-written core ``ivdrem_controller.c``) behind the hand-written FMI 2.0
+wrapper ``fmi2_controller.c`` (Reference-FMU style, as the plant FMU's ``fmi2_plant.c``).
+
+Variables (value reference = position; n = DoF, nθ = parameters)::
+
+    q[i], dq[i]        input, continuous: the measured joint positions and velocities
+    tau[i]             output, discrete: the torque for the next sample (delay 1)
+    theta_hat[j]       output, discrete: the estimate theta_hat at the current time
+    tau_d_hat[i]       output, discrete: the disturbance estimate of the last step
+    Delta              output, discrete: Delta of (17) of the last step (IV-DREM, DREM)
+    <parameters>       the parameter vector of ivdrem_controller.h (delay excluded: 1):
+                       gains "tunable" (may change between steps), h, T, block, law,
+                       corrected, theta_hat0 and the reference "fixed"
+
+``fmi2DoStep(t_k, h)`` must use the controller's sample period h; see fmi2_controller.c.
+"""
+from __future__ import annotations
+
+import hashlib
+import html
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import uuid
+import zipfile
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from .._atomic import new_tempfile
+from .._paths import check_replaceable
+from ..fmu.export import _platform, fmi2_header_dir, is_ivdrem_fmu
+from .codegen import (LAW_CODES, _version, generate_controller_sources, param_layout,
+                      param_vector)
+from .sampled import SampledController
+
+__all__ = ["export_controller_fmu", "generate_controller_fmu_sources", "TUNABLE"]
+
+_HERE = Path(__file__).resolve().parent
+_FMI2_HEADERS = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
+SOURCE_FILES = ("fmi2_controller.c", "ivdrem_controller.c", "controller_model.c")
+
+#: parameters a host may change between steps
+TUNABLE = ("alpha", "K", "delta_mu", "Gamma_diag", "mu0", "mu1", "mu_max", "l", "p", "F0",
+           "gamma", "sigma", "epsilon", "theta_star", "tau_max")
+_HIDDEN = ("delay",)
+
+
+def _fmt(x):
+    return repr(float(x)) if np.isfinite(x) else ("INF" if x > 0 else "-INF")
+
+
+def _variables(model, par):
+    n, nth = model.n, model.ntheta
+    V = []
+    for i in range(n):
+        V.append(dict(name=f"q[{i}]", causality="input", variability="continuous", start=0.0,
+                      unit="rad", description=f"measured joint position {i}"))
+    for i in range(n):
+        V.append(dict(name=f"dq[{i}]", causality="input", variability="continuous", start=0.0,
+                      unit="rad/s", description=f"measured joint velocity {i}"))
+    for i in range(n):
+        V.append(dict(name=f"tau[{i}]", causality="output", variability="discrete",
+                      initial="calculated", unit="N.m",
+                      description=f"control torque {i} for the next sample (delay 1), eq. (9)"))
+    for j in range(nth):
+        V.append(dict(name=f"theta_hat[{j}]", causality="output", variability="discrete",
+                      initial="calculated", description=f"parameter estimate {j}, eq. (11)"))
+    for i in range(n):
+        V.append(dict(name=f"tau_d_hat[{i}]", causality="output", variability="discrete",
+                      initial="calculated", unit="N.m",
+                      description=f"external torque estimate {i} of the last step"))
+    V.append(dict(name="Delta", causality="output", variability="discrete",
+                  initial="calculated", description="Delta of the mixing step (17), last step"))
+    off = 0
+    for name, size, descr in param_layout(model):
+        for i in range(size):
+            nm = name if size == 1 else f"{name}[{i}]"
+            v = dict(name=nm, causality="parameter", initial="exact", start=par[off + i],
+                     variability="tunable" if name in TUNABLE else "fixed",
+                     description=descr, hidden=name in _HIDDEN)
+            if name in ("h", "T"):
+                v["unit"] = "s"
+            V.append(v)
+        off += size
+    return V
+
+
+def _model_description(model, V, guid, ident, law):
+    units = sorted({v["unit"] for v in V if v.get("unit")})
+    base = {"rad": 'rad="1"', "rad/s": 's="-1" rad="1"', "N.m": 'kg="1" m="2" s="-2"',
+            "s": 's="1"'}
+    h = next(v["start"] for v in V if v["name"] == "h")
+    src = "\n".join(f'      <File name="{f}"/>' for f in SOURCE_FILES)
+    out = ['<?xml version="1.0" encoding="UTF-8"?>', '<fmiModelDescription', '  fmiVersion="2.0"',
+           f'  modelName={quoteattr(f"ivdrem controller {law} {model.name}")}',
+           f'  guid="{guid}"',
+           f'  description={quoteattr(f"Sampled IV-DREM family controller (law {law}) for the robot {model.name} (n = {model.n}): observer (7), control law (9), adaptation (11); fixed step h, delay 1. Generated C.")}',
+           f'  generationTool="ivdrem {_version()}"', '  variableNamingConvention="structured"',
+           '  numberOfEventIndicators="0">',
+           f'  <CoSimulation modelIdentifier="{ident}" canHandleVariableCommunicationStepSize="false"'
+           ' canInterpolateInputs="false" maxOutputDerivativeOrder="0" canRunAsynchronuously="false"'
+           ' canGetAndSetFMUstate="true" canSerializeFMUstate="true"'
+           ' canNotUseMemoryManagementFunctions="true" providesDirectionalDerivative="false">',
+           '    <SourceFiles>', src, '    </SourceFiles>', '  </CoSimulation>',
+           '  <UnitDefinitions>']
+    out += [f'    <Unit name="{u}"><BaseUnit {base[u]}/></Unit>' for u in units]
+    out += ['  </UnitDefinitions>', '  <LogCategories>',
+            '    <Category name="logEvents" description="Initialization (debug logging)"/>',
+            '    <Category name="logStatusError" description="Errors: illegal calls, bad values (always logged)"/>',
+            '  </LogCategories>',
+            f'  <DefaultExperiment startTime="0" stopTime="10" stepSize="{_fmt(h)}"/>',
+            '  <ModelVariables>']
+    exposed = [(vr, v) for vr, v in enumerate(V) if not v.get("hidden")]
+    index = {}
+    for vr, v in exposed:
+        index[vr] = len(index) + 1
+        attrs = [f'name={quoteattr(v["name"])}', f'valueReference="{vr}"',
+                 f'description={quoteattr(v["description"])}', f'causality="{v["causality"]}"',
+                 f'variability="{v["variability"]}"']
+        if "initial" in v:
+            attrs.append(f'initial="{v["initial"]}"')
+        real = [f'unit="{v["unit"]}"'] if v.get("unit") else []
+        if "start" in v:
+            real.append(f'start="{_fmt(v["start"])}"')
+        out += [f'    <ScalarVariable {" ".join(attrs)}>', f'      <Real {" ".join(real)}/>',
+                '    </ScalarVariable>']
+    out += ['  </ModelVariables>', '  <ModelStructure>', '    <Outputs>']
+    outs = [vr for vr, v in exposed if v["causality"] == "output"]
+    out += [f'      <Unknown index="{index[vr]}" dependencies=""/>' for vr in outs]
+    out += ['    </Outputs>', '    <InitialUnknowns>']
+    out += [f'      <Unknown index="{index[vr]}"/>' for vr in outs]
+    out += ['    </InitialUnknowns>', '  </ModelStructure>', '</fmiModelDescription>', '']
+    return "\n".join(out)
+
+
+def _fmu_header(model, V, guid):
+    n, nth = model.n, model.ntheta
+    npar = sum(s for _, s, _ in param_layout(model))
+    pars = V[4 * n + nth + 1:]
+    assert len(pars) == npar
+    names = ", ".join('"' + v["name"] + '"' for v in pars)
+    tun = ", ".join("1" if v["variability"] == "tunable" else "0" for v in pars)
+    exp = ", ".join("0" if v.get("hidden") else "1" for v in pars)
+    return f"""/* controller_fmu.h: generated by ivdrem {_version()} for the controller FMU of
+ * "{model.name}". Value references, as in modelDescription.xml. Do not edit. */
+#ifndef CONTROLLER_FMU_H
+#define CONTROLLER_FMU_H
+#define MODEL_GUID "{guid}"
+#define VR_Q 0
+#define VR_DQ {n}
+#define VR_TAU {2 * n}
+#define VR_THETA_HAT {3 * n}
+#define VR_TAU_D_HAT {3 * n + nth}
+#define VR_DELTA {4 * n + nth}
+#define VR_PAR {4 * n + nth + 1}
+static const char *const PARAMETER_NAMES[IVC_NPAR] = {{{names}}};
+static const int PARAMETER_TUNABLE[IVC_NPAR] = {{{tun}}};
+static const int PARAMETER_EXPOSED[IVC_NPAR] = {{{exp}}};
+#endif
+"""
+
+
+def _identifier(model, law):
+    return "ivdrem_controller_" + re.sub(r"[^0-9A-Za-z_]", "_", f"{law}_{model.name}")
+
+
+def generate_controller_fmu_sources(model, law="iv-drem", **gains) -> dict:
+    """{relative path: text} of the controller FMU but its binary.  ``gains`` are the
+    arguments of :class:`~ivdrem.controller.sampled.SampledController` (start values)."""
+    from ..models import get_model
+    model = get_model(model)
+    gains = dict(gains)
+    if gains.pop("delay", 1) != 1:
+        raise ValueError("the controller FMU has delay 1 (no direct feedthrough); "
+                         "see docs/controller.md")
+    ref = SampledController(model, law, delay=1, **gains)     # validates everything
+    par = param_vector(ref)
+    lib = generate_controller_sources(model, par)
+    V = _variables(model, par)
+    ident = _identifier(model, law)
+    mark = "@GUID@"
+    xml = _model_description(model, V, mark, ident, law)
+    head = _fmu_header(model, V, mark)
+    wrapper = (_HERE / "fmi2_controller.c").read_text()
+    digest = hashlib.sha256("\0".join([wrapper, xml, head, *lib.values()]).encode()).hexdigest()
+    guid = "{" + str(uuid.uuid5(uuid.NAMESPACE_URL, "ivdrem-controller-fmu:" + digest)) + "}"
+    files = {"modelDescription.xml": xml.replace(mark, guid),
+             "sources/controller_fmu.h": head.replace(mark, guid),
+             "sources/fmi2_controller.c": wrapper,
+             "documentation/index.html": _documentation(model, V, law)}
+    files.update({f"sources/{k}": v for k, v in lib.items()})
+    for h in _FMI2_HEADERS:
+        files[f"sources/{h}"] = (fmi2_header_dir() / h).read_text()
+    return files
+
+
+def _documentation(model, V, law):
+    rows = "\n".join(f"<tr><td>{vr}</td><td>{html.escape(v['name'])}</td><td>{v['causality']}"
+                     f"</td><td>{v['variability']}</td><td>{html.escape(v['description'])}</td></tr>"
+                     for vr, v in enumerate(V) if not v.get("hidden"))
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>ivdrem controller</title>"
+            f"</head><body><h1>Sampled controller, law {html.escape(law)}, robot "
+            f"{html.escape(model.name)}</h1><p>Co-simulation FMU generated by ivdrem: "
+            "fmi2DoStep(t_k, h) reads q(t_k), dq(t_k) and outputs the torque for the next "
+            "sample (delay 1). The communication step must equal the parameter h.</p>"
+            "<table><tr><th>vr</th><th>name</th><th>causality</th><th>variability</th>"
+            f"<th>description</th></tr>{rows}</table></body></html>\n")
+
+
+def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=False, **gains):
+    """Write the sampled controller of ``law`` for ``model`` as an FMI 2.0 CS FMU.
+
+    Same rules as the plant FMU (:func:`ivdrem.fmu.export_fmu`): an existing file that
+    ivdrem did not write is refused before any work unless ``overwrite``; the FMU is
+    written to a temporary next to ``path`` and moved into place.  Returns the path.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"the FMU path {path} is a directory; give a file name, e.g. "
+                         f"{path / 'Controller.fmu'}")
+    if law not in LAW_CODES:
+        raise ValueError(f"law {law!r} has no sampled controller; choose one of "
+                         f"{', '.join(LAW_CODES)}")
+    check_replaceable(path, "FMU file", overwrite=overwrite, ours=is_ivdrem_fmu)
+    files = generate_controller_fmu_sources(model, law, **gains)
+    ident = re.search(r'modelIdentifier="([^"]+)"', files["modelDescription.xml"]).group(1)
+    cc = cc or os.environ.get("CC") or "cc"
+    if shutil.which(cc) is None:
+        raise RuntimeError(f"C compiler {cc!r} not found (set CC or pass cc=...)")
+    with tempfile.TemporaryDirectory(prefix="ivdrem_cfmu_") as tmp:
+        root = Path(tmp)
+        for rel, text in files.items():
+            p = root / rel
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_text(text)
+        plat, ext = _platform()
+        bdir = root / "binaries" / plat
+        bdir.mkdir(parents=True)
+        src = root / "sources"
+        cmd = [cc, "-shared", "-fPIC", "-O2", "-std=c99", "-fvisibility=hidden", "-Wall",
+               "-Wextra", "-I", str(src)]
+        if sys.platform.startswith("linux"):
+            cmd += ["-Wl,--no-undefined"]
+        cmd += [str(src / f) for f in SOURCE_FILES] + ["-o", str(bdir / (ident + ext)), "-lm"]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            raise RuntimeError(f"compiling the controller FMU failed ({' '.join(cmd)}):\n"
+                               f"{res.stderr}")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp_zip = new_tempfile(path.parent, path.name)
+        try:
+            with zipfile.ZipFile(tmp_zip, "w", zipfile.ZIP_DEFLATED) as zf:
+                for p in sorted(root.rglob("*")):
+                    if p.is_file():
+                        zf.write(p, p.relative_to(root).as_posix())
+            os.replace(tmp_zip, path)
+        except BaseException:
+            tmp_zip.unlink(missing_ok=True)
+            raise
+    return path
+
+
+def main_export_controller(args) -> int:
+    """``ivdrem fmu export --controller``: the parsed arguments of ivdrem.fmu.cli."""
+    import sys
+    from .._paths import user_path
+    from ..models import get_model
+    try:
+        if args.no_compile or args.q0 is not None or args.dq0 is not None:
+            raise ValueError("--no-compile, --q0 and --dq0 are options of the plant FMU, not "
+                             "of --controller")
+        model = get_model(args.model)
+        path = export_controller_fmu(model, user_path(args.output), law=args.law, cc=args.cc,
+                                     overwrite=args.overwrite, mu_max=args.mu_max)
+    except (ValueError, RuntimeError, NotImplementedError, OSError) as exc:
+        print(f"ivdrem fmu export: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {path} (controller, law {args.law}, model {model.name}, n = {model.n}, "
+          f"ntheta = {model.ntheta}, h = 1 ms, mu_max = {args.mu_max:g})")
+    return 0

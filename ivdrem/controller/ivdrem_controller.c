@@ -1,0 +1,579 @@
+/* ivdrem_controller.c: the sampled controller of the paper (eqs. 7-21), plain C99.
+ *
+ * Hand-written core of the generated controller library (ivdrem/controller/codegen.py);
+ * the model's sizes and regressors come from the generated controller_model.h/.c.  The
+ * algorithm is that of the Python reference ivdrem/controller/sampled.py, step for step
+ * (docs/controller.md): outputs at t_k from the states at t_k, then every state advanced
+ * over [t_k, t_k + h] with its sampled inputs held, by exact updates of the linear filters.
+ * No allocation after ivc_init; no dependency but libm.
+ */
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "ivdrem_controller.h"
+
+#define NQT (IVC_NQ * IVC_NTHETA)
+#define NM (IVC_NTHETA + IVC_NTHETA * IVC_NTHETA)
+
+/* the whole state but the window's ring of block sums: plain doubles, copied as bytes */
+typedef struct {
+    double k;                                   /* samples taken (exact below 2^53) */
+    double Phi_f[NQT], Phi_Mf[NQT], u_f[IVC_NQ], theta_hat[IVC_NTHETA];
+    double zf[IVC_NQ], xi[NQT], eta[NQT], X_xi[NQT], X_eta[NQT], zeta[NQT], Yavg[NM];
+    double tau_prev[IVC_NQ], tau[IVC_NQ], tau_d_hat[IVC_NQ], Delta;
+    double held[NM], lambda_min_held;           /* composite learning: (Y_b, Psi_b)(t_e) */
+    /* window (15a): partial block, running sum, shadow sum, previous sample */
+    double P[NM], S[NM], shadow[NM], g_prev[NM];
+    double pos, i, nshadow, has_prev;
+} ivc_state;
+
+struct ivc_controller {
+    double par[IVC_NPAR];
+    int law, delay, corrected, block;           /* structural, fixed at ivc_init */
+    long nb;                                    /* blocks in the ring */
+    double h, T;
+    ivc_state s;
+    double *ring;                               /* nb x NM block sums */
+    char msg[256];
+};
+
+static void fail(ivc_controller *c, const char *fmt, double a, double b) {
+    if (c) snprintf(c->msg, sizeof c->msg, fmt, a, b);
+}
+
+const char *ivc_message(const ivc_controller *c) { return c ? c->msg : "no controller"; }
+
+size_t ivc_window_bytes(const ivc_controller *c) {
+    return c ? (size_t)c->nb * NM * sizeof(double) + 4 * NM * sizeof(double) : 0;
+}
+
+void ivc_default_params(double *par) { memcpy(par, IVC_PAR_DEFAULTS, sizeof IVC_PAR_DEFAULTS); }
+
+static int check_params(ivc_controller *c, const double *par) {
+    int i;
+    for (i = 0; i < IVC_NPAR; i++)
+        if (isnan(par[i])) { fail(c, "parameter %g is NaN", (double)i, 0); return IVC_ERR_ARG; }
+    if (!(par[IVC_P_H] > 0 && isfinite(par[IVC_P_H])))
+        { fail(c, "h = %g must be > 0 and finite%s", par[IVC_P_H], 0); return IVC_ERR_ARG; }
+    if (!(par[IVC_P_DELTA_MU] > 0 && par[IVC_P_DELTA_MU] < 1))
+        { fail(c, "delta_mu = %g must lie in (0, 1)%.0s", par[IVC_P_DELTA_MU], 0); return IVC_ERR_ARG; }
+    if (!(par[IVC_P_MU0] >= 0 && par[IVC_P_MU1] > 0 && par[IVC_P_MU_MAX] >= par[IVC_P_MU1]))
+        { fail(c, "need mu0 >= 0 and mu_max >= mu1 > 0 (mu1 = %g, mu_max = %g)",
+               par[IVC_P_MU1], par[IVC_P_MU_MAX]); return IVC_ERR_ARG; }
+    for (i = 0; i < IVC_NTHETA; i++)
+        if (!(par[IVC_P_GAMMA_DIAG + i] > 0 && isfinite(par[IVC_P_GAMMA_DIAG + i])))
+            { fail(c, "Gamma[%g] = %g must be > 0", (double)i, par[IVC_P_GAMMA_DIAG + i]); return IVC_ERR_ARG; }
+    if (!(par[IVC_P_L] > 0 && par[IVC_P_T] > 0 && par[IVC_P_F0] > 0 && par[IVC_P_P] >= 1
+          && par[IVC_P_GAMMA] > 0 && par[IVC_P_SIGMA] > 0 && par[IVC_P_EPSILON] > 0
+          && par[IVC_P_TAU_MAX] > 0))
+        { fail(c, "l, T, F0, gamma, sigma, epsilon, tau_max must be > 0 and p >= 1 (p = %g, T = %g)",
+               par[IVC_P_P], par[IVC_P_T]); return IVC_ERR_ARG; }
+    return IVC_OK;
+}
+
+int ivc_check_params(const double *par, char *msg, size_t len) {
+    ivc_controller tmp;
+    int st;
+    tmp.msg[0] = 0;
+    st = check_params(&tmp, par);
+    if (msg && len) snprintf(msg, len, "%s", tmp.msg);
+    return st;
+}
+
+int ivc_reset(ivc_controller *c) {
+    int i;
+    if (!c) return IVC_ERR_STATE;
+    memset(&c->s, 0, sizeof c->s);
+    for (i = 0; i < IVC_NTHETA; i++) c->s.theta_hat[i] = c->par[IVC_P_THETA_HAT0 + i];
+    if (c->ring) memset(c->ring, 0, (size_t)c->nb * NM * sizeof(double));
+    c->msg[0] = 0;
+    return IVC_OK;
+}
+
+ivc_controller *ivc_init(const double *par, char *msg, size_t len) {
+    ivc_controller *c;
+    double h, T, N;
+    int law, block, delay;
+    char buf[256];
+    if (ivc_check_params(par, buf, sizeof buf) != IVC_OK) {
+        if (msg && len) snprintf(msg, len, "%s", buf);
+        return NULL;
+    }
+    law = (int)par[IVC_P_LAW];
+    delay = (int)par[IVC_P_DELAY];
+    block = (int)par[IVC_P_BLOCK];
+    h = par[IVC_P_H];
+    T = par[IVC_P_T];
+    if (law < 0 || law > IVC_LAW_NONE || (double)law != par[IVC_P_LAW]) {
+        if (msg && len) snprintf(msg, len, "law = %g is not a law code 0..%d", par[IVC_P_LAW], IVC_LAW_NONE);
+        return NULL;
+    }
+    if ((delay != 0 && delay != 1) || (double)delay != par[IVC_P_DELAY]) {
+        if (msg && len) snprintf(msg, len, "delay = %g must be 0 or 1", par[IVC_P_DELAY]);
+        return NULL;
+    }
+    N = floor(T / h + 0.5);
+    if (block < 1 || (double)block != par[IVC_P_BLOCK] || fabs(N * h - T) > 1e-9 * T
+        || fmod(N, (double)block) != 0 || N / block > 1e8) {
+        if (msg && len) snprintf(msg, len, "T / h = %.9g must be a whole number of samples "
+                                 "divisible by block = %g", T / h, par[IVC_P_BLOCK]);
+        return NULL;
+    }
+    c = (ivc_controller *)calloc(1, sizeof *c);
+    if (!c) { if (msg && len) snprintf(msg, len, "out of memory"); return NULL; }
+    memcpy(c->par, par, sizeof c->par);
+    c->law = law;
+    c->delay = delay;
+    c->corrected = par[IVC_P_CORRECTED] != 0;
+    c->block = block;
+    c->h = h;
+    c->T = T;
+    c->nb = (law == IVC_LAW_IV_DREM || law == IVC_LAW_DREM || law == IVC_LAW_COMPOSITE)
+            ? (long)(N / block) : 0;
+    if (c->nb) {
+        c->ring = (double *)calloc((size_t)c->nb * NM, sizeof(double));
+        if (!c->ring) {
+            free(c);
+            if (msg && len) snprintf(msg, len, "out of memory for the window (%g blocks)", N / block);
+            return NULL;
+        }
+    }
+    ivc_reset(c);
+    return c;
+}
+
+void ivc_free(ivc_controller *c) {
+    if (!c) return;
+    free(c->ring);
+    free(c);
+}
+
+int ivc_set_param(ivc_controller *c, int index, double value) {
+    double par[IVC_NPAR];
+    if (!c) return IVC_ERR_STATE;
+    if (index < 0 || index >= IVC_NPAR) { fail(c, "no parameter %g%.0s", index, 0); return IVC_ERR_ARG; }
+    if (index == IVC_P_H || index == IVC_P_T || index == IVC_P_BLOCK || index == IVC_P_LAW
+        || index == IVC_P_DELAY || index == IVC_P_CORRECTED) {
+        if (value == c->par[index]) return IVC_OK;
+        fail(c, "parameter %g is structural (fixed at ivc_init)%.0s", index, 0);
+        return IVC_ERR_ARG;
+    }
+    memcpy(par, c->par, sizeof par);
+    par[index] = value;
+    if (check_params(c, par) != IVC_OK) return IVC_ERR_ARG;
+    c->par[index] = value;
+    return IVC_OK;
+}
+
+double ivc_get_param(const ivc_controller *c, int index) {
+    return (c && index >= 0 && index < IVC_NPAR) ? c->par[index] : NAN;
+}
+
+/* ------------------------------------------------------------------ state save/restore */
+size_t ivc_state_size(const ivc_controller *c) {
+    return c ? sizeof(ivc_state) + sizeof c->par + (size_t)c->nb * NM * sizeof(double) : 0;
+}
+
+int ivc_get_state(const ivc_controller *c, void *buf, size_t size) {
+    unsigned char *b = (unsigned char *)buf;
+    if (!c || !buf || size != ivc_state_size(c)) return IVC_ERR_ARG;
+    memcpy(b, &c->s, sizeof c->s);
+    memcpy(b + sizeof c->s, c->par, sizeof c->par);
+    if (c->nb) memcpy(b + sizeof c->s + sizeof c->par, c->ring, (size_t)c->nb * NM * sizeof(double));
+    return IVC_OK;
+}
+
+int ivc_set_state(ivc_controller *c, const void *buf, size_t size) {
+    const unsigned char *b = (const unsigned char *)buf;
+    double par[IVC_NPAR];
+    if (!c || !buf) return IVC_ERR_ARG;
+    if (size != ivc_state_size(c)) { fail(c, "state of %g bytes, expected %g", (double)size,
+                                          (double)ivc_state_size(c)); return IVC_ERR_ARG; }
+    memcpy(par, b + sizeof c->s, sizeof par);
+    if (par[IVC_P_H] != c->par[IVC_P_H] || par[IVC_P_T] != c->par[IVC_P_T]
+        || par[IVC_P_BLOCK] != c->par[IVC_P_BLOCK] || par[IVC_P_LAW] != c->par[IVC_P_LAW]
+        || par[IVC_P_DELAY] != c->par[IVC_P_DELAY] || par[IVC_P_CORRECTED] != c->par[IVC_P_CORRECTED]) {
+        fail(c, "state of another configuration (h, T, block, law, delay)%.0s%.0s", 0, 0);
+        return IVC_ERR_ARG;
+    }
+    memcpy(&c->s, b, sizeof c->s);
+    memcpy(c->par, par, sizeof par);
+    if (c->nb) memcpy(c->ring, b + sizeof c->s + sizeof c->par, (size_t)c->nb * NM * sizeof(double));
+    return IVC_OK;
+}
+
+/* ------------------------------------------------------------------ small numerics */
+static double mu_sat(const double *par, double t) {
+    double m = par[IVC_P_MU0] * t + par[IVC_P_MU1];
+    return m >= par[IVC_P_MU_MAX] ? par[IVC_P_MU_MAX] : m;
+}
+
+/* int_t^{t+h} min(mu0 s + mu1, mu_max) ds in closed form (ivdrem.controller.discrete) */
+static double mu_integral(const double *par, double t, double h) {
+    double mu0 = par[IVC_P_MU0], mu1 = par[IVC_P_MU1], mx = par[IVC_P_MU_MAX];
+    double t1 = t + h, ts = mu0 > 0 ? (mx - mu1) / mu0 : INFINITY;
+    if (t1 <= ts) return mu0 * 0.5 * (t1 * t1 - t * t) + mu1 * h;
+    if (t >= ts) return mx * h;
+    return mu0 * 0.5 * (ts * ts - t * t) + mu1 * (ts - t) + mx * (t1 - ts);
+}
+
+static double phi1(double z) { return z == 0.0 ? 1.0 : expm1(z) / z; }
+
+/* determinant of a small matrix by LU with partial pivoting (A is overwritten) */
+static double det_lu(double *A, int n) {
+    double d = 1.0;
+    int i, j, k, p;
+    for (k = 0; k < n; k++) {
+        p = k;
+        for (i = k + 1; i < n; i++) if (fabs(A[i * n + k]) > fabs(A[p * n + k])) p = i;
+        if (A[p * n + k] == 0.0) return 0.0;
+        if (p != k) {
+            for (j = 0; j < n; j++) { double t = A[k * n + j]; A[k * n + j] = A[p * n + j]; A[p * n + j] = t; }
+            d = -d;
+        }
+        d *= A[k * n + k];
+        for (i = k + 1; i < n; i++) {
+            double f = A[i * n + k] / A[k * n + k];
+            for (j = k + 1; j < n; j++) A[i * n + j] -= f * A[k * n + j];
+        }
+    }
+    return d;
+}
+
+/* One-sided Jacobi SVD of the n x n matrix A (row major): A V = U diag(sig), V a product
+ * of rotations (det V = +1), U orthogonal (columns of zero singular values completed by
+ * Gram-Schmidt).  Returns det(U) as +-1. */
+static double svd_jacobi(const double *A, int n, double *U, double *sig, double *V) {
+    int i, j, k, sweep;
+    double W[IVC_NTHETA * IVC_NTHETA];
+    for (i = 0; i < n * n; i++) { U[i] = A[i]; V[i] = 0.0; }
+    for (i = 0; i < n; i++) V[i * n + i] = 1.0;
+    for (sweep = 0; sweep < 80; sweep++) {
+        int rotated = 0;
+        for (j = 0; j < n - 1; j++)
+            for (k = j + 1; k < n; k++) {
+                double a = 0, b = 0, g = 0, zeta, t, cs, sn;
+                for (i = 0; i < n; i++) {
+                    a += U[i * n + j] * U[i * n + j];
+                    b += U[i * n + k] * U[i * n + k];
+                    g += U[i * n + j] * U[i * n + k];
+                }
+                if (g == 0.0 || fabs(g) <= 1e-16 * sqrt(a * b)) continue;
+                rotated = 1;
+                zeta = (b - a) / (2.0 * g);
+                t = (zeta >= 0 ? 1.0 : -1.0) / (fabs(zeta) + sqrt(1.0 + zeta * zeta));
+                cs = 1.0 / sqrt(1.0 + t * t);
+                sn = cs * t;
+                for (i = 0; i < n; i++) {
+                    double uj = U[i * n + j], uk = U[i * n + k];
+                    U[i * n + j] = cs * uj - sn * uk;
+                    U[i * n + k] = sn * uj + cs * uk;
+                    uj = V[i * n + j]; uk = V[i * n + k];
+                    V[i * n + j] = cs * uj - sn * uk;
+                    V[i * n + k] = sn * uj + cs * uk;
+                }
+            }
+        if (!rotated) break;
+    }
+    for (j = 0; j < n; j++) {
+        double s = 0;
+        for (i = 0; i < n; i++) s += U[i * n + j] * U[i * n + j];
+        sig[j] = sqrt(s);
+        if (sig[j] > 0) for (i = 0; i < n; i++) U[i * n + j] /= sig[j];
+    }
+    /* complete the columns of zero singular values to an orthonormal basis */
+    for (j = 0; j < n; j++) {
+        int e;
+        if (sig[j] > 0) continue;
+        for (e = 0; e < n; e++) {
+            double nrm = 0;
+            for (i = 0; i < n; i++) U[i * n + j] = (i == e);
+            for (k = 0; k < n; k++) {
+                double d = 0;
+                if (k == j || (sig[k] == 0 && k > j)) continue;
+                for (i = 0; i < n; i++) d += U[i * n + k] * U[i * n + j];
+                for (i = 0; i < n; i++) U[i * n + j] -= d * U[i * n + k];
+            }
+            for (i = 0; i < n; i++) nrm += U[i * n + j] * U[i * n + j];
+            nrm = sqrt(nrm);
+            if (nrm > 0.5) { for (i = 0; i < n; i++) U[i * n + j] /= nrm; break; }
+        }
+    }
+    memcpy(W, U, sizeof(double) * n * n);
+    return det_lu(W, n) < 0 ? -1.0 : 1.0;
+}
+
+/* the mixing step (17), "paper" variant with erratum E4, as ivdrem.blocks._kernels:
+ * s = 1 + ||Psi||_F, P = Psi/s, Delta = det P, calY = adj(P) Y / s, adj by the SVD */
+static double mixing(const double *Y, const double *Psi, double *calY) {
+    enum { n = IVC_NTHETA };
+    double P[n * n], U[n * n], V[n * n], sig[n], pi[n], big = 0, ss = 0, nrm, s, suv, d, pre, suf;
+    int i, j, k;
+    for (k = 0; k < n * n; k++) if (fabs(Psi[k]) > big) big = fabs(Psi[k]);
+    if (big > 0) for (k = 0; k < n * n; k++) { double r = Psi[k] / big; ss += r * r; }
+    nrm = big * sqrt(ss);
+    s = 1.0 + nrm;
+    for (k = 0; k < n * n; k++) P[k] = Psi[k] / s;
+    suv = svd_jacobi(P, n, U, sig, V);           /* det V = +1 */
+    pre = 1.0;
+    for (i = 0; i < n; i++) { pi[i] = pre; pre *= sig[i]; }
+    suf = 1.0;
+    for (i = n - 1; i >= 0; i--) { pi[i] *= suf; suf *= sig[i]; }
+    d = suv;
+    for (k = 0; k < n; k++) d *= sig[k];
+    for (i = 0; i < n; i++) {
+        double acc = 0;
+        for (j = 0; j < n; j++) {
+            double cij = 0;                      /* adj(P)_ij = s_UV sum_k V_ik pi_k U_jk */
+            for (k = 0; k < n; k++) cij += V[i * n + k] * pi[k] * U[j * n + k];
+            acc += suv * cij * Y[j];
+        }
+        calY[i] = acc / s;
+    }
+    return d;
+}
+
+/* smallest eigenvalue of the symmetric part of A (n x n) by cyclic Jacobi rotations */
+static double lambda_min_sym(const double *A, int n) {
+    double S[IVC_NTHETA * IVC_NTHETA], m;
+    int i, j, k, p, sweep;
+    for (i = 0; i < n; i++) for (j = 0; j < n; j++) S[i * n + j] = 0.5 * (A[i * n + j] + A[j * n + i]);
+    for (sweep = 0; sweep < 80; sweep++) {
+        double off = 0, dia = 0;
+        for (i = 0; i < n; i++) for (j = 0; j < n; j++)
+            { if (i != j) off += S[i * n + j] * S[i * n + j]; else dia += S[i * n + i] * S[i * n + i]; }
+        if (off <= 1e-32 * dia || off == 0) break;
+        for (p = 0; p < n - 1; p++)
+            for (k = p + 1; k < n; k++) {
+                double apq = S[p * n + k], th, t, cs, sn;
+                if (apq == 0.0) continue;
+                th = (S[k * n + k] - S[p * n + p]) / (2.0 * apq);
+                t = (th >= 0 ? 1.0 : -1.0) / (fabs(th) + sqrt(1.0 + th * th));
+                cs = 1.0 / sqrt(1.0 + t * t);
+                sn = t * cs;
+                for (i = 0; i < n; i++) {        /* S <- S R (columns p, k) */
+                    double a = S[i * n + p], b = S[i * n + k];
+                    S[i * n + p] = cs * a - sn * b;
+                    S[i * n + k] = sn * a + cs * b;
+                }
+                for (i = 0; i < n; i++) {        /* S <- R^T S (rows p, k) */
+                    double a = S[p * n + i], b = S[k * n + i];
+                    S[p * n + i] = cs * a - sn * b;
+                    S[k * n + i] = sn * a + cs * b;
+                }
+            }
+    }
+    m = S[0];
+    for (i = 1; i < n; i++) if (S[i * n + i] < m) m = S[i * n + i];
+    return m;
+}
+
+/* the window (15a): trapezoid on the samples in a ring of block sums, shadow-sum reset
+ * (ivdrem.controller.window.BlockWindow, same operations in the same order) */
+static void window_push(ivc_controller *c, const double *g, double *y) {
+    ivc_state *s = &c->s;
+    int j;
+    double hh = 0.5 * c->h, *old;
+    long pos;
+    if (s->has_prev != 0) {
+        for (j = 0; j < NM; j++) s->P[j] += hh * (s->g_prev[j] + g[j]);
+        s->i += 1;
+        if (s->i == c->block) {
+            pos = (long)s->pos;
+            old = c->ring + pos * NM;
+            for (j = 0; j < NM; j++) {
+                s->S[j] += s->P[j] - old[j];
+                old[j] = s->P[j];
+                s->shadow[j] += s->P[j];
+            }
+            s->pos = (double)((pos + 1) % c->nb);
+            s->nshadow += 1;
+            if (s->nshadow == (double)c->nb) {
+                for (j = 0; j < NM; j++) { s->S[j] = s->shadow[j]; s->shadow[j] = 0.0; }
+                s->nshadow = 0;
+            }
+            for (j = 0; j < NM; j++) s->P[j] = 0.0;
+            s->i = 0;
+        }
+    }
+    memcpy(s->g_prev, g, sizeof s->g_prev);
+    s->has_prev = 1;
+    old = c->ring + (long)s->pos * NM;
+    {
+        double f = s->i / c->block;
+        for (j = 0; j < NM; j++) y[j] = (s->P[j] + s->S[j]) - f * old[j];
+    }
+}
+
+/* ------------------------------------------------------------------ the step */
+int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, double *tau_out) {
+    enum { n = IVC_NQ, nth = IVC_NTHETA };
+    const double *par;
+    ivc_state *s;
+    double qd[n], dqd[n], ddqd[n], e[n], de[n], r[n], v[n], dv[n], tau[n], applied[n];
+    double A[NQT], B[NQT], C[NQT], PM[NQT], E[NQT], Pi[NQT], obs[NQT], phi[NQT];
+    double F1[NQT], F2[NQT], F3[NQT], F4[NQT];
+    double theta_c[nth], b[nth], g[NM], y[NM], calY[nth];
+    double h, tk, mu, alpha, l, a = 0.0, I, d1, d2, dl, tmax;
+    int i, j, k;
+    if (!c) return IVC_ERR_STATE;
+    par = c->par;
+    s = &c->s;
+    h = c->h;
+    tk = s->k * h;
+    if (!(fabs(t - tk) <= 1e-9 * (fabs(tk) > 1.0 ? fabs(tk) : 1.0))) {
+        fail(c, "step at t = %.17g, expected t = %.17g (fixed step h)", t, tk);
+        return IVC_ERR_ARG;
+    }
+    if (!q || !dq || !tau_out) { fail(c, "null pointer argument%.0s%.0s", 0, 0); return IVC_ERR_ARG; }
+    for (i = 0; i < n; i++)
+        if (!isfinite(q[i]) || !isfinite(dq[i])) {
+            fail(c, "non-finite measurement at t = %g (joint %g); state unchanged", tk, (double)i);
+            return IVC_ERR_NONFINITE;
+        }
+    alpha = par[IVC_P_ALPHA];
+    l = par[IVC_P_L];
+    for (i = 0; i < n; i++) {
+        double arg = par[IVC_P_TR_OMEGA + i] * tk + par[IVC_P_TR_PHASE + i];
+        double sn = sin(arg), cs = cos(arg), A0 = par[IVC_P_TR_AMPLITUDE + i], w = par[IVC_P_TR_OMEGA + i];
+        qd[i] = A0 * sn + par[IVC_P_TR_OFFSET + i];
+        dqd[i] = A0 * w * cs;
+        ddqd[i] = -A0 * w * w * sn;
+        e[i] = qd[i] - q[i];
+        de[i] = dqd[i] - dq[i];
+        r[i] = de[i] + alpha * e[i];
+        v[i] = dqd[i] + alpha * e[i];
+        dv[i] = ddqd[i] + alpha * de[i];
+    }
+    mu = mu_sat(par, tk);
+    ivc_Phi(q, dq, v, dv, A);
+    ivc_Phi_C(q, dq, r, B);
+    ivc_Phi_dM(q, dq, r, C);
+    ivc_Phi_M(q, r, PM);
+    for (k = 0; k < NQT; k++) {
+        obs[k] = mu * (PM[k] - s->Phi_Mf[k]) - s->Phi_f[k];     /* Pi^T - Phi^T   (8) */
+        Pi[k] = obs[k] + A[k];
+    }
+    /* composite term vartheta_c(theta_hat) = b_c - a theta_hat */
+    if (c->law == IVC_LAW_COMPOSITE) {
+        for (i = 0; i < nth; i++) {
+            double acc = 0;
+            for (j = 0; j < nth; j++) acc += s->held[nth + i * nth + j] * s->theta_hat[j];
+            theta_c[i] = par[IVC_P_GAMMA] * (s->held[i] - acc);            /* (35) */
+        }
+    } else if (c->law == IVC_LAW_IV_DREM || c->law == IVC_LAW_DREM) {
+        double Dl = mixing(s->Yavg, s->Yavg + nth, calY);               /* (17), E4 */
+        s->Delta = Dl;
+        for (i = 0; i < nth; i++)
+            theta_c[i] = par[IVC_P_GAMMA] * Dl * (calY[i] - Dl * s->theta_hat[i]);   /* (21) */
+        a = par[IVC_P_GAMMA] * Dl * Dl;
+    } else if (c->law == IVC_LAW_SIGMA) {
+        for (i = 0; i < nth; i++)
+            theta_c[i] = par[IVC_P_SIGMA] * (par[IVC_P_THETA_STAR + i] - s->theta_hat[i]);  /* E5 */
+        a = par[IVC_P_SIGMA];
+    } else {
+        for (i = 0; i < nth; i++) theta_c[i] = 0.0;
+    }
+    tmax = par[IVC_P_TAU_MAX];
+    for (i = 0; i < n; i++) {                                            /* (9) */
+        double kr = 0, pt = 0, ot = 0;
+        for (j = 0; j < n; j++) kr += par[IVC_P_K + i * n + j] * r[j];
+        for (j = 0; j < nth; j++) { pt += Pi[i * nth + j] * s->theta_hat[j]; ot += obs[i * nth + j] * s->theta_hat[j]; }
+        tau[i] = ((kr + par[IVC_P_DELTA_MU] * mu * r[i]) + pt) - s->u_f[i];
+        if (tau[i] > tmax) tau[i] = tmax;
+        if (tau[i] < -tmax) tau[i] = -tmax;
+        if (!isfinite(tau[i])) {
+            fail(c, "non-finite torque at t = %g (joint %g): the loop diverged", tk, (double)i);
+            return IVC_ERR_DIVERGED;
+        }
+        s->tau_d_hat[i] = -ot + s->u_f[i];                               /* Section 4 */
+    }
+    for (i = 0; i < n; i++) applied[i] = c->delay == 0 ? tau[i] : s->tau_prev[i];
+    /* regression (13) at t_k: xi, eta advanced from t_k-1 with their inputs linear
+     * between the samples (first-order hold), then phi^T = l (Phi_M^T(q, dq) - xi) + eta */
+    ivc_Phi_M(q, dq, E);
+    ivc_Phi_C(q, dq, dq, F1);
+    ivc_Phi_dM(q, dq, dq, F2);
+    ivc_Phi_F(dq, F3);
+    ivc_Phi_G(q, F4);
+    dl = exp(-l * h);
+    for (k = 0; k < NQT; k++) {
+        double Xe = ((F1[k] - F2[k]) + F3[k]) + F4[k];
+        if (s->k > 0) {
+            double w = h * phi1(-l * h), sl;                       /* (1 - d)/l */
+            sl = (E[k] - s->X_xi[k]) / h;
+            s->xi[k] = (E[k] - sl * w) + dl * (s->xi[k] - s->X_xi[k]);
+            sl = (Xe - s->X_eta[k]) / h;
+            s->eta[k] = (Xe - sl * w) + dl * (s->eta[k] - s->X_eta[k]);
+        }
+        s->X_xi[k] = E[k];
+        s->X_eta[k] = Xe;
+        phi[k] = l * (E[k] - s->xi[k]) + s->eta[k];
+    }
+    if (c->nb) {
+        const double *inst = c->law == IVC_LAW_IV_DREM ? s->zeta : phi;
+        for (i = 0; i < nth; i++) {                                      /* (15a) */
+            double acc = 0;
+            for (k = 0; k < n; k++) acc += inst[k * nth + i] * s->zf[k];
+            g[i] = acc;
+            for (j = 0; j < nth; j++) {
+                acc = 0;
+                for (k = 0; k < n; k++) acc += inst[k * nth + i] * phi[k * nth + j];
+                g[nth + i * nth + j] = acc;
+            }
+        }
+        window_push(c, g, y);
+        if (c->law == IVC_LAW_COMPOSITE) {                               /* max-hold */
+            double lam = lambda_min_sym(y + nth, nth);
+            if (lam > s->lambda_min_held && lam > par[IVC_P_EPSILON]) {
+                s->lambda_min_held = lam;
+                memcpy(s->held, y, sizeof s->held);
+            }
+        }
+    }
+    /* ---- advance every state over [t_k, t_k + h], inputs held */
+    I = mu_integral(par, tk, h);
+    d1 = exp(-I);
+    d2 = c->corrected ? d1 * (mu / mu_sat(par, tk + h)) : d1;            /* E1 */
+    for (k = 0; k < NQT; k++) {
+        double X = A[k] - B[k] + C[k];
+        s->Phi_f[k] = X + d1 * (s->Phi_f[k] - X);                         /* (7) */
+        s->Phi_Mf[k] = PM[k] + d2 * (s->Phi_Mf[k] - PM[k]);
+    }
+    for (i = 0; i < n; i++) {
+        s->u_f[i] = -applied[i] + d1 * (s->u_f[i] + applied[i]);
+        s->zf[i] = applied[i] + dl * (s->zf[i] - applied[i]);
+    }
+    if (c->law == IVC_LAW_IV_DREM) {
+        ivc_Phi(qd, dqd, dqd, ddqd, A);                                  /* (14) */
+        for (k = 0; k < NQT; k++) s->zeta[k] = A[k] + dl * (s->zeta[k] - A[k]);
+    }
+    if (c->law == IVC_LAW_IV_DREM || c->law == IVC_LAW_DREM) {         /* (15b) */
+        double p = par[IVC_P_P], F0 = par[IVC_P_F0];
+        double f = (pow(tk, p) + F0) / (pow(tk + h, p) + F0);
+        for (k = 0; k < NM; k++) s->Yavg[k] = y[k] + f * (s->Yavg[k] - y[k]);
+    }
+    for (j = 0; j < nth; j++) {                                          /* (11) */
+        double acc = 0, G = par[IVC_P_GAMMA_DIAG + j];
+        for (k = 0; k < n; k++) acc += Pi[k * nth + j] * r[k];
+        b[j] = acc + theta_c[j];
+        s->theta_hat[j] = s->theta_hat[j] + h * phi1(-G * a * h) * G * b[j];
+    }
+    for (i = 0; i < n; i++) { s->tau_prev[i] = tau[i]; s->tau[i] = tau[i]; tau_out[i] = tau[i]; }
+    s->k += 1;
+    return IVC_OK;
+}
+
+int ivc_outputs(const ivc_controller *c, double *theta_hat, double *tau_d_hat, double *Delta,
+                double *tau) {
+    if (!c) return IVC_ERR_STATE;
+    if (theta_hat) memcpy(theta_hat, c->s.theta_hat, sizeof c->s.theta_hat);
+    if (tau_d_hat) memcpy(tau_d_hat, c->s.tau_d_hat, sizeof c->s.tau_d_hat);
+    if (Delta) *Delta = c->s.Delta;
+    if (tau) memcpy(tau, c->s.tau, sizeof c->s.tau);
+    return IVC_OK;
+}
+
+double ivc_time(const ivc_controller *c) { return c ? c->s.k * c->h : NAN; }

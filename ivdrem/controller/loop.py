@@ -1,0 +1,140 @@
+"""The sampled loop: a fixed-step controller closed around ivdrem's plant FMU in FMPy.
+
+At t_k = k h the plant's outputs q(t_k), q'(t_k) go to the controller, whose torque (and
+the disturbance tau_d(t_k) of the paper's experiment) is held over [t_k, t_k + h] while the
+plant FMU integrates (``fmi2DoStep``, RK4 sub-steps of at most ``cs_substep``).  With a
+controller of ``delay = 0`` this is the Gauss-Seidel order (plant first, then the
+controller, whose tau_k is applied at once); with ``delay = 1`` the controller's tau_k is
+applied over the next sample, as a Jacobi host does (docs/controller.md).
+
+``controller`` is anything with ``step(t, q, dq) -> tau``, ``h`` and ``n``: the Python
+:class:`~ivdrem.controller.sampled.SampledController`, the C library
+(:class:`~ivdrem.controller.clib.CController`) or a controller FMU
+(:func:`fmu_controller_loop`).
+"""
+from __future__ import annotations
+
+import shutil
+import tempfile
+
+import numpy as np
+
+__all__ = ["FmuPlant", "sampled_loop", "as_response", "PAPER_DISTURBANCE", "PAPER_Q0"]
+
+PAPER_DISTURBANCE = dict(amplitude=[7.5, 1.5], omega=[0.5 * np.pi, 0.05 * np.pi],
+                         phase=[0.0, 0.0], offset=[0.0, 0.0])
+PAPER_Q0 = (0.0, 0.3 * np.pi)
+
+
+class FmuPlant:
+    """An ivdrem plant FMU (co-simulation) in FMPy's FMU2Slave, initialised at q0, dq0."""
+
+    def __init__(self, path, q0, dq0, *, substep=None, name="plant"):
+        from fmpy import extract, read_model_description
+        from fmpy.fmi2 import FMU2Slave
+        md = read_model_description(str(path))
+        self.vr = {v.name: v.valueReference for v in md.modelVariables}
+        n = sum(1 for v in md.modelVariables if v.name.startswith("q["))
+        self.n = n
+        self._dir = extract(str(path), unzipdir=tempfile.mkdtemp(prefix="ivdrem_plant_"))
+        self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=self._dir,
+                             modelIdentifier=md.coSimulation.modelIdentifier,
+                             instanceName=name)
+        self.fmu.instantiate()
+        start = {f"q[{i}]": float(q0[i]) for i in range(n)}
+        start.update({f"dq[{i}]": float(dq0[i]) for i in range(n)})
+        if substep is not None:
+            start["cs_substep"] = float(substep)
+        self.fmu.setReal([self.vr[k] for k in start], list(start.values()))
+        self.fmu.setupExperiment(startTime=0.0)
+        self.fmu.enterInitializationMode()
+        self.fmu.exitInitializationMode()
+        self.out_vr = [self.vr[f"q[{i}]"] for i in range(n)] + \
+            [self.vr[f"dq[{i}]"] for i in range(n)]
+        self.in_vr = [self.vr[f"tau[{i}]"] for i in range(n)] + \
+            [self.vr[f"tau_d[{i}]"] for i in range(n)]
+
+    def outputs(self):
+        y = np.array(self.fmu.getReal(self.out_vr))
+        return y[:self.n], y[self.n:]
+
+    def step(self, t, h, tau, tau_d):
+        self.fmu.setReal(self.in_vr, [*map(float, tau), *map(float, tau_d)])
+        self.fmu.doStep(currentCommunicationPoint=t, communicationStepSize=h)
+
+    def close(self):
+        try:
+            self.fmu.terminate()
+            self.fmu.freeInstance()
+        finally:
+            shutil.rmtree(self._dir, ignore_errors=True)
+
+
+def disturbance_at(t, d=PAPER_DISTURBANCE):
+    return (np.asarray(d["amplitude"]) * np.sin(np.asarray(d["omega"]) * t
+                                                 + np.asarray(d["phase"]))
+            + np.asarray(d["offset"]))
+
+
+def sampled_loop(controller, plant, t_end, *, disturbance=PAPER_DISTURBANCE, every=100,
+                 outputs=("theta_hat", "tau_d_hat")):
+    """Run ``controller`` around ``plant`` (an :class:`FmuPlant`) for t_end seconds.
+
+    Returns a dict of arrays sampled at t_k, every ``every`` samples and at t_end: t, q,
+    dq, tau_d, the torque tau applied over [t_k, t_k+1], theta_hat(t_k) and the
+    controller's other ``outputs`` of step k (tau_d_hat(t_k), Delta(t_k)); at t_end the
+    controller takes one more step for them.  A controller with ``delay = 1`` outputs tau_k
+    for the next sample: the torque applied is then its previous output.
+    """
+    h = controller.h
+    N = int(round(t_end / h))
+    if N < 1 or abs(N * h - t_end) > 1e-9 * max(1.0, t_end):
+        raise ValueError(f"t_end = {t_end} must be a whole number of samples h = {h}")
+    delay = getattr(controller, "delay", 0)
+    rec = {k: [] for k in ("t", "q", "dq", "tau", "tau_d", "theta_hat", *outputs)}
+    applied = np.zeros(controller.n)
+    for k in range(N + 1):
+        t = k * h
+        q, dq = plant.outputs()
+        keep = k == N or k % every == 0
+        if keep:
+            rec["theta_hat"].append(np.copy(controller.theta_hat))
+        tau = controller.step(t, q, dq)
+        if delay == 0:
+            applied = tau
+        tau_d = disturbance_at(t, disturbance)
+        if keep:
+            rec["t"].append(t)
+            rec["q"].append(q)
+            rec["dq"].append(dq)
+            rec["tau"].append(np.copy(applied))
+            rec["tau_d"].append(tau_d)
+            for o in outputs:
+                if o != "theta_hat":
+                    rec[o].append(np.copy(getattr(controller, o)))
+        if k == N:
+            break
+        plant.step(t, h, applied, tau_d)
+        if delay == 1:
+            applied = tau
+    return {k: np.array(v) for k, v in rec.items()}
+
+
+def as_response(rec):
+    """The record of :func:`sampled_loop` as a response that ivdrem.experiments.metrics
+    reads (time, outputs, output_labels)."""
+    from types import SimpleNamespace
+    rows, labels = [], []
+    for name, v in rec.items():
+        if name == "t":
+            continue
+        v = np.asarray(v, dtype=float)
+        if v.ndim == 1:
+            rows.append(v)
+            labels.append(name)
+        else:
+            for i in range(v.shape[1]):
+                rows.append(v[:, i])
+                labels.append(f"{name}[{i}]")
+    return SimpleNamespace(time=np.asarray(rec["t"]), outputs=np.array(rows),
+                           output_labels=labels)
