@@ -250,7 +250,7 @@ def test_plain_python_path_equals_compiled(models):
     m = _model(models, "iiwa")
     q, dq, v, dv = next(_states(m, 1, 9))
     P1, P2 = np.empty((m.n, m.ntheta)), np.empty((m.n, m.ntheta))
-    m.functions.Phi(q, dq, v, dv, P1)
+    m.python_functions.Phi(q, dq, v, dv, P1)
     m.jit_functions.Phi(q, dq, v, dv, P2)
     assert np.array_equal(P1, P2) or np.max(np.abs(P1 - P2)) < 1e-13
     assert np.allclose(m.inverse_dynamics(q, dq, dv),
@@ -263,7 +263,12 @@ def test_plain_python_path_equals_compiled(models):
 def test_names_and_limits(models):
     names = model_names()
     assert "two-link" in names and all(a in names for a in ("panda", "ur5", "iiwa", "xarm7"))
-    assert get_model("two-link").name == two_link().name
+    tl = get_model("two-link")
+    assert tl.name == two_link().name
+    # symbolic models have the same attributes, without limits
+    assert tl.joint_names == ["joint1", "joint2"] and np.isinf(tl.position_limits).all()
+    assert np.isinf(tl.velocity_limits).all() and np.isinf(tl.effort_limits).all()
+    assert tl.parameter_units["theta1"] == "kg.m2"
     if not _available("panda"):
         return
     m = get_model("panda")
@@ -279,6 +284,18 @@ def test_names_and_limits(models):
     assert "def Phi(" in m.source("") and "def p1_Phi(" in m.source("p1_")
     with pytest.raises(ValueError):
         m.source("0bad")
+
+
+def test_pickle(models):
+    import pickle
+    if not _available("ur5"):
+        pytest.skip("arms extra missing")
+    m = _model(models, "ur5")
+    m.jit_functions                       # cached compiled functions do not travel
+    m2 = pickle.loads(pickle.dumps(m))
+    assert m2.key == m.key and m2.theta_names == m.theta_names
+    q, dq, v, dv = next(_states(m, 1, 7))
+    assert np.array_equal(m2.regressor(q, dq, v, dv), m.regressor(q, dq, v, dv))
 
 
 def test_cache(tmp_path, monkeypatch):

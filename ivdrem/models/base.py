@@ -38,6 +38,33 @@ class RobotModel:
     #: known constants substituted in the generated code (name -> value); none by default
     constants: dict = {}
 
+    # joints and their limits (a URDF arm has its own; a symbolic model has none: +-inf)
+    @cached_property
+    def joint_names(self):
+        """Names of the joints, in the order of q."""
+        return [f"joint{i + 1}" for i in range(self.n)]
+
+    @cached_property
+    def position_limits(self):
+        """(n, 2) lower and upper limits of q; +-inf where none."""
+        a = np.column_stack([np.full(self.n, -np.inf), np.full(self.n, np.inf)])
+        a.setflags(write=False)
+        return a
+
+    @cached_property
+    def velocity_limits(self):
+        """(n,) limits of |dq|; inf where none."""
+        a = np.full(self.n, np.inf)
+        a.setflags(write=False)
+        return a
+
+    @cached_property
+    def effort_limits(self):
+        """(n,) limits of |tau|; inf where none."""
+        a = np.full(self.n, np.inf)
+        a.setflags(write=False)
+        return a
+
     def source(self, prefix: str = "") -> str:  # pragma: no cover - abstract
         raise NotImplementedError
 

@@ -159,10 +159,13 @@ class EulerLagrangeModel(RobotModel):
         Nominal (true) parameter vector, length nθ, finite.  ``None`` if not given.
     theta_names : list of str, optional
         Display names of the parameters (default: the symbol names).
+    parameter_units : dict {name: unit}, optional
+        Units of parameters and constants by name (FMI unit strings such as ``"kg.m2"``);
+        names left out have no unit.
     """
 
     def __init__(self, name, q, theta, M, *, potential=None, G=None, F=None, dq=None,
-                 constants=None, theta_values=None, theta_names=None):
+                 constants=None, theta_values=None, theta_names=None, parameter_units=None):
         self.name = str(name)
         q = _as_symbol_list(q, "q")
         theta = _as_symbol_list(theta, "theta")
@@ -275,6 +278,13 @@ class EulerLagrangeModel(RobotModel):
         if len(set(theta_names)) != len(theta_names):
             raise ValueError(f"theta_names must be unique, got {theta_names}")
         self.theta_names = theta_names
+        known = set(theta_names) | {str(k) for k in const_vals}
+        units = {str(k): str(u) for k, u in (parameter_units or {}).items()}
+        extra = sorted(set(units) - known)
+        if extra:
+            raise ValueError("parameter_units names neither a parameter nor a constant: "
+                             + ", ".join(extra))
+        self.parameter_units = units
 
         self.M = sp.ImmutableMatrix(Mm)
         self.G = sp.ImmutableMatrix(Gm)

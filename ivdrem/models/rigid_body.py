@@ -346,17 +346,30 @@ def _rb_bodies(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec
                 Pb[j, r, c] = 0.0
                 if tangent:
                     dPb[j, r, c] = 0.0
-    # acceleration and gravity pass (the base accelerates at -g)
     for r in range(3):
         a0[r] = -grav * gvec[r]
+    sx = _rb_scale(x)
+    sy = _rb_scale(y)
+    same = sx > 0.0
+    for i in range(n):
+        if x[i] != y[i]:
+            same = False
+    if same:
+        # C(q, x) x + M acc + grav G in one pass: the Newton-Euler recursion itself
+        _rb_forward(R, p, parent, jtype, axis, x, acc, a0, tangent, d, V, A, dV, dA)
+        for j in range(n):
+            _rb_body_regressor(V[j], V[j], A[j], 1.0, Pb[j])
+            if tangent:
+                _rb_body_regressor(dV[j], V[j], dA[j], 1.0, dPb[j])
+                _rb_body_regressor(V[j], dV[j], z6, 1.0, dPb[j])
+        return R, p
+    # acceleration and gravity pass (the base accelerates at -g)
     _rb_forward(R, p, parent, jtype, axis, z, acc, a0, tangent, d, V, A, dV, dA)
     for j in range(n):
         _rb_body_regressor(z6, z6, A[j], 1.0, Pb[j])
         if tangent:
             _rb_body_regressor(z6, z6, dA[j], 1.0, dPb[j])
     # velocity terms: the polar form of c(w) = C(q, w) w
-    sx = _rb_scale(x)
-    sy = _rb_scale(y)
     if sx > 0.0 and sy > 0.0:
         for r in range(6):
             a0[r] = 0.0
@@ -415,6 +428,54 @@ def _rb_rnea(q, x, y, acc, grav, pi, parent, jtype, axis, Rp, pp, gvec, tau):
                          + p[j, 0] * fl1 - p[j, 1] * fl0)
 
 
+def _rb_mass(q, pi, parent, jtype, axis, Rp, pp, out):
+    # M(q) of the links with standard parameters pi, column k the torques of a unit
+    # acceleration of joint k (no velocity, no gravity): only k's descendants accelerate
+    n = q.shape[0]
+    R = np.empty((n, 3, 3))
+    p = np.empty((n, 3))
+    _rb_kinematics(q, jtype, axis, Rp, pp, R, p)
+    A = np.zeros((n, 6))
+    f = np.zeros((n, 6))
+    for k in range(n):
+        for j in range(n):
+            for r in range(6):
+                A[j, r] = 0.0
+                f[j, r] = 0.0
+        _rb_subspace(jtype, axis, k, 1.0, A[k])
+        for j in range(k + 1, n):
+            if parent[j] >= k:
+                _rb_xmotion(R, p, j, A[parent[j]], A[j])
+        for j in range(k, n):
+            # f = I A about the joint frame: (m a - h x al, I al + h x a)
+            P = pi[10 * j:10 * j + 10]
+            a0, a1, a2, b0, b1, b2 = A[j, 0], A[j, 1], A[j, 2], A[j, 3], A[j, 4], A[j, 5]
+            f[j, 0] = P[0] * a0 - (P[2] * b2 - P[3] * b1)
+            f[j, 1] = P[0] * a1 - (P[3] * b0 - P[1] * b2)
+            f[j, 2] = P[0] * a2 - (P[1] * b1 - P[2] * b0)
+            f[j, 3] = P[4] * b0 + P[5] * b1 + P[7] * b2 + P[2] * a2 - P[3] * a1
+            f[j, 4] = P[5] * b0 + P[6] * b1 + P[8] * b2 + P[3] * a0 - P[1] * a2
+            f[j, 5] = P[7] * b0 + P[8] * b1 + P[9] * b2 + P[1] * a1 - P[2] * a0
+        for j in range(n - 1, -1, -1):
+            off = 3 if jtype[j] == 0 else 0
+            out[j, k] = (axis[j, 0] * f[j, off] + axis[j, 1] * f[j, off + 1]
+                         + axis[j, 2] * f[j, off + 2])
+            pa = parent[j]
+            if pa >= 0:
+                fl0 = R[j, 0, 0] * f[j, 0] + R[j, 0, 1] * f[j, 1] + R[j, 0, 2] * f[j, 2]
+                fl1 = R[j, 1, 0] * f[j, 0] + R[j, 1, 1] * f[j, 1] + R[j, 1, 2] * f[j, 2]
+                fl2 = R[j, 2, 0] * f[j, 0] + R[j, 2, 1] * f[j, 1] + R[j, 2, 2] * f[j, 2]
+                f[pa, 0] += fl0
+                f[pa, 1] += fl1
+                f[pa, 2] += fl2
+                f[pa, 3] += (R[j, 0, 0] * f[j, 3] + R[j, 0, 1] * f[j, 4] + R[j, 0, 2] * f[j, 5]
+                             + p[j, 1] * fl2 - p[j, 2] * fl1)
+                f[pa, 4] += (R[j, 1, 0] * f[j, 3] + R[j, 1, 1] * f[j, 4] + R[j, 1, 2] * f[j, 5]
+                             + p[j, 2] * fl0 - p[j, 0] * fl2)
+                f[pa, 5] += (R[j, 2, 0] * f[j, 3] + R[j, 2, 1] * f[j, 4] + R[j, 2, 2] * f[j, 5]
+                             + p[j, 0] * fl1 - p[j, 1] * fl0)
+
+
 def _rb_spd_solve(Mq, b):
     # b <- Mq^-1 b by Cholesky (Mq is overwritten by its factor)
     n = b.shape[0]
@@ -446,4 +507,4 @@ def _rb_spd_solve(Mq, b):
 #: The kernels, in dependency order (their source goes into every rigid-body model's code).
 KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
            _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_rnea,
-           _rb_spd_solve)
+           _rb_mass, _rb_spd_solve)

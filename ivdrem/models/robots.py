@@ -47,7 +47,10 @@ def two_link(theta=None, g=9.81):
         "two-link", [q1, q2], list(th), M, potential=P, dq=[dq1, dq2],
         constants={gs: float(g)},
         theta_values=TWO_LINK_THETA if theta is None else theta,
-        theta_names=[f"theta{i}" for i in range(1, 6)])
+        theta_names=[f"theta{i}" for i in range(1, 6)],
+        # M entries (theta1..3) are inertias, theta4,5 multiply g in G: first moments
+        parameter_units={"theta1": "kg.m2", "theta2": "kg.m2", "theta3": "kg.m2",
+                         "theta4": "kg.m", "theta5": "kg.m", "g": "m/s2"})
 
 
 def _planar_energies(n, dq, q, m, h, J, l, g):
@@ -184,9 +187,12 @@ def planar_arm(n, lengths=None, g=9.81, friction=False, theta_values=None, *,
         theta_values = planar_physical_theta(masses, lengths, friction=fric, parameters=parameters)
     constants = {gs: float(g)}
     constants.update({ls[i]: float(lengths[i]) for i in range(n)})
+    kinds = {"m": "kg", "h": "kg.m", "J": "kg.m2", "f": "N.m.s/rad"}
+    units = {str(s): kinds[str(s)[0]] for s in theta}
+    units.update({str(s): "m" for s in ls}, g="m/s2")
     return EulerLagrangeModel(f"planar-{n}", q, theta, M, potential=P, F=F, dq=dq,
                               constants=constants, theta_values=theta_values,
-                              theta_names=[str(s) for s in theta])
+                              theta_names=[str(s) for s in theta], parameter_units=units)
 
 
 def get_model(name, **kwargs):

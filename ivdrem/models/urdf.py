@@ -27,7 +27,6 @@ import importlib.metadata
 import inspect
 import json
 import math
-import re
 import sysconfig
 import xml.etree.ElementTree as ET
 from functools import cached_property
@@ -176,9 +175,18 @@ def _link_has_inertia(root, link, seen=None):
     return False
 
 
+def _pinocchio():
+    try:
+        import pinocchio
+    except ImportError:
+        raise ImportError("URDF models need Pinocchio (the PyPI package 'pin'): "
+                          "pip install 'ivdrem[urdf]'") from None
+    return pinocchio
+
+
 def _parse(path, joints, gravity, friction, friction_width, armature):
     """The chain data of the URDF at ``path`` (a dict; see :class:`RigidBodyModel`)."""
-    import pinocchio as pin
+    pin = _pinocchio()
 
     path = Path(path)
     if not path.exists():
@@ -413,7 +421,7 @@ def _base_parameters(W, rtol=RANK_RTOL):
 
 
 def _build(path, joints, gravity, friction, friction_width, armature, base):
-    import pinocchio as pin
+    pin = _pinocchio()
     chain = _parse(path, joints, gravity, friction, friction_width, armature)
     std_names, std_units = _standard_names(chain)
     ns = len(std_names)
@@ -435,9 +443,12 @@ def _build(path, joints, gravity, friction, friction_width, armature, base):
 
 def _cache_file(text, options):
     from ..sim.compiled import cache_dir
-    import pinocchio as pin
+    try:    # the installed version, without importing Pinocchio (a cached load needs none)
+        pin_version = importlib.metadata.version("pin")
+    except importlib.metadata.PackageNotFoundError:
+        pin_version = _pinocchio().__version__
     h = hashlib.sha256()
-    for part in (text, repr(options), pin.__version__, RIGID_BODY_CODEGEN_VERSION):
+    for part in (text, repr(options), pin_version, RIGID_BODY_CODEGEN_VERSION):
         h.update(part.encode())
         h.update(b"\0")
     return cache_dir() / "urdf" / f"{h.hexdigest()[:24]}.json"
@@ -508,6 +519,10 @@ def from_urdf(path, *, base=True, friction=None, joints=None, gravity=9.81, arma
 
 
 # ----------------------------------------------------------------------------- model
+def _kernels_hash():
+    return hashlib.sha256(inspect.getsource(rigid_body).encode()).hexdigest()[:16]
+
+
 def _array_literal(a, dtype):
     a = np.asarray(a, dtype=dtype)
     body = json.dumps(a.tolist()) if a.size else "[]"
@@ -565,6 +580,10 @@ class RigidBodyModel(RobotModel):
 
     def __repr__(self):
         return f"RigidBodyModel({self.name!r}, n={self.n}, ntheta={self.ntheta})"
+
+    def __reduce__(self):
+        # the chain's data is the whole model (a worker process rebuilds the rest)
+        return (RigidBodyModel, (self.name, self._chain))
 
     # ------------------------------------------------------------------ parameters
     def parameter_table(self):
@@ -636,9 +655,12 @@ class RigidBodyModel(RobotModel):
             f"{K}BASE = {_array_literal(self.base_columns, int)}",
         ]
         # the kernels: compiled once for all models (ivdrem.models._rigid_body_jit); the
-        # plain-Python reference path (``functions``) binds the name to rigid_body instead
+        # plain-Python path (``python_functions``) binds the name to rigid_body instead
         kmod = f"{P}_rbk"
-        imports = f"import ivdrem.models._rigid_body_jit as {kmod}"
+        # numba's cache of these functions holds the kernels' machine code too: the
+        # kernels' own hash in the source renames the module when they change
+        imports = (f"# kernels: ivdrem.models.rigid_body {_kernels_hash()}\n"
+                   f"import ivdrem.models._rigid_body_jit as {kmod}")
         chain_args = f"{K}PARENT, {K}JTYPE, {K}AXIS, {K}RP, {K}PP, {K}GRAV"
         r = f"{P}_rb_"
         k = f"{kmod}._rb_"
@@ -665,15 +687,12 @@ def {r}std(q, x, y, acc, grav, fdq, fric, arm, tangent, d, Y, dY):
 
 
 def {r}select(Y, out):
-    for i in range({n}):
-        for b in range({nb}):
-            out[i, b] = Y[i, {K}BASE[b]]
+    # the base columns (one indexing operation: cheap on the Python path too)
+    out[:, :] = Y[:, {K}BASE]
 
 
 def {r}select3(Y, out, col):
-    for i in range({n}):
-        for b in range({nb}):
-            out[i, b, col] = Y[i, {K}BASE[b]]
+    out[:, :, col] = Y[:, {K}BASE]
 
 
 def {r}pi(theta):
@@ -750,14 +769,9 @@ def {P}Phi(q, dq, v, dv, out):
 def {P}M(q, theta, out):
     """inertia matrix M(q); out ({n}, {n})"""
     pi = {r}pi(theta)
-    z = np.zeros({n})
-    tau = np.empty({n})
-    for k in range({n}):
-        e = {r}unit(k)
-        {k}rnea(q, z, z, e, 0.0, pi, {chain_args}, tau)
-        for i in range({n}):
-            out[i, k] = tau[i]
-        if {ia} >= 0:
+    {k}mass(q, pi, {K}PARENT, {K}JTYPE, {K}AXIS, {K}RP, {K}PP, out)
+    if {ia} >= 0:
+        for k in range({n}):
             out[k, k] += pi[{ia} + k]
     return None
 
@@ -919,11 +933,18 @@ def {P}Phi_jac(q, dq, v, dv, out):
 '''
         return imports + "\n" + "\n".join(consts) + "\n\n" + t
 
-    def _namespace(self, jit):
-        if jit:
-            return super()._namespace(jit)
-        ns = super()._namespace(False)
-        # the reference path: the same functions, calling the kernels as plain Python
+    @cached_property
+    def functions(self):
+        """The generated functions as Python, calling the compiled rigid-body kernels
+        (``ivdrem.models._rigid_body_jit``): the reference engine's path, and what the
+        compiled engine's sparsity probe evaluates (all plain Python, one regressor costs
+        milliseconds: :attr:`python_functions`)."""
+        return self._namespace(jit=False)
+
+    @cached_property
+    def python_functions(self):
+        """The generated functions and the kernels all as plain Python (no numba)."""
+        ns = self._namespace(jit=False)
         for f in FUNCTION_NAMES:
             getattr(ns, f).__globals__["_rbk"] = rigid_body
         return ns
