@@ -331,3 +331,13 @@ def test_fmu_export_model_help_names_every_model():
                   if "--model" in a.option_strings)
     for name in models.model_names():
         assert name in action.help
+
+
+def test_validate_config_alone_checks_the_limits(tmp_path, fake_urdf):
+    """A study validates varied configurations with validate_config: the limits too."""
+    from ivdrem.experiments.config import validate_config
+    (tmp_path / "arm.urdf").write_text("<robot/>")
+    c = load_config(write(tmp_path, '[model]\nurdf = "arm.urdf"\n'))
+    c["trajectory"]["offset"] = [1.4, 0.0]             # joint 1's upper limit is 1.5 rad
+    with pytest.raises(ConfigError, match=r"joint 1 \('j1'\) at t = "):
+        validate_config(c)
