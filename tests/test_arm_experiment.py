@@ -323,3 +323,21 @@ def test_a_real_urdf_file_relative_to_the_config(tmp_path):
     assert c["trajectory"]["kind"] == "fourier" and len(c["model"]["theta"]) == 42
     with pytest.raises(ConfigError, match="config key 'model.joints'.*no_such_joint.*shoulder_pan_joint"):
         load_config(p, overrides={"model.joints": ["no_such_joint"]})
+
+
+def test_fmu_export_model_help_names_every_model():
+    from ivdrem.fmu.cli import _parser
+    action = next(a for a in _parser()._subparsers._group_actions[0].choices["export"]._actions
+                  if "--model" in a.option_strings)
+    for name in models.model_names():
+        assert name in action.help
+
+
+def test_validate_config_alone_checks_the_limits(tmp_path, fake_urdf):
+    """A study validates varied configurations with validate_config: the limits too."""
+    from ivdrem.experiments.config import validate_config
+    (tmp_path / "arm.urdf").write_text("<robot/>")
+    c = load_config(write(tmp_path, '[model]\nurdf = "arm.urdf"\n'))
+    c["trajectory"]["offset"] = [1.4, 0.0]             # joint 1's upper limit is 1.5 rad
+    with pytest.raises(ConfigError, match=r"joint 1 \('j1'\) at t = "):
+        validate_config(c)

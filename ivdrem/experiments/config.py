@@ -416,9 +416,7 @@ def load_config(path: str | Path | None = None, overrides: Mapping | None = None
     _settle_variants(cfg, user_set)
     _follow_model(cfg, user_set)
     _settle_variants(cfg, user_set)
-    out = validate_config(cfg)
-    _check_reference_limits(out)
-    return out
+    return validate_config(cfg)
 
 
 def _check_reference_limits(config: Mapping) -> None:
@@ -586,7 +584,8 @@ def validate_config(cfg: Mapping) -> dict:
     """Check a complete configuration dict; return a normalized deep copy.
 
     Every section and key of the schema must be present (use :func:`load_config`
-    to fill missing ones from the default); the keys of :data:`OPTIONAL` may be.
+    to fill missing ones from the default); the keys of :data:`OPTIONAL` may be.  The
+    reference must stay inside the model's joint limits over the run.
     Raises :class:`ConfigError`.
     """
     if not isinstance(cfg, Mapping):
@@ -640,6 +639,7 @@ def validate_config(cfg: Mapping) -> dict:
         )
     if len(set(exp["laws"])) != len(exp["laws"]):
         raise ConfigError(f"config key 'experiment.laws' lists a law twice: {exp['laws']}")
+    _check_reference_limits(out)
     return out
 
 
