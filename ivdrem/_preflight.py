@@ -91,9 +91,14 @@ def method_overrides(name, config_path=None) -> dict:
 
 def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=None):
     """Price every law's run of `config` (and the FMU check's, if a horizon is given)
-    before any of them starts; raises ValueError (CostLimitError) with the numbers."""
+    before any of them starts; raises ValueError (CostLimitError) with the numbers.
+
+    Returns {law: diagram}, built as the runs build them (``law_diagram``: a γ "auto" is
+    chosen here, once, and a gain the rule refuses stops the command before any run);
+    pass them to ``run_paper(..., diagrams=...)``."""
     from .diagrams import closed_loop
     from .experiments.config import closed_loop_kwargs, model_from_config, solver_kwargs
+    from .experiments.paper import law_diagram
     from .sim.guards import check_diagram_cost
     from .sim.methods import REFERENCE_METHOD
 
@@ -102,7 +107,7 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
     diagrams = {}
     for law in exp["laws"]:
         solver = solver_kwargs(config, law)
-        diagrams[law] = d = closed_loop(law, model, **closed_loop_kwargs(config, law))
+        diagrams[law] = d = law_diagram(config, law, model=model, engine=engine)
         check_diagram_cost(d, float(exp["t_end"]), engine=engine, dt_out=float(exp["dt_out"]),
                            method=solver["method"], h=solver["h"], h_max=solver["h_max"],
                            allow_long=allow_long, what=f"the {law} run")
@@ -113,6 +118,7 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
         check_diagram_cost(d, float(fmu_check_t_end), engine=engine, method=REFERENCE_METHOD, h=h,
                            dt_out=h, return_states=False, allow_long=allow_long,
                            what="the FMU check")
+    return diagrams
 
 
 def check_fmu_check_t_end(t_end) -> float:

@@ -1,5 +1,6 @@
 """Command line: ivdrem paper / report / fmu routing, errors before simulation."""
 import json
+import math
 import subprocess
 import sys
 
@@ -120,3 +121,24 @@ def test_a_missing_optional_extra_is_one_line_not_a_traceback(tmp_path, monkeypa
     err = capsys.readouterr().err
     assert msg in err and "Traceback" not in err
     assert not (tmp_path / "p.fmu").exists()
+
+
+def test_gamma_auto_is_calibrated_once_per_command(tmp_path, monkeypatch):
+    """The preflight builds each law's loop as its run does (γ "auto" chosen there, with the
+    run's solver settings) and hands it to the run: one calibration, not two."""
+    import ivdrem.diagrams.gamma_auto as gamma_auto
+    real = gamma_auto.calibrate_gamma
+    calls = []
+
+    def counting(*a, **k):
+        calls.append(k.get("method"))
+        return real(*a, **k)
+    monkeypatch.setattr(gamma_auto, "calibrate_gamma", counting)
+    out = tmp_path / "o.json"
+    from pathlib import Path
+    cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"
+    assert main(["paper", "--config", str(cfg), "--t-end", "1", "--laws",
+                 "iv-drem", "--json", str(out), "--quiet"]) == 0
+    assert calls == ["rodas5p"]                      # once, with the run's method
+    data = json.loads(out.read_text())
+    assert math.isfinite(data["iv-drem"]["gamma"]) and data["iv-drem"]["gamma"] != 1e10

@@ -347,12 +347,17 @@ def fake_paper(monkeypatch):
     """Replace ivdrem.experiments.paper by a module whose run_paper is synthetic."""
     calls = []
 
-    def run_paper(config, *, laws=None, progress=True, engine="compiled", log=None):
-        calls.append({"config": config, "laws": laws, "progress": progress, "engine": engine})
+    import ivdrem.experiments.paper as real
+
+    def run_paper(config, *, laws=None, progress=True, engine="compiled", log=None,
+                  diagrams=None):
+        calls.append({"config": config, "laws": laws, "progress": progress, "engine": engine,
+                      "diagrams": diagrams})
         return synthetic_paper_run(config, dt=0.05)
 
     mod = types.ModuleType("ivdrem.experiments.paper")
     mod.run_paper = run_paper
+    mod.law_diagram = real.law_diagram      # the preflight builds the real loops
     monkeypatch.setitem(sys.modules, "ivdrem.experiments.paper", mod)
     return calls
 

@@ -30,22 +30,33 @@ class PaperRun:
     runs: dict = field(default_factory=dict)
 
 
-def run_law(config, law, *, model=None, progress=True, engine="compiled", log=None,
-            allow_long=False):
-    """Build the closed loop of `law` from `config` and simulate it (`allow_long`: beyond
-    the cost limits of ivdrem.sim.guards).
+def law_diagram(config, law, *, model=None, engine="compiled"):
+    """The closed loop of `law` from `config`, as its run simulates it.
 
-    With ``iv_drem.gamma = "auto"`` the γ of (21) is chosen by a calibration run first
-    (``ivdrem.diagrams.gamma_auto``); the choice is printed to ``log`` (a callable, default
-    none) and stored in ``stats["gamma_choice"]`` and ``LawRun.gamma``.
+    With ``iv_drem.gamma = "auto"`` the γ of (21) is chosen here, once, by a calibration run
+    with the run's own solver settings (``ivdrem.diagrams.gamma_auto``); the choice is in
+    ``diagram.gamma_choice``.  The commands' preflight builds these diagrams (a gain the
+    rule refuses stops the command before any run) and hands them to :func:`run_paper`.
     """
     model = model_from_config(config) if model is None else model
     kw = closed_loop_kwargs(config, law)
-    solver = solver_kwargs(config, law)
     if kw.get("gamma") == "auto":
         kw["calibration"] = dict(engine=engine, dt_out=float(config["experiment"]["dt_out"]),
-                                 **solver)
-    diagram = closed_loop(law, model, **kw)
+                                 **solver_kwargs(config, law))
+    return closed_loop(law, model, **kw)
+
+
+def run_law(config, law, *, model=None, progress=True, engine="compiled", log=None,
+            allow_long=False, diagram=None):
+    """Simulate the closed loop of `law` from `config` (built by :func:`law_diagram`
+    unless `diagram` is given; `allow_long`: beyond the cost limits of ivdrem.sim.guards).
+
+    A γ chosen by ``gamma = "auto"`` is printed to ``log`` (a callable, default none) and
+    stored in ``stats["gamma_choice"]`` and ``LawRun.gamma``.
+    """
+    if diagram is None:
+        diagram = law_diagram(config, law, model=model, engine=engine)
+    solver = solver_kwargs(config, law)
     choice = getattr(diagram, "gamma_choice", None)
     if choice is not None and log is not None:
         log(f"{law}: gamma = \"auto\" -> {choice['gamma']:.4g} "
@@ -57,15 +68,17 @@ def run_law(config, law, *, model=None, progress=True, engine="compiled", log=No
     stats = dict(resp.stats)
     if choice is not None:
         stats["gamma_choice"] = choice
-    gamma = choice["gamma"] if choice is not None else kw.get("gamma")
+    gamma = choice["gamma"] if choice is not None else closed_loop_kwargs(config, law).get("gamma")
     return LawRun(law, resp, stats, gamma=gamma)
 
 
 def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=None,
-              allow_long=False):
+              allow_long=False, diagrams=None):
     """Run every law of the configuration (default: the embedded paper experiment).
 
-    `progress` shows a bar per law when stderr is a terminal and CI is not set.
+    `progress` shows a bar per law when stderr is a terminal and CI is not set;
+    `diagrams` ({law: diagram} from :func:`law_diagram`, e.g. the preflight's) are used
+    instead of building them again (a γ "auto" is then not calibrated twice).
     """
     config = load_config() if config is None else config
     laws = list(config["experiment"]["laws"] if laws is None else laws)
@@ -75,5 +88,6 @@ def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=N
     show = want_progress(progress)   # one rule for every bar (ivdrem._progress)
     for law in laws:
         run.runs[law] = run_law(config, law, model=model, progress=show, engine=engine,
-                                allow_long=allow_long, log=log)
+                                allow_long=allow_long, log=log,
+                                diagram=(diagrams or {}).get(law))
     return run
