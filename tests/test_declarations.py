@@ -168,3 +168,32 @@ def test_vector_of_the_wrong_size_is_an_error_naming_both_signals():
     d = ct.interconnect([src, snk], outputs=["o"], check_unused=False)
     with pytest.raises(SignalSizeError, match="'src' output 's' has 3"):
         DiagramPlan.from_diagram(d)
+
+
+def test_the_experiments_start_reaches_a_replaced_plant():
+    """closed_loop(q0=...) with a user's plant: a plain nlsys gets q(0), q̇(0) by its state
+    names; an ivdrem block that starts elsewhere (an FMU plant's start values) is refused,
+    naming both states; a plain plant without q/dq states cannot take a nonzero q0."""
+    model = two_link()
+    ref = next(s for s in closed_loop("iv-drem", model).syslist if s.name == "plant")
+
+    def upd(t, x, u, p):
+        return ref.updfcn(t, x, u, ref.params)
+    user = ct.nlsys(upd, lambda t, x, u, p: x.copy(), inputs=ref.input_labels,
+                    outputs=ref.output_labels, states=ref.state_labels, name="plant")
+    d = closed_loop("iv-drem", model, q0=[0.1, 0.7], dq0=[0.0, -0.2], replace={"plant": user})
+    plan = DiagramPlan.from_diagram(d)
+    entry = next(b for b in plan.blocks if b.sys is user)
+    np.testing.assert_array_equal(plan.x0[entry.x], [0.1, 0.7, 0.0, -0.2])
+    # the paper's own q(0) when q0 is not given
+    plan = DiagramPlan.from_diagram(closed_loop("iv-drem", model, replace={"plant": user}))
+    entry = next(b for b in plan.blocks if b.sys is user)
+    np.testing.assert_allclose(plan.x0[entry.x], [0.0, 0.3 * np.pi, 0.0, 0.0])
+    # the user's system itself is not changed
+    assert not hasattr(user, "ivdrem_start")
+    # states named otherwise: a nonzero q0 cannot reach it
+    other = ct.nlsys(upd, lambda t, x, u, p: x.copy(), inputs=ref.input_labels,
+                     outputs=ref.output_labels, states=["a", "b", "c", "d"], name="plant")
+    with pytest.raises(ValueError, match=r"has no states named q\[0\.\.1\], dq\[0\.\.1\]"):
+        closed_loop("iv-drem", model, replace={"plant": other})
+    closed_loop("iv-drem", model, q0=[0.0, 0.0], replace={"plant": other})   # zero: fine

@@ -371,7 +371,8 @@ def test_fmu_error_early_on_both_engines(paper_fmu, engine):
     from ivdrem.sim import SimulationError, simulate
     blk = fmu_plant(paper_fmu, name="plant", params={"theta1": 0.5}, q0=[0.0, 0.56],
                     dq0=[0.0, -5.0])
-    loop = closed_loop("iv-drem", two_link(), replace={"plant": blk})
+    loop = closed_loop("iv-drem", two_link(), q0=[0.0, 0.56], dq0=[0.0, -5.0],
+                       replace={"plant": blk})
     stop = r"block 'plant' raised at t = 0[.0-9]* s: FmuEvaluationError"   # both engines
     with pytest.raises(SimulationError, match=stop + r": plant: FMU TwoLink.fmu: "
                        r"fmi2GetDerivatives at t = .*M\(q\) is singular"):
@@ -385,7 +386,8 @@ def test_start_values_are_the_initial_state(fmus, tmp_path):
     path = export_fmu(model, tmp_path / "start.fmu", q0=[0.1, -0.2], dq0=[0.3, 0.05])
     blk = fmu_plant(path)
     np.testing.assert_array_equal(blk.ivdrem.x0, [0.1, -0.2, 0.3, 0.05])
-    plan = DiagramPlan.from_diagram(closed_loop("iv-drem", model, replace={"plant": blk}))
+    plan = DiagramPlan.from_diagram(closed_loop("iv-drem", model, q0=[0.1, -0.2],
+                                                dq0=[0.3, 0.05], replace={"plant": blk}))
     entry = next(b for b in plan.blocks if b.sys is blk)
     np.testing.assert_array_equal(plan.x0[entry.x], [0.1, -0.2, 0.3, 0.05])
     # q0 / dq0 given: set on the FMU before initialization, and the block starts there
@@ -453,7 +455,7 @@ def test_fmu_declaring_feedthrough_is_direct(fmus, tmp_path):
             zo.writestr(item, data)
     blk = fmu_plant(direct)
     assert blk.ivdrem.direct == ("tau", "tau_d")
-    loop = closed_loop("iv-drem", two_link(), replace={"plant": blk})
+    loop = closed_loop("iv-drem", two_link(), q0=[0.0, 0.0], replace={"plant": blk})
     with pytest.raises(AlgebraicLoopError, match="plant"):
         simulate(loop, 0.1, progress=False)
 

@@ -160,6 +160,9 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
     blocks += list(law_blocks)
     outputs += [o for o in law_outputs if o not in outputs]
 
+    start = {}
+    if replace and "plant" in replace and not external_plant:
+        start = _replaced_plant_start(replace["plant"], n, q0, dq0)
     if replace:
         names = {b.name: i for i, b in enumerate(blocks)}
         for key, blk in replace.items():
@@ -172,7 +175,44 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
     if external_plant:
         outputs = [o for o in outputs if o not in ("q", "dq")]
         return assemble(blocks, outputs, name=f"controller[{law}]", inputs=["q", "dq"])
-    return assemble(blocks, outputs, name=f"closed_loop[{law}]")
+    diagram = assemble(blocks, outputs, name=f"closed_loop[{law}]")
+    if start:
+        # read by ivdrem.sim.plan: the replaced plant's start, by state name
+        diagram.ivdrem_start = {replace["plant"].name: start}
+    return diagram
+
+
+def _replaced_plant_start(plant, n, q0, dq0):
+    """The experiment's q(0), q̇(0) reach a plant that replaces ivdrem's, or the call refuses.
+
+    An ivdrem block with its own initial state (``fmu_plant(..., q0=...)``: the FMU's start
+    values) must already start there; a plain python-control system gets them by its state
+    names ``q[i]``, ``dq[i]`` (returned as {state name: value}, applied by the simulator's
+    plan where no ``x0`` is given).  Anything else would silently drop q0/dq0."""
+    want = np.concatenate([np.zeros(n) if q0 is None else np.asarray(q0, float).reshape(-1),
+                           np.zeros(n) if dq0 is None else np.asarray(dq0, float).reshape(-1)])
+    spec = getattr(plant, "ivdrem", None)
+    if spec is not None and np.size(getattr(spec, "x0", None)) == 2 * n:
+        have = np.asarray(spec.x0, float).reshape(-1)
+        if have.shape != want.shape or not np.array_equal(have, want):
+            raise ValueError(
+                f"replace['plant'] starts from its own initial state "
+                f"{np.round(have, 6).tolist()}, but the loop's [q(0), dq(0)] is "
+                f"{np.round(want, 6).tolist()} (q0, dq0; the paper's q(0) for the 2-link arm): "
+                "build the replacement with that state (e.g. ivdrem.fmu.fmu_plant(path, "
+                "q0=..., dq0=...)), or pass q0/dq0 equal to the plant's")
+        return {}
+    names = [f"q[{i}]" for i in range(n)] + [f"dq[{i}]" for i in range(n)]
+    labels = list(getattr(plant, "state_labels", []))
+    if set(names) <= set(labels):
+        return dict(zip(names, want.tolist()))
+    if np.any(want != 0):
+        raise ValueError(
+            f"replace['plant'] has no states named q[0..{n - 1}], dq[0..{n - 1}] (its states: "
+            f"{labels[:8]}{' ...' if len(labels) > 8 else ''}), so the loop's "
+            f"[q(0), dq(0)] = {np.round(want, 6).tolist()} cannot reach it: name its states so, "
+            "or pass simulate(..., x0=...) with q0 = dq0 = 0 here")
+    return {}
 
 
 def _check_signal_sizes(key, old, new):

@@ -134,11 +134,19 @@ class DiagramPlan:
             yi += ny
         if x0 is None:
             parts = []
+            # a diagram's start values for blocks that declare none (closed_loop: the
+            # experiment's q(0), q̇(0) for a user's plant), by block and state name
+            start = getattr(diagram, "ivdrem_start", None) or {}
             for b in blocks:
                 if b.spec is not None:
                     parts.append(np.asarray(b.spec.x0, float))
                 else:
-                    parts.append(np.zeros(b.sys.nstates))
+                    x = np.zeros(b.sys.nstates)
+                    given = start.get(b.sys.name, {})
+                    for i, label in enumerate(b.sys.state_labels):
+                        if label in given:
+                            x[i] = given[label]
+                    parts.append(x)
             x0 = np.concatenate(parts) if parts else np.zeros(0)
         else:
             x0 = np.asarray(x0, float).reshape(-1)
