@@ -69,7 +69,7 @@ def build(ctx):
 
 
 register_law(Law(
-    "normalised-iv-drem", build, label="normalised IV-DREM", color="#D55E00",
+    "normalised-iv-drem", build, label="normalised IV-DREM", color="#56B4E9",
     equation="γΔ(𝒴 − Δθ̂)/(1 + νγΔ²)", description="IV-DREM with a bounded contraction rate",
     section="normalised_iv_drem", defaults=dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, nu=1.0),
     uses_delta=True, instrument="zeta"), replace=True)

@@ -1,5 +1,6 @@
 """Tests of the experiment configuration (ivdrem.experiments.config)."""
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -280,3 +281,49 @@ def test_dump_toml_round_trip(tmp_path):
     c = load_config(overrides={"controller": {"Gamma": [0.1, 0.2, 0.3, 0.4, 0.5]}, "experiment": {"laws": ["drem"]}})
     p = write(tmp_path, dump_toml(c))
     assert load_config(p) == c
+
+
+def test_a_configuration_names_the_module_that_registers_its_laws(tmp_path):
+    """experiment.plugins: a Python file (relative to the configuration file) that
+    registers a law; the configuration then takes the law and its own table."""
+    import shutil
+    from ivdrem._preflight import check_runs
+    from ivdrem.laws import LAWS
+    shutil.copy(Path(__file__).resolve().parents[1] / "examples" / "custom_law.py",
+                tmp_path / "my_laws.py")
+    cfg = write(tmp_path, '[experiment]\nplugins = ["my_laws.py"]\n'
+                          'laws = ["normalised-iv-drem", "iv-drem"]\nt_end = 2.0\n'
+                          '[normalised_iv_drem]\nnu = 2.5\n')
+    from ivdrem.experiments import config as config_module
+    try:
+        c = load_config(cfg)
+        assert "normalised-iv-drem" in LAWS
+        assert c["experiment"]["plugins"] == [str(tmp_path / "my_laws.py")]
+        kw = closed_loop_kwargs(c, "normalised-iv-drem")
+        assert kw.get("law_params", kw).get("nu") == 2.5
+        diagrams = check_runs(c)                      # the preflight builds its loop
+        assert set(diagrams) == {"normalised-iv-drem", "iv-drem"}
+        # a worker validating the (absolute) configuration imports it the same way
+        from ivdrem.experiments.config import validate_config
+        assert validate_config(c)["experiment"]["plugins"] == c["experiment"]["plugins"]
+    finally:   # the rest of the suite sees the built-in laws only
+        LAWS.pop("normalised-iv-drem", None)
+        config_module._LOADED_PLUGINS.clear()
+
+
+@pytest.mark.parametrize("plugins, fragment", [
+    ('["missing.py"]', "file '"),
+    ('["no_such_module_ivdrem"]', "importing 'no_such_module_ivdrem' failed: ModuleNotFoundError"),
+    ('[1]', "must be a list"),
+])
+def test_bad_plugins_are_named(tmp_path, plugins, fragment):
+    cfg = write(tmp_path, f"[experiment]\nplugins = {plugins}\n")
+    with pytest.raises(ConfigError, match=re.escape(fragment)):
+        load_config(cfg)
+
+
+def test_a_plugin_that_raises_is_named(tmp_path):
+    (tmp_path / "broken.py").write_text("raise RuntimeError('my bug')\n")
+    cfg = write(tmp_path, '[experiment]\nplugins = ["broken.py"]\n')
+    with pytest.raises(ConfigError, match=r"importing '.*broken\.py' failed: RuntimeError: my bug"):
+        load_config(cfg)

@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import copy
 import difflib
+import hashlib
 import functools
 import math
+import sys
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -163,6 +165,11 @@ TRAJECTORY_KINDS = {
 #: Keys a section may hold beyond :data:`SCHEMA`'s (none of them in the paper's
 #: configuration): the model from a URDF file and its options, the Fourier reference.
 OPTIONAL: dict[str, dict[str, _Key]] = {
+    "experiment": {
+        # Python files (relative to the configuration file) or module names that register
+        # the user's own laws (ivdrem.laws.register_law); imported before the laws are read
+        "plugins": _Key("names"),
+    },
     "model": {
         "urdf": _Key("str"),            # a path, relative to the configuration file
         "friction": _Key("str", choices=FRICTION),
@@ -360,6 +367,68 @@ def _settle_variants(cfg: dict, user_set: set) -> None:
             del traj[key]
 
 
+def _resolve_plugins(user: Mapping, base: Path | None) -> None:
+    """Relative ``experiment.plugins`` files are relative to the configuration file (`base`
+    its directory), or to the caller's directory for overrides; module names stay."""
+    e = user.get("experiment")
+    if not isinstance(e, Mapping) or not isinstance(e.get("plugins"), list):
+        return
+    from .._paths import user_path
+    out = []
+    for item in e["plugins"]:
+        if isinstance(item, str) and item.endswith(".py"):
+            q = Path(item).expanduser()
+            if base is not None and not q.is_absolute():
+                q = base / q
+            item = str(user_path(q))
+        out.append(item)
+    e["plugins"] = out
+
+
+_LOADED_PLUGINS: dict = {}
+
+
+def load_plugins(cfg: Mapping, where: str = "configuration") -> None:
+    """Import the modules ``experiment.plugins`` names (each once per process), so that the
+    laws they register exist before the configuration reads ``experiment.laws``.  A Dask
+    worker validating a study's configuration imports them the same way."""
+    e = cfg.get("experiment") if isinstance(cfg, Mapping) else None
+    items = e.get("plugins") if isinstance(e, Mapping) else None
+    if items is None:
+        return
+    if not isinstance(items, list) or not all(isinstance(i, str) and i for i in items):
+        raise ConfigError(f"config key 'experiment.plugins' ({where}) must be a list of Python "
+                          f"files or module names, got {items!r}")
+    import importlib
+    import importlib.util
+    for item in items:
+        if item in _LOADED_PLUGINS:
+            continue
+        try:
+            if item.endswith(".py"):
+                q = Path(item)
+                if not q.is_file():
+                    raise ConfigError(f"config key 'experiment.plugins' ({where}): file '{q}' "
+                                      "not found")
+                name = "ivdrem_plugin_" + hashlib.sha256(str(q).encode()).hexdigest()[:12]
+                spec = importlib.util.spec_from_file_location(name, q)
+                module = importlib.util.module_from_spec(spec)
+                sys.modules[name] = module
+                try:
+                    spec.loader.exec_module(module)
+                except BaseException:
+                    sys.modules.pop(name, None)
+                    raise
+            else:
+                module = importlib.import_module(item)
+        except ConfigError:
+            raise
+        except Exception as exc:
+            raise ConfigError(f"config key 'experiment.plugins' ({where}): importing {item!r} "
+                              f"failed: {type(exc).__name__}: {exc}") from None
+        _LOADED_PLUGINS[item] = module
+
+
 def _resolve_urdf(user: Mapping, base: Path | None) -> None:
     """A relative ``model.urdf`` is relative to the configuration file (`base` its
     directory), or to the caller's directory for overrides."""
@@ -402,16 +471,23 @@ def load_config(path: str | Path | None = None, overrides: Mapping | None = None
     returned as a plain dict (floats as ``float``, vectors as lists of ``float``).
     Raises :class:`ConfigError` for any invalid or unknown entry.
     """
-    cfg = default_config()
-    user_set: set = set()
+    user = over = None
     if path is not None:
         p = Path(path)
         user, _ = read_toml(p)
         _resolve_urdf(user, p.resolve().parent)
-        _merge(cfg, user, where=str(p), user_set=user_set)
+        _resolve_plugins(user, p.resolve().parent)
+        load_plugins(user, where=str(p))       # a user law's section joins the default
     if overrides:
         over = _undot(overrides)
         _resolve_urdf(over, None)
+        _resolve_plugins(over, None)
+        load_plugins(over, where="overrides")
+    cfg = default_config()
+    user_set: set = set()
+    if user is not None:
+        _merge(cfg, user, where=str(p), user_set=user_set)
+    if over is not None:
         _merge(cfg, over, where="overrides", user_set=user_set)
     _settle_variants(cfg, user_set)
     _follow_model(cfg, user_set)
@@ -590,6 +666,7 @@ def validate_config(cfg: Mapping) -> dict:
     """
     if not isinstance(cfg, Mapping):
         raise ConfigError(f"configuration must be a table, got {type(cfg).__name__}")
+    load_plugins(cfg)          # (a study's worker) the user's laws before they are read
     out: dict = {}
     for section in cfg:
         _check_section(section)
