@@ -197,3 +197,17 @@ def test_cli_bad_input(capsys, tmp_path):
     assert main_cosim(["--t-end", "-1", "--quiet"]) == 2
     assert main_cosim(["--comm-step", "0", "--quiet"]) == 2
     assert main_cosim(["--law", "nonsense"]) == 2
+
+
+def test_cli_takes_a_configuration_and_another_robot(capsys, tmp_path, fmu):
+    """ivdrem cosim --config: the configuration's robot (planar-3), gains, reference and q(0)
+    on both sides; its plant FMU exported from that model; first order in H."""
+    from pathlib import Path
+    cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"
+    assert main_cosim(["--config", str(cfg), "--law", "none", "--t-end", "1", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "planar-3 plant exported" in out and "OK: the co-simulation converges" in out
+    # an FMU of another robot is refused against this configuration's model
+    assert main_cosim(["--config", str(cfg), "--law", "none", "--t-end", "0.01",
+                       "--fmu", str(fmu), "--quiet"]) == 2
+    assert "error" in capsys.readouterr().err

@@ -84,7 +84,11 @@ def _cosim_parser() -> argparse.ArgumentParser:
                    help="largest communication step H in s; also runs H/2 and H/4 "
                         "(default %(default)g)")
     p.add_argument("--fmu", default=None, metavar="FILE",
-                   help="plant FMU (default: export the 2-link arm to a temporary directory)")
+                   help="plant FMU (default: export the configuration's robot to a temporary "
+                        "directory)")
+    p.add_argument("--config", default=None, metavar="FILE.toml",
+                   help="experiment configuration: robot, gains, reference, disturbance, q(0) "
+                        "(default: the paper's 2-link experiment)")
     p.add_argument("--engine", default="compiled", choices=("compiled", "reference"),
                    help="controller / reference simulator engine (default %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -138,42 +142,49 @@ def main_cosim(argv=None) -> int:
             _steps(args.t_end, h, what)
         from ivdrem._preflight import check_cache_dir
         from ivdrem.diagrams import closed_loop
-        from ivdrem.models import two_link
+        from ivdrem.experiments.config import closed_loop_kwargs, load_config, model_from_config
         check_cache_dir(args.engine)
-        if fmu_path is not None:  # missing, not an FMU, damaged, no CS, not the 2-link plant
+        config = load_config(None if args.config is None else user_path(args.config))
+        model = model_from_config(config)
+        loop_kw = closed_loop_kwargs(config, args.law)
+        if fmu_path is not None:  # missing, not an FMU, damaged, no CS, not this robot's plant
             from .cosim import _check_interface
             from .describe import read_description
-            _check_interface(fmu_path, read_description(fmu_path, "co-simulation"), two_link())
+            _check_interface(fmu_path, read_description(fmu_path, "co-simulation"), model)
         from ivdrem.sim.guards import check_diagram_cost
         from ivdrem.sim.methods import REFERENCE_METHOD
+        reference = closed_loop(args.law, model, **loop_kw)
+        if getattr(reference, "gamma_choice", None) is not None:
+            loop_kw["gamma"] = reference.gamma_choice["gamma"]   # one γ "auto" for every run
         # the all-Python reference: RK4 at the finest H, sampled there
-        check_diagram_cost(closed_loop(args.law, two_link()), args.t_end, engine=args.engine,
+        check_diagram_cost(reference, args.t_end, engine=args.engine,
                            method=REFERENCE_METHOD, h=min(steps), dt_out=min(steps),
                            return_states=False, allow_long=args.allow_long,
                            what="the reference run")
-    except (ValueError, OSError) as exc:   # OSError: missing FMU, unwritable cache
+    except (ValueError, OSError, ImportError) as exc:   # OSError: missing FMU, cache
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="ivdrem_cosim_") as tmp:
         if args.fmu is None:
-            from ivdrem.models import two_link
             from .export import export_fmu
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")   # compiler chatter; the FMU is tested
-                    fmu = export_fmu(two_link(), Path(tmp) / "two_link.fmu")
+                    fmu = export_fmu(model, Path(tmp) / "plant.fmu", q0=loop_kw.get("q0"),
+                                     dq0=loop_kw.get("dq0"))
             except (RuntimeError, NotImplementedError, FileNotFoundError) as exc:
                 print(f"{prog}: error: exporting the plant FMU failed: {exc}", file=sys.stderr)
                 return 2
-            origin = "2-link plant exported to a temporary FMU"
+            origin = f"{model.name} plant exported to a temporary FMU"
         else:
             fmu = fmu_path
             origin = str(fmu)
         try:
-            cmp = compare_to_python(fmu, args.t_end, steps, law=args.law, engine=args.engine,
-                                    progress=progress, allow_long=args.allow_long)
+            cmp = compare_to_python(fmu, args.t_end, steps, law=args.law, model=model,
+                                    engine=args.engine, progress=progress,
+                                    allow_long=args.allow_long, **loop_kw)
         except (FileNotFoundError, ValueError) as exc:
             print(f"{prog}: error: {exc}", file=sys.stderr)
             return 2
