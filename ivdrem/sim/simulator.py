@@ -192,6 +192,13 @@ class ReferenceEngine:
         self._feeds = {}
 
 
+#: the stepper's report function: int32 f(t) (stepper.c's report_fn)
+_REPORT_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_double)
+
+#: reports per advance: the progress bar's updates, and the moments a pending Ctrl-C is
+#: handled while the stepper runs without calling Python
+REPORTS = 200
+
 #: the reference engine's diagram function: int32 f(mode, t, x*, ue*, out*) (stepper.c)
 _DIAGRAM_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_int64, ctypes.c_double,
                                      ctypes.c_int64, ctypes.c_int64, ctypes.c_int64)
@@ -246,7 +253,7 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels, tables):
         lapack_chars=np.array([ord("V"), ord("L")], dtype=np.uint8),
         # dsyevd's five scalar arguments, then its integer work
         lapack_ints=np.zeros(5 + _diagram.dsyevd_liwork(nmat), dtype=np.int32),
-        callbacks=np.zeros(1, dtype=np.int64))
+        callbacks=np.zeros(2, dtype=np.int64))
 
 
 def _grow(W):
@@ -333,6 +340,11 @@ class Simulator:
         self._started = False
         self._inputs_set = False
         self._kinks = np.zeros(0)       # times where the input interpolant's slope changes
+        self._on_report = None          # the current advance's report (see advance)
+        self._stopped_by = None         # the exception that stopped the run in the report
+        # the stepper calls it by address (kept alive with the simulator)
+        self._report_c = _REPORT_CALLBACK(self._report_trampoline)
+        self._report_address = ctypes.cast(self._report_c, ctypes.c_void_p).value
 
     @property
     def state_labels(self):
@@ -440,24 +452,39 @@ class Simulator:
             out_x = np.zeros((out_t.size, 0))
         io = np.array([0, out_t.size], dtype=np.int64)
         self._emit_due(out_t, out_y, out_x, io)
-        span = t_to - self.t
-        nchunk = 1 if progress is None else 200
-        t_start = self.t
+        t_start, span = self.t, t_to - self.t
+        reported = [t_start]
+
+        def report(t):
+            # called by the stepper after the first accepted step at or past tf[F_REPORT]:
+            # the steps are those of a run without it (docs/simulation.md, "Progress")
+            if progress is not None:
+                progress(t)
+                reported[0] = t
+            # the first of the REPORTS equally spaced times after t (t_to at the end)
+            k = min(REPORTS, math.floor((t - t_start) / span * REPORTS) + 1) if span > 0 \
+                else REPORTS
+            while k < REPORTS and t_start + span * k / REPORTS <= t:
+                k += 1
+            self.tf[tpl.F_REPORT] = t_start + span * k / REPORTS if k < REPORTS else t_to
+        self.tf[tpl.F_REPORT] = t_start + span / REPORTS
+        self._on_report = report
+        self.W.callbacks[1] = self._report_address
         wall0 = _time.perf_counter()
         try:
-            for c in range(1, nchunk + 1):
-                t_stop = t_to if c == nchunk else t_start + span * c / nchunk
-                while self.t < t_stop - 1e-12 * max(1.0, abs(t_stop)):
-                    t_seg = self._segment_end(t_stop)
-                    st = self._chunk(t_seg, out_t, out_y, out_x, io)
-                    if st == tpl.OK:
-                        if t_seg == t_stop:
-                            break
-                        continue
-                    self._handle(st, out_t, out_y, io, out_x)
-                if progress is not None:
-                    progress(self.t)
+            while self.t < t_to - 1e-12 * max(1.0, abs(t_to)):
+                t_seg = self._segment_end(t_to)
+                st = self._chunk(t_seg, out_t, out_y, out_x, io)
+                if st == tpl.OK:
+                    if t_seg == t_to:
+                        break
+                    continue
+                self._handle(st, out_t, out_y, io, out_x)
+            if progress is not None and reported[0] < self.t:
+                progress(self.t)
         finally:
+            self.W.callbacks[1] = 0
+            self._on_report = None
             self.wall += _time.perf_counter() - wall0
         return io[0]
 
@@ -498,7 +525,22 @@ class Simulator:
                 f"use method=\"{STIFF_METHOD}\"", StiffnessWarning, stacklevel=4)
         return int(st)
 
+    def _report_trampoline(self, t):
+        """The stepper's report function: the current advance's report (progress) run in
+        Python, where a pending Ctrl-C becomes a KeyboardInterrupt; an exception stops the
+        run (status STOPPED) and is raised again by _handle."""
+        try:
+            if self._on_report is not None:
+                self._on_report(t)
+            return 0
+        except BaseException as e:      # noqa: BLE001 - raised again by _handle
+            self._stopped_by = e
+            return 1
+
     def _handle(self, st, out_t, out_y, io, out_x):
+        if st == tpl.STOPPED:
+            e, self._stopped_by = self._stopped_by, None
+            raise e
         if st == tpl.HISTORY_FULL:
             meta = self.W.hist_meta
             if meta[1] + 2 > meta[2]:
