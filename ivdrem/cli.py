@@ -158,7 +158,24 @@ def build_parser():
     return p
 
 
+#: the exit status of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it)
+EXIT_INTERRUPTED = 130
+
+
+def interrupted(prog):
+    """The one line a command prints when Ctrl-C stops it (no traceback)."""
+    print(f"{prog}: interrupted (Ctrl-C)", file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
 def main(argv=None):
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        return interrupted("ivdrem")
+
+
+def _main(argv):
     argv = sys.argv[1:] if argv is None else list(argv)
     # sub-commands owned by ivdrem.fmu parse their own arguments
     if argv and argv[0] in ("fmu", "cosim"):

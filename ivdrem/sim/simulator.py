@@ -55,6 +55,8 @@ ENGINES = ("compiled", "reference")
 def _check_positive(name, v):
     if v is None:
         return v
+    if isinstance(v, (bool, np.bool_)):
+        raise ValueError(f"{name} must be a number, got {v!r}")
     try:
         f = float(v)
     except (TypeError, ValueError):
@@ -62,6 +64,34 @@ def _check_positive(name, v):
     if not (f > 0 and math.isfinite(f)):
         raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
     return f
+
+
+def check_solver_settings(method=DEFAULT_METHOD, h=1e-3, rtol=None, atol=None,
+                          h_max=None, x_limit=1e10, max_steps=50_000_000):
+    """Refuse solver settings outside a sensible range, naming the key, before any work:
+    0 < rtol < 1 (a relative tolerance of 1 or more controls nothing), atol > 0, h > 0,
+    h_max > 0 (inf allowed) and not below h, x_limit > 0, max_steps >= 1; every number
+    finite.  Otherwise a run ends in a misleading error far from its cause ("singular
+    inertia", "step size fell below 1e-13 s")."""
+    info = method if isinstance(method, MethodInfo) else method_info(method)
+    h = _check_positive("h", h)
+    if rtol is not None:
+        r = _check_positive("rtol", rtol)
+        if not r < 1.0:
+            raise ValueError(f"rtol must be below 1 (a relative tolerance; {info.name}"
+                             f"'s default is {info.rtol:g}), got {rtol!r}")
+    _check_positive("atol", atol)
+    if h_max is not None and not (isinstance(h_max, (int, float)) and h_max == math.inf):
+        hm = _check_positive("h_max", h_max)
+        if hm < h:
+            raise ValueError(f"h_max = {hm:g} s is below h = {h:g} s (the "
+                             f"{'initial ' if info.adaptive else ''}step): lower h too, or "
+                             "raise h_max")
+    _check_positive("x_limit", x_limit)
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer, float)) or \
+            not (max_steps >= 1 and math.isfinite(max_steps)):
+        raise ValueError(f"max_steps must be a whole number >= 1, got {max_steps!r}")
+    return info
 
 
 # --------------------------------------------------------------------------- reference
@@ -283,7 +313,8 @@ class Simulator:
                  max_steps=50_000_000, t0=0.0):
         # a name of a user method, or a registry row (the generic method suite runs the
         # stepper-internal methods this way)
-        self.info = info = method if isinstance(method, MethodInfo) else method_info(method)
+        self.info = info = check_solver_settings(method, h, rtol, atol, h_max, x_limit,
+                                                 max_steps)
         method = info.name
         if engine not in ENGINES:
             raise ValueError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
@@ -502,6 +533,8 @@ class Simulator:
             # a block's own exception inside the loop: name the block and the time
             named = self.engine.block_failure(e, self.W)
             if named is not None:
+                if named[1] is not None and not isinstance(named[1], Exception):
+                    raise named[1]  # Ctrl-C (KeyboardInterrupt), SystemExit: not the block's
                 raise named[0] from named[1]
             if not isinstance(e, (ValueError, ZeroDivisionError, FloatingPointError,
                                   np.linalg.LinAlgError)):
@@ -872,6 +905,7 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
     if not isinstance(diagram, ct.InterconnectedSystem):
         raise TypeError("simulate() needs a ct.InterconnectedSystem (from ct.interconnect "
                         f"or ivdrem.diagrams), got {type(diagram).__name__}")
+    check_solver_settings(method, h, rtol, atol, h_max, x_limit, max_steps)
     t0, t_end, T = _time_span(timepts, t_end)
     out_t, dt_grid = _output_grid(t0, t_end, T, t_eval, dt_out)
     if u is not None:
