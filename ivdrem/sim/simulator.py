@@ -39,7 +39,7 @@ from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,  # no
 from .tables import hold_nmat, pack as pack_tables, scratch_size
 from .layout import WORKSPACE_LAYOUT, Workspace  # noqa: F401  (WORKSPACE_LAYOUT re-exported)
 from .errors import BlockError, SimulationError, StiffnessWarning, BLOCK_RAISED_MESSAGE  # noqa: F401
-from .guards import check_diagram_cost
+from .guards import check_bounds, check_diagram_cost
 from .compiled import CompiledEngine, load_c_stepper
 from .foreign import _view
 from .tables import reference_tables
@@ -83,6 +83,7 @@ def check_solver_settings(method=DEFAULT_METHOD, h=1e-3, rtol=None, atol=None,
     _check_positive("atol", atol)
     if h_max is not None and not (isinstance(h_max, (int, float)) and h_max == math.inf):
         hm = _check_positive("h_max", h_max)
+        check_bounds(h_max=hm)          # its documented lower bound first
         if hm < h:
             raise ValueError(f"h_max = {hm:g} s is below h = {h:g} s (the "
                              f"{'initial ' if info.adaptive else ''}step): lower h too, or "
