@@ -137,3 +137,39 @@ def test_sensible_settings_at_the_edges_still_run():
     r = simulate(_slow_python_plant(), 0.05, progress=False, method="rk4", h=1e-2,
                  h_max=1e-2)
     assert np.asarray(r.outputs).reshape(-1)[-1] == pytest.approx(1 - np.exp(-0.05), rel=1e-6)
+
+
+# ----------------------------------------------------------------------------- NaN
+def _nan_loop(where):
+    """src -> plant; `where` = "output": src's output is NaN after t = 0.2 s; "update":
+    the plant's derivative is NaN once its state passes 0.3."""
+    def src_out(t, x, u, params):
+        return np.array([np.nan if (where == "output" and t > 0.2) else 1.0])
+
+    def plant_update(t, x, u, params):
+        if where == "update" and x[0] > 0.3:
+            return np.array([np.nan])
+        return np.array([-x[0] + u[0]])
+    src = ct.nlsys(None, src_out, inputs=0, outputs=["s"], name="src")
+    plant = ct.nlsys(plant_update, lambda t, x, u, p: x, inputs=["s"], outputs=["y"],
+                     states=1, name="plant")
+    return ct.interconnect([src, plant], inplist=[], outlist=["y"], name=f"nan_{where}")
+
+
+@pytest.mark.parametrize("engine", ["compiled", "reference"])
+@pytest.mark.parametrize("method", ["rodas5p", "dp45"])
+@pytest.mark.parametrize("where,block,function", [("output", "src", "output function"),
+                                                   ("update", "plant", "update function")])
+def test_a_nan_from_a_block_is_called_a_nan_naming_the_block(engine, method, where, block,
+                                                             function):
+    """Not "above the limit", "stiffness" or "step size fell below 1e-13 s": the block
+    whose output or derivative is NaN with finite inputs, and the time; the plant is
+    downstream of a NaN source and not blamed."""
+    with pytest.raises(Exception) as info:
+        simulate(_nan_loop(where), 1.0, engine=engine, method=method, progress=False)
+    msg = str(info.value)
+    assert f"block '{block}'" in msg and "not a number" in msg and function in msg, msg
+    t_nan = 0.2 if where == "output" else -np.log(0.7)      # x(t) = 1 - exp(-t) = 0.3
+    t_said = float(msg.split("at t = ")[-1].split(" s")[0])
+    assert t_said == pytest.approx(t_nan, abs=1e-3)
+    assert "limit" not in msg and "stiff" not in msg and "1e-13" not in msg

@@ -583,6 +583,10 @@ class Simulator:
             self._after_step_with_room()
             self._emit_due(out_t, out_y, out_x, io)
             return
+        if st in (tpl.DIVERGED, tpl.STEP_TOO_SMALL):
+            nan = self._nan_source()
+            if nan is not None:
+                raise SimulationError(f"simulation stopped at t = {self.t:.6g} s: {nan}")
         if st in (tpl.DIVERGED, tpl.DIVERGED_GROWTH):
             i = int(self.stats[tpl.S_BAD])
             order = np.argsort(-np.nan_to_num(np.abs(self.x), nan=np.inf))[:5]
@@ -609,6 +613,75 @@ class Simulator:
                 f"method {self.info.name!r} (dispatch id {self.info.id} in "
                 "ivdrem.sim.methods) has no step function in the stepper's method_step")
         raise SimulationError(f"unexpected status {st} at t = {self.t:.6g} s")
+
+    def _signals_at(self, t, x):
+        """(dx/dt, block outputs, block inputs) of the diagram at (t, x), evaluated by the
+        run's own engine; None if the evaluation raises."""
+        d = self.plan.diagram
+        if self.W.u_times.size:
+            ue = interpolate_inputs(self.W.u_times, self.W.u_values.T, np.array([t]))[:, 0]
+        else:
+            ue = np.array(self.W.u_ext)
+        try:
+            if self.engine_name == "reference":
+                # block by block in the plan's order (python-control's own sweep does not
+                # settle on a NaN): the outputs, then every block's derivatives
+                C, M = np.asarray(d.connect_map), np.asarray(d.input_map)
+                ys, dx = np.zeros(C.shape[1]), np.zeros(x.size)
+                for k in self.plan.order:
+                    b = self.plan.blocks[k]
+                    ub = C[b.u] @ ys + M[b.u] @ ue
+                    ys[b.y] = np.asarray(b.sys._out(t, x[b.x], ub), dtype=float).reshape(-1)
+                us = C @ ys + M @ ue
+                for b in self.plan.blocks:
+                    if b.sys.nstates:
+                        dx[b.x] = np.asarray(b.sys._rhs(t, x[b.x], us[b.u]),
+                                             dtype=float).reshape(-1)
+                return dx, ys, us
+            dx = self.engine.rhs(t, x, self.W)
+            return dx, np.array(self.W.ys), np.array(self.W.us)
+        except Exception:       # noqa: BLE001 - a diagnosis, not the run's error
+            return None
+
+    def _nan_source(self):
+        """The block that produced a NaN (or inf) where the run stopped, as a sentence, or
+        None: the diagram is evaluated at the last accepted point and at Euler points
+        ahead of it (where the rejected steps' stages were), and the first block in
+        evaluation order whose outputs, or whose derivatives, are not finite while its
+        inputs and states are is named."""
+        t, x = self.t, self.x.copy()
+        if not np.all(np.isfinite(x)):
+            return None
+        first = self._signals_at(t, x)
+        if first is None:
+            return None
+        f0 = np.nan_to_num(first[0], nan=0.0, posinf=0.0, neginf=0.0)
+        probes = [(t, x)] + [(t + dt, x + dt * f0) for dt in np.logspace(-13, -1, 25)]
+        for tp, xp in probes:
+            ev = first if tp == t else self._signals_at(tp, xp)
+            if ev is None:
+                continue
+            dx, ys, us = ev
+            if np.all(np.isfinite(dx)) and np.all(np.isfinite(ys)):
+                continue
+            blocks = [self.plan.blocks[k] for k in self.plan.order]
+            for b in blocks:
+                yb, ub = ys[b.y], us[b.u]
+                if np.all(np.isfinite(ub)) and not np.all(np.isfinite(yb)):
+                    j = int(np.flatnonzero(~np.isfinite(yb))[0])
+                    return (f"block '{b.sys.name}' output {b.sys.output_labels[j]} is "
+                            f"{float(yb[j])!r} (not a number) at t = {tp:.9g} s with finite "
+                            "inputs and states (its output function)")
+            for b in blocks:
+                db, ub, xb = dx[b.x], us[b.u], xp[b.x]
+                if np.all(np.isfinite(ub)) and np.all(np.isfinite(xb)) and \
+                        not np.all(np.isfinite(db)):
+                    j = int(np.flatnonzero(~np.isfinite(db))[0])
+                    return (f"block '{b.sys.name}' gives d{b.sys.state_labels[j]}/dt = "
+                            f"{float(db[j])!r} (not a number) at t = {tp:.9g} s with finite "
+                            "inputs and states (its update function)")
+            return None
+        return None
 
     def close(self):
         if self.engine_name == "reference":
