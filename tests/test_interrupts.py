@@ -173,3 +173,29 @@ def test_a_nan_from_a_block_is_called_a_nan_naming_the_block(engine, method, whe
     t_said = float(msg.split("at t = ")[-1].split(" s")[0])
     assert t_said == pytest.approx(t_nan, abs=1e-3)
     assert "limit" not in msg and "stiff" not in msg and "1e-13" not in msg
+
+
+# ----------------------------------------------------------------------------- raising
+@pytest.mark.parametrize("engine", ["compiled", "reference"])
+def test_an_exception_in_any_evaluation_stops_the_run_naming_the_block(engine, capfd):
+    """A Python block that raises from its n-th call on, for n across the first steps: the
+    call that raises is a stage, an output, an after-step or a column of the Jacobian's
+    forward differences; every time the run stops with a BlockError naming the block, the
+    exception chained, and nothing printed ("Exception ignored" from a callback)."""
+    for n_ok in (1, 2, 3, 4, 5, 7, 9, 12, 17, 30, 61):
+        calls = [0]
+
+        def update(t, x, u, params, calls=calls, n_ok=n_ok):
+            calls[0] += 1
+            if calls[0] > n_ok:
+                raise ZeroDivisionError(f"call {calls[0]}")
+            return np.array([-x[0] + x[1], -2.0 * x[1]])
+        plant = ct.nlsys(update, lambda t, x, u, p: x, inputs=0, outputs=2, states=2,
+                         name="raiser")
+        d = ct.interconnect([plant], inplist=[], outlist=["raiser.y[0]", "raiser.y[1]"],
+                            name="raising")
+        with pytest.raises(BlockError, match="block 'raiser'") as info:
+            simulate(d, 1.0, initial_state=[1.0, 1.0], engine=engine, progress=False)
+        assert isinstance(info.value.__cause__, ZeroDivisionError), n_ok
+    out, err = capfd.readouterr()
+    assert "Exception ignored" not in err and "Traceback" not in err, err[-2000:]
