@@ -158,10 +158,23 @@ def build_parser():
     return p
 
 
+#: the exit status of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it)
+EXIT_INTERRUPTED = 130
+
+
+def interrupted(prog):
+    """The one line a command prints when Ctrl-C stops it (no traceback)."""
+    print(f"{prog}: interrupted (Ctrl-C)", file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
 def main(argv=None):
     from ._threads import one_blas_thread
-    with one_blas_thread():   # ivdrem's own process: small LAPACK calls, one thread each
-        return _main(argv)
+    try:
+        with one_blas_thread():   # ivdrem's own process: small LAPACK calls, one thread each
+            return _main(argv)
+    except KeyboardInterrupt:
+        return interrupted("ivdrem")
 
 
 def _main(argv=None):

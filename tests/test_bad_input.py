@@ -566,3 +566,39 @@ def test_fmu_export_failing_mid_write_leaves_nothing(tmp_path, monkeypatch):
         export_fmu("two-link", target, compile=False, overwrite=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["Plant.fmu"]
     assert target.read_bytes() == b"the previous FMU"
+
+
+# ----------------------------------------------------------------------------- run time
+def test_run_time_guard_from_the_measured_cost_of_the_paper_loop():
+    """`paper`/`report --engine reference` at the default horizon: refused before any run
+    with the estimate from measured step counts and times per step (about 19 + 22 min),
+    not the lower bound t_end / h_max (tens of steps); the paper's default runs on the
+    compiled engine, one law on the reference engine and --allow-long are accepted."""
+    from ivdrem._preflight import check_runs
+    from ivdrem.experiments.config import load_config
+    from ivdrem.sim.guards import CostLimitError
+    config = load_config(None)
+    with pytest.raises(CostLimitError, match=r"the 2 runs would take about 40 min on the "
+                       r"reference engine \(iv-drem 19 min \+ composite-learning 22 min"):
+        check_runs(config, engine="reference")
+    check_runs(config, engine="compiled")
+    check_runs(config, engine="reference", allow_long=True)
+    check_runs(load_config(None, {"experiment.laws": ["iv-drem"]}), engine="reference")
+    with pytest.raises(CostLimitError, match=r"the iv-drem run \(900 s\) would take about 56 "
+                       "min on the reference engine"):
+        check_runs(load_config(None, {"experiment.laws": ["iv-drem"],
+                                      "experiment.t_end": 900.0}), engine="reference")
+
+
+@pytest.mark.parametrize("law", ["iv-drem", "composite-learning"])
+def test_the_measured_step_table_matches_a_run(law):
+    """The table's step counts against a fresh 300 s run with the configuration's
+    defaults (Rodas5P, the paper's loop): implicit and explicit steps within 10 %."""
+    from ivdrem.sim import simulate
+    from ivdrem.sim.guards import paper_loop_steps
+    from conftest import paper_loop
+    run = simulate(paper_loop(law), 300.0, progress=False)
+    (steps, explicit), _ = paper_loop_steps(law, "rodas5p", 300.0)
+    st = run.stats
+    assert st["steps"] - st["explicit_steps"] == pytest.approx(steps, rel=0.1)
+    assert st["explicit_steps"] == pytest.approx(explicit, rel=0.1, abs=10)

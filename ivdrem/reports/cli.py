@@ -171,7 +171,11 @@ def run_report_command(args) -> int:
 
 def main(argv=None) -> int:  # pragma: no cover - convenience for `python -m ivdrem.reports.cli`
     parser = add_report_arguments(argparse.ArgumentParser(prog="ivdrem report"))
-    return run_report_command(parser.parse_args(argv))
+    try:
+        return run_report_command(parser.parse_args(argv))
+    except KeyboardInterrupt:
+        from ..cli import interrupted
+        return interrupted("ivdrem report")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -42,6 +42,7 @@ DIVERGED_GROWTH = 7
 BLOCK_RAISED = 8      # a block kernel or the reference engine's callback raised
 
 UNKNOWN_METHOD = 9    # a method id method_step has no branch for (never a fallback)
+STOPPED = 10          # the report function (workspace callbacks[1]) asked to stop (it raised)
 
 # method ids: the registry's (ivdrem.sim.methods); BS23 is no user method: the explicit
 # steps of a Rodas5P run pinned by max-holds
@@ -79,7 +80,9 @@ F_GROW_RATE = 6    # e-folding rate (1/s) at a DIVERGED_GROWTH stop
 F_HRHO = 7         # last h*rho(J) estimate of DP45
 F_HRHO_STIFF = 8   # the estimate when S_STIFF was set
 F_ERR = 9          # error estimate (weighted RMS norm) of the last accepted step; 0: none
-N_TF = 10
+F_REPORT = 10      # the report function is called after the first accepted step at or past
+                   # this time (it moves it on); the step sequence does not depend on it
+N_TF = 11
 
 # growth-rate divergence: a state norm (>= 1) growing by GROWTH_FACTOR within GROWTH_WINDOW
 GROWTH_FACTOR = 1e6

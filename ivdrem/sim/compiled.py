@@ -587,6 +587,8 @@ class CompiledEngine:
             named = self.block_failure(e, W)
             if named is None:
                 raise
+            if named[1] is not None and not isinstance(named[1], Exception):
+                raise named[1]      # Ctrl-C (KeyboardInterrupt), SystemExit: not the block's
             raise named[0] from named[1]
 
     def after_step(self, t, x, W):

@@ -10,6 +10,12 @@ Two numbers are known before the first step:
   the bound 30 000 for the paper's 300 s run, README "Performance").  Which of the two a
   method is, the method registry says (:mod:`ivdrem.sim.methods`, ``adaptive``).
 
+For the paper's 2-link loop the commands also know what a run really costs: its step
+counts and times per step measured per law and engine (:data:`PAPER_LOOP_STEPS_300S`,
+:data:`SECONDS_PER_STEP`); :func:`check_run_time` refuses a run (or the set of runs of a
+command) estimated beyond :data:`MAX_RUN_SECONDS`, with the estimate (the reference
+engine's default ``paper``: about 40 minutes).
+
 A run beyond :data:`MAX_OUTPUT_BYTES` or :data:`MAX_STEPS` (per engine) is refused with
 :class:`CostLimitError` giving the numbers; ``allow_long=True`` (``--allow-long`` on the
 command line) lifts both limits.  An adaptive run whose lower bound already exceeds its
@@ -26,7 +32,8 @@ from .methods import DEFAULT_METHOD, method_info
 
 __all__ = ["CostLimitError", "CostEstimate", "estimate_cost", "check_cost",
            "check_bounds", "MAX_OUTPUT_BYTES", "MAX_STEPS", "H_MAX_MIN", "DT_OUT_MIN",
-           "DEFAULT_H_MAX", "check_diagram_cost"]
+           "DEFAULT_H_MAX", "check_diagram_cost", "paper_loop_steps", "check_run_time",
+           "run_seconds", "SECONDS_PER_STEP", "MAX_RUN_SECONDS", "PAPER_LOOP_STEPS_300S"]
 
 #: Largest output grid (returned samples of outputs and states), bytes: 2 GiB.
 MAX_OUTPUT_BYTES = 2 * 2**30
@@ -40,6 +47,70 @@ H_MAX_MIN = 1e-6
 DT_OUT_MIN = 1e-6
 #: The simulator's largest default h_max (it takes min(0.05, T/4) for the shortest delay T).
 DEFAULT_H_MAX = 0.05
+
+
+#: Measured on the paper's closed loop (2-link arm, default configuration; ivdrem 300 s
+#: runs, Rodas5P, default tolerances): accepted (implicit Rodas5P, explicit BS23) steps
+#: over 300 s.  Rodas5P is accuracy-bound there (steps grow like t_end,
+#: docs/simulation.md); composite learning's steps are pinned to its max-hold's grid, most
+#: of them explicit (stats "explicit_steps").
+PAPER_LOOP_STEPS_300S = {("iv-drem", "rodas5p"): (5863, 0),
+                         ("composite-learning", "rodas5p"): (6032, 19992)}
+#: Dormand-Prince on the same loop is stability-bound (steps grow like t_end**2):
+#: ~140 000 steps for 300 s (README "Performance").
+PAPER_LOOP_DP45_STEPS_300S = 140_000
+#: Measured seconds per accepted step on the paper's loop, per engine: (a step with a
+#: Jacobian and an LU: Rodas5P, or any step of an explicit method; an explicit BS23 step
+#: of a pinned Rodas5P run).  Compiled: 200 µs (IV-DREM, 1.18 s for 5 863 steps), 23 µs
+#: (composite learning, 0.59 s for 26 024 steps); reference (python-control evaluation,
+#: forward-difference Jacobian of 60 states): 0.19 s (IV-DREM, 3 s), 7.5 ms (composite
+#: learning, 8 s: 7 989 of 7 994 steps explicit).
+SECONDS_PER_STEP = {"compiled": (2.0e-4, 2.3e-5), "reference": (0.19, 7.5e-3)}
+#: Longest estimated wall time (s) accepted without allow_long: 30 minutes.
+MAX_RUN_SECONDS = 1800.0
+
+
+def paper_loop_steps(law, method, t_end):
+    """((steps, explicit steps), source) the paper's loop takes for `law` over t_end with
+    an adaptive `method`, from the measured table above (a law not measured takes the
+    largest count measured); None for a method without a measurement."""
+    t_end = float(t_end)
+    scale = t_end / 300.0
+    if method == "dp45":
+        return ((PAPER_LOOP_DP45_STEPS_300S * scale ** 2, 0.0),
+                f"{PAPER_LOOP_DP45_STEPS_300S:g} steps per 300 s measured, growing like "
+                "t_end**2 (stiffness)")
+    table = {lw: v for (lw, m), v in PAPER_LOOP_STEPS_300S.items() if m == method}
+    if not table:
+        return None
+    src = f"measured for {law}" if law in table else "the largest count measured"
+    imp, exp = table[law] if law in table else max(table.values(), key=sum)
+    return (imp * scale, exp * scale), f"{(imp + exp) / 300:.3g} steps/s, {src}"
+
+
+def run_seconds(steps, engine="compiled"):
+    """Estimated wall time (s) of (steps, explicit steps) on `engine`."""
+    per, per_explicit = SECONDS_PER_STEP.get(engine, SECONDS_PER_STEP["compiled"])
+    return steps[0] * per + steps[1] * per_explicit
+
+
+def check_run_time(wall, source, *, engine="compiled", allow_long=False, what="the run",
+                   limit_s=None):
+    """Refuse a run (or runs) whose estimated wall time `wall` (s; :func:`run_seconds`)
+    exceeds :data:`MAX_RUN_SECONDS`, giving the estimate and its `source`."""
+    limit = MAX_RUN_SECONDS if limit_s is None else limit_s
+    if wall > limit and not allow_long:
+        raise CostLimitError(
+            f"{what} would take about {_duration(wall)} on the {engine} engine ({source}; "
+            f"measured time per step, ivdrem.sim.guards), above the limit of "
+            f"{_duration(limit)}: shorten t_end, use engine='compiled', or allow it with "
+            "allow_long=True (command line: --allow-long)")
+    return wall
+
+
+def _duration(s):
+    return f"{s / 3600:.1f} h" if s >= 3600 else f"{s / 60:.0f} min" if s >= 60 else \
+        f"{s:.0f} s"
 
 
 class CostLimitError(ValueError):

@@ -11,7 +11,8 @@ wrappers, ``failure`` [wrapper index, t, states] of a kernel that raised, ``tabl
 ``table_floats`` the diagram as tables (:mod:`ivdrem.sim.tables`, packed; empty on the
 reference engine) and the work arrays of the diagram functions and LAPACK; ``callbacks``:
 [the address of the reference engine's diagram function (python-control through a ctypes
-callback), or 0: the diagram is the tables].
+callback), or 0: the diagram is the tables; the address of the report function (progress,
+pending signals; ``stepper.c``'s ``report_fn``), or 0].
 """
 from __future__ import annotations
 

@@ -39,7 +39,7 @@ from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,  # no
 from .tables import hold_nmat, pack as pack_tables, scratch_size
 from .layout import WORKSPACE_LAYOUT, Workspace  # noqa: F401  (WORKSPACE_LAYOUT re-exported)
 from .errors import BlockError, SimulationError, StiffnessWarning, BLOCK_RAISED_MESSAGE  # noqa: F401
-from .guards import check_diagram_cost
+from .guards import check_bounds, check_diagram_cost
 from .compiled import CompiledEngine, load_c_stepper
 from .foreign import _view
 from .tables import reference_tables
@@ -55,6 +55,8 @@ ENGINES = ("compiled", "reference")
 def _check_positive(name, v):
     if v is None:
         return v
+    if isinstance(v, (bool, np.bool_)):
+        raise ValueError(f"{name} must be a number, got {v!r}")
     try:
         f = float(v)
     except (TypeError, ValueError):
@@ -62,6 +64,35 @@ def _check_positive(name, v):
     if not (f > 0 and math.isfinite(f)):
         raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
     return f
+
+
+def check_solver_settings(method=DEFAULT_METHOD, h=1e-3, rtol=None, atol=None,
+                          h_max=None, x_limit=1e10, max_steps=50_000_000):
+    """Refuse solver settings outside a sensible range, naming the key, before any work:
+    0 < rtol < 1 (a relative tolerance of 1 or more controls nothing), atol > 0, h > 0,
+    h_max > 0 (inf allowed) and not below h, x_limit > 0, max_steps >= 1; every number
+    finite.  Otherwise a run ends in a misleading error far from its cause ("singular
+    inertia", "step size fell below 1e-13 s")."""
+    info = method if isinstance(method, MethodInfo) else method_info(method)
+    h = _check_positive("h", h)
+    if rtol is not None:
+        r = _check_positive("rtol", rtol)
+        if not r < 1.0:
+            raise ValueError(f"rtol must be below 1 (a relative tolerance; {info.name}"
+                             f"'s default is {info.rtol:g}), got {rtol!r}")
+    _check_positive("atol", atol)
+    if h_max is not None and not (isinstance(h_max, (int, float)) and h_max == math.inf):
+        hm = _check_positive("h_max", h_max)
+        check_bounds(h_max=hm)          # its documented lower bound first
+        if hm < h:
+            raise ValueError(f"h_max = {hm:g} s is below h = {h:g} s (the "
+                             f"{'initial ' if info.adaptive else ''}step): lower h too, or "
+                             "raise h_max")
+    _check_positive("x_limit", x_limit)
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer, float)) or \
+            not (max_steps >= 1 and math.isfinite(max_steps)):
+        raise ValueError(f"max_steps must be a whole number >= 1, got {max_steps!r}")
+    return info
 
 
 # --------------------------------------------------------------------------- reference
@@ -192,6 +223,13 @@ class ReferenceEngine:
         self._feeds = {}
 
 
+#: the stepper's report function: int32 f(t) (stepper.c's report_fn)
+_REPORT_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_double)
+
+#: reports per advance: the progress bar's updates, and the moments a pending Ctrl-C is
+#: handled while the stepper runs without calling Python
+REPORTS = 200
+
 #: the reference engine's diagram function: int32 f(mode, t, x*, ue*, out*) (stepper.c)
 _DIAGRAM_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_int64, ctypes.c_double,
                                      ctypes.c_int64, ctypes.c_int64, ctypes.c_int64)
@@ -246,7 +284,7 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels, tables):
         lapack_chars=np.array([ord("V"), ord("L")], dtype=np.uint8),
         # dsyevd's five scalar arguments, then its integer work
         lapack_ints=np.zeros(5 + _diagram.dsyevd_liwork(nmat), dtype=np.int32),
-        callbacks=np.zeros(1, dtype=np.int64))
+        callbacks=np.zeros(2, dtype=np.int64))
 
 
 def _grow(W):
@@ -276,7 +314,8 @@ class Simulator:
                  max_steps=50_000_000, t0=0.0):
         # a name of a user method, or a registry row (the generic method suite runs the
         # stepper-internal methods this way)
-        self.info = info = method if isinstance(method, MethodInfo) else method_info(method)
+        self.info = info = check_solver_settings(method, h, rtol, atol, h_max, x_limit,
+                                                 max_steps)
         method = info.name
         if engine not in ENGINES:
             raise ValueError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
@@ -333,6 +372,11 @@ class Simulator:
         self._started = False
         self._inputs_set = False
         self._kinks = np.zeros(0)       # times where the input interpolant's slope changes
+        self._on_report = None          # the current advance's report (see advance)
+        self._stopped_by = None         # the exception that stopped the run in the report
+        # the stepper calls it by address (kept alive with the simulator)
+        self._report_c = _REPORT_CALLBACK(self._report_trampoline)
+        self._report_address = ctypes.cast(self._report_c, ctypes.c_void_p).value
 
     @property
     def state_labels(self):
@@ -440,24 +484,39 @@ class Simulator:
             out_x = np.zeros((out_t.size, 0))
         io = np.array([0, out_t.size], dtype=np.int64)
         self._emit_due(out_t, out_y, out_x, io)
-        span = t_to - self.t
-        nchunk = 1 if progress is None else 200
-        t_start = self.t
+        t_start, span = self.t, t_to - self.t
+        reported = [t_start]
+
+        def report(t):
+            # called by the stepper after the first accepted step at or past tf[F_REPORT]:
+            # the steps are those of a run without it (docs/simulation.md, "Progress")
+            if progress is not None:
+                progress(t)
+                reported[0] = t
+            # the first of the REPORTS equally spaced times after t (t_to at the end)
+            k = min(REPORTS, math.floor((t - t_start) / span * REPORTS) + 1) if span > 0 \
+                else REPORTS
+            while k < REPORTS and t_start + span * k / REPORTS <= t:
+                k += 1
+            self.tf[tpl.F_REPORT] = t_start + span * k / REPORTS if k < REPORTS else t_to
+        self.tf[tpl.F_REPORT] = t_start + span / REPORTS
+        self._on_report = report
+        self.W.callbacks[1] = self._report_address
         wall0 = _time.perf_counter()
         try:
-            for c in range(1, nchunk + 1):
-                t_stop = t_to if c == nchunk else t_start + span * c / nchunk
-                while self.t < t_stop - 1e-12 * max(1.0, abs(t_stop)):
-                    t_seg = self._segment_end(t_stop)
-                    st = self._chunk(t_seg, out_t, out_y, out_x, io)
-                    if st == tpl.OK:
-                        if t_seg == t_stop:
-                            break
-                        continue
-                    self._handle(st, out_t, out_y, io, out_x)
-                if progress is not None:
-                    progress(self.t)
+            while self.t < t_to - 1e-12 * max(1.0, abs(t_to)):
+                t_seg = self._segment_end(t_to)
+                st = self._chunk(t_seg, out_t, out_y, out_x, io)
+                if st == tpl.OK:
+                    if t_seg == t_to:
+                        break
+                    continue
+                self._handle(st, out_t, out_y, io, out_x)
+            if progress is not None and reported[0] < self.t:
+                progress(self.t)
         finally:
+            self.W.callbacks[1] = 0
+            self._on_report = None
             self.wall += _time.perf_counter() - wall0
         return io[0]
 
@@ -475,6 +534,8 @@ class Simulator:
             # a block's own exception inside the loop: name the block and the time
             named = self.engine.block_failure(e, self.W)
             if named is not None:
+                if named[1] is not None and not isinstance(named[1], Exception):
+                    raise named[1]  # Ctrl-C (KeyboardInterrupt), SystemExit: not the block's
                 raise named[0] from named[1]
             if not isinstance(e, (ValueError, ZeroDivisionError, FloatingPointError,
                                   np.linalg.LinAlgError)):
@@ -498,7 +559,22 @@ class Simulator:
                 f"use method=\"{STIFF_METHOD}\"", StiffnessWarning, stacklevel=4)
         return int(st)
 
+    def _report_trampoline(self, t):
+        """The stepper's report function: the current advance's report (progress) run in
+        Python, where a pending Ctrl-C becomes a KeyboardInterrupt; an exception stops the
+        run (status STOPPED) and is raised again by _handle."""
+        try:
+            if self._on_report is not None:
+                self._on_report(t)
+            return 0
+        except BaseException as e:      # noqa: BLE001 - raised again by _handle
+            self._stopped_by = e
+            return 1
+
     def _handle(self, st, out_t, out_y, io, out_x):
+        if st == tpl.STOPPED:
+            e, self._stopped_by = self._stopped_by, None
+            raise e
         if st == tpl.HISTORY_FULL:
             meta = self.W.hist_meta
             if meta[1] + 2 > meta[2]:
@@ -507,6 +583,10 @@ class Simulator:
             self._after_step_with_room()
             self._emit_due(out_t, out_y, out_x, io)
             return
+        if st in (tpl.DIVERGED, tpl.STEP_TOO_SMALL):
+            nan = self._nan_source()
+            if nan is not None:
+                raise SimulationError(f"simulation stopped at t = {self.t:.6g} s: {nan}")
         if st in (tpl.DIVERGED, tpl.DIVERGED_GROWTH):
             i = int(self.stats[tpl.S_BAD])
             order = np.argsort(-np.nan_to_num(np.abs(self.x), nan=np.inf))[:5]
@@ -533,6 +613,75 @@ class Simulator:
                 f"method {self.info.name!r} (dispatch id {self.info.id} in "
                 "ivdrem.sim.methods) has no step function in the stepper's method_step")
         raise SimulationError(f"unexpected status {st} at t = {self.t:.6g} s")
+
+    def _signals_at(self, t, x):
+        """(dx/dt, block outputs, block inputs) of the diagram at (t, x), evaluated by the
+        run's own engine; None if the evaluation raises."""
+        d = self.plan.diagram
+        if self.W.u_times.size:
+            ue = interpolate_inputs(self.W.u_times, self.W.u_values.T, np.array([t]))[:, 0]
+        else:
+            ue = np.array(self.W.u_ext)
+        try:
+            if self.engine_name == "reference":
+                # block by block in the plan's order (python-control's own sweep does not
+                # settle on a NaN): the outputs, then every block's derivatives
+                C, M = np.asarray(d.connect_map), np.asarray(d.input_map)
+                ys, dx = np.zeros(C.shape[1]), np.zeros(x.size)
+                for k in self.plan.order:
+                    b = self.plan.blocks[k]
+                    ub = C[b.u] @ ys + M[b.u] @ ue
+                    ys[b.y] = np.asarray(b.sys._out(t, x[b.x], ub), dtype=float).reshape(-1)
+                us = C @ ys + M @ ue
+                for b in self.plan.blocks:
+                    if b.sys.nstates:
+                        dx[b.x] = np.asarray(b.sys._rhs(t, x[b.x], us[b.u]),
+                                             dtype=float).reshape(-1)
+                return dx, ys, us
+            dx = self.engine.rhs(t, x, self.W)
+            return dx, np.array(self.W.ys), np.array(self.W.us)
+        except Exception:       # noqa: BLE001 - a diagnosis, not the run's error
+            return None
+
+    def _nan_source(self):
+        """The block that produced a NaN (or inf) where the run stopped, as a sentence, or
+        None: the diagram is evaluated at the last accepted point and at Euler points
+        ahead of it (where the rejected steps' stages were), and the first block in
+        evaluation order whose outputs, or whose derivatives, are not finite while its
+        inputs and states are is named."""
+        t, x = self.t, self.x.copy()
+        if not np.all(np.isfinite(x)):
+            return None
+        first = self._signals_at(t, x)
+        if first is None:
+            return None
+        f0 = np.nan_to_num(first[0], nan=0.0, posinf=0.0, neginf=0.0)
+        probes = [(t, x)] + [(t + dt, x + dt * f0) for dt in np.logspace(-13, -1, 25)]
+        for tp, xp in probes:
+            ev = first if tp == t else self._signals_at(tp, xp)
+            if ev is None:
+                continue
+            dx, ys, us = ev
+            if np.all(np.isfinite(dx)) and np.all(np.isfinite(ys)):
+                continue
+            blocks = [self.plan.blocks[k] for k in self.plan.order]
+            for b in blocks:
+                yb, ub = ys[b.y], us[b.u]
+                if np.all(np.isfinite(ub)) and not np.all(np.isfinite(yb)):
+                    j = int(np.flatnonzero(~np.isfinite(yb))[0])
+                    return (f"block '{b.sys.name}' output {b.sys.output_labels[j]} is "
+                            f"{float(yb[j])!r} (not a number) at t = {tp:.9g} s with finite "
+                            "inputs and states (its output function)")
+            for b in blocks:
+                db, ub, xb = dx[b.x], us[b.u], xp[b.x]
+                if np.all(np.isfinite(ub)) and np.all(np.isfinite(xb)) and \
+                        not np.all(np.isfinite(db)):
+                    j = int(np.flatnonzero(~np.isfinite(db))[0])
+                    return (f"block '{b.sys.name}' gives d{b.sys.state_labels[j]}/dt = "
+                            f"{float(db[j])!r} (not a number) at t = {tp:.9g} s with finite "
+                            "inputs and states (its update function)")
+            return None
+        return None
 
     def close(self):
         if self.engine_name == "reference":
@@ -830,6 +979,7 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
     if not isinstance(diagram, ct.InterconnectedSystem):
         raise TypeError("simulate() needs a ct.InterconnectedSystem (from ct.interconnect "
                         f"or ivdrem.diagrams), got {type(diagram).__name__}")
+    check_solver_settings(method, h, rtol, atol, h_max, x_limit, max_steps)
     t0, t_end, T = _time_span(timepts, t_end)
     out_t, dt_grid = _output_grid(t0, t_end, T, t_eval, dt_out)
     if u is not None:

@@ -45,6 +45,12 @@ typedef struct { const double *p; i64 n; } fvec;
  * inputs at t.  Nonzero: the Python side raised (it keeps the exception). */
 typedef int32_t (*diagram_fn)(i64 mode, double t, i64 x, i64 ue, i64 out);
 
+/* the report function (progress, and the moment Python handles a pending Ctrl-C): called
+ * with the time of the first accepted step at or past tf[F_REPORT], which it moves on; it
+ * reads nothing the step uses and changes nothing, so the steps are those of a run without
+ * it.  Nonzero: stop the run (the Python side keeps its exception). */
+typedef int32_t (*report_fn)(double t);
+
 /* the workspace (fields in the order of WORKSPACE_LAYOUT), the parameters, the exit */
 typedef struct {
     double *hist_t; double *hist_v; double *hist_d; i64 *hist_meta; i64 nd;
@@ -59,6 +65,7 @@ typedef struct {
     double *scratch; i64 nscratch;
     i64 *lapack; uint8_t *lapack_chars; int32_t *lapack_ints; i64 nlapack_ints;
     diagram_fn callback;     /* NULL: the diagram is the tables (compiled engine) */
+    report_fn report;        /* NULL: no progress report */
     double *P;
     jmp_buf exit;
 } Ctx;
@@ -109,6 +116,8 @@ static void bind_ctx(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
     c->lapack_ints = F_PTR(int32_t, FIELD_LAPACK_INTS);
     c->nlapack_ints = shape[2 * FIELD_LAPACK_INTS];
     c->callback = (diagram_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[0];
+    c->report = shape[2 * FIELD_CALLBACKS] > 1 ?
+        (report_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[1] : NULL;
     c->P = P;
 #undef F_PTR
 }
@@ -1225,6 +1234,13 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
             while (io[0] < io[1] && out_t[io[0]] <= t + 1e-9 * h) {
                 ((double *)out_t)[io[0]] = t;
                 emit(c, t, x, n, out_y, ycols, out_x, xcols, io);
+            }
+        }
+        if (c->report != NULL && t >= tf[F_REPORT]) {
+            tf[F_T] = t;
+            if (c->report(t) != 0) {
+                tf[F_H] = h;
+                return STOPPED;
             }
         }
     }
