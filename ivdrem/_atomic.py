@@ -9,7 +9,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 __all__ = ["new_tempfile", "remove_stale_tempfiles", "fsync_file", "write_text_atomic",
-           "written_together"]
+           "written_together", "zip_tree_atomic"]
 
 
 def _umask() -> int:
@@ -108,3 +108,23 @@ def written_together(*targets):
                 tmp.unlink(missing_ok=True)
             except OSError:
                 pass
+
+
+def zip_tree_atomic(root, path) -> Path:
+    """Zip every file under `root` (paths relative to it, sorted) into `path`: a hidden
+    temporary next to the target, then os.replace, so a reader never sees half an archive
+    (an FMU) and a failure leaves neither a partial archive nor the temporary behind."""
+    import zipfile
+    root, path = Path(root), Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = new_tempfile(path.parent, path.name)
+    try:
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as zf:
+            for p in sorted(root.rglob("*")):
+                if p.is_file():
+                    zf.write(p, p.relative_to(root).as_posix())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path

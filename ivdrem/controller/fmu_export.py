@@ -28,13 +28,12 @@ import subprocess
 import sys
 import tempfile
 import uuid
-import zipfile
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from .._atomic import new_tempfile
+from .._atomic import zip_tree_atomic
 from .._paths import check_replaceable
 from ..fmu.export import _platform, fmi2_header_dir, is_ivdrem_fmu
 from .codegen import (LAW_CODES, _version, generate_controller_sources, param_layout,
@@ -254,17 +253,7 @@ def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=Fals
         if res.returncode != 0:
             raise RuntimeError(f"compiling the controller FMU failed ({' '.join(cmd)}):\n"
                                f"{res.stderr}")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp_zip = new_tempfile(path.parent, path.name)
-        try:
-            with zipfile.ZipFile(tmp_zip, "w", zipfile.ZIP_DEFLATED) as zf:
-                for p in sorted(root.rglob("*")):
-                    if p.is_file():
-                        zf.write(p, p.relative_to(root).as_posix())
-            os.replace(tmp_zip, path)
-        except BaseException:
-            tmp_zip.unlink(missing_ok=True)
-            raise
+        zip_tree_atomic(root, path)
     return path
 
 

@@ -69,7 +69,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import sympy as sp
 
-from .._atomic import new_tempfile
+from .._atomic import zip_tree_atomic
 from .._paths import check_replaceable
 
 __all__ = ["export_fmu", "generate_sources", "fmi2_header_dir", "FMU_SOURCE_FILES",
@@ -889,17 +889,5 @@ def export_fmu(model, path, *, q0=None, dq0=None, substep=DEFAULT_SUBSTEP, cc=No
             if msgs.strip():
                 warnings.warn(f"C compiler messages while building {path.name}:\n{msgs}",
                               stacklevel=2)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # a hidden temporary next to the target, then os.replace: a reader never sees half
-        # an FMU, and a failure leaves neither a partial FMU nor the temporary behind
-        tmp_zip = new_tempfile(path.parent, path.name)
-        try:
-            with zipfile.ZipFile(tmp_zip, "w", zipfile.ZIP_DEFLATED) as zf:
-                for p in sorted(root.rglob("*")):
-                    if p.is_file():
-                        zf.write(p, p.relative_to(root).as_posix())
-            os.replace(tmp_zip, path)
-        except BaseException:
-            tmp_zip.unlink(missing_ok=True)
-            raise
+        zip_tree_atomic(root, path)   # a reader never sees half an FMU
     return path
