@@ -104,8 +104,6 @@ def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0
     from fmpy import read_model_description
     from libcosimpy.CosimExecution import CosimExecution
     from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
-    from libcosimpy.CosimManipulator import CosimManipulator
-    from libcosimpy.CosimObserver import CosimObserver
     from libcosimpy.CosimSlave import CosimLocalSlave
     n = len(q0)
     dq0 = np.zeros(n) if dq0 is None else dq0
@@ -128,6 +126,20 @@ def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0
         for name in (f"q[{i}]", f"dq[{i}]"):
             ex.connect_real_variables(ip, vr_p[name], ic, vr_c[name])
         ex.connect_real_variables(ic, vr_c[f"tau[{i}]"], ip, vr_p[f"tau[{i}]"])
+    start = np.concatenate([np.asarray(q0, float), np.asarray(dq0, float)])
+    return run_libcosim(ex, ip, ic, vr_p, vr_c, n, nth, steps, h, every, disturbance,
+                        start=start)
+
+
+def run_libcosim(ex, ip, ic, vr_p, vr_c, n, nth, steps, h, every, disturbance, *,
+                 start=None):
+    """Step a libcosim execution of the controller (slave `ic`) and the plant (`ip`)
+    `steps` times, tau_d(t_k) set on the plant's input before each step by an override
+    manipulator, and record t, q, dq, tau, tau_d, theta_hat every `every` steps and at the
+    end.  `start` ([q0, dq0]) records t = 0 too, with the controller's outputs at 0; without
+    it the record starts at t = every h."""
+    from libcosimpy.CosimManipulator import CosimManipulator
+    from libcosimpy.CosimObserver import CosimObserver
     manip = CosimManipulator.create_override()
     ex.add_manipulator(manipulator=manip)
     obs = CosimObserver.create_last_value()
@@ -139,10 +151,9 @@ def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0
     for k in range(steps + 1):
         t = k * h
         tau_d = disturbance_at(t, disturbance)
-        if k == steps or k % every == 0:
+        if k == steps or (k % every == 0 and (k > 0 or start is not None)):
             if k == 0:
-                y = np.concatenate([np.asarray(q0, float), np.asarray(dq0, float)])
-                c = np.zeros(n + nth)
+                y, c = np.asarray(start, float), np.zeros(n + nth)
             else:
                 y = np.array(obs.last_real_values(ip, p_out))
                 c = np.array(obs.last_real_values(ic, c_out))

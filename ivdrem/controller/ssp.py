@@ -16,7 +16,8 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from .._atomic import new_tempfile
-from .loop import PAPER_DISTURBANCE, disturbance_at
+from .fmu_loop import run_libcosim
+from .loop import PAPER_DISTURBANCE
 
 __all__ = ["write_ssp", "libcosim_ssp_loop"]
 
@@ -111,8 +112,6 @@ def libcosim_ssp_loop(ssp_path, t_end, *, h=1e-3, q0=(0.0, 0.3 * np.pi), dq0=Non
     q(0) = 0), so q0, dq0 are set again here with ``real_initial_value``."""
     from libcosimpy.CosimExecution import CosimExecution
     from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
-    from libcosimpy.CosimManipulator import CosimManipulator
-    from libcosimpy.CosimObserver import CosimObserver
     log_output_level(CosimLogLevel.ERROR)
     ex = CosimExecution.from_ssp_file(str(ssp_path), step_size=int(round(h * 1e9)))
     ip = ex.slave_index_from_instance_name("plant")
@@ -127,30 +126,5 @@ def libcosim_ssp_loop(ssp_path, t_end, *, h=1e-3, q0=(0.0, 0.3 * np.pi), dq0=Non
     for i in range(n):
         ex.real_initial_value(ip, vr_p[f"q[{i}]"], float(q0[i]))
         ex.real_initial_value(ip, vr_p[f"dq[{i}]"], float(dq0[i]))
-    manip = CosimManipulator.create_override()
-    ex.add_manipulator(manipulator=manip)
-    obs = CosimObserver.create_last_value()
-    ex.add_observer(observer=obs)
-    p_out = [vr_p[f"q[{i}]"] for i in range(n)] + [vr_p[f"dq[{i}]"] for i in range(n)]
-    c_out = [vr_c[f"tau[{i}]"] for i in range(n)] + [vr_c[f"theta_hat[{j}]"] for j in range(nth)]
-    tau_d_vr = [vr_p[f"tau_d[{i}]"] for i in range(n)]
     steps = int(round(t_end / h))
-    rec = {k: [] for k in ("t", "q", "dq", "tau", "tau_d", "theta_hat")}
-    for k in range(steps + 1):
-        t = k * h
-        tau_d = disturbance_at(t, disturbance)
-        if k == steps or (k % every == 0 and k > 0):
-            y = np.array(obs.last_real_values(ip, p_out))
-            c = np.array(obs.last_real_values(ic, c_out))
-            rec["t"].append(t)
-            rec["q"].append(y[:n])
-            rec["dq"].append(y[n:])
-            rec["tau"].append(c[:n])
-            rec["tau_d"].append(tau_d)
-            rec["theta_hat"].append(c[n:])
-        if k == steps:
-            break
-        manip.slave_real_values(ip, tau_d_vr, list(tau_d))
-        if not ex.step():
-            raise RuntimeError(f"libcosim: step {k} (t = {t}) failed")
-    return {k: np.array(v) for k, v in rec.items()}
+    return run_libcosim(ex, ip, ic, vr_p, vr_c, n, nth, steps, h, every, disturbance)
