@@ -396,19 +396,10 @@ def _rb_links(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec,
     _rb_project(R, p, parent, jtype, axis, Pb, tangent, d, dPb, Y, dY)
 
 
-def _rb_rnea(q, x, y, acc, grav, pi, parent, jtype, axis, Rp, pp, gvec, tau):
-    # tau = C(q, x) y + M(q) acc + grav G(q) of the links with standard parameters pi:
-    # the body forces Phi_b pi_j, accumulated towards the base (children have higher index)
-    n = q.shape[0]
-    Pb = np.empty((n, 6, 10))
-    R, p = _rb_bodies(q, x, y, acc, grav, False, q, parent, jtype, axis, Rp, pp, gvec, Pb, Pb)
-    f = np.zeros((n, 6))
-    for j in range(n):
-        for r in range(6):
-            s = 0.0
-            for c in range(10):
-                s += Pb[j, r, c] * pi[10 * j + c]
-            f[j, r] = s
+def _rb_backward(R, p, parent, jtype, axis, f, tau):
+    # tau_j = the joint axis' component of the body force f_j, accumulating each f_j into
+    # its parent's frame on the way to the base (children have higher index; f is changed)
+    n = f.shape[0]
     for j in range(n - 1, -1, -1):
         off = 3 if jtype[j] == 0 else 0
         tau[j] = axis[j, 0] * f[j, off] + axis[j, 1] * f[j, off + 1] + axis[j, 2] * f[j, off + 2]
@@ -426,6 +417,22 @@ def _rb_rnea(q, x, y, acc, grav, pi, parent, jtype, axis, Rp, pp, gvec, tau):
                          + p[j, 2] * fl0 - p[j, 0] * fl2)
             f[pa, 5] += (R[j, 2, 0] * f[j, 3] + R[j, 2, 1] * f[j, 4] + R[j, 2, 2] * f[j, 5]
                          + p[j, 0] * fl1 - p[j, 1] * fl0)
+
+
+def _rb_rnea(q, x, y, acc, grav, pi, parent, jtype, axis, Rp, pp, gvec, tau):
+    # tau = C(q, x) y + M(q) acc + grav G(q) of the links with standard parameters pi:
+    # the body forces Phi_b pi_j, accumulated towards the base (children have higher index)
+    n = q.shape[0]
+    Pb = np.empty((n, 6, 10))
+    R, p = _rb_bodies(q, x, y, acc, grav, False, q, parent, jtype, axis, Rp, pp, gvec, Pb, Pb)
+    f = np.zeros((n, 6))
+    for j in range(n):
+        for r in range(6):
+            s = 0.0
+            for c in range(10):
+                s += Pb[j, r, c] * pi[10 * j + c]
+            f[j, r] = s
+    _rb_backward(R, p, parent, jtype, axis, f, tau)
 
 
 def _rb_mass(q, pi, parent, jtype, axis, Rp, pp, out):
@@ -456,24 +463,7 @@ def _rb_mass(q, pi, parent, jtype, axis, Rp, pp, out):
             f[j, 3] = P[4] * b0 + P[5] * b1 + P[7] * b2 + P[2] * a2 - P[3] * a1
             f[j, 4] = P[5] * b0 + P[6] * b1 + P[8] * b2 + P[3] * a0 - P[1] * a2
             f[j, 5] = P[7] * b0 + P[8] * b1 + P[9] * b2 + P[1] * a1 - P[2] * a0
-        for j in range(n - 1, -1, -1):
-            off = 3 if jtype[j] == 0 else 0
-            out[j, k] = (axis[j, 0] * f[j, off] + axis[j, 1] * f[j, off + 1]
-                         + axis[j, 2] * f[j, off + 2])
-            pa = parent[j]
-            if pa >= 0:
-                fl0 = R[j, 0, 0] * f[j, 0] + R[j, 0, 1] * f[j, 1] + R[j, 0, 2] * f[j, 2]
-                fl1 = R[j, 1, 0] * f[j, 0] + R[j, 1, 1] * f[j, 1] + R[j, 1, 2] * f[j, 2]
-                fl2 = R[j, 2, 0] * f[j, 0] + R[j, 2, 1] * f[j, 1] + R[j, 2, 2] * f[j, 2]
-                f[pa, 0] += fl0
-                f[pa, 1] += fl1
-                f[pa, 2] += fl2
-                f[pa, 3] += (R[j, 0, 0] * f[j, 3] + R[j, 0, 1] * f[j, 4] + R[j, 0, 2] * f[j, 5]
-                             + p[j, 1] * fl2 - p[j, 2] * fl1)
-                f[pa, 4] += (R[j, 1, 0] * f[j, 3] + R[j, 1, 1] * f[j, 4] + R[j, 1, 2] * f[j, 5]
-                             + p[j, 2] * fl0 - p[j, 0] * fl2)
-                f[pa, 5] += (R[j, 2, 0] * f[j, 3] + R[j, 2, 1] * f[j, 4] + R[j, 2, 2] * f[j, 5]
-                             + p[j, 0] * fl1 - p[j, 1] * fl0)
+        _rb_backward(R, p, parent, jtype, axis, f, out[:, k])
 
 
 def _rb_spd_solve(Mq, b):
@@ -506,5 +496,5 @@ def _rb_spd_solve(Mq, b):
 
 #: The kernels, in dependency order (their source goes into every rigid-body model's code).
 KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
-           _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_rnea,
-           _rb_mass, _rb_spd_solve)
+           _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_backward,
+           _rb_rnea, _rb_mass, _rb_spd_solve)
