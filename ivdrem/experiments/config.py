@@ -16,7 +16,6 @@ import difflib
 import hashlib
 import functools
 import math
-import sys
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -400,7 +399,7 @@ def load_plugins(cfg: Mapping, where: str = "configuration") -> None:
         raise ConfigError(f"config key 'experiment.plugins' ({where}) must be a list of Python "
                           f"files or module names, got {items!r}")
     import importlib
-    import importlib.util
+    from ..sim.cache import import_path
     for item in items:
         if item in _LOADED_PLUGINS:
             continue
@@ -411,14 +410,7 @@ def load_plugins(cfg: Mapping, where: str = "configuration") -> None:
                     raise ConfigError(f"config key 'experiment.plugins' ({where}): file '{q}' "
                                       "not found")
                 name = "ivdrem_plugin_" + hashlib.sha256(str(q).encode()).hexdigest()[:12]
-                spec = importlib.util.spec_from_file_location(name, q)
-                module = importlib.util.module_from_spec(spec)
-                sys.modules[name] = module
-                try:
-                    spec.loader.exec_module(module)
-                except BaseException:
-                    sys.modules.pop(name, None)
-                    raise
+                module = import_path(name, q)
             else:
                 module = importlib.import_module(item)
         except ConfigError:

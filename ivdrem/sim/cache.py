@@ -17,7 +17,7 @@ from pathlib import Path
 
 from .._atomic import write_text_atomic
 
-__all__ = ["cache_dir", "source_hash", "write_generated", "import_generated",
+__all__ = ["cache_dir", "source_hash", "write_generated", "import_generated", "import_path",
            "GENERATED_HEADER"]
 
 #: the first lines of every generated kernel module: what a kernel may call
@@ -53,7 +53,14 @@ def import_generated(cdir, name, src):
     process); a module whose import failed is not left in sys.modules."""
     if name in sys.modules:
         return sys.modules[name]
-    path = write_generated(cdir, name, src)
+    return import_path(name, write_generated(cdir, name, src))
+
+
+def import_path(name, path):
+    """The module `name` of the Python file at `path`, imported once per process; a module
+    whose import failed is not left in sys.modules."""
+    if name in sys.modules:
+        return sys.modules[name]
     spec = importlib.util.spec_from_file_location(name, path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[name] = mod
