@@ -41,6 +41,7 @@ import sys
 import textwrap
 import threading
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
@@ -139,22 +140,34 @@ def kernel_call(b, role, kernel, t, x, u, out, pargs):
     return f"{kernel}({t}, {x}, {u}, {out}{pargs})"
 
 
-_P_INDEX = re.compile(r"\bP\[(\d+)(?::(\d+))?\]")
+class ParamSlot(NamedTuple):
+    """Where a kernel argument lives in the flat parameter vector P: `offset` and `shape`
+    (() for a float, (n,) or (m, n) for an array), carried as numbers from the layout to
+    the wrappers and the tables."""
+    offset: int
+    shape: tuple
+
+    @property
+    def size(self):
+        return int(np.prod(self.shape, dtype=np.int64))
 
 
-def _relative_params(exprs):
-    """(base, size, expressions on the block's own slice p) of a block's P expressions."""
-    spans = [(int(a), int(b) if b else int(a) + 1) for e in exprs
-             for a, b in _P_INDEX.findall(e)]
-    if not spans:
-        return 0, 0, list(exprs)
-    base = min(a for a, _ in spans)
-    size = max(b for _, b in spans) - base
+def _relative_params(slots):
+    """(base, size, argument expressions on the block's own slice p) of a block's kernel
+    arguments: a ParamSlot becomes an entry or slice of p, a constant its literal."""
+    spans = [(a.offset, a.offset + a.size) for a in slots if isinstance(a, ParamSlot)]
+    base = min((a for a, _ in spans), default=0)
+    size = max((b for _, b in spans), default=base) - base
 
-    def rel(m):
-        a = int(m.group(1)) - base
-        return f"p[{a}:{int(m.group(2)) - base}]" if m.group(2) else f"p[{a}]"
-    return base, size, [_P_INDEX.sub(rel, e) for e in exprs]
+    def expr(a):
+        if not isinstance(a, ParamSlot):
+            return repr(a)
+        lo = a.offset - base
+        if not a.shape:
+            return f"p[{lo}]"
+        sl = f"p[{lo}:{lo + a.size}]"
+        return sl if len(a.shape) == 1 else f"{sl}.reshape({a.shape!r})"
+    return base, size, [expr(a) for a in slots]
 
 
 def _wrapper_module(b, role, kmod, fn_name, rel_exprs, npar):
@@ -202,10 +215,10 @@ class DiagramProgram:
         return "\n".join(src for _, src in self.deps)
 
 
-def generate_source(plan, param_exprs=None):
+def generate_source(plan, param_slots=None):
     """The modules and tables of a diagram (see :class:`DiagramProgram`).
 
-    `param_exprs` is the first half of ``_param_layout(plan)``, if already computed.  Kernels,
+    `param_slots` is the first half of ``_param_layout(plan)``, if already computed.  Kernels,
     model functions and wrappers get modules of their own, shared by every diagram that uses
     them, so numba compiles each once (and caches it); the diagram itself is data.
     """
@@ -238,7 +251,7 @@ def generate_source(plan, param_exprs=None):
     # all parameters live in one flat float64 vector P (shapes are baked into the wrappers,
     # the values are not: changing a gain does not recompile); structural constants are
     # literals in the wrappers
-    playout = _param_layout(plan)[0] if param_exprs is None else param_exprs
+    playout = _param_layout(plan)[0] if param_slots is None else param_slots
     # every kernel of every block gets a C-callable wrapper (its own cached module) and an
     # index into the workspace field `kernels`, which holds the wrappers' addresses
     wrappers, wrapper_nx = [], []
@@ -298,36 +311,30 @@ def python_blocks(plan):
 def _param_layout(plan):
     """The kernels' parameters in one flat float64 vector P.
 
-    Returns ({block index: [argument expression]}, P): arrays and floats become slices or
-    entries of P (with their shapes baked into the expressions), structural constants
-    become literals.
+    Returns ({block index: [ParamSlot or constant]}, P): arrays and floats get a slot of P,
+    structural constants stay literals.
     """
     _check_kernels(plan)
-    exprs_by_block, values, off = {}, [], 0
+    slots_by_block, values, off = {}, [], 0
     for b in plan.blocks:
-        exprs = []
+        slots = []
         names = b.spec.param_names if b.spec.kind == "ode" else ("p",)
         for name, v in zip(names, _param_values(plan, b)):
             # scalar constants are literals; array constants (e.g. an FMU's C addresses,
             # different in every process) travel in P so the source stays the same
             if b.spec.kind == "ode" and name in b.spec.constants and np.ndim(v) == 0:
-                exprs.append(repr(v))
+                slots.append(v)
                 continue
             if np.ndim(v) > 2:
                 raise CompileError(f"block '{b.sys.name}': parameter {name!r} has "
                                    f"{np.ndim(v)} dimensions; the compiled path takes <= 2")
             flat = np.asarray(v, float).reshape(-1)
-            if np.ndim(v) == 0:
-                exprs.append(f"P[{off}]")
-            elif np.ndim(v) == 1:
-                exprs.append(f"P[{off}:{off + flat.size}]")
-            else:
-                exprs.append(f"P[{off}:{off + flat.size}].reshape({np.shape(v)!r})")
+            slots.append(ParamSlot(off, tuple(int(n) for n in np.shape(v))))
             values.append(flat)
             off += flat.size
-        exprs_by_block[b.index] = exprs
+        slots_by_block[b.index] = slots
     P = np.concatenate(values) if values else np.zeros(0)
-    return exprs_by_block, P
+    return slots_by_block, P
 
 
 # A wrapper's compile time, estimated: measured for IV-DREM's 31 wrappers on the 2-core
@@ -511,8 +518,8 @@ class CompiledEngine:
 
     def __init__(self, plan, params=None):
         self.plan = plan
-        param_exprs, self.P = _param_layout(plan)
-        self.program = generate_source(plan, param_exprs)
+        param_slots, self.P = _param_layout(plan)
+        self.program = generate_source(plan, param_slots)
         pending = _c_stepper_pending()
         try:
             _load_kernels(self.program.deps)

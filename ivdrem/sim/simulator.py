@@ -33,6 +33,7 @@ import numpy as np
 import control as ct
 
 from .plan import DiagramPlan
+from ._control import PrivateDiagram
 from . import _diagram, _template as tpl
 from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,  # noqa: F401
                       DEFAULT_TOLERANCES, MethodInfo, method_info)  # (re-exported)
@@ -106,8 +107,8 @@ class ReferenceEngine:
 
     def __init__(self, plan: DiagramPlan, params=None):
         self.plan = plan
+        self.control = pc = PrivateDiagram(plan.diagram, params)
         d = plan.diagram
-        d._update_params(params or {})
         self.module = load_c_stepper()
         self.stepper = self.module.name
         self.tables, self.P = reference_tables(plan)
@@ -123,7 +124,7 @@ class ReferenceEngine:
             if mode == tpl.RHS:
                 out = _view(pout, n)
                 try:
-                    out[:] = d._rhs(t, x, ue)
+                    out[:] = pc.rhs(t, x, ue)
                 except RuntimeError as e:
                     # The plan has already shown the diagram has no algebraic loop, so
                     # python-control's fixed-point sweep failing to settle means a NaN in a
@@ -133,9 +134,9 @@ class ReferenceEngine:
                         raise
                     out[:] = np.nan
             elif mode == tpl.RECORD:
-                _view(pout, ny)[:] = d._out(t, x, ue)
+                _view(pout, ny)[:] = pc.out(t, x, ue)
             else:                   # the block inputs, for the history and the max-holds
-                _view(pout, nu)[:] = d._compute_static_io(t, x, ue)[0]
+                _view(pout, nu)[:] = pc.block_inputs(t, x, ue)
 
         def callback(mode, t, px, pue, pout):
             try:
@@ -173,20 +174,11 @@ class ReferenceEngine:
 
     def block_failure(self, exc, W=None):
         """(BlockError, cause) naming the block whose function raised `exc`, found in the
-        traceback (python-control evaluates each block in its ``_rhs`` / ``_out``); None
-        when no block's evaluation is on the traceback."""
-        blocks = {id(b.sys): b for b in self.plan.blocks}
-        found = None
-        tb = exc.__traceback__
-        while tb is not None:
-            frame = tb.tb_frame
-            if frame.f_code.co_name in ("_rhs", "_out") and \
-                    id(frame.f_locals.get("self")) in blocks:
-                found = (blocks[id(frame.f_locals["self"])], frame.f_locals.get("t"))
-            tb = tb.tb_next
+        traceback; None when no block's evaluation is on the traceback."""
+        found = self.control.raising_block(exc)
         if found is None:
             return None
-        b, t = found
+        b, t = self.plan.blocks[found[0]], found[1]
         err = BlockError(f"block '{b.sys.name}' raised at t = {float(t):.9g} s: "
                          f"{type(exc).__name__}: {exc}")
         err.block, err.t = b.sys.name, float(t)
@@ -617,27 +609,13 @@ class Simulator:
     def _signals_at(self, t, x):
         """(dx/dt, block outputs, block inputs) of the diagram at (t, x), evaluated by the
         run's own engine; None if the evaluation raises."""
-        d = self.plan.diagram
         if self.W.u_times.size:
             ue = interpolate_inputs(self.W.u_times, self.W.u_values.T, np.array([t]))[:, 0]
         else:
             ue = np.array(self.W.u_ext)
         try:
             if self.engine_name == "reference":
-                # block by block in the plan's order (python-control's own sweep does not
-                # settle on a NaN): the outputs, then every block's derivatives
-                C, M = np.asarray(d.connect_map), np.asarray(d.input_map)
-                ys, dx = np.zeros(C.shape[1]), np.zeros(x.size)
-                for k in self.plan.order:
-                    b = self.plan.blocks[k]
-                    ub = C[b.u] @ ys + M[b.u] @ ue
-                    ys[b.y] = np.asarray(b.sys._out(t, x[b.x], ub), dtype=float).reshape(-1)
-                us = C @ ys + M @ ue
-                for b in self.plan.blocks:
-                    if b.sys.nstates:
-                        dx[b.x] = np.asarray(b.sys._rhs(t, x[b.x], us[b.u]),
-                                             dtype=float).reshape(-1)
-                return dx, ys, us
+                return self.engine.control.signals(self.plan, t, x, ue)
             dx = self.engine.rhs(t, x, self.W)
             return dx, np.array(self.W.ys), np.array(self.W.us)
         except Exception:       # noqa: BLE001 - a diagnosis, not the run's error

@@ -8,7 +8,6 @@ numba compiles that code once; only the values differ.
 """
 from __future__ import annotations
 
-import re
 from collections import namedtuple
 
 import numpy as np
@@ -43,7 +42,6 @@ FLOAT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "float64")
 #: entries of DiagramTables.dims (scalars of the diagram the compiled code reads)
 DIMS = ("NJB",)
 _FD_COLUMNS = _diagram.N_FD_COLUMNS
-_P_INDEX = re.compile(r"^P\[(\d+)\]$")
 
 
 def empty_tables():
@@ -88,17 +86,17 @@ def _i64(v, cols=None):
     return np.ascontiguousarray(a)
 
 
-def _p_index(expr, what):
-    m = _P_INDEX.match(expr)
-    if not m:
-        raise ValueError(f"{what}: expected a scalar parameter P[i], got {expr!r}")
-    return int(m.group(1))
+def _scalar_offset(slot, what):
+    """The offset in P of a block's one float parameter (a delay's T, a max-hold's eps)."""
+    if getattr(slot, "shape", None) != ():
+        raise ValueError(f"{what}: expected a float parameter in P, got {slot!r}")
+    return slot.offset
 
 
 def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     """The DiagramTables of `plan`.
 
-    `playout[k]`: block k's parameter expressions (compiled._param_layout); `pbase[k]` the
+    `playout[k]`: block k's parameter slots (compiled._param_layout); `pbase[k]` the
     start of block k's parameters in P; `windex[(k, role)]` the wrapper index of block k's
     kernel `role`; `wrapper_nx[j]` the state count of wrapper j's block; `prog` the
     JacobianProgram and `slu` its symbolic LU.
@@ -123,13 +121,13 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
             dl = next(x for x in plan.delays if x["block"] == b.index)
             row[_diagram.B_SPECIAL] = len(delays)
             delays.append([dl["off"], dl["size"],
-                           _p_index(playout[b.index][0], f"delay '{b.sys.name}'"),
+                           _scalar_offset(playout[b.index][0], f"delay '{b.sys.name}'"),
                            int(bool(dl["hermite"])), dl["u"], dl["du"]])
         elif kind == 2:
             hd = next(x for x in plan.holds if x["block"] == b.index)
             row[_diagram.B_SPECIAL] = len(holds)
             holds.append([hd["k"], hd["off"], hd["size"], hd["nvec"], hd["nmat"], hd["u"],
-                          _p_index(playout[b.index][0], f"max-hold '{b.sys.name}'")])
+                          _scalar_offset(playout[b.index][0], f"max-hold '{b.sys.name}'")])
     for k in plan.order:
         b = plan.blocks[k]
         direct = [int(i) for i in b.direct_inputs] if b.spec.kind == "ode" else []
