@@ -118,6 +118,7 @@ class DiagramPlan:
         if not isinstance(diagram, ct.InterconnectedSystem):
             raise TypeError("simulate() needs a ct.InterconnectedSystem (from ct.interconnect "
                             f"or ivdrem.diagrams), got {type(diagram).__name__}")
+        reached = check_params(diagram, params) if params else []
         blocks = []
         xi = ui = yi = 0
         for k, sys in enumerate(diagram.syslist):
@@ -161,6 +162,11 @@ class DiagramPlan:
             conn.append([(int(j), float(C[i, j])) for j in nz])
         plan = cls(diagram, blocks, x0, conn, [])
         plan.params = dict(params or {})
+        plan._block_params = {}
+        # the overrides, checked once here: every name known, every block they reach
+        # validated (its validated parameters kept for the engines)
+        for k in reached:
+            plan.block_params(blocks[k])
         plan.order = plan._topological_order()
         plan._collect_special()
         return plan
@@ -202,11 +208,15 @@ class DiagramPlan:
         return order
 
     def block_params(self, b):
-        """Validated parameters block b sees in this run (python-control merge order)."""
-        p = effective_params(b.sys, self.diagram, self.params)
-        if b.spec is not None and b.spec.validate is not None:
-            p = b.spec.validate(p)
-        return p
+        """Validated parameters block b sees in this run (python-control merge order),
+        validated once per plan."""
+        key = (b.index, id(b.spec))     # a block without a spec may be given one later
+        if key not in self._block_params:
+            p = effective_params(b.sys, self.diagram, self.params)
+            if b.spec is not None and b.spec.validate is not None:
+                p = b.spec.validate(p)
+            self._block_params[key] = p
+        return self._block_params[key]
 
     def _collect_special(self):
         nd = nh = 0
@@ -239,3 +249,20 @@ class DiagramPlan:
             if b.x.start <= i < b.x.stop:
                 return f"{b.sys.name}.{b.sys.state_labels[i - b.x.start]}"
         return f"x[{i}]"
+
+
+def check_params(diagram, params):
+    """The syslist indices of the blocks that the overrides `params` reach; a clear error
+    for a non-dict or a name no block takes."""
+    if not isinstance(params, dict):
+        raise TypeError(f"params must be a dict, got {type(params).__name__}")
+    known, reached = set(), []
+    for k, block in enumerate(diagram.syslist):
+        known |= set(block.params)
+        if set(params) & set(block.params):
+            reached.append(k)
+    unknown = set(params) - known
+    if unknown:
+        raise ValueError(f"unknown parameter(s) {sorted(unknown)}; the diagram's blocks "
+                         f"take {sorted(known)}")
+    return reached

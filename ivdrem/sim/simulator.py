@@ -32,7 +32,7 @@ import warnings
 import numpy as np
 import control as ct
 
-from .plan import DiagramPlan
+from .plan import DiagramPlan, check_params
 from ._control import PrivateDiagram
 from . import _diagram, _template as tpl
 from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,  # noqa: F401
@@ -227,23 +227,6 @@ _DIAGRAM_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_int64, ctypes.c_do
                                      ctypes.c_int64, ctypes.c_int64, ctypes.c_int64)
 
 
-def _validate_params(diagram, params):
-    """Check overrides with each block's own validator (errors name the parameter)."""
-    if not isinstance(params, dict):
-        raise TypeError(f"params must be a dict, got {type(params).__name__}")
-    known = set()
-    for block in diagram.syslist:
-        known |= set(block.params)
-        spec = getattr(block, "ivdrem", None)
-        relevant = {k: v for k, v in params.items() if k in block.params}
-        if relevant and spec is not None and spec.validate is not None:
-            spec.validate({**block.params, **relevant})
-    unknown = set(params) - known
-    if unknown:
-        raise ValueError(f"unknown parameter(s) {sorted(unknown)}; the diagram's blocks "
-                         f"take {sorted(known)}")
-
-
 # --------------------------------------------------------------------------- driver
 @functools.lru_cache(maxsize=None)
 def _dsyevd_address():
@@ -311,8 +294,6 @@ class Simulator:
         method = info.name
         if engine not in ENGINES:
             raise ValueError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
-        if params:
-            _validate_params(diagram, params)
         self.plan = plan = DiagramPlan.from_diagram(diagram, x0, params)
         self.method, self.engine_name = method, engine
         rtol_d, atol_d = info.rtol, info.atol
@@ -970,7 +951,7 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
     if x0 is not None and initial_state is not None:
         raise TypeError("give initial_state or x0 (its older name), not both")
     if params is not None:
-        _validate_params(diagram, params)
+        check_params(diagram, params)
     state0 = _initial_state(diagram, x0 if x0 is not None else initial_state,
                             "x0" if x0 is not None else "initial_state", params)
     check_diagram_cost(diagram, t_end - t0, method=method, engine=engine, h=h, h_max=h_max,
