@@ -1005,7 +1005,7 @@ def test_named_port_kernels_whole_diagram_rhs_against_the_paper(engine):
     for t in (0.37, 4.1):
         x = rng.uniform(-1.0, 1.0, d.nstates)
         got = np.zeros_like(x)
-        sim.engine.module.diagram_eval(RHS, t, x, sim.engine.P, sim.W, got)
+        sim.engine.module.diagram_eval(sim.W, sim.engine.P, RHS, t, x, got)
         X = {nm: x[[i for i, lab_ in enumerate(labels) if lab_ == nm]] for nm in names}
         want = _hand_rhs(t, X)
         assert set(want) == set(names)

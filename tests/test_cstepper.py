@@ -51,14 +51,14 @@ def test_a_failure_raised_in_c_is_a_clear_error():
     small = W._replace(scratch=np.zeros(3))         # smaller than the tables say
     out = np.zeros(sim.x.size)
     with pytest.raises(RuntimeError, match="scratch is smaller than its tables"):
-        sim.engine.module.diagram_jacobian(sim.t, sim.x, sim.engine.P, small,
+        sim.engine.module.diagram_jacobian(small, sim.engine.P, sim.t, sim.x,
                                            np.zeros((sim.x.size,) * 2))
     # arrays C would read raw are checked: dtype, contiguity, writeability
     bad = W._replace(ys=W.ys.astype(np.float32))
     with pytest.raises(TypeError, match="workspace field ys"):
-        sim.engine.module.diagram_eval(_template.RHS, sim.t, sim.x, sim.engine.P, bad, out)
+        sim.engine.module.diagram_eval(bad, sim.engine.P, _template.RHS, sim.t, sim.x, out)
     with pytest.raises(TypeError, match="out"):
-        sim.engine.module.diagram_eval(_template.RHS, sim.t, sim.x, sim.engine.P, W, out[::2])
+        sim.engine.module.diagram_eval(W, sim.engine.P, _template.RHS, sim.t, sim.x, out[::2])
     # and the state is untouched by those refusals: the run goes on as before
     before = sim.x.copy()
     sim.advance(0.02)

@@ -247,6 +247,8 @@ class CStepper:
         self.lib = lib
         self.path = path
         self._w = None           # (workspace, addresses, shapes) of the last call
+        for name, (result, kinds) in _ENTRY_POINTS.items():
+            setattr(self, name, _entry_point(self, name, result, kinds))
 
     def _workspace(self, W):
         """Addresses and shapes of the workspace's arrays (cached per workspace object:
@@ -291,85 +293,66 @@ class CStepper:
             J.ctypes.data, LU.ctypes.data, piv.ctypes.data, xn.ctypes.data, f1.ctypes.data,
             xg.ctypes.data, D.ctypes.data))
 
-    def diagram_eval(self, mode, t, x, P, W, out):
-        addr, shape = self._workspace(W)
-        f = np.float64
-        return self._status(self.lib.ivdrem_diagram_eval(
-            addr.ctypes.data, shape.ctypes.data, _ptr(P, f, "P"), int(mode), float(t),
-            _ptr(x, f, "x"), _writable_ptr(out, f, "out")))
 
-    def diagram_jacobian(self, t, x, P, W, J):
-        addr, shape = self._workspace(W)
-        f = np.float64
-        n = x.shape[0]
-        if J.shape != (n, n):
-            raise TypeError(f"J must be {n} x {n}, got {J.shape}")
-        tmp = np.empty(n)
-        return self._status(self.lib.ivdrem_diagram_jacobian(
-            addr.ctypes.data, shape.ctypes.data, _ptr(P, f, "P"), float(t), _ptr(x, f, "x"),
-            n, _writable_ptr(J, f, "J"), tmp.ctypes.data))
+#: The C entry points called from Python as they are, one row each: name (without the
+#: ``ivdrem_`` prefix) -> (result, its arguments in the C order as ``name=kind[:shape]``).
+#: Kinds: ``W`` a workspace (its field addresses and shapes), ``f``/``F`` a float64 array
+#: read/written, ``i``/``I`` an int64 array read/written, ``d`` a float, ``n`` an integer;
+#: not passed from Python: ``N`` the last dimension of the array before it, ``T`` a float64
+#: temporary of N entries, ``R`` a one-entry result (returned).  A shape (in N) is
+#: checked.  Results: ``status`` (a failure code becomes a RuntimeError), ``int`` or None.
+_ENTRY_POINTS = {
+    "diagram_eval": ("status", "W=W P=f mode=n t=d x=f out=F"),
+    "diagram_jacobian": ("status", "W=W P=f t=d x=f n=N J=F:nn tmp=T"),
+    "fd_jacobian": ("status", "W=W P=f t=d x=f n=N J=F:nn f0=T fp=T xp=T"),
+    "lowest_eigenpair": ("status", "W=W u=f nvec=n nmat=n lam=R"),
+    "hist_lookup": (None, "W=W tq=d off=n size=n out=F"),
+    "slu_factor": ("int", "J=f:nn n=N c=d LU=F:lu piv=I:n perm=i rowptr=i colidx=i diagp=i"),
+    "slu_solve": (None, "LU=F:lu n=N perm=i rowptr=i colidx=i diagp=i b=F:n"),
+    "dense_factor": ("int", "J=f:nn n=N c=d LU=F:lu piv=I:n"),
+    "dense_solve": (None, "LU=f:lu n=N piv=i b=F:n"),
+}
+_SHAPES = {"n": lambda n: (n,), "nn": lambda n: (n, n), "lu": lambda n: (n + 2, n)}
+_KIND_DTYPE = {"f": np.float64, "F": np.float64, "i": np.int64, "I": np.int64}
 
-    def fd_jacobian(self, t, x, P, W, J):
-        addr, shape = self._workspace(W)
-        f = np.float64
-        n = x.shape[0]
-        if J.shape != (n, n):
-            raise TypeError(f"J must be {n} x {n}, got {J.shape}")
-        f0, fp, xp = np.empty(n), np.empty(n), np.empty(n)
-        return self._status(self.lib.ivdrem_fd_jacobian(
-            addr.ctypes.data, shape.ctypes.data, _ptr(P, f, "P"), float(t), _ptr(x, f, "x"),
-            n, _writable_ptr(J, f, "J"), f0.ctypes.data, fp.ctypes.data, xp.ctypes.data))
 
-    def lowest_eigenpair(self, W, u, nvec, nmat):
-        addr, shape = self._workspace(W)
-        u = np.ascontiguousarray(u, dtype=float)
-        if u.size < nvec + nmat * nmat:
-            raise ValueError(f"u has {u.size} entries, the matrix needs {nvec + nmat * nmat}")
-        lam = np.zeros(1)
-        self._status(self.lib.ivdrem_lowest_eigenpair(
-            addr.ctypes.data, shape.ctypes.data, u.ctypes.data, int(nvec), int(nmat),
-            lam.ctypes.data))
-        return float(lam[0])
+def _entry_point(stepper, name, result, signature):
+    """The Python face of C function ivdrem_<name>: numpy arrays checked (dtype,
+    contiguity, writeability, shape) and passed by address."""
+    params = [(a, *k.partition(":")[::2]) for a, k in
+              (p.split("=") for p in signature.split())]
+    fn = getattr(stepper.lib, f"ivdrem_{name}")
 
-    def hist_lookup(self, W, tq, off, size, out):
-        """out = the delay history's cubic Hermite value at time tq (entries off:off+size)."""
-        addr, shape = self._workspace(W)
-        self.lib.ivdrem_hist_lookup(addr.ctypes.data, shape.ctypes.data, float(tq), int(off),
-                                    int(size), _writable_ptr(out, np.float64, "out"))
-
-    @staticmethod
-    def _lu_args(J, LU, piv):
-        n = J.shape[0]
-        if J.shape != (n, n) or LU.shape != (n + 2, n) or piv.shape != (n,):
-            raise TypeError(f"J must be n x n, LU (n + 2) x n and piv n (n = {n})")
-        return n
-
-    def slu_factor(self, J, c, LU, piv, perm, rowptr, colidx, diagp):
-        n = self._lu_args(J, LU, piv)
-        f, i = np.float64, np.int64
-        return int(self.lib.ivdrem_slu_factor(
-            _ptr(J, f, "J"), n, float(c), _writable_ptr(LU, f, "LU"),
-            _writable_ptr(piv, i, "piv"), _ptr(perm, i, "perm"), _ptr(rowptr, i, "rowptr"),
-            _ptr(colidx, i, "colidx"), _ptr(diagp, i, "diagp")))
-
-    def slu_solve(self, LU, perm, rowptr, colidx, diagp, b):
-        f, i = np.float64, np.int64
-        n = b.shape[0]
-        if LU.shape != (n + 2, n):
-            raise TypeError(f"LU must be (n + 2) x n for b of {n} entries")
-        self.lib.ivdrem_slu_solve(_writable_ptr(LU, f, "LU"), n, _ptr(perm, i, "perm"),
-                                  _ptr(rowptr, i, "rowptr"), _ptr(colidx, i, "colidx"),
-                                  _ptr(diagp, i, "diagp"), _writable_ptr(b, f, "b"))
-
-    def dense_factor(self, J, c, LU, piv):
-        n = self._lu_args(J, LU, piv)
-        f, i = np.float64, np.int64
-        return int(self.lib.ivdrem_dense_factor(_ptr(J, f, "J"), n, float(c),
-                                                _writable_ptr(LU, f, "LU"),
-                                                _writable_ptr(piv, i, "piv")))
-
-    def dense_solve(self, LU, piv, b):
-        f, i = np.float64, np.int64
-        n = b.shape[0]
-        self.lib.ivdrem_dense_solve(_ptr(LU, f, "LU"), n, _ptr(piv, i, "piv"),
-                                    _writable_ptr(b, f, "b"))
+    def call(*args):
+        args, cargs, n, last, shaped, ret = list(args), [], 0, None, [], None
+        for arg, kind, shape in params:
+            if kind == "W":
+                addr, wshape = stepper._workspace(args.pop(0))
+                cargs += [addr.ctypes.data, wshape.ctypes.data]
+            elif kind in _KIND_DTYPE:
+                last = a = args.pop(0)
+                get = _writable_ptr if kind.isupper() else _ptr
+                cargs.append(get(a, _KIND_DTYPE[kind], arg))
+                if shape:
+                    shaped.append((arg, a, shape))
+            elif kind == "N":
+                n = int(last.shape[-1])
+                cargs.append(n)
+            elif kind in ("T", "R"):
+                tmp = np.empty(n if kind == "T" else 1)
+                cargs.append(tmp.ctypes.data)
+                ret = tmp if kind == "R" else ret
+            else:
+                v = args.pop(0)
+                cargs.append(float(v) if kind == "d" else int(v))
+        for arg, a, shape in shaped:
+            if a.shape != _SHAPES[shape](n):
+                raise TypeError(f"{name}: {arg} has shape {a.shape}, expected "
+                                f"{_SHAPES[shape](n)} (n = {n})")
+        code = fn(*cargs)
+        if result == "status":
+            stepper._status(code)
+            return float(ret[0]) if ret is not None else code
+        return int(code) if result == "int" else None
+    call.__name__ = call.__qualname__ = name
+    return call

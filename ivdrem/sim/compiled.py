@@ -599,14 +599,14 @@ class CompiledEngine:
             raise named[0] from named[1]
 
     def after_step(self, t, x, W):
-        return self._run(self.module.diagram_eval, _template.AFTER_STEP, t, x, self.P, W, x)
+        return self._run(self.module.diagram_eval, W, self.P, _template.AFTER_STEP, t, x, x)
 
     def record(self, t, x, W, row):
-        self._run(self.module.diagram_eval, _template.RECORD, t, x, self.P, W, row)
+        self._run(self.module.diagram_eval, W, self.P, _template.RECORD, t, x, row)
 
     def rhs(self, t, x, W):
         dx = np.zeros_like(x)
-        self._run(self.module.diagram_eval, _template.RHS, t, x, self.P, W, dx)
+        self._run(self.module.diagram_eval, W, self.P, _template.RHS, t, x, dx)
         return dx
 
     # ---- Jacobian and Newton matrix, callable from Python (tests, benchmarks)
@@ -616,7 +616,7 @@ class CompiledEngine:
         x = np.ascontiguousarray(x, dtype=float)
         J = np.zeros((x.size, x.size))
         fn = self.module.fd_jacobian if dense else self.module.diagram_jacobian
-        st = self._run(fn, float(t), x, self.P, W, J)
+        st = self._run(fn, W, self.P, float(t), x, J)
         if st != _template.OK:
             raise RuntimeError(f"diagram_jacobian returned status {st}")
         return J

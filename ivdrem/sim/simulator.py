@@ -167,10 +167,10 @@ class ReferenceEngine:
         return self._run(self.module.integrate, *args)
 
     def after_step(self, t, x, W):
-        return self._run(self.module.diagram_eval, tpl.AFTER_STEP, t, x, self.P, W, x)
+        return self._run(self.module.diagram_eval, W, self.P, tpl.AFTER_STEP, t, x, x)
 
     def record(self, t, x, W, row):
-        self._run(self.module.diagram_eval, tpl.RECORD, t, x, self.P, W, row)
+        self._run(self.module.diagram_eval, W, self.P, tpl.RECORD, t, x, row)
 
     def block_failure(self, exc, W=None):
         """(BlockError, cause) naming the block whose function raised `exc`, found in the
