@@ -1,7 +1,7 @@
 """The integration methods: one registry that everything asking about a method reads.
 
 A method is a row of :data:`METHOD_TABLE`: its name, its dispatch id (the C stepper's
-``method_step`` and the template's switch on it; the ids reach ``stepper.c`` through the
+``method_step``; the ids reach ``stepper.c`` through the
 generated header, :func:`header_lines`), the step function that implements it, its order,
 the order of its error estimate and of its dense output, whether it is adaptive (error
 controlled) or takes fixed steps ``h``, whether it is L-stable, and its default
@@ -9,8 +9,8 @@ tolerances.  The simulator, the cost guards (:mod:`ivdrem.sim.guards`), the co-s
 (:mod:`ivdrem.fmu.cosim`), the command-line preflight and ``gamma = "auto"`` ask this table,
 never a method by name; the generic suite ``tests/test_methods.py`` checks every row (order
 by step refinement, order of the error estimate and of the dense output) on shared
-analytic problems.  Adding a method is its step function in ``stepper.c`` and
-``_template.py`` and its row here (docs/simulation.md, "Adding a method").
+analytic problems.  Adding a method is its step function in ``stepper.c`` and its row
+here (docs/simulation.md, "Adding a method").
 
 This module imports nothing of ivdrem: every other module of ``sim`` may import it.
 """
@@ -28,7 +28,7 @@ class MethodInfo:
     """One row of the method table."""
     name: str
     id: int               # dispatch id of the stepper's method_step
-    step: str             # the step function (stepper.c and _template.py)
+    step: str             # the step function in stepper.c
     order: int            # order of the solution
     error_order: int      # order of the embedded solution the error is estimated by (0: none)
     adaptive: bool        # error-controlled steps (else fixed steps h)
