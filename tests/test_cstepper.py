@@ -107,3 +107,21 @@ def test_dsyevd_work_lengths_in_c_are_the_python_functions():
                       r"(-?\d+) \* n \* n; }", header)
         c0, c1, c2 = (int(v) for v in m.groups())
         assert all(c0 + c1 * n + c2 * n * n == fn(n) for n in range(1, 50))
+
+
+def test_the_entry_point_table_matches_the_c_prototypes():
+    """Every row of _ENTRY_POINTS (and the loop's signature) against its prototype in
+    stepper.c, read from the source: the argument types and the result, in order."""
+    import ctypes
+    import re
+    src = _cstepper.SOURCE.read_text()
+    c_type = {"double": ctypes.c_double, "i64": ctypes.c_int64}
+    sigs = {**_cstepper._SIGNATURES, **_cstepper._ctypes_signatures()}
+    assert set(sigs) == {f"ivdrem_{n}" for n in _cstepper._ENTRY_POINTS} | {"ivdrem_step_loop"}
+    for name, (res, argtypes) in sigs.items():
+        m = re.search(rf"EXPORT (int|void) {name}\(([^)]*)\)", src)
+        assert m, name
+        want = [ctypes.c_void_p if "*" in a else c_type[a.split()[-2]]
+                for a in m.group(2).replace("\n", " ").split(",")]
+        assert argtypes == want, name
+        assert res == (ctypes.c_int if m.group(1) == "int" else None), name

@@ -172,18 +172,11 @@ def build(cache):
 _P = ctypes.c_void_p
 _I = ctypes.c_int64
 _D = ctypes.c_double
+#: ctypes signatures of the exported functions: the loop's here, the others derived from
+#: their rows in _ENTRY_POINTS (below)
 _SIGNATURES = {
     "ivdrem_step_loop": (ctypes.c_int, [_P, _P, _P, _I, _P, _D, _P, _I, _P, _P, _I, _P, _I,
                                         _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P]),
-    "ivdrem_diagram_eval": (ctypes.c_int, [_P, _P, _P, _I, _D, _P, _P]),
-    "ivdrem_diagram_jacobian": (ctypes.c_int, [_P, _P, _P, _D, _P, _I, _P, _P]),
-    "ivdrem_fd_jacobian": (ctypes.c_int, [_P, _P, _P, _D, _P, _I, _P, _P, _P, _P]),
-    "ivdrem_lowest_eigenpair": (ctypes.c_int, [_P, _P, _P, _I, _I, _P]),
-    "ivdrem_hist_lookup": (ctypes.c_int, [_P, _P, _D, _I, _I, _P]),
-    "ivdrem_slu_factor": (ctypes.c_int, [_P, _I, _D, _P, _P, _P, _P, _P, _P]),
-    "ivdrem_slu_solve": (None, [_P, _I, _P, _P, _P, _P, _P]),
-    "ivdrem_dense_factor": (ctypes.c_int, [_P, _I, _D, _P, _P]),
-    "ivdrem_dense_solve": (None, [_P, _I, _P, _P]),
 }
 _loaded = {}
 
@@ -202,7 +195,7 @@ def load(cache):
                 lib = ctypes.PyDLL(str(lib_path))
             except OSError as e:
                 raise CStepperUnavailable(f"the C stepper {lib_path} does not load: {e}") from e
-        for name, (res, args) in _SIGNATURES.items():
+        for name, (res, args) in {**_SIGNATURES, **_ctypes_signatures()}.items():
             fn = getattr(lib, name)
             fn.restype = res
             fn.argtypes = args
@@ -300,13 +293,14 @@ class CStepper:
 #: read/written, ``i``/``I`` an int64 array read/written, ``d`` a float, ``n`` an integer;
 #: not passed from Python: ``N`` the last dimension of the array before it, ``T`` a float64
 #: temporary of N entries, ``R`` a one-entry result (returned).  A shape (in N) is
-#: checked.  Results: ``status`` (a failure code becomes a RuntimeError), ``int`` or None.
+#: checked.  Results: ``status`` (a failure code becomes a RuntimeError), ``int`` or None
+#: (void).
 _ENTRY_POINTS = {
     "diagram_eval": ("status", "W=W P=f mode=n t=d x=f out=F"),
     "diagram_jacobian": ("status", "W=W P=f t=d x=f n=N J=F:nn tmp=T"),
     "fd_jacobian": ("status", "W=W P=f t=d x=f n=N J=F:nn f0=T fp=T xp=T"),
     "lowest_eigenpair": ("status", "W=W u=f nvec=n nmat=n lam=R"),
-    "hist_lookup": (None, "W=W tq=d off=n size=n out=F"),
+    "hist_lookup": ("status", "W=W tq=d off=n size=n out=F"),
     "slu_factor": ("int", "J=f:nn n=N c=d LU=F:lu piv=I:n perm=i rowptr=i colidx=i diagp=i"),
     "slu_solve": (None, "LU=F:lu n=N perm=i rowptr=i colidx=i diagp=i b=F:n"),
     "dense_factor": ("int", "J=f:nn n=N c=d LU=F:lu piv=I:n"),
@@ -314,6 +308,15 @@ _ENTRY_POINTS = {
 }
 _SHAPES = {"n": lambda n: (n,), "nn": lambda n: (n, n), "lu": lambda n: (n + 2, n)}
 _KIND_DTYPE = {"f": np.float64, "F": np.float64, "i": np.int64, "I": np.int64}
+
+
+def _ctypes_signatures():
+    """{C name: (restype, argtypes)} of the _ENTRY_POINTS rows."""
+    c_kind = {"W": [_P, _P], "d": [_D], "n": [_I], "N": [_I]}
+    return {f"ivdrem_{name}": (None if result is None else ctypes.c_int,
+                               [t for p in signature.split()
+                                for t in c_kind.get(p.split("=")[1][0], [_P])])
+            for name, (result, signature) in _ENTRY_POINTS.items()}
 
 
 def _entry_point(stepper, name, result, signature):
