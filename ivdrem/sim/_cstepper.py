@@ -328,6 +328,7 @@ def _entry_point(stepper, name, result, signature):
 
     def call(*args):
         args, cargs, n, last, shaped, ret = list(args), [], 0, None, [], None
+        temporaries = []
         for arg, kind, shape in params:
             if kind == "W":
                 addr, wshape = stepper._workspace(args.pop(0))
@@ -343,6 +344,7 @@ def _entry_point(stepper, name, result, signature):
                 cargs.append(n)
             elif kind in ("T", "R"):
                 tmp = np.empty(n if kind == "T" else 1)
+                temporaries.append(tmp)         # alive until C returns
                 cargs.append(tmp.ctypes.data)
                 ret = tmp if kind == "R" else ret
             else:
