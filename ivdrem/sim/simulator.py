@@ -518,6 +518,7 @@ class Simulator:
             self.W.callbacks[1] = 0
             self._on_report = None
             self.wall += _time.perf_counter() - wall0
+            self.recorded = int(io[0])      # the samples written, also when the run stops
         return io[0]
 
     def _emit_due(self, out_t, out_y, out_x, io):
@@ -932,7 +933,7 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
              t_eval=None, method=DEFAULT_METHOD, engine="compiled", h=1e-3, rtol=None,
              atol=None, h_max=None, dt_out=None, progress=None, return_states=True,
              x_limit=1e10, max_steps=50_000_000, desc=None, allow_long=False,
-             t_end=None, x0=None, u=None):
+             t_end=None, x0=None, u=None, partial=False):
     """Simulate a closed diagram; returns ct.TimeResponseData.
 
     The arguments follow ``ct.input_output_response`` (docs/simulation.md, "Calling
@@ -970,6 +971,8 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
         gives them).
     progress : show a progress bar; default: when stderr is a terminal.
     allow_long : run beyond the cost limits of :mod:`ivdrem.sim.guards` (memory, steps).
+    partial : a run stopped by a SimulationError returns the samples before the stop, with
+        ``success`` False and the error as ``message`` (python-control's ignore_errors).
 
     The response carries ``inputs`` (the inputs at the output times), ``params``,
     ``.stats`` (steps, rejected, rhs_calls, jacobians, sim_s, compile_s, wall_s = sim_s +
@@ -1011,8 +1014,15 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
     if progress is None:
         progress = sys.stderr.isatty() and not os.environ.get("CI")
     bar, update = _progress_bar(progress, t0, t_end, desc or diagram.name)
+    failure = None
     try:
         n = sim.advance(t_end, out_t=out_t, out_y=out_y, out_x=out_x, progress=update)
+    except SimulationError as e:
+        if not partial:
+            raise
+        failure, n = e, sim.recorded
+        out_t, out_y = out_t[:n], out_y[:n]
+        out_x = out_x[:n] if out_x is not None else None
     finally:
         if bar is not None:
             bar.close()
@@ -1028,7 +1038,8 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
         out_t, out_y.T, out_x.T if out_x is not None else None, u_out,
         output_labels=list(diagram.output_labels), input_labels=list(diagram.input_labels),
         state_labels=list(diagram.state_labels) if out_x is not None else None,
-        sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso())
+        sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso(),
+        success=failure is None, message=None if failure is None else str(failure))
     resp.stats = sim.stats_dict()
     resp.hold_times = sim.hold_times()
     return resp
