@@ -15,6 +15,7 @@ import pytest
 import control as ct
 
 from ivdrem.sim import Simulator, simulate, sampled, AlgebraicLoopError
+from ivdrem.sim.errors import BlockError
 from ivdrem.sim.foreign import direct_inputs
 
 ENGINES = ("compiled", "reference")
@@ -195,3 +196,24 @@ def test_chunks_and_restart_continue_exactly():
     k5 = 5
     rest = _quiet(simulate, d, T[k5:], 0.0, one.states[:, k5])
     assert np.max(np.abs(rest.outputs - one.outputs[:, k5:])) <= 1e-6
+
+
+def test_bad_sampled_blocks_are_named():
+    src = ct.nlsys(lambda t, x, u, p: -x, lambda t, x, u, p: x, inputs=[], outputs=["w"],
+                   states=1, name="src")
+
+    def update(t, x, u, p):
+        if t > 0.25:
+            raise ZeroDivisionError("boom")
+        return x + u
+
+    acc = ct.nlsys(update, lambda t, x, u, p: x, inputs=["w"], outputs=["z"], states=1,
+                   dt=0.1, name="acc")
+    d = ct.interconnect([src, sampled(acc)], inputs=[], outputs=["z"])
+    for engine in ENGINES:
+        with pytest.raises(BlockError, match=r"block 'acc' \(sampled\) raised at t = 0.3 s"):
+            _quiet(simulate, d, 1.0, 0.0, [1.0, 0.0], engine=engine)
+    unspecified = ct.nlsys(update, None, inputs=["w"], outputs=["z"], states=1, dt=True,
+                           name="u")
+    with pytest.raises(ValueError, match="positive, finite sample period"):
+        sampled(unspecified)

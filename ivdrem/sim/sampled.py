@@ -1,26 +1,8 @@
-"""Sampled (discrete-time) blocks in a continuous diagram, with python-control's semantics.
-
-A discrete-time python-control system ``ct.nlsys(updfcn, outfcn, dt=h)`` (or ``ct.ss(...,
-dt=h)``) means x[k+1] = f(t_k, x[k], u[k]), y[k] = g(t_k, x[k], u[k]) at t_k = t0 + k h.
-Inside a continuous diagram the simulator gives it that meaning:
-
-- the steps land on every sample time t_k (``stepper.c``'s ``next_sample``; a fixed-step
-  method needs h dividing the period), and the stepper calls :meth:`Sampling.sample` there;
-- at t_k the update is applied in the state vector, x[k] = f(t_{k-1}, x[k-1], u[k-1]); the
-  outputs y[k] = g(t_k, x[k], u[k]) and the inputs u[k] are then held (zero-order hold) until
-  t_{k+1}: between samples the block is a constant source, its states have derivative 0;
-- an output function that reads u (direct feedthrough) is evaluated after the blocks that
-  feed it, once per sample: y[k] then depends on u[k] as in python-control (a loop through
-  such blocks is an algebraic loop, as there).
-
-The discrete states are states of the diagram (recorded with the others, and a run started
-from a recorded state at t_k continues as the run that recorded it: the first sample of a
-run holds outputs and inputs without updating).  The response at t_k shows x[k] and y[k],
-as ``ct.input_output_response`` of a discrete-time system does.
-
-:func:`sampled` turns a discrete-time block into the continuous-time stand-in that
-``ct.interconnect`` accepts next to continuous blocks; :func:`continuous_diagram` does it
-for every block of a diagram (a wholly discrete ``ct.interconnect`` of dt = h systems).
+"""Sampled (discrete-time) blocks in a continuous diagram, with python-control's semantics
+x[k+1] = f(t_k, x[k], u[k]), y[k] = g(t_k, x[k], u[k]) at t_k = t0 + k h: the steps land on
+every t_k, where the stepper calls :meth:`Sampling.sample` (update in the state vector, then
+outputs and inputs held until t_{k+1}); between samples the block is a constant source whose
+states have derivative 0.  docs/simulation.md, "Sampled blocks", says what it guarantees.
 """
 from __future__ import annotations
 
@@ -55,8 +37,8 @@ def sample_period(sys):
 
 
 class _SampledInfo:
-    """What a stand-in carries: the discrete-time system, its period, and the held outputs
-    of the run evaluating it (set by :meth:`Sampling.bind`; None outside a run)."""
+    """A stand-in's discrete-time system, period, and the held outputs of the run evaluating
+    it (set by :meth:`Sampling.bind`; None outside a run)."""
 
     def __init__(self, sys, dt):
         self.sys, self.dt, self.held = sys, dt, None
