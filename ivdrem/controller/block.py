@@ -17,11 +17,29 @@ from .clib import CController
 from .loop import PAPER_DISTURBANCE, PAPER_Q0, disturbance_at
 from .sampled import SampledController
 
-__all__ = ["controller_block", "disturbance_block", "sampled_closed_loop"]
+__all__ = ["controller_block", "disturbance_block", "sampled_closed_loop", "auto_gamma"]
+
+
+#: the controller's arguments that the continuous loop's gain rule (gamma = "auto") reads
+_CALIBRATION_ARGS = ("alpha", "K", "delta_mu", "Gamma", "mu0", "mu1", "observer_variant", "l",
+                     "T", "p", "F0", "epsilon", "sigma", "theta_star", "theta_hat0",
+                     "trajectory")
+
+
+def auto_gamma(model, law, kwargs, calibration=None):
+    """The γ of ``gamma = "auto"`` for the sampled controller: the rule of
+    :mod:`ivdrem.diagrams.gamma_auto` (γ = κ / (λ_max(Γ) mean Δ²), Δ measured on ivdrem's
+    continuous loop with the same gains over 2T), with the numbers it came from."""
+    from ..diagrams.gamma_auto import calibrate_gamma
+    if model is None:
+        from ..models import two_link
+        model = two_link()
+    args = {k: v for k, v in kwargs.items() if k in _CALIBRATION_ARGS and v is not None}
+    return calibrate_gamma(law, model, args, **(calibration or {}))
 
 
 def controller_block(model=None, law="iv-drem", *, h=1e-3, backend="c", name="controller",
-                     **kwargs):
+                     calibration=None, **kwargs):
     """The sampled controller as a discrete-time block (python-control semantics at
     t_k = k h; keyword arguments as :class:`SampledController`).
 
@@ -35,11 +53,20 @@ def controller_block(model=None, law="iv-drem", *, h=1e-3, backend="c", name="co
 
     With ``delay = 0`` the controller's step (9)-(11) runs in the output function at t_k
     (τ_k needs q_k); with ``delay = 1`` in the update, and the output holds the previous
-    torque.  A run that starts again at t = 0 resets the controller.
+    torque.  A run that starts again at t = 0 resets the controller.  ``gamma="auto"``
+    chooses γ by :func:`auto_gamma` (``calibration``: its keyword arguments); the choice is
+    ``block.gamma_choice``.
     """
     if backend not in ("c", "python"):
         raise ValueError(f"backend must be 'c' (the generated C library) or 'python' (the "
                          f"reference), got {backend!r}")
+    choice = None
+    if isinstance(kwargs.get("gamma"), str):
+        if kwargs["gamma"] != "auto":
+            raise ValueError(f"gamma must be a positive number or 'auto', got "
+                             f"{kwargs['gamma']!r}")
+        choice = auto_gamma(model, law, kwargs, calibration)
+        kwargs = {**kwargs, "gamma": choice["gamma"]}
     ctl = (CController if backend == "c" else SampledController)(model, law, h=h, **kwargs)
     n, nth, delay = ctl.n, ctl.ntheta, ctl.delay
     held = {"tau": np.zeros(n), "started": False}
@@ -68,7 +95,7 @@ def controller_block(model=None, law="iv-drem", *, h=1e-3, backend="c", name="co
                    [f"theta_hat[{j}]" for j in range(nth)],
                    states=[f"th[{j}]" for j in range(nth)], dt=ctl.h, name=name)
     declare_feedthrough(sys, ["q", "dq"] if delay == 0 else [])
-    sys.controller = ctl
+    sys.controller, sys.gamma_choice = ctl, choice
     return sys
 
 
