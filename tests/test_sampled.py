@@ -217,3 +217,24 @@ def test_bad_sampled_blocks_are_named():
                            name="u")
     with pytest.raises(ValueError, match="positive, finite sample period"):
         sampled(unspecified)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_mixed_loop_equals_its_zoh_discretization(engine):
+    """A continuous plant under a held input equals its zero-order-hold discretization at
+    the samples: the mixed loop (continuous plant, summing junction, discrete tf with
+    feedthrough) equals python-control's run of the wholly discrete loop (ct.c2d)."""
+    h = 0.05
+    C = ct.tf([0.5, -0.4], [1, -0.9], dt=h, inputs="e", outputs="u", name="C")
+    A, B = [[-1.0, 0.5], [0.0, -2.0]], [[0.0], [1.0]]
+    P = ct.ss(A, B, [[1.0, 0.0]], [[0.0]], inputs="u", outputs="y", name="P")
+    mixed = ct.interconnect([P, sampled(C), ct.summing_junction(["r", "-y"], "e", name="S")],
+                            inputs=["r"], outputs=["y", "u"])
+    Pd = ct.ss(ct.c2d(ct.ss(A, B, [[1.0, 0.0]], [[0.0]]), h, "zoh"), inputs="u",
+               outputs="y", name="P")
+    discrete = ct.interconnect([Pd, C, ct.summing_junction(["r", "-y"], "e", name="S", dt=h)],
+                               inputs=["r"], outputs=["y", "u"])
+    T = np.arange(0, 2 + 1e-9, h)
+    r = _quiet(simulate, mixed, T, np.sin(T), engine=engine, rtol=1e-11, atol=1e-13)
+    ref = ct.input_output_response(discrete, T, np.sin(T))
+    assert np.max(np.abs(r.outputs - ref.outputs)) <= 1e-9
