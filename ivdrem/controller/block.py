@@ -100,8 +100,15 @@ def controller_block(model=None, law="iv-drem", *, h=1e-3, backend="c", name="co
 
 
 def disturbance_block(n, h, disturbance=PAPER_DISTURBANCE, *, name="disturbance"):
-    """tau_d(t_k) of the paper's experiment, sampled every h and held (as the FMU loops
-    hold it), as a discrete-time block without state or inputs."""
+    """The external torque of the experiment, sampled every h and held (as the FMU loops
+    hold it): a discrete-time block (dt = h).
+
+    ======  ===================================================================
+    states  none
+    inputs  none
+    output  tau_d[n] = A sin(ω t_k + φ) + offset (``disturbance``'s sinusoids)
+    ======  ===================================================================
+    """
     return ct.nlsys(None, lambda t, x, u, params: disturbance_at(t, disturbance), inputs=[],
                     outputs=[f"tau_d[{i}]" for i in range(n)], dt=h, name=name)
 
