@@ -17,6 +17,7 @@ python-control's own; tests/test_pycontrol.py pins the release.
 from __future__ import annotations
 
 import contextlib
+import copy
 import functools
 import importlib
 import sys as _sys
@@ -228,11 +229,6 @@ def input_output_response(
             engine=engine) for s in sys])
     if not isinstance(sys, (ct.NonlinearIOSystem, ct.TransferFunction)):
         raise TypeError("System of type ", type(sys), " not valid")
-    if ct.isdtime(sys, strict=True):
-        raise NotImplementedError(
-            f"system '{sys.name}' is discrete-time (dt = {sys.dt}): ivdrem's simulator "
-            "runs continuous-time systems; use python-control's own simulator "
-            "(ivdrem.pycontrol.PYTHON_CONTROL_SIMULATOR)")
     if options.get('t_eval') is not None:
         if isinstance(t_eval, str) and t_eval == 'T':
             t_eval = options.pop('t_eval')
@@ -242,7 +238,10 @@ def input_output_response(
     method, settings = _solver_settings(options)
     if isinstance(t_eval, str) and t_eval == 'T':
         t_eval = None                     # simulate's default: the output times are T
+    sys = _sized(sys, T, U, X0, params)
     diagram = flatten(sys)
+    if ct.isdtime(sys, strict=True):
+        T, t_eval, diagram = _discrete_times(sys, T, t_eval, diagram)
     labels = dict(output_labels=sys.output_labels, input_labels=sys.input_labels,
                   sysname=sys.name, title="Input/output response for " + sys.name,
                   transpose=transpose, return_x=return_x, squeeze=squeeze,
@@ -266,6 +265,65 @@ def input_output_response(
                            state_labels=sys.state_labels, success=success,
                            message=message, **labels)
     out.stats = resp.stats
+    return out
+
+
+def _sized(sys, T, U, X0, params):
+    """`sys`, or a copy with the sizes it leaves open (None) found as python-control finds
+    them: inputs from U, states from X0, outputs from the output function at T[0]."""
+    if isinstance(sys, ct.InterconnectedSystem) or not isinstance(sys, ct.NonlinearIOSystem) \
+            or None not in (sys.ninputs, sys.nstates, sys.noutputs):
+        return sys
+    out = copy.copy(sys)
+    T = np.atleast_1d(np.asarray(T, dtype=float))
+    if out.ninputs is None:
+        if isinstance(U, (list, tuple)) and len(U) != T.size:
+            n = sum(1 if np.ndim(u) == 0 else
+                    (np.shape(u)[0] if np.ndim(u) == 2 or np.size(u) != T.size else 1)
+                    for u in U)
+        else:
+            a = np.asarray(U, dtype=float)
+            n = a.shape[0] if a.ndim == 2 else (1 if a.ndim == 0 or a.size == T.size
+                                                 else a.size)
+        out.set_inputs(n)
+    if out.nstates is None:
+        parts = X0 if isinstance(X0, (list, tuple)) else [X0]
+        out.set_states(int(sum(np.size(x) for x in parts)))
+    if out.noutputs is None:
+        if out.outfcn is None:
+            out.set_outputs(out.nstates)
+        else:
+            out._update_params(params)
+            x0 = np.zeros(out.nstates)
+            out.set_outputs(int(np.size(out._out(T[0], x0, np.zeros(out.ninputs)))))
+    return out
+
+
+def _discrete_times(sys, T, t_eval, diagram):
+    """(timepts, t_eval, diagram) of a discrete-time system, with python-control's rules:
+    the output times (t_eval, default T) equally spaced by the sample period dt (for
+    dt = True, the spacing is the period); the run starts at the first of them."""
+    times = np.asarray(T if t_eval is None else t_eval, dtype=float)
+    if times.ndim != 1 or times.size < 2:
+        raise ValueError("parameter `t_eval`: a discrete-time response needs at least two "
+                         "equally spaced times")
+    dt = times[1] - times[0]
+    if not np.allclose(times[1:] - times[:-1], dt):
+        raise ValueError("parameter `t_eval`: time values must be equally spaced")
+    if sys.dt is not True and not np.isclose(dt, sys.dt):
+        raise ValueError("Time steps `T` must be equal to sampling time")
+    if any(leaf.dt is True for leaf in diagram.syslist):
+        # an unspecified timebase: one update per output time, as python-control steps
+        diagram = copy.copy(diagram)
+        diagram.syslist = [_with_period(leaf, dt) if leaf.dt is True else leaf
+                           for leaf in diagram.syslist]
+        diagram.dt = dt
+    return times, None, diagram
+
+
+def _with_period(leaf, dt):
+    out = copy.copy(leaf)
+    out.dt = float(dt)
     return out
 
 
