@@ -139,3 +139,11 @@ def paper_run(law, t_end, method, engine, h=1e-3, rtol=1e-6, atol=1e-8, dt_out=0
     from ivdrem.sim import simulate
     return simulate(paper_loop(law), t_end, method=method, engine=engine, h=h, rtol=rtol,
                     atol=atol, dt_out=dt_out, progress=False)
+
+
+@pytest.fixture(scope="module")
+def plant_fmu(tmp_path_factory):
+    """ivdrem's plant FMU of the 2-link arm (the controller loops close around it)."""
+    from ivdrem.fmu import export_fmu
+    from ivdrem.models import two_link
+    return export_fmu(two_link(), tmp_path_factory.mktemp("plant") / "Plant.fmu")

@@ -19,12 +19,6 @@ Q0 = (0.0, 0.3 * np.pi)
 
 
 @pytest.fixture(scope="module")
-def plant_fmu(tmp_path_factory):
-    from ivdrem.fmu import export_fmu
-    return export_fmu(two_link(), tmp_path_factory.mktemp("plant") / "Plant.fmu")
-
-
-@pytest.fixture(scope="module")
 def controller_fmu(tmp_path_factory):
     from ivdrem.controller.fmu_export import export_controller_fmu
     return export_controller_fmu(two_link(), tmp_path_factory.mktemp("ctl") / "Controller.fmu",

@@ -42,7 +42,7 @@ DIVERGED_GROWTH = 7
 BLOCK_RAISED = 8      # a block kernel or the reference engine's callback raised
 
 UNKNOWN_METHOD = 9    # a method id method_step has no branch for (never a fallback)
-STOPPED = 10          # the report function (workspace callbacks[1]) asked to stop (it raised)
+STOPPED = 10          # the report or sample function (callbacks[1], [2]) raised: stop
 
 # method ids: the registry's (ivdrem.sim.methods); BS23 is no user method: the explicit
 # steps of a Rodas5P run pinned by max-holds

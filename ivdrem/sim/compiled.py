@@ -55,7 +55,7 @@ from .errors import BLOCK_RAISED_MESSAGE, BlockError, CompileError  # noqa: F401
 from .jacobian import JacobianProgram
 from .sparse_lu import symbolic_lu
 from .tables import build_tables
-from . import foreign
+from . import foreign, sampled
 from .foreign import foreign_module as _foreign_module
 from . import _warm_stepper
 from . import _cstepper
@@ -293,7 +293,9 @@ def _check_kernels(plan):
     """Give every block ivdrem did not write its kernels (ivdrem.sim.foreign.adapt_block),
     once per plan; then every block has a BlockSpec."""
     for b in plan.blocks:
-        if b.spec is None:
+        if b.spec is None and getattr(b.sys, sampled.SAMPLED_ATTRIBUTE, None) is not None:
+            b.spec = sampled.kernel_spec(b.sys, plan.sampling.address(b))
+        elif b.spec is None:
             try:
                 b.spec = foreign.adapt_block(b.sys, effective_params(b.sys, plan.diagram,
                                                                      plan.params))

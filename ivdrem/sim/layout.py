@@ -12,7 +12,8 @@ wrappers, ``failure`` [wrapper index, t, states] of a kernel that raised, ``tabl
 reference engine) and the work arrays of the diagram functions and LAPACK; ``callbacks``:
 [the address of the reference engine's diagram function (python-control through a ctypes
 callback), or 0: the diagram is the tables; the address of the report function (progress,
-pending signals; ``stepper.c``'s ``report_fn``), or 0].
+pending signals; ``stepper.c``'s ``report_fn``), or 0; the address of the sampled
+blocks' sample function (``ivdrem.sim.sampled``), or 0]; ``sample_dt`` their periods.
 """
 from __future__ import annotations
 
@@ -33,7 +34,8 @@ WORKSPACE_LAYOUT = (
     ("u_times", "float64", 1), ("u_values", "float64", 2), ("kernels", "int64", 1),
     ("failure", "float64", 1), ("table_ints", "int64", 1),
     ("table_floats", "float64", 1), ("scratch", "float64", 1), ("lapack", "int64", 1),
-    ("lapack_chars", "uint8", 1), ("lapack_ints", "int32", 1), ("callbacks", "int64", 1))
+    ("lapack_chars", "uint8", 1), ("lapack_ints", "int32", 1), ("callbacks", "int64", 1),
+    ("sample_dt", "float64", 1))
 Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
 
 

@@ -43,6 +43,7 @@ from .errors import BlockError, SimulationError, StiffnessWarning, BLOCK_RAISED_
 from .guards import check_bounds, check_diagram_cost
 from .compiled import CompiledEngine, load_c_stepper
 from .foreign import _view
+from .sampled import Sampling, continuous_diagram
 from .tables import reference_tables
 from ..blocks._core import active_feeds
 
@@ -222,6 +223,9 @@ _REPORT_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_double)
 #: handled while the stepper runs without calling Python
 REPORTS = 200
 
+#: the sampled blocks' sample function: int32 f(t, x*) (stepper.c's sample_fn)
+_SAMPLE_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_double, ctypes.c_int64)
+
 #: the reference engine's diagram function: int32 f(mode, t, x*, ue*, out*) (stepper.c)
 _DIAGRAM_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_int64, ctypes.c_double,
                                      ctypes.c_int64, ctypes.c_int64, ctypes.c_int64)
@@ -259,7 +263,7 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels, tables):
         lapack_chars=np.array([ord("V"), ord("L")], dtype=np.uint8),
         # dsyevd's five scalar arguments, then its integer work
         lapack_ints=np.zeros(5 + _diagram.dsyevd_liwork(nmat), dtype=np.int32),
-        callbacks=np.zeros(2, dtype=np.int64))
+        callbacks=np.zeros(3, dtype=np.int64), sample_dt=plan.sampling.periods.copy())
 
 
 def _grow(W):
@@ -294,7 +298,12 @@ class Simulator:
         method = info.name
         if engine not in ENGINES:
             raise ValueError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
+        diagram = continuous_diagram(diagram)       # discrete-time blocks: sampled
         self.plan = plan = DiagramPlan.from_diagram(diagram, x0, params)
+        plan.sampling = self.sampling = Sampling(plan, t0)
+        self.sampling.bind()
+        if self.sampling and not info.adaptive:
+            self.sampling.check_fixed_step(h)
         self.method, self.engine_name = method, engine
         rtol_d, atol_d = info.rtol, info.atol
         self.h = _check_positive("h", h)
@@ -350,6 +359,10 @@ class Simulator:
         # the stepper calls it by address (kept alive with the simulator)
         self._report_c = _REPORT_CALLBACK(self._report_trampoline)
         self._report_address = ctypes.cast(self._report_c, ctypes.c_void_p).value
+        if self.sampling:
+            self.sampling.inputs_at = self._block_inputs
+            self._sample_c = _SAMPLE_CALLBACK(self._sample_trampoline)
+            self.W.callbacks[2] = ctypes.cast(self._sample_c, ctypes.c_void_p).value
 
     @property
     def state_labels(self):
@@ -427,6 +440,9 @@ class Simulator:
         c0 = _time.perf_counter()
         self.W.clock[0] = self.t
         self.W.hold_mode[:] = tpl.HOLD_COMMIT      # t0 is a sampling time of every hold
+        if self.sampling:                          # and of every sampled block
+            self.sampling.bind()
+            self.sampling.sample(self.t, self.x)
         self._after_step_with_room()
         self.compile_s += _time.perf_counter() - c0
         self._started = True
@@ -491,6 +507,7 @@ class Simulator:
             self.W.callbacks[1] = 0
             self._on_report = None
             self.wall += _time.perf_counter() - wall0
+            self.recorded = int(io[0])      # the samples written, also when the run stops
         return io[0]
 
     def _emit_due(self, out_t, out_y, out_x, io):
@@ -544,6 +561,30 @@ class Simulator:
             self._stopped_by = e
             return 1
 
+    def _sample_trampoline(self, t, px):
+        """The stepper's sample function (the sampled blocks' updates at a sample time);
+        an exception stops the run (status STOPPED) and is raised again by _handle."""
+        try:
+            self.sampling.sample(t, _view(px, self.x.size))
+            return 0
+        except BaseException as e:      # noqa: BLE001 - raised again by _handle
+            self._stopped_by = e
+            return 1
+
+    def _block_inputs(self, t, x):
+        """Every block's inputs at (t, x), by the run's engine (for the sampled blocks)."""
+        if self.engine_name == "reference":
+            return np.asarray(self.plan.diagram._compute_static_io(
+                t, x, self._external_inputs(t))[0], dtype=float)
+        self.engine.rhs(t, x, self.W)       # fills every block input (a record only some)
+        return self.W.us.copy()
+
+    def _external_inputs(self, t):
+        """The diagram's external inputs at t (held, or the table's interpolant)."""
+        if self.W.u_times.size:
+            return interpolate_inputs(self.W.u_times, self.W.u_values.T, np.array([t]))[:, 0]
+        return np.array(self.W.u_ext)
+
     def _handle(self, st, out_t, out_y, io, out_x):
         if st == tpl.STOPPED:
             e, self._stopped_by = self._stopped_by, None
@@ -590,10 +631,7 @@ class Simulator:
     def _signals_at(self, t, x):
         """(dx/dt, block outputs, block inputs) of the diagram at (t, x), evaluated by the
         run's own engine; None if the evaluation raises."""
-        if self.W.u_times.size:
-            ue = interpolate_inputs(self.W.u_times, self.W.u_values.T, np.array([t]))[:, 0]
-        else:
-            ue = np.array(self.W.u_ext)
+        ue = self._external_inputs(t)
         try:
             if self.engine_name == "reference":
                 return self.engine.control.signals(self.plan, t, x, ue)
@@ -643,6 +681,7 @@ class Simulator:
         return None
 
     def close(self):
+        self.sampling.unbind()
         if self.engine_name == "reference":
             self.engine.remove_feeds()
 
@@ -891,7 +930,7 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
              t_eval=None, method=DEFAULT_METHOD, engine="compiled", h=1e-3, rtol=None,
              atol=None, h_max=None, dt_out=None, progress=None, return_states=True,
              x_limit=1e10, max_steps=50_000_000, desc=None, allow_long=False,
-             t_end=None, x0=None, u=None):
+             t_end=None, x0=None, u=None, partial=False):
     """Simulate a closed diagram; returns ct.TimeResponseData.
 
     The arguments follow ``ct.input_output_response`` (docs/simulation.md, "Calling
@@ -929,6 +968,8 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
         gives them).
     progress : show a progress bar; default: when stderr is a terminal.
     allow_long : run beyond the cost limits of :mod:`ivdrem.sim.guards` (memory, steps).
+    partial : a run stopped by a SimulationError returns the samples before the stop, with
+        ``success`` False and the error as ``message`` (python-control's ignore_errors).
 
     The response carries ``inputs`` (the inputs at the output times), ``params``,
     ``.stats`` (steps, rejected, rhs_calls, jacobians, sim_s, compile_s, wall_s = sim_s +
@@ -938,6 +979,7 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
     if not isinstance(diagram, ct.InterconnectedSystem):
         raise TypeError("simulate() needs a ct.InterconnectedSystem (from ct.interconnect "
                         f"or ivdrem.diagrams), got {type(diagram).__name__}")
+    diagram = continuous_diagram(diagram)       # discrete-time blocks: sampled
     check_solver_settings(method, h, rtol, atol, h_max, x_limit, max_steps)
     t0, t_end, T = _time_span(timepts, t_end)
     out_t, dt_grid = _output_grid(t0, t_end, T, t_eval, dt_out)
@@ -970,8 +1012,15 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
     if progress is None:
         progress = sys.stderr.isatty() and not os.environ.get("CI")
     bar, update = _progress_bar(progress, t0, t_end, desc or diagram.name)
+    failure = None
     try:
         n = sim.advance(t_end, out_t=out_t, out_y=out_y, out_x=out_x, progress=update)
+    except SimulationError as e:
+        if not partial:
+            raise
+        failure, n = e, sim.recorded
+        out_t, out_y = out_t[:n], out_y[:n]
+        out_x = out_x[:n] if out_x is not None else None
     finally:
         if bar is not None:
             bar.close()
@@ -987,7 +1036,8 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
         out_t, out_y.T, out_x.T if out_x is not None else None, u_out,
         output_labels=list(diagram.output_labels), input_labels=list(diagram.input_labels),
         state_labels=list(diagram.state_labels) if out_x is not None else None,
-        sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso())
+        sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso(),
+        success=failure is None, message=None if failure is None else str(failure))
     resp.stats = sim.stats_dict()
     resp.hold_times = sim.hold_times()
     return resp

@@ -51,6 +51,13 @@ typedef int32_t (*diagram_fn)(i64 mode, double t, i64 x, i64 ue, i64 out);
  * it.  Nonzero: stop the run (the Python side keeps its exception). */
 typedef int32_t (*report_fn)(double t);
 
+/* the sample function of the sampled (discrete-time) blocks: called at every accepted step
+ * that ends on a sample time t_k = t0 + k dt of one of them (the steps land there); it
+ * applies their updates x[k] = f(t_{k-1}, x[k-1], u[k-1]) in x, then holds their outputs
+ * and inputs of t_k (ivdrem/sim/sampled.py).  Nonzero: stop the run (Python keeps the
+ * exception). */
+typedef int32_t (*sample_fn)(double t, i64 x);
+
 /* the workspace (fields in the order of WORKSPACE_LAYOUT), the parameters, the exit */
 typedef struct {
     double *hist_t; double *hist_v; double *hist_d; i64 *hist_meta; i64 nd;
@@ -66,6 +73,8 @@ typedef struct {
     i64 *lapack; uint8_t *lapack_chars; int32_t *lapack_ints; i64 nlapack_ints;
     diagram_fn callback;     /* NULL: the diagram is the tables (compiled engine) */
     report_fn report;        /* NULL: no progress report */
+    sample_fn sample;        /* NULL: no sampled block */
+    double *sample_dt; i64 nsd;
     double *P;
     jmp_buf exit;
 } Ctx;
@@ -118,6 +127,10 @@ static void bind_ctx(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
     c->callback = (diagram_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[0];
     c->report = shape[2 * FIELD_CALLBACKS] > 1 ?
         (report_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[1] : NULL;
+    c->sample = shape[2 * FIELD_CALLBACKS] > 2 ?
+        (sample_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[2] : NULL;
+    c->sample_dt = F_PTR(double, FIELD_SAMPLE_DT);
+    c->nsd = c->sample ? shape[2 * FIELD_SAMPLE_DT] : 0;
     c->P = P;
 #undef F_PTR
 }
@@ -958,6 +971,19 @@ static double next_grid(double t, double t0, double dt) {
     return tg;
 }
 
+/* the first sample time of the sampled blocks after t (inf without one) */
+static double next_sample(Ctx *c, double t, double t0) {
+    double tn = INFINITY;
+    for (i64 k = 0; k < c->nsd; k++) tn = pmin(tn, next_grid(t, t0, c->sample_dt[k]));
+    return tn;
+}
+
+static int sample_due(Ctx *c, double t, double t0) {
+    for (i64 k = 0; k < c->nsd; k++)
+        if (on_grid(t, t0, c->sample_dt[k])) return 1;
+    return 0;
+}
+
 static double probe_holds(Ctx *c, i64 mid, double t, double t1, const double *x,
                           const double *xn, const double *f0, const double *f1, const double *K,
                           i64 n, double *xg, i64 *stats, double t0, double *D, int *ready) {
@@ -1027,6 +1053,7 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
             t_target = t_stop;
             if (!dense_out && io[0] < io[1] && out_t[io[0]] < t_target) t_target = out_t[io[0]];
             if (t_cut > t && t_cut < t_target) t_target = t_cut;
+            if (c->nsd > 0) t_target = pmin(t_target, next_sample(c, t, t0));
             if (t + h >= t_target - 1e-12 * pmax(1.0, fabs(t))) {
                 h_use = t_target - t;
                 landing = 1;
@@ -1188,15 +1215,20 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
             tf[F_GROW_T] = t;
             tf[F_GROW_N] = nrm;
         }
+        int sampled = c->nsd > 0 && sample_due(c, t, t0);
+        if (sampled && c->sample(t, (i64)(intptr_t)x) != 0) {
+            tf[F_H] = h;
+            return STOPPED;
+        }
         if (nmh > 0) set_hold_modes(c, t_prev, t, t0, !adaptive);
         int st;
-        if (swept) st = diagram_eval(c, AFTER_STEP, t, x, x);
+        if (swept || sampled) st = diagram_eval(c, AFTER_STEP, t, x, x);
         else st = diagram_eval(c, AFTER_STEP_EVALUATED, t, x, x);
         if (st == HISTORY_FULL) {
             tf[F_H] = h;
             return HISTORY_FULL;
         }
-        if (st == HOLD_UPDATED) {
+        if (st == HOLD_UPDATED || sampled) {
             diagram_eval(c, RHS, t, x, ROW(K, 0));
             stats[S_RHS] += 1;
         }

@@ -1,0 +1,111 @@
+"""pytest plugin for running python-control's own test files (tests/test_pycontrol.py).
+
+Loaded with ``-p pycontrol_plugin`` in a subprocess whose ``IVDREM_PYCONTROL_ENGINE`` is
+
+* ``none``: python-control's own ``input_output_response``, only counted;
+* ``compiled`` / ``reference``: ivdrem's drop-in on that engine, installed for the whole
+  session with :func:`ivdrem.pycontrol.replaced` before the test modules are imported (so
+  ``from control import input_output_response`` in a test module gets it too).
+
+Per test it writes to ``IVDREM_PYCONTROL_REPORT`` (JSON): the outcome, the number of calls
+that reached the simulator and, on an ivdrem engine, for every call python-control's own
+response to the same arguments: the largest difference of the outputs and states scaled by
+the solver tolerances (|ivdrem - python-control| / (atol + rtol |python-control|), rtol and
+atol those the call asked for, scipy's defaults otherwise).
+"""
+from __future__ import annotations
+
+import json
+import os
+import warnings
+
+import numpy as np
+import pytest
+
+# imported now, before pytest puts site-packages first on sys.path for python-control's
+# test package (an editable ivdrem would then resolve to another checkout)
+import ivdrem.pycontrol as pc
+
+ENGINE = os.environ.get("IVDREM_PYCONTROL_ENGINE", "none")
+REPORT = os.environ.get("IVDREM_PYCONTROL_REPORT")
+
+_current = {"id": None}
+_records = {}
+_patch = None
+
+
+def _tolerances(kwargs):
+    opts = dict(kwargs.get("solve_ivp_kwargs") or {})
+    return float(opts.get("rtol", 1e-3)), float(np.max(opts.get("atol", 1e-6)))
+
+
+def _scaled_difference(mine, theirs, rtol, atol):
+    worst = 0.0
+    for a, b in ((mine.y, theirs.y), (mine.x, theirs.x)):
+        if a is None or b is None or np.shape(a) != np.shape(b) or np.size(a) == 0:
+            continue
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        ok = np.isfinite(a) & np.isfinite(b)
+        if not ok.any():
+            continue
+        # the scale of each signal: its largest magnitude over the run (a signal crossing
+        # zero has no relative error there)
+        scale = np.max(np.abs(b), axis=-1, keepdims=True) if b.ndim > 1 else np.max(np.abs(b))
+        d = np.abs(a - b) / (atol + rtol * scale)
+        worst = max(worst, float(np.max(d[ok])))
+    return worst
+
+
+def _counted(simulator, original):
+    def input_output_response(*args, **kwargs):
+        rec = _records.setdefault(_current["id"], {"calls": 0, "diff": []})
+        rec["calls"] += 1
+        resp = simulator(*args, **kwargs)
+        if original is not None and not isinstance(args[0] if args else None, (list, tuple)):
+            rtol, atol = _tolerances(kwargs)
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    theirs = original(*args, **kwargs)
+                if getattr(resp, "success", True) and getattr(theirs, "success", True):
+                    rec["diff"].append(_scaled_difference(resp, theirs, rtol, atol))
+            except Exception:       # noqa: BLE001 - python-control's own failure: no comparison
+                pass
+        return resp
+    input_output_response.__doc__ = simulator.__doc__
+    return input_output_response
+
+
+def pytest_configure(config):
+    global _patch
+    original = pc.PYTHON_CONTROL_SIMULATOR
+    if ENGINE == "none":
+        fn = _counted(original, None)
+    else:
+        fn = _counted(pc.drop_in(engine=ENGINE), original)
+    _patch = pc.replaced(fn)
+    _patch.__enter__()
+
+
+def pytest_unconfigure(config):
+    if _patch is not None:
+        _patch.__exit__(None, None, None)
+    if REPORT:
+        with open(REPORT, "w") as f:
+            json.dump(_records, f)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    _current["id"] = item.nodeid
+    yield
+    _current["id"] = None
+
+
+def pytest_runtest_logreport(report):
+    rec = _records.setdefault(report.nodeid, {"calls": 0, "diff": []})
+    if report.when == "call" or report.outcome != "passed":
+        if rec.get("outcome") in (None, "passed"):
+            rec["outcome"] = report.outcome
+            if report.outcome == "failed":
+                rec["error"] = str(report.longrepr)[-1500:]
