@@ -25,11 +25,12 @@ import warnings
 
 import numpy as np
 import control as ct
-from control.config import _process_kwargs, _process_param
-from control.timeresp import TimeResponseData, TimeResponseList, _timeresp_aliases
+from control.timeresp import TimeResponseData, TimeResponseList
 
 from .sim.errors import StiffnessWarning
 from .sim.foreign import PythonBlockNotice
+from .sim._control import (PrivateDiagram, evaluate_output, process_kwargs as _process_kwargs,
+                           process_param as _process_param, timeresp_aliases as _timeresp_aliases)
 from .sim.simulator import simulate, interpolate_inputs, _input_table
 
 __all__ = ["input_output_response", "drop_in", "installed", "replaced", "flatten",
@@ -293,9 +294,9 @@ def _sized(sys, T, U, X0, params):
         if out.outfcn is None:
             out.set_outputs(out.nstates)
         else:
-            out._update_params(params)
             x0 = np.zeros(out.nstates)
-            out.set_outputs(int(np.size(out._out(T[0], x0, np.zeros(out.ninputs)))))
+            out.set_outputs(int(np.size(evaluate_output(out, T[0], x0, np.zeros(out.ninputs),
+                                                        params))))
     return out
 
 
@@ -333,13 +334,13 @@ def _static_response(diagram, T, U, t_eval, params, labels):
     ``simulate`` interpolates them."""
     resp_t = np.asarray(T if t_eval is None else t_eval, dtype=float)
     # simulate's input conventions, checked and interpolated at the output times
-    diagram._update_params(params)
-    values, times = _input_table(diagram, U, np.asarray(T, float))
+    private = PrivateDiagram(diagram, params)
+    values, times = _input_table(private.diagram, U, np.asarray(T, float))
     if times is None:
         u = np.repeat(values.reshape(-1, 1), resp_t.size, axis=1)
     else:
         u = interpolate_inputs(times, values, resp_t)
-    y = np.column_stack([diagram._out(t, np.zeros(0), u[:, i])
+    y = np.column_stack([private.out(t, np.zeros(0), u[:, i])
                          for i, t in enumerate(resp_t)]) if resp_t.size else \
         np.zeros((diagram.noutputs, 0))
     return TimeResponseData(resp_t, y, None, u, params=params, **labels)

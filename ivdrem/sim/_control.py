@@ -17,6 +17,12 @@ import copy
 import numpy as np
 import control as ct
 
+# python-control's keyword handling, so that the drop-in (ivdrem.pycontrol) refuses and
+# renames arguments with python-control's own messages
+from control.config import _process_kwargs as process_kwargs
+from control.config import _process_param as process_param
+from control.timeresp import _timeresp_aliases as timeresp_aliases
+
 #: the python-control release this file is written against (pyproject: >=0.10.1,<0.11)
 SUPPORTED_CONTROL = ("0.10.1", "0.10.2")
 #: the names of python-control's per-block evaluation frames, for finding the block that
@@ -84,6 +90,14 @@ class PrivateDiagram:
                 found = (index[id(me)], frame.f_locals.get("t"))
             tb = tb.tb_next
         return found
+
+
+def evaluate_output(system, t, x, u, params=None):
+    """y = h(t, x, u) of one python-control system, evaluated on a copy of it with `params`
+    merged in python-control's order (the caller's system is not written into)."""
+    private = copy.copy(system)
+    private._update_params(params or {})
+    return np.asarray(private._out(t, x, u), dtype=float)
 
 
 def control_version_supported():

@@ -574,8 +574,8 @@ class Simulator:
     def _block_inputs(self, t, x):
         """Every block's inputs at (t, x), by the run's engine (for the sampled blocks)."""
         if self.engine_name == "reference":
-            return np.asarray(self.plan.diagram._compute_static_io(
-                t, x, self._external_inputs(t))[0], dtype=float)
+            return np.asarray(self.engine.control.block_inputs(
+                t, x, self._external_inputs(t)), dtype=float)
         self.engine.rhs(t, x, self.W)       # fills every block input (a record only some)
         return self.W.us.copy()
 
