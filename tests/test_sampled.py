@@ -238,3 +238,26 @@ def test_mixed_loop_equals_its_zoh_discretization(engine):
     r = _quiet(simulate, mixed, T, np.sin(T), engine=engine, rtol=1e-11, atol=1e-13)
     ref = ct.input_output_response(discrete, T, np.sin(T))
     assert np.max(np.abs(r.outputs - ref.outputs)) <= 1e-9
+
+
+def test_direct_chain_through_a_continuous_gain():
+    """Sampled A (direct) -> continuous static gain -> sampled B (direct): B's input at t_k
+    reads A's new output through the gain, as python-control's discrete loop (the gain a
+    static dt = h system there) computes it."""
+    h = 0.1
+    f = lambda t, x, u, p: 0.5 * x + u       # noqa: E731
+    g = lambda t, x, u, p: x + 2.0 * u       # noqa: E731
+
+    def blocks(gain_dt):
+        a = ct.nlsys(f, g, inputs=["w"], outputs=["a"], states=["xa"], dt=h, name="A")
+        b = ct.nlsys(f, g, inputs=["c"], outputs=["b"], states=["xb"], dt=h, name="B")
+        k = ct.ss([], [], [], [[-3.0]], inputs="a", outputs="c", name="K", dt=gain_dt)
+        return a, k, b
+    a, k, b = blocks(0)
+    mixed = ct.interconnect([sampled(a), k, sampled(b)], inputs=["w"], outputs=["b", "c"])
+    discrete = ct.interconnect(list(blocks(h)), inputs=["w"], outputs=["b", "c"])
+    T = np.arange(0, 1.5 + 1e-9, h)
+    ref = ct.input_output_response(discrete, T, np.cos(T), [1.0, -0.5])
+    for engine in ENGINES:
+        r = _quiet(simulate, mixed, T, np.cos(T), [1.0, -0.5], engine=engine)
+        assert np.max(np.abs(r.outputs - ref.outputs)) <= 1e-12, engine

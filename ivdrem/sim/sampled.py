@@ -153,6 +153,26 @@ class Sampling:
         self.last = [None] * len(self.blocks)       # the block's last sample time
         self.periods = np.array(sorted({i.dt for i in self.info}), dtype=float)
         self.inputs_at = None     # f(t, x) -> every block's inputs, set by the simulator
+        # the blocks whose inputs a sampled block's outputs reach at the same instant
+        # (through continuous blocks with direct feedthrough): where the inputs must be
+        # evaluated again after its output function
+        owner = plan.output_owner()
+        in_owner = {i: b.index for b in plan.blocks for i in range(b.u.start, b.u.stop)}
+        fed = {b.index: set() for b in plan.blocks}
+        for i, sources in enumerate(plan.conn):
+            for j, _ in sources:
+                fed[int(owner[j])].add(in_owner[i])
+        sampled_idx = {b.index for b in self.blocks}
+        self.reach = []
+        for b in self.blocks:
+            seen, todo = set(), list(fed[b.index])
+            while todo:
+                k = todo.pop()
+                if k not in seen:
+                    seen.add(k)
+                    if k not in sampled_idx and len(plan.blocks[k].direct_inputs):
+                        todo += fed[k]
+            self.reach.append(seen)
 
     def __bool__(self):
         return bool(self.blocks)
@@ -205,12 +225,13 @@ class Sampling:
             if not self.direct[i]:      # y[k] from x[k] alone
                 self.y_of[i][:] = self._call(i, "output", t, x[self.blocks[i].x].copy(),
                                              self.u_of[i].copy())
-        us = self.inputs_at(t, x)
+        us, due_blocks = self.inputs_at(t, x), {self.blocks[i].index for i in due}
         for i in due:                   # in evaluation order: the inputs are final
             if self.direct[i]:
                 b = self.blocks[i]
                 self.y_of[i][:] = self._call(i, "output", t, x[b.x].copy(), us[b.u].copy())
-                us = self.inputs_at(t, x)
+                if self.reach[i] & due_blocks:
+                    us = self.inputs_at(t, x)
         for i in due:
             self.u_of[i][:] = us[self.blocks[i].u]
             self.last[i] = t
