@@ -426,8 +426,9 @@ def _mixing_table(run, diags: Mapping) -> Table | None:
                  ["mixing", "mean Δ² over [T, 2T] (reference estimate)", "gain rule",
                   "result of this run"], rows, [0.1, 0.25, 0.3, 0.35],
                  note="mean Δ² estimated from Ψ built along the reference trajectory with "
-                      "φ ≈ ζ (no loop simulated; within 0.2 decades of the calibration run "
-                      "on the 3-link arm and the UR5, docs/mixing.md); γ = 0.5/(λ_max(Γ) "
+                      "φ ≈ ζ (no loop simulated; 0.2 decades from the calibration run "
+                      "on the 3-link arm and the UR5, 1.6 on the Panda, docs/mixing.md); "
+                      "γ = 0.5/(λ_max(Γ) "
                       "mean Δ²) as gamma = \"auto\" would choose it.")
 
 
