@@ -26,6 +26,7 @@ import numpy as np
 
 from . import blocks as block_library
 from .blocks._kernels import MIXING_VARIANTS as _VARIANTS
+from .blocks.mixing import start_of_term
 
 __all__ = ["Law", "LawContext", "LAWS", "register_law", "get_law", "law_names",
            "mixed_regression_blocks", "MIXING_VARIANTS", "default_mixing", "is_paper_arm"]
@@ -112,11 +113,15 @@ def _drem_blocks(ctx: LawContext, *, iv: bool):
     """(17) and the composite term (21); one Δ_i and γ_i per channel for the "channel"
     mixing (docs/mixing.md)."""
     blocks, outputs = mixed_regression_blocks(ctx, instrument=iv)
-    if (ctx.params.get("mixing") or "paper") == "channel":
+    mixing = ctx.params.get("mixing") or "paper"
+    t_on, t_ramp = start_of_term(mixing, ctx.params["T"])
+    start = block_library.term_start(ctx.params.get("t_on", t_on),
+                                     ctx.params.get("t_ramp", t_ramp))
+    if mixing == "channel":
         term = block_library.drem_channel_term(ctx.ntheta, ctx.params["gamma"])
     else:
         term = block_library.drem_term(ctx.ntheta, ctx.params["gamma"])
-    return blocks + [term], outputs
+    return blocks + [start, term], outputs
 
 
 def _build_iv_drem(ctx):

@@ -817,8 +817,11 @@ def test_composite_terms():
     D, calY, th_hat = rng.normal(), rng.normal(size=nth), rng.normal(size=nth)
     y = np.full(nth, np.nan)
     kernel(block_library.drem_term(nth), "output")(
-        0.0, np.zeros(0), np.concatenate([[D], calY, th_hat]), y, 3.0)
+        0.0, np.zeros(0), np.concatenate([[D], calY, th_hat, [1.0]]), y, 3.0)
     assert np.allclose(y, 3.0 * D * (calY - D * th_hat), rtol=1e-14)      # eq. 21
+    kernel(block_library.drem_term(nth), "output")(
+        0.0, np.zeros(0), np.concatenate([[D], calY, th_hat, [0.25]]), y, 3.0)
+    assert np.allclose(y, 0.25 * 3.0 * D * (calY - D * th_hat), rtol=1e-14)  # w(t) (21)
     Yb, Psib = rng.normal(size=nth), rng.normal(size=(nth, nth))
     kernel(block_library.composite_learning_term(nth), "output")(
         0.0, np.zeros(0), np.concatenate([Yb, Psib.ravel(), th_hat]), y, 2.0)
@@ -1070,6 +1073,7 @@ def _library_blocks():
                 block_library.extension(n, nth), block_library.extension(n, nth, instrument=False),
                 block_library.sliding_window(m), block_library.averaging(m),
                 block_library.mixing(nth), block_library.drem_term(nth),
+                block_library.drem_channel_term(nth), block_library.term_start(20.0, 2.0),
                 block_library.composite_learning_term(nth),
                 block_library.sigma_modification_term(nth), block_library.zero_term(nth)]
     return out

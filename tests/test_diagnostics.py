@@ -248,6 +248,27 @@ def test_learning_check_names_the_cause_and_a_remedy_that_is_not_auto():
     assert ok["verdict"] == diagnostics.HOLDS and ok["note"] == ""
 
 
+def test_a_bias_floor_comparable_to_the_initial_error_is_not_learning():
+    """The UR5 after 20 s (docs/mixing.md): ‖θ̃‖ 5.78 → 5.23 with a bias floor of 4.92,
+    below ‖θ̃(0)‖ but 85 % of it: θ̂ can at best settle near θ + Ψ⁻¹W, so LEARN fails and
+    says why; a floor well below half of ‖θ̃(0)‖ with θ̃ halved holds; a run with Δ whose
+    θ̃ shrinks by less than half "has not learned (yet)"."""
+    t = np.linspace(0.0, 20.0, 2001)
+    err = 5.78 - (5.78 - 5.23) * t / 20.0
+    c = diagnostics.check_learning(t, err, 20.0, calW_over_Delta=4.92 + 0 * t, mixing="eigen")
+    assert c["verdict"] == diagnostics.FAILS
+    assert "85% of ‖θ̃(0)‖ = 5.78, comparable to the initial error" in c["note"]
+    assert c["measured"]["bias_floor_share_of_theta_err_0"] == pytest.approx(4.92 / 5.78)
+    c = diagnostics.check_learning(t, err, 20.0, calW_over_Delta=0.3 + 0 * t, mixing="eigen")
+    assert c["verdict"] == diagnostics.FAILS and "has not learned (yet)" in c["note"]
+    assert "0.90 of its start" in c["note"]
+    ok = diagnostics.check_learning(t, 5.78 / (1.0 + t), 20.0, calW_over_Delta=0.3 + 0 * t,
+                                    mixing="eigen")
+    assert ok["verdict"] == diagnostics.HOLDS and ok["note"] == ""
+    # a law without Δ is judged by growth alone, as before
+    assert diagnostics.check_learning(t, err, 20.0)["verdict"] == diagnostics.HOLDS
+
+
 def test_inactive_term_under_auto_does_not_advise_auto():
     t = np.linspace(0, 120, 12_001)
     delta = np.where(t > 20, 2.5e-12, 0.0)

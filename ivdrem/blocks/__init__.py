@@ -18,13 +18,13 @@ from .sliding_window import sliding_window, transport_delay, windowed_integral
 from .averaging import averaging
 from .mixing import mixing
 from .max_hold import max_hold
-from .composite_terms import (drem_term, drem_channel_term, composite_learning_term, sigma_modification_term,
+from .composite_terms import (drem_term, drem_channel_term, term_start, composite_learning_term, sigma_modification_term,
                               zero_term)
 
 __all__ = ["BlockSpec", "make_block", "ParameterError", "plant", "trajectory", "disturbance",
            "mu_schedule", "tracking_error", "torque_observer", "control_law", "adaptation_law",
            "regression_filter", "instrument", "extension", "sliding_window", "transport_delay",
-           "windowed_integral", "averaging", "mixing", "max_hold", "drem_term", "drem_channel_term",
+           "windowed_integral", "averaging", "mixing", "max_hold", "drem_term", "drem_channel_term", "term_start",
            "composite_learning_term", "sigma_modification_term", "zero_term"]
 
 # The FMU plant lives in ivdrem.fmu (it needs fmpy); ivdrem.blocks.fmu_plant is that

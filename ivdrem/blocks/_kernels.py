@@ -176,6 +176,19 @@ def spd_solve(A, B):
             B[i, c] = s / L[i, i]
 
 
+# ------------------------------------------------------------------ start of the composite term
+@njit(cache=True)
+def start_weight(t, t_on, t_ramp):
+    """w(t) = 0 for t <= t_on, 1 for t >= t_on + t_ramp, the C1 ramp 3x^2 - 2x^3
+    (x = (t - t_on)/t_ramp) between; exactly 1 when t_ramp <= 0 and t >= t_on."""
+    if t >= t_on + t_ramp:
+        return 1.0
+    if t <= t_on:
+        return 0.0
+    x = (t - t_on) / t_ramp
+    return x * x * (3.0 - 2.0 * x)
+
+
 # ------------------------------------------------------------------ the mixing step (17)
 # Variants (docs/mixing.md), with s = 1 + ||Psi||_F, P = Psi / s (singular values <= 1):
 #   0 "paper"    Delta = det P,                      calY = adj(P) Y / s           (17), E4

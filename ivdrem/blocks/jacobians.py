@@ -69,14 +69,17 @@ def adaptation_law_jacobian(t, x, u, jac, Gamma):
 
 
 def drem_term_jacobian(t, x, u, jac, gamma):
-    # inputs   u = [Delta, calY (nθ), theta_hat (nθ)]
-    # output   theta_c_i = gamma Delta (calY_i - Delta theta_hat_i)                  (eq. 21)
+    # inputs   u = [Delta, calY (nθ), theta_hat (nθ), w]
+    # output   theta_c_i = w gamma Delta (calY_i - Delta theta_hat_i)                (eq. 21)
     nth = jac.shape[0]                     # rows: the nθ outputs (no states)
+    w = u[1 + 2 * nth]
+    g = gamma * w
     D = u[0]
     for i in range(nth):
-        jac[i, 0] = gamma * (u[1 + i] - 2.0 * D * u[1 + nth + i])
-        jac[i, 1 + i] = gamma * D
-        jac[i, 1 + nth + i] = -gamma * D * D
+        jac[i, 0] = g * (u[1 + i] - 2.0 * D * u[1 + nth + i])
+        jac[i, 1 + i] = g * D
+        jac[i, 1 + nth + i] = -g * D * D
+        jac[i, 1 + 2 * nth] = gamma * D * (u[1 + i] - D * u[1 + nth + i])
 
 
 def composite_learning_term_jacobian(t, x, u, jac, gamma):

@@ -17,12 +17,25 @@ from .jacobians import mixing_jacobian
 from ._core import BlockSpec, make_block, ParameterError
 from ._kernels import mixing_values, MIXING_VARIANTS
 
-__all__ = ["mixing", "MIXING_VARIANTS", "DEFAULT_F_REL", "DEFAULT_GUARD"]
+__all__ = ["mixing", "MIXING_VARIANTS", "DEFAULT_F_REL", "DEFAULT_GUARD", "start_of_term",
+           "START_RAMP_REL"]
 
 #: f0 of "eigen" relative to ||Psi||_F (f0 = 1e-6 lambda_max in the source, docs/mixing.md)
 DEFAULT_F_REL = 1e-6
 #: guard of "channel": c_i = sqrt(C_ii^2 + guard^2 ||C_i,:||^2)
 DEFAULT_GUARD = 1e-3
+#: ramp of the composite term's start relative to the window T (scale-free variants)
+START_RAMP_REL = 0.1
+
+
+def start_of_term(variant, T):
+    """(t_on, t_ramp) of the composite term (21) for a mixing variant (docs/mixing.md):
+    the paper's mixing starts at t = 0 (its Delta grows with Psi, so its weight does), the
+    scale-free variants at t = T, when the window (15a) is full (their Delta is about 1 as
+    soon as Psi has full rank, while the bias Psi^-1 W of (17) is still large)."""
+    if variant == "paper":
+        return 0.0, 0.0
+    return float(T), START_RAMP_REL * float(T)
 
 
 def mixing_output(t, x, u, y, ntheta, variant, f_rel, guard):
