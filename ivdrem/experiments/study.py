@@ -497,7 +497,7 @@ def add_study_arguments(parser):
                         help="continue a study in DIR: skip the runs already finished there")
     parser.add_argument("--no-report", action="store_true", dest="no_report",
                         help="write the tables only, not study.html / study.pdf")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar, no notes on long preparation")
     return parser
 
 
