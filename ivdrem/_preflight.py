@@ -14,7 +14,7 @@ import math
 from ._paths import check_writable_dir
 
 __all__ = ["PreflightError", "add_run_options", "solver_methods", "check_method",
-           "check_runs", "check_fmu_check_t_end", "check_cache_dir", "horizon_note",
+           "check_runs", "check_inertia", "check_law_cost", "pricing_diagram", "check_fmu_check_t_end", "check_cache_dir", "horizon_note",
            "timing_text", "CONCLUSIONS_HORIZON", "FMU_CHECK_COMM_STEPS"]
 
 #: The horizon (s) that conclusions C1-C3 are stated for: the paper's Figures 1-4 and the
@@ -96,27 +96,23 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
     Returns {law: diagram}, built as the runs build them (``law_diagram``: a γ "auto" is
     chosen here, once, and a gain the rule refuses stops the command before any run);
     pass them to ``run_paper(..., diagrams=...)``."""
-    from .diagrams import closed_loop
     from .experiments.config import closed_loop_kwargs, model_from_config, solver_kwargs
     from .experiments.paper import law_diagram
     from .sim.guards import check_diagram_cost, check_run_time, paper_loop_steps, run_seconds
     from .sim.methods import REFERENCE_METHOD
 
     model = model_from_config(config)
+    check_inertia(config, model)
     exp = config["experiment"]
     diagrams, walls, calibrate = {}, [], []
     for law in exp["laws"]:
         solver = solver_kwargs(config, law)
-        kw = closed_loop_kwargs(config, law)
-        if kw.get("gamma") == "auto":
-            # priced before it is calibrated (the cost does not depend on γ's value)
-            d = closed_loop(law, model, **{**kw, "gamma": 1.0})
+        if closed_loop_kwargs(config, law).get("gamma") == "auto":
+            d = pricing_diagram(config, law, model)    # γ chosen after every run is priced
             calibrate.append(law)
         else:
             diagrams[law] = d = law_diagram(config, law, model=model, engine=engine)
-        check_diagram_cost(d, float(exp["t_end"]), engine=engine, dt_out=float(exp["dt_out"]),
-                           method=solver["method"], h=solver["h"], h_max=solver["h_max"],
-                           allow_long=allow_long, what=f"the {law} run")
+        check_law_cost(config, law, d, engine=engine, allow_long=allow_long)
         # the paper's 2-link loop: the measured step count and time per step
         # (ivdrem.sim.guards); another robot's loop keeps the lower bound above
         measured = paper_loop_steps(law, solver["method"], float(exp["t_end"])) \
@@ -134,17 +130,57 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
                        engine=engine, allow_long=allow_long,
                        what=f"the {len(walls)} runs")
     if fmu_check_t_end is not None:
-        kw = closed_loop_kwargs(config, "iv-drem")
-        if kw.get("gamma") == "auto":
-            kw["gamma"] = 1.0
-        d = diagrams.get("iv-drem") or closed_loop("iv-drem", model, **kw)
+        d = diagrams.get("iv-drem") or pricing_diagram(config, "iv-drem", model)
         h = min(FMU_CHECK_COMM_STEPS)   # its Python reference: fixed steps, the finest
         check_diagram_cost(d, float(fmu_check_t_end), engine=engine, method=REFERENCE_METHOD, h=h,
                            dt_out=h, return_states=False, allow_long=allow_long,
-                           what="the FMU check")
+                           what=f"the FMU check (--fmu-check-t-end {float(fmu_check_t_end):g} s)")
     for law in calibrate:     # every run priced: now γ "auto", once per law
         diagrams[law] = law_diagram(config, law, model=model, engine=engine)
     return diagrams
+
+
+def check_inertia(config, model) -> None:
+    """model.theta must give a positive definite inertia matrix M(q(0)) (Property 2 of the
+    paper: M is bounded and positive definite): a zero or negative mass parameter would
+    otherwise stop the first step with "singular inertia", blaming the plant block."""
+    import numpy as np
+    n = model.n
+    q0 = np.asarray(config["initial"]["q0"], float)
+    theta = np.asarray(config["model"]["theta"], float)
+    M = np.empty((n, n))
+    model.functions.M(q0, theta, M)
+    smallest = float(np.linalg.eigvalsh(0.5 * (M + M.T))[0]) if np.all(np.isfinite(M)) \
+        else float("nan")
+    if not smallest > 0.0:
+        raise PreflightError(
+            f"config key 'model.theta' = {np.round(theta, 6).tolist()}: the inertia matrix "
+            f"M(q) of model {model.name!r} at q(0) = {np.round(q0, 6).tolist()} is not "
+            f"positive definite (smallest eigenvalue {smallest:.3g}); the mass and inertia "
+            "parameters must be physical (positive masses and inertias)")
+
+
+def pricing_diagram(config, law, model):
+    """The closed loop of `law` as far as its cost goes: a γ "auto" is left at a
+    placeholder (the cost does not depend on γ's value), so nothing is calibrated."""
+    from .diagrams import closed_loop
+    from .experiments.config import closed_loop_kwargs
+    kw = closed_loop_kwargs(config, law)
+    if kw.get("gamma") == "auto":
+        kw["gamma"] = 1.0
+    return closed_loop(law, model, **kw)
+
+
+def check_law_cost(config, law, diagram, *, engine="compiled", allow_long=False, what=None):
+    """Refuse `law`'s run of `config` on `diagram` if its output memory or step bound is
+    above the limits of :mod:`ivdrem.sim.guards` (ValueError / CostLimitError)."""
+    from .experiments.config import solver_kwargs
+    from .sim.guards import check_diagram_cost
+    exp, solver = config["experiment"], solver_kwargs(config, law)
+    return check_diagram_cost(diagram, float(exp["t_end"]), engine=engine,
+                              dt_out=float(exp["dt_out"]), method=solver["method"],
+                              h=solver["h"], h_max=solver["h_max"], allow_long=allow_long,
+                              what=what or f"the {law} run")
 
 
 def _is_paper_robot(config) -> bool:

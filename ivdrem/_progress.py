@@ -1,15 +1,26 @@
-"""When to show a progress bar: one rule for every bar ivdrem draws.
+"""When to show a progress bar or a note on long preparation: one rule for every bar and
+note ivdrem draws.
 
 A bar is drawn only when stderr is a terminal, the environment variable ``CI`` is not set
 and the caller did not ask for quiet (``--quiet``, ``progress=False``).  A bar in a
 redirected stderr is noise in a log file; CI systems often give a pseudo-terminal.
+
+A *note* (:func:`note`, :func:`preparing`) is one line on stderr saying what a long
+preparation step is doing (generating a model's code, compiling it) and that its result is
+cached; it follows the same rule, and a command's ``--quiet`` silences it for the whole
+process (:func:`set_quiet`).
 """
 from __future__ import annotations
 
 import os
 import sys
+import time
+from contextlib import contextmanager
 
-__all__ = ["want_progress"]
+__all__ = ["want_progress", "set_quiet", "note", "preparing"]
+
+#: set by a command's --quiet: no notes for the rest of the process
+_quiet = False
 
 
 def want_progress(requested=None, stream=None) -> bool:
@@ -25,3 +36,31 @@ def want_progress(requested=None, stream=None) -> bool:
     except (AttributeError, ValueError):   # closed or replaced stream
         tty = False
     return tty and not os.environ.get("CI")
+
+
+def set_quiet(quiet: bool = True) -> None:
+    """Silence (or allow again) every note of this process (a command's ``--quiet``)."""
+    global _quiet
+    _quiet = bool(quiet)
+
+
+def note(message: str, stream=None) -> bool:
+    """Print ``ivdrem: message`` on `stream` (default stderr) if the rule allows a bar
+    there and no ``--quiet`` was given; returns whether it was printed."""
+    stream = sys.stderr if stream is None else stream
+    if _quiet or not want_progress(stream=stream):
+        return False
+    print(f"ivdrem: {message}", file=stream, flush=True)
+    return True
+
+
+@contextmanager
+def preparing(what: str, cached_in=None, stream=None):
+    """A long preparation step: a note before it (what, and where its result is cached)
+    and one after it with its wall time."""
+    where = f"; cached in {cached_in} for later runs" if cached_in is not None else ""
+    shown = note(f"{what}{where} ...", stream=stream)
+    t0 = time.perf_counter()
+    yield
+    if shown:
+        note(f"{what}: done in {time.perf_counter() - t0:.1f} s", stream=stream)

@@ -136,7 +136,7 @@ def build_parser():
     pp.add_argument("--config", default=None, metavar="FILE.toml",
                     help="experiment configuration (see examples/paper.toml)")
     pp.add_argument("--engine", choices=("compiled", "reference"), default="compiled")
-    pp.add_argument("--quiet", action="store_true", help="no progress bars")
+    pp.add_argument("--quiet", action="store_true", help="no progress bars, no notes on long preparation")
     add_run_options(pp)
     pp.set_defaults(func=_cmd_paper)
 
@@ -179,8 +179,10 @@ def main(argv=None):
 
 def _main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
+    from ._progress import set_quiet
     # sub-commands owned by ivdrem.fmu parse their own arguments
     if argv and argv[0] in ("fmu", "cosim"):
+        set_quiet("--quiet" in argv)   # no notes on long preparation either
         from .fmu import cli as fcli
         fn = fcli.main_fmu if argv[0] == "fmu" else getattr(fcli, "main_cosim", None)
         if fn is None:
@@ -188,6 +190,7 @@ def _main(argv=None):
             return 2
         return fn(argv[1:])
     args = build_parser().parse_args(argv)
+    set_quiet(getattr(args, "quiet", False))   # --quiet: no bars, no notes on preparation
     return args.func(args)
 
 

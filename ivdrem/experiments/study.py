@@ -42,7 +42,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from .._atomic import write_text_atomic, new_tempfile, fsync_file
-from .._paths import user_path
+from .._paths import OutputLocationError, check_writable_dir, user_path
+from .._progress import want_progress
 from .study_spec import RunSpec, StudyError, StudySpec, expand_study, read_study
 
 __all__ = ["run_study", "StudyError", "run_one", "results_table", "CURVE_DT",
@@ -324,6 +325,28 @@ def _connect(workers: int | None, scheduler: str | None):
     return client, cluster
 
 
+def check_study_cost(runs: list[RunSpec]) -> None:
+    """Refuse a study one of whose runs is above the cost limits of ivdrem.sim.guards
+    (output memory, step count: a worker would refuse it after the cluster started, or
+    fill its memory), naming the run.  One pricing diagram per model structure and law:
+    the cost depends on the diagram's size, not on its parameter values."""
+    from .._preflight import check_law_cost, pricing_diagram
+    from .config import model_from_config
+    diagrams = {}
+    for run in runs:
+        model_key = json.dumps({k: v for k, v in run.config["model"].items() if k != "theta"},
+                               sort_keys=True)
+        key = (run.law, model_key, json.dumps(run.config.get("iv_drem", {}).get("mixing")))
+        try:
+            if key not in diagrams:
+                diagrams[key] = pricing_diagram(run.config, run.law,
+                                                model_from_config(run.config))
+            check_law_cost(run.config, run.law, diagrams[key], what=run.label)
+        except ValueError as exc:    # CostLimitError, a bound of h_max / dt_out
+            raise StudyError(f"{exc}; ivdrem study has no --allow-long: change the "
+                             "study's values") from None
+
+
 # --------------------------------------------------------------------------- the study
 def run_study(study, out=None, *, workers: int | None = None, scheduler: str | None = None,
               resume: bool = False, progress: bool | None = None, report: bool = True,
@@ -370,6 +393,11 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     wanted = {r.hash: r for r in runs}
     todo = [h for h in dict.fromkeys(r.hash for r in runs) if h not in have]
     records = {h: rec for h, rec in have.items() if h in wanted}
+    try:   # before a cluster starts: the output directory, then what each run will cost
+        check_writable_dir(out, "study directory (--out)")
+    except OutputLocationError as exc:
+        raise StudyError(str(exc)) from None
+    check_study_cost([wanted[h] for h in todo])
 
     if todo:
         client, cluster = _connect(workers, scheduler)
@@ -379,7 +407,7 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     out.mkdir(parents=True, exist_ok=True)
     (out / _MARKER).touch()
     write_text_atomic(out / ("study.json" if spec.source == "<dict>" else "study.toml"), spec.text)
-    show = (sys.stderr.isatty() and not os.environ.get("CI")) if progress is None else bool(progress)
+    show = want_progress() if progress is None else bool(progress)
     lost: dict[str, str] = {}
     t_start = time.perf_counter()
     try:
@@ -497,7 +525,7 @@ def add_study_arguments(parser):
                         help="continue a study in DIR: skip the runs already finished there")
     parser.add_argument("--no-report", action="store_true", dest="no_report",
                         help="write the tables only, not study.html / study.pdf")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar, no notes on long preparation")
     return parser
 
 

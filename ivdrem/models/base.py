@@ -68,6 +68,38 @@ class RobotModel:
     def source(self, prefix: str = "") -> str:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def _disk_cached_source(self, prefix, generate):
+        """The source of `prefix` from the compile cache's ``models`` directory, else made by
+        `generate(prefix)` (with a note: a large model's symbolic code generation takes
+        minutes) and written there for every later model object and process.
+
+        The file is named by :attr:`key` (the model's content and code generator) and
+        ivdrem's version and starts with a line repeating both, checked on reading: a
+        changed model or a new ivdrem never reads a stale file.  Written atomically (two
+        processes filling it at once both succeed); an unwritable cache only costs the
+        regeneration next time."""
+        from .. import __version__
+        from .._atomic import write_text_atomic
+        from .._progress import preparing
+        from ..sim.cache import cache_dir
+        header = f"# ivdrem model source: key {self.key} ivdrem {__version__} prefix {prefix!r}\n"
+        path = cache_dir() / "models" / f"{self.key[:32]}-{__version__}-{prefix or '_'}.py"
+        try:
+            text = path.read_text(encoding="utf-8")
+            if text.startswith(header):
+                return text[len(header):]
+        except (OSError, UnicodeDecodeError):
+            pass
+        with preparing(f"generating the code of model {self.name} (n = {self.n}, "
+                       f"{self.ntheta} parameters)", cached_in=path.parent):
+            src = generate(prefix)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(path, header + src)
+        except OSError:
+            pass
+        return src
+
     @staticmethod
     def _check_prefix(prefix):
         prefix = str(prefix)

@@ -453,13 +453,15 @@ class EulerLagrangeModel(RobotModel):
         The fragment needs ``import math`` and ``import numpy as np`` at the top of the
         module it is placed in, and is numba-nopython compilable.
         """
-        prefix = str(prefix)
-        if prefix and not prefix.isidentifier():
-            raise ValueError(f"prefix must be a valid Python identifier prefix, got {prefix!r}")
-        if prefix not in self._source_cache:
-            self._source_cache[prefix] = "\n\n".join(
-                self._gen(name, prefix) for name in _FUNCTION_NAMES) + "\n"
+        prefix = self._check_prefix(prefix)
+        if prefix not in self._source_cache:   # sympy's printing: minutes for a large arm
+            self._source_cache[prefix] = self._disk_cached_source(prefix, self.generate_source)
         return self._source_cache[prefix]
+
+    def generate_source(self, prefix: str = "") -> str:
+        """:meth:`source` made from the symbolic model, without any cache."""
+        prefix = self._check_prefix(prefix)
+        return "\n\n".join(self._gen(name, prefix) for name in _FUNCTION_NAMES) + "\n"
 
     @cached_property
     def _numeric(self):
