@@ -178,6 +178,15 @@ def main(argv=None):
 
 
 def _main(argv=None):
+    from . import _progress
+    was_quiet = _progress._quiet
+    try:
+        return _run_command(argv)
+    finally:
+        _progress.set_quiet(was_quiet)     # a command's --quiet ends with the command
+
+
+def _run_command(argv):
     argv = sys.argv[1:] if argv is None else list(argv)
     from ._progress import set_quiet
     # sub-commands owned by ivdrem.fmu parse their own arguments
