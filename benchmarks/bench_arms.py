@@ -84,9 +84,15 @@ def resolve_model(spec):
 
 
 def _experiment(model):
+    """The planar arms' experiment, or for another arm the configuration's own (the real-arm
+    reference and disturbance designed for it, q(0) on the reference)."""
     import re
     m = re.fullmatch(r"planar-(\d+)", model.name)
-    return planar_experiment(int(m.group(1))) if m else {}
+    if m:
+        return planar_experiment(int(m.group(1)))
+    from ivdrem.experiments.config import closed_loop_kwargs, load_config
+    kw = closed_loop_kwargs(load_config(overrides={"model.name": model.name}), "iv-drem")
+    return {k: kw[k] for k in ("trajectory", "disturbance", "q0", "dq0")}
 
 
 # ----------------------------------------------------------------- reference Ψ and Δ
@@ -162,13 +168,17 @@ def faddeev_leverrier(A):
 def accuracy_rows(arms, t_end=40.0):
     """Per arm: the paper's Δ and the numerical bias ‖𝒲‖/|Δ| (Y = Ψθ, so exactly 0) of the
     signed SVD and of Faddeev-LeVerrier, at t = t_end on the reference Ψ; mpmath at 60 digits
-    as the oracle of Δ."""
+    as the oracle of Δ.  Arms with a Fourier reference (the real arms) are left out: the
+    reference Ψ here integrates sinusoids."""
     import mpmath as mp
     from ivdrem.blocks._kernels import det_adj
     rows = []
     for spec in arms:
         model = resolve_model(spec)
-        t, Psi = reference_psi(model, _experiment(model), t_end=t_end)
+        exp = _experiment(model)
+        if not isinstance(exp["trajectory"], dict):    # a real arm's Fourier reference block
+            continue
+        t, Psi = reference_psi(model, exp, t_end=t_end)
         P0 = Psi[-1]
         s = 1.0 + np.linalg.norm(P0)
         P = P0 / s

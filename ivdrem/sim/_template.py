@@ -67,7 +67,8 @@ S_STIFF_RUN = 9    # accepted steps with h*rho(J) beyond the stability bound (DO
 S_NONSTIFF = 10    # consecutive accepted steps within it (NONSTI)
 S_EXPLICIT = 11    # BS23 steps a Rodas5P run took while max-hold updates pinned its steps
 S_FRESH = 12       # 1: K[0] = f(t, x) and the signals W[6], W[7] are still those of (t, x)
-N_STATS = 13
+S_JVALID = 13      # 1: J and K[9] = df/dt are those of (t, x) (a rejected Rodas5P step's)
+N_STATS = 14
 
 # entries of the float tf vector
 F_T = 0

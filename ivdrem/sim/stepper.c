@@ -866,16 +866,22 @@ static double rodas5p_step(Ctx *c, double t, double h, const double *x, double *
                            i64 n, double *J, double *LU, i64 *piv, double rtol, double atol,
                            i64 *stats) {
     double *f0 = ROW(K, 0), *ft = ROW(K, 9), *fs = ROW(K, 10);
-    if (stats[S_FRESH] == 1) diagram_jacobian_at(c, t, x, J, n, f0);
-    else diagram_jacobian(c, t, x, J, n, fs);     /* fs: scratch until the stages */
+    /* J and df/dt depend on (t, x) only: a step retried after a rejection (same t and x,
+     * smaller h) reuses them and refactors c I - J for its own h, bit for bit the values
+     * a fresh evaluation gives */
+    if (stats[S_JVALID] != 1) {
+        if (stats[S_FRESH] == 1) diagram_jacobian_at(c, t, x, J, n, f0);
+        else diagram_jacobian(c, t, x, J, n, fs);     /* fs: scratch until the stages */
+        stats[S_JAC] += 1;
+        double dt = 1.4901161193847656e-08 * pmax(1.0, fabs(t));
+        diagram_eval(c, RHS, t + dt, x, ft);
+        for (i64 i = 0; i < n; i++) ft[i] = (ft[i] - f0[i]) / dt;
+        stats[S_RHS] += 1;
+        stats[S_JVALID] = 1;
+    }
     stats[S_FRESH] = 0;
-    stats[S_JAC] += 1;
-    double dt = 1.4901161193847656e-08 * pmax(1.0, fabs(t));
-    diagram_eval(c, RHS, t + dt, x, ft);
-    for (i64 i = 0; i < n; i++) ft[i] = (ft[i] - f0[i]) / dt;
     int st = newton_factor(c, J, n, 1.0 / (RODAS5P_GAMMA * h), LU, piv);
     stats[S_LU] += 1;
-    stats[S_RHS] += 1;
     if (st != OK) return INFINITY;
     for (int s = 0; s < 8; s++) {
         double *U = ROW(K, 1 + s);
@@ -1037,6 +1043,7 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
     diagram_eval(c, RHS, t, x, ROW(K, 0));
     stats[S_RHS] += 1;
     stats[S_FRESH] = 1;
+    stats[S_JVALID] = 0;
     double fac_max = 5.0;
     double h_acc = -1.0, err_acc = 1.0, t_cut = -1.0;
     int pinned = 0, explicit_ok = 1;
@@ -1090,6 +1097,7 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
         stats[S_FRESH] = 0;
         int dense_ready = 0;      /* D is not this step's yet */
         if (m != mid && !(err <= 1.0)) {
+            stats[S_JVALID] = 0;
             explicit_ok = 0;
             stats[S_REJECTED] += 1;
             continue;
@@ -1110,8 +1118,9 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
             h = h_use * fac;
             fac_max = 1.0;
             stats[S_REJECTED] += 1;
-            continue;
+            continue;           /* t, x unchanged: J stays valid for the retry */
         }
+        stats[S_JVALID] = 0;    /* the step is taken, or cut at a max-hold update */
         double t1;
         if (adaptive) t1 = landing ? t_target : t + h_use;
         else t1 = t0 + (double)(stats[S_STEPS] + 1) * h;
