@@ -24,6 +24,7 @@ import sys as _sys
 import warnings
 
 import numpy as np
+from scipy.linalg import block_diag
 import control as ct
 from control.timeresp import TimeResponseData, TimeResponseList
 
@@ -115,7 +116,7 @@ def _flat_maps(system):
         return [leaf], np.zeros((p, q)), np.eye(p), np.eye(q), np.zeros((q, p))
     parts = [_flat_maps(s) for s in system.syslist]
     leaves = [leaf for part in parts for leaf in part[0]]
-    Cb, Mb, OYb, OUb = (_block_diag([part[k] for part in parts]) for k in range(1, 5))
+    Cb, Mb, OYb, OUb = (block_diag(*[part[k] for part in parts]) for k in range(1, 5))
     Cd, Md = np.asarray(system.connect_map, float), np.asarray(system.input_map, float)
     Od = np.asarray(system.output_map, float)
     nys = Cd.shape[1]
@@ -140,17 +141,6 @@ def _flat_maps(system):
         Mp = np.linalg.pinv(Mb)
         OY, OU = OY - Odu @ Mp @ Cb, OU + Odu @ Mp
     return leaves, C, M, OY, OU
-
-
-def _block_diag(mats):
-    rows = sum(m.shape[0] for m in mats)
-    cols = sum(m.shape[1] for m in mats)
-    out = np.zeros((rows, cols))
-    i = j = 0
-    for m in mats:
-        out[i:i + m.shape[0], j:j + m.shape[1]] = m
-        i, j = i + m.shape[0], j + m.shape[1]
-    return out
 
 
 def _merged_params(system):
