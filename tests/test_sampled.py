@@ -73,6 +73,33 @@ def test_updates_land_exactly_on_the_sample_grid(method):
     assert np.allclose(r.outputs[0], h * h * kk * (kk - 1) / 2, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("engine", ENGINES)
+def test_two_rates_each_block_updates_on_its_own_grid(engine):
+    # counters at dt = 0.1 and 0.25 in one continuous diagram: each is updated only where
+    # its own grid falls (the stepper marks the due periods; 0.5 is on both grids)
+    calls = {"fast": [], "slow": []}
+
+    def counter(name):
+        def update(t, x, u, p):
+            calls[name].append(t)
+            return x + 1.0
+        return ct.nlsys(update, lambda t, x, u, p: x, inputs=["w"], outputs=["n_" + name],
+                        states=1, dt={"fast": 0.1, "slow": 0.25}[name], name=name)
+
+    src = ct.nlsys(lambda t, x, u, p: [1.0], lambda t, x, u, p: x, inputs=[], outputs=["w"],
+                   states=1, name="src")
+    d = ct.interconnect([src, sampled(counter("fast")), sampled(counter("slow"))],
+                        inputs=[], outputs=["n_fast", "n_slow"])
+    r = _quiet(simulate, d, np.linspace(0.0, 1.0, 41), 0.0, [0.0, 0.0, 0.0], engine=engine)
+    # x[k] = f(t_{k-1}, x[k-1], u[k-1]): called with the previous sample time
+    assert np.allclose(calls["fast"], 0.1 * np.arange(10), rtol=0, atol=1e-12)
+    assert np.allclose(calls["slow"], 0.25 * np.arange(4), rtol=0, atol=1e-12)
+    # the held count at t is the number of the block's grid points in (0, t]
+    t = r.time
+    assert np.array_equal(r.outputs[0], np.floor(t / 0.1 + 1e-9))
+    assert np.array_equal(r.outputs[1], np.floor(t / 0.25 + 1e-9))
+
+
 # ------------------------------------------------------------------ whole discrete diagrams
 @pytest.mark.parametrize("engine", ENGINES)
 def test_discrete_diagram_equals_python_control(engine):

@@ -13,7 +13,9 @@ reference engine) and the work arrays of the diagram functions and LAPACK; ``cal
 [the address of the reference engine's diagram function (python-control through a ctypes
 callback), or 0: the diagram is the tables; the address of the report function (progress,
 pending signals; ``stepper.c``'s ``report_fn``), or 0; the address of the sampled
-blocks' sample function (``ivdrem.sim.sampled``), or 0]; ``sample_dt`` their periods.
+blocks' sample function (``ivdrem.sim.sampled``), or 0]; ``sample_dt`` their periods and
+``sample_due`` which of them fall on the current sample time (set by the stepper before it
+calls the sample function, so the grid test is written once, in C).
 """
 from __future__ import annotations
 
@@ -35,7 +37,7 @@ WORKSPACE_LAYOUT = (
     ("failure", "float64", 1), ("table_ints", "int64", 1),
     ("table_floats", "float64", 1), ("scratch", "float64", 1), ("lapack", "int64", 1),
     ("lapack_chars", "uint8", 1), ("lapack_ints", "int32", 1), ("callbacks", "int64", 1),
-    ("sample_dt", "float64", 1))
+    ("sample_dt", "float64", 1), ("sample_due", "int64", 1))
 Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
 
 

@@ -127,13 +127,6 @@ def _functions(sys, params):
             (lambda t, x, u: x)}
 
 
-def on_grid(t, t0, dt):
-    """stepper.c's on_grid, operation for operation (the stepper calls the sample function
-    where it is true for some block; this says for which)."""
-    m = math.floor((t - t0) / dt + 0.5)
-    return abs(t - (t0 + m * dt)) <= 1e-9 * max(1.0, abs(t))
-
-
 class Sampling:
     """The sampled blocks of one run: their held outputs and inputs, and the sample
     function the stepper calls at every sample time (see the module doc)."""
@@ -152,6 +145,7 @@ class Sampling:
         self.u_of = [np.zeros(b.sys.ninputs) for b in self.blocks]
         self.last = [None] * len(self.blocks)       # the block's last sample time
         self.periods = np.array(sorted({i.dt for i in self.info}), dtype=float)
+        self.period_of = [int(np.searchsorted(self.periods, i.dt)) for i in self.info]
         self.inputs_at = None     # f(t, x) -> every block's inputs, set by the simulator
         # the blocks whose inputs a sampled block's outputs reach at the same instant
         # (through continuous blocks with direct feedthrough): where the inputs must be
@@ -212,10 +206,13 @@ class Sampling:
             err.block, err.t = self.blocks[i].sys.name, t
             raise err from e
 
-    def sample(self, t, x):
+    def sample(self, t, x, due_periods=None):
         """At sample time t: update the due blocks' states in x (x[k] from x[k-1] and the
-        inputs held since t_{k-1}), then hold their outputs y[k] and inputs u[k]."""
-        due = [i for i, info in enumerate(self.info) if on_grid(t, self.t0, info.dt)]
+        inputs held since t_{k-1}), then hold their outputs y[k] and inputs u[k].
+        ``due_periods[k]`` says whether ``periods[k]`` is on the grid at t (the stepper's
+        test); None: every block is due (t0)."""
+        due = [i for i in range(len(self.blocks))
+               if due_periods is None or due_periods[self.period_of[i]]]
         for i in due:
             b = self.blocks[i]
             if self.last[i] is not None and self.last[i] < t and b.sys.nstates:

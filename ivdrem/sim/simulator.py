@@ -263,7 +263,8 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels, tables):
         lapack_chars=np.array([ord("V"), ord("L")], dtype=np.uint8),
         # dsyevd's five scalar arguments, then its integer work
         lapack_ints=np.zeros(5 + _diagram.dsyevd_liwork(nmat), dtype=np.int32),
-        callbacks=np.zeros(3, dtype=np.int64), sample_dt=plan.sampling.periods.copy())
+        callbacks=np.zeros(3, dtype=np.int64), sample_dt=plan.sampling.periods.copy(),
+        sample_due=np.zeros(plan.sampling.periods.size, dtype=np.int64))
 
 
 def _grow(W):
@@ -565,7 +566,7 @@ class Simulator:
         """The stepper's sample function (the sampled blocks' updates at a sample time);
         an exception stops the run (status STOPPED) and is raised again by _handle."""
         try:
-            self.sampling.sample(t, _view(px, self.x.size))
+            self.sampling.sample(t, _view(px, self.x.size), self.W.sample_due)
             return 0
         except BaseException as e:      # noqa: BLE001 - raised again by _handle
             self._stopped_by = e

@@ -75,6 +75,7 @@ typedef struct {
     report_fn report;        /* NULL: no progress report */
     sample_fn sample;        /* NULL: no sampled block */
     double *sample_dt; i64 nsd;
+    i64 *sample_due;         /* per period: on the grid at the current sample time */
     double *P;
     jmp_buf exit;
 } Ctx;
@@ -131,6 +132,7 @@ static void bind_ctx(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
         (sample_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[2] : NULL;
     c->sample_dt = F_PTR(double, FIELD_SAMPLE_DT);
     c->nsd = c->sample ? shape[2 * FIELD_SAMPLE_DT] : 0;
+    c->sample_due = F_PTR(i64, FIELD_SAMPLE_DUE);
     c->P = P;
 #undef F_PTR
 }
@@ -984,10 +986,15 @@ static double next_sample(Ctx *c, double t, double t0) {
     return tn;
 }
 
+/* marks in c->sample_due the periods on the grid at t (the sample function reads which
+   blocks are due there); 1 if any is */
 static int sample_due(Ctx *c, double t, double t0) {
-    for (i64 k = 0; k < c->nsd; k++)
-        if (on_grid(t, t0, c->sample_dt[k])) return 1;
-    return 0;
+    int any = 0;
+    for (i64 k = 0; k < c->nsd; k++) {
+        c->sample_due[k] = on_grid(t, t0, c->sample_dt[k]);
+        any |= (int)c->sample_due[k];
+    }
+    return any;
 }
 
 static double probe_holds(Ctx *c, i64 mid, double t, double t1, const double *x,
