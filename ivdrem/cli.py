@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -25,8 +26,16 @@ def _cmd_paper(args):
     try:   # every option and output location before the first step
         overrides.update(method_overrides(
             args.method, None if args.config is None else user_path(args.config)))
-        config = load_config(None if args.config is None else user_path(args.config),
-                             overrides or None)
+        if args.t_end is not None and not (math.isfinite(args.t_end) and args.t_end > 0):
+            raise PreflightError(f"--t-end must be a finite number of seconds > 0, "
+                                 f"got {args.t_end:g}")
+        try:
+            config = load_config(None if args.config is None else user_path(args.config),
+                                 overrides or None)
+        except ConfigError as e:     # the value came from --t-end: name the option
+            if args.t_end is not None and "experiment.t_end" in str(e):
+                raise PreflightError(f"--t-end {args.t_end:g} s: {e}") from None
+            raise
         if args.json:
             json_path = check_replaceable(user_path(args.json), "JSON file",
                                           overwrite=args.overwrite, ours=_is_paper_json)

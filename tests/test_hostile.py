@@ -27,7 +27,7 @@ ABSURD = (0.0, -1.0, 1e-300, 1e300, math.nan, math.inf, -math.inf)
 #: numeric key must refuse 0 and -1
 SIGNED_OR_ZERO = {
     "model.g", "initial.q0", "initial.dq0", "initial.theta_hat0", "controller.mu0",
-    "sigma_modification.sigma", "sigma_modification.theta_star",
+    "sigma_modification.theta_star",
     *(f"{s}.{k}" for s in ("trajectory", "disturbance")
       for k in ("amplitude", "omega", "phase", "offset")),
     # model.theta: refused by the commands' preflight (M(q0) not positive definite)
@@ -113,8 +113,9 @@ def _toml(tmp_path, text, name="c.toml"):
 
 # (argv, the message's words); every row: exit status 2 before any work
 OPTION_CASES = [
-    *[(["paper", "--t-end", v], "'experiment.t_end' must be") for v in ("0", "-1", "nan", "inf")],
-    (["paper", "--t-end", "1e-300"], "exceeds experiment.t_end = 1e-300"),
+    *[(["paper", "--t-end", v], "--t-end must be a finite number of seconds > 0")
+      for v in ("0", "-1", "nan", "inf")],
+    (["paper", "--t-end", "1e-300"], "--t-end 1e-300 s: config key 'experiment.dt_out'"),
     (["paper", "--t-end", "1e300"], "TiB of output"),
     *[(["report", "--fmu-check-t-end", v, "--out", "{tmp}/r"], "--fmu-check-t-end") for v in
       ("0", "-1", "nan", "inf", "1e-300", "1e300")],
@@ -160,6 +161,7 @@ def test_a_study_whose_runs_are_too_big_is_refused_before_the_cluster(tmp_path, 
     assert status == 2
     assert "experiment.t_end = 1e+12" in err and "TiB of output" in err
     assert "has no --allow-long" in err
+    assert "command line: --allow-long" not in err     # no remedy the command lacks
     assert not (tmp_path / "s").exists()
     # the same study without the absurd point reaches the cluster
     ok = _toml(tmp_path, '[experiment]\nlaws = ["iv-drem"]\n'
@@ -190,3 +192,57 @@ def test_an_unwritable_study_directory_is_refused_before_the_cluster(tmp_path, c
     assert status == 2
     assert "study directory (--out)" in err and words in err
     assert list(parent.iterdir()) == []
+
+
+def _schema_numeric_keys():
+    """Every numeric key of the configuration schema (a new key is swept automatically)."""
+    from ivdrem.experiments.config import schema
+    return sorted(f"{section}.{key}" for section, keys in schema().items()
+                  for key, spec in keys.items()
+                  if spec.kind in ("float", "float_or_auto", "float_or_vec", "vec"))
+
+
+#: keys where a value of 1e-300 divides by almost zero or asks for endless steps: refused
+TINY_REFUSED = {"experiment.t_end", "experiment.dt_out", "controller.mu1", "iv_drem.T",
+                "iv_drem.p", "composite_learning.T", "solver.rtol", "solver.atol", "solver.h",
+                "solver.h_max"}
+
+
+@pytest.mark.parametrize("name", _schema_numeric_keys())
+def test_absurd_magnitudes_are_refused_naming_the_key_and_its_range(name):
+    """1e300 overflows the loop's first products and 1e-300 in a divisor gives inf: both are
+    refused by the configuration, with the key and the accepted range, before any run
+    (experiment.t_end = 1e300 is refused by the cost guard, test above)."""
+    section, key = name.split(".")
+    value = load_config()[section][key]
+    cases = [1e300] if name != "experiment.t_end" else []
+    if name in TINY_REFUSED:
+        cases.append(1e-300)
+    for bad in cases:
+        with pytest.raises(ConfigError) as exc:
+            load_config(overrides={name: _with(value, bad)})
+        text = str(exc.value)      # its range, or the other key it must stay below
+        assert name in text and ("must be" in text or "exceeds" in text), text
+
+
+def test_the_paper_values_and_documented_examples_stay_inside_the_ranges():
+    """The ranges refuse absurd values only: the paper's γ = 1e10, and every example file."""
+    from pathlib import Path
+    load_config(overrides={"iv_drem.gamma": 1e10, "controller.mu1": 15.0})
+    for p in sorted(Path(__file__).parent.parent.joinpath("examples").glob("*.toml")):
+        if not p.name.startswith("study"):
+            load_config(p)
+
+
+def test_a_tiny_observer_weight_is_refused_not_run_into_numba_noise(capsys, runs_refused,
+                                                                      tmp_path):
+    cfg = _toml(tmp_path, "[controller]\nmu1 = 1e-300\n")
+    status, err = _cli(["paper", "--quiet", "--config", cfg], capsys, runs_refused)
+    assert status == 2 and "'controller.mu1' must be > 0 (at least 1e-06)" in err
+    assert "Exception ignored" not in err
+
+
+def test_an_absurd_theta_is_refused_naming_the_key(capsys, runs_refused, tmp_path):
+    cfg = _toml(tmp_path, "[model]\ntheta = [1e300, 0.28, 0.32, 0.4, 1.4]\n")
+    status, err = _cli(["paper", "--quiet", "--config", cfg], capsys, runs_refused)
+    assert status == 2 and "'model.theta" in err and "at most 1e+06" in err

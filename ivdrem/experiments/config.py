@@ -87,6 +87,30 @@ def _nonneg(x: float) -> bool:
 _POS = dict(check=_positive, requirement="> 0")
 _NONNEG = dict(check=_nonneg, requirement=">= 0")
 
+
+def _range(lo: float, hi: float, why: str = "", *, open_lo: bool = False) -> dict:
+    """A check `lo <= x <= hi` (`lo < x` with open_lo) and its text for the message: a value
+    outside it overflows the loop's products (a huge gain) or divides by almost zero (a tiny
+    observer weight) within the first steps, where the run would report a block instead of
+    the key."""
+    # a positive lower bound reads "> 0 (at least lo)", like h_max and dt_out
+    low = f"> {lo:g}" if open_lo else ">= 0" if lo == 0 else \
+        f"> 0 (at least {lo:g})" if lo > 0 else f">= {lo:g}"
+    check = (lambda x: lo < x <= hi) if open_lo else (lambda x: lo <= x <= hi)
+    return dict(check=check, requirement=f"{low} and <= {hi:g}" + (f" ({why})" if why else ""))
+
+
+def _magnitude(hi: float, why: str = "") -> dict:
+    return dict(check=lambda x: abs(x) <= hi,
+                requirement=f"at most {hi:g} in magnitude" + (f" ({why})" if why else ""))
+
+
+#: the largest gain accepted: the paper's γ is 1e10; 1e300 overflows Δ·γ at the first step
+_GAIN_MAX = 1e12
+#: frequencies of the reference and the disturbance: each period needs steps of its own,
+#: so 1e6 rad/s is already about 5e7 steps over the paper's 300 s (docs/experiment.md)
+_OMEGA_MAX = 1e4
+
 SCHEMA: dict[str, dict[str, _Key]] = {
     "experiment": {
         "t_end": _Key("float", **_POS),
@@ -96,60 +120,61 @@ SCHEMA: dict[str, dict[str, _Key]] = {
     },
     "model": {
         "name": _Key("str"),
-        "theta": _Key("vec", "ntheta"),
-        "g": _Key("float"),
+        "theta": _Key("vec", "ntheta", **_magnitude(1e6, "SI units: kg, kg m, kg m^2")),
+        "g": _Key("float", **_magnitude(1e3, "m/s^2")),
     },
     "initial": {
-        "q0": _Key("vec", "n"),
-        "dq0": _Key("vec", "n"),
-        "theta_hat0": _Key("vec", "ntheta"),
+        "q0": _Key("vec", "n", **_magnitude(1e3, "rad or m")),
+        "dq0": _Key("vec", "n", **_magnitude(1e3, "rad/s or m/s")),
+        "theta_hat0": _Key("vec", "ntheta", **_magnitude(1e6, "as model.theta")),
     },
     "controller": {
-        "alpha": _Key("float", **_POS),
-        "K": _Key("vec", "n", **_POS),
+        "alpha": _Key("float", **_range(0, 1e6, open_lo=True)),
+        "K": _Key("vec", "n", **_range(0, 1e6, open_lo=True)),
         "delta_mu": _Key("float", check=lambda x: 0 < x < 1, requirement="in (0, 1)"),
-        "Gamma": _Key("float_or_vec", "ntheta", **_POS),
-        "mu0": _Key("float", **_NONNEG),
-        "mu1": _Key("float", **_POS),
+        "Gamma": _Key("float_or_vec", "ntheta", **_range(0, 1e6, open_lo=True)),
+        "mu0": _Key("float", **_range(0, 1e6)),
+        "mu1": _Key("float", **_range(1e-6, 1e6, "the observer divides by mu(0) = mu1")),
         "observer_variant": _Key("str", choices=OBSERVER_VARIANTS),
     },
     "filters": {
-        "l": _Key("float", **_POS),
+        "l": _Key("float", **_range(0, 1e6, open_lo=True)),
     },
     "iv_drem": {
-        "T": _Key("float", **_POS),
-        "p": _Key("float", check=lambda x: x >= 1, requirement=">= 1"),
-        "F0": _Key("float", **_POS),
-        "gamma": _Key("float_or_auto", **_POS),
+        "T": _Key("float", **_range(2e-6, 1e6, "h_max follows T/2, at least 1e-06 s")),
+        "p": _Key("float", check=lambda x: 1 <= x <= 1e3, requirement=">= 1 and <= 1000"),
+        "F0": _Key("float", **_range(0, _GAIN_MAX, open_lo=True)),
+        "gamma": _Key("float_or_auto", **_range(0, _GAIN_MAX, open_lo=True)),
         "mixing": _Key("str", choices=MIXING_VARIANTS),
     },
     "composite_learning": {
-        "T": _Key("float", **_POS),
-        "gamma": _Key("float", **_POS),
-        "epsilon": _Key("float", **_POS),
+        "T": _Key("float", **_range(2e-6, 1e6, "h_max follows T/2, at least 1e-06 s")),
+        "gamma": _Key("float", **_range(0, _GAIN_MAX, open_lo=True)),
+        "epsilon": _Key("float", **_range(0, 1e6, open_lo=True)),
     },
     "sigma_modification": {
-        "sigma": _Key("float", **_NONNEG),
-        "theta_star": _Key("vec", "ntheta"),
+        "sigma": _Key("float", **_range(0, 1e6, "sigma = 0 is the law 'none'", open_lo=True)),
+        "theta_star": _Key("vec", "ntheta", **_magnitude(1e6, "as model.theta")),
     },
     "trajectory": {
-        "amplitude": _Key("vec", "n"),
-        "omega": _Key("vec", "n"),
-        "phase": _Key("vec", "n"),
-        "offset": _Key("vec", "n"),
+        "amplitude": _Key("vec", "n", **_magnitude(1e6)),
+        "omega": _Key("vec", "n", **_magnitude(_OMEGA_MAX, "rad/s")),
+        "phase": _Key("vec", "n", **_magnitude(1e3, "rad")),
+        "offset": _Key("vec", "n", **_magnitude(1e6)),
     },
     "disturbance": {
-        "amplitude": _Key("vec", "n"),
-        "omega": _Key("vec", "n"),
-        "phase": _Key("vec", "n"),
-        "offset": _Key("vec", "n"),
+        "amplitude": _Key("vec", "n", **_magnitude(1e6)),
+        "omega": _Key("vec", "n", **_magnitude(_OMEGA_MAX, "rad/s")),
+        "phase": _Key("vec", "n", **_magnitude(1e3, "rad")),
+        "offset": _Key("vec", "n", **_magnitude(1e6)),
     },
     "solver": {
         "method": _Key("str", choices=SOLVER_METHODS),
-        "rtol": _Key("float", **_POS),
-        "atol": _Key("float", **_POS),
-        "h": _Key("float", **_POS),
-        "h_max": _Key("float", check=lambda x: x >= 1e-6, requirement="> 0 (at least 1e-06 s)"),
+        "rtol": _Key("float", **_range(1e-12, 0.5, "a relative tolerance")),
+        "atol": _Key("float", **_range(1e-14, 1.0)),
+        "h": _Key("float", **_range(1e-9, 1e3, "the initial or fixed step, s")),
+        "h_max": _Key("float", check=lambda x: 1e-6 <= x <= 1e6,
+                       requirement="> 0 (at least 1e-06 s) and <= 1e+06 s"),
     },
 }
 
@@ -176,7 +201,7 @@ OPTIONAL: dict[str, dict[str, _Key]] = {
     },
     "trajectory": {
         "kind": _Key("str", choices=tuple(TRAJECTORY_KINDS)),
-        "omega_f": _Key("float", **_POS),
+        "omega_f": _Key("float", **_range(0, _OMEGA_MAX, "rad/s", open_lo=True)),
         "a": _Key("mat", "n"),
         "b": _Key("mat", "n"),
     },

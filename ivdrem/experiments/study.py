@@ -343,7 +343,11 @@ def check_study_cost(runs: list[RunSpec]) -> None:
                                                 model_from_config(run.config))
             check_law_cost(run.config, run.law, diagrams[key], what=run.label)
         except ValueError as exc:    # CostLimitError, a bound of h_max / dt_out
-            raise StudyError(f"{exc}; ivdrem study has no --allow-long: change the "
+            # the guard's remedy "--allow-long" is an option of paper and report, not of
+            # a study: name the remedy that exists
+            text = str(exc).replace(", or allow it with allow_long=True (command line: "
+                                    "--allow-long)", "")
+            raise StudyError(f"{text}; ivdrem study has no --allow-long: change the "
                              "study's values") from None
 
 
