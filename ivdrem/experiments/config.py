@@ -144,7 +144,10 @@ SCHEMA: dict[str, dict[str, _Key]] = {
         "T": _Key("float", **_range(2e-6, 1e6, "h_max follows T/2, at least 1e-06 s")),
         "p": _Key("float", check=lambda x: 1 <= x <= 1e3, requirement=">= 1 and <= 1000"),
         "F0": _Key("float", **_range(0, _GAIN_MAX, open_lo=True)),
-        "gamma": _Key("float_or_auto", **_range(0, _GAIN_MAX, open_lo=True)),
+        # the paper's mixing on a large arm needs gamma of order 1/mean(Delta^2) (UR5: 9e119,
+        # docs/mixing.md), so only the bound of gamma = "auto" applies
+        "gamma": _Key("float_or_auto", check=lambda x: 0 < x < 1e300,
+                      requirement="> 0 and below 1e300 (the bound of gamma = 'auto')"),
         "mixing": _Key("str", choices=MIXING_VARIANTS),
     },
     "composite_learning": {
