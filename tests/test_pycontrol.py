@@ -6,7 +6,7 @@ The test files ship with python-control (``control/tests``).  They run in a subp
 tests/pycontrol_plugin.py, once on python-control's own simulator and once on ivdrem's, and
 the tests are compared one by one.  ``tests/data/pycontrol_reaching.txt`` lists the tests
 that reach the simulator and pass on python-control; the default suite runs those of
-QUICK_FILES on the compiled engine; ``IVDREM_PYCONTROL_FULL=1`` runs all of them (about 5
+QUICK_FILES on the compiled engine; ``IVDREM_PYCONTROL_FULL=1`` runs all of them (about 8
 minutes per engine), on both engines, and checks the list against the whole files.
 
 Numerical agreement: every call of a test is also run on python-control, and the outputs
@@ -139,7 +139,7 @@ def test_release_is_the_supported_one():
     pytest.param("reference", marks=pytest.mark.skipif(
         not FULL, reason="both engines: IVDREM_PYCONTROL_FULL=1"))])
 def test_python_control_tests_pass_on_ivdrem(engine, tmp_path):
-    # the whole list takes about 5 minutes on one engine (python-control's optimal tests
+    # the whole list takes about 8 minutes on one engine (python-control's optimal tests
     # alone are minutes): the default suite runs the files of QUICK_FILES
     ids = [i for i in _reaching() if FULL or _file(i) in QUICK_FILES]
     # the list is python-control's own passing tests that reach the simulator
