@@ -6,7 +6,7 @@ The test files ship with python-control (``control/tests``).  They run in a subp
 tests/pycontrol_plugin.py, once on python-control's own simulator and once on ivdrem's, and
 the tests are compared one by one.  ``tests/data/pycontrol_reaching.txt`` lists the tests
 that reach the simulator and pass on python-control; the default suite runs those of
-QUICK_FILES on the compiled engine; ``IVDREM_PYCONTROL_FULL=1`` runs all of them (about 5
+QUICK_FILES on the compiled engine; ``IVDREM_PYCONTROL_FULL=1`` runs all of them (about 8
 minutes per engine), on both engines, and checks the list against the whole files.
 
 Numerical agreement: every call of a test is also run on python-control, and the outputs
@@ -19,7 +19,6 @@ import json
 import os
 import subprocess
 import sys
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +66,17 @@ DELIBERATE = {
         "in python-control's run)",
 }
 
+#: per file: (reach the simulator and pass on python-control, pass on ivdrem, deliberate
+#: differences, other failures), measured on both engines (docs/simulation.md)
+EXPECTED_TABLE = {
+    "ctrlplot_test.py": (11, 11, 0, 0), "flatsys_test.py": (5, 5, 0, 0),
+    "interconnect_test.py": (1, 1, 0, 0), "iosys_test.py": (36, 30, 6, 0),
+    "kwargs_test.py": (4, 4, 0, 0), "nlsys_test.py": (6, 6, 0, 0),
+    "optimal_test.py": (26, 26, 0, 0), "phaseplot_test.py": (13, 11, 2, 0),
+    "statefbk_test.py": (7, 7, 0, 0), "stochsys_test.py": (14, 7, 7, 0),
+    "timeplot_test.py": (33, 33, 0, 0), "timeresp_test.py": (14, 14, 0, 0),
+    "trdata_test.py": (9, 9, 0, 0)}
+
 #: the agreement bound, in units of atol + rtol |y| (see the module docstring)
 AGREEMENT = 100.0
 
@@ -104,6 +114,16 @@ def _file(node):
     return node.split("::", 1)[0]
 
 
+def _count_table(ids, passed):
+    """{file: (listed, passed, deliberate differences, other failures)} of the tests `ids`."""
+    rows = {}
+    for i in ids:
+        row = rows.setdefault(_file(i), [0, 0, 0, 0])
+        row[0] += 1
+        row[1 if i in passed else 2 if i in DELIBERATE else 3] += 1
+    return {f: tuple(rows[f]) for f in sorted(rows)}
+
+
 def _passed_and_reached(records):
     return {k for k, r in records.items() if r.get("outcome") == "passed" and r["calls"]}
 
@@ -119,7 +139,7 @@ def test_release_is_the_supported_one():
     pytest.param("reference", marks=pytest.mark.skipif(
         not FULL, reason="both engines: IVDREM_PYCONTROL_FULL=1"))])
 def test_python_control_tests_pass_on_ivdrem(engine, tmp_path):
-    # the whole list takes about 5 minutes on one engine (python-control's optimal tests
+    # the whole list takes about 8 minutes on one engine (python-control's optimal tests
     # alone are minutes): the default suite runs the files of QUICK_FILES
     ids = [i for i in _reaching() if FULL or _file(i) in QUICK_FILES]
     # the list is python-control's own passing tests that reach the simulator
@@ -127,18 +147,20 @@ def test_python_control_tests_pass_on_ivdrem(engine, tmp_path):
     base = set(ids)
     mine = _run(engine, _targets(ids), tmp_path, engine)
     ok = {k for k, r in mine.items() if r.get("outcome") == "passed"}
-    table = Counter(), Counter()
-    for i in ids:
-        table[0][_file(i)] += 1
-        table[1][_file(i)] += i in ok
-    print(f"\npython-control's tests on ivdrem ({engine}): passed / reached and passed "
-          "on python-control")
-    for f in sorted(table[0]):
-        print(f"  {f}: {table[1][f]} / {table[0][f]}")
-    print(f"  total: {len(ok & base)} / {len(base)}")
+    table = _count_table(ids, ok)
+    print(f"\npython-control's tests on ivdrem ({engine}): per file, the tests that reach "
+          "the simulator and pass on python-control, those passing here, the deliberate "
+          "differences, other failures")
+    for f, row in table.items():
+        print(f"  {f:24s} {row[0]:4d} {row[1]:4d} {row[2]:4d} {row[3]:4d}")
+    print(f"  {'total':24s} " + " ".join(f"{sum(r[k] for r in table.values()):4d}"
+                                          for k in range(4)))
     failed = {i: mine.get(i, {}).get("error", "not run") for i in ids if i not in ok}
     unexpected = {i: e for i, e in failed.items() if i not in DELIBERATE}
     assert not unexpected, "\n\n".join(f"{i}:\n{e}" for i, e in unexpected.items())
+    # the table of docs/simulation.md is this run's (the same on both engines)
+    assert table == {f: row for f, row in EXPECTED_TABLE.items()
+                     if FULL or f in QUICK_FILES}, table
     if FULL:
         assert len(ok & base) >= 150
     # numerical agreement with python-control, call by call
