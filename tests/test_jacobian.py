@@ -259,6 +259,83 @@ def test_unprobeable_block_is_dense_within_its_declaration():
         simulate(diagram, 0.1)
 
 
+def _user_lag_update(t, x, u, params):
+    return -x + u
+
+
+def _user_lag_output(t, x, u, params):
+    return x
+
+
+def test_pattern_cache_returns_the_probe_and_keys_on_what_the_probe_reads():
+    """The in-process pattern cache gives what a fresh probe gives, a copy each time, and
+    probes again for another parameter value or a block ivdrem did not write."""
+    import control as ct
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import two_link
+    from ivdrem.sim import jacobian as jac
+    from ivdrem.sim.foreign import adapt_block
+    from ivdrem.sim.plan import DiagramPlan
+    from ivdrem.blocks._core import kernel_args
+    plan = DiagramPlan.from_diagram(closed_loop("iv-drem", two_link()))
+    calls = []
+    real = jac.block_pattern
+
+    def counted(*a, **k):
+        calls.append(a[0])
+        return real(*a, **k)
+
+    jac._PATTERNS.clear()
+    jac.block_pattern, saved = counted, jac.block_pattern
+    try:
+        for b in plan.blocks:
+            if b.spec.kind != "ode" or b.sys.nstates + b.sys.ninputs == 0:
+                continue
+            args = kernel_args(b.spec, plan.block_params(b))
+            sizes = (b.sys.nstates, b.sys.ninputs, b.sys.noutputs)
+            first = jac.cached_block_pattern(b.spec, args, *sizes, seed=3)
+            n = len(calls)
+            again = jac.cached_block_pattern(b.spec, args, *sizes, seed=3)
+            assert len(calls) == n                       # no second probe
+            assert np.array_equal(again, first) and again is not first
+            assert np.array_equal(again, real(b.spec, args, *sizes, seed=3))
+            again[...] = ~again                           # a copy: the cache is untouched
+            assert np.array_equal(jac.cached_block_pattern(b.spec, args, *sizes, seed=3),
+                                  first)
+            if any(np.asarray(a).dtype.kind == "f" for a in args):  # another value: probed again
+                other = [np.asarray(a) * 1.5 + 0.25
+                         if np.asarray(a).dtype.kind == "f" else a for a in args]
+                jac.cached_block_pattern(b.spec, other, *sizes, seed=3)
+                assert len(calls) == n + 1
+        # a user's nlsys is probed every time
+        user = ct.nlsys(_user_lag_update, _user_lag_output, inputs=1, states=1, outputs=1,
+                        name="user")
+        spec = adapt_block(user, {})
+        uargs = kernel_args(spec, {})
+        n = len(calls)
+        for _ in range(2):
+            assert jac.cached_block_pattern(spec, uargs, 1, 1, 1) is not None
+        assert len(calls) == n + 2
+    finally:
+        jac.block_pattern = saved
+
+
+def test_a_second_run_of_a_diagram_is_bit_for_bit_the_first():
+    """The second simulate() of a diagram reuses the probed patterns: same steps, same
+    numbers."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import two_link
+    from ivdrem.sim import jacobian as jac, simulate
+    jac._PATTERNS.clear()
+    d = closed_loop("iv-drem", two_link())
+    first = simulate(d, 3.0, progress=False)
+    assert jac._PATTERNS
+    second = simulate(d, 3.0, progress=False)
+    assert first.stats["steps"] == second.stats["steps"]
+    assert np.array_equal(first.outputs, second.outputs)
+    assert np.array_equal(first.states, second.states)
+
+
 # ------------------------------------------------- the blocks' own analytic Jacobians
 def _flat(spec, role):
     """The block's kernel as f(t, x, u, out, *params) of flat vectors (named-port kernels

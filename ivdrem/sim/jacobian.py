@@ -41,7 +41,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from collections import OrderedDict
+
 from ..blocks._core import bind_model, kernel_args
+from .foreign import ForeignSpec
 
 __all__ = ["block_pattern", "JacobianProgram", "DeclarationError"]
 
@@ -67,6 +70,41 @@ def _random_args(spec, args, rng):
         r = np.where(a == 0.0, 1e-3 * scale * rng.uniform(0.5, 1.5, size=a.shape), r)
         out.append(float(r) if np.ndim(v) == 0 else r)
     return out
+
+
+#: block patterns probed in this process, by what the probe depends on: the probe calls the
+#: Python kernels thousands of times (2 s for planar-4, minutes for a real arm), and every
+#: simulate() of a diagram needs it again (the calibration of gamma = "auto", then the run)
+_PATTERNS: OrderedDict = OrderedDict()
+_PATTERNS_MAX = 512
+
+
+def _value_key(v):
+    a = np.asarray(v)
+    if a.dtype == object:
+        return ("repr", repr(v))
+    return (a.dtype.str, a.shape, a.tobytes())
+
+
+def cached_block_pattern(spec, args, nx, nu, ny, *, seed=0):
+    """:func:`block_pattern`, probed once per process for the same kernels, model, sizes,
+    seed and parameter values (the probe's inputs, so the pattern is the same bit for bit).
+    A block ivdrem did not write (a user's nlsys) is probed every time: its functions may
+    read state of their own that a key cannot see."""
+    if isinstance(spec, ForeignSpec):
+        return block_pattern(spec, args, nx, nu, ny, seed=seed)
+    fkey = tuple(None if f is None else (f.__module__, f.__qualname__, id(f.__code__))
+                 for f in (spec.update, spec.output))
+    key = (fkey, spec.model.key if spec.model is not None else None, nx, nu, ny, seed,
+           tuple(spec.param_names), tuple(_value_key(a) for a in args))
+    if key in _PATTERNS:
+        _PATTERNS.move_to_end(key)
+    else:
+        _PATTERNS[key] = block_pattern(spec, args, nx, nu, ny, seed=seed)
+        while len(_PATTERNS) > _PATTERNS_MAX:
+            _PATTERNS.popitem(last=False)
+    pat = _PATTERNS[key]
+    return None if pat is None else pat.copy()
 
 
 def block_pattern(spec, args, nx, nu, ny, *, seed=0, n_points=3):
@@ -187,7 +225,7 @@ class JacobianProgram:
             if nx + nu == 0:
                 continue
             args = kernel_args(spec, plan.block_params(b))
-            pat = block_pattern(spec, args, nx, nu, ny, seed=seed + b.index)
+            pat = cached_block_pattern(spec, args, nx, nu, ny, seed=seed + b.index)
             direct_local = set(int(i) - b.u.start for i in b.direct_inputs)
             if pat is None:   # not probeable: dense, outputs only on states and direct inputs
                 pat = np.ones((ny + nx, nx + nu), dtype=bool)
