@@ -237,6 +237,22 @@ def test_sparse_lu_matches_dense_solve():
                 <= 1e-12 * np.linalg.norm(ref)
 
 
+def test_symbolic_lu_is_computed_once_per_pattern_and_equals_a_fresh_one():
+    from ivdrem.sim import sparse_lu
+    rng = np.random.default_rng(5)
+    pat = rng.random((40, 40)) < 0.08
+    sparse_lu._SYMBOLIC.clear()
+    first = sparse_lu.symbolic_lu(pat)
+    assert sparse_lu.symbolic_lu(pat.copy()) is first          # same pattern: no new work
+    fresh = sparse_lu._symbolic_lu(pat)
+    for f in ("perm", "rowptr", "colidx", "diagp"):
+        assert np.array_equal(getattr(first, f), getattr(fresh, f))
+        assert not getattr(first, f).flags.writeable
+    other = pat.copy()
+    other[0, 39] = not other[0, 39]
+    assert sparse_lu.symbolic_lu(other) is not first           # another pattern: its own
+
+
 def test_unprobeable_block_is_dense_within_its_declaration():
     """A plant whose parameters make M(q) indefinite everywhere gives no finite probe: the
     block is taken as dense over its states and declared inputs, with no false

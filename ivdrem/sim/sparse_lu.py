@@ -41,6 +41,8 @@ class SymbolicLU:
         self.nnz_a = int(nnz_a)
         self.nnz_lu = len(colidx)
         self.fill = self.nnz_lu - self.nnz_a
+        for a in (self.perm, self.rowptr, self.colidx, self.diagp):
+            a.flags.writeable = False     # shared by every run of the same pattern
 
 
 def _filled(pattern, perm):
@@ -54,8 +56,26 @@ def _filled(pattern, perm):
     return B
 
 
+#: symbolic LUs of this process by their pattern: the elimination is dense boolean work
+#: (about 30 s for the UR5's loop), paid again by every simulate() of the same diagram
+_SYMBOLIC: dict = {}
+_SYMBOLIC_MAX = 64
+
+
 def symbolic_lu(pattern):
-    """The fill-reducing ordering and filled pattern of c I - J for a boolean pattern of J."""
+    """The fill-reducing ordering and filled pattern of c I - J for a boolean pattern of J
+    (computed once per process for a given pattern; SymbolicLU is read-only)."""
+    A = np.asarray(pattern, dtype=bool)
+    key = (A.shape, np.packbits(A).tobytes())
+    hit = _SYMBOLIC.get(key)
+    if hit is None:
+        if len(_SYMBOLIC) >= _SYMBOLIC_MAX:
+            _SYMBOLIC.pop(next(iter(_SYMBOLIC)))
+        hit = _SYMBOLIC[key] = _symbolic_lu(A)
+    return hit
+
+
+def _symbolic_lu(pattern):
     n = pattern.shape[0]
     A = np.asarray(pattern, dtype=bool) | np.eye(n, dtype=bool)
     nnz_a = int(A.sum())
