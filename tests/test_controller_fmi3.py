@@ -100,3 +100,11 @@ def test_fmi3_bad_calls_give_fmi3Error_and_a_message(fmus):
         s.step(0.0, 1e-3)
     finally:
         s.close()
+
+
+def test_cli_exports_the_fmi3_controller(tmp_path, capsys):
+    from fmpy import read_model_description
+    from ivdrem.fmu.cli import main_fmu as main
+    out = tmp_path / "C3.fmu"
+    assert main(["export", "--controller", "--fmi-version", "3", "-o", str(out)]) == 0
+    assert read_model_description(str(out)).fmiVersion == "3.0"

@@ -329,7 +329,8 @@ def main_export_controller(args) -> int:
                              "of --controller")
         model = get_model(args.model)
         path = export_controller_fmu(model, user_path(args.output), law=args.law, cc=args.cc,
-                                     overwrite=args.overwrite, mu_max=args.mu_max)
+                                     overwrite=args.overwrite, mu_max=args.mu_max,
+                                     fmi_version=getattr(args, "fmi_version", 2))
     except (ValueError, RuntimeError, NotImplementedError, OSError) as exc:
         print(f"ivdrem fmu export: error: {exc}", file=sys.stderr)
         return 2
