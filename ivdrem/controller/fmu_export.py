@@ -45,6 +45,10 @@ __all__ = ["export_controller_fmu", "generate_controller_fmu_sources", "TUNABLE"
 _HERE = Path(__file__).resolve().parent
 _FMI2_HEADERS = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
 SOURCE_FILES = ("fmi2_controller.c", "ivdrem_controller.c", "controller_model.c")
+_FMI3_HEADERS = ("fmi3Functions.h", "fmi3FunctionTypes.h", "fmi3PlatformTypes.h")
+#: the sources per FMI version: the wrapper differs, the library and controller_fmu.h
+#: (value references, one table for both) are the same
+_SOURCES = {2: SOURCE_FILES, 3: ("fmi3_controller.c",) + SOURCE_FILES[1:]}
 
 #: parameters a host may change between steps
 TUNABLE = ("alpha", "K", "delta_mu", "Gamma_diag", "mu0", "mu1", "mu_max", "l", "p", "F0",
@@ -140,6 +144,51 @@ def _model_description(model, V, guid, ident, law):
     return "\n".join(out)
 
 
+def _model_description3(model, V, guid, ident, law):
+    """FMI 3.0 modelDescription.xml of the same variables (value references as in FMI 2)."""
+    units = sorted({v["unit"] for v in V if v.get("unit")})
+    base = {"rad": 'rad="1"', "rad/s": 's="-1" rad="1"', "N.m": 'kg="1" m="2" s="-2"',
+            "s": 's="1"'}
+    h = next(v["start"] for v in V if v["name"] == "h")
+    out = ['<?xml version="1.0" encoding="UTF-8"?>', '<fmiModelDescription', '  fmiVersion="3.0"',
+           f'  modelName={quoteattr(f"ivdrem controller {law} {model.name}")}',
+           f'  instantiationToken="{guid}"',
+           f'  description={quoteattr(f"Sampled IV-DREM family controller (law {law}) for the robot {model.name} (n = {model.n}): observer (7), control law (9), adaptation (11); fixed step h, delay 1. Generated C.")}',
+           f'  generationTool="ivdrem {_version()}"', '  variableNamingConvention="structured">',
+           f'  <CoSimulation modelIdentifier="{ident}" canHandleVariableCommunicationStepSize="false"'
+           f' fixedInternalStepSize="{_fmt(h)}" canGetAndSetFMUState="true"'
+           ' canSerializeFMUState="true" providesDirectionalDerivatives="false"'
+           ' providesIntermediateUpdate="false" hasEventMode="false"/>',
+           '  <UnitDefinitions>']
+    out += [f'    <Unit name="{u}"><BaseUnit {base[u]}/></Unit>' for u in units]
+    out += ['  </UnitDefinitions>', '  <LogCategories>',
+            '    <Category name="logEvents" description="Initialization (debug logging)"/>',
+            '    <Category name="logStatusError" description="Errors: illegal calls, bad values (always logged)"/>',
+            '  </LogCategories>',
+            f'  <DefaultExperiment startTime="0" stopTime="10" stepSize="{_fmt(h)}"/>',
+            '  <ModelVariables>',
+            f'    <Float64 name="time" valueReference="{len(V)}" causality="independent"'
+            ' variability="continuous" unit="s" description="simulation time (VR_TIME)"/>']
+    exposed = [(vr, v) for vr, v in enumerate(V) if not v.get("hidden")]
+    for vr, v in exposed:
+        attrs = [f'name={quoteattr(v["name"])}', f'valueReference="{vr}"',
+                 f'description={quoteattr(v["description"])}', f'causality="{v["causality"]}"',
+                 f'variability="{v["variability"]}"']
+        if "initial" in v:
+            attrs.append(f'initial="{v["initial"]}"')
+        if v.get("unit"):
+            attrs.append(f'unit="{v["unit"]}"')
+        if "start" in v:
+            attrs.append(f'start="{_fmt(v["start"])}"')
+        out.append(f'    <Float64 {" ".join(attrs)}/>')
+    out += ['  </ModelVariables>', '  <ModelStructure>']
+    outs = [vr for vr, v in exposed if v["causality"] == "output"]
+    out += [f'    <Output valueReference="{vr}" dependencies=""/>' for vr in outs]
+    out += [f'    <InitialUnknown valueReference="{vr}" dependencies=""/>' for vr in outs]
+    out += ['  </ModelStructure>', '</fmiModelDescription>', '']
+    return "\n".join(out)
+
+
 def _fmu_header(model, V, guid):
     n, nth = model.n, model.ntheta
     npar = sum(s for _, s, _ in param_layout(model))
@@ -160,6 +209,7 @@ def _fmu_header(model, V, guid):
 #define VR_TAU_D_HAT {3 * n + nth}
 #define VR_DELTA {4 * n + nth}
 #define VR_PAR {4 * n + nth + 1}
+#define VR_TIME {len(V)}
 static const char *const PARAMETER_NAMES[IVC_NPAR] = {{{names}}};
 static const int PARAMETER_TUNABLE[IVC_NPAR] = {{{tun}}};
 static const int PARAMETER_EXPOSED[IVC_NPAR] = {{{exp}}};
@@ -171,10 +221,13 @@ def _identifier(model, law):
     return "ivdrem_controller_" + re.sub(r"[^0-9A-Za-z_]", "_", f"{law}_{model.name}")
 
 
-def generate_controller_fmu_sources(model, law="iv-drem", **gains) -> dict:
+def generate_controller_fmu_sources(model, law="iv-drem", *, fmi_version=2, **gains) -> dict:
     """{relative path: text} of the controller FMU but its binary.  ``gains`` are the
-    arguments of :class:`~ivdrem.controller.sampled.SampledController` (start values)."""
+    arguments of :class:`~ivdrem.controller.sampled.SampledController` (start values);
+    ``fmi_version`` 2 or 3 selects the wrapper and the modelDescription.xml."""
     from ..models import get_model
+    if fmi_version not in (2, 3):
+        raise ValueError(f"fmi_version must be 2 or 3, got {fmi_version!r}")
     model = get_model(model)
     gains = dict(gains)
     if gains.pop("delay", 1) != 1:
@@ -186,18 +239,20 @@ def generate_controller_fmu_sources(model, law="iv-drem", **gains) -> dict:
     V = _variables(model, par)
     ident = _identifier(model, law)
     mark = "@GUID@"
-    xml = _model_description(model, V, mark, ident, law)
+    xml = (_model_description if fmi_version == 2 else _model_description3)(model, V, mark,
+                                                                             ident, law)
     head = _fmu_header(model, V, mark)
-    wrapper = (_HERE / "fmi2_controller.c").read_text()
+    wname = _SOURCES[fmi_version][0]
+    wrapper = (_HERE / wname).read_text()
     digest = hashlib.sha256("\0".join([wrapper, xml, head, *lib.values()]).encode()).hexdigest()
     guid = "{" + str(uuid.uuid5(uuid.NAMESPACE_URL, "ivdrem-controller-fmu:" + digest)) + "}"
     files = {"modelDescription.xml": xml.replace(mark, guid),
              "sources/controller_fmu.h": head.replace(mark, guid),
-             "sources/fmi2_controller.c": wrapper,
+             f"sources/{wname}": wrapper,
              "documentation/index.html": _documentation(model, V, law)}
     files.update({f"sources/{k}": v for k, v in lib.items()})
-    for h in _FMI2_HEADERS:
-        files[f"sources/{h}"] = (fmi2_header_dir() / h).read_text()
+    for h in (_FMI2_HEADERS if fmi_version == 2 else _FMI3_HEADERS):
+        files[f"sources/{h}"] = (fmi2_header_dir() / h).read_text()   # fmpy's c-code folder
     return files
 
 
@@ -214,7 +269,8 @@ def _documentation(model, V, law):
             f"<th>description</th></tr>{rows}</table></body></html>\n")
 
 
-def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=False, **gains):
+def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=False, fmi_version=2,
+                          **gains):
     """Write the sampled controller of ``law`` for ``model`` as an FMI 2.0 CS FMU.
 
     Same rules as the plant FMU (:func:`ivdrem.fmu.export_fmu`): an existing file that
@@ -228,8 +284,10 @@ def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=Fals
     if law not in LAW_CODES:
         raise ValueError(f"law {law!r} has no sampled controller; choose one of "
                          f"{', '.join(LAW_CODES)}")
+    if fmi_version not in (2, 3):
+        raise ValueError(f"fmi_version must be 2 or 3, got {fmi_version!r}")
     check_replaceable(path, "FMU file", overwrite=overwrite, ours=is_ivdrem_fmu)
-    files = generate_controller_fmu_sources(model, law, **gains)
+    files = generate_controller_fmu_sources(model, law, fmi_version=fmi_version, **gains)
     ident = re.search(r'modelIdentifier="([^"]+)"', files["modelDescription.xml"]).group(1)
     cc = cc or os.environ.get("CC") or "cc"
     if shutil.which(cc) is None:
@@ -241,6 +299,9 @@ def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=Fals
             p.parent.mkdir(parents=True, exist_ok=True)
             p.write_text(text)
         plat, ext = _platform()
+        if fmi_version == 3:        # FMI 3.0 platform tuple <arch>-<os>
+            plat = {"linux64": "x86_64-linux", "linux32": "x86-linux",
+                    "darwin64": "x86_64-darwin"}[plat]
         bdir = root / "binaries" / plat
         bdir.mkdir(parents=True)
         src = root / "sources"
@@ -248,7 +309,7 @@ def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=Fals
                "-Wextra", "-I", str(src)]
         if sys.platform.startswith("linux"):
             cmd += ["-Wl,--no-undefined"]
-        cmd += [str(src / f) for f in SOURCE_FILES] + ["-o", str(bdir / (ident + ext)), "-lm"]
+        cmd += [str(src / f) for f in _SOURCES[fmi_version]] + ["-o", str(bdir / (ident + ext)), "-lm"]
         res = subprocess.run(cmd, capture_output=True, text=True)
         if res.returncode != 0:
             raise RuntimeError(f"compiling the controller FMU failed ({' '.join(cmd)}):\n"
@@ -268,7 +329,8 @@ def main_export_controller(args) -> int:
                              "of --controller")
         model = get_model(args.model)
         path = export_controller_fmu(model, user_path(args.output), law=args.law, cc=args.cc,
-                                     overwrite=args.overwrite, mu_max=args.mu_max)
+                                     overwrite=args.overwrite, mu_max=args.mu_max,
+                                     fmi_version=getattr(args, "fmi_version", 2))
     except (ValueError, RuntimeError, NotImplementedError, OSError) as exc:
         print(f"ivdrem fmu export: error: {exc}", file=sys.stderr)
         return 2

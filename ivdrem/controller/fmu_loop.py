@@ -31,14 +31,30 @@ class _Slave:
 
         def logger(env, inst, status, cat, msg):
             self.messages.append(msg.decode() if isinstance(msg, bytes) else str(msg))
-        self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=self.dir,
-                             modelIdentifier=md.coSimulation.modelIdentifier, instanceName=name)
-        self.fmu.instantiate(callbacks=None)
-        if start:
-            self.fmu.setReal([self.vr[k] for k in start], [float(v) for v in start.values()])
-        self.fmu.setupExperiment(startTime=0.0)
-        self.fmu.enterInitializationMode()
+        ident = md.coSimulation.modelIdentifier
+        if md.fmiVersion.startswith("3"):       # FMI 3.0: Float64 access, no setupExperiment
+            from fmpy.fmi3 import FMU3Slave
+            self.fmu = FMU3Slave(guid=md.guid, unzipDirectory=self.dir, modelIdentifier=ident,
+                                 instanceName=name)
+            self.fmu.instantiate(logMessage=lambda env, status, cat, msg: logger(env, None, status,
+                                                                                cat, msg))
+            self.get, self.set = self.fmu.getFloat64, self.fmu.setFloat64
+            if start:
+                self.set([self.vr[k] for k in start], [float(v) for v in start.values()])
+            self.fmu.enterInitializationMode(startTime=0.0)
+        else:
+            self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=self.dir, modelIdentifier=ident,
+                                 instanceName=name)
+            self.fmu.instantiate(callbacks=None)
+            self.get, self.set = self.fmu.getReal, self.fmu.setReal
+            if start:
+                self.set([self.vr[k] for k in start], [float(v) for v in start.values()])
+            self.fmu.setupExperiment(startTime=0.0)
+            self.fmu.enterInitializationMode()
         self.fmu.exitInitializationMode()
+
+    def step(self, t, h):
+        self.fmu.doStep(t, h)
 
     def refs(self, names):
         return [self.vr[n] for n in names]
@@ -72,8 +88,8 @@ def fmpy_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0.3 *
         rec = {k: [] for k in ("t", "q", "dq", "tau", "tau_d", "theta_hat")}
         for k in range(N + 1):
             t = k * h
-            y = np.array(plant.fmu.getReal(p_out))
-            c = np.array(ctrl.fmu.getReal(c_out))
+            y = np.array(plant.get(p_out))
+            c = np.array(ctrl.get(c_out))
             tau, th = c[:n], c[n:n + nth]
             tau_d = disturbance_at(t, disturbance)
             if k == N or k % every == 0:
@@ -85,10 +101,10 @@ def fmpy_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0.3 *
                 rec["theta_hat"].append(th)
             if k == N:
                 break
-            ctrl.fmu.setReal(c_in, list(y))
-            plant.fmu.setReal(p_in, [*tau, *tau_d])
-            ctrl.fmu.doStep(t, h)
-            plant.fmu.doStep(t, h)
+            ctrl.set(c_in, list(y))
+            plant.set(p_in, [*tau, *tau_d])
+            ctrl.step(t, h)
+            plant.step(t, h)
         return {k: np.array(v) for k, v in rec.items()}
     finally:
         ctrl.close()

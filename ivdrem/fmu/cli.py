@@ -38,6 +38,8 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--controller", action="store_true",
                    help="export the sampled controller (co-simulation FMU) instead of the plant")
     e.add_argument("--law", default="iv-drem", help="--controller: the law (default iv-drem)")
+    e.add_argument("--fmi-version", type=int, choices=(2, 3), default=2, dest="fmi_version",
+                   help="--controller: FMI 2.0 or 3.0 co-simulation FMU (default 2)")
     e.add_argument("--mu-max", type=float, default=135.0, dest="mu_max",
                    help="--controller: saturation of mu (default %(default)g)")
     return p
