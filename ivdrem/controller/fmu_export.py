@@ -96,11 +96,37 @@ def _variables(model, par):
     return V
 
 
-def _model_description(model, V, guid, ident, law):
+def _head_sections(V):
+    """The UnitDefinitions, LogCategories and DefaultExperiment of both FMI versions'
+    modelDescription (the same in FMI 2.0 and 3.0)."""
     units = sorted({v["unit"] for v in V if v.get("unit")})
     base = {"rad": 'rad="1"', "rad/s": 's="-1" rad="1"', "N.m": 'kg="1" m="2" s="-2"',
             "s": 's="1"'}
     h = next(v["start"] for v in V if v["name"] == "h")
+    out = ['  <UnitDefinitions>']
+    out += [f'    <Unit name="{u}"><BaseUnit {base[u]}/></Unit>' for u in units]
+    out += ['  </UnitDefinitions>', '  <LogCategories>',
+            '    <Category name="logEvents" description="Initialization (debug logging)"/>',
+            '    <Category name="logStatusError" description="Errors: illegal calls, bad values (always logged)"/>',
+            '  </LogCategories>',
+            f'  <DefaultExperiment startTime="0" stopTime="10" stepSize="{_fmt(h)}"/>']
+    return out
+
+
+def _variable_attributes(vr, v):
+    """(the attributes every FMI version gives variable vr, its unit and start)."""
+    attrs = [f'name={quoteattr(v["name"])}', f'valueReference="{vr}"',
+             f'description={quoteattr(v["description"])}', f'causality="{v["causality"]}"',
+             f'variability="{v["variability"]}"']
+    if "initial" in v:
+        attrs.append(f'initial="{v["initial"]}"')
+    real = [f'unit="{v["unit"]}"'] if v.get("unit") else []
+    if "start" in v:
+        real.append(f'start="{_fmt(v["start"])}"')
+    return attrs, real
+
+
+def _model_description(model, V, guid, ident, law):
     src = "\n".join(f'      <File name="{f}"/>' for f in SOURCE_FILES)
     out = ['<?xml version="1.0" encoding="UTF-8"?>', '<fmiModelDescription', '  fmiVersion="2.0"',
            f'  modelName={quoteattr(f"ivdrem controller {law} {model.name}")}',
@@ -112,27 +138,13 @@ def _model_description(model, V, guid, ident, law):
            ' canInterpolateInputs="false" maxOutputDerivativeOrder="0" canRunAsynchronuously="false"'
            ' canGetAndSetFMUstate="true" canSerializeFMUstate="true"'
            ' canNotUseMemoryManagementFunctions="true" providesDirectionalDerivative="false">',
-           '    <SourceFiles>', src, '    </SourceFiles>', '  </CoSimulation>',
-           '  <UnitDefinitions>']
-    out += [f'    <Unit name="{u}"><BaseUnit {base[u]}/></Unit>' for u in units]
-    out += ['  </UnitDefinitions>', '  <LogCategories>',
-            '    <Category name="logEvents" description="Initialization (debug logging)"/>',
-            '    <Category name="logStatusError" description="Errors: illegal calls, bad values (always logged)"/>',
-            '  </LogCategories>',
-            f'  <DefaultExperiment startTime="0" stopTime="10" stepSize="{_fmt(h)}"/>',
-            '  <ModelVariables>']
+           '    <SourceFiles>', src, '    </SourceFiles>', '  </CoSimulation>']
+    out += _head_sections(V) + ['  <ModelVariables>']
     exposed = [(vr, v) for vr, v in enumerate(V) if not v.get("hidden")]
     index = {}
     for vr, v in exposed:
         index[vr] = len(index) + 1
-        attrs = [f'name={quoteattr(v["name"])}', f'valueReference="{vr}"',
-                 f'description={quoteattr(v["description"])}', f'causality="{v["causality"]}"',
-                 f'variability="{v["variability"]}"']
-        if "initial" in v:
-            attrs.append(f'initial="{v["initial"]}"')
-        real = [f'unit="{v["unit"]}"'] if v.get("unit") else []
-        if "start" in v:
-            real.append(f'start="{_fmt(v["start"])}"')
+        attrs, real = _variable_attributes(vr, v)
         out += [f'    <ScalarVariable {" ".join(attrs)}>', f'      <Real {" ".join(real)}/>',
                 '    </ScalarVariable>']
     out += ['  </ModelVariables>', '  <ModelStructure>', '    <Outputs>']
@@ -146,9 +158,6 @@ def _model_description(model, V, guid, ident, law):
 
 def _model_description3(model, V, guid, ident, law):
     """FMI 3.0 modelDescription.xml of the same variables (value references as in FMI 2)."""
-    units = sorted({v["unit"] for v in V if v.get("unit")})
-    base = {"rad": 'rad="1"', "rad/s": 's="-1" rad="1"', "N.m": 'kg="1" m="2" s="-2"',
-            "s": 's="1"'}
     h = next(v["start"] for v in V if v["name"] == "h")
     out = ['<?xml version="1.0" encoding="UTF-8"?>', '<fmiModelDescription', '  fmiVersion="3.0"',
            f'  modelName={quoteattr(f"ivdrem controller {law} {model.name}")}',
@@ -158,29 +167,15 @@ def _model_description3(model, V, guid, ident, law):
            f'  <CoSimulation modelIdentifier="{ident}" canHandleVariableCommunicationStepSize="false"'
            f' fixedInternalStepSize="{_fmt(h)}" canGetAndSetFMUState="true"'
            ' canSerializeFMUState="true" providesDirectionalDerivatives="false"'
-           ' providesIntermediateUpdate="false" hasEventMode="false"/>',
-           '  <UnitDefinitions>']
-    out += [f'    <Unit name="{u}"><BaseUnit {base[u]}/></Unit>' for u in units]
-    out += ['  </UnitDefinitions>', '  <LogCategories>',
-            '    <Category name="logEvents" description="Initialization (debug logging)"/>',
-            '    <Category name="logStatusError" description="Errors: illegal calls, bad values (always logged)"/>',
-            '  </LogCategories>',
-            f'  <DefaultExperiment startTime="0" stopTime="10" stepSize="{_fmt(h)}"/>',
+           ' providesIntermediateUpdate="false" hasEventMode="false"/>']
+    out += _head_sections(V) + [
             '  <ModelVariables>',
             f'    <Float64 name="time" valueReference="{len(V)}" causality="independent"'
             ' variability="continuous" unit="s" description="simulation time (VR_TIME)"/>']
     exposed = [(vr, v) for vr, v in enumerate(V) if not v.get("hidden")]
     for vr, v in exposed:
-        attrs = [f'name={quoteattr(v["name"])}', f'valueReference="{vr}"',
-                 f'description={quoteattr(v["description"])}', f'causality="{v["causality"]}"',
-                 f'variability="{v["variability"]}"']
-        if "initial" in v:
-            attrs.append(f'initial="{v["initial"]}"')
-        if v.get("unit"):
-            attrs.append(f'unit="{v["unit"]}"')
-        if "start" in v:
-            attrs.append(f'start="{_fmt(v["start"])}"')
-        out.append(f'    <Float64 {" ".join(attrs)}/>')
+        attrs, value = _variable_attributes(vr, v)      # FMI 3: one element, no <Real>
+        out.append(f'    <Float64 {" ".join(attrs + value)}/>')
     out += ['  </ModelVariables>', '  <ModelStructure>']
     outs = [vr for vr, v in exposed if v["causality"] == "output"]
     out += [f'    <Output valueReference="{vr}" dependencies=""/>' for vr in outs]
