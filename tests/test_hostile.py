@@ -246,3 +246,57 @@ def test_an_absurd_theta_is_refused_naming_the_key(capsys, runs_refused, tmp_pat
     cfg = _toml(tmp_path, "[model]\ntheta = [1e300, 0.28, 0.32, 0.4, 1.4]\n")
     status, err = _cli(["paper", "--quiet", "--config", cfg], capsys, runs_refused)
     assert status == 2 and "'model.theta" in err and "at most 1e+06" in err
+
+
+# ----------------------------------------------------------------------------- steps
+@pytest.mark.parametrize("text, words", [
+    ('[solver]\nmethod = "rk4"\nh = 10.0\n',
+     "'solver.h' = 10 s (the fixed step of rk4) exceeds solver.h_max = 5 s"),
+    ('[solver]\nmethod = "rk4"\nh = 12.0\nh_max = 20.0\n',
+     "exceeds 10 s, half the sliding window iv_drem.T of law 'iv-drem'"),
+    ('[solver]\nmethod = "rk4"\nh = 4.0\n[composite_learning]\nT = 6.0\n',
+     "half the sliding window composite_learning.T of law 'composite-learning'"),
+])
+def test_a_step_above_its_bounds_is_refused_naming_both_keys(text, words, tmp_path, capsys,
+                                                            runs_refused):
+    """A fixed step solver.h above solver.h_max or above half a law's window T (eq. 14) is
+    a configuration error naming both keys, not the simulator's ValueError after the build."""
+    cfg = _toml(tmp_path, text)
+    status, err = _cli(["paper", "--quiet", "--config", cfg], capsys, runs_refused)
+    assert status == 2, err
+    assert words in err, err
+
+
+def test_a_fast_disturbance_is_priced_from_its_periods(tmp_path, capsys, runs_refused):
+    """ω = 5e3 rad/s: at least one step per period (2.4e5 steps over 300 s) prices the
+    reference engine's run at hours, refused before any run naming ω; the compiled
+    engine's estimate stays under the limit and the run is reached."""
+    from ivdrem._preflight import check_runs, fastest_omega
+    from ivdrem.sim.guards import CostLimitError, oscillation_steps
+    (steps, _), _ = oscillation_steps(5000.0, 300.0)
+    assert steps == pytest.approx(5000.0 * 300.0 / (2 * math.pi))
+    config = load_config(None, {"disturbance.omega": [5000.0, 500.0],
+                                "experiment.laws": ["iv-drem"]})
+    assert fastest_omega(config) == 5000.0
+    paper = load_config(None)     # the paper's fastest sinusoid: the reference, 2 rad/s
+    assert fastest_omega(paper) == max(paper["trajectory"]["omega"] + paper["disturbance"]["omega"])
+    with pytest.raises(CostLimitError, match=r"12.6 h on the reference engine .*ω = 5000 rad/s"):
+        check_runs(config, engine="reference")
+    cfg = _toml(tmp_path, "[disturbance]\nomega = [5000.0, 500.0]\n")
+    status, err = _cli(["paper", "--quiet", "--engine", "reference", "--config", cfg], capsys,
+                       runs_refused)
+    assert status == 2 and "ω = 5000 rad/s" in err, err
+    status, err = _cli(["paper", "--quiet", "--config", cfg], capsys, runs_refused)
+    assert status == "work", err
+
+
+def test_an_adaptive_first_step_is_held_under_the_step_bound():
+    """An adaptive method's h is only its first step: a small h_max (or window) lowers it
+    instead of refusing the configuration."""
+    from ivdrem.experiments.config import solver_kwargs
+    c = load_config(None, {"solver.h_max": 1e-4})
+    assert solver_kwargs(c, "iv-drem")["h"] == 1e-4
+    c = load_config(None, {"solver.h": 4.0, "iv_drem.T": 6.0})
+    kw = solver_kwargs(c, "iv-drem")
+    assert kw["h"] == kw["h_max"] == 3.0
+    assert solver_kwargs(load_config(None), "iv-drem")["h"] == 1e-3     # the paper's, as set

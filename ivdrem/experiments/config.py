@@ -58,6 +58,7 @@ def __getattr__(name):
 
 #: Integration methods of ivdrem's simulator.
 from ..sim.simulator import METHODS as SOLVER_METHODS  # noqa: E402  (one source of truth)
+from ..sim.methods import method_info  # noqa: E402
 #: Variants of the Φ_Mf filter gain (erratum E1).
 OBSERVER_VARIANTS = ("corrected", "literal")
 
@@ -737,7 +738,33 @@ def validate_config(cfg: Mapping) -> dict:
     if len(set(exp["laws"])) != len(exp["laws"]):
         raise ConfigError(f"config key 'experiment.laws' lists a law twice: {exp['laws']}")
     _check_reference_limits(out)
+    _check_step_bounds(out)
     return out
+
+
+def _check_step_bounds(cfg: Mapping) -> None:
+    """A fixed-step method's solver.h must fit under solver.h_max and, for a law with a
+    sliding window, under half its T (eq. 14; :func:`solver_kwargs`), or the simulator
+    refuses the run after the model is built.  (An adaptive method's h is only its first
+    step: :func:`solver_kwargs` holds it to the same bound.)"""
+    s = cfg["solver"]
+    if method_info(s["method"]).adaptive:
+        return
+    if s["h"] > s["h_max"]:
+        raise ConfigError(f"config key 'solver.h' = {s['h']:g} s (the fixed step of "
+                          f"{s['method']}) exceeds solver.h_max = {s['h_max']:g} s: lower "
+                          "solver.h or raise solver.h_max")
+    for law in cfg["experiment"]["laws"]:
+        bound = solver_kwargs(cfg, law)["h_max"]
+        if s["h"] > bound:
+            spec = get_law(law)
+            where = f"{spec.section}.T" if spec.section and "T" in spec.defaults \
+                else "iv_drem.T"
+            raise ConfigError(
+                f"config key 'solver.h' = {s['h']:g} s (the fixed step of {s['method']}) "
+                f"exceeds {bound:g} s, half the sliding window {where} of law {law!r} (a "
+                f"step must not reach past the window's delay, eq. (14)): lower solver.h "
+                f"or lengthen {where}")
 
 
 def _validate_value(name: str, spec: _Key, value: Any):
@@ -907,7 +934,9 @@ def solver_kwargs(config: Mapping, law: str | None = None) -> dict:
         "method": s["method"],
         "rtol": float(s["rtol"]),
         "atol": float(s["atol"]),
-        "h": float(s["h"]),
+        # an adaptive method's h is its first step: held under the step bound
+        "h": float(s["h"]) if not method_info(s["method"]).adaptive
+        else min(float(s["h"]), h_max),
         "h_max": h_max,
     }
 
