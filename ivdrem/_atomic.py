@@ -9,7 +9,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 __all__ = ["new_tempfile", "remove_stale_tempfiles", "fsync_file", "write_text_atomic",
-           "written_together", "zip_tree_atomic"]
+           "written_together", "zip_tree_atomic", "os_error_behind"]
 
 
 def _umask() -> int:
@@ -128,3 +128,14 @@ def zip_tree_atomic(root, path) -> Path:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def os_error_behind(exc):
+    """The OSError that caused `exc` (itself, or one in its chain), or None: matplotlib's
+    PDF writer, closing a file on a full disk, raises zlib.error on top of the OSError
+    (ENOSPC) that stopped it."""
+    while exc is not None:
+        if isinstance(exc, OSError):
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None

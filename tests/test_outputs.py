@@ -138,3 +138,30 @@ def test_a_killed_writers_temporaries_are_removed_by_the_next_write(tmp_path):
     # the temporaries themselves carry the writer's PID
     t = new_tempfile(tmp_path, "x.pdf")
     assert t.name.startswith(f".x.pdf.{os.getpid()}.") and t.name.endswith(".tmp")
+
+
+def test_a_report_on_a_full_disk_is_kept_elsewhere_even_through_zlib(tmp_path, monkeypatch):
+    """matplotlib's PDF writer, closing its file on a full disk, raises zlib.error on top of
+    the ENOSPC: the report command still finds the OSError and writes the report elsewhere."""
+    import zlib
+    from ivdrem._atomic import os_error_behind
+    import ivdrem.reports.report as report
+    from ivdrem.reports.cli import _write_or_keep
+    calls = []
+
+    def write_report(run, outdir, fmu_check=None, overwrite=False):
+        calls.append(Path(outdir))
+        if len(calls) == 1:
+            try:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            except OSError:
+                raise zlib.error("Error -2 while flushing: buffer error")
+        return Path(outdir) / "ivdrem-paper.html", Path(outdir) / "ivdrem-paper.pdf"
+    monkeypatch.setattr(report, "write_report", write_report)
+    html, pdf, failed = _write_or_keep(object(), tmp_path / "full", None, False)
+    assert failed.errno == errno.ENOSPC and calls[0] == tmp_path / "full"
+    assert html.parent == calls[1] != calls[0]
+    assert os_error_behind(ValueError("no OSError in its chain")) is None
+    with pytest.raises(KeyError):     # not a write failure: not hidden
+        monkeypatch.setattr(report, "write_report", lambda *a, **k: {}["x"])
+        _write_or_keep(object(), tmp_path / "full", None, False)

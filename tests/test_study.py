@@ -17,6 +17,7 @@ import socket
 import threading
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -321,6 +322,39 @@ def test_resume_after_interruption_gives_the_uninterrupted_table(tmp_path, grid_
     df = run_study(GRID, tmp_path, scheduler=cluster.scheduler_address, progress=False,
                    resume=True, on_run=lambda run, rec: again.append(run.index))
     assert sorted(again) == sorted(set(range(4)) - set(seen))  # only the missing ones ran
+    pd.testing.assert_frame_equal(_comparable(df), _comparable(full))
+
+
+def test_a_full_disk_keeps_every_finished_run_elsewhere(tmp_path, grid_study, cluster,
+                                                         monkeypatch):
+    """The study directory fills up at the first record: every run still finishes, the
+    records land in a new temporary directory the error names, and copied back they
+    resume to the uninterrupted table without running anything again."""
+    import errno
+    import shutil
+    import tempfile
+    _, full = grid_study
+    out, spare = tmp_path / "out", tmp_path / "spare"
+    spare.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(spare))
+    real_save = RunStore.save
+
+    def save(self, rec):
+        if out in self.dir.parents:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_save(self, rec)
+    monkeypatch.setattr(RunStore, "save", save)
+    with pytest.raises(StudyError, match=r"No space left on device; the 4 finished run\(s\) "
+                                         r"were kept in .*continue with --resume") as info:
+        run_study(GRID, out, scheduler=cluster.scheduler_address, progress=False)
+    kept = Path(re.search(r"kept in (\S+):", str(info.value)).group(1))
+    assert kept.parent.parent == spare and len(list(kept.glob("*.json"))) == 4
+    monkeypatch.setattr(RunStore, "save", real_save)
+    shutil.copytree(kept, out / "runs", dirs_exist_ok=True)
+    again = []
+    df = run_study(GRID, out, scheduler=cluster.scheduler_address, progress=False,
+                   resume=True, on_run=lambda run, rec: again.append(run.index))
+    assert again == []
     pd.testing.assert_frame_equal(_comparable(df), _comparable(full))
 
 

@@ -41,7 +41,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from .._atomic import write_text_atomic, new_tempfile, fsync_file
+from .._atomic import write_text_atomic, new_tempfile, fsync_file, os_error_behind
 from .._paths import OutputLocationError, check_writable_dir, user_path
 from .._progress import want_progress
 from .study_spec import RunSpec, StudyError, StudySpec, expand_study, read_study
@@ -415,24 +415,48 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     lost: dict[str, str] = {}
     t_start = time.perf_counter()
     try:
-        if todo:
-            _execute(client, [wanted[h] for h in todo], store, records, runs, spec, out,
-                     lost, show, on_run, warm_up_laws)
-    finally:
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
-    wall = time.perf_counter() - t_start
-    df, cf = _write_tables(out, runs, records, spec)
-    df.attrs["wall_s"] = wall
-    df.attrs["lost"] = dict(lost)
-    df.attrs["scheduler"] = scheduler_address
-    if report:
-        from ..reports.study_report import write_study_report
-        write_study_report(out, spec=spec, runs=runs, results=df, curves=cf, lost=lost,
-                           wall_s=wall)
+        try:
+            if todo:
+                _execute(client, [wanted[h] for h in todo], store, records, runs, spec, out,
+                         lost, show, on_run, warm_up_laws)
+        finally:
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()
+        wall = time.perf_counter() - t_start
+        df, cf = _write_tables(out, runs, records, spec)
+        df.attrs["wall_s"] = wall
+        df.attrs["lost"] = dict(lost)
+        df.attrs["scheduler"] = scheduler_address
+        if report:
+            from ..reports.study_report import write_study_report
+            write_study_report(out, spec=spec, runs=runs, results=df, curves=cf, lost=lost,
+                               wall_s=wall)
+    except Exception as exc:
+        cause = os_error_behind(exc)
+        if cause is None:
+            raise
+        raise StudyError(_kept_elsewhere(out, records, cause)) from None
     return df
+
+
+def _kept_elsewhere(out: Path, records: dict, cause: OSError) -> str:
+    """After a write to `out` failed: the finished runs' records saved in a new temporary
+    directory (nothing computed is lost), and the message saying where."""
+    import tempfile
+    what = f"cannot write the study to {out}: {cause.strerror or cause}"
+    if not records:
+        return what
+    try:
+        keep = Path(tempfile.mkdtemp(prefix="ivdrem-study-"))
+        kept = RunStore(keep)
+        for rec in records.values():
+            kept.save(rec)
+    except OSError as again:
+        return f"{what}; keeping the {len(records)} finished run(s) elsewhere failed too: {again}"
+    return (f"{what}; the {len(records)} finished run(s) were kept in {kept.dir}: copy them "
+            f"to {out / 'runs'} once it can be written, and continue with --resume")
 
 
 def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost, show, on_run,
@@ -463,6 +487,7 @@ def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost,
                    file=sys.stderr, dynamic_ncols=True)
     last_rebuild = 0.0
     failed = 0
+    unsaved = None
     try:
         for fut in as_completed(list(futures), loop=client.loop):
             r = futures[fut]
@@ -475,13 +500,17 @@ def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost,
                 continue
             rec["hash"] = r.hash
             rec["config"] = r.config
-            store.save(rec)
             records[r.hash] = rec
+            if unsaved is None:
+                try:
+                    store.save(rec)
+                except OSError as exc:   # a full disk: every run still finishes, in memory,
+                    unsaved = exc        # and run_study keeps the records elsewhere
             failed += rec["status"] != "ok"
             if on_run is not None:
                 on_run(r, rec)
             now = time.perf_counter()
-            if now - last_rebuild >= _REBUILD_EVERY_S:
+            if unsaved is None and now - last_rebuild >= _REBUILD_EVERY_S:
                 _write_tables(out, runs, records, spec)
                 last_rebuild = now
             if bar is not None:
@@ -494,6 +523,8 @@ def _execute(client, todo: list[RunSpec], store, records, runs, spec, out, lost,
         for fut in futures:
             if not fut.done():
                 fut.cancel()
+    if unsaved is not None:
+        raise unsaved
 
 
 def _run_after(config, law, _warmed):

@@ -107,12 +107,17 @@ def _write_or_keep(run, out, check, overwrite):
     directory instead: (html, pdf, the error or None)."""
     import tempfile
 
+    from .._atomic import os_error_behind
     from .report import write_report
     try:
         return (*write_report(run, out, fmu_check=check, overwrite=overwrite), None)
-    except OSError as exc:
+    except Exception as exc:
+        cause = os_error_behind(exc)
+        if cause is None:
+            raise
         keep = tempfile.mkdtemp(prefix="ivdrem-report-")
-        return (*write_report(run, keep, fmu_check=check), exc)
+        return (*write_report(run, keep, fmu_check=check), cause)
+
 
 
 def run_report_command(args) -> int:
