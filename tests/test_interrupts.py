@@ -61,6 +61,41 @@ def test_ctrl_c_inside_simulate_is_a_keyboard_interrupt(case):
     assert time.perf_counter() - t0 < 30.0
 
 
+def test_a_ctrl_c_at_a_callbacks_entry_stops_the_run_as_a_keyboard_interrupt(capfd):
+    """Python may raise a pending Ctrl-C as the stepper's report callback is entered, before
+    its own try: ctypes hands it to sys.unraisablehook ("Exception ignored ...") and the C
+    loop goes on.  The simulator's hook takes it: the run stops with KeyboardInterrupt,
+    nothing is printed, and the hook leaves everyone else's unraisable exceptions alone."""
+    import types
+    from ivdrem.sim import simulator as simulator_module
+    diagram = build_lab()
+    sim = simulator_module.Simulator(diagram, method="rk4", h=1e-3)
+    calls = []
+
+    def progress_entry_interrupted(t):
+        # what CPython does when SIGINT arrives as the callback is called
+        calls.append(t)
+        sys.unraisablehook(types.SimpleNamespace(
+            object=sim._report_trampoline, exc_value=KeyboardInterrupt(),
+            exc_type=KeyboardInterrupt, exc_traceback=None, err_msg=None))
+    out_t = np.linspace(0.0, 100.0, 11)
+    with pytest.raises(KeyboardInterrupt):
+        sim.advance(100.0, out_t=out_t, out_y=np.zeros((11, diagram.noutputs)),
+                    out_x=np.zeros((11, 0)), progress=progress_entry_interrupted)
+    assert len(calls) == 1 and sim.t < 100.0
+    seen = []
+    previous = sys.unraisablehook
+    try:      # an unraisable exception of someone else's object is passed on
+        sys.unraisablehook = lambda u, _p=previous: seen.append(u) if u.object == "other" \
+            else _p(u)
+        simulator_module._catch_callback_interrupts()
+        sys.unraisablehook(types.SimpleNamespace(object="other", exc_value=ValueError()))
+    finally:
+        sys.unraisablehook = previous
+    assert len(seen) == 1
+    assert "Exception ignored" not in capfd.readouterr().err
+
+
 @pytest.mark.parametrize("argv", [["paper", "--laws", "iv-drem", "--t-end", "5"],
                                   ["report", "--t-end", "5"]])
 def test_commands_exit_130_with_one_line_on_ctrl_c(argv, monkeypatch, capsys, tmp_path):

@@ -97,6 +97,25 @@ def check_solver_settings(method=DEFAULT_METHOD, h=1e-3, rtol=None, atol=None,
     return info
 
 
+def _catch_callback_interrupts():
+    """Route an exception that Python raises as one of a Simulator's C callbacks is entered
+    (a Ctrl-C lands before the callback's own ``try``, and ctypes would print "Exception
+    ignored") to that simulator, which stops its run with it; other unraisable
+    exceptions go to the hook that was there before.  Installed once per process."""
+    previous = sys.unraisablehook
+    if getattr(previous, "_ivdrem", False):
+        return
+
+    def hook(unraisable):
+        sim = getattr(unraisable.object, "__self__", None)
+        if isinstance(sim, Simulator) and unraisable.exc_value is not None:
+            sim._stopped_by = unraisable.exc_value
+            return
+        previous(unraisable)
+    hook._ivdrem = True
+    sys.unraisablehook = hook
+
+
 # --------------------------------------------------------------------------- reference
 class ReferenceEngine:
     """python-control evaluates the diagram; the C stepper (the compiled engine's) steps it,
@@ -357,6 +376,7 @@ class Simulator:
         self._kinks = np.zeros(0)       # times where the input interpolant's slope changes
         self._on_report = None          # the current advance's report (see advance)
         self._stopped_by = None         # the exception that stopped the run in the report
+        _catch_callback_interrupts()
         # the stepper calls it by address (kept alive with the simulator)
         self._report_c = _REPORT_CALLBACK(self._report_trampoline)
         self._report_address = ctypes.cast(self._report_c, ctypes.c_void_p).value
@@ -497,6 +517,8 @@ class Simulator:
             while self.t < t_to - 1e-12 * max(1.0, abs(t_to)):
                 t_seg = self._segment_end(t_to)
                 st = self._chunk(t_seg, out_t, out_y, out_x, io)
+                if self._stopped_by is not None:
+                    st = tpl.STOPPED
                 if st == tpl.OK:
                     if t_seg == t_to:
                         break
@@ -555,6 +577,8 @@ class Simulator:
         Python, where a pending Ctrl-C becomes a KeyboardInterrupt; an exception stops the
         run (status STOPPED) and is raised again by _handle."""
         try:
+            if self._stopped_by is not None:    # a Ctrl-C at the callback's entry
+                return 1
             if self._on_report is not None:
                 self._on_report(t)
             return 0
@@ -566,6 +590,8 @@ class Simulator:
         """The stepper's sample function (the sampled blocks' updates at a sample time);
         an exception stops the run (status STOPPED) and is raised again by _handle."""
         try:
+            if self._stopped_by is not None:    # a Ctrl-C at the callback's entry
+                return 1
             self.sampling.sample(t, _view(px, self.x.size), self.W.sample_due)
             return 0
         except BaseException as e:      # noqa: BLE001 - raised again by _handle
@@ -589,7 +615,7 @@ class Simulator:
     def _handle(self, st, out_t, out_y, io, out_x):
         if st == tpl.STOPPED:
             e, self._stopped_by = self._stopped_by, None
-            raise e
+            raise e if e is not None else KeyboardInterrupt()
         if st == tpl.HISTORY_FULL:
             meta = self.W.hist_meta
             if meta[1] + 2 > meta[2]:
