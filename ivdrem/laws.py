@@ -55,6 +55,9 @@ class Law:
     description: str = ""
     section: str | None = None             # configuration table of the gains
     defaults: dict = field(default_factory=dict)
+    # {closed_loop keyword: configuration key "section.key"} that the law's run reads; None:
+    # a user's law, whose gains are its section's keys (its defaults) passed as law_params
+    config: dict | None = None
     uses_delta: bool = False               # has the mixed regression (17): Delta, calY
     instrument: str | None = None          # recorded instrument signal (zeta or phi)
     linestyle: str = "-"                   # with the colour: five laws told apart in grey too
@@ -158,24 +161,32 @@ def _build_none(ctx):
 #: F0 of (15b), γ of (21) (the paper's 1e10) and the mixing of (17) (docs/mixing.md)
 _IV_DREM_DEFAULTS = dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, mixing="paper")
 
+
+def _keys(section, names):
+    return {name: f"{section}.{name}" for name in names}
+
+
+_IV_DREM_CONFIG = _keys("iv_drem", _IV_DREM_DEFAULTS)
+
 for _law in (
     Law("iv-drem", _build_iv_drem, "IV-DREM, (11)+(21)", "#0072B2", "eqs. (11) + (21)",
         "proposed: instrumental-variables DREM, ζ from the reference trajectory (14)",
-        section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS),
+        section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS), config=_IV_DREM_CONFIG,
         uses_delta=True, instrument="zeta"),
     Law("composite-learning", _build_composite_learning, "composite learning, (35)", "#E69F00",
         "eq. (35)", "baseline of Pan & Yu: max-held window integrals of φ",
-        section="composite_learning", defaults=dict(T=20.0, gamma=1.0, epsilon=1e-9)),
+        section="composite_learning", defaults=dict(T=20.0, gamma=1.0, epsilon=1e-9),
+        config=_keys("composite_learning", ("T", "gamma", "epsilon"))),
     Law("drem", _build_drem, "DREM without IV", "#009E73", "eqs. (11) + (21), ζ := φ",
         "DREM with the measured regressor φ in place of the instrument",
-        section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS),
+        section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS), config=_IV_DREM_CONFIG,
         uses_delta=True, instrument="phi", linestyle="--"),
     Law("sigma-modification", _build_sigma, "σ-modification", "#D55E00",
         "ϑ_c = σ(θ* − θ̂) (erratum E5)", "leakage toward a prior guess θ*",
         section="sigma_modification", defaults=dict(sigma=0.1, theta_star=None),
-        linestyle="-."),
+        config=_keys("sigma_modification", ("sigma", "theta_star")), linestyle="-."),
     Law("none", _build_none, "no composite term", "#000000", "ϑ_c = 0",
-        "plain disturbance-rejection adaptive control", linestyle=":"),
+        "plain disturbance-rejection adaptive control", config={}, linestyle=":"),
 ):
     register_law(_law)
 del _law

@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ivdrem.laws import get_law
 from ivdrem.experiments.config import (
     LAWS,
     SCHEMA,
@@ -223,13 +224,17 @@ def test_closed_loop_kwargs_per_law():
         "iv-drem": common | {"T", "p", "F0", "gamma", "mixing"},
         "drem": common | {"T", "p", "F0", "gamma", "mixing"},
         "composite-learning": common | {"T", "gamma", "epsilon"},
-        "sigma-modification": common | {"T", "p", "F0", "sigma", "theta_star"},
-        "none": common | {"T", "p", "F0"},
+        "sigma-modification": common | {"sigma", "theta_star"},    # no window: no T
+        "none": common,
     }
     assert set(expect) == set(LAWS)
     for law, keys in expect.items():
         kw = closed_loop_kwargs(c, law)
         assert set(kw) == keys, law
+        # each law-specific keyword is read from the configuration key the registry names
+        for name, key in get_law(law).config.items():
+            section, k = key.split(".")
+            np.testing.assert_array_equal(kw[name], c[section][k])
     iv = closed_loop_kwargs(c, "iv-drem")
     cl = closed_loop_kwargs(c, "composite-learning")
     assert iv["gamma"] == 1e10 and cl["gamma"] == 1.0 and cl["epsilon"] == 1e-9

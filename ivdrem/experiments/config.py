@@ -758,8 +758,7 @@ def _check_step_bounds(cfg: Mapping) -> None:
         bound = solver_kwargs(cfg, law)["h_max"]
         if s["h"] > bound:
             spec = get_law(law)
-            where = f"{spec.section}.T" if spec.section and "T" in spec.defaults \
-                else "iv_drem.T"
+            where = (spec.config or {}).get("T") or f"{spec.section}.T"
             raise ConfigError(
                 f"config key 'solver.h' = {s['h']:g} s (the fixed step of {s['method']}) "
                 f"exceeds {bound:g} s, half the sliding window {where} of law {law!r} (a "
@@ -846,10 +845,11 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
     """Keyword arguments of ``ivdrem.diagrams.closed_loop(law, model, **kwargs)``.
 
     Common keys: alpha, K (n×n), delta_mu, Gamma (nθ×nθ), mu0, mu1, observer_variant,
-    l, theta_hat0, q0, dq0, theta, trajectory, disturbance.  Law-specific keys:
-    "iv-drem"/"drem": T, p, F0, gamma, mixing of [iv_drem]; "composite-learning": T, gamma,
-    epsilon of [composite_learning]; "sigma-modification": T, p, F0 of [iv_drem] and
-    sigma, theta_star; "none": T, p, F0 of [iv_drem].
+    l, theta_hat0, q0, dq0, theta, trajectory, disturbance.  Law-specific keys: those the
+    law's registry entry names (``Law.config``: "iv-drem" and "drem" read T, p, F0, gamma,
+    mixing of [iv_drem]; "composite-learning" T, gamma, epsilon of [composite_learning];
+    "sigma-modification" sigma, theta_star; "none" nothing); a user's law gets its
+    section's gains as ``law_params``.
     """
     names = law_names()
     if law not in names:
@@ -873,28 +873,19 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
         "observer_variant": ctl["observer_variant"],
         "l": float(c["filters"]["l"]),
     }
-    ivd = c["iv_drem"]
-    if law in ("iv-drem", "drem"):
-        gamma = ivd["gamma"] if ivd["gamma"] == "auto" else float(ivd["gamma"])
-        kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]), gamma=gamma,
-                  mixing=ivd["mixing"])
-    elif law == "composite-learning":
-        cl = c["composite_learning"]
-        kw.update(T=float(cl["T"]), gamma=float(cl["gamma"]), epsilon=float(cl["epsilon"]))
-    elif law not in ("sigma-modification", "none"):
+    spec = get_law(law)
+    if spec.config is not None:      # the configuration keys the law's registry entry names
+        for name, key in spec.config.items():
+            section, k = key.split(".")
+            kw[name] = _argument(c[section][k])
+    else:
         # a user law (ivdrem.laws.register_law): its registry defaults, overridden by its
         # own configuration table if it has one
-        spec = get_law(law)
         table = c.get(spec.section, {}) if spec.section else {}
         kw["law_params"] = {k: (np.asarray(table[k], dtype=float) if isinstance(table.get(k), list)
                                 else table.get(k, v)) for k, v in spec.defaults.items()}
         if kw["law_params"].get("gamma") == "auto":   # a law sharing [iv_drem]: closed_loop's rule
             kw["gamma"] = kw["law_params"].pop("gamma")
-    else:
-        kw.update(T=float(ivd["T"]), p=float(ivd["p"]), F0=float(ivd["F0"]))
-        if law == "sigma-modification":
-            sm = c["sigma_modification"]
-            kw.update(sigma=float(sm["sigma"]), theta_star=np.asarray(sm["theta_star"], dtype=float))
     kw.update(
         theta_hat0=np.asarray(c["initial"]["theta_hat0"], dtype=float),
         q0=np.asarray(c["initial"]["q0"], dtype=float),
@@ -904,6 +895,16 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
         disturbance={k: np.asarray(c["disturbance"][k], dtype=float) for k in _TRAJ_KEYS},
     )
     return kw
+
+
+def _argument(value):
+    """A configuration value as closed_loop takes it: a vector as an array, a number as a
+    float, a string ("auto", a mixing's name) as it is."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, list):
+        return np.asarray(value, dtype=float)
+    return float(value)
 
 
 def _trajectory(table: Mapping, n: int):
