@@ -126,10 +126,8 @@ static void bind_ctx(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
     c->lapack_ints = F_PTR(int32_t, FIELD_LAPACK_INTS);
     c->nlapack_ints = shape[2 * FIELD_LAPACK_INTS];
     c->callback = (diagram_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[0];
-    c->report = shape[2 * FIELD_CALLBACKS] > 1 ?
-        (report_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[1] : NULL;
-    c->sample = shape[2 * FIELD_CALLBACKS] > 2 ?
-        (sample_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[2] : NULL;
+    c->report = (report_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[1];
+    c->sample = (sample_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[2];
     c->sample_dt = F_PTR(double, FIELD_SAMPLE_DT);
     c->nsd = c->sample ? shape[2 * FIELD_SAMPLE_DT] : 0;
     c->sample_due = F_PTR(i64, FIELD_SAMPLE_DUE);
@@ -544,14 +542,18 @@ static void jac_chain(double *F, double *S, i64 nS, ivec dst, ivec fidx, ivec sr
     for (i64 e = 0; e < j_row.n; e++) J[j_row.p[e] * n + j_col.p[e]] = S[j_slot.p[e]];
 }
 
+/* the columns c0..c1 of a block's states and inputs moved by sign * h (sign 0: restored);
+ * h relative to max(|v|, 1), the step central (the cube root of eps) or forward (its square
+ * root); the step taken, as rounded, into hh when moving forward */
 static void fd_shift(double *xb, double *ub, const double *xb0, const double *ub0, i64 nx,
-                     ivec col, i64 c0, i64 c1, double sign, double *hh) {
+                     ivec col, i64 c0, i64 c1, double sign, int central, double *hh) {
     for (i64 c = c0; c < c1; c++) {
         i64 j = col.p[c];
         double v = j < nx ? xb0[j] : ub0[j - nx];
-        double h = 6.055454452393343e-06 * pmax(fabs(v), 1.0);
-        double w = v + sign * h;
-        if (sign > 0) hh[c] = (v + h) - (v - h);
+        double h = (central ? 6.055454452393343e-06 : 1.4901161193847656e-08)
+                   * pmax(fabs(v), 1.0);
+        double w = sign != 0.0 ? v + sign * h : v;
+        if (sign > 0) hh[c] = central ? (v + h) - (v - h) : w - v;
         if (j < nx) xb[j] = w;
         else ub[j - nx] = w;
     }
@@ -564,32 +566,6 @@ static void fd_scatter(const double *yp, const double *ym, const double *hh, i64
         for (i64 e = e_ptr.p[c]; e < e_ptr.p[c + 1]; e++) {
             i64 r = e_row.p[e];
             JB[e_slot.p[e]] = (yp[r] - ym[r]) * inv;
-        }
-    }
-}
-
-static void fd_forward(double *xb, double *ub, const double *xb0, const double *ub0, i64 nx,
-                       ivec col, i64 c0, i64 c1, double on, double *hh) {
-    for (i64 c = c0; c < c1; c++) {
-        i64 j = col.p[c];
-        double v = j < nx ? xb0[j] : ub0[j - nx];
-        double w = v;
-        if (on != 0.0) {
-            w = v + 1.4901161193847656e-08 * pmax(fabs(v), 1.0);
-            hh[c] = w - v;
-        }
-        if (j < nx) xb[j] = w;
-        else ub[j - nx] = w;
-    }
-}
-
-static void fd_forward_scatter(const double *yp, const double *y0, const double *hh, i64 c0,
-                               i64 c1, ivec e_ptr, ivec e_row, ivec e_slot, double *JB) {
-    for (i64 c = c0; c < c1; c++) {
-        double inv = 1.0 / hh[c];
-        for (i64 e = e_ptr.p[c]; e < e_ptr.p[c + 1]; e++) {
-            i64 r = e_row.p[e];
-            JB[e_slot.p[e]] = (yp[r] - y0[r]) * inv;
         }
     }
 }
@@ -717,19 +693,14 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
                 w = r[FD_WUPD];
                 o0 = ny;
             }
+            fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, central, hh);
+            call_kernel(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
             if (central) {
-                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh);
-                call_kernel(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
-                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, -1.0, hh);
+                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, -1.0, central, hh);
                 call_kernel(c, wnx, w, t, xb, 0, ub, 0, ym, o0, p0);
-                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh);
-                fd_scatter(yp, ym, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
-            } else {
-                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh);
-                call_kernel(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
-                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh);
-                fd_forward_scatter(yp, y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
             }
+            fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, central, hh);
+            fd_scatter(yp, central ? ym : y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
         }
     }
     jac_chain(F, S, nS, int_table(c, T_JAC_INS_DST), int_table(c, T_JAC_INS_F),
@@ -834,16 +805,12 @@ static double dp45_step(Ctx *c, double t, double h, const double *x, double *xn,
                             + 11.0 / 84.0 * k6[i]);
     diagram_eval(c, RHS, t + h, xn, k7);
     stats[S_RHS] += 6;
-    double s = 0.0;
-    for (i64 i = 0; i < n; i++) {
-        double e = h * (71.0 / 57600.0 * k1[i] - 71.0 / 16695.0 * k3[i] + 71.0 / 1920.0 * k4[i]
-                        - 17253.0 / 339200.0 * k5[i] + 22.0 / 525.0 * k6[i]
-                        - 1.0 / 40.0 * k7[i]);
-        double sc = atol + rtol * pmax(fabs(x[i]), fabs(xn[i]));
-        double r = e / sc;
-        s += r * r;
-    }
-    return sqrt(s / (double)n);
+    double *e = ROW(K, 8);     /* not read after the step (the stiffness test reads 5-7) */
+    for (i64 i = 0; i < n; i++)
+        e[i] = h * (71.0 / 57600.0 * k1[i] - 71.0 / 16695.0 * k3[i] + 71.0 / 1920.0 * k4[i]
+                    - 17253.0 / 339200.0 * k5[i] + 22.0 / 525.0 * k6[i]
+                    - 1.0 / 40.0 * k7[i]);
+    return err_norm(x, xn, e, n, rtol, atol);
 }
 
 static double bs23_step(Ctx *c, double t, double h, const double *x, double *xn, double *K,
@@ -1376,53 +1343,41 @@ static void dense_solve(const double *LU, i64 n, const i64 *piv, double *b) {
 
 /* ------------------------------------------------------------------------ entry points
  * Each returns its result (a status), or the code of a failure the Python source raises
- * (BLOCK_RAISED, ERR_*), which _cstepper.py turns into the same RuntimeError. */
+ * (BLOCK_RAISED, ERR_*), which _cstepper.py turns into the same RuntimeError: ENTER binds
+ * the workspace and makes the failures' longjmp land here. */
+#define ENTER(c, P) Ctx c; bind_ctx(&c, waddr, wshape, P); \
+    { int code = setjmp(c.exit); if (code) return code; }
 EXPORT int ivdrem_step_loop(const i64 *waddr, const i64 *wshape, double *P, i64 mid,
                             double *tf, double t_stop, double *x, i64 n, double *out_t,
                             double *out_y, i64 ycols, double *out_x, i64 xcols, i64 *io,
                             i64 *stats, double *ctl, double *K, double *J, double *LU,
                             i64 *piv, double *xn, double *f1, double *xg, double *D) {
-    Ctx c;
-    bind_ctx(&c, waddr, wshape, P);
-    int code = setjmp(c.exit);
-    if (code) return code;
+    ENTER(c, P);
     return step_loop(&c, mid, tf, t_stop, x, n, out_t, out_y, ycols, out_x, xcols, io, stats,
                      ctl, K, J, LU, piv, xn, f1, xg, D);
 }
 
 EXPORT int ivdrem_diagram_eval(const i64 *waddr, const i64 *wshape, double *P, i64 mode,
                                double t, double *x, double *out) {
-    Ctx c;
-    bind_ctx(&c, waddr, wshape, P);
-    int code = setjmp(c.exit);
-    if (code) return code;
+    ENTER(c, P);
     return diagram_eval(&c, mode, t, x, out);
 }
 
 EXPORT int ivdrem_diagram_jacobian(const i64 *waddr, const i64 *wshape, double *P, double t,
                                    double *x, i64 n, double *J, double *tmp) {
-    Ctx c;
-    bind_ctx(&c, waddr, wshape, P);
-    int code = setjmp(c.exit);
-    if (code) return code;
+    ENTER(c, P);
     return diagram_jacobian(&c, t, x, J, n, tmp);
 }
 
 EXPORT int ivdrem_fd_jacobian(const i64 *waddr, const i64 *wshape, double *P, double t,
                               double *x, i64 n, double *J, double *f0, double *fp, double *xp) {
-    Ctx c;
-    bind_ctx(&c, waddr, wshape, P);
-    int code = setjmp(c.exit);
-    if (code) return code;
+    ENTER(c, P);
     return fd_jacobian(&c, t, x, J, n, f0, fp, xp);
 }
 
 EXPORT int ivdrem_lowest_eigenpair(const i64 *waddr, const i64 *wshape, double *u, i64 nvec,
                                    i64 nmat, double *lam) {
-    Ctx c;
-    bind_ctx(&c, waddr, wshape, NULL);
-    int code = setjmp(c.exit);
-    if (code) return code;
+    ENTER(c, NULL);
     lam[0] = lowest_eigenpair(&c, u, nvec, nmat);
     return OK;
 }
