@@ -91,6 +91,14 @@ def header_source():
         put(name, v)
     for name, (code, _) in FAILURES.items():
         put(name, code)
+    # the workspace's fields as stepper.c's Ctx holds them, and their binding from the
+    # addresses _cstepper passes (in the layout's order)
+    ctype = {"float64": "double", "int64": "int64_t", "uint8": "uint8_t", "int32": "int32_t"}
+    lines.append("#define WORKSPACE_POINTERS " + " ".join(
+        f"{ctype[dtype]} *{name};" for name, dtype, _ in WORKSPACE_LAYOUT))
+    lines.append("#define BIND_WORKSPACE(c, addr) " + " ".join(
+        f"(c)->{name} = ({ctype[dtype]} *)(intptr_t)(addr)[{i}];"
+        for i, (name, dtype, _) in enumerate(WORKSPACE_LAYOUT)))
     for fn in (_diagram.dsyevd_lwork, _diagram.dsyevd_liwork):
         lines.append(_quadratic_c(fn))
     return "\n".join(lines) + "\n"

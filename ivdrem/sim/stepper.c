@@ -58,24 +58,15 @@ typedef int32_t (*report_fn)(double t);
  * exception). */
 typedef int32_t (*sample_fn)(double t, i64 x);
 
-/* the workspace (fields in the order of WORKSPACE_LAYOUT), the parameters, the exit */
+/* the workspace: a pointer per field of WORKSPACE_LAYOUT (WORKSPACE_POINTERS, from the
+ * generated header) and the sizes the code reads; callbacks[0..2] as functions (NULL: the
+ * diagram is the tables, no progress report, no sampled block); the parameters; the exit */
 typedef struct {
-    double *hist_t; double *hist_v; double *hist_d; i64 *hist_meta; i64 nd;
-    double *held; double *score; i64 nmh;
-    double *ys; double *us; double *u_ext; i64 nue;
-    double *hold_dt; i64 *hold_mode; double *hold_time;
-    double *hold_vec; i64 hv_rows; i64 hv_cols;
-    i64 *probing; double *clock;
-    double *u_times; i64 nut; double *u_values; i64 uv_cols;
-    i64 *kernels; double *failure; i64 nfailure;
-    i64 *ti; double *tfl;
-    double *scratch; i64 nscratch;
-    i64 *lapack; uint8_t *lapack_chars; int32_t *lapack_ints; i64 nlapack_ints;
-    diagram_fn callback;     /* NULL: the diagram is the tables (compiled engine) */
-    report_fn report;        /* NULL: no progress report */
-    sample_fn sample;        /* NULL: no sampled block */
-    double *sample_dt; i64 nsd;
-    i64 *sample_due;         /* per period: on the grid at the current sample time */
+    WORKSPACE_POINTERS
+    i64 nd, nmh, nue, hv_rows, hv_cols, nut, uv_cols, nfailure, nscratch, nlapack_ints, nsd;
+    diagram_fn callback;
+    report_fn report;
+    sample_fn sample;
     double *P;
     jmp_buf exit;
 } Ctx;
@@ -89,61 +80,33 @@ static inline i64 imin(i64 a, i64 b) { return b < a ? b : a; }
 
 /* addresses and shapes ([field][2]) of the workspace arrays, from _cstepper.py */
 static void bind_ctx(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
-#define F_PTR(type, f) ((type *)(intptr_t)addr[f])
-    c->hist_t = F_PTR(double, FIELD_HIST_T);
-    c->hist_v = F_PTR(double, FIELD_HIST_V);
+    BIND_WORKSPACE(c, addr)
     c->nd = shape[2 * FIELD_HIST_V + 1];
-    c->hist_d = F_PTR(double, FIELD_HIST_D);
-    c->hist_meta = F_PTR(i64, FIELD_HIST_META);
-    c->held = F_PTR(double, FIELD_HELD);
-    c->score = F_PTR(double, FIELD_SCORE);
     c->nmh = shape[2 * FIELD_SCORE];
-    c->ys = F_PTR(double, FIELD_YS);
-    c->us = F_PTR(double, FIELD_US);
-    c->u_ext = F_PTR(double, FIELD_U_EXT);
     c->nue = shape[2 * FIELD_U_EXT];
-    c->hold_dt = F_PTR(double, FIELD_HOLD_DT);
-    c->hold_mode = F_PTR(i64, FIELD_HOLD_MODE);
-    c->hold_time = F_PTR(double, FIELD_HOLD_TIME);
-    c->hold_vec = F_PTR(double, FIELD_HOLD_VEC);
     c->hv_rows = shape[2 * FIELD_HOLD_VEC];
     c->hv_cols = shape[2 * FIELD_HOLD_VEC + 1];
-    c->probing = F_PTR(i64, FIELD_PROBING);
-    c->clock = F_PTR(double, FIELD_CLOCK);
-    c->u_times = F_PTR(double, FIELD_U_TIMES);
     c->nut = shape[2 * FIELD_U_TIMES];
-    c->u_values = F_PTR(double, FIELD_U_VALUES);
     c->uv_cols = shape[2 * FIELD_U_VALUES + 1];
-    c->kernels = F_PTR(i64, FIELD_KERNELS);
-    c->failure = F_PTR(double, FIELD_FAILURE);
     c->nfailure = shape[2 * FIELD_FAILURE];
-    c->ti = F_PTR(i64, FIELD_TABLE_INTS);
-    c->tfl = F_PTR(double, FIELD_TABLE_FLOATS);
-    c->scratch = F_PTR(double, FIELD_SCRATCH);
     c->nscratch = shape[2 * FIELD_SCRATCH];
-    c->lapack = F_PTR(i64, FIELD_LAPACK);
-    c->lapack_chars = F_PTR(uint8_t, FIELD_LAPACK_CHARS);
-    c->lapack_ints = F_PTR(int32_t, FIELD_LAPACK_INTS);
     c->nlapack_ints = shape[2 * FIELD_LAPACK_INTS];
-    c->callback = (diagram_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[0];
-    c->report = (report_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[1];
-    c->sample = (sample_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[2];
-    c->sample_dt = F_PTR(double, FIELD_SAMPLE_DT);
+    c->callback = (diagram_fn)(intptr_t)c->callbacks[0];
+    c->report = (report_fn)(intptr_t)c->callbacks[1];
+    c->sample = (sample_fn)(intptr_t)c->callbacks[2];
     c->nsd = c->sample ? shape[2 * FIELD_SAMPLE_DT] : 0;
-    c->sample_due = F_PTR(i64, FIELD_SAMPLE_DUE);
     c->P = P;
-#undef F_PTR
 }
 
 /* ---------------------------------------------------------------- tables (ivdrem/sim/tables.py) */
 static inline ivec int_table(const Ctx *c, int f) {
-    ivec v = {c->ti + c->ti[f], c->ti[f + 1] - c->ti[f]};
+    ivec v = {c->table_ints + c->table_ints[f], c->table_ints[f + 1] - c->table_ints[f]};
     return v;
 }
 
 static inline fvec float_table(const Ctx *c, int f) {
     const i64 base = N_INT_TABLES + 1;
-    fvec v = {c->tfl + c->ti[base + f], c->ti[base + f + 1] - c->ti[base + f]};
+    fvec v = {c->table_floats + c->table_ints[base + f], c->table_ints[base + f + 1] - c->table_ints[base + f]};
     return v;
 }
 
@@ -1343,41 +1306,53 @@ static void dense_solve(const double *LU, i64 n, const i64 *piv, double *b) {
 
 /* ------------------------------------------------------------------------ entry points
  * Each returns its result (a status), or the code of a failure the Python source raises
- * (BLOCK_RAISED, ERR_*), which _cstepper.py turns into the same RuntimeError: ENTER binds
- * the workspace and makes the failures' longjmp land here. */
-#define ENTER(c, P) Ctx c; bind_ctx(&c, waddr, wshape, P); \
-    { int code = setjmp(c.exit); if (code) return code; }
+ * (BLOCK_RAISED, ERR_*), which _cstepper.py turns into the same RuntimeError. */
 EXPORT int ivdrem_step_loop(const i64 *waddr, const i64 *wshape, double *P, i64 mid,
                             double *tf, double t_stop, double *x, i64 n, double *out_t,
                             double *out_y, i64 ycols, double *out_x, i64 xcols, i64 *io,
                             i64 *stats, double *ctl, double *K, double *J, double *LU,
                             i64 *piv, double *xn, double *f1, double *xg, double *D) {
-    ENTER(c, P);
+    Ctx c;
+    bind_ctx(&c, waddr, wshape, P);
+    int code = setjmp(c.exit);
+    if (code) return code;
     return step_loop(&c, mid, tf, t_stop, x, n, out_t, out_y, ycols, out_x, xcols, io, stats,
                      ctl, K, J, LU, piv, xn, f1, xg, D);
 }
 
 EXPORT int ivdrem_diagram_eval(const i64 *waddr, const i64 *wshape, double *P, i64 mode,
                                double t, double *x, double *out) {
-    ENTER(c, P);
+    Ctx c;
+    bind_ctx(&c, waddr, wshape, P);
+    int code = setjmp(c.exit);
+    if (code) return code;
     return diagram_eval(&c, mode, t, x, out);
 }
 
 EXPORT int ivdrem_diagram_jacobian(const i64 *waddr, const i64 *wshape, double *P, double t,
                                    double *x, i64 n, double *J, double *tmp) {
-    ENTER(c, P);
+    Ctx c;
+    bind_ctx(&c, waddr, wshape, P);
+    int code = setjmp(c.exit);
+    if (code) return code;
     return diagram_jacobian(&c, t, x, J, n, tmp);
 }
 
 EXPORT int ivdrem_fd_jacobian(const i64 *waddr, const i64 *wshape, double *P, double t,
                               double *x, i64 n, double *J, double *f0, double *fp, double *xp) {
-    ENTER(c, P);
+    Ctx c;
+    bind_ctx(&c, waddr, wshape, P);
+    int code = setjmp(c.exit);
+    if (code) return code;
     return fd_jacobian(&c, t, x, J, n, f0, fp, xp);
 }
 
 EXPORT int ivdrem_lowest_eigenpair(const i64 *waddr, const i64 *wshape, double *u, i64 nvec,
                                    i64 nmat, double *lam) {
-    ENTER(c, NULL);
+    Ctx c;
+    bind_ctx(&c, waddr, wshape, NULL);
+    int code = setjmp(c.exit);
+    if (code) return code;
     lam[0] = lowest_eigenpair(&c, u, nvec, nmat);
     return OK;
 }
