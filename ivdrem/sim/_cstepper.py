@@ -1,26 +1,14 @@
-"""The stepper, built from C (``stepper.c``): the one implementation of the stepping loop,
-the methods, dense output, the delay history and the max-holds, for both engines.
+"""Builds the stepper, ``stepper.c``, and binds its entry points.
 
-The compiled engine's diagram is its tables and kernel wrappers (``stepper.c``'s
-table-driven diagram functions); the reference engine's is python-control's evaluation,
-called back through a ctypes function (the workspace field ``callbacks``), as the compiled
-engine calls a Python block.  A C compiler is required; it builds the library in ~2 s once
-per version of the sources, compiler and flags.
-
-Every enumeration the C code uses (modes, statuses, method ids, stats and tf entries,
-workspace fields, table numbers and columns, Rodas5P's coefficients) is generated from the
-Python modules (:mod:`ivdrem.sim.methods`, ``_template``, ``_diagram``, :mod:`ivdrem.sim.layout`)
-into ``stepper_consts.h`` (:func:`header_source`): one source of truth.  The shared
-library is built into ``$IVDREM_CACHE_DIR`` (written under a temporary name and renamed,
-so concurrent processes never load half a file) and loaded with ctypes, the GIL held
-(Python blocks and the reference engine call back into the interpreter).
-
-:class:`CStepper` offers the stepper's functions to the engines and the tests
-(``integrate``, ``diagram_eval``, ``diagram_jacobian``, ``fd_jacobian``,
-``lowest_eigenpair``, ``hist_lookup``, ``slu_factor`` / ``slu_solve``, ``dense_factor`` /
-``dense_solve``).  A failure inside (a block kernel that raised, a work array too small, a
-max-hold matrix that is not finite) is a ``RuntimeError`` with the message of
-:data:`FAILURES` or :data:`ivdrem.sim.errors.BLOCK_RAISED_MESSAGE`.
+Every enumeration the C code uses is generated from the Python modules
+(:mod:`ivdrem.sim.methods`, ``_template``, ``_diagram``, :mod:`ivdrem.sim.layout`) into
+``stepper_consts.h`` (:func:`header_source`).  The shared library is built once per version
+of the sources, compiler and flags into ``$IVDREM_CACHE_DIR`` (written under a temporary
+name and renamed, so concurrent processes never load half a file) and loaded with ctypes,
+the GIL held (Python blocks and the reference engine call back into the interpreter).  A
+failure inside (a block kernel that raised, a work array too small, a max-hold matrix that
+is not finite) is a ``RuntimeError`` with the message of :data:`FAILURES` or
+:data:`ivdrem.sim.errors.BLOCK_RAISED_MESSAGE`.
 """
 from __future__ import annotations
 
@@ -67,15 +55,9 @@ class CStepperUnavailable(RuntimeError):
 
 def _constants(module):
     """The module's UPPER_CASE int / float / array constants, in definition order."""
-    out = {}
-    for name, v in vars(module).items():
-        if not name.isupper() or name.startswith("_"):
-            continue
-        if isinstance(v, (bool, np.bool_)):
-            continue
-        if isinstance(v, (int, np.integer, float, np.floating)) or isinstance(v, np.ndarray):
-            out[name] = v
-    return out
+    return {name: v for name, v in vars(module).items()
+            if name.isupper() and not name.startswith("_") and not isinstance(v, (bool, np.bool_))
+            and isinstance(v, (int, np.integer, float, np.floating, np.ndarray))}
 
 
 @functools.lru_cache(maxsize=1)
@@ -109,6 +91,14 @@ def header_source():
         put(name, v)
     for name, (code, _) in FAILURES.items():
         put(name, code)
+    # the workspace's fields as stepper.c's Ctx holds them, and their binding from the
+    # addresses _cstepper passes (in the layout's order)
+    ctype = {"float64": "double", "int64": "int64_t", "uint8": "uint8_t", "int32": "int32_t"}
+    lines.append("#define WORKSPACE_POINTERS " + " ".join(
+        f"{ctype[dtype]} *{name};" for name, dtype, _ in WORKSPACE_LAYOUT))
+    lines.append("#define BIND_WORKSPACE(c, addr) " + " ".join(
+        f"(c)->{name} = ({ctype[dtype]} *)(intptr_t)(addr)[{i}];"
+        for i, (name, dtype, _) in enumerate(WORKSPACE_LAYOUT)))
     for fn in (_diagram.dsyevd_lwork, _diagram.dsyevd_liwork):
         lines.append(_quadratic_c(fn))
     return "\n".join(lines) + "\n"
@@ -203,16 +193,6 @@ def load(cache):
     return _loaded[lib_path]
 
 
-def work_arrays(n):
-    """The loop's work arrays for n states: stages K, Jacobian J, factor LU, pivots, the
-    new state, the end slope and an interpolated state."""
-    K = np.empty((_template.K_ROWS, n))
-    J = np.zeros((n, n))          # a structured Jacobian writes only its pattern
-    LU = np.empty((n + 2, n))     # the factor in rows < n; the sparse LU uses the other two
-    piv = np.zeros(n, dtype=np.int64)
-    return K, J, LU, piv, np.empty(n), np.empty(n), np.empty(n)
-
-
 _DTYPES = {"float64": np.float64, "int64": np.int64, "uint8": np.uint8, "int32": np.int32}
 
 
@@ -272,8 +252,13 @@ class CStepper:
     def integrate(self, mid, tf, t_stop, x, P, W, out_t, out_y, out_x, io, stats, ctl):
         addr, shape = self._workspace(W)
         n = x.shape[0]
-        K, J, LU, piv, xn, f1, xg = work_arrays(n)
-        D = np.empty((3, n))          # Rodas5P's dense-output coefficients, once per step
+        # the loop's work arrays: stages K, Jacobian J, factor LU, pivots, the new state, the
+        # end slope, an interpolated state, Rodas5P's dense-output coefficients
+        K = np.empty((_template.K_ROWS, n))
+        J = np.zeros((n, n))          # a structured Jacobian writes only its pattern
+        LU = np.empty((n + 2, n))     # the factor in rows < n; the sparse LU uses the other two
+        piv = np.zeros(n, dtype=np.int64)
+        xn, f1, xg, D = np.empty(n), np.empty(n), np.empty(n), np.empty((3, n))
         f, i = np.float64, np.int64
         if out_y.ndim != 2 or out_x.ndim != 2:
             raise TypeError("out_y and out_x must be 2-d arrays")

@@ -1,16 +1,8 @@
-"""The layout of a diagram's tables, as the C stepper's table-driven diagram functions
-(``stepper.c``) read them: the columns of the block, delay, max-hold, fill-run and
-finite-difference tables, the parts of the workspace's scratch, and the LAPACK work
-lengths.  One source: the C header is generated from these names
-(``_cstepper.header_source``), the tables are built with them (:mod:`ivdrem.sim.tables`).
-
-A diagram is data (:class:`ivdrem.sim.tables.DiagramTables`, packed into the workspace):
-its blocks with their offsets, the evaluation order of direct feedthrough, the connection
-map as sparse rows, delays, max-holds, the diagram outputs, the Jacobian's
-finite-difference program and the static LU pattern of c I - J (:mod:`ivdrem.sim.sparse_lu`).
-The blocks' kernels are separately compiled C-callable wrappers (one per kernel and block
-shape, cached, :mod:`ivdrem.sim.compiled`), called by the addresses in the workspace field
-``kernels``; a new diagram compiles nothing beyond the kernels it is the first to use.
+"""The layout of a diagram's tables as ``stepper.c``'s table-driven diagram functions read
+them: the columns of the block, delay, max-hold, fill-run and finite-difference tables, the
+parts of the workspace's scratch, and the LAPACK work lengths.  The C header is generated
+from these names (``_cstepper.header_source``), the tables are built with them
+(:mod:`ivdrem.sim.tables`).
 """
 
 # columns of DiagramTables.blocks

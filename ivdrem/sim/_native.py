@@ -40,13 +40,9 @@ def _call_c_overload(address, args):
 def _call_c(typingctx, address, args):
     """int32 f(*args) for the C function at `address` (int64); `args` a tuple of
     int64 / uint64 / float64 values."""
-    if not isinstance(address, types.Integer):
+    if not (isinstance(address, types.Integer) and isinstance(args, types.BaseTuple)
+            and all(isinstance(a, (types.Integer, types.Float)) for a in args.types)):
         return None
-    if not isinstance(args, types.BaseTuple):
-        return None
-    for a in args.types:
-        if not isinstance(a, (types.Integer, types.Float)):
-            return None
     sig = types.int32(address, args)
 
     def codegen(context, builder, signature, llargs):
@@ -69,19 +65,14 @@ def _call_c(typingctx, address, args):
     return sig, codegen
 
 
-def _pointer_intrinsic(dtype):
-    @intrinsic
-    def to_pointer(typingctx, address):
-        if not isinstance(address, types.Integer):
-            return None
-        sig = types.CPointer(dtype)(address)
+@intrinsic
+def float_pointer(typingctx, address):
+    """A float64 pointer from an address (for numba.carray in C-callable wrappers)."""
+    if not isinstance(address, types.Integer):
+        return None
+    sig = types.CPointer(types.float64)(address)
 
-        def codegen(context, builder, signature, llargs):
-            addr64 = context.cast(builder, llargs[0], address, types.int64)
-            return builder.inttoptr(addr64, context.get_value_type(types.CPointer(dtype)))
-        return sig, codegen
-    return to_pointer
-
-
-#: a float64 pointer from an address (for numba.carray in C-callable wrappers)
-float_pointer = _pointer_intrinsic(types.float64)
+    def codegen(context, builder, signature, llargs):
+        addr64 = context.cast(builder, llargs[0], address, types.int64)
+        return builder.inttoptr(addr64, context.get_value_type(types.CPointer(types.float64)))
+    return sig, codegen

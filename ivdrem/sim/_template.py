@@ -1,25 +1,8 @@
-"""The stepper's enumerations and coefficients: the one source of what ``stepper.c`` reads
-from its generated header (``_cstepper.header_source``) and the Python side indexes by.
-
-The stepping loop itself (the methods, step-size control, dense output, the delay
-history, the max-holds, the divergence and stiffness checks) is written once, in C
-(``ivdrem/sim/stepper.c``); docs/simulation.md describes it.  Here: the modes of its
-diagram evaluation, the status codes it returns, the entries of its ``stats`` (int64) and
-``tf`` (float64) vectors, the max-hold modes, the growth-rate divergence rule and
-Rodas5P's coefficients.  The method ids come from the method registry
-(:mod:`ivdrem.sim.methods`).
-
-The workspace (:mod:`ivdrem.sim.layout`): 0 hist_t[cap], 1 hist_v[cap, nd], 2 hist_d[cap,
-nd], 3 hist_meta[int64: start, count, cap, keep_from_time_index], 4 held[nh], 5 score[nmh],
-6 ys (block outputs), 7 us (block inputs), 8 u_ext (diagram inputs at the current
-evaluation), 9 hold_dt[nmh] (sampling period of each max-hold), 10 hold_mode[int64, nmh]
-(HOLD_SKIP / HOLD_COMMIT / HOLD_PROBE at the next after-step evaluation), 11
-hold_time[nmh] (time of the last update, t_e), 12 hold_vec[nmh + 1, nmat] (eigenvector of
-lambda_min of the held matrix; the last row the candidate of the latest evaluation), 13
-probing[int64, 1] (1 while the loop probes a hold at an interpolated point: no history
-push), 14 clock[1] (time of the current after-step evaluation), 15 u_times[nut] and 16
-u_values[nut, nu_ext] (the table of the diagram inputs over time; empty while they are
-held constant); then the compiled engine's fields.
+"""The stepper's enumerations and coefficients, which ``stepper.c`` reads from its generated
+header (``_cstepper.header_source``) and the Python side indexes by: the modes of its
+diagram evaluation, its status codes, the entries of its ``stats`` (int64) and ``tf``
+(float64) vectors, the max-hold modes, the growth-rate divergence rule and Rodas5P's
+coefficients.  The method ids come from the method registry (:mod:`ivdrem.sim.methods`).
 """
 import numpy as np
 

@@ -1,26 +1,19 @@
 """Compile in a second process while this one compiles: half the kernel wrappers.
 
-The first compiled run on a machine (empty numba cache) compiles the diagram's own kernels
-and their C-callable wrappers.  numba compiles under one process-wide lock, so a thread
-cannot overlap them; a child process can.  The child (``python -m
-ivdrem.sim._warm_stepper --modules name ...``) imports, and so compiles into numba's
-cache, those generated modules, in that order, from the cache directory the parent has
-written them to (:func:`start_modules`): the parent gives it about half of the kernel
-wrappers that are not cached yet and compiles the other half itself.  (The stepper is C,
-built by the C compiler in ~2 s on a thread of the parent: no child.)
-
-The parent :meth:`Warmup.wait` s for the child before it needs the child's work, and then
-loads the machine code from the cache instead of compiling it.  Any failure of the child
-(no numba cache, another interpreter layout, a crash, a module it cannot import) only
-costs the overlap: the parent then compiles that work itself, as without this module.
-``IVDREM_COMPILE_CHILD=0`` (or the older ``IVDREM_STEPPER_PREFETCH=0``) turns it off.
+numba compiles under one process-wide lock, so a thread cannot overlap the first compiled
+run's kernels and wrappers; a child process can.  The child imports, and so compiles into
+numba's cache, the generated modules the parent has written to the cache directory and
+given it (about half of the wrappers not cached yet, :func:`start_modules`); the parent
+compiles the others, :meth:`Warmup.wait` s for the child and loads the child's work from
+the cache.  Any failure of the child only costs the overlap: the parent then compiles that
+work itself.  ``IVDREM_COMPILE_CHILD=0`` (or the older ``IVDREM_STEPPER_PREFETCH=0``) turns
+it off.
 """
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
-import time
 import types
 from pathlib import Path
 
@@ -67,13 +60,11 @@ class Warmup:
     def __init__(self, proc=None, modules=()):
         self.proc = proc
         self.modules = list(modules)
-        self.waited_s = 0.0
 
     def wait(self, limit=WAIT_LIMIT_S):
         """Wait for the child (at most `limit` seconds); True if it finished cleanly."""
         if self.proc is None:
             return False
-        t0 = time.perf_counter()
         try:
             rc = self.proc.wait(timeout=limit)
         except subprocess.TimeoutExpired:
@@ -83,7 +74,6 @@ class Warmup:
             self.cancel()               # interrupted: do not leave the child running
             raise
         finally:
-            self.waited_s = time.perf_counter() - t0
             self.proc = None
         return rc == 0
 
@@ -95,37 +85,20 @@ class Warmup:
             proc.wait()
 
 
-# what ``python -m ivdrem.sim._warm_stepper ARGS`` runs, but with this process's ivdrem first
-# on the path (-m would put the working directory first, and with it any other ivdrem
-# there); for ``--modules``, ivdrem.sim and ivdrem.blocks are bare packages: the generated
-# modules import only ivdrem.blocks._kernels and ivdrem.sim._native, and the packages' own
-# imports (python-control, SciPy, matplotlib) would cost the child ~2 s
+# the child's program: its job (:func:`_job`) with this process's ivdrem first on the path,
+# and ivdrem.sim and ivdrem.blocks bare packages: the generated modules import only
+# ivdrem.blocks._kernels and ivdrem.sim._native, and the packages' own imports
+# (python-control, SciPy, matplotlib) would cost the child ~2 s
 _BOOT = """\
 import os, sys, types
 root = sys.argv.pop(1)
 sys.path.insert(0, root)
-if sys.argv[1:2] == ["--modules"]:
-    for pkg in ("ivdrem.sim", "ivdrem.blocks"):
-        sys.modules[pkg] = types.ModuleType(pkg)
-        sys.modules[pkg].__path__ = [os.path.join(root, *pkg.split("."))]
+for pkg in ("ivdrem.sim", "ivdrem.blocks"):
+    sys.modules[pkg] = types.ModuleType(pkg)
+    sys.modules[pkg].__path__ = [os.path.join(root, *pkg.split("."))]
 from ivdrem.sim._warm_stepper import _job
 sys.exit(_job(sys.argv[1:]))
 """
-
-
-def _launch(args, modules=()) -> Warmup:
-    """The child running `args` (see :func:`_job`) on this ivdrem and cache directory."""
-    env = dict(os.environ)
-    env[_CHILD_ENV] = "1"
-    env["IVDREM_CACHE_DIR"] = str(cache_dir())
-    root = str(Path(__file__).resolve().parents[2])   # the same ivdrem in the child
-    try:
-        proc = subprocess.Popen([sys.executable, "-c", _BOOT, root, *args], env=env,
-                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)
-    except OSError:                # pragma: no cover - cannot start a process here
-        return Warmup()
-    return Warmup(proc, modules)
 
 
 def start_modules(names) -> Warmup:
@@ -133,28 +106,29 @@ def start_modules(names) -> Warmup:
     sources already written to the cache directory), unless :func:`enabled` says no."""
     if not names or not enabled():
         return Warmup()
-    return _launch(["--modules", *names], names)
+    env = dict(os.environ)
+    env[_CHILD_ENV] = "1"
+    env["IVDREM_CACHE_DIR"] = str(cache_dir())
+    root = str(Path(__file__).resolve().parents[2])   # the same ivdrem in the child
+    try:
+        proc = subprocess.Popen([sys.executable, "-c", _BOOT, root, "--modules", *names],
+                                env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+    except OSError:                # pragma: no cover - cannot start a process here
+        return Warmup()
+    return Warmup(proc, names)
 
 
-def compile_modules(names):
-    """The child's ``--modules`` job: import the modules `names`, in order, from the cache
+def _job(argv):
+    """The child's job, ``--modules name ...``: import the modules, in order, from the cache
     directory the parent has written them to (what compiled._import does, without
     importing the compiled engine)."""
+    if argv[:1] != ["--modules"]:
+        raise SystemExit("usage: the child's job is --modules NAME ...")
     import importlib.util
     cdir = cache_dir()       # the parent's, passed as IVDREM_CACHE_DIR
-    for name in names:
+    for name in argv[1:]:
         spec = importlib.util.spec_from_file_location(name, Path(cdir) / f"{name}.py")
         mod = sys.modules[name] = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(mod)
     return 0
-
-
-def _job(argv):
-    """The child's job from its command line: ``--modules name ...``."""
-    if argv[:1] != ["--modules"]:
-        raise SystemExit("usage: python -m ivdrem.sim._warm_stepper --modules NAME ...")
-    return compile_modules(argv[1:])
-
-
-if __name__ == "__main__":
-    sys.exit(_job(sys.argv[1:]))

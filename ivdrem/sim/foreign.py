@@ -1,28 +1,16 @@
 """Blocks ivdrem did not write: python-control's own systems in an ivdrem diagram.
 
-Two things the simulator needs from every block are read here for a block without an
-ivdrem declaration (``sys.ivdrem``, a :class:`~ivdrem.blocks.BlockSpec`):
-
-* **direct feedthrough** (which inputs the outputs read at the same instant; the plan
-  orders the blocks by it and finds algebraic loops with it): a ``StateSpace`` block
-  (``ct.ss``, a ``ct.tf`` that ``ct.interconnect`` has turned into one, a summing junction,
-  a gain) from the nonzero columns of D; a plain ``ct.nlsys`` from
-  :func:`declare_feedthrough` if the user declared it, else probed numerically
-  (:func:`probe_feedthrough`);
-* **kernels for the compiled engine** (:func:`adapt_block`): a StateSpace block becomes a
-  linear kernel pair with A, B, C, D as parameters (and its exact Jacobian
-  [[C, D], [A, B]]); a plain nlsys whose update/output functions numba can compile is
-  compiled (its source, with ``params["name"]`` read as a kernel parameter); any other
-  nlsys is called back into Python through a C function pointer (``call_c``) while the
-  rest of the loop stays compiled.
-
-docs/simulation.md, "Blocks ivdrem did not write", says the same for users.
+For a block without an ivdrem declaration (``sys.ivdrem``, a
+:class:`~ivdrem.blocks.BlockSpec`) this reads its direct feedthrough (:func:`direct_inputs`:
+D of a StateSpace, :func:`declare_feedthrough`, else :func:`probe_feedthrough`) and makes its
+kernels for the compiled engine (:func:`adapt_block`: linear, compiled by numba, or called
+back into Python).  docs/simulation.md, "Blocks ivdrem did not write", says the same for
+users.
 """
 from __future__ import annotations
 
 import ast
 import ctypes
-import hashlib
 import inspect
 import math
 import re
@@ -101,13 +89,6 @@ def _is_plain_nlsys(sys):
             and not isinstance(sys, (ct.InterconnectedSystem, ct.StateSpace)))
 
 
-def _output_function(sys):
-    """f(t, x, u, params) -> outputs of a plain nlsys (None: the outputs are the states)."""
-    if isinstance(sys, ct.NonlinearIOSystem) and getattr(sys, "outfcn", None) is not None:
-        return sys.outfcn
-    return None
-
-
 def probe_feedthrough(sys, params=None, *, seed=PROBE_SEED, n_points=4):
     """Input indices that move some output of a plain nlsys, found numerically.
 
@@ -119,7 +100,7 @@ def probe_feedthrough(sys, params=None, *, seed=PROBE_SEED, n_points=4):
     correct, at worst a false algebraic loop, which :func:`declare_feedthrough` fixes).
     """
     nx, nu = sys.nstates, sys.ninputs
-    fn = _output_function(sys)
+    fn = getattr(sys, "outfcn", None)      # None: the outputs are the states
     if nu == 0 or fn is None:
         return ()
     p = dict(sys.params) if params is None else dict(params)
@@ -202,11 +183,7 @@ class ForeignSpec(BlockSpec):
     error: list = field(default_factory=list)       # [(exception, t)] raised in Python
 
     def kernel_key(self, role):
-        return ("foreign", _digest(self.sources[role][1]))
-
-
-def _digest(text):
-    return hashlib.sha256(text.encode()).hexdigest()[:20]
+        return ("foreign", source_hash(self.sources[role][1]))
 
 
 def _exec_functions(src):
@@ -225,14 +202,11 @@ def _ports(sys):
 def _linear_spec(sys):
     """Kernels y = C x + D u, dx = A x + B u with the matrices as parameters; D only
     over its nonzero columns, so the declared feedthrough is exactly what the code reads."""
-    if not ct.isctime(sys) and sys.dt not in (None, 0):
-        raise ValueError(f"block '{sys.name}' is a discrete-time system (dt = {sys.dt}); "
-                         "the simulator integrates continuous-time diagrams")
     nx, nu, ny = sys.nstates, sys.ninputs, sys.noutputs
     mats = {k: np.asarray(getattr(sys, k), dtype=float).reshape(shape) for k, shape in
             (("A", (nx, nx)), ("B", (nx, nu)), ("C", (ny, nx)), ("D", (ny, nu)))}
     dcols = tuple(int(i) for i in np.flatnonzero(np.any(mats["D"] != 0.0, axis=0)))
-    tag = _digest(f"{nx},{nu},{ny},{dcols}")
+    tag = source_hash(f"{nx},{nu},{ny},{dcols}")
     dloop = (f"        for j in {dcols!r}:\n            s += D[i, j] * u[j]\n"
              if dcols else "")
     out_src = (f"def linear_output_{tag}(t, x, u, y, A, B, C, D):\n"
@@ -422,7 +396,7 @@ def _nlsys_numba_spec(sys, params):
         else:           # python-control: no output function means y = x
             body = f"    for i in range({ny}):\n        out[i] = x[i]\n"
             fsrc = ""
-        tag = _digest(fsrc + body + sig)
+        tag = source_hash(fsrc + body + sig)
         name = f"nlsys_{role}_{tag}"
         sources[role] = (name, fsrc + f"def {name}(t, x, u, out{sig}):\n" + body)
 
@@ -587,14 +561,14 @@ def adapt_block(sys, params):
     """A ForeignSpec for a block without an ivdrem declaration (see the module doc)."""
     if isinstance(sys, ct.TransferFunction):
         sys = ct.ss(sys)
-    if isinstance(sys, ct.StateSpace):
-        return _linear_spec(sys)
-    if not _is_plain_nlsys(sys):
+    if not (isinstance(sys, ct.StateSpace) or _is_plain_nlsys(sys)):
         raise TypeError(f"block '{sys.name}' is a {type(sys).__name__}; the compiled "
                         "path runs ivdrem blocks, StateSpace blocks and plain nlsys blocks")
     if not ct.isctime(sys) and sys.dt not in (None, 0):
         raise ValueError(f"block '{sys.name}' is a discrete-time system (dt = {sys.dt}); "
                          "the simulator integrates continuous-time diagrams")
+    if isinstance(sys, ct.StateSpace):
+        return _linear_spec(sys)
     params = dict(params)
     _check_returned_sizes(sys, params)
     try:

@@ -3,19 +3,21 @@ stepper indexes them, and the integer positions it is built with (``FIELD_*``, t
 diagram tables' ``DIM_*``, ``T_*``, ``TF_*``): the C stepper's generated header reads
 :func:`layout_constants`.
 
-The fields (``_template``'s docstring says what the stepping code keeps in each): the
-delay history (hist_*), the max-holds' records (held, score, hold_*), the signals (ys, us,
-u_ext), the diagram inputs' table (u_times, u_values: empty while the inputs are held at
-u_ext), and, compiled engine only, ``kernels`` the addresses of the blocks' kernel
-wrappers, ``failure`` [wrapper index, t, states] of a kernel that raised, ``table_ints`` /
-``table_floats`` the diagram as tables (:mod:`ivdrem.sim.tables`, packed; empty on the
-reference engine) and the work arrays of the diagram functions and LAPACK; ``callbacks``:
-[the address of the reference engine's diagram function (python-control through a ctypes
-callback), or 0: the diagram is the tables; the address of the report function (progress,
-pending signals; ``stepper.c``'s ``report_fn``), or 0; the address of the sampled
-blocks' sample function (``ivdrem.sim.sampled``), or 0]; ``sample_dt`` their periods and
-``sample_due`` which of them fall on the current sample time (set by the stepper before it
-calls the sample function, so the grid test is written once, in C).
+The fields: the delay history (hist_t[cap], hist_v and hist_d[cap, nd], hist_meta [start,
+count, cap, 0]); the max-holds' records (held, score; per hold its sampling period
+hold_dt, its mode at the next after-step evaluation hold_mode, the time of its last update
+hold_time, and hold_vec the eigenvector of lambda_min of its held matrix, the last row the
+latest candidate); probing (1 while the loop probes a hold at an interpolated point: no
+history push) and clock (the time of the current after-step evaluation); the signals (ys
+the block outputs, us the block inputs, u_ext the diagram inputs); the diagram inputs'
+table (u_times, u_values: empty while the inputs are held at u_ext); compiled engine only,
+``kernels`` the addresses of the blocks' kernel wrappers, ``failure`` [wrapper index, t,
+states] of a kernel that raised, ``table_ints`` / ``table_floats`` the diagram as tables
+(:mod:`ivdrem.sim.tables`, packed) and the work arrays of the diagram functions and
+LAPACK; ``callbacks`` the addresses of the reference engine's diagram function (0: the
+diagram is the tables), of the report function (``stepper.c``'s ``report_fn``) and of the
+sampled blocks' sample function (0: none); ``sample_dt`` their periods and
+``sample_due`` which of them fall on the current sample time (set by the stepper).
 """
 from __future__ import annotations
 

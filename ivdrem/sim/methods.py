@@ -1,16 +1,7 @@
-"""The integration methods: one registry that everything asking about a method reads.
-
-A method is a row of :data:`METHOD_TABLE`: its name, its dispatch id (the C stepper's
-``method_step``; the ids reach ``stepper.c`` through the
-generated header, :func:`header_lines`), the step function that implements it, its order,
-the order of its error estimate and of its dense output, whether it is adaptive (error
-controlled) or takes fixed steps ``h``, whether it is L-stable, and its default
-tolerances.  The simulator, the cost guards (:mod:`ivdrem.sim.guards`), the co-simulation
-(:mod:`ivdrem.fmu.cosim`), the command-line preflight and ``gamma = "auto"`` ask this table,
-never a method by name; the generic suite ``tests/test_methods.py`` checks every row (order
-by step refinement, order of the error estimate and of the dense output) on shared
-analytic problems.  Adding a method is its step function in ``stepper.c`` and its row
-here (docs/simulation.md, "Adding a method").
+"""The integration methods: one registry that everything asking about a method reads (the
+simulator, the cost guards, the co-simulation, the command line), never a method by name.
+Adding a method is its step function in ``stepper.c`` and its row here (docs/simulation.md,
+"Adding a method"); ``tests/test_methods.py`` checks every row.
 
 This module imports nothing of ivdrem: every other module of ``sim`` may import it.
 """
@@ -19,8 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 __all__ = ["MethodInfo", "METHOD_TABLE", "METHODS", "DEFAULT_METHOD", "STIFF_METHOD",
-           "REFERENCE_METHOD", "DEFAULT_TOLERANCES", "method_info", "method_by_id",
-           "header_lines", "RK4", "DP45", "RODAS5P", "BS23"]
+           "REFERENCE_METHOD", "DEFAULT_TOLERANCES", "method_info", "RK4", "DP45", "RODAS5P",
+           "BS23"]
 
 
 @dataclass(frozen=True)
@@ -95,20 +86,6 @@ def method_info(method) -> MethodInfo:
     return METHOD_TABLE[method]
 
 
-def method_by_id(mid) -> MethodInfo:
-    """The row of a dispatch id (every method, the internal ones too)."""
-    for m in _ROWS:
-        if m.id == mid:
-            return m
-    raise ValueError(f"no method has dispatch id {mid!r}")
-
-
 def all_methods():
     """Every row, the stepper-internal methods too (the generic suite tests them all)."""
     return _ROWS
-
-
-def header_lines():
-    """The method ids as C ``#define``s (for stepper_consts.h)."""
-    return [f"#define {m.name.upper()} {m.id}" for m in _ROWS] + \
-        [f"#define N_METHODS {len(_ROWS)}"]

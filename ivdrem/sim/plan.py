@@ -6,6 +6,7 @@ simulated exactly as python-control wires it.
 """
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,11 +29,7 @@ class SignalSizeError(ValueError):
 
 def signal_sizes(labels):
     """{base name: size} of vector signals labelled ``name[i]`` (plain labels count 1)."""
-    sizes = {}
-    for lab in labels:
-        base = lab.split("[", 1)[0]
-        sizes[base] = sizes.get(base, 0) + 1
-    return sizes
+    return Counter(lab.split("[", 1)[0] for lab in labels)
 
 
 def _signals(labels):
@@ -155,11 +152,8 @@ class DiagramPlan:
                 raise ValueError(f"x0 has {x0.size} entries, the diagram has "
                                  f"{diagram.nstates} states")
         check_signal_sizes(diagram)
-        C = np.asarray(diagram.connect_map)
-        conn = []
-        for i in range(C.shape[0]):
-            nz = np.flatnonzero(C[i])
-            conn.append([(int(j), float(C[i, j])) for j in nz])
+        conn = [[(int(j), float(row[j])) for j in np.flatnonzero(row)]
+                for row in np.asarray(diagram.connect_map)]
         plan = cls(diagram, blocks, x0, conn, [])
         plan.params = dict(params or {})
         plan._block_params = {}

@@ -1,23 +1,7 @@
-"""ivdrem's simulator: transport delays, max-holds and growing stiffness (README, "How the
-simulator works").
-
-Two engines evaluate the same diagram and run the same stepper (``stepper.c``, built by
-:mod:`ivdrem.sim._cstepper`; a C compiler is required):
-
-* ``engine="reference"``: the right-hand side is python-control's own
-  ``InterconnectedSystem`` evaluation, with the block kernels running in Python, called
-  back from the stepper;
-* ``engine="compiled"`` (default): the diagram as tables and its blocks' kernels as numba
-  C-callable wrappers (:mod:`ivdrem.sim.compiled`), cached on disk.
-
-The methods are step functions of the stepper, listed in the method registry
-(:mod:`ivdrem.sim.methods`); one loop owns step-size control, outputs, the after-step work
-and the divergence and stiffness checks.  Delay blocks are fed from a dense history of
-accepted steps (cubic Hermite); max-holds sample lambda_min on their own fixed grid from
-the dense output.  A state that becomes non-finite, exceeds ``x_limit`` or grows by orders
-of magnitude within a second stops the run with :class:`SimulationError` naming the time
-and the state.  An explicit method held back by stability rather than accuracy emits one
-:class:`StiffnessWarning`.
+"""``simulate`` and ``Simulator``, and the reference engine: python-control's evaluation of
+the diagram called back by the C stepper (``stepper.c``) that the compiled engine
+(:mod:`ivdrem.sim.compiled`) runs too.  docs/simulation.md says what a run guarantees
+(delays, max-holds, sampled blocks, divergence and stiffness, progress and Ctrl-C).
 """
 from __future__ import annotations
 
@@ -206,27 +190,23 @@ class ReferenceEngine:
 
     def install_feeds(self, W_ref):
         """Let the delay / max-hold nlsys blocks read the stepper's history and records."""
-        feeds = active_feeds()
         plan = self.plan
         lookup = self.module.hist_lookup
         for d in plan.delays:
-            spec = plan.blocks[d["block"]].spec
 
             def f(t, d=d):
                 out = np.empty(d["size"])
                 lookup(W_ref[0], t - d["T"], d["off"], d["size"], out)
                 return out
-            feeds[id(spec)] = f
-            self._feeds[id(spec)] = f
+            self._feeds[id(plan.blocks[d["block"]].spec)] = f
         for hd in plan.holds:
-            spec = plan.blocks[hd["block"]].spec
 
             def g(t, hd=hd):
                 W = W_ref[0]
                 return np.concatenate([W[4][hd["off"]:hd["off"] + hd["size"]],
                                        [W[5][hd["k"]]]])
-            feeds[id(spec)] = g
-            self._feeds[id(spec)] = g
+            self._feeds[id(plan.blocks[hd["block"]].spec)] = g
+        active_feeds().update(self._feeds)
 
     def remove_feeds(self):
         feeds = active_feeds()
@@ -325,11 +305,10 @@ class Simulator:
         if self.sampling and not info.adaptive:
             self.sampling.check_fixed_step(h)
         self.method, self.engine_name = method, engine
-        rtol_d, atol_d = info.rtol, info.atol
-        self.h = _check_positive("h", h)
-        self.rtol = _check_positive("rtol", rtol_d if rtol is None else rtol)
-        self.atol = _check_positive("atol", atol_d if atol is None else atol)
-        self.x_limit = _check_positive("x_limit", x_limit)
+        # (checked by check_solver_settings above)
+        self.h, self.x_limit = float(h), float(x_limit)
+        self.rtol = float(info.rtol if rtol is None else rtol)
+        self.atol = float(info.atol if atol is None else atol)
         self.max_steps = int(max_steps)
         T_min = min((d["T"] for d in plan.delays), default=math.inf)
         if h_max is None:
@@ -337,19 +316,13 @@ class Simulator:
             # limited only by the delays (a stage must not read the history beyond t)
             h_max = min(0.05, T_min / 4) if not info.l_stable else \
                 (T_min / 2 if plan.delays else math.inf)
-        if not (isinstance(h_max, (int, float)) and h_max == math.inf):
-            h_max = _check_positive("h_max", h_max)
         self.h_max = float(h_max)
         if plan.delays and (self.h_max >= T_min or (not info.adaptive and self.h >= T_min)):
             raise ValueError(f"the step must stay below the shortest transport delay "
                              f"T = {T_min} s (h = {self.h}, h_max = {self.h_max})")
         c0 = _time.perf_counter()
-        if engine == "reference":
-            self.engine = ReferenceEngine(plan, params)
-            self._integrate = self.engine.integrate
-        else:
-            self.engine = CompiledEngine(plan, params)
-            self._integrate = self.engine.integrate
+        self.engine = (ReferenceEngine if engine == "reference" else CompiledEngine)(plan, params)
+        self._integrate = self.engine.integrate
         self.compile_s = _time.perf_counter() - c0
         d = plan.diagram
         self.ny, self.nu = sum(b.sys.noutputs for b in plan.blocks), \
@@ -716,8 +689,7 @@ class Simulator:
         """Counters of the run; wall_s = sim_s + compile_s (kept for older callers)."""
         st = self.stats
         return {"method": self.method, "engine": self.engine_name,
-                # the stepper both engines run: "c" (stepper.c)
-                "stepper": getattr(self.engine, "stepper", "python"),
+                "stepper": self.engine.stepper,       # "c": stepper.c, for both engines
                 "steps": int(st[tpl.S_STEPS]), "rejected": int(st[tpl.S_REJECTED]),
                 "rhs_calls": int(st[tpl.S_RHS]), "jacobians": int(st[tpl.S_JAC]),
                 "factorizations": int(st[tpl.S_LU]), "hold_cuts": int(st[tpl.S_CUTS]),
@@ -747,10 +719,7 @@ def _output_times(t0, t_end, dt_out):
 def _progress_bar(enabled, t0, t_end, desc):
     if not enabled:
         return None, None
-    try:
-        from tqdm import tqdm
-    except ImportError:        # pragma: no cover - tqdm is a dependency
-        return None, None
+    from tqdm import tqdm
     bar = tqdm(total=round(t_end - t0, 6), unit="s", desc=desc, file=sys.stderr,
                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.0f} s "
                           "[{elapsed}<{remaining}]", leave=False)

@@ -58,24 +58,15 @@ typedef int32_t (*report_fn)(double t);
  * exception). */
 typedef int32_t (*sample_fn)(double t, i64 x);
 
-/* the workspace (fields in the order of WORKSPACE_LAYOUT), the parameters, the exit */
+/* the workspace: a pointer per field of WORKSPACE_LAYOUT (WORKSPACE_POINTERS, from the
+ * generated header) and the sizes the code reads; callbacks[0..2] as functions (NULL: the
+ * diagram is the tables, no progress report, no sampled block); the parameters; the exit */
 typedef struct {
-    double *hist_t; double *hist_v; double *hist_d; i64 *hist_meta; i64 nd;
-    double *held; double *score; i64 nmh;
-    double *ys; double *us; double *u_ext; i64 nue;
-    double *hold_dt; i64 *hold_mode; double *hold_time;
-    double *hold_vec; i64 hv_rows; i64 hv_cols;
-    i64 *probing; double *clock;
-    double *u_times; i64 nut; double *u_values; i64 uv_cols;
-    i64 *kernels; double *failure; i64 nfailure;
-    i64 *ti; double *tfl;
-    double *scratch; i64 nscratch;
-    i64 *lapack; uint8_t *lapack_chars; int32_t *lapack_ints; i64 nlapack_ints;
-    diagram_fn callback;     /* NULL: the diagram is the tables (compiled engine) */
-    report_fn report;        /* NULL: no progress report */
-    sample_fn sample;        /* NULL: no sampled block */
-    double *sample_dt; i64 nsd;
-    i64 *sample_due;         /* per period: on the grid at the current sample time */
+    WORKSPACE_POINTERS
+    i64 nd, nmh, nue, hv_rows, hv_cols, nut, uv_cols, nfailure, nscratch, nlapack_ints, nsd;
+    diagram_fn callback;
+    report_fn report;
+    sample_fn sample;
     double *P;
     jmp_buf exit;
 } Ctx;
@@ -89,63 +80,33 @@ static inline i64 imin(i64 a, i64 b) { return b < a ? b : a; }
 
 /* addresses and shapes ([field][2]) of the workspace arrays, from _cstepper.py */
 static void bind_ctx(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
-#define F_PTR(type, f) ((type *)(intptr_t)addr[f])
-    c->hist_t = F_PTR(double, FIELD_HIST_T);
-    c->hist_v = F_PTR(double, FIELD_HIST_V);
+    BIND_WORKSPACE(c, addr)
     c->nd = shape[2 * FIELD_HIST_V + 1];
-    c->hist_d = F_PTR(double, FIELD_HIST_D);
-    c->hist_meta = F_PTR(i64, FIELD_HIST_META);
-    c->held = F_PTR(double, FIELD_HELD);
-    c->score = F_PTR(double, FIELD_SCORE);
     c->nmh = shape[2 * FIELD_SCORE];
-    c->ys = F_PTR(double, FIELD_YS);
-    c->us = F_PTR(double, FIELD_US);
-    c->u_ext = F_PTR(double, FIELD_U_EXT);
     c->nue = shape[2 * FIELD_U_EXT];
-    c->hold_dt = F_PTR(double, FIELD_HOLD_DT);
-    c->hold_mode = F_PTR(i64, FIELD_HOLD_MODE);
-    c->hold_time = F_PTR(double, FIELD_HOLD_TIME);
-    c->hold_vec = F_PTR(double, FIELD_HOLD_VEC);
     c->hv_rows = shape[2 * FIELD_HOLD_VEC];
     c->hv_cols = shape[2 * FIELD_HOLD_VEC + 1];
-    c->probing = F_PTR(i64, FIELD_PROBING);
-    c->clock = F_PTR(double, FIELD_CLOCK);
-    c->u_times = F_PTR(double, FIELD_U_TIMES);
     c->nut = shape[2 * FIELD_U_TIMES];
-    c->u_values = F_PTR(double, FIELD_U_VALUES);
     c->uv_cols = shape[2 * FIELD_U_VALUES + 1];
-    c->kernels = F_PTR(i64, FIELD_KERNELS);
-    c->failure = F_PTR(double, FIELD_FAILURE);
     c->nfailure = shape[2 * FIELD_FAILURE];
-    c->ti = F_PTR(i64, FIELD_TABLE_INTS);
-    c->tfl = F_PTR(double, FIELD_TABLE_FLOATS);
-    c->scratch = F_PTR(double, FIELD_SCRATCH);
     c->nscratch = shape[2 * FIELD_SCRATCH];
-    c->lapack = F_PTR(i64, FIELD_LAPACK);
-    c->lapack_chars = F_PTR(uint8_t, FIELD_LAPACK_CHARS);
-    c->lapack_ints = F_PTR(int32_t, FIELD_LAPACK_INTS);
     c->nlapack_ints = shape[2 * FIELD_LAPACK_INTS];
-    c->callback = (diagram_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[0];
-    c->report = shape[2 * FIELD_CALLBACKS] > 1 ?
-        (report_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[1] : NULL;
-    c->sample = shape[2 * FIELD_CALLBACKS] > 2 ?
-        (sample_fn)(intptr_t)F_PTR(i64, FIELD_CALLBACKS)[2] : NULL;
-    c->sample_dt = F_PTR(double, FIELD_SAMPLE_DT);
+    c->callback = (diagram_fn)(intptr_t)c->callbacks[0];
+    c->report = (report_fn)(intptr_t)c->callbacks[1];
+    c->sample = (sample_fn)(intptr_t)c->callbacks[2];
     c->nsd = c->sample ? shape[2 * FIELD_SAMPLE_DT] : 0;
-    c->sample_due = F_PTR(i64, FIELD_SAMPLE_DUE);
     c->P = P;
-#undef F_PTR
 }
 
 /* ---------------------------------------------------------------- tables (ivdrem/sim/tables.py) */
 static inline ivec int_table(const Ctx *c, int f) {
-    ivec v = {c->ti + c->ti[f], c->ti[f + 1] - c->ti[f]};
+    ivec v = {c->table_ints + c->table_ints[f], c->table_ints[f + 1] - c->table_ints[f]};
     return v;
 }
 
 static inline fvec float_table(const Ctx *c, int f) {
     const i64 base = N_INT_TABLES + 1;
-    fvec v = {c->tfl + c->ti[base + f], c->ti[base + f + 1] - c->ti[base + f]};
+    fvec v = {c->table_floats + c->table_ints[base + f], c->table_ints[base + f + 1] - c->table_ints[base + f]};
     return v;
 }
 
@@ -544,14 +505,18 @@ static void jac_chain(double *F, double *S, i64 nS, ivec dst, ivec fidx, ivec sr
     for (i64 e = 0; e < j_row.n; e++) J[j_row.p[e] * n + j_col.p[e]] = S[j_slot.p[e]];
 }
 
+/* the columns c0..c1 of a block's states and inputs moved by sign * h (sign 0: restored);
+ * h relative to max(|v|, 1), the step central (the cube root of eps) or forward (its square
+ * root); the step taken, as rounded, into hh when moving forward */
 static void fd_shift(double *xb, double *ub, const double *xb0, const double *ub0, i64 nx,
-                     ivec col, i64 c0, i64 c1, double sign, double *hh) {
+                     ivec col, i64 c0, i64 c1, double sign, int central, double *hh) {
     for (i64 c = c0; c < c1; c++) {
         i64 j = col.p[c];
         double v = j < nx ? xb0[j] : ub0[j - nx];
-        double h = 6.055454452393343e-06 * pmax(fabs(v), 1.0);
-        double w = v + sign * h;
-        if (sign > 0) hh[c] = (v + h) - (v - h);
+        double h = (central ? 6.055454452393343e-06 : 1.4901161193847656e-08)
+                   * pmax(fabs(v), 1.0);
+        double w = sign != 0.0 ? v + sign * h : v;
+        if (sign > 0) hh[c] = central ? (v + h) - (v - h) : w - v;
         if (j < nx) xb[j] = w;
         else ub[j - nx] = w;
     }
@@ -564,32 +529,6 @@ static void fd_scatter(const double *yp, const double *ym, const double *hh, i64
         for (i64 e = e_ptr.p[c]; e < e_ptr.p[c + 1]; e++) {
             i64 r = e_row.p[e];
             JB[e_slot.p[e]] = (yp[r] - ym[r]) * inv;
-        }
-    }
-}
-
-static void fd_forward(double *xb, double *ub, const double *xb0, const double *ub0, i64 nx,
-                       ivec col, i64 c0, i64 c1, double on, double *hh) {
-    for (i64 c = c0; c < c1; c++) {
-        i64 j = col.p[c];
-        double v = j < nx ? xb0[j] : ub0[j - nx];
-        double w = v;
-        if (on != 0.0) {
-            w = v + 1.4901161193847656e-08 * pmax(fabs(v), 1.0);
-            hh[c] = w - v;
-        }
-        if (j < nx) xb[j] = w;
-        else ub[j - nx] = w;
-    }
-}
-
-static void fd_forward_scatter(const double *yp, const double *y0, const double *hh, i64 c0,
-                               i64 c1, ivec e_ptr, ivec e_row, ivec e_slot, double *JB) {
-    for (i64 c = c0; c < c1; c++) {
-        double inv = 1.0 / hh[c];
-        for (i64 e = e_ptr.p[c]; e < e_ptr.p[c + 1]; e++) {
-            i64 r = e_row.p[e];
-            JB[e_slot.p[e]] = (yp[r] - y0[r]) * inv;
         }
     }
 }
@@ -717,19 +656,14 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
                 w = r[FD_WUPD];
                 o0 = ny;
             }
+            fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, central, hh);
+            call_kernel(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
             if (central) {
-                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh);
-                call_kernel(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
-                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, -1.0, hh);
+                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, -1.0, central, hh);
                 call_kernel(c, wnx, w, t, xb, 0, ub, 0, ym, o0, p0);
-                fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh);
-                fd_scatter(yp, ym, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
-            } else {
-                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 1.0, hh);
-                call_kernel(c, wnx, w, t, xb, 0, ub, 0, yp, o0, p0);
-                fd_forward(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, hh);
-                fd_forward_scatter(yp, y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
             }
+            fd_shift(xb, ub, xb0, ub0, nx, fd_col, c0, c1, 0.0, central, hh);
+            fd_scatter(yp, central ? ym : y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
         }
     }
     jac_chain(F, S, nS, int_table(c, T_JAC_INS_DST), int_table(c, T_JAC_INS_F),
@@ -834,16 +768,12 @@ static double dp45_step(Ctx *c, double t, double h, const double *x, double *xn,
                             + 11.0 / 84.0 * k6[i]);
     diagram_eval(c, RHS, t + h, xn, k7);
     stats[S_RHS] += 6;
-    double s = 0.0;
-    for (i64 i = 0; i < n; i++) {
-        double e = h * (71.0 / 57600.0 * k1[i] - 71.0 / 16695.0 * k3[i] + 71.0 / 1920.0 * k4[i]
-                        - 17253.0 / 339200.0 * k5[i] + 22.0 / 525.0 * k6[i]
-                        - 1.0 / 40.0 * k7[i]);
-        double sc = atol + rtol * pmax(fabs(x[i]), fabs(xn[i]));
-        double r = e / sc;
-        s += r * r;
-    }
-    return sqrt(s / (double)n);
+    double *e = ROW(K, 8);     /* not read after the step (the stiffness test reads 5-7) */
+    for (i64 i = 0; i < n; i++)
+        e[i] = h * (71.0 / 57600.0 * k1[i] - 71.0 / 16695.0 * k3[i] + 71.0 / 1920.0 * k4[i]
+                    - 17253.0 / 339200.0 * k5[i] + 22.0 / 525.0 * k6[i]
+                    - 1.0 / 40.0 * k7[i]);
+    return err_norm(x, xn, e, n, rtol, atol);
 }
 
 static double bs23_step(Ctx *c, double t, double h, const double *x, double *xn, double *K,
