@@ -234,3 +234,25 @@ def test_an_exception_in_any_evaluation_stops_the_run_naming_the_block(engine, c
         assert isinstance(info.value.__cause__, ZeroDivisionError), n_ok
     out, err = capfd.readouterr()
     assert "Exception ignored" not in err and "Traceback" not in err, err[-2000:]
+
+
+@pytest.mark.parametrize("engine", ["compiled", "reference"])
+def test_an_exception_in_an_output_function_names_the_block(engine, capfd):
+    """A Python block whose output function raises (at t = 0, and from the n-th call on):
+    a BlockError naming the block, the exception chained, on both engines (the compiled
+    engine once looked for its workspace in the wrong argument and gave an AttributeError)."""
+    for n_ok in (0, 1, 3, 10):
+        calls = [0]
+
+        def output(t, x, u, params, calls=calls, n_ok=n_ok):
+            calls[0] += 1
+            if calls[0] > n_ok:
+                raise KeyError("boom")
+            return x
+        plant = ct.nlsys(lambda t, x, u, p: -x, output, inputs=0, outputs=1, states=1,
+                         name="bad")
+        d = ct.interconnect([plant], inplist=[], outlist=["bad.y[0]"], name="bad_output")
+        with pytest.raises(BlockError, match="block 'bad'") as info:
+            simulate(d, 1.0, initial_state=[1.0], engine=engine, progress=False)
+        assert isinstance(info.value.__cause__, KeyError), n_ok
+    assert "Exception ignored" not in capfd.readouterr().err

@@ -444,13 +444,14 @@ class Simulator:
     def _after_step_with_room(self):
         """The after-step update at the current point, growing the delay history until
         the point fits."""
-        while self.engine.after_step(self.t, self.x, self.W) == tpl.HISTORY_FULL:
+        while self._naming_blocks(self.engine.after_step, self.t, self.x, self.W) == \
+                tpl.HISTORY_FULL:
             self.W = _grow(self.W)
             self._Wref[0] = self.W
 
     def outputs_at_current(self):
         row = np.zeros(self.plan.diagram.noutputs)
-        self.engine.record(self.t, self.x, self.W, row)
+        self._naming_blocks(self.engine.record, self.t, self.x, self.W, row)
         return row
 
     def advance(self, t_to, u=None, out_t=None, out_y=None, out_x=None, progress=None):
@@ -508,14 +509,16 @@ class Simulator:
 
     def _emit_due(self, out_t, out_y, out_x, io):
         while io[0] < io[1] and out_t[io[0]] <= self.t + 1e-12 * max(1.0, abs(self.t)):
-            self.engine.record(self.t, self.x, self.W, out_y[io[0]])
+            self._naming_blocks(self.engine.record, self.t, self.x, self.W, out_y[io[0]])
             if out_x.shape[1]:
                 out_x[io[0]] = self.x
             io[0] += 1
 
-    def _run_integrate(self, *args):
+    def _naming_blocks(self, fn, *args):
+        """fn(*args) (the loop, an after-step, a record), a block's exception raised as a
+        BlockError naming the block and the time."""
         try:
-            return self._integrate(*args)
+            return fn(*args)
         except Exception as e:
             # a block's own exception inside the loop: name the block and the time
             named = self.engine.block_failure(e, self.W)
@@ -533,7 +536,7 @@ class Simulator:
         self.tf[tpl.F_T] = self.t
         if not self.info.adaptive:
             self.tf[tpl.F_H] = self.h
-        st = self._run_integrate(self.info.id, self.tf, t_stop, self.x, self.engine.P, self.W,
+        st = self._naming_blocks(self._integrate, self.info.id, self.tf, t_stop, self.x, self.engine.P, self.W,
                                  out_t, out_y, out_x, io, self.stats, self.ctl)
         self.t = float(self.tf[tpl.F_T])
         if self.stats[tpl.S_STIFF] and not self._warned_stiff:
