@@ -44,7 +44,11 @@ __all__ = ["export_controller_fmu", "generate_controller_fmu_sources", "TUNABLE"
 
 _HERE = Path(__file__).resolve().parent
 _FMI2_HEADERS = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
-SOURCE_FILES = ("fmi2_controller.c", "ivdrem_controller.c", "controller_model.c")
+SOURCE_FILES = ("fmi2_controller.c", "fmi_controller_common.c", "ivdrem_controller.c",
+                "controller_model.c")
+#: the hand-written files both wrappers share (the instance, state machine, value access,
+#: step, FMU state): shipped in sources/ and compiled with either wrapper
+_COMMON_FILES = ("fmi_controller_common.c", "fmi_controller_common.h")
 _FMI3_HEADERS = ("fmi3Functions.h", "fmi3FunctionTypes.h", "fmi3PlatformTypes.h")
 #: the sources per FMI version: the wrapper differs, the library and controller_fmu.h
 #: (value references, one table for both) are the same
@@ -239,11 +243,14 @@ def generate_controller_fmu_sources(model, law="iv-drem", *, fmi_version=2, **ga
     head = _fmu_header(model, V, mark)
     wname = _SOURCES[fmi_version][0]
     wrapper = (_HERE / wname).read_text()
-    digest = hashlib.sha256("\0".join([wrapper, xml, head, *lib.values()]).encode()).hexdigest()
+    common = {f: (_HERE / f).read_text() for f in _COMMON_FILES}
+    digest = hashlib.sha256("\0".join([wrapper, *common.values(), xml, head,
+                                       *lib.values()]).encode()).hexdigest()
     guid = "{" + str(uuid.uuid5(uuid.NAMESPACE_URL, "ivdrem-controller-fmu:" + digest)) + "}"
     files = {"modelDescription.xml": xml.replace(mark, guid),
              "sources/controller_fmu.h": head.replace(mark, guid),
              f"sources/{wname}": wrapper,
+             **{f"sources/{f}": text for f, text in common.items()},
              "documentation/index.html": _documentation(model, V, law)}
     files.update({f"sources/{k}": v for k, v in lib.items()})
     for h in (_FMI2_HEADERS if fmi_version == 2 else _FMI3_HEADERS):
