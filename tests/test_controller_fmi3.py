@@ -108,3 +108,43 @@ def test_cli_exports_the_fmi3_controller(tmp_path, capsys):
     out = tmp_path / "C3.fmu"
     assert main(["export", "--controller", "--fmi-version", "3", "-o", str(out)]) == 0
     assert read_model_description(str(out)).fmiVersion == "3.0"
+
+
+def test_fmi3_tunable_gain_after_initialization_acts_as_in_the_fmi2_fmu(fmus):
+    """K[0] and gamma (variability="tunable" in the FMI 3.0 modelDescription) set through
+    fmi3SetFloat64 between steps change the torque exactly as fmi2SetReal does in the FMI 2.0
+    FMU; h (fixed) set after initialization is refused with fmi3Error and a message."""
+    from fmpy import read_model_description
+    from fmpy.fmi1 import FMICallException
+    md = read_model_description(str(fmus[3]))
+    var = {v.name: v.variability for v in md.modelVariables}
+    assert var["K[0]"] == var["gamma"] == "tunable" and var["h"] == "fixed"
+    s3, s2, plain = _slave(fmus[3]), _slave(fmus[2]), _slave(fmus[3])
+    try:
+        vr_in = s3.refs(["q[0]", "q[1]", "dq[0]", "dq[1]"])
+        vr_out = s3.refs(["tau[0]", "tau[1]", "theta_hat[0]", "K[0]", "gamma"])
+        vr_gains = s3.refs(["K[0]", "gamma"])
+        assert vr_in == s2.refs(["q[0]", "q[1]", "dq[0]", "dq[1]"])
+        h = 1e-3
+        for k in range(400):
+            if k == 200:
+                s3.set(vr_gains, [5.0, 3e9])
+                s2.set(vr_gains, [5.0, 3e9])
+            t = k * h
+            for s in (s3, s2, plain):
+                s.set(vr_in, [0.3 * np.sin(t), 0.9 + 0.1 * t, 0.3 * np.cos(t), 0.1])
+                s.step(t, h)
+            a, b = s3.get(vr_out), s2.get(vr_out)
+            assert a == b, (k, a, b)                           # bit for bit
+        assert a[3:] == [5.0, 3e9]
+        untuned = plain.get(vr_out)
+        assert max(abs(x - y) for x, y in zip(a[:2], untuned[:2])) > 1e-3   # the gains acted
+        with pytest.raises(FMICallException):
+            s3.set(s3.refs(["h"]), [2e-3])
+        assert "fmi3SetFloat64: parameter h is fixed after initialization" in s3.messages[-1]
+        s3.fmu.reset()                                     # out of Error, so close() can
+        s3.fmu.enterInitializationMode(startTime=0.0)      # terminate it
+        s3.fmu.exitInitializationMode()
+    finally:
+        for s in (s3, s2, plain):
+            s.close()
