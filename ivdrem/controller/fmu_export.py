@@ -188,6 +188,18 @@ def _model_description3(model, V, guid, ident, law):
     return "\n".join(out)
 
 
+def _build_description3(ident):
+    """sources/buildDescription.xml: FMI 3.0 lists the sources to compile there (FMI 2.0 in
+    the modelDescription's SourceFiles), so a host can build the FMU from sources/ alone."""
+    src = "\n".join(f'      <SourceFile name="{f}"/>' for f in _SOURCES[3])
+    return "\n".join(['<?xml version="1.0" encoding="UTF-8"?>',
+                      '<fmiBuildDescription fmiVersion="3.0">',
+                      f'  <BuildConfiguration modelIdentifier="{ident}">',
+                      '    <SourceFileSet language="C99">', src, '    </SourceFileSet>',
+                      '    <Library name="m" external="true" description="libm"/>',
+                      '  </BuildConfiguration>', '</fmiBuildDescription>', ''])
+
+
 def _fmu_header(model, V, guid):
     n, nth = model.n, model.ntheta
     npar = sum(s for _, s, _ in param_layout(model))
@@ -253,6 +265,8 @@ def generate_controller_fmu_sources(model, law="iv-drem", *, fmi_version=2, **ga
              **{f"sources/{f}": text for f, text in common.items()},
              "documentation/index.html": _documentation(model, V, law)}
     files.update({f"sources/{k}": v for k, v in lib.items()})
+    if fmi_version == 3:
+        files["sources/buildDescription.xml"] = _build_description3(ident)
     for h in (_FMI2_HEADERS if fmi_version == 2 else _FMI3_HEADERS):
         files[f"sources/{h}"] = (fmi2_header_dir() / h).read_text()   # fmpy's c-code folder
     return files
