@@ -122,3 +122,33 @@ def test_controller_block_equals_the_controller_fmu_loop_over_300_s(plant_fmu, t
     r = _run(sampled_closed_loop(mu_max=135.0, delay=1)[0], a["t"], rtol=1e-9, atol=1e-11)
     assert np.max(np.abs(_signals(r, "theta_hat", NTH).T - a["theta_hat"])) <= 1e-6
     assert np.max(np.abs(_signals(r, "q", 2).T - a["q"])) <= 1e-6
+
+
+def test_cost_guard_counts_the_steps_the_sample_times_force():
+    """The 1 kHz controller block ends a step at every sample time, so ivdrem's guard prices
+    the 300 s loop at >= t_end / h = 300 000 steps (an adaptive method's own bound,
+    t_end / h_max, is 6 000), and it is counted in the run it prices: 0.2 s of the loop
+    takes at least its 200 sample steps."""
+    from ivdrem.sim.guards import check_diagram_cost, estimate_cost
+    d, _ = sampled_closed_loop(mu_max=135.0, delay=1)
+    est = check_diagram_cost(d, 300.0, allow_long=True)
+    assert est.steps_min >= 300.0 / 1e-3
+    assert "sample period" in est.step_source
+    assert estimate_cost(300.0, noutputs=d.noutputs).steps_min < 300.0 / 1e-3 / 10
+    r = _run(d, [0.0, 0.2], rtol=1e-6, atol=1e-8)
+    assert r.stats["steps"] >= check_diagram_cost(d, 0.2).steps_min == 200
+
+
+def test_a_run_whose_sample_steps_exceed_the_limit_is_refused_before_it_starts(monkeypatch):
+    """300 s at h = 1 ms is 300 000 forced steps, above the reference engine's limit of
+    100 000: simulate refuses it before any simulator is made, naming the sample period."""
+    import ivdrem.sim.simulator as simulator
+    from ivdrem.sim.guards import CostLimitError
+
+    def started(*args, **kwargs):
+        raise AssertionError("the run started")
+    monkeypatch.setattr(simulator, "Simulator", started)
+    d, _ = sampled_closed_loop(mu_max=135.0, delay=1)
+    with pytest.raises(CostLimitError, match=r"sample period = 300 / 0\.001") as e:
+        simulate(d, 300.0, engine="reference", dt_out=1.0)
+    assert "raise the sample period" in str(e.value) and "3e+05 steps" in str(e.value)
