@@ -194,3 +194,15 @@ def test_fmu_rebuilt_from_its_sources_alone_runs_as_shipped(fmus, version, tmp_p
             s.close()
     a, b = run(rebuilt), run(fmus[version])
     assert np.array_equal(a, b) and np.abs(a).max() > 0
+
+
+def test_libcosim_refuses_the_fmi3_fmu_with_its_reason(fmus, plant_fmu):
+    """The installed libcosim (0.11.2 in libcosimpy 0.0.6) has no FMI 3.0 loader
+    (docs/controller.md); the libcosim loop says so instead of crashing on the null slave.
+    When a libcosim that loads FMI 3.0 is installed this fails: then add the libcosim FMI 3
+    loop test (agreement as the FMI 2 one)."""
+    from ivdrem.controller.fmu_loop import libcosim_closed_loop
+    with pytest.raises(RuntimeError, match="Unsupported FMI version"):
+        libcosim_closed_loop(fmus[3], plant_fmu, 0.01)
+    r = libcosim_closed_loop(fmus[2], plant_fmu, 0.01, every=1)     # FMI 2.0 still loads
+    assert r["theta_hat"].shape[0] == 11
