@@ -4,6 +4,8 @@ ivdrem simulates the 1 kHz controller against the continuous plant.
 Independent checks: the FMPy loop of the same controller (the C library) around the
 plant FMU (ivdrem.controller.loop, its own fixed-step host), and ivdrem's continuous
 closed loop with the same saturated mu, which the sampled loop approaches at first order.
+The controller FMU's 300 s FMPy loop is run once (module fixture) and checked twice: against
+ivdrem's block simulation, and, with the libcosim loop, against the C library's loop.
 """
 import warnings
 
@@ -107,18 +109,85 @@ def test_gamma_auto_is_the_continuous_loops_rule():
         controller_block(gamma="big")
 
 
+@pytest.fixture(scope="module")
+def controller_fmu(tmp_path_factory):
+    from ivdrem.controller.fmu_export import export_controller_fmu
+    from ivdrem.models import two_link
+    return export_controller_fmu(two_link(), tmp_path_factory.mktemp("ctl") / "Controller.fmu",
+                                 law="iv-drem", mu_max=135.0)
+
+
+@pytest.fixture(scope="module")
+def fmpy_loop_300s(controller_fmu, plant_fmu):
+    """The controller FMU closed around the plant FMU in FMPy over 300 s of the paper
+    experiment: one run, checked against ivdrem's block simulation and the C reference."""
+    from ivdrem.controller.fmu_loop import fmpy_closed_loop
+    return fmpy_closed_loop(controller_fmu, plant_fmu, 300.0)
+
+
 @pytest.mark.slow
-def test_controller_block_equals_the_controller_fmu_loop_over_300_s(plant_fmu, tmp_path):
+def test_controller_block_equals_the_controller_fmu_loop_over_300_s(fmpy_loop_300s):
     """The issue's equivalence: ivdrem's simulation of the controller block (delay 1, as a
     Jacobi host applies the FMU's torque) against the continuous plant equals the
     controller FMU closed around the plant FMU in FMPy over 300 s of the paper experiment
     (measured 1.7e-12 on theta_hat, 2.4e-12 on q at rtol 1e-9)."""
-    from ivdrem.controller.fmu_export import export_controller_fmu
-    from ivdrem.controller.fmu_loop import fmpy_closed_loop
-    from ivdrem.models import two_link
-    ctl = export_controller_fmu(two_link(), tmp_path / "Controller.fmu", law="iv-drem",
-                                mu_max=135.0)
-    a = fmpy_closed_loop(ctl, plant_fmu, 300.0)
+    a = fmpy_loop_300s
     r = _run(sampled_closed_loop(mu_max=135.0, delay=1)[0], a["t"], rtol=1e-9, atol=1e-11)
     assert np.max(np.abs(_signals(r, "theta_hat", NTH).T - a["theta_hat"])) <= 1e-6
     assert np.max(np.abs(_signals(r, "q", 2).T - a["q"])) <= 1e-6
+
+
+@pytest.mark.slow
+def test_fmu_loops_in_fmpy_and_libcosim_equal_the_reference_over_300_s(controller_fmu,
+                                                                        plant_fmu,
+                                                                        fmpy_loop_300s):
+    """The controller FMU in FMPy and in libcosim around the plant FMU equals the C
+    library's loop (ivdrem.controller.loop, delay 1) to 1e-6 on theta_hat and q over 300 s
+    (measured about 1e-12), and the estimate ends near the arm's parameters."""
+    pytest.importorskip("libcosimpy")
+    from ivdrem.controller.clib import CController
+    from ivdrem.controller.fmu_loop import libcosim_closed_loop
+    from ivdrem.controller.loop import FmuPlant, sampled_loop
+    from ivdrem.models import TWO_LINK_THETA
+    plant = FmuPlant(plant_fmu, Q0, (0.0, 0.0), substep=1e-3)
+    try:
+        ref = sampled_loop(CController(mu_max=135.0, delay=1), plant, 300.0)
+    finally:
+        plant.close()
+    hosts = {"fmpy": fmpy_loop_300s,
+             "libcosim": libcosim_closed_loop(controller_fmu, plant_fmu, 300.0)}
+    for host, r in hosts.items():
+        assert np.abs(r["theta_hat"] - ref["theta_hat"]).max() < 1e-6, host
+        assert np.abs(r["q"] - ref["q"]).max() < 1e-6, host
+    theta = np.array(TWO_LINK_THETA)
+    assert np.linalg.norm(ref["theta_hat"][-1] - theta) < 0.1 * np.linalg.norm(theta)
+
+
+def test_cost_guard_counts_the_steps_the_sample_times_force():
+    """The 1 kHz controller block ends a step at every sample time, so ivdrem's guard prices
+    the 300 s loop at >= t_end / h = 300 000 steps (an adaptive method's own bound,
+    t_end / h_max, is 6 000), and it is counted in the run it prices: 0.2 s of the loop
+    takes at least its 200 sample steps."""
+    from ivdrem.sim.guards import check_diagram_cost, estimate_cost
+    d, _ = sampled_closed_loop(mu_max=135.0, delay=1)
+    est = check_diagram_cost(d, 300.0, allow_long=True)
+    assert est.steps_min >= 300.0 / 1e-3
+    assert "sample period" in est.step_source
+    assert estimate_cost(300.0, noutputs=d.noutputs).steps_min < 300.0 / 1e-3 / 10
+    r = _run(d, [0.0, 0.2], rtol=1e-6, atol=1e-8)
+    assert r.stats["steps"] >= check_diagram_cost(d, 0.2).steps_min == 200
+
+
+def test_a_run_whose_sample_steps_exceed_the_limit_is_refused_before_it_starts(monkeypatch):
+    """300 s at h = 1 ms is 300 000 forced steps, above the reference engine's limit of
+    100 000: simulate refuses it before any simulator is made, naming the sample period."""
+    import ivdrem.sim.simulator as simulator
+    from ivdrem.sim.guards import CostLimitError
+
+    def started(*args, **kwargs):
+        raise AssertionError("the run started")
+    monkeypatch.setattr(simulator, "Simulator", started)
+    d, _ = sampled_closed_loop(mu_max=135.0, delay=1)
+    with pytest.raises(CostLimitError, match=r"sample period = 300 / 0\.001") as e:
+        simulate(d, 300.0, engine="reference", dt_out=1.0)
+    assert "raise the sample period" in str(e.value) and "3e+05 steps" in str(e.value)

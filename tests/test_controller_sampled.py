@@ -4,7 +4,8 @@ Independent checks: the continuous closed loop of ivdrem (same saturated mu) tha
 sampled loop converges to at first order in h; the paper's conclusions C1-C3 on the
 sampled loop (ivdrem.experiments.metrics); the C library against the Python reference
 (two implementations of the same algorithm, one with LAPACK's SVD and one with a Jacobi
-SVD); the FMU loop in two FMI hosts (FMPy, libcosim) against the Python reference.
+SVD); the FMU loop in two FMI hosts (FMPy, libcosim) against the Python reference (the
+300 s run of both hosts is in tests/test_controller_block.py, which shares its FMPy run).
 """
 import math
 
@@ -116,7 +117,7 @@ def test_sampled_loop_converges_to_the_continuous_loop_at_first_order(plant_fmu)
     approach ivdrem's continuous closed loop with the same saturated mu like O(h)."""
     from ivdrem.controller.continuous import continuous_closed_loop
     from ivdrem.sim import simulate
-    t_end = 3.0
+    t_end = 1.0     # measured: errors 1.55e-3, 7.73e-4, 3.86e-4; orders 1.004, 1.002
     r = simulate(continuous_closed_loop("iv-drem", mu_max=135.0), t_end, dt_out=0.5,
                  rtol=1e-9, atol=1e-11, h_max=0.01)
     lab = list(r.output_labels)
@@ -131,18 +132,30 @@ def test_sampled_loop_converges_to_the_continuous_loop_at_first_order(plant_fmu)
     assert errs[0] < 0.01
 
 
+@pytest.fixture(scope="module")
+def c_loop_300s(plant_fmu):
+    """c_loop_300s(law): the 1 kHz loop (C library, delay 0, mu_max = 135) over 300 s of
+    the paper experiment, recorded every 0.1 s and at 300 s; each law's run made once for
+    the tests that read it (C1-C3, theta_hat(300 s) against the continuous loop)."""
+    from ivdrem.controller.clib import CController
+    runs = {}
+
+    def run(law="iv-drem"):
+        if law not in runs:
+            runs[law] = _loop(CController(law=law, mu_max=135.0), plant_fmu, 300.0, every=100)
+        return runs[law]
+    return run
+
+
 @pytest.mark.slow
-def test_sampled_loop_keeps_the_conclusions_c1_c3(plant_fmu):
+def test_sampled_loop_keeps_the_conclusions_c1_c3(c_loop_300s):
     """The 1 kHz loop (C library, 300 s of the paper experiment, mu_max = 135): C1-C3 of
     ivdrem.experiments.metrics hold."""
-    from ivdrem.controller.clib import CController
     from ivdrem.controller.loop import as_response
     from ivdrem.experiments.metrics import conclusions
     from ivdrem.experiments.paper import LawRun, PaperRun
-    runs = {}
-    for law in ("iv-drem", "composite-learning"):
-        rec = _loop(CController(law=law, mu_max=135.0), plant_fmu, 300.0, every=100)
-        runs[law] = LawRun(law, as_response(rec), {})
+    runs = {law: LawRun(law, as_response(c_loop_300s(law)), {})
+            for law in ("iv-drem", "composite-learning")}
     got = {c["id"]: c for c in conclusions(PaperRun({}, THETA, None, runs))}
     for cid in ("C1", "C2", "C3"):
         assert got[cid]["verdict"] is True, got[cid]
@@ -245,27 +258,14 @@ def test_controller_fmu_state_restore_mid_run_bit_for_bit(controller_fmu, tmp_pa
 
 def test_fmu_loop_in_fmpy_equals_the_python_reference(controller_fmu, plant_fmu):
     """Controller FMU + plant FMU in FMPy (Jacobi) = Python reference with delay 1, over
-    30 s (the 20 s window wraps)."""
+    5 s with the window T set to 2 s at initialization (it wraps twice); the 300 s run of
+    the default 20 s window is tests/test_controller_block.py's."""
     from ivdrem.controller.fmu_loop import fmpy_closed_loop
-    a = fmpy_closed_loop(controller_fmu, plant_fmu, 30.0)
-    b = _loop(SampledController(mu_max=135.0, delay=1), plant_fmu, 30.0)
+    a = fmpy_closed_loop(controller_fmu, plant_fmu, 5.0, controller_start={"T": 2.0})
+    b = _loop(SampledController(mu_max=135.0, delay=1, T=2.0), plant_fmu, 5.0)
     assert np.abs(a["theta_hat"] - b["theta_hat"]).max() < 1e-9
     assert np.abs(a["q"] - b["q"]).max() < 1e-9
-    assert np.abs(b["theta_hat"][-1]).max() > 0.5
-
-
-@pytest.mark.slow
-def test_fmu_loops_in_fmpy_and_libcosim_equal_the_reference_over_300_s(controller_fmu,
-                                                                        plant_fmu):
-    pytest.importorskip("libcosimpy")
-    from ivdrem.controller.clib import CController
-    from ivdrem.controller.fmu_loop import fmpy_closed_loop, libcosim_closed_loop
-    ref = _loop(CController(mu_max=135.0, delay=1), plant_fmu, 300.0)
-    for host in (fmpy_closed_loop, libcosim_closed_loop):
-        r = host(controller_fmu, plant_fmu, 300.0)
-        assert np.abs(r["theta_hat"] - ref["theta_hat"]).max() < 1e-6, host.__name__
-        assert np.abs(r["q"] - ref["q"]).max() < 1e-6, host.__name__
-    assert np.linalg.norm(ref["theta_hat"][-1] - THETA) < 0.1 * np.linalg.norm(THETA)
+    assert np.abs(b["theta_hat"][-1] - b["theta_hat"][0]).max() > 0.1     # it adapts
 
 
 def test_cli_exports_the_controller_fmu(tmp_path, capsys):
@@ -379,7 +379,7 @@ int main(void) {
 
 
 @pytest.mark.slow
-def test_sampled_loop_against_the_continuous_loop_over_300_s(plant_fmu):
+def test_sampled_loop_against_the_continuous_loop_over_300_s(plant_fmu, c_loop_300s):
     """theta_hat(300 s) of the 1 kHz loop (C library) against ivdrem's continuous loop with
     the same saturated mu: within the issue's 1e-3 (measured 4.7e-6 at h = 1 ms), and half
     that at 0.5 ms (first order)."""
@@ -390,8 +390,8 @@ def test_sampled_loop_against_the_continuous_loop_over_300_s(plant_fmu):
                  rtol=1e-7, atol=1e-9, h_max=0.5)
     lab = list(r.output_labels)
     th = r.outputs[[lab.index(f"theta_hat[{j}]") for j in range(5)], -1]
-    errs = [np.abs(_loop(CController(mu_max=135.0, h=h), plant_fmu, 300.0,
-                         every=10 ** 6)["theta_hat"][-1] - th).max() for h in (1e-3, 5e-4)]
+    half = _loop(CController(mu_max=135.0, h=5e-4), plant_fmu, 300.0, every=10 ** 6)
+    errs = [np.abs(rec["theta_hat"][-1] - th).max() for rec in (c_loop_300s(), half)]
     assert errs[0] < 1e-3
     assert 1.7 < errs[0] / errs[1] < 2.3, errs
 

@@ -44,7 +44,11 @@ __all__ = ["export_controller_fmu", "generate_controller_fmu_sources", "TUNABLE"
 
 _HERE = Path(__file__).resolve().parent
 _FMI2_HEADERS = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
-SOURCE_FILES = ("fmi2_controller.c", "ivdrem_controller.c", "controller_model.c")
+SOURCE_FILES = ("fmi2_controller.c", "fmi_controller_common.c", "ivdrem_controller.c",
+                "controller_model.c")
+#: the hand-written files both wrappers share (the instance, state machine, value access,
+#: step, FMU state): shipped in sources/ and compiled with either wrapper
+_COMMON_FILES = ("fmi_controller_common.c", "fmi_controller_common.h")
 _FMI3_HEADERS = ("fmi3Functions.h", "fmi3FunctionTypes.h", "fmi3PlatformTypes.h")
 #: the sources per FMI version: the wrapper differs, the library and controller_fmu.h
 #: (value references, one table for both) are the same
@@ -184,6 +188,18 @@ def _model_description3(model, V, guid, ident, law):
     return "\n".join(out)
 
 
+def _build_description3(ident):
+    """sources/buildDescription.xml: FMI 3.0 lists the sources to compile there (FMI 2.0 in
+    the modelDescription's SourceFiles), so a host can build the FMU from sources/ alone."""
+    src = "\n".join(f'      <SourceFile name="{f}"/>' for f in _SOURCES[3])
+    return "\n".join(['<?xml version="1.0" encoding="UTF-8"?>',
+                      '<fmiBuildDescription fmiVersion="3.0">',
+                      f'  <BuildConfiguration modelIdentifier="{ident}">',
+                      '    <SourceFileSet language="C99">', src, '    </SourceFileSet>',
+                      '    <Library name="m" external="true" description="libm"/>',
+                      '  </BuildConfiguration>', '</fmiBuildDescription>', ''])
+
+
 def _fmu_header(model, V, guid):
     n, nth = model.n, model.ntheta
     npar = sum(s for _, s, _ in param_layout(model))
@@ -239,13 +255,18 @@ def generate_controller_fmu_sources(model, law="iv-drem", *, fmi_version=2, **ga
     head = _fmu_header(model, V, mark)
     wname = _SOURCES[fmi_version][0]
     wrapper = (_HERE / wname).read_text()
-    digest = hashlib.sha256("\0".join([wrapper, xml, head, *lib.values()]).encode()).hexdigest()
+    common = {f: (_HERE / f).read_text() for f in _COMMON_FILES}
+    digest = hashlib.sha256("\0".join([wrapper, *common.values(), xml, head,
+                                       *lib.values()]).encode()).hexdigest()
     guid = "{" + str(uuid.uuid5(uuid.NAMESPACE_URL, "ivdrem-controller-fmu:" + digest)) + "}"
     files = {"modelDescription.xml": xml.replace(mark, guid),
              "sources/controller_fmu.h": head.replace(mark, guid),
              f"sources/{wname}": wrapper,
+             **{f"sources/{f}": text for f, text in common.items()},
              "documentation/index.html": _documentation(model, V, law)}
     files.update({f"sources/{k}": v for k, v in lib.items()})
+    if fmi_version == 3:
+        files["sources/buildDescription.xml"] = _build_description3(ident)
     for h in (_FMI2_HEADERS if fmi_version == 2 else _FMI3_HEADERS):
         files[f"sources/{h}"] = (fmi2_header_dir() / h).read_text()   # fmpy's c-code folder
     return files

@@ -133,9 +133,8 @@ def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0
         raise ValueError(f"libcosim steps in whole nanoseconds; h = {h} is not")
     log_output_level(CosimLogLevel.ERROR)        # libcosim logs every FMU load at debug
     ex = CosimExecution.from_step_size(step_ns)
-    ip = ex.add_local_slave(CosimLocalSlave(fmu_path=str(plant_fmu), instance_name="plant"))
-    ic = ex.add_local_slave(CosimLocalSlave(fmu_path=str(controller_fmu),
-                                            instance_name="controller"))
+    ip = ex.add_local_slave(_local_slave(CosimLocalSlave, plant_fmu, "plant"))
+    ic = ex.add_local_slave(_local_slave(CosimLocalSlave, controller_fmu, "controller"))
     for i in range(n):
         ex.real_initial_value(ip, vr_p[f"q[{i}]"], float(q0[i]))
         ex.real_initial_value(ip, vr_p[f"dq[{i}]"], float(dq0[i]))
@@ -145,6 +144,17 @@ def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0
     start = np.concatenate([np.asarray(q0, float), np.asarray(dq0, float)])
     return run_libcosim(ex, ip, ic, vr_p, vr_c, n, nth, steps, h, every, disturbance,
                         start=start)
+
+
+def _local_slave(CosimLocalSlave, path, name):
+    """libcosim's slave of the FMU at `path`, or a RuntimeError with libcosim's reason: for
+    an FMU it cannot load (an FMI 3.0 one with libcosim 0.11, docs/controller.md) it returns
+    a null slave, which libcosimpy passes on and add_local_slave crashes the process on."""
+    from libcosimpy._internal import get_last_error_message
+    slave = CosimLocalSlave(fmu_path=str(path), instance_name=name)
+    if not slave.ptr():
+        raise RuntimeError(f"libcosim cannot load the FMU {path}: {get_last_error_message()}")
+    return slave
 
 
 def run_libcosim(ex, ip, ic, vr_p, vr_c, n, nth, steps, h, every, disturbance, *,

@@ -177,10 +177,13 @@ def check_bounds(*, h_max=None, dt_out=None) -> None:
 
 
 def estimate_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, h=1e-3, h_max=None,
-                  dt_out=0.01, return_states=True, samples=None) -> CostEstimate:
+                  dt_out=0.01, return_states=True, samples=None,
+                  sample_period=None) -> CostEstimate:
     """What simulating ``t_end`` seconds costs at least (see the module docstring);
-    ``samples``: the number of output times when they are given as an array.  An unknown
-    method is a ValueError naming the valid ones."""
+    ``samples``: the number of output times when they are given as an array;
+    ``sample_period``: the shortest period of the diagram's sampled blocks, each of whose
+    sample times ends a step (:mod:`ivdrem.sim.sampled`), so at least ``t_end / period``
+    steps whatever the method.  An unknown method is a ValueError naming the valid ones."""
     info = method_info(method)
     t_end = float(t_end)
     dt_out = min(_positive(dt_out) or t_end, t_end)
@@ -198,6 +201,11 @@ def estimate_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, h=1e-3, 
         src = f"t_end / h = {t_end:g} / {step:g} rounded up: fixed-step {info.name}"
     else:
         steps, src = t_end / step, f"t_end / {name} = {t_end:g} / {step:g}"
+    period = _positive(sample_period)
+    if period is not None and math.ceil(t_end / period - 1e-9) > steps:
+        steps = float(math.ceil(t_end / period - 1e-9))
+        src = (f"t_end / sample period = {t_end:g} / {period:g}: a sampled block forces a "
+               "step at every sample time")
     return CostEstimate(t_end, float(samples), columns, float(samples) * columns * 8.0,
                         steps, src)
 
@@ -210,7 +218,7 @@ def _step_name(info) -> str:
 def check_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, engine="compiled", h=1e-3,
                h_max=None, dt_out=0.01, return_states=True, max_steps=None,
                allow_long=False, max_bytes=None, max_steps_estimate=None,
-               what="the run", samples=None) -> CostEstimate:
+               what="the run", samples=None, sample_period=None) -> CostEstimate:
     """Refuse a run that is certain to be too big or too long, before it starts.
 
     Raises ValueError (bounds of ``h_max``/``dt_out``) or :class:`CostLimitError`; returns
@@ -220,12 +228,15 @@ def check_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, engine="com
     check_bounds(h_max=h_max, dt_out=dt_out)
     est = estimate_cost(t_end, noutputs=noutputs, nstates=nstates, method=method, h=h,
                         h_max=h_max, dt_out=dt_out, return_states=return_states,
-                        samples=samples)
+                        samples=samples, sample_period=sample_period)
     info = method_info(method)
+    # what sets the step count: the method's step, or the sample times it must stop at
+    knob = "the sample period" if est.step_source.startswith("t_end / sample period") \
+        else _step_name(info)
     if info.adaptive and max_steps is not None and est.steps_min > max_steps:
         raise CostLimitError(
             f"{what} cannot finish: it needs at least {est.steps_min:.3g} steps "
-            f"({est.step_source}), more than max_steps = {int(max_steps)}; raise h_max "
+            f"({est.step_source}), more than max_steps = {int(max_steps)}; raise {knob} "
             f"or shorten t_end")
     if allow_long:
         return est
@@ -242,11 +253,15 @@ def check_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, engine="com
         raise CostLimitError(
             f"{what} needs at least {est.steps_min:.3g} steps ({est.step_source}), above "
             f"the limit of {limit_s:.3g} steps for the {engine} engine: raise "
-            f"{_step_name(info)}, shorten t_end, or allow it with "
+            f"{knob}, shorten t_end, or allow it with "
             f"allow_long=True (command line: --allow-long)")
     return est
 
 
 def check_diagram_cost(diagram, t_end, **kwargs) -> CostEstimate:
-    """:func:`check_cost` with the output and state counts of a closed diagram."""
-    return check_cost(t_end, noutputs=diagram.noutputs, nstates=diagram.nstates, **kwargs)
+    """:func:`check_cost` with the output and state counts of a closed diagram and the
+    shortest period of its sampled blocks (discrete-time blocks or their stand-ins)."""
+    from .sampled import sample_period
+    periods = [p for p in map(sample_period, getattr(diagram, "syslist", ())) if p > 0]
+    return check_cost(t_end, noutputs=diagram.noutputs, nstates=diagram.nstates,
+                      sample_period=min(periods, default=None), **kwargs)
