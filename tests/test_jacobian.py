@@ -463,3 +463,77 @@ def test_block_jacobian_kernels_match_their_own_differences(case):
     want |= ({"composite_learning_term"} if case.endswith("composite-learning")
              else {"mixing", "drem_term", "instrument"})
     assert want <= seen, f"blocks without their analytic Jacobian: {sorted(want - seen)}"
+
+
+# ------------------------------------------- the probe's numba-compiled kernels
+def _python_only(i):
+    return i
+
+
+def _fallback_update(t, x, u, dx):
+    # a model-free kernel numba cannot compile (it calls a plain Python function): probed
+    # in Python instead
+    for i in range(x.shape[0]):
+        dx[i] = -x[i] + u[_python_only(i)]
+
+
+def _fallback_output(t, x, u, y):
+    for i in range(x.shape[0]):
+        y[i] = x[i]
+
+
+@pytest.mark.parametrize("arm, mixing", [("two-link", "eigen"),
+                                         pytest.param("planar-3", "paper", marks=pytest.mark.slow)])
+def test_compiled_probe_gives_the_python_probes_pattern(monkeypatch, arm, mixing):
+    """The large model-free blocks of a real arm's loop (window integrator, averaging,
+    mixing) are probed with numba-compiled kernels: on a small loop, with these blocks
+    made 'large', the compiled probe finds exactly the Python probe's entries."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import planar_arm
+    from ivdrem.sim import jacobian as jac
+    from ivdrem.sim.compiled import _check_kernels
+    from ivdrem.sim.plan import DiagramPlan
+    from ivdrem.blocks._core import kernel_args
+    if arm == "two-link":
+        loop = closed_loop("iv-drem", mixing=mixing, gamma=1.0)
+    else:
+        ones = np.ones(3)
+        traj = dict(amplitude=0.5 * ones, omega=[1.0, 0.7, 0.4], phase=0 * ones,
+                    offset=0.2 * ones)
+        dist = dict(amplitude=[2.0, 1.0, 0.5], omega=[0.5, 0.3, 0.2], phase=0 * ones,
+                    offset=0 * ones)
+        loop = closed_loop("iv-drem", model=planar_arm(3), trajectory=traj,
+                           disturbance=dist, mixing=mixing, gamma=1.0)
+    plan = DiagramPlan.from_diagram(loop)
+    _check_kernels(plan)
+    names = {"window_integrator", "averaging", "mixing"}
+    seen = set()
+    for b in plan.blocks:
+        if b.sys.name not in names:
+            continue
+        args = kernel_args(b.spec, plan.block_params(b))
+        sizes = (b.sys.nstates, b.sys.ninputs, b.sys.noutputs)
+        monkeypatch.setattr(jac, "PROBE_COMPILE_WORK", 10 ** 18)
+        python = jac.block_pattern(b.spec, args, *sizes, seed=b.index)
+        assert not hasattr(jac._probe_kernels(b.spec, args, *sizes)[0], "py_func")
+        monkeypatch.setattr(jac, "PROBE_COMPILE_WORK", 0)
+        assert hasattr(jac._probe_kernels(b.spec, args, *sizes)[0], "py_func")  # numba's
+        compiled = jac.block_pattern(b.spec, args, *sizes, seed=b.index)
+        assert python is not None and python.any()
+        assert np.array_equal(compiled, python), b.sys.name
+        seen.add(b.sys.name)
+    assert seen == names
+
+
+def test_probe_falls_back_to_python_for_kernels_numba_refuses(monkeypatch):
+    from ivdrem.sim import jacobian as jac
+    spec = BlockSpec("fallback", [("u", 3)], [("y", 3)], [("x", 3)], np.zeros(3),
+                     param_names=(), update=_fallback_update, output=_fallback_output)
+    monkeypatch.setattr(jac, "PROBE_COMPILE_WORK", 0)
+    out, upd = jac._probe_kernels(spec, [], 3, 3, 3)
+    assert out is _fallback_output and upd is _fallback_update
+    pat = jac.block_pattern(spec, [], 3, 3, 3)
+    expect = np.zeros((6, 6), dtype=bool)
+    expect[:3, :3] = np.eye(3, dtype=bool)               # y = x
+    expect[3:, :3] = expect[3:, 3:] = np.eye(3, dtype=bool)   # dx = -x + u
+    assert np.array_equal(pat, expect)

@@ -29,8 +29,9 @@ and finally df_b/dx = df_b/dx_b E_b + df_b/du_b du_b/dx (E_b selects the block's
 Transport-delay outputs come from the history at t - T and max-hold outputs are held
 values, so both are constants here (their rows of dy/dx are empty).
 
-Sparsity is fixed when the diagram's tables are built: each block's kernels are probed in Python at
-a few random points (random states, inputs and parameter values, so that a gain that is 0
+Sparsity is fixed when the diagram's tables are built: each block's kernels are probed
+(in Python, or compiled by numba for a large block without a robot model) at a few random
+points (random states, inputs and parameter values, so that a gain that is 0
 today, or a diagonal matrix parameter, does not hide an entry once it changes; parameter
 values are not part of the compiled code).  An entry is structural when a difference of
 the kernel's output is not exactly zero at any probe.  The Jacobian then only
@@ -107,6 +108,39 @@ def cached_block_pattern(spec, args, nx, nu, ny, *, seed=0):
     return None if pat is None else pat.copy()
 
 
+#: probe work, in (kernel calls per probe point) x (values each call writes), above which
+#: a block's kernels are compiled by numba for the probe: the probe calls them 2 (nx + nu)
+#: times per point, so its Python cost grows as the square of a block that writes what it
+#: reads (the UR5 loop's window integrator, nx + nu = 3996: 72-130 s in Python, 2-10 s
+#: compiled and run).  A compile costs 1 s or more: the UR5's eigen mixing (38 outputs of
+#: 1332 inputs, below the bound) probes in 6-8 s in Python and took 15 s compiled
+PROBE_COMPILE_WORK = 1_000_000
+
+
+def _probe_kernels(spec, args, nx, nu, ny):
+    """(output, update) kernels for the probe: numba-compiled for a large library block
+    without a robot model (the same kernel: its differences are exactly zero where the
+    Python kernel's are, entry by entry on the UR5's and the planar loops' blocks), the
+    Python kernels otherwise or if numba refuses them."""
+    upd = bind_model(spec.update, spec.model) if nx else None
+    out = bind_model(spec.output, spec.model)
+    if (spec.model is not None or isinstance(spec, ForeignSpec)
+            or (nx + nu) * (nx + ny) < PROBE_COMPILE_WORK):
+        return out, upd
+    try:
+        from numba import njit
+        jout = njit(out)
+        jupd = njit(upd) if upd is not None else None
+        x, u, yf = np.full(nx, 0.5), np.full(nu, 0.5), np.zeros(ny + nx)
+        with np.errstate(all="ignore"):
+            jout(0.7315, x, u, yf[:ny], *args)      # compiles for these argument types
+            if jupd is not None:
+                jupd(0.7315, x, u, yf[ny:], *args)
+    except Exception:           # numba cannot compile it (or it raised here): Python probe
+        return out, upd
+    return jout, jupd
+
+
 def block_pattern(spec, args, nx, nu, ny, *, seed=0, n_points=3):
     """Structural nonzeros of a block's local Jacobian, probed from its kernels.
 
@@ -116,8 +150,7 @@ def block_pattern(spec, args, nx, nu, ny, *, seed=0, n_points=3):
     it as dense within its declaration (correct, only slower), and the run itself reports
     the model's error.
     """
-    upd = bind_model(spec.update, spec.model) if nx else None
-    out = bind_model(spec.output, spec.model)
+    out, upd = _probe_kernels(spec, args, nx, nu, ny)
     rng = np.random.default_rng(seed)
     pat = np.zeros((ny + nx, nx + nu), dtype=bool)
     t = 0.7315
