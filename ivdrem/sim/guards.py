@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass
 
 from .methods import DEFAULT_METHOD, method_info
+from .sampled import sample_period
 
 __all__ = ["CostLimitError", "CostEstimate", "estimate_cost", "check_cost",
            "check_bounds", "MAX_OUTPUT_BYTES", "MAX_STEPS", "H_MAX_MIN", "DT_OUT_MIN",
@@ -261,7 +262,6 @@ def check_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, engine="com
 def check_diagram_cost(diagram, t_end, **kwargs) -> CostEstimate:
     """:func:`check_cost` with the output and state counts of a closed diagram and the
     shortest period of its sampled blocks (discrete-time blocks or their stand-ins)."""
-    from .sampled import sample_period
     periods = [p for p in map(sample_period, getattr(diagram, "syslist", ())) if p > 0]
     return check_cost(t_end, noutputs=diagram.noutputs, nstates=diagram.nstates,
                       sample_period=min(periods, default=None), **kwargs)
