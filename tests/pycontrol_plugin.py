@@ -19,7 +19,8 @@ functions that made it.
 Every test starts from the same state whatever ran before it and on whichever engine
 (:func:`_fresh_state`): python-control's tests draw random systems from numpy's global
 generator (``ct.rss``), unseeded, and its plotting functions draw on the current figure
-(``phase_plane_plot`` takes its streamline bounds from the lines already on it).
+(``phase_plane_plot`` takes its streamline bounds from the lines already on it); a module
+importing draws from a seed of its own too.
 """
 from __future__ import annotations
 
@@ -172,6 +173,17 @@ def _fresh_state(nodeid):
     ct.reset_defaults()
     import matplotlib.pyplot as plt
     plt.close("all")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector):
+    # a test module may draw random systems when it is imported (timeplot_test's
+    # parametrize list calls ct.rss): the same seed for it whichever modules came before
+    if isinstance(collector, pytest.Module):
+        seed = zlib.crc32(collector.nodeid.encode())
+        np.random.seed(seed)
+        random.seed(seed)
+    yield
 
 
 @pytest.hookimpl(hookwrapper=True)
