@@ -11,7 +11,14 @@ minutes per engine), on both engines, and checks the list against the whole file
 
 Numerical agreement: every call of a test is also run on python-control, and the outputs
 and states must agree within a multiple of the tolerances the call asked for (both
-solvers' global errors are of that order; a wrong formula would be far outside).
+solvers' global errors are of that order; a wrong formula would be far outside).  A call
+beyond that bound whose own answer is not determined to it (python-control's response moves
+by more than the bound when the initial state moves by 1e-3 of the tolerance) is not
+judged; the only such calls are phase_plane_plot's separatrices of a stable node along its
+slow direction (test_ill_conditioned_separatrix_is_set_apart).
+
+Every test runs from the same state (tests/pycontrol_plugin.py: its own random seed,
+python-control's defaults, no open figure), so two runs give the same table and numbers.
 """
 from __future__ import annotations
 
@@ -26,6 +33,7 @@ import pytest
 import control as ct
 
 from ivdrem import pycontrol as pc
+import pycontrol_plugin as plugin
 
 HERE = Path(__file__).resolve().parent
 CT_TESTS = Path(ct.__file__).resolve().parent / "tests"
@@ -89,6 +97,7 @@ def _run(engine, targets, tmp_path, name):
     ini.write_text("[pytest]\n")      # not ivdrem's pyproject.toml (its pythonpath)
     env = dict(os.environ, IVDREM_PYCONTROL_ENGINE=engine,
                IVDREM_PYCONTROL_REPORT=str(report), MPLBACKEND="Agg",
+               IVDREM_PYCONTROL_AGREEMENT=str(AGREEMENT),
                PYTHONPATH=os.pathsep.join([str(HERE.parent), str(HERE)]))
     cmd = [sys.executable, "-m", "pytest", "-c", str(ini), "-p", "pycontrol_plugin",
            "-p", "no:cacheprovider", "-q", "--rootdir", str(CT_TESTS), "-W",
@@ -170,6 +179,13 @@ def test_python_control_tests_pass_on_ivdrem(engine, tmp_path):
     print(f"  {len(diffs)} calls compared; largest difference {worst[0]:.3g} "
           f"(atol + rtol |y|) in {worst[1]}")
     assert worst[0] <= AGREEMENT, worst
+    # the calls set apart as ill-conditioned: only the kind documented
+    apart = [(c["diff"], c["self"], i) for i in ok for c in mine[i]["ill_conditioned"]]
+    print(f"  {len(apart)} ill-conditioned calls set apart"
+          + (f" (largest difference {max(apart)[0]:.3g}, python-control against itself "
+             f"{max(a[1] for a in apart):.3g})" if apart else ""))
+    assert all("separatrices" in c["callers"] for i in ok
+               for c in mine[i]["ill_conditioned"]), apart
 
 
 @pytest.mark.skipif(not FULL, reason="the whole test files: IVDREM_PYCONTROL_FULL=1")
@@ -296,3 +312,35 @@ def test_installed_replaces_every_binding_and_restores_them():
     assert ct.input_output_response is pc.PYTHON_CONTROL_SIMULATOR
     assert nlsys_module.input_output_response is pc.PYTHON_CONTROL_SIMULATOR
     assert not hasattr(ct.forced_response(plant, T, 1.0), "stats")
+
+
+def test_ill_conditioned_separatrix_is_set_apart(monkeypatch):
+    # a stable node with eigenvalues -0.65 and -10 (eigenvectors not along the axes, so
+    # rounding puts some fast mode in the initial state): the separatrix along the slow
+    # direction is flown backwards for log(2 / 0.1) / 0.65 = 4.6 s, where the fast mode
+    # grows by exp(46); along the fast direction for 0.3 s, well-conditioned
+    V = np.array([[1.0, 1.0], [0.3, 1.0]])
+    node = ct.ss(V @ np.diag([-0.65, -10.0]) @ np.linalg.inv(V), [[0.0], [1.0]],
+                 [[1.0, 0.0]], [[0.0]], name="node")
+    monkeypatch.setattr(plugin, "AGREEMENT", AGREEMENT)
+    monkeypatch.setattr(plugin, "_records", {})
+    monkeypatch.setitem(plugin._current, "id", "node")
+    wrapped = plugin._counted(pc.drop_in(engine="reference"), pc.PYTHON_CONTROL_SIMULATOR)
+    import matplotlib
+    matplotlib.use("Agg")
+    with pc.replaced(wrapped):
+        ct.phaseplot.separatrices(node, [-1, 1, -1, 1], suppress_warnings=True)
+    rec = plugin._records["node"]
+    assert rec["calls"] == 4
+    apart = rec["ill_conditioned"]
+    # the two slow-direction calls: far apart, and python-control far from itself
+    assert len(apart) == 2 and len(rec["diff"]) == 2
+    assert all(c["diff"] > AGREEMENT and c["self"] > 1e6 for c in apart), apart
+    assert all(c["callers"][:2] == ["_create_trajectory", "separatrices"] for c in apart)
+    assert max(rec["diff"]) < 1.0
+    # a well-conditioned call moves by about the perturbation
+    T = np.linspace(0, 1, 21)
+    theirs = pc.PYTHON_CONTROL_SIMULATOR(node, T, 0.0, [0.5, -0.2])
+    moved = plugin._self_difference(pc.PYTHON_CONTROL_SIMULATOR, (node, T, 0.0, [0.5, -0.2]),
+                                    {}, theirs, 1e-3, 1e-6)
+    assert plugin.PERTURBATION / 10 < moved < plugin.PERTURBATION * 10
