@@ -121,8 +121,9 @@ def check_run_time(wall, source, *, engine="compiled", allow_long=False, what="t
         raise CostLimitError(
             f"{what} would take about {_duration(wall)} on the {engine} engine ({source}; "
             f"measured time per step, ivdrem.sim.guards), above the limit of "
-            f"{_duration(limit)}: shorten t_end, use engine='compiled', or allow it with "
-            "allow_long=True (command line: --allow-long)")
+            f"{_duration(limit)}: shorten t_end, use engine='compiled' (command line: "
+            "--engine compiled), or allow it with allow_long=True (command line: "
+            "--allow-long)")
     return wall
 
 
