@@ -757,8 +757,8 @@ def _check_step_bounds(cfg: Mapping) -> None:
     for law in cfg["experiment"]["laws"]:
         bound = solver_kwargs(cfg, law)["h_max"]
         if s["h"] > bound:
-            spec = get_law(law)
-            where = (spec.config or {}).get("T") or f"{spec.section}.T"
+            # a bound below h_max comes from a window T, which only a law's config names
+            where = get_law(law).config["T"]
             raise ConfigError(
                 f"config key 'solver.h' = {s['h']:g} s (the fixed step of {s['method']}) "
                 f"exceeds {bound:g} s, half the sliding window {where} of law {law!r} (a "

@@ -119,7 +119,6 @@ def _write_or_keep(run, out, check, overwrite):
         return (*write_report(run, keep, fmu_check=check), cause)
 
 
-
 def run_report_command(args) -> int:
     """Check every option and output location, run the experiment, write the report;
     returns the exit status (2: refused before any work, 1: a run or the write failed)."""

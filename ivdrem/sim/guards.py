@@ -153,6 +153,7 @@ class CostEstimate:
     bytes: float
     steps_min: float
     step_source: str      # "t_end / h" or "t_end / h_max", with the numbers
+    step_knob: str = "h_max"   # what sets steps_min: "h", "h_max" or "the sample period"
 
     def memory_text(self) -> str:
         return (f"{self.samples:.3g} samples x {self.columns} signals x 8 bytes = "
@@ -203,13 +204,15 @@ def estimate_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, h=1e-3, 
         src = f"t_end / h = {t_end:g} / {step:g} rounded up: fixed-step {info.name}"
     else:
         steps, src = t_end / step, f"t_end / {name} = {t_end:g} / {step:g}"
+    knob = name
     period = _positive(sample_period)
-    if period is not None and math.ceil(t_end / period - 1e-9) > steps:
-        steps = float(math.ceil(t_end / period - 1e-9))
+    forced = 0 if period is None else math.ceil(t_end / period - 1e-9)
+    if forced > steps:
+        steps, knob = float(forced), "the sample period"
         src = (f"t_end / sample period = {t_end:g} / {period:g}: a sampled block forces a "
                "step at every sample time")
     return CostEstimate(t_end, float(samples), columns, float(samples) * columns * 8.0,
-                        steps, src)
+                        steps, src, knob)
 
 
 def _step_name(info) -> str:
@@ -232,9 +235,7 @@ def check_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, engine="com
                         h_max=h_max, dt_out=dt_out, return_states=return_states,
                         samples=samples, sample_period=sample_period)
     info = method_info(method)
-    # what sets the step count: the method's step, or the sample times it must stop at
-    knob = "the sample period" if est.step_source.startswith("t_end / sample period") \
-        else _step_name(info)
+    knob = est.step_knob
     if info.adaptive and max_steps is not None and est.steps_min > max_steps:
         raise CostLimitError(
             f"{what} cannot finish: it needs at least {est.steps_min:.3g} steps "

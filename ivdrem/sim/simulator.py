@@ -520,7 +520,8 @@ class Simulator:
         try:
             return fn(*args)
         except Exception as e:
-            # a block's own exception inside the loop: name the block and the time
+            # a block's own exception (in the loop, or a record or after-step called from
+            # here): name the block and the time
             named = self.engine.block_failure(e, self.W)
             if named is not None:
                 if named[1] is not None and not isinstance(named[1], Exception):
@@ -536,8 +537,9 @@ class Simulator:
         self.tf[tpl.F_T] = self.t
         if not self.info.adaptive:
             self.tf[tpl.F_H] = self.h
-        st = self._naming_blocks(self._integrate, self.info.id, self.tf, t_stop, self.x, self.engine.P, self.W,
-                                 out_t, out_y, out_x, io, self.stats, self.ctl)
+        st = self._naming_blocks(self._integrate, self.info.id, self.tf, t_stop, self.x,
+                                 self.engine.P, self.W, out_t, out_y, out_x, io, self.stats,
+                                 self.ctl)
         self.t = float(self.tf[tpl.F_T])
         if self.stats[tpl.S_STIFF] and not self._warned_stiff:
             self._warned_stiff = True
