@@ -161,15 +161,21 @@ def pytest_unconfigure(config):
             json.dump(_records, f)
 
 
+def _seed(nodeid):
+    """numpy's and Python's global generators seeded from a node id: the node's own seed,
+    the same whatever ran before it."""
+    seed = zlib.crc32(nodeid.encode())
+    np.random.seed(seed)
+    random.seed(seed)
+
+
 def _fresh_state(nodeid):
     """Put the process in the state a test would find alone in a new process, with a
     fixed random seed: without it the harness is neither repeatable nor comparable
     between runs (a random plant of ``ct.rss`` with complex poles has no separatrices for
     ``phase_plane_plot`` to integrate, one with real poles has; a figure left open by an
     earlier test widens the bounds streamlines are integrated to)."""
-    seed = zlib.crc32(nodeid.encode())      # the test's own: independent of the order
-    np.random.seed(seed)
-    random.seed(seed)
+    _seed(nodeid)
     ct.reset_defaults()
     import matplotlib.pyplot as plt
     plt.close("all")
@@ -180,9 +186,7 @@ def pytest_make_collect_report(collector):
     # a test module may draw random systems when it is imported (timeplot_test's
     # parametrize list calls ct.rss): the same seed for it whichever modules came before
     if isinstance(collector, pytest.Module):
-        seed = zlib.crc32(collector.nodeid.encode())
-        np.random.seed(seed)
-        random.seed(seed)
+        _seed(collector.nodeid)
     yield
 
 
