@@ -52,7 +52,7 @@ def test_a_failure_raised_in_c_is_a_clear_error():
     out = np.zeros(sim.x.size)
     with pytest.raises(RuntimeError, match="scratch is smaller than its tables"):
         sim.engine.module.diagram_jacobian(small, sim.engine.P, sim.t, sim.x,
-                                           np.zeros((sim.x.size,) * 2))
+                                           np.zeros(int(sim.engine.tables.lu_rowptr[-1])))
     # arrays C would read raw are checked: dtype, contiguity, writeability
     bad = W._replace(ys=W.ys.astype(np.float32))
     with pytest.raises(TypeError, match="workspace field ys"):
@@ -87,15 +87,17 @@ def test_a_damaged_library_in_the_cache_is_built_again(tmp_path):
     lib.write_bytes(b"not an ELF file")            # e.g. a disk that filled up mid-copy
     st = _cstepper.load(tmp_path)
     assert st.path == lib and lib.stat().st_size > 1000
-    # and it runs: the sparse LU of a 2 x 2 system against numpy
+    # and it runs: the sparse LU of a 2 x 2 system against numpy (a full pattern, its rows
+    # swapped by perm: J's values in the pattern's order are those of J[perm][:, perm])
     J = np.array([[1.0, 2.0], [0.5, -3.0]])
-    LU, piv = np.zeros((4, 2)), np.zeros(2, dtype=np.int64)
-    perm, rowptr = np.array([0, 1]), np.array([0, 2, 4])
+    LU, piv = np.zeros(4 + 2 * 2), np.zeros(2, dtype=np.int64)
+    perm, rowptr = np.array([1, 0]), np.array([0, 2, 4])
     colidx, diagp = np.array([0, 1, 0, 1]), np.array([0, 3])
-    assert st.slu_factor(J, 10.0, LU, piv, perm, rowptr, colidx, diagp) == _template.OK
+    values = J[perm][:, perm].ravel()
+    assert st.slu_factor(values, 2, 10.0, LU, piv, perm, rowptr, colidx, diagp) == _template.OK
     b = np.array([1.0, -2.0])
     x = b.copy()
-    st.slu_solve(LU, perm, rowptr, colidx, diagp, x)
+    st.slu_solve(LU, 2, perm, rowptr, colidx, diagp, x)
     np.testing.assert_allclose(x, np.linalg.solve(10.0 * np.eye(2) - J, b), rtol=1e-14)
 
 

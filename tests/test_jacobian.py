@@ -537,3 +537,74 @@ def test_probe_falls_back_to_python_for_kernels_numba_refuses(monkeypatch):
     expect[:3, :3] = np.eye(3, dtype=bool)               # y = x
     expect[3:, :3] = expect[3:, 3:] = np.eye(3, dtype=bool)   # dx = -x + u
     assert np.array_equal(pat, expect)
+
+
+def _expand(dst, f, src, length):
+    """The runs of the Jacobian chain as single multiply-adds again (dst, f, src)."""
+    out = []
+    for d, g, s, m in zip(dst, f, src, length):
+        for k in range(m):
+            out.append((d + k, g + k, -1) if s < 0 else (d + k, g, s + k))
+    return out
+
+
+def test_chain_runs_hold_the_same_multiply_adds_in_the_same_order():
+    from ivdrem.sim.jacobian import _runs
+    ins = [(0, 5, 10), (1, 5, 11), (2, 5, 12),      # one factor, consecutive: one run
+           (3, 5, 14),                               # the source jumps: a new run
+           (4, 7, -1), (5, 8, -1), (6, 9, -1),       # factors alone, consecutive: one run
+           (7, 9, -1),                               # the factor repeats: a new run
+           (8, 6, 20), (9, 7, 21)]                   # the factor changes: two runs
+    a = np.array(ins, dtype=np.int64)
+    dst, f, src, length = _runs(a[:, 0], a[:, 1], a[:, 2])
+    assert list(length) == [3, 1, 3, 1, 1, 1]
+    assert _expand(dst, f, src, length) == ins
+
+
+def test_chain_as_runs_reproduces_the_sums_of_single_multiply_adds():
+    """The runs of the planar-3 loop, run as written and one multiply-add at a time: the
+    same slots bit for bit (the order in which a slot receives its terms is kept)."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import planar_arm
+    from ivdrem.sim.jacobian import JacobianProgram
+    from ivdrem.sim.plan import DiagramPlan
+    ones = np.ones(3)
+    traj = dict(amplitude=0.5 * ones, omega=[1.0, 0.7, 0.4], phase=0 * ones, offset=0.2 * ones)
+    dist = dict(amplitude=[2.0, 1.0, 0.5], omega=[0.5, 0.3, 0.2], phase=0 * ones,
+                offset=0 * ones)
+    loop = closed_loop("iv-drem", model=planar_arm(3), trajectory=traj, disturbance=dist,
+                       mixing="eigen", gamma=50.0)
+    prog = JacobianProgram(DiagramPlan.from_diagram(loop))
+    # (planar-3: 5,740 multiply-adds in 2,159 runs; the UR5 loop: 2.08 million in 128,721)
+    assert prog.run_len.sum() == prog.n_ins and prog.run_len.size < prog.n_ins / 2
+    rng = np.random.default_rng(2)
+    F = rng.standard_normal(prog.n_jb + prog.gains.size)
+    S1, S2 = np.zeros(prog.n_slots), np.zeros(prog.n_slots)
+    for d, g, s, m in zip(prog.run_dst, prog.run_f, prog.run_src, prog.run_len):
+        if s < 0:
+            S1[d:d + m] += F[g:g + m]
+        else:
+            S1[d:d + m] += F[g] * S1[s:s + m]
+    for d, g, s in _expand(prog.run_dst, prog.run_f, prog.run_src, prog.run_len):
+        S2[d] += F[g] if s < 0 else F[g] * S2[s]
+    assert np.array_equal(S1, S2) and np.count_nonzero(S1) > 0
+
+
+def test_the_jacobian_sits_in_the_lu_pattern_and_comes_back_dense():
+    from ivdrem.sim.tables import dense_to_sparse, jacobian_positions, sparse_to_dense
+    from ivdrem.sim.sparse_lu import symbolic_lu
+
+    class Prog:        # what jacobian_positions reads of a JacobianProgram
+        pass
+    rng = np.random.default_rng(4)
+    pat = rng.random((30, 30)) < 0.1
+    slu = symbolic_lu(pat)
+    prog = Prog()
+    prog.j_row, prog.j_col = np.nonzero(pat)
+    pos = jacobian_positions(prog, slu)
+    J = np.where(pat, rng.standard_normal(pat.shape), 0.0)
+    values = np.zeros(slu.nnz_lu)
+    values[pos] = J[pat]
+    assert np.array_equal(sparse_to_dense(values, slu.perm, slu.rowptr, slu.colidx), J)
+    assert np.array_equal(dense_to_sparse(J, slu.perm, slu.rowptr, slu.colidx), values)
+    assert slu.nnz_lu > pat.sum()            # fill: positions no entry of J maps to stay 0

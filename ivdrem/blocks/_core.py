@@ -74,8 +74,10 @@ class BlockSpec:
     constants: dict = field(default_factory=dict)
     # optional analytic Jacobian kernel jacobian(t, x, u, jac, *params) writing the dense
     # local Jacobian jac[(ny + nx), (nx + nu)]: rows outputs then state derivatives,
-    # columns states then inputs.  Without it the compiled path differentiates the
-    # block's update/output kernels by differences (ivdrem.sim.jacobian)
+    # columns states then inputs.  jac is 0 only at the entries the probe found structural
+    # (the only ones read): a kernel sets or adds into those, and writes every one of them
+    # that it sets.  Without it the compiled path differentiates the block's update/output
+    # kernels by differences (ivdrem.sim.jacobian)
     jacobian: Callable | None = None
     # update/output receive namedtuples of views by port name (ivdrem.blocks._ports)
     # instead of flat vectors; jacobian kernels stay flat

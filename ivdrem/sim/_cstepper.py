@@ -35,7 +35,7 @@ __all__ = ["CStepper", "header_source", "load", "CStepperUnavailable", "SOURCE"]
 SOURCE = Path(__file__).with_name("stepper.c")
 #: no fused multiply-adds (every build rounds alike, as the numba build this replaced did;
 #: results are checked against it, benchmarks/record_theta.py), no -ffast-math
-CFLAGS = ("-O2", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fvisibility=hidden",
+CFLAGS = ("-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fvisibility=hidden",
           "-Wall", "-Wextra", "-Wno-unused-parameter", "-Wno-unused-function")
 
 #: the failures stepper.c reports by longjmp where the Python source raises: name ->
@@ -255,8 +255,12 @@ class CStepper:
         # the loop's work arrays: stages K, Jacobian J, factor LU, pivots, the new state, the
         # end slope, an interpolated state, Rodas5P's dense-output coefficients
         K = np.empty((_template.K_ROWS, n))
-        J = np.zeros((n, n))          # a structured Jacobian writes only its pattern
-        LU = np.empty((n + 2, n))     # the factor in rows < n; the sparse LU uses the other two
+        # J and the factor: dense (n x n, n + 2 rows) for a diagram called back, else in the
+        # tables' filled LU pattern (J zero at the fill: only its pattern is written)
+        sizes = np.zeros(2, dtype=np.int64)
+        self.work_sizes(W, n, sizes)
+        J = np.zeros(int(sizes[0]))
+        LU = np.empty(int(sizes[1]))
         piv = np.zeros(n, dtype=np.int64)
         xn, f1, xg, D = np.empty(n), np.empty(n), np.empty(n), np.empty((3, n))
         f, i = np.float64, np.int64
@@ -282,12 +286,13 @@ class CStepper:
 #: (void).
 _ENTRY_POINTS = {
     "diagram_eval": ("status", "W=W P=f mode=n t=d x=f out=F"),
-    "diagram_jacobian": ("status", "W=W P=f t=d x=f n=N J=F:nn tmp=T"),
+    "diagram_jacobian": ("status", "W=W P=f t=d x=f n=N J=F tmp=T"),
     "fd_jacobian": ("status", "W=W P=f t=d x=f n=N J=F:nn f0=T fp=T xp=T"),
     "lowest_eigenpair": ("status", "W=W u=f nvec=n nmat=n lam=R"),
     "hist_lookup": ("status", "W=W tq=d off=n size=n out=F"),
-    "slu_factor": ("int", "J=f:nn n=N c=d LU=F:lu piv=I:n perm=i rowptr=i colidx=i diagp=i"),
-    "slu_solve": (None, "LU=F:lu n=N perm=i rowptr=i colidx=i diagp=i b=F:n"),
+    "work_sizes": (None, "W=W n=n out=I"),
+    "slu_factor": ("int", "J=f n=n c=d LU=F piv=I perm=i rowptr=i colidx=i diagp=i"),
+    "slu_solve": (None, "LU=F n=n perm=i rowptr=i colidx=i diagp=i b=F"),
     "dense_factor": ("int", "J=f:nn n=N c=d LU=F:lu piv=I:n"),
     "dense_solve": (None, "LU=f:lu n=N piv=i b=F:n"),
 }
@@ -312,14 +317,15 @@ def _entry_point(stepper, name, result, signature):
     fn = getattr(stepper.lib, f"ivdrem_{name}")
 
     def call(*args):
-        args, cargs, n, last, shaped, ret = list(args), [], 0, None, [], None
+        # `args` (the tuple) keeps every array alive until C returns: C sees only addresses
+        queue, cargs, n, last, shaped, ret = list(args), [], 0, None, [], None
         temporaries = []
         for arg, kind, shape in params:
             if kind == "W":
-                addr, wshape = stepper._workspace(args.pop(0))
+                addr, wshape = stepper._workspace(queue.pop(0))
                 cargs += [addr.ctypes.data, wshape.ctypes.data]
             elif kind in _KIND_DTYPE:
-                last = a = args.pop(0)
+                last = a = queue.pop(0)
                 get = _writable_ptr if kind.isupper() else _ptr
                 cargs.append(get(a, _KIND_DTYPE[kind], arg))
                 if shape:
@@ -333,7 +339,7 @@ def _entry_point(stepper, name, result, signature):
                 cargs.append(tmp.ctypes.data)
                 ret = tmp if kind == "R" else ret
             else:
-                v = args.pop(0)
+                v = queue.pop(0)
                 cargs.append(float(v) if kind == "d" else int(v))
         for arg, a, shape in shaped:
             if a.shape != _SHAPES[shape](n):

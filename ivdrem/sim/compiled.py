@@ -25,7 +25,7 @@ from .cache import (GENERATED_HEADER, cache_dir, import_generated as _import,  #
 from .errors import BLOCK_RAISED_MESSAGE, BlockError, CompileError  # noqa: F401
 from .jacobian import JacobianProgram
 from .sparse_lu import symbolic_lu
-from .tables import build_tables
+from .tables import build_tables, dense_to_sparse, sparse_to_dense
 from . import foreign, sampled
 from .foreign import foreign_module as _foreign_module
 from . import _warm_stepper
@@ -538,29 +538,37 @@ class CompiledEngine:
 
     # ---- Jacobian and Newton matrix, callable from Python (tests, benchmarks)
     def jacobian(self, t, x, W, *, dense=False):
-        """df/dx at (t, x) as the generated diagram_jacobian computes it (n x n array);
+        """df/dx at (t, x) as the generated diagram_jacobian computes it (n x n array; the
+        stepper keeps it in the LU pattern's order, tables.jacobian_positions);
         dense=True: the whole-system forward-difference fallback fd_jacobian instead."""
         x = np.ascontiguousarray(x, dtype=float)
-        J = np.zeros((x.size, x.size))
-        fn = self.module.fd_jacobian if dense else self.module.diagram_jacobian
-        st = self._run(fn, W, self.P, float(t), x, J)
+        tb = self.tables
+        if dense:
+            J = np.zeros((x.size, x.size))
+            st = self._run(self.module.fd_jacobian, W, self.P, float(t), x, J)
+        else:
+            J = np.zeros(int(tb.lu_rowptr[-1]))
+            st = self._run(self.module.diagram_jacobian, W, self.P, float(t), x, J)
         if st != _template.OK:
             raise RuntimeError(f"diagram_jacobian returned status {st}")
-        return J
+        return J if dense else sparse_to_dense(J, tb.lu_perm, tb.lu_rowptr, tb.lu_colidx)
 
     def factor(self, J, c, *, dense=False):
-        """Factor c I - J with the generated newton_factor (the static-pattern sparse LU),
-        or with dense=True the partial-pivoting dense_factor: (status, LU, piv)."""
+        """Factor c I - J (J: n x n) with the generated newton_factor (the static-pattern
+        sparse LU, which sees J only at its pattern's positions), or with dense=True the
+        partial-pivoting dense_factor: (status, LU, piv)."""
         J = np.ascontiguousarray(J, dtype=float)
         n = J.shape[0]
-        LU = np.zeros((n + 2, n))     # rows n, n + 1: the sparse LU's inverse pivots, work row
         piv = np.zeros(n, dtype=np.int64)
         tb = self.tables
         if dense:
+            LU = np.zeros((n + 2, n))
             st = self.module.dense_factor(J, float(c), LU, piv)
         else:
-            st = self.module.slu_factor(J, float(c), LU, piv, tb.lu_perm, tb.lu_rowptr,
-                                        tb.lu_colidx, tb.lu_diagp)
+            LU = np.zeros(int(tb.lu_rowptr[-1]) + 2 * n)
+            st = self.module.slu_factor(dense_to_sparse(J, tb.lu_perm, tb.lu_rowptr,
+                                                        tb.lu_colidx), n, float(c), LU, piv,
+                                        tb.lu_perm, tb.lu_rowptr, tb.lu_colidx, tb.lu_diagp)
         return int(st), LU, piv
 
     def solve(self, LU, piv, b, *, dense=False):
@@ -570,5 +578,6 @@ class CompiledEngine:
         if dense:
             self.module.dense_solve(LU, piv, out)
         else:
-            self.module.slu_solve(LU, tb.lu_perm, tb.lu_rowptr, tb.lu_colidx, tb.lu_diagp, out)
+            self.module.slu_solve(LU, out.size, tb.lu_perm, tb.lu_rowptr, tb.lu_colidx,
+                                  tb.lu_diagp, out)
         return out

@@ -36,7 +36,10 @@ today, or a diagonal matrix parameter, does not hide an entry once it changes; p
 values are not part of the compiled code).  An entry is structural when a difference of
 the kernel's output is not exactly zero at any probe.  The Jacobian then only
 touches structural nonzeros: the chain is a list of multiply-adds over slots of a flat
-array, run by ``jac_chain`` in ``stepper.c``.
+array, each row's slots consecutive in column order so that the multiply-adds merge into
+runs over consecutive slots (a vectorised loop each; the UR5 loop's 2.08 million in 128,721
+runs), run by ``jac_chain`` in ``stepper.c``, which stores df/dx at its positions in the
+Newton matrix's filled LU pattern (``tables.jacobian_positions``).
 """
 from __future__ import annotations
 
@@ -211,6 +214,39 @@ def _color(rows_of_col):
     return [sorted(g[1]) for g in groups]
 
 
+def _slots_by_row(rows, n_slots):
+    """old slot -> new slot, each row's slots made consecutive in the order of its columns:
+    a source row read in column order (the chain reads each in one loop) then meets a
+    destination row in consecutive slots wherever the two share consecutive columns."""
+    renumber = np.full(n_slots, -1, dtype=np.int64)
+    k = 0
+    for row in rows:
+        for _, s in sorted(row.items()):
+            renumber[s] = k
+            k += 1
+    if k != n_slots or (renumber < 0).any():
+        raise AssertionError("the Jacobian chain has a slot of no row")
+    return renumber
+
+
+def _runs(dst, f, src):
+    """The multiply-adds S[dst] += F[f] * S[src] (F[f] alone where src < 0), in program
+    order, merged into runs of consecutive destinations: of consecutive sources under one
+    factor, or of consecutive factors added alone.  Merging keeps the order in which every
+    slot receives its terms, so the chain's sums are the same bit for bit."""
+    if dst.size == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return z, z, z, z
+    alone = src < 0
+    cont = np.zeros(dst.size, dtype=bool)
+    step = (dst[1:] == dst[:-1] + 1) & (alone[1:] == alone[:-1])
+    cont[1:] = step & np.where(alone[1:], f[1:] == f[:-1] + 1,
+                               (f[1:] == f[:-1]) & (src[1:] == src[:-1] + 1))
+    start = np.flatnonzero(~cont)
+    length = np.diff(np.append(start, dst.size))
+    return dst[start], f[start], src[start], length.astype(np.int64)
+
+
 def _entries_by_row(entries):
     """{local row: [(row, col, slot), ...]} in the entries' order: one pass, where selecting
     each row's entries from the whole list cost rows x entries (minutes on the real arms)."""
@@ -229,8 +265,9 @@ class JacobianProgram:
       g_ptr (per block -> groups), gc_ptr (per group -> columns), col (local column),
       e_ptr (per column -> entries), e_row (local row of yf), e_slot (index into JB)
       n_jb: number of local-Jacobian values
-      ins_dst, ins_f, ins_src: the chain's multiply-adds S[dst] += F[f] (* S[src] if >= 0),
-          F = [JB, gains]; gains (float64)
+      run_dst, run_f, run_src, run_len: the chain's multiply-adds as runs, F = [JB, gains]:
+          S[dst + k] += F[f] * S[src + k] for k < len (src >= 0), S[dst + k] += F[f + k]
+          (src = -1); n_ins the multiply-adds they hold; gains (float64)
       n_slots, j_row, j_col, j_slot: where the dense J reads the chain's result
       pattern: boolean n x n structural pattern of df/dx
       patterns: {block index: boolean (ny + nx, nx + nu) local pattern} of the ode blocks
@@ -327,6 +364,15 @@ class JacobianProgram:
 
         yrow = [dict() for _ in range(ny_total)]
         urow = {}
+        sorted_rows = {}
+
+        def by_column(row):
+            # a row read as a source is complete (blocks in topological order): its entries
+            # sorted by column once, so that a source's run lands on a destination run
+            got = sorted_rows.get(id(row))
+            if got is None:
+                got = sorted_rows[id(row)] = (row, sorted(row.items()))
+            return got[1]
 
         def make_u(k):
             srcs = plan.conn[k]
@@ -336,7 +382,7 @@ class JacobianProgram:
             row = {}
             for j, g in srcs:
                 f = gain_index(g)
-                for col, s in yrow[j].items():
+                for col, s in by_column(yrow[j]):
                     if col not in row:
                         row[col] = new_slot()
                     ins.append((row[col], f, s))
@@ -350,7 +396,7 @@ class JacobianProgram:
                         row[col] = new_slot()
                     ins.append((row[col], slot, -1))
                 else:
-                    for col, s in urow[u0 + c - nx].items():
+                    for col, s in by_column(urow[u0 + c - nx]):
                         if col not in row:
                             row[col] = new_slot()
                         ins.append((row[col], slot, s))
@@ -380,9 +426,13 @@ class JacobianProgram:
                 accumulate(row, by_row.get(ny + r, ()), nx, b.u.start, b.x.start)
                 jrows[b.x.start + r] = row
         self.n_slots = slots[0]
-        self.ins_dst = i64([a for a, _, _ in ins])
-        self.ins_f = i64([f for _, f, _ in ins])
-        self.ins_src = i64([s for _, _, s in ins])
+        rows = {id(r): r for r in (*yrow, *urow.values(), *jrows.values())}
+        renumber = _slots_by_row(rows.values(), self.n_slots)
+        ins = np.asarray(ins, dtype=np.int64).reshape(-1, 3)
+        self.n_ins = int(ins.shape[0])
+        self.run_dst, self.run_f, self.run_src, self.run_len = _runs(
+            renumber[ins[:, 0]], ins[:, 1], np.where(ins[:, 2] >= 0, renumber[ins[:, 2]], -1))
+        jrows = {i: {col: int(renumber[s]) for col, s in r.items()} for i, r in jrows.items()}
         g = np.zeros(len(gains))
         for val, idx in gains.items():
             g[idx - jb] = val

@@ -493,16 +493,25 @@ static int push_history(Ctx *c, double t) {
 }
 
 /* ------------------------------------------------------------ sparse kernels */
-static void jac_chain(double *F, double *S, i64 nS, ivec dst, ivec fidx, ivec src, ivec j_row,
-                      ivec j_col, ivec j_slot, double *J, i64 n) {
+/* the chain rule's multiply-adds, run by run (ivdrem/sim/jacobian.py, _runs): a run of
+ * consecutive destinations takes one factor times consecutive sources, or consecutive
+ * factors alone (src < 0); the runs never overlap their sources */
+static void jac_chain(const double *F, double *S, i64 nS, ivec dst, ivec fidx, ivec src,
+                      ivec len, ivec j_pos, ivec j_slot, double *J) {
     for (i64 i = 0; i < nS; i++) S[i] = 0.0;
-    for (i64 i = 0; i < dst.n; i++) {
-        i64 s = src.p[i];
-        i64 d = dst.p[i];
-        if (s < 0) S[d] += F[fidx.p[i]];
-        else S[d] += F[fidx.p[i]] * S[s];
+    for (i64 r = 0; r < dst.n; r++) {
+        double *restrict d = S + dst.p[r];
+        i64 m = len.p[r];
+        if (src.p[r] < 0) {
+            const double *restrict g = F + fidx.p[r];
+            for (i64 k = 0; k < m; k++) d[k] += g[k];
+        } else {
+            const double a = F[fidx.p[r]];
+            const double *restrict s = S + src.p[r];
+            for (i64 k = 0; k < m; k++) d[k] += a * s[k];
+        }
     }
-    for (i64 e = 0; e < j_row.n; e++) J[j_row.p[e] * n + j_col.p[e]] = S[j_slot.p[e]];
+    for (i64 e = 0; e < j_pos.n; e++) J[j_pos.p[e]] = S[j_slot.p[e]];
 }
 
 /* the columns c0..c1 of a block's states and inputs moved by sign * h (sign 0: restored);
@@ -533,18 +542,20 @@ static void fd_scatter(const double *yp, const double *ym, const double *hh, i64
     }
 }
 
+/* c I - J factored in the static pattern (ivdrem/sim/sparse_lu.py): J holds df/dx at the
+ * pattern's positions (zero at the fill, tables.jacobian_positions); LU holds the factor's
+ * values, then the inverse pivots and a work row (lu_size) */
 static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv, const i64 *perm,
                       const i64 *rowptr, const i64 *colidx, const i64 *diagp) {
     double *vals = LU;
-    double *inv = LU + n * n;
-    double *w = LU + (n + 1) * n;
+    double *inv = LU + rowptr[n];
+    double *w = inv + n;
     for (i64 i = 0; i < n; i++) piv[i] = perm[i];
     for (i64 i = 0; i < n; i++) {
-        i64 pi = perm[i];
         double rmax = 0.0;
         for (i64 p = rowptr[i]; p < rowptr[i + 1]; p++) {
             i64 j = colidx[p];
-            double a = -J[pi * n + perm[j]];
+            double a = -J[p];
             if (j == i) a += cc;
             w[j] = a;
             if (!(fabs(a) <= rmax)) rmax = fabs(a);
@@ -567,8 +578,8 @@ static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv, c
 static void slu_solve(double *LU, i64 n, const i64 *perm, const i64 *rowptr, const i64 *colidx,
                       const i64 *diagp, double *b) {
     const double *vals = LU;
-    const double *inv = LU + n * n;
-    double *y = LU + (n + 1) * n;
+    const double *inv = LU + rowptr[n];
+    double *y = LU + rowptr[n] + n;
     for (i64 i = 0; i < n; i++) y[i] = b[perm[i]];
     for (i64 i = 0; i < n; i++) {
         double s = y[i];
@@ -631,7 +642,13 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
         copy_into(ub, 0, ub0, 0, nu);
         i64 p0 = r[FD_P0];
         if (r[FD_WJAC] >= 0) {
-            for (i64 i = 0; i < (ny + nx) * (nx + nu); i++) jl[i] = 0.0;
+            /* only the entries read below are cleared (a kernel may add into them): the
+             * others may hold what an earlier kernel wrote, and are never read (clearing the
+             * whole (ny + nx) x (nx + nu) buffer cost about 1 ms per Jacobian on the UR5) */
+            for (i64 g = fd_g_ptr.p[kb]; g < fd_g_ptr.p[kb + 1]; g++)
+                for (i64 cc = fd_gc_ptr.p[g]; cc < fd_gc_ptr.p[g + 1]; cc++)
+                    for (i64 e = fd_e_ptr.p[cc]; e < fd_e_ptr.p[cc + 1]; e++)
+                        jl[fd_e_row.p[e] * (nx + nu) + fd_col.p[cc]] = 0.0;
             call_kernel(c, wnx, r[FD_WJAC], t, xb, 0, ub, 0, jl, 0, p0);
             for (i64 g = fd_g_ptr.p[kb]; g < fd_g_ptr.p[kb + 1]; g++)
                 for (i64 cc = fd_gc_ptr.p[g]; cc < fd_gc_ptr.p[g + 1]; cc++) {
@@ -666,9 +683,9 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
             fd_scatter(yp, central ? ym : y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
         }
     }
-    jac_chain(F, S, nS, int_table(c, T_JAC_INS_DST), int_table(c, T_JAC_INS_F),
-              int_table(c, T_JAC_INS_SRC), int_table(c, T_JAC_J_ROW), int_table(c, T_JAC_J_COL),
-              int_table(c, T_JAC_J_SLOT), J, n);
+    jac_chain(F, S, nS, int_table(c, T_JAC_RUN_DST), int_table(c, T_JAC_RUN_F),
+              int_table(c, T_JAC_RUN_SRC), int_table(c, T_JAC_RUN_LEN), int_table(c, T_JAC_J_POS),
+              int_table(c, T_JAC_J_SLOT), J);
     return OK;
 }
 
@@ -1336,6 +1353,21 @@ EXPORT int ivdrem_diagram_jacobian(const i64 *waddr, const i64 *wshape, double *
     int code = setjmp(c.exit);
     if (code) return code;
     return diagram_jacobian(&c, t, x, J, n, tmp);
+}
+
+/* lengths of the loop's J and LU (work arrays the caller allocates): dense for a diagram
+ * called back, in the filled LU pattern of the tables otherwise (slu_factor) */
+EXPORT void ivdrem_work_sizes(const i64 *waddr, const i64 *wshape, i64 n, i64 *out) {
+    Ctx c;
+    bind_ctx(&c, waddr, wshape, NULL);
+    if (c.callback) {
+        out[0] = n * n;
+        out[1] = (n + 2) * n;
+        return;
+    }
+    i64 nnz = int_table(&c, T_LU_ROWPTR).p[n];
+    out[0] = nnz;
+    out[1] = nnz + 2 * n;
 }
 
 EXPORT int ivdrem_fd_jacobian(const i64 *waddr, const i64 *wshape, double *P, double t,

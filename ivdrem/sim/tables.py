@@ -15,7 +15,8 @@ import numpy as np
 from . import _diagram
 
 __all__ = ["DiagramTables", "TABLES_LAYOUT", "DIMS", "build_tables", "empty_tables", "pack",
-           "with_fill_runs", "INT_FIELDS", "FLOAT_FIELDS"]
+           "with_fill_runs", "INT_FIELDS", "FLOAT_FIELDS", "jacobian_positions", "sparse_to_dense",
+           "dense_to_sparse"]
 
 #: (field, dtype, ndim) of DiagramTables
 TABLES_LAYOUT = (
@@ -28,9 +29,9 @@ TABLES_LAYOUT = (
     ("wrapper_nx", "int64", 1), ("dims", "int64", 1),
     ("fd", "int64", 2), ("fd_g_ptr", "int64", 1), ("fd_g_kind", "int64", 1),
     ("fd_gc_ptr", "int64", 1), ("fd_col", "int64", 1), ("fd_e_ptr", "int64", 1),
-    ("fd_e_row", "int64", 1), ("fd_e_slot", "int64", 1), ("jac_ins_dst", "int64", 1),
-    ("jac_ins_f", "int64", 1), ("jac_ins_src", "int64", 1), ("jac_j_row", "int64", 1),
-    ("jac_j_col", "int64", 1), ("jac_j_slot", "int64", 1), ("jac_gains", "float64", 1),
+    ("fd_e_row", "int64", 1), ("fd_e_slot", "int64", 1), ("jac_run_dst", "int64", 1),
+    ("jac_run_f", "int64", 1), ("jac_run_src", "int64", 1), ("jac_run_len", "int64", 1),
+    ("jac_j_pos", "int64", 1), ("jac_j_slot", "int64", 1), ("jac_gains", "float64", 1),
     ("lu_perm", "int64", 1), ("lu_rowptr", "int64", 1), ("lu_colidx", "int64", 1),
     ("lu_diagp", "int64", 1), ("fill_runs", "int64", 2), ("fill_run_gain", "float64", 1),
     ("fill_run_ranges", "int64", 1), ("scratch_offsets", "int64", 1),
@@ -210,12 +211,49 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         dims=_i64([dims[k] for k in DIMS]), fd=_i64(fd, _FD_COLUMNS),
         fd_g_ptr=_i64(prog.g_ptr), fd_g_kind=_i64(prog.g_kind), fd_gc_ptr=_i64(prog.gc_ptr),
         fd_col=_i64(prog.col), fd_e_ptr=_i64(prog.e_ptr), fd_e_row=_i64(prog.e_row),
-        fd_e_slot=_i64(prog.e_slot), jac_ins_dst=_i64(prog.ins_dst),
-        jac_ins_f=_i64(prog.ins_f), jac_ins_src=_i64(prog.ins_src),
-        jac_j_row=_i64(prog.j_row), jac_j_col=_i64(prog.j_col), jac_j_slot=_i64(prog.j_slot),
+        fd_e_slot=_i64(prog.e_slot), jac_run_dst=_i64(prog.run_dst),
+        jac_run_f=_i64(prog.run_f), jac_run_src=_i64(prog.run_src),
+        jac_run_len=_i64(prog.run_len),
+        jac_j_pos=jacobian_positions(prog, slu), jac_j_slot=_i64(prog.j_slot),
         jac_gains=np.asarray(prog.gains, dtype=float), lu_perm=_i64(slu.perm),
         lu_rowptr=_i64(slu.rowptr), lu_colidx=_i64(slu.colidx), lu_diagp=_i64(slu.diagp),
         scratch_offsets=_i64(scratch_offsets), slope_flags=slope_flags(plan)))
+
+
+def jacobian_positions(prog, slu):
+    """Where each structural entry (j_row, j_col) of df/dx sits among the values of the
+    filled LU pattern of P (cI - J) P^T (row i of the pattern is row perm[i] of J): the
+    compiled engine stores J in that order, zero at the fill, so that the factorisation
+    reads it row by row (a dense n x n J read by the permutation missed the cache on
+    every entry of the real arms' 110-180 thousand)."""
+    n = slu.n
+    inv = np.empty(n, dtype=np.int64)
+    inv[slu.perm] = np.arange(n)
+    rows, cols = inv[np.asarray(prog.j_row, dtype=np.int64)], inv[np.asarray(prog.j_col,
+                                                                               dtype=np.int64)]
+    # entries of row i are colidx[rowptr[i]:rowptr[i + 1]], sorted: search row by row at once
+    key = rows * n + cols
+    pattern_key = np.repeat(np.arange(n, dtype=np.int64), np.diff(slu.rowptr)) * n + slu.colidx
+    pos = np.searchsorted(pattern_key, key)
+    if key.size and (pos.max() >= pattern_key.size or (pattern_key[pos] != key).any()):
+        raise AssertionError("an entry of df/dx is not in the LU pattern")
+    return _i64(pos)
+
+
+def sparse_to_dense(values, perm, rowptr, colidx):
+    """The n x n matrix whose entries are `values` in the filled LU pattern's order
+    (perm, rowptr, colidx: the tables' lu_perm, lu_rowptr, lu_colidx)."""
+    n = perm.size
+    out = np.zeros((n, n))
+    out[np.repeat(perm, np.diff(rowptr)), perm[colidx]] = values
+    return out
+
+
+def dense_to_sparse(J, perm, rowptr, colidx):
+    """J's entries at the filled LU pattern's positions (the inverse of sparse_to_dense
+    where J is zero outside the pattern)."""
+    J = np.asarray(J, dtype=float)
+    return np.ascontiguousarray(J[np.repeat(perm, np.diff(rowptr)), perm[colidx]])
 
 
 def _runs(seq, in_ptr, in_src, in_gain):
