@@ -608,3 +608,27 @@ def test_the_jacobian_sits_in_the_lu_pattern_and_comes_back_dense():
     assert np.array_equal(sparse_to_dense(values, slu.perm, slu.rowptr, slu.colidx), J)
     assert np.array_equal(dense_to_sparse(J, slu.perm, slu.rowptr, slu.colidx), values)
     assert slu.nnz_lu > pat.sum()            # fill: positions no entry of J maps to stay 0
+
+
+def test_a_jacobian_program_is_built_once_per_structure_and_equals_a_fresh_one():
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import jacobian
+    from ivdrem.sim.plan import DiagramPlan
+    plan1 = DiagramPlan.from_diagram(closed_loop("iv-drem"))
+    plan2 = DiagramPlan.from_diagram(closed_loop("iv-drem"))
+    p1, p2 = jacobian.JacobianProgram(plan1), jacobian.JacobianProgram(plan2)
+    assert p2.run_dst is p1.run_dst                    # the second is the cached one
+    assert p2.plan is plan2 and all(b in plan2.blocks for b in p2.fd_blocks)
+    fresh = object.__new__(jacobian.JacobianProgram)
+    fresh._build(plan2, jacobian._local_patterns(plan2, 0))
+    for name, v in vars(fresh).items():
+        if isinstance(v, np.ndarray):
+            assert np.array_equal(v, getattr(p2, name)), name
+    # a changed gain in the connection map, or another diagram, is another program
+    key = jacobian._program_key(plan2, p2.patterns)
+    k = next(i for i, row in enumerate(plan2.conn) if row)
+    j, g = plan2.conn[k][0]
+    plan2.conn[k] = [(j, 2.0 * g)] + plan2.conn[k][1:]
+    assert jacobian._program_key(plan2, p2.patterns) != key
+    other = DiagramPlan.from_diagram(closed_loop("composite-learning"))
+    assert jacobian.JacobianProgram(other).run_dst is not p1.run_dst

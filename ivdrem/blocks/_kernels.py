@@ -342,6 +342,16 @@ def mixing_values(code, Y, Psi, f_rel, guard, Delta, calY, logD):
 
 
 @njit(cache=True)
+def _adjugate_y_derivative(a, b, A, G, B, AY, BY, GtY, s_uv, out):
+    """out[c] = d (adj(P) Y)_c / dP_ab from adj_derivative_parts (A Y, B Y, G^T Y given)."""
+    gb = G[a, b] + B[b, a]
+    aba = A[b, a]
+    t2 = GtY[b] + BY[b]
+    for c in range(out.shape[0]):
+        out[c] = s_uv * (gb * AY[c] + aba * BY[c] - A[c, a] * t2 - B[c, a] * AY[b])
+
+
+@njit(cache=True)
 def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
     """Jacobian of mixing_values: jac[(k + n + k), (n + n*n)] over (Y, Psi), rows Delta (k
     entries: 1, or n for "channel"), calY, logD; O(n^3) (docs/mixing.md).
@@ -460,15 +470,10 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
         AY[i] = a2
         BY[i] = a3
         GtY[i] = a4
-    # dF[c, a, b] = d (C Y)_c / dP_ab, C = adj(P) (times the variant's 1/N or 1/K)
-    dF = np.empty((n, n, n))
-    for a in range(n):
-        for b in range(n):
-            gb = G[a, b] + B[b, a]
-            aba = A[b, a]
-            t2 = GtY[b] + BY[b]
-            for c in range(n):
-                dF[c, a, b] = s_uv * (gb * AY[c] + aba * BY[c] - A[c, a] * t2 - B[c, a] * AY[b])
+    # dF[c] = d (C Y)_c / dP_ab, C = adj(P) (times the variant's 1/N or 1/K), for one (a, b)
+    # at a time (_adjugate_y_derivative): all n^3 of them at once cost 0.6 MiB per call on
+    # the Panda, a fresh allocation whose pages the kernel zeroed on every Jacobian
+    dF = np.empty(n)
     if code == 0 or code == 1:
         if code == 0:
             D = s_uv
@@ -483,6 +488,7 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
         for a in range(n):
             for b in range(n):
                 col = n + a * n + b
+                _adjugate_y_derivative(a, b, A, G, B, AY, BY, GtY, s_uv, dF)
                 dD = C[b, a]
                 dL = dls[a, b] / ln10
                 if code == 1:
@@ -491,7 +497,7 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
                 jac[rows_D, col] = (dD - qD * D * g[col - n]) / s
                 jac[rows_L, col] = (dL - qL * g[col - n]) / s
                 for c in range(n):
-                    dFc = dF[c, a, b]
+                    dFc = dF[c]
                     if code == 1:
                         dFc -= CY[c] * Lam[a, b]
                     # calY = F s^-1, F of degree qF: s^-2 (dF - (qF + 1) F g)
@@ -532,6 +538,7 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
             col = n + a * n + b
             gb = G[a, b] + B[b, a]
             aba = A[b, a]
+            _adjugate_y_derivative(a, b, A, G, B, AY, BY, GtY, s_uv, dF)
             for i in range(n):
                 if not c[i] > 0.0:
                     continue
@@ -544,7 +551,7 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
                 # Delta_i = s Di(P), Di of degree 1: q - e = 0, do/dPsi = dDi/dP
                 jac[rows_D + i, col] = C[b, a] / c[i] - Di * dlc
                 yi = CY[i] / c[i]
-                jac[rows_Y + i, col] = (dF[i, a, b] / c[i] - yi * dlc) / s
+                jac[rows_Y + i, col] = (dF[i] / c[i] - yi * dlc) / s
                 # log10 |Delta_i| = log10 s + log10 |Di|: the s terms cancel
                 jac[rows_L + i, col] = (dls[a, b] - dlc) / (ln10 * s)
     for i in range(n):

@@ -43,9 +43,10 @@ Newton matrix's filled LU pattern (``tables.jacobian_positions``).
 """
 from __future__ import annotations
 
-import numpy as np
-
+import hashlib
 from collections import OrderedDict
+
+import numpy as np
 
 from ..blocks._core import bind_model, kernel_args
 from .foreign import ForeignSpec
@@ -214,6 +215,64 @@ def _color(rows_of_col):
     return [sorted(g[1]) for g in groups]
 
 
+def _local_patterns(plan, seed):
+    """{block index: local pattern (ny + nx, nx + nu)} of the ode blocks with states or
+    inputs (probed once per process, cached_block_pattern), each checked against the
+    block's declared direct feedthrough."""
+    patterns = {}
+    for b in plan.blocks:
+        spec = b.spec
+        if spec.kind != "ode":
+            continue
+        nx, nu, ny = b.sys.nstates, b.sys.ninputs, b.sys.noutputs
+        if nx + nu == 0:
+            continue
+        args = kernel_args(spec, plan.block_params(b))
+        pat = cached_block_pattern(spec, args, nx, nu, ny, seed=seed + b.index)
+        direct_local = set(int(i) - b.u.start for i in b.direct_inputs)
+        if pat is None:   # not probeable: dense, outputs only on states and direct inputs
+            pat = np.ones((ny + nx, nx + nu), dtype=bool)
+            for i in range(nu):
+                if i not in direct_local:
+                    pat[:ny, nx + i] = False
+        bad = [c - nx for c in range(nx, nx + nu)
+               if pat[:ny, c].any() and (c - nx) not in direct_local]
+        if bad:
+            labels = [b.sys.input_labels[i] for i in bad]
+            raise DeclarationError(
+                f"block '{b.sys.name}': its outputs depend on the inputs {labels}, which "
+                "the block does not declare as direct feedthrough (BlockSpec.direct); the "
+                "right-hand side would read them before they are computed")
+        patterns[b.index] = pat
+    return patterns
+
+
+#: Jacobian programs of this process by the structure they are built from: every simulate()
+#: of a diagram (the calibration of gamma = "auto", then the run, then the report's) needs
+#: the same one, and building it took 3-5 s on the real arms (millions of multiply-adds
+#: scheduled in Python)
+_PROGRAMS: OrderedDict = OrderedDict()
+_PROGRAMS_MAX = 8
+
+
+def _program_key(plan, patterns):
+    """A digest of everything a JacobianProgram reads of `plan`: the blocks' kinds, places
+    and sizes, direct inputs and whether they call the robot model, their local patterns,
+    the connection map with its gains and the evaluation order."""
+    h = hashlib.sha256()
+    for b in plan.blocks:
+        direct = (tuple(int(i) for i in b.direct_inputs) if b.spec.kind == "ode" else ())
+        h.update(repr((b.index, b.spec.kind, b.x.start, b.sys.nstates, b.u.start,
+                       b.sys.ninputs, b.y.start, b.sys.noutputs, direct,
+                       b.spec.model is not None)).encode())
+        pat = patterns.get(b.index)
+        if pat is not None:
+            h.update(repr(pat.shape).encode())
+            h.update(np.packbits(pat).tobytes())
+    h.update(repr((plan.x0.size, plan.conn, list(plan.order))).encode())
+    return h.hexdigest()
+
+
 def _slots_by_row(rows, n_slots):
     """old slot -> new slot, each row's slots made consecutive in the order of its columns:
     a source row read in column order (the chain reads each in one loop) then meets a
@@ -275,6 +334,24 @@ class JacobianProgram:
     """
 
     def __init__(self, plan, *, seed=0):
+        patterns = _local_patterns(plan, seed)
+        key = _program_key(plan, patterns)
+        hit = _PROGRAMS.get(key)
+        if hit is not None:             # the same structure: the same program, bit for bit
+            _PROGRAMS.move_to_end(key)
+            self.__dict__.update(hit.__dict__)
+            self.plan = plan
+            self.fd_blocks = [plan.blocks[b.index] for b in hit.fd_blocks]
+            return
+        self._build(plan, patterns)
+        for v in self.__dict__.values():
+            if isinstance(v, np.ndarray):
+                v.flags.writeable = False      # shared by every plan of this structure
+        _PROGRAMS[key] = self
+        while len(_PROGRAMS) > _PROGRAMS_MAX:
+            _PROGRAMS.popitem(last=False)
+
+    def _build(self, plan, patterns):
         self.plan = plan
         n = plan.x0.size
         self.n = n
@@ -286,31 +363,13 @@ class JacobianProgram:
         g_ptr, gc_ptr, cols, e_ptr, e_row, e_slot = [0], [0], [], [0], [], []
         g_kind = []         # per group: 0 output kernel, 1 update kernel
         self.fd_blocks = []
-        self.patterns = {}  # block index -> its local pattern (ny + nx, nx + nu)
+        self.patterns = patterns  # block index -> its local pattern (ny + nx, nx + nu)
         for b in plan.blocks:
+            if b.index not in patterns:
+                continue
             spec = b.spec
-            if spec.kind != "ode":
-                continue
             nx, nu, ny = b.sys.nstates, b.sys.ninputs, b.sys.noutputs
-            if nx + nu == 0:
-                continue
-            args = kernel_args(spec, plan.block_params(b))
-            pat = cached_block_pattern(spec, args, nx, nu, ny, seed=seed + b.index)
-            direct_local = set(int(i) - b.u.start for i in b.direct_inputs)
-            if pat is None:   # not probeable: dense, outputs only on states and direct inputs
-                pat = np.ones((ny + nx, nx + nu), dtype=bool)
-                for i in range(nu):
-                    if i not in direct_local:
-                        pat[:ny, nx + i] = False
-            bad = [c - nx for c in range(nx, nx + nu)
-                   if pat[:ny, c].any() and (c - nx) not in direct_local]
-            if bad:
-                labels = [b.sys.input_labels[i] for i in bad]
-                raise DeclarationError(
-                    f"block '{b.sys.name}': its outputs depend on the inputs {labels}, which "
-                    "the block does not declare as direct feedthrough (BlockSpec.direct); the "
-                    "right-hand side would read them before they are computed")
-            self.patterns[b.index] = pat
+            pat = patterns[b.index]
             if not pat.any():
                 local[b.index] = []
                 continue

@@ -506,7 +506,10 @@ static void jac_chain(const double *F, double *S, i64 nS, ivec dst, ivec fidx, i
             const double *restrict g = F + fidx.p[r];
             for (i64 k = 0; k < m; k++) d[k] += g[k];
         } else {
+            /* a factor that is 0 now (an off-diagonal entry of a diagonal Gamma: 1.7 of the
+             * UR5 loop's 2.08 million multiply-adds) adds nothing: skipped */
             const double a = F[fidx.p[r]];
+            if (a == 0.0) continue;
             const double *restrict s = S + src.p[r];
             for (i64 k = 0; k < m; k++) d[k] += a * s[k];
         }
