@@ -515,3 +515,44 @@ def test_pdf_tables_have_no_lone_rows(tmp_path, text_only):
     assert any(len(p) >= 2 for p in seen.values()), seen             # some table spans pages
     for key, per_page in seen.items():
         assert all(k >= 2 for k in per_page) or per_page == [1], (key, per_page)
+
+
+def test_fmu_check_takes_the_runs_gamma_auto_instead_of_calibrating_again(monkeypatch):
+    """With gamma = "auto" the co-simulation gets the γ the report's IV-DREM run chose
+    (calibrating again there ran DP45 at 10 ms steps over 2T: minutes on a real arm), and
+    without a run the γ of the rule with the run's own solver."""
+    import ivdrem.experiments.paper as paper_mod
+    import ivdrem.fmu as fmu_mod
+    import ivdrem.fmu.cosim as cosim_mod
+    import ivdrem.reports.cli as rcli
+    from pathlib import Path
+
+    from ivdrem.experiments.config import closed_loop_kwargs, load_config
+    seen = []
+
+    class _Cmp:
+        signals, comm_steps, errors, orders = (), (), {}, {}
+
+        def verdict(self):
+            return "OK"
+
+    def compare(path, t_end, **kw):
+        seen.append(kw["gamma"])
+        return _Cmp()
+
+    class _Diagram:
+        gamma_choice = {"gamma": 77.0}
+    built = []
+
+    def law_diagram(config, law, **kw):
+        built.append((law, config["solver"]["method"]))
+        return _Diagram()
+    monkeypatch.setattr(fmu_mod, "export_fmu", lambda *a, **k: None)
+    monkeypatch.setattr(cosim_mod, "compare_to_python", compare)
+    monkeypatch.setattr(paper_mod, "law_diagram", law_diagram)
+    config = load_config(Path(__file__).parents[1] / "examples" / "planar3.toml")
+    assert closed_loop_kwargs(config, "iv-drem")["gamma"] == "auto"
+    rcli.fmu_check(config, 1.0, gamma=50.2)
+    assert seen == [50.2] and built == []              # the run's γ, no calibration
+    rcli.fmu_check(config, 1.0)
+    assert seen == [50.2, 77.0] and built == [("iv-drem", config["solver"]["method"])]
