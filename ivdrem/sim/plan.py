@@ -45,14 +45,15 @@ def _signals(labels):
     return out
 
 
-def check_signal_sizes(diagram):
+def check_signal_sizes(diagram, wired=None):
     """Raise SignalSizeError where an output vector is wired entry by entry (``y[i]`` to
     ``u[i]``, as ct.interconnect connects signals of the same name) to an input vector of
     another size and the surplus entries would be lost silently: output entries wired
     nowhere, or input entries fed by nothing.
 
     Wiring that re-indexes on purpose (``y[1]`` to ``u[0]``), and an input vector assembled
-    from several signals, are not errors.
+    from several signals, are not errors.  `wired`: ``np.nonzero(diagram.connect_map)``
+    when the caller has it (one pass over the map costs 0.5 s on the real arms' loops).
     """
     C = np.asarray(diagram.connect_map)
     outs, ins = [], []            # per absolute index: (block, base, entry, size)
@@ -65,7 +66,7 @@ def check_signal_sizes(diagram):
     fed = C.any(axis=1) | (Cin.any(axis=1) if Cin.size else False)   # inputs with a source
     used = C.any(axis=0)                                            # outputs wired somewhere
     seen = set()
-    for i, j in zip(*np.nonzero(C)):
+    for i, j in zip(*(np.nonzero(C) if wired is None else wired)):
         bi, si, ki, ni = ins[i]
         bo, so, ko, no = outs[j]
         if ki != ko or ni == no or (bi, si, bo, so) in seen:
@@ -151,9 +152,12 @@ class DiagramPlan:
             if x0.size != diagram.nstates:
                 raise ValueError(f"x0 has {x0.size} entries, the diagram has "
                                  f"{diagram.nstates} states")
-        check_signal_sizes(diagram)
-        conn = [[(int(j), float(row[j])) for j in np.flatnonzero(row)]
-                for row in np.asarray(diagram.connect_map)]
+        cmap = np.asarray(diagram.connect_map)
+        wired = np.nonzero(cmap)                 # one pass over the map, row-major
+        check_signal_sizes(diagram, wired)
+        conn = [[] for _ in range(cmap.shape[0])]
+        for i, j in zip(*wired):
+            conn[i].append((int(j), float(cmap[i, j])))
         plan = cls(diagram, blocks, x0, conn, [])
         plan.params = dict(params or {})
         plan._block_params = {}
