@@ -205,14 +205,7 @@ def test_generated_jacobian_matches_whole_system_differences(law):
 
 @pytest.mark.slow
 def test_generated_jacobian_planar_arm_3():
-    from ivdrem.diagrams import closed_loop
-    from ivdrem.models import planar_arm
-    ones = np.ones(3)
-    traj = dict(amplitude=0.5 * ones, omega=[1.0, 0.7, 0.4], phase=0 * ones, offset=0.2 * ones)
-    dist = dict(amplitude=[2.0, 1.0, 0.5], omega=[0.5, 0.3, 0.2], phase=0 * ones,
-                offset=0 * ones)
-    loop = closed_loop("iv-drem", model=planar_arm(3), trajectory=traj, disturbance=dist,
-                       mixing="paper", gamma=1e10)
+    loop = _planar3_loop()
     sim, states = _loop_at_random_states(loop, [5], t_run=0.5)
     J = sim.engine.jacobian(sim.t, states[0], sim.W)
     assert_jacobian_close(J, central_fd(sim.engine, sim.t, states[0], sim.W))
@@ -393,7 +386,9 @@ def _blocks_with_jacobians(loop):
                                     if spec.validate else dict(sysb.params))
 
 
-def _planar3_loop(law):
+def _planar3_loop(law="iv-drem", **kw):
+    """The loop of `law` on a 3-link planar arm (its own reference and disturbance);
+    `kw` over the pinned mixing and γ."""
     from ivdrem.diagrams import closed_loop
     from ivdrem.models import planar_arm
     ones = np.ones(3)
@@ -402,7 +397,8 @@ def _planar3_loop(law):
                 offset=0 * ones)
     # the paper's mixing (17) and γ (every arm but the paper's defaults to "eigen", "auto")
     pinned = dict(mixing="paper", gamma=1e10) if law == "iv-drem" else {}
-    return closed_loop(law, model=planar_arm(3), trajectory=traj, disturbance=dist, **pinned)
+    return closed_loop(law, model=planar_arm(3), trajectory=traj, disturbance=dist,
+                       **{**pinned, **kw})
 
 
 @pytest.mark.parametrize("case", ["iv-drem", "composite-learning", "planar3-iv-drem",
@@ -564,16 +560,9 @@ def test_chain_runs_hold_the_same_multiply_adds_in_the_same_order():
 def test_chain_as_runs_reproduces_the_sums_of_single_multiply_adds():
     """The runs of the planar-3 loop, run as written and one multiply-add at a time: the
     same slots bit for bit (the order in which a slot receives its terms is kept)."""
-    from ivdrem.diagrams import closed_loop
-    from ivdrem.models import planar_arm
     from ivdrem.sim.jacobian import JacobianProgram
     from ivdrem.sim.plan import DiagramPlan
-    ones = np.ones(3)
-    traj = dict(amplitude=0.5 * ones, omega=[1.0, 0.7, 0.4], phase=0 * ones, offset=0.2 * ones)
-    dist = dict(amplitude=[2.0, 1.0, 0.5], omega=[0.5, 0.3, 0.2], phase=0 * ones,
-                offset=0 * ones)
-    loop = closed_loop("iv-drem", model=planar_arm(3), trajectory=traj, disturbance=dist,
-                       mixing="eigen", gamma=50.0)
+    loop = _planar3_loop(mixing="eigen", gamma=50.0)
     prog = JacobianProgram(DiagramPlan.from_diagram(loop))
     # (planar-3: 5,740 multiply-adds in 2,159 runs; the UR5 loop: 2.08 million in 128,721)
     assert prog.run_len.sum() == prog.n_ins and prog.run_len.size < prog.n_ins / 2
