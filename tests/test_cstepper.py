@@ -82,6 +82,20 @@ def test_without_a_c_compiler_simulating_is_an_error_naming_what_to_install(engi
         Simulator(build_lab(), engine=engine)
 
 
+def test_a_compiler_that_fails_to_build_is_not_reported_as_a_missing_one(tmp_path,
+                                                                        monkeypatch):
+    cc = tmp_path / "cc"
+    cc.write_text('#!/bin/sh\nif [ "$1" = "--version" ]; then echo "fake cc 1.0"; exit 0; fi\n'
+                  'echo "stepper.c:1: error: not today" >&2\nexit 1\n')
+    cc.chmod(0o755)
+    monkeypatch.setenv("CC", str(cc))
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path / "cache"))
+    with pytest.raises(RuntimeError, match=r"(?s)did not build ivdrem's stepper.*not today") as e:
+        compiled.load_c_stepper()
+    assert not isinstance(e.value, compiled.CCompilerMissing)
+    assert "install" not in str(e.value).split("(")[0]
+
+
 def test_a_damaged_library_in_the_cache_is_built_again(tmp_path):
     lib = _cstepper.build(tmp_path)
     lib.write_bytes(b"not an ELF file")            # e.g. a disk that filled up mid-copy

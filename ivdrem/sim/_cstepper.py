@@ -30,7 +30,8 @@ from . import _diagram, _template, methods
 from .errors import BLOCK_RAISED_MESSAGE
 from .layout import WORKSPACE_LAYOUT, layout_constants
 
-__all__ = ["CStepper", "header_source", "load", "CStepperUnavailable", "SOURCE"]
+__all__ = ["CStepper", "header_source", "load", "CStepperUnavailable", "CStepperBuildFailed",
+           "SOURCE"]
 
 SOURCE = Path(__file__).with_name("stepper.c")
 #: no fused multiply-adds (every build rounds alike, as the numba build this replaced did;
@@ -49,8 +50,12 @@ _ERRORS = {_template.BLOCK_RAISED: BLOCK_RAISED_MESSAGE,
 
 
 class CStepperUnavailable(RuntimeError):
-    """No C compiler, or the build failed (ivdrem.sim.compiled.load_c_stepper names what to
-    install)."""
+    """No C compiler that runs (ivdrem.sim.compiled.load_c_stepper names what to install),
+    or, as CStepperBuildFailed, one that did not build the stepper."""
+
+
+class CStepperBuildFailed(CStepperUnavailable):
+    """A C compiler is there but did not build the stepper (its error in the message)."""
 
 
 def _constants(module):
@@ -153,7 +158,7 @@ def build(cache):
         cmd = [cc, *CFLAGS, "-I", str(tmp), str(tmp / "stepper.c"), "-o", str(out), "-lm"]
         res = subprocess.run(cmd, capture_output=True, text=True)
         if res.returncode != 0:
-            raise CStepperUnavailable(f"building the C stepper failed ({' '.join(cmd)}):\n"
+            raise CStepperBuildFailed(f"building the C stepper failed ({' '.join(cmd)}):\n"
                                       f"{res.stderr}")
         os.replace(out, lib)     # atomic: another process sees the whole file or none
     return lib

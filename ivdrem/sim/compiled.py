@@ -440,6 +440,10 @@ def load_c_stepper():
     compiler is a :class:`CCompilerMissing` naming what to install."""
     try:
         return _cstepper.load(cache_dir())
+    except _cstepper.CStepperBuildFailed as e:
+        # a compiler that runs but refuses ivdrem's C: installing one would not help
+        raise RuntimeError(f"the C compiler did not build ivdrem's stepper; please report "
+                           f"this with the compiler's output. ({e})") from e
     except _cstepper.CStepperUnavailable as e:
         raise CCompilerMissing(f"{C_COMPILER_HINT}. ({e})") from e
 
