@@ -327,7 +327,8 @@ class JacobianProgram:
       run_dst, run_f, run_src, run_len: the chain's multiply-adds as runs, F = [JB, gains]:
           S[dst + k] += F[f] * S[src + k] for k < len (src >= 0), S[dst + k] += F[f + k]
           (src = -1); n_ins the multiply-adds they hold; gains (float64)
-      n_slots, j_row, j_col, j_slot: where the dense J reads the chain's result
+      n_slots, j_row, j_col, j_slot: the entry (j_row, j_col) of df/dx is slot j_slot of
+          the chain (tables.jacobian_positions places it in the LU pattern's order)
       pattern: boolean n x n structural pattern of df/dx
       patterns: {block index: boolean (ny + nx, nx + nu) local pattern} of the ode blocks
           with states or inputs (also used for the max-hold probe's dependencies)

@@ -547,7 +547,7 @@ static void fd_scatter(const double *yp, const double *ym, const double *hh, i64
 
 /* c I - J factored in the static pattern (ivdrem/sim/sparse_lu.py): J holds df/dx at the
  * pattern's positions (zero at the fill, tables.jacobian_positions); LU holds the factor's
- * values, then the inverse pivots and a work row (lu_size) */
+ * values, then the inverse pivots and a work row (ivdrem_work_sizes) */
 static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv, const i64 *perm,
                       const i64 *rowptr, const i64 *colidx, const i64 *diagp) {
     double *vals = LU;

@@ -233,11 +233,16 @@ def jacobian_positions(prog, slu):
                                                                                dtype=np.int64)]
     # entries of row i are colidx[rowptr[i]:rowptr[i + 1]], sorted: search row by row at once
     key = rows * n + cols
-    pattern_key = np.repeat(np.arange(n, dtype=np.int64), np.diff(slu.rowptr)) * n + slu.colidx
+    pattern_key = _value_rows(slu.rowptr) * n + slu.colidx
     pos = np.searchsorted(pattern_key, key)
     if key.size and (pos.max() >= pattern_key.size or (pattern_key[pos] != key).any()):
         raise AssertionError("an entry of df/dx is not in the LU pattern")
     return _i64(pos)
+
+
+def _value_rows(rowptr):
+    """The pattern row of each stored value (CSR rowptr)."""
+    return np.repeat(np.arange(rowptr.size - 1, dtype=np.int64), np.diff(rowptr))
 
 
 def sparse_to_dense(values, perm, rowptr, colidx):
@@ -245,7 +250,7 @@ def sparse_to_dense(values, perm, rowptr, colidx):
     (perm, rowptr, colidx: the tables' lu_perm, lu_rowptr, lu_colidx)."""
     n = perm.size
     out = np.zeros((n, n))
-    out[np.repeat(perm, np.diff(rowptr)), perm[colidx]] = values
+    out[perm[_value_rows(rowptr)], perm[colidx]] = values
     return out
 
 
@@ -253,7 +258,7 @@ def dense_to_sparse(J, perm, rowptr, colidx):
     """J's entries at the filled LU pattern's positions (the inverse of sparse_to_dense
     where J is zero outside the pattern)."""
     J = np.asarray(J, dtype=float)
-    return np.ascontiguousarray(J[np.repeat(perm, np.diff(rowptr)), perm[colidx]])
+    return np.ascontiguousarray(J[perm[_value_rows(rowptr)], perm[colidx]])
 
 
 def _runs(seq, in_ptr, in_src, in_gain):
