@@ -142,3 +142,14 @@ def test_gamma_auto_is_calibrated_once_per_command(tmp_path, monkeypatch):
     assert calls == ["rodas5p"]                      # once, with the run's method
     data = json.loads(out.read_text())
     assert math.isfinite(data["iv-drem"]["gamma"]) and data["iv-drem"]["gamma"] != 1e10
+
+
+def test_the_command_line_parser_loads_no_report_machinery():
+    """Every command builds the parser of every subcommand; the report's modules
+    (matplotlib's PDF backend, 0.2 s of start-up) load only when a report is written."""
+    code = ("import sys; from ivdrem.cli import build_parser; build_parser(); "
+            "import ivdrem.reports as r; "
+            "bad = [m for m in ('ivdrem.reports.report', 'matplotlib.backends.backend_pdf') "
+            "if m in sys.modules]; assert not bad, bad; "
+            "assert callable(r.write_report) and 'ivdrem.reports.report' in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -276,7 +276,8 @@ def _user_lag_output(t, x, u, params):
     return x
 
 
-def test_pattern_cache_returns_the_probe_and_keys_on_what_the_probe_reads():
+def test_pattern_cache_returns_the_probe_and_keys_on_what_the_probe_reads(tmp_path,
+                                                                          monkeypatch):
     """The in-process pattern cache gives what a fresh probe gives, a copy each time, and
     probes again for another parameter value or a block ivdrem did not write."""
     import control as ct
@@ -286,6 +287,7 @@ def test_pattern_cache_returns_the_probe_and_keys_on_what_the_probe_reads():
     from ivdrem.sim.foreign import adapt_block
     from ivdrem.sim.plan import DiagramPlan
     from ivdrem.blocks._core import kernel_args
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path))     # no pattern on disk yet
     plan = DiagramPlan.from_diagram(closed_loop("iv-drem", two_link()))
     calls = []
     real = jac.block_pattern
@@ -327,6 +329,115 @@ def test_pattern_cache_returns_the_probe_and_keys_on_what_the_probe_reads():
         assert len(calls) == n + 2
     finally:
         jac.block_pattern = saved
+
+
+def _plan_blocks():
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import two_link
+    from ivdrem.sim.plan import DiagramPlan
+    from ivdrem.blocks._core import kernel_args
+    plan = DiagramPlan.from_diagram(closed_loop("iv-drem", two_link()))
+    for b in plan.blocks:
+        if b.spec.kind == "ode" and b.sys.nstates + b.sys.ninputs:
+            yield (b.spec, kernel_args(b.spec, plan.block_params(b)),
+                   (b.sys.nstates, b.sys.ninputs, b.sys.noutputs))
+
+
+def test_probed_patterns_are_kept_on_disk_for_the_next_process(tmp_path, monkeypatch):
+    """A pattern probed in one process is read back from the cache by the next (no probe),
+    equal to the probe; a changed ivdrem source, parameter value or seed, and a damaged
+    file, are probed again; a block whose kernels are not ivdrem's is never kept."""
+    from ivdrem.sim import jacobian as jac
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path))
+    real, calls = jac.block_pattern, []
+
+    def counted(*a, **k):
+        calls.append(a[0])
+        return real(*a, **k)
+
+    monkeypatch.setattr(jac, "block_pattern", counted)
+    blocks = list(_plan_blocks())
+    jac._PATTERNS.clear()
+    first = [jac.cached_block_pattern(spec, args, *sizes, seed=5) for spec, args, sizes in blocks]
+    assert len(calls) == len(blocks)
+    files = sorted((tmp_path / "patterns").glob("*.npy"))
+    assert len(files) == len(blocks)
+
+    jac._PATTERNS.clear()                                # as a new process starts
+    again = [jac.cached_block_pattern(spec, args, *sizes, seed=5) for spec, args, sizes in blocks]
+    assert len(calls) == len(blocks)                     # read, not probed
+    for a, b in zip(first, again):
+        assert (a is None and b is None) or np.array_equal(a, b)
+
+    spec, args, sizes = next(x for x in blocks if any(np.asarray(a).dtype.kind == "f"
+                                                      for a in x[1]))
+    other = [np.asarray(a) * 1.5 + 0.25 if np.asarray(a).dtype.kind == "f" else a
+             for a in args]
+    for call in (lambda: jac.cached_block_pattern(spec, other, *sizes, seed=5),
+                 lambda: jac.cached_block_pattern(spec, args, *sizes, seed=6)):
+        jac._PATTERNS.clear()
+        n = len(calls)
+        call()
+        assert len(calls) == n + 1                       # another value or seed: probed
+
+    monkeypatch.setattr(jac, "_package_digest", lambda: "another ivdrem")
+    jac._PATTERNS.clear()
+    n = len(calls)
+    jac.cached_block_pattern(spec, args, *sizes, seed=5)
+    assert len(calls) == n + 1                           # another source: probed
+    monkeypatch.undo()
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(jac, "block_pattern", counted)
+
+    for f in files:
+        f.write_bytes(b"not a pattern")
+    jac._PATTERNS.clear()
+    n = len(calls)
+    mended = [jac.cached_block_pattern(s, a, *z, seed=5) for s, a, z in blocks]
+    assert len(calls) == n + len(blocks)                 # damaged: probed again
+    for a, b in zip(first, mended):
+        assert (a is None and b is None) or np.array_equal(a, b)
+    jac._PATTERNS.clear()
+    n = len(calls)
+    [jac.cached_block_pattern(s, a, *z, seed=5) for s, a, z in blocks]
+    assert len(calls) == n                               # and rewritten whole
+
+    user = BlockSpec(name="user_lag", inputs=[("u", 1)], outputs=[("y", 1)],
+                     states=[("x", 1)], x0=np.zeros(1), param_names=(),
+                     update=_user_spec_update, output=_user_spec_output)
+    assert jac._pattern_path(user, ()) is None           # a user's kernels: memory only
+
+
+def _user_spec_update(t, x, u, dx):
+    dx[0] = u[0] - x[0]
+
+
+def _user_spec_output(t, x, u, y):
+    y[0] = x[0]
+
+
+def test_two_processes_filling_the_pattern_cache_at_once_both_succeed(tmp_path, monkeypatch):
+    """Two processes probing the same blocks into one empty cache both finish, and the
+    cache then holds whole patterns equal to a probe."""
+    import os
+    import subprocess
+    import sys
+    code = ("import numpy as np, sys; sys.path.insert(0, %r); import test_jacobian as t; "
+            "from ivdrem.sim import jacobian as jac; "
+            "[jac.cached_block_pattern(s, a, *z, seed=5) for s, a, z in t._plan_blocks()]"
+            % str(__import__("pathlib").Path(__file__).parent))
+    env = {**os.environ, "IVDREM_CACHE_DIR": str(tmp_path)}
+    procs = [subprocess.Popen([sys.executable, "-c", code], env=env) for _ in range(2)]
+    assert [p.wait(timeout=600) for p in procs] == [0, 0]
+    from ivdrem.sim import jacobian as jac
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path))
+    for spec, args, sizes in _plan_blocks():
+        path = jac._pattern_path(spec, jac._probe_inputs(spec, args, *sizes, 5))
+        ok, pat = jac._read_pattern(path, (sizes[2] + sizes[0], sizes[0] + sizes[1]))
+        assert ok
+        probe = jac.block_pattern(spec, args, *sizes, seed=5)
+        assert (pat is None and probe is None) or np.array_equal(pat, probe)
+    assert not list((tmp_path / "patterns").glob(".*.tmp"))
 
 
 def test_a_second_run_of_a_diagram_is_bit_for_bit_the_first():

@@ -2,7 +2,14 @@
 
 ``write_report(run, outdir)`` writes ``ivdrem-paper.html`` (self-contained, inline SVG)
 and ``ivdrem-paper.pdf``; ``ivdrem.reports.cli`` holds the ``ivdrem report`` command.
+The report's modules (matplotlib's PDF backend among them) load on first use: every
+command line builds the ``report`` subcommand's parser from ``ivdrem.reports.cli``.
 """
-from .report import ReportError, report_paths, write_report
-
 __all__ = ["write_report", "report_paths", "ReportError"]
+
+
+def __getattr__(name):
+    if name in __all__:
+        from . import report
+        return getattr(report, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -44,11 +44,18 @@ Newton matrix's filled LU pattern (``tables.jacobian_positions``).
 from __future__ import annotations
 
 import hashlib
+import os
+import sys
 from collections import OrderedDict
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
+from .. import __version__
+from .._atomic import new_tempfile, fsync_file
 from ..blocks._core import bind_model, kernel_args
+from .cache import cache_dir
 from .foreign import ForeignSpec
 
 __all__ = ["block_pattern", "JacobianProgram", "DeclarationError"]
@@ -93,23 +100,120 @@ def _value_key(v):
 
 def cached_block_pattern(spec, args, nx, nu, ny, *, seed=0):
     """:func:`block_pattern`, probed once per process for the same kernels, model, sizes,
-    seed and parameter values (the probe's inputs, so the pattern is the same bit for bit).
-    A block ivdrem did not write (a user's nlsys) is probed every time: its functions may
-    read state of their own that a key cannot see."""
+    seed and parameter values (the probe's inputs, so the pattern is the same bit for bit),
+    and kept on disk for the next process when the kernels are ivdrem's own
+    (:func:`_disk_key`).  A block ivdrem did not write (a user's nlsys) is probed every
+    time: its functions may read state of their own that a key cannot see."""
     if isinstance(spec, ForeignSpec):
         return block_pattern(spec, args, nx, nu, ny, seed=seed)
     fkey = tuple(None if f is None else (f.__module__, f.__qualname__, id(f.__code__))
                  for f in (spec.update, spec.output))
-    key = (fkey, spec.model.key if spec.model is not None else None, nx, nu, ny, seed,
-           tuple(spec.param_names), tuple(_value_key(a) for a in args))
+    rest = _probe_inputs(spec, args, nx, nu, ny, seed)
+    key = (fkey,) + rest
     if key in _PATTERNS:
         _PATTERNS.move_to_end(key)
     else:
-        _PATTERNS[key] = block_pattern(spec, args, nx, nu, ny, seed=seed)
+        path = _pattern_path(spec, rest)
+        found, pat = _read_pattern(path, (ny + nx, nx + nu))
+        if not found:
+            pat = block_pattern(spec, args, nx, nu, ny, seed=seed)
+            _write_pattern(path, pat)
+        _PATTERNS[key] = pat
         while len(_PATTERNS) > _PATTERNS_MAX:
             _PATTERNS.popitem(last=False)
     pat = _PATTERNS[key]
     return None if pat is None else pat.copy()
+
+
+def _probe_inputs(spec, args, nx, nu, ny, seed):
+    """What a probe of `spec`'s kernels reads besides their code: the robot model's key,
+    the sizes, the seed, the parameters' names and values."""
+    return (spec.model.key if spec.model is not None else None, nx, nu, ny, seed,
+            tuple(spec.param_names), tuple(_value_key(a) for a in args))
+
+
+@lru_cache(maxsize=1)
+def _package_digest():
+    """sha256 of every Python and C source of the installed ivdrem package (read once per
+    process): a pattern on disk is reused only by the exact code that probed it."""
+    root = Path(__file__).resolve().parent.parent
+    h = hashlib.sha256(f"{__version__} {sys.version} {np.__version__}".encode())
+    for f in sorted(root.rglob("*")):
+        if f.suffix in (".py", ".c", ".h") and "__pycache__" not in f.parts:
+            h.update(f.relative_to(root).as_posix().encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _own_kernel(f):
+    """Whether `f` is a plain module-level function of ivdrem's package (its behaviour then
+    follows from the package's source alone; a closure, or a user's function, may not)."""
+    if f is None:
+        return True
+    module = sys.modules.get(getattr(f, "__module__", None) or "")
+    file = getattr(module, "__file__", None)
+    root = Path(__file__).resolve().parent.parent
+    return (file is not None and Path(file).resolve().is_relative_to(root)
+            and "<locals>" not in f.__qualname__ and getattr(f, "__closure__", None) is None)
+
+
+def _pattern_path(spec, rest):
+    """Where the probed pattern of `spec` for `rest` (model key, sizes, seed, parameter
+    names and values) is kept across processes, or None: only for kernels of ivdrem's
+    own package, keyed by the digest of its whole source (so a changed kernel, helper or
+    ivdrem version never reads a stale pattern), the kernels' names and `rest`."""
+    funcs = (spec.update, spec.output)
+    if not all(_own_kernel(f) for f in funcs):
+        return None
+    try:
+        h = hashlib.sha256(_package_digest().encode())
+    except OSError:
+        return None
+    h.update(repr(tuple(None if f is None else (f.__module__, f.__qualname__)
+                        for f in funcs)).encode())
+    h.update(repr(rest).encode())
+    return cache_dir() / "patterns" / f"{h.hexdigest()[:40]}.npy"
+
+
+#: what a pattern file holds where the probe found no finite value (block_pattern's None)
+_NO_PATTERN = np.zeros(0, dtype=np.int8)
+
+
+def _read_pattern(path, shape):
+    """(True, pattern or None) from the file at `path`, or (False, None) where there is none
+    or it is not a pattern of `shape` (a damaged file is probed again and rewritten)."""
+    if path is None:
+        return False, None
+    try:
+        a = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError):
+        return False, None
+    if a.dtype == np.bool_ and a.shape == shape:
+        a.setflags(write=False)
+        return True, a
+    if a.dtype == _NO_PATTERN.dtype and a.size == 0:
+        return True, None
+    return False, None
+
+
+def _write_pattern(path, pat):
+    """Keep `pat` at `path` for later processes: written to a temporary and renamed (two
+    processes filling the cache at once both succeed); an unwritable cache only costs the
+    probe next time."""
+    if path is None:
+        return
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = new_tempfile(path.parent, path.name)
+        try:
+            with open(tmp, "wb") as fh:
+                np.save(fh, _NO_PATTERN if pat is None else np.asarray(pat, dtype=bool))
+            fsync_file(tmp)
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 #: probe work, in (kernel calls per probe point) x (values each call writes), above which
