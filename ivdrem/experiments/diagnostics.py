@@ -272,9 +272,10 @@ def _dominant_freqs(t, x, rel=0.1, max_peaks=6):
         top = spec.max()
         if top <= 0:
             continue
-        pk = [i for i in range(1, spec.size - 1)
-              if spec[i] >= rel * top and spec[i] >= spec[i - 1] and spec[i] >= spec[i + 1]]
-        pk = sorted(pk, key=lambda i: -spec[i])[:max_peaks]
+        inner = spec[1:-1]
+        pk = 1 + np.flatnonzero((inner >= rel * top) & (inner >= spec[:-2])
+                                & (inner >= spec[2:]))
+        pk = pk[np.argsort(-spec[pk], kind="stable")][:max_peaks]   # ties in index order
         out += [float(freqs[i]) for i in pk]
         if row.mean() != 0 and abs(row.mean()) >= rel * np.sqrt(np.mean(row ** 2)):
             out.append(0.0)
