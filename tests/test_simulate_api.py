@@ -338,3 +338,53 @@ def test_cutting_at_kinks_buys_accuracy(loop, case):
         sim.advance(T[-1], out_t=te.copy(), out_y=out_y)
         errs.append(_err(out_y.T, ref))
     assert errs[0] < 1e-5 and errs[1] > 30 * errs[0], errs
+
+
+# ----------------------------------------------------------------------------- recording
+def test_records_into_a_transposed_array_as_into_a_row_major_one():
+    """The stepper writes a sample's outputs and states into a row-major (samples x
+    columns) array or into the transpose of one (a response's (columns x samples) array):
+    the same numbers either way, bit for bit; any other layout is refused."""
+    from ivdrem.diagrams import closed_loop
+    d = closed_loop("iv-drem")
+    out_t = np.linspace(0.0, 2.0, 401)
+    filled = []
+    for transposed in (False, True):
+        sim = Simulator(d)
+        shape_y, shape_x = (out_t.size, d.noutputs), (out_t.size, d.nstates)
+        if transposed:
+            y, x = np.empty(shape_y[::-1]).T, np.empty(shape_x[::-1]).T
+        else:
+            y, x = np.empty(shape_y), np.empty(shape_x)
+        assert sim.advance(2.0, out_t=out_t.copy(), out_y=y, out_x=x) == out_t.size
+        filled.append((y, x))
+    assert np.array_equal(filled[0][0], filled[1][0])
+    assert np.array_equal(filled[0][1], filled[1][1])
+    sim = Simulator(d)
+    with pytest.raises(TypeError, match="row-major"):
+        sim.advance(1.0, out_t=out_t[:5].copy(), out_y=np.empty((10, 2 * d.noutputs))[::2, ::2])
+
+
+def test_a_run_holds_its_recorded_outputs_once():
+    """simulate() records into the response's own arrays: the run's peak memory grows by
+    what the response holds, not twice that (TimeResponseData copies what it is given, so a
+    run that recorded into arrays of its own and handed them over held both at once)."""
+    import subprocess
+    import sys
+    code = """
+import resource, sys
+import numpy as np
+from ivdrem.diagrams import closed_loop
+from ivdrem.sim import simulate
+d = closed_loop("iv-drem")
+simulate(d, 0.5, progress=False)                          # compiled, warm
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+r = simulate(d, 10.0, dt_out=2e-4, progress=False)       # 50,001 samples
+after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+held = (r.y.nbytes + r.x.nbytes + r.u.nbytes + r.t.nbytes) / 1024
+print((after - before) / held)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    growth = float(out.split()[-1])
+    assert growth < 1.4, f"peak memory grew by {growth:.2f}x the recorded arrays"

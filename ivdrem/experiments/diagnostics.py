@@ -170,14 +170,20 @@ def excitation_beta(t, zeta, phi, n, ntheta, T):
     t = np.asarray(t, dtype=float)
     Z = np.asarray(zeta, dtype=float).reshape(n, ntheta, -1)
     P = np.asarray(phi, dtype=float).reshape(n, ntheta, -1)
-    prod = np.einsum("jkt,jlt->klt", Z, P)             # ζφᵀ = (ζᵀ)ᵀ φᵀ, nθ×nθ per sample
-    cum = cumulative_trapezoid(prod, t, axis=2, initial=0.0)
     beta = np.full(t.size, np.nan)
     ok = t >= T + t[0] - 1e-9 * max(t[-1], 1.0)
-    flat = cum.reshape(ntheta * ntheta, -1)
-    back = np.vstack([np.interp(t[ok] - T, t, row) for row in flat])  # ∫₀^{t−T}, interpolated
-    win = (flat[:, ok] - back).reshape(ntheta, ntheta, -1)
-    beta[ok] = np.abs(np.linalg.det(np.moveaxis(win, 2, 0)))
+    # entry by entry of ζφᵀ (nθ×nθ per sample): one window array of nθ² × samples, not the
+    # four a whole-array evaluation holds at once (1.2 GB at nθ = 36 over 300 s)
+    win = np.empty((ntheta, ntheta, int(ok.sum())))
+    for k in range(ntheta):
+        for l in range(ntheta):
+            prod = np.einsum("jt,jt->t", Z[:, k, :], P[:, l, :])     # (ζᵀ)ᵀ φᵀ, entry (k, l)
+            cum = cumulative_trapezoid(prod, t, initial=0.0)
+            win[k, l] = cum[ok] - np.interp(t[ok] - T, t, cum)      # ∫_{t−T}^t, interpolated
+    chunk = max(1, (1 << 21) // max(ntheta * ntheta, 1))            # samples per det call
+    for a in range(0, win.shape[2], chunk):
+        beta[np.flatnonzero(ok)[a:a + chunk]] = np.abs(np.linalg.det(
+            np.moveaxis(win[:, :, a:a + chunk], 2, 0)))
     return beta
 
 

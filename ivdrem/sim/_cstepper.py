@@ -170,8 +170,8 @@ _D = ctypes.c_double
 #: ctypes signatures of the exported functions: the loop's here, the others derived from
 #: their rows in _ENTRY_POINTS (below)
 _SIGNATURES = {
-    "ivdrem_step_loop": (ctypes.c_int, [_P, _P, _P, _I, _P, _D, _P, _I, _P, _P, _I, _P, _I,
-                                        _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P]),
+    "ivdrem_step_loop": (ctypes.c_int, [_P, _P, _P, _I, _P, _D, _P, _I, _P, _P, _P, _P, _P,
+                                        _P, _P, _P, _P, _P, _P, _P, _P, _P, _P]),
 }
 _loaded = {}
 
@@ -214,6 +214,29 @@ def _writable_ptr(a, dtype, name):
     if isinstance(a, np.ndarray) and not a.flags.writeable:
         raise TypeError(f"the C stepper writes {name}: it must be writeable")
     return _ptr(a, dtype, name)
+
+
+def _record_strides(a, name, row_size=None):
+    """(stride between samples, stride between columns), in doubles, of an output array
+    (samples x columns) that is row-major or the transpose of a row-major array."""
+    if a.ndim != 2 or a.dtype != np.float64:
+        raise TypeError(f"the C stepper needs {name} as a 2-d float64 array")
+    if a.flags.c_contiguous:
+        return a.shape[1], 1
+    if a.T.flags.c_contiguous:
+        if row_size is not None and row_size < a.shape[1]:
+            raise TypeError(f"the workspace's record row is shorter than {name}'s columns")
+        return 1, a.shape[0]
+    raise TypeError(f"the C stepper needs {name} row-major (samples x columns) or the "
+                    "transpose of a row-major array")
+
+
+def _record_ptr(a, name):
+    """The data address of an output array that _record_strides accepts (written)."""
+    if not (isinstance(a, np.ndarray) and a.flags.writeable):
+        raise TypeError(f"the C stepper writes {name}: it must be a writeable array")
+    _record_strides(a, name)
+    return a.ctypes.data
 
 
 class CStepper:
@@ -271,11 +294,15 @@ class CStepper:
         f, i = np.float64, np.int64
         if out_y.ndim != 2 or out_x.ndim != 2:
             raise TypeError("out_y and out_x must be 2-d arrays")
+        # samples x columns, row-major or the transpose of a row-major array (strides in
+        # doubles, C writes out_y[k ystep + j ynext])
+        layout = np.array([out_y.shape[1], *_record_strides(out_y, "out_y", W.record_row.size),
+                           out_x.shape[1], *_record_strides(out_x, "out_x")], dtype=np.int64)
         return self._status(self.lib.ivdrem_step_loop(
             addr.ctypes.data, shape.ctypes.data, _ptr(P, f, "P"), int(mid),
             _writable_ptr(tf, f, "tf"), float(t_stop), _writable_ptr(x, f, "x"), n,
-            _writable_ptr(out_t, f, "out_t"), _writable_ptr(out_y, f, "out_y"), out_y.shape[1],
-            _writable_ptr(out_x, f, "out_x"), out_x.shape[1], _writable_ptr(io, i, "io"),
+            _writable_ptr(out_t, f, "out_t"), _record_ptr(out_y, "out_y"),
+            _record_ptr(out_x, "out_x"), layout.ctypes.data, _writable_ptr(io, i, "io"),
             _writable_ptr(stats, i, "stats"), _ptr(ctl, f, "ctl"), K.ctypes.data,
             J.ctypes.data, LU.ctypes.data, piv.ctypes.data, xn.ctypes.data, f1.ctypes.data,
             xg.ctypes.data, D.ctypes.data))

@@ -263,7 +263,8 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels, tables):
         # dsyevd's five scalar arguments, then its integer work
         lapack_ints=np.zeros(5 + _diagram.dsyevd_liwork(nmat), dtype=np.int32),
         callbacks=np.zeros(3, dtype=np.int64), sample_dt=plan.sampling.periods.copy(),
-        sample_due=np.zeros(plan.sampling.periods.size, dtype=np.int64))
+        sample_due=np.zeros(plan.sampling.periods.size, dtype=np.int64),
+        record_row=np.zeros(plan.diagram.noutputs))
 
 
 def _grow(W):
@@ -509,7 +510,13 @@ class Simulator:
 
     def _emit_due(self, out_t, out_y, out_x, io):
         while io[0] < io[1] and out_t[io[0]] <= self.t + 1e-12 * max(1.0, abs(self.t)):
-            self._naming_blocks(self.engine.record, self.t, self.x, self.W, out_y[io[0]])
+            row = out_y[io[0]]
+            direct = row.flags.c_contiguous
+            if not direct:                      # a response's (outputs x samples) array
+                row = self.W.record_row[:out_y.shape[1]]
+            self._naming_blocks(self.engine.record, self.t, self.x, self.W, row)
+            if not direct:
+                out_y[io[0]] = row
             if out_x.shape[1]:
                 out_x[io[0]] = self.x
             io[0] += 1
@@ -1007,9 +1014,19 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
                     h_max=h_max, params=params, x0=state0, x_limit=x_limit,
                     max_steps=max_steps, t0=t0)
     sim.set_inputs(u_values, u_times)
-    ny = diagram.noutputs
-    out_y = np.full((out_t.size, ny), np.nan)
-    out_x = np.full((out_t.size, diagram.nstates), np.nan) if return_states else None
+    # the response is made first and the run records into its own arrays (outputs x
+    # samples), through their transposes: TimeResponseData copies what it is given, and a
+    # copy of the recorded arrays would double a long run's memory.  Its placeholders are
+    # never written, so they cost no memory either.
+    resp = ct.TimeResponseData(
+        out_t, np.empty((diagram.noutputs, out_t.size)),
+        np.empty((diagram.nstates, out_t.size)) if return_states else None,
+        np.empty((diagram.ninputs, out_t.size)),
+        output_labels=list(diagram.output_labels), input_labels=list(diagram.input_labels),
+        state_labels=list(diagram.state_labels) if return_states else None,
+        sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso())
+    out_y = resp.y.T
+    out_x = resp.x.T if return_states else None
     if progress is None:
         progress = sys.stderr.isatty() and not os.environ.get("CI")
     bar, update = _progress_bar(progress, t0, t_end, desc or diagram.name)
@@ -1033,12 +1050,16 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
         u_out = np.repeat(u_values.reshape(-1, 1), out_t.size, axis=1)
     else:
         u_out = interpolate_inputs(u_times, u_values, out_t)
-    resp = ct.TimeResponseData(
-        out_t, out_y.T, out_x.T if out_x is not None else None, u_out,
-        output_labels=list(diagram.output_labels), input_labels=list(diagram.input_labels),
-        state_labels=list(diagram.state_labels) if out_x is not None else None,
-        sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso(),
-        success=failure is None, message=None if failure is None else str(failure))
+    if failure is None:
+        resp.t[...] = out_t
+        resp.u[...] = u_out
+    else:                         # the samples recorded before the failure, with its reason
+        resp = ct.TimeResponseData(
+            out_t, out_y.T, out_x.T if out_x is not None else None, u_out,
+            output_labels=list(diagram.output_labels), input_labels=list(diagram.input_labels),
+            state_labels=list(diagram.state_labels) if out_x is not None else None,
+            sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso(),
+            success=False, message=str(failure))
     resp.stats = sim.stats_dict()
     resp.hold_times = sim.hold_times()
     return resp

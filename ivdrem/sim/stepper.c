@@ -717,12 +717,25 @@ static void newton_solve(Ctx *c, double *LU, const i64 *piv, i64 n, double *b) {
 }
 
 /* ----------------------------------------------------------------- methods */
-static void emit(Ctx *c, double t, const double *x, i64 n, double *out_y, i64 ycols,
-                 double *out_x, i64 xcols, i64 *io) {
+/* where the recorded samples go: sample k's output j at out_y[k ystep + j ynext] (ycols
+ * outputs), its state i at out_x[k xstep + i xnext] (xcols = n, or 0: states not recorded);
+ * a row-major (samples x outputs) array has ynext = 1, the transpose of one that is
+ * (outputs x samples), as simulate() records into its response, ystep = 1 */
+typedef struct {
+    double *out_y, *out_x;
+    i64 ycols, ystep, ynext, xcols, xstep, xnext;
+} Rec;
+
+static void emit(Ctx *c, double t, const double *x, i64 n, const Rec *r, i64 *io) {
     i64 k = io[0];
-    diagram_eval(c, RECORD, t, x, out_y + k * ycols);
-    if (xcols == n)
-        for (i64 i = 0; i < n; i++) out_x[k * xcols + i] = x[i];
+    if (r->ynext == 1) {
+        diagram_eval(c, RECORD, t, x, r->out_y + k * r->ystep);
+    } else {
+        diagram_eval(c, RECORD, t, x, c->record_row);
+        for (i64 j = 0; j < r->ycols; j++) r->out_y[k * r->ystep + j * r->ynext] = c->record_row[j];
+    }
+    if (r->xcols == n)
+        for (i64 i = 0; i < n; i++) r->out_x[k * r->xstep + i * r->xnext] = x[i];
     io[0] = k + 1;
 }
 
@@ -988,7 +1001,7 @@ static void set_hold_modes(Ctx *c, double t_prev, double t, double t0, int fixed
 }
 
 static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 n,
-                     const double *out_t, double *out_y, i64 ycols, double *out_x, i64 xcols,
+                     const double *out_t, const Rec *rec,
                      i64 *io, i64 *stats, const double *ctl, double *K, double *J, double *LU,
                      i64 *piv, double *xn, double *f1, double *xg, double *D) {
     double rtol = ctl[0], atol = ctl[1], h_max = ctl[2], max_steps = ctl[3], x_limit = ctl[4];
@@ -1026,7 +1039,7 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
             }
             if (h_use < 1e-13 * pmax(1.0, fabs(t))) {
                 if (landing && io[0] < io[1] && t_target == out_t[io[0]]) {
-                    emit(c, t, x, n, out_y, ycols, out_x, xcols, io);
+                    emit(c, t, x, n, rec, io);
                     continue;
                 }
                 stats[S_BAD] = -1;
@@ -1133,7 +1146,7 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
                 double to = out_t[io[0]];
                 dense_eval(m, h_use, (to - t) / (t1 - t), x, xn, ROW(K, 0), f1, K, n, xg, D,
                            &dense_ready);
-                emit(c, to, xg, n, out_y, ycols, out_x, xcols, io);
+                emit(c, to, xg, n, rec, io);
                 swept = 1;
             }
         }
@@ -1201,7 +1214,7 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
         stats[S_FRESH] = 1;
         if (adaptive) {
             while (io[0] < io[1] && out_t[io[0]] <= t + 1e-12 * pmax(1.0, fabs(t)))
-                emit(c, t, x, n, out_y, ycols, out_x, xcols, io);
+                emit(c, t, x, n, rec, io);
             if (!landing || h_use >= h) {
                 double fac = err == 0.0 ? 5.0 : pmin(fac_max, pmax(0.2, 0.9 * pow(err, -0.2)));
                 if (m == RODAS5P) {
@@ -1231,7 +1244,7 @@ static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 
                first step at or after it, and reports that step's time (as the template) */
             while (io[0] < io[1] && out_t[io[0]] <= t + 1e-9 * h) {
                 ((double *)out_t)[io[0]] = t;
-                emit(c, t, x, n, out_y, ycols, out_x, xcols, io);
+                emit(c, t, x, n, rec, io);
             }
         }
         if (c->report != NULL && t >= tf[F_REPORT]) {
@@ -1329,14 +1342,16 @@ static void dense_solve(const double *LU, i64 n, const i64 *piv, double *b) {
  * (BLOCK_RAISED, ERR_*), which _cstepper.py turns into the same RuntimeError. */
 EXPORT int ivdrem_step_loop(const i64 *waddr, const i64 *wshape, double *P, i64 mid,
                             double *tf, double t_stop, double *x, i64 n, double *out_t,
-                            double *out_y, i64 ycols, double *out_x, i64 xcols, i64 *io,
+                            double *out_y, double *out_x, const i64 *rec_layout, i64 *io,
                             i64 *stats, double *ctl, double *K, double *J, double *LU,
                             i64 *piv, double *xn, double *f1, double *xg, double *D) {
     Ctx c;
     bind_ctx(&c, waddr, wshape, P);
     int code = setjmp(c.exit);
     if (code) return code;
-    return step_loop(&c, mid, tf, t_stop, x, n, out_t, out_y, ycols, out_x, xcols, io, stats,
+    Rec rec = {out_y, out_x, rec_layout[0], rec_layout[1], rec_layout[2], rec_layout[3],
+               rec_layout[4], rec_layout[5]};
+    return step_loop(&c, mid, tf, t_stop, x, n, out_t, &rec, io, stats,
                      ctl, K, J, LU, piv, xn, f1, xg, D);
 }
 
