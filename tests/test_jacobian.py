@@ -710,6 +710,50 @@ def test_the_jacobian_sits_in_the_lu_pattern_and_comes_back_dense():
     assert slu.nnz_lu > pat.sum()            # fill: positions no entry of J maps to stay 0
 
 
+def test_a_jacobian_program_is_kept_on_disk_for_the_next_process(tmp_path, monkeypatch):
+    """A program built in one process is read back by the next one (no build), equal to a
+    fresh build array by array and count by count; a damaged file, or another ivdrem
+    source, is built again."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import jacobian
+    from ivdrem.sim.plan import DiagramPlan
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path))
+    plan = DiagramPlan.from_diagram(closed_loop("iv-drem"))
+    jacobian._PROGRAMS.clear()
+    built = jacobian.JacobianProgram(plan)
+    files = list((tmp_path / "jacobian-programs").glob("*.npz"))
+    assert len(files) == 1
+    real_build, builds = jacobian.JacobianProgram._build, []
+
+    def counted(self, *a):
+        builds.append(1)
+        return real_build(self, *a)
+
+    monkeypatch.setattr(jacobian.JacobianProgram, "_build", counted)
+    jacobian._PROGRAMS.clear()                          # as a new process starts
+    read = jacobian.JacobianProgram(plan)
+    assert not builds
+    for name in jacobian._PROGRAM_ARRAYS:
+        a, b = getattr(built, name), getattr(read, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
+        assert not b.flags.writeable
+    for name in jacobian._PROGRAM_COUNTS:
+        assert type(getattr(read, name)) is int and getattr(read, name) == getattr(built, name)
+    assert [b.index for b in read.fd_blocks] == [b.index for b in built.fd_blocks]
+    assert all(b in plan.blocks for b in read.fd_blocks) and read.plan is plan
+    files[0].write_bytes(b"damaged")
+    jacobian._PROGRAMS.clear()
+    jacobian.JacobianProgram(plan)
+    assert len(builds) == 1                             # damaged: built again, rewritten
+    jacobian._PROGRAMS.clear()
+    jacobian.JacobianProgram(plan)
+    assert len(builds) == 1
+    monkeypatch.setattr(jacobian, "_package_digest", lambda: "another ivdrem")
+    jacobian._PROGRAMS.clear()
+    jacobian.JacobianProgram(plan)
+    assert len(builds) == 2                             # another source: built
+
+
 def test_a_jacobian_program_is_built_once_per_structure_and_equals_a_fresh_one():
     from ivdrem.diagrams import closed_loop
     from ivdrem.sim import jacobian

@@ -188,9 +188,10 @@ def _read_pattern(path, shape):
         a = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError):
         return False, None
-    if a.dtype == np.bool_ and a.shape == shape:
-        a.setflags(write=False)
-        return True, a
+    if a.dtype == np.uint8 and a.ndim == 1 and a.size == (shape[0] * shape[1] + 7) // 8:
+        pat = np.unpackbits(a, count=shape[0] * shape[1]).reshape(shape).astype(bool)
+        pat.setflags(write=False)
+        return True, pat
     if a.dtype == _NO_PATTERN.dtype and a.size == 0:
         return True, None
     return False, None
@@ -207,7 +208,8 @@ def _write_pattern(path, pat):
         tmp = new_tempfile(path.parent, path.name)
         try:
             with open(tmp, "wb") as fh:
-                np.save(fh, _NO_PATTERN if pat is None else np.asarray(pat, dtype=bool))
+                # packed: a real arm's window integrator alone is 4,000 x 4,000 entries
+                np.save(fh, _NO_PATTERN if pat is None else np.packbits(np.asarray(pat, bool)))
             fsync_file(tmp)
             os.replace(tmp, path)
         finally:
@@ -377,6 +379,24 @@ def _program_key(plan, patterns):
     return h.hexdigest()
 
 
+#: what a JacobianProgram keeps on disk besides the differentiated blocks' indices
+_PROGRAM_ARRAYS = ("fd_x0", "fd_nx", "fd_u0", "fd_nu", "fd_ny", "fd_y0", "fd_central",
+                   "g_ptr", "gc_ptr", "col", "g_kind", "e_ptr", "e_row", "e_slot", "run_dst",
+                   "run_f", "run_src", "run_len", "gains", "j_row", "j_col", "j_slot", "pattern")
+_PROGRAM_COUNTS = ("n", "n_jb", "n_slots", "n_ins")
+
+
+def _program_path(key):
+    """Where the program of structure `key` is kept across processes: named by `key` and
+    the digest of ivdrem's whole source (a changed builder never reads a stale program)."""
+    try:
+        digest = _package_digest()
+    except OSError:
+        return None
+    h = hashlib.sha256(f"{digest} {key}".encode()).hexdigest()[:40]
+    return cache_dir() / "jacobian-programs" / f"{h}.npz"
+
+
 def _slots_by_row(rows, n_slots):
     """old slot -> new slot, each row's slots made consecutive in the order of its columns:
     a source row read in column order (the chain reads each in one loop) then meets a
@@ -448,13 +468,65 @@ class JacobianProgram:
             self.plan = plan
             self.fd_blocks = [plan.blocks[b.index] for b in hit.fd_blocks]
             return
-        self._build(plan, patterns)
+        path = _program_path(key)
+        if not self._read(path, plan, patterns):
+            self._build(plan, patterns)
+            self._write(path)
         for v in self.__dict__.values():
             if isinstance(v, np.ndarray):
                 v.flags.writeable = False      # shared by every plan of this structure
         _PROGRAMS[key] = self
         while len(_PROGRAMS) > _PROGRAMS_MAX:
             _PROGRAMS.popitem(last=False)
+
+    # ---- kept on disk: the arrays and counts, the differentiated blocks by index
+    def _stored(self):
+        d = {k: v for k, v in self.__dict__.items()
+             if isinstance(v, (np.ndarray, int)) and not isinstance(v, bool)}
+        d["fd_block_index"] = np.array([b.index for b in self.fd_blocks], dtype=np.int64)
+        d["pattern"] = np.packbits(self.pattern)          # n x n booleans, 8 to a byte
+        return d
+
+    def _read(self, path, plan, patterns):
+        """Fill this program from the file at `path` (False where there is none, or it does
+        not hold a whole program of this size: then it is built again)."""
+        if path is None:
+            return False
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                d = {k: f[k] for k in f.files}
+        except (OSError, ValueError, EOFError, KeyError):
+            return False
+        names = set(_PROGRAM_ARRAYS) | set(_PROGRAM_COUNTS) | {"fd_block_index"}
+        n = plan.x0.size
+        if (set(d) != names or int(d["n"]) != n or d["pattern"].dtype != np.uint8
+                or d["pattern"].size != (n * n + 7) // 8):
+            return False
+        d["pattern"] = np.unpackbits(d["pattern"], count=n * n).reshape(n, n).astype(bool)
+        for k in _PROGRAM_COUNTS:
+            d[k] = int(d[k])
+        self.fd_blocks = [plan.blocks[int(i)] for i in d.pop("fd_block_index")]
+        self.__dict__.update(d)
+        self.plan, self.patterns = plan, patterns
+        return True
+
+    def _write(self, path):
+        """Keep this program at `path` for later processes (atomically: two processes
+        filling the cache at once both succeed; an unwritable cache costs a build)."""
+        if path is None:
+            return
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = new_tempfile(path.parent, path.name)
+            try:
+                with open(tmp, "wb") as fh:
+                    np.savez(fh, **self._stored())
+                fsync_file(tmp)
+                os.replace(tmp, path)
+            finally:
+                tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
 
     def _build(self, plan, patterns):
         self.plan = plan
@@ -510,7 +582,6 @@ class JacobianProgram:
         self.g_ptr, self.gc_ptr, self.col = i64(g_ptr), i64(gc_ptr), i64(cols)
         self.g_kind = i64(g_kind)
         self.e_ptr, self.e_row, self.e_slot = i64(e_ptr), i64(e_row), i64(e_slot)
-        self.local = local
 
         # ---- chain rule, symbolically: rows are {state column: slot}
         slots = [0]
