@@ -309,3 +309,43 @@ def test_a_closed_loop_that_does_not_learn_warns_in_run_summary_and_report(tmp_p
     d = diagnostics.diagnose_run(good)["iv-drem"]
     assert diagnostics.learning_warnings(d) == []
     assert not any(k.startswith("WARNING") for k, _ in build_content(good).meta)
+
+
+@pytest.mark.parametrize("arm", ["two-link", "planar-3"])
+def test_model_functions_over_samples_equal_the_python_functions_sample_by_sample(arm):
+    """The diagnostics evaluate Φ and M over a run's samples in one compiled loop (the
+    compiled engine's model module): the same numbers as the generated Python functions
+    called sample by sample, and the Python path itself where no compiled loop exists."""
+    from ivdrem.experiments import diagnostics as dg
+    from ivdrem.models import get_model
+    model = get_model(arm)
+    n, nth, nt = model.n, model.ntheta, 257
+    rng = np.random.default_rng(3)
+    q, dq, v, dv = (rng.uniform(-2, 2, size=(n, nt)) for _ in range(4))
+    theta = np.asarray(model.theta_values, dtype=float)
+    phi = dg._model_at_samples(model, "Phi", (n, nth), q, dq, v, dv)
+    mass = dg._model_at_samples(model, "M", (n, n), q, theta=theta)
+    assert phi.shape == (n, nth, nt) and mass.shape == (n, n, nt)
+    for k in range(0, nt, 16):
+        np.testing.assert_allclose(phi[:, :, k], model.regressor(q[:, k], dq[:, k], v[:, k],
+                                                                 dv[:, k]), rtol=1e-14, atol=0)
+        ref = np.empty((n, n))
+        model.functions.M(q[:, k], theta, ref)
+        np.testing.assert_allclose(mass[:, :, k], ref, rtol=1e-14, atol=0)
+
+
+def test_model_functions_over_samples_without_a_compiled_module(monkeypatch):
+    """A model the compile cache cannot serve is evaluated by its Python functions."""
+    from ivdrem.experiments import diagnostics as dg
+    from ivdrem.models import two_link
+    from ivdrem.sim import compiled
+    model = two_link()
+    q = np.linspace(-1, 1, 22).reshape(2, 11)
+    fast = dg._model_at_samples(model, "Phi", (2, 5), q, q, q, q)
+
+    def refuse(model):
+        raise RuntimeError("no compiled module")
+
+    monkeypatch.setattr(compiled, "model_module", refuse)
+    slow = dg._model_at_samples(model, "Phi", (2, 5), q, q, q, q)
+    np.testing.assert_array_equal(fast, slow)

@@ -508,6 +508,31 @@ def check_lyapunov(t, V, calW=None, gamma=None, lam2_int=None, rho=None, delta_r
                   "f̃_n from τ̂_d of the run)", figure), bound
 
 
+def _model_at_samples(model, name, shape, *signals, theta=None):
+    """The model function `name` (out of `shape`) at every sample of `signals` (each
+    n x samples), as a shape + (samples,) array: one compiled loop over the samples (the
+    compiled engine's model module, `*_samples`); the Python functions sample by sample for
+    a model without one.  Both evaluate the same generated code."""
+    args = [np.ascontiguousarray(np.atleast_2d(s).T) for s in signals]
+    if theta is not None:
+        args.append(np.ascontiguousarray(theta, dtype=float))
+    nt = args[0].shape[0]
+    try:
+        from ..sim.compiled import model_module
+        loop = getattr(model_module(model), f"{name}_samples")
+    except Exception:  # noqa: BLE001 - no compiled module (numba missing, a model of one's own)
+        loop = None
+    if loop is not None:
+        out = np.empty((nt, *shape))
+        loop(*args, out)
+    else:
+        fn, out = getattr(model.functions, name), np.empty((nt, *shape))
+        rest = args[len(signals):]
+        for k in range(nt):
+            fn(*(a[k] for a in args[:len(signals)]), *rest, out[k])
+    return np.ascontiguousarray(np.moveaxis(out, 0, -1))
+
+
 def observer_error_true_theta(resp, model, theta):
     """τ_d − τ̂_d(θ): the observer error (7) with the true θ, as the proof of Theorem 2 uses.
 
@@ -521,12 +546,7 @@ def observer_error_true_theta(resp, model, theta):
     Pi = _sig(resp, "Pi").reshape(n, ntheta, nt)
     q, dq = np.atleast_2d(_sig(resp, "q")), np.atleast_2d(_sig(resp, "dq"))
     v, dv = np.atleast_2d(_sig(resp, "v")), np.atleast_2d(_sig(resp, "dv"))
-    Phi = np.empty((n, ntheta, nt))
-    buf = np.empty((n, ntheta))
-    fn = model.functions.Phi
-    for k in range(nt):
-        fn(q[:, k], dq[:, k], v[:, k], dv[:, k], buf)
-        Phi[:, :, k] = buf
+    Phi = _model_at_samples(model, "Phi", (n, ntheta), q, dq, v, dv)
     hat_theta = np.atleast_2d(_sig(resp, "tau_d_hat")) - np.einsum("jkt,kt->jt", Pi - Phi, th_err)
     return tau_d - hat_theta
 
@@ -766,12 +786,7 @@ def diagnose(lawrun, config, model=None, *, theta=None, figure=None):
     gvec = None if gamma is None else np.atleast_1d(np.asarray(gamma, dtype=float))
     if model is not None and _has(resp, "r") and _has(resp, "q"):
         q = np.atleast_2d(_sig(resp, "q"))
-        Mq = np.empty((n, n, t.size))
-        buf = np.empty((n, n))
-        Mfun = model.functions.M
-        for k in range(t.size):
-            Mfun(q[:, k], theta, buf)
-            Mq[:, :, k] = buf
+        Mq = _model_at_samples(model, "M", (n, n), q, theta=theta)
         rho = p42["rho"] if p42 else 2.0 / float(ctl["delta_mu"])
         exact = all(_has(resp, s) for s in ("Pi", "v", "dv", "dq"))
         err = (observer_error_true_theta(resp, model, theta) if exact

@@ -954,10 +954,7 @@ def {P}Phi_jac(q, dq, v, dv, out):
         """The generated functions compiled by numba, from the module the compiled engine
         uses (written to ivdrem's cache directory, machine code cached by numba)."""
         import types
-        from ..sim.compiled import _import, _model_module, cache_dir
-        name, src = _model_module(self)
-        cdir = cache_dir()
-        cdir.mkdir(parents=True, exist_ok=True)
-        mod = _import(cdir, name, src)
+        from ..sim.compiled import model_module
+        mod = model_module(self)
         return types.SimpleNamespace(**{f: getattr(mod, f) for f in FUNCTION_NAMES})
 
