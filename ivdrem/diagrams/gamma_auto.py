@@ -267,6 +267,14 @@ def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1
     # the calibration needs the motion: the whole loop with ivdrem's own plant of the model,
     # also for a controller built for an external plant (an FMU of the same model)
     diagram = closed_loop(law, model, gamma=1.0, **{**args, "external_plant": False})
+    settings = dict(law=law, t_cal=t_cal, rate=float(rate), passes=passes, engine=engine,
+                    method=method, rtol=rtol, atol=atol, h=h, h_max=h_max, dt_out=dt_out,
+                    T=T, Gamma=np.asarray(args.get("Gamma", 0.01), dtype=float).tolist(),
+                    variant=variant, model=getattr(model, "name", None))
+    path = _calibration_path(diagram, settings)
+    kept = _read_calibration(path)
+    if kept is not None:
+        return kept
     gamma, history = _GAMMA_OFF, []
     for k in range(passes):
         resp = simulate(diagram, t_cal, engine=engine, method=method, rtol=rtol, atol=atol,
@@ -282,4 +290,44 @@ def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1
     out["t_cal"] = t_cal
     out["passes"] = history
     out["reference_log10_mean_Delta2"] = estimate if len(estimate) > 1 else estimate[0]
+    _write_calibration(path, out)
     return out
+
+
+def _calibration_path(diagram, settings):
+    """Where the calibration of `diagram` with `settings` is kept across processes (a
+    repeated run, the report after the run, a study point that does not change the loop),
+    named by the run digest of its plan (ivdrem's source, kernels, model, parameter values,
+    initial state) and the settings; None for a loop with blocks ivdrem did not write."""
+    import hashlib
+    import json
+    from ..sim.cache import cache_dir
+    from ..sim.jacobian import run_digest
+    from ..sim.plan import DiagramPlan
+    digest = run_digest(DiagramPlan.from_diagram(diagram, params={"gamma": _GAMMA_OFF}))
+    if digest is None:
+        return None
+    key = hashlib.sha256(f"{digest} {json.dumps(settings, sort_keys=True)}".encode())
+    return cache_dir() / "calibrations" / f"{key.hexdigest()[:40]}.json"
+
+
+def _read_calibration(path):
+    import json
+    if path is None:
+        return None
+    try:
+        out = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return out if isinstance(out, dict) and "gamma" in out else None
+
+
+def _write_calibration(path, out):
+    import json
+    from .._atomic import write_text_atomic
+    if path is None:
+        return
+    try:
+        write_text_atomic(path, json.dumps(out, allow_nan=True))
+    except (OSError, TypeError, ValueError):
+        pass

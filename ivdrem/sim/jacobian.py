@@ -379,6 +379,36 @@ def _program_key(plan, patterns):
     return h.hexdigest()
 
 
+def run_digest(plan, *, seed=0):
+    """A digest of everything a run of `plan` computes from, for results kept across
+    processes (``gamma = "auto"``'s calibration): ivdrem's source, the structure the
+    Jacobian program is built from, every block's kernels, robot model and parameter
+    values, the delays, holds and the initial state.  None where a block's kernels are not
+    ivdrem's own (a user's nlsys, an FMU): what they compute cannot be keyed."""
+    try:
+        h = hashlib.sha256(_package_digest().encode())
+    except OSError:
+        return None
+    for b in plan.blocks:
+        spec = b.spec
+        if spec is None or isinstance(spec, ForeignSpec):
+            return None
+        funcs = (spec.update, spec.output, spec.jacobian)
+        if not all(_own_kernel(f) for f in funcs):
+            return None
+        h.update(repr((b.index, spec.name, spec.kind, repr(spec.info),
+                       tuple(None if f is None else (f.__module__, f.__qualname__)
+                             for f in funcs),
+                       spec.model.key if spec.model is not None else None)).encode())
+        if spec.kind == "ode":
+            h.update(repr(tuple(_value_key(a) for a in
+                                kernel_args(spec, plan.block_params(b)))).encode())
+    h.update(_program_key(plan, _local_patterns(plan, seed)).encode())
+    h.update(repr((plan.delays, plan.holds)).encode())
+    h.update(np.ascontiguousarray(plan.x0, dtype=float).tobytes())
+    return h.hexdigest()
+
+
 #: what a JacobianProgram keeps on disk besides the differentiated blocks' indices
 _PROGRAM_ARRAYS = ("fd_x0", "fd_nx", "fd_u0", "fd_nu", "fd_ny", "fd_y0", "fd_central",
                    "g_ptr", "gc_ptr", "col", "g_kind", "e_ptr", "e_row", "e_slot", "run_dst",
