@@ -87,6 +87,22 @@ def write_text_atomic(path, text: str) -> Path:
     return path
 
 
+def write_file_atomic(path, write) -> Path:
+    """Write `path` atomically by `write(binary file)`; on any error the old file stays."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = new_tempfile(path.parent, path.name)
+    try:
+        with open(tmp, "wb") as fh:
+            write(fh)
+        fsync_file(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
 @contextmanager
 def written_together(*targets):
     """Temporaries next to each target, yielded as a tuple; on normal exit each is flushed

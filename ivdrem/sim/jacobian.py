@@ -44,7 +44,6 @@ Newton matrix's filled LU pattern (``tables.jacobian_positions``).
 from __future__ import annotations
 
 import hashlib
-import os
 import sys
 from collections import OrderedDict
 from functools import lru_cache
@@ -53,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from .._atomic import new_tempfile, fsync_file
+from .._atomic import write_file_atomic
 from ..blocks._core import bind_model, kernel_args
 from .cache import cache_dir
 from .foreign import ForeignSpec
@@ -203,17 +202,10 @@ def _write_pattern(path, pat):
     probe next time."""
     if path is None:
         return
+    # packed: a real arm's window integrator alone is 4,000 x 4,000 entries
+    data = _NO_PATTERN if pat is None else np.packbits(np.asarray(pat, bool))
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = new_tempfile(path.parent, path.name)
-        try:
-            with open(tmp, "wb") as fh:
-                # packed: a real arm's window integrator alone is 4,000 x 4,000 entries
-                np.save(fh, _NO_PATTERN if pat is None else np.packbits(np.asarray(pat, bool)))
-            fsync_file(tmp)
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
+        write_file_atomic(path, lambda fh: np.save(fh, data))
     except OSError:
         pass
 
@@ -546,15 +538,7 @@ class JacobianProgram:
         if path is None:
             return
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = new_tempfile(path.parent, path.name)
-            try:
-                with open(tmp, "wb") as fh:
-                    np.savez(fh, **self._stored())
-                fsync_file(tmp)
-                os.replace(tmp, path)
-            finally:
-                tmp.unlink(missing_ok=True)
+            write_file_atomic(path, lambda fh: np.savez(fh, **self._stored()))
         except OSError:
             pass
 
