@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ivdrem.diagrams import closed_loop, gamma_auto
+from ivdrem.diagrams import closed_loop
 from ivdrem.sim import jacobian
 
 CAL = {"t_cal": 4.0}

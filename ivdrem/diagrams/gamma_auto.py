@@ -20,6 +20,8 @@ the order of the paper's 1e10.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 
 import numpy as np
@@ -299,8 +301,6 @@ def _calibration_path(diagram, settings):
     repeated run, the report after the run, a study point that does not change the loop),
     named by the run digest of its plan (ivdrem's source, kernels, model, parameter values,
     initial state) and the settings; None for a loop with blocks ivdrem did not write."""
-    import hashlib
-    import json
     from ..sim.cache import cache_dir
     from ..sim.jacobian import run_digest
     from ..sim.plan import DiagramPlan
@@ -312,7 +312,6 @@ def _calibration_path(diagram, settings):
 
 
 def _read_calibration(path):
-    import json
     if path is None:
         return None
     try:
@@ -323,7 +322,6 @@ def _read_calibration(path):
 
 
 def _write_calibration(path, out):
-    import json
     from .._atomic import write_text_atomic
     if path is None:
         return

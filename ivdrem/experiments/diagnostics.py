@@ -181,8 +181,9 @@ def excitation_beta(t, zeta, phi, n, ntheta, T):
             cum = cumulative_trapezoid(prod, t, initial=0.0)
             win[k, l] = cum[ok] - np.interp(t[ok] - T, t, cum)      # ∫_{t−T}^t, interpolated
     chunk = max(1, (1 << 21) // max(ntheta * ntheta, 1))            # samples per det call
+    where = np.flatnonzero(ok)
     for a in range(0, win.shape[2], chunk):
-        beta[np.flatnonzero(ok)[a:a + chunk]] = np.abs(np.linalg.det(
+        beta[where[a:a + chunk]] = np.abs(np.linalg.det(
             np.moveaxis(win[:, :, a:a + chunk], 2, 0)))
     return beta
 
@@ -516,18 +517,16 @@ def _model_at_samples(model, name, shape, *signals, theta=None):
     args = [np.ascontiguousarray(np.atleast_2d(s).T) for s in signals]
     if theta is not None:
         args.append(np.ascontiguousarray(theta, dtype=float))
-    nt = args[0].shape[0]
+    out = np.empty((args[0].shape[0], *shape))
     try:
         from ..sim.compiled import model_module
         loop = getattr(model_module(model), f"{name}_samples")
     except Exception:  # noqa: BLE001 - no compiled module (numba missing, a model of one's own)
         loop = None
     if loop is not None:
-        out = np.empty((nt, *shape))
         loop(*args, out)
     else:
-        fn, out = getattr(model.functions, name), np.empty((nt, *shape))
-        rest = args[len(signals):]
+        fn, nt, rest = getattr(model.functions, name), out.shape[0], args[len(signals):]
         for k in range(nt):
             fn(*(a[k] for a in args[:len(signals)]), *rest, out[k])
     return np.ascontiguousarray(np.moveaxis(out, 0, -1))

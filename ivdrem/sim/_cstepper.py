@@ -219,7 +219,7 @@ def _writable_ptr(a, dtype, name):
 def _record_strides(a, name, row_size=None):
     """(stride between samples, stride between columns), in doubles, of an output array
     (samples x columns) that is row-major or the transpose of a row-major array."""
-    if a.ndim != 2 or a.dtype != np.float64:
+    if not isinstance(a, np.ndarray) or a.ndim != 2 or a.dtype != np.float64:
         raise TypeError(f"the C stepper needs {name} as a 2-d float64 array")
     if a.flags.c_contiguous:
         return a.shape[1], 1
@@ -232,10 +232,9 @@ def _record_strides(a, name, row_size=None):
 
 
 def _record_ptr(a, name):
-    """The data address of an output array that _record_strides accepts (written)."""
-    if not (isinstance(a, np.ndarray) and a.flags.writeable):
+    """The data address of an output array (its layout checked by _record_strides)."""
+    if not a.flags.writeable:
         raise TypeError(f"the C stepper writes {name}: it must be a writeable array")
-    _record_strides(a, name)
     return a.ctypes.data
 
 
@@ -292,8 +291,6 @@ class CStepper:
         piv = np.zeros(n, dtype=np.int64)
         xn, f1, xg, D = np.empty(n), np.empty(n), np.empty(n), np.empty((3, n))
         f, i = np.float64, np.int64
-        if out_y.ndim != 2 or out_x.ndim != 2:
-            raise TypeError("out_y and out_x must be 2-d arrays")
         # samples x columns, row-major or the transpose of a row-major array (strides in
         # doubles, C writes out_y[k ystep + j ynext])
         layout = np.array([out_y.shape[1], *_record_strides(out_y, "out_y", W.record_row.size),

@@ -101,12 +101,12 @@ def cached_block_pattern(spec, args, nx, nu, ny, *, seed=0):
     """:func:`block_pattern`, probed once per process for the same kernels, model, sizes,
     seed and parameter values (the probe's inputs, so the pattern is the same bit for bit),
     and kept on disk for the next process when the kernels are ivdrem's own
-    (:func:`_disk_key`).  A block ivdrem did not write (a user's nlsys) is probed every
+    (:func:`_pattern_path`).  A block ivdrem did not write (a user's nlsys) is probed every
     time: its functions may read state of their own that a key cannot see."""
     if isinstance(spec, ForeignSpec):
         return block_pattern(spec, args, nx, nu, ny, seed=seed)
-    fkey = tuple(None if f is None else (f.__module__, f.__qualname__, id(f.__code__))
-                 for f in (spec.update, spec.output))
+    fkey = (_kernel_names((spec.update, spec.output)),
+            tuple(None if f is None else id(f.__code__) for f in (spec.update, spec.output)))
     rest = _probe_inputs(spec, args, nx, nu, ny, seed)
     key = (fkey,) + rest
     if key in _PATTERNS:
@@ -131,17 +131,29 @@ def _probe_inputs(spec, args, nx, nu, ny, seed):
             tuple(spec.param_names), tuple(_value_key(a) for a in args))
 
 
+#: the installed ivdrem package, whose sources key everything kept across processes
+_PACKAGE_ROOT = Path(__file__).resolve().parent.parent
+
+
 @lru_cache(maxsize=1)
 def _package_digest():
     """sha256 of every Python and C source of the installed ivdrem package (read once per
-    process): a pattern on disk is reused only by the exact code that probed it."""
-    root = Path(__file__).resolve().parent.parent
+    process): a result on disk is reused only by the exact code that computed it; None
+    where the sources cannot be read (nothing is then kept)."""
     h = hashlib.sha256(f"{__version__} {sys.version} {np.__version__}".encode())
-    for f in sorted(root.rglob("*")):
-        if f.suffix in (".py", ".c", ".h") and "__pycache__" not in f.parts:
-            h.update(f.relative_to(root).as_posix().encode())
-            h.update(f.read_bytes())
+    try:
+        for f in sorted(_PACKAGE_ROOT.rglob("*")):
+            if f.suffix in (".py", ".c", ".h") and "__pycache__" not in f.parts:
+                h.update(f.relative_to(_PACKAGE_ROOT).as_posix().encode())
+                h.update(f.read_bytes())
+    except OSError:
+        return None
     return h.hexdigest()
+
+
+def _kernel_names(funcs):
+    """(module, qualified name) of each kernel (None for a missing one)."""
+    return tuple(None if f is None else (f.__module__, f.__qualname__) for f in funcs)
 
 
 def _own_kernel(f):
@@ -151,8 +163,7 @@ def _own_kernel(f):
         return True
     module = sys.modules.get(getattr(f, "__module__", None) or "")
     file = getattr(module, "__file__", None)
-    root = Path(__file__).resolve().parent.parent
-    return (file is not None and Path(file).resolve().is_relative_to(root)
+    return (file is not None and Path(file).resolve().is_relative_to(_PACKAGE_ROOT)
             and "<locals>" not in f.__qualname__ and getattr(f, "__closure__", None) is None)
 
 
@@ -162,14 +173,11 @@ def _pattern_path(spec, rest):
     own package, keyed by the digest of its whole source (so a changed kernel, helper or
     ivdrem version never reads a stale pattern), the kernels' names and `rest`."""
     funcs = (spec.update, spec.output)
-    if not all(_own_kernel(f) for f in funcs):
+    digest = _package_digest()
+    if digest is None or not all(_own_kernel(f) for f in funcs):
         return None
-    try:
-        h = hashlib.sha256(_package_digest().encode())
-    except OSError:
-        return None
-    h.update(repr(tuple(None if f is None else (f.__module__, f.__qualname__)
-                        for f in funcs)).encode())
+    h = hashlib.sha256(digest.encode())
+    h.update(repr(_kernel_names(funcs)).encode())
     h.update(repr(rest).encode())
     return cache_dir() / "patterns" / f"{h.hexdigest()[:40]}.npy"
 
@@ -377,10 +385,10 @@ def run_digest(plan, *, seed=0):
     Jacobian program is built from, every block's kernels, robot model and parameter
     values, the delays, holds and the initial state.  None where a block's kernels are not
     ivdrem's own (a user's nlsys, an FMU): what they compute cannot be keyed."""
-    try:
-        h = hashlib.sha256(_package_digest().encode())
-    except OSError:
+    digest = _package_digest()
+    if digest is None:
         return None
+    h = hashlib.sha256(digest.encode())
     for b in plan.blocks:
         spec = b.spec
         if spec is None or isinstance(spec, ForeignSpec):
@@ -388,9 +396,7 @@ def run_digest(plan, *, seed=0):
         funcs = (spec.update, spec.output, spec.jacobian)
         if not all(_own_kernel(f) for f in funcs):
             return None
-        h.update(repr((b.index, spec.name, spec.kind, repr(spec.info),
-                       tuple(None if f is None else (f.__module__, f.__qualname__)
-                             for f in funcs),
+        h.update(repr((b.index, spec.name, spec.kind, repr(spec.info), _kernel_names(funcs),
                        spec.model.key if spec.model is not None else None)).encode())
         if spec.kind == "ode":
             h.update(repr(tuple(_value_key(a) for a in
@@ -411,9 +417,8 @@ _PROGRAM_COUNTS = ("n", "n_jb", "n_slots", "n_ins")
 def _program_path(key):
     """Where the program of structure `key` is kept across processes: named by `key` and
     the digest of ivdrem's whole source (a changed builder never reads a stale program)."""
-    try:
-        digest = _package_digest()
-    except OSError:
+    digest = _package_digest()
+    if digest is None:
         return None
     h = hashlib.sha256(f"{digest} {key}".encode()).hexdigest()[:40]
     return cache_dir() / "jacobian-programs" / f"{h}.npz"
@@ -503,8 +508,7 @@ class JacobianProgram:
 
     # ---- kept on disk: the arrays and counts, the differentiated blocks by index
     def _stored(self):
-        d = {k: v for k, v in self.__dict__.items()
-             if isinstance(v, (np.ndarray, int)) and not isinstance(v, bool)}
+        d = {k: getattr(self, k) for k in _PROGRAM_ARRAYS + _PROGRAM_COUNTS}
         d["fd_block_index"] = np.array([b.index for b in self.fd_blocks], dtype=np.int64)
         d["pattern"] = np.packbits(self.pattern)          # n x n booleans, 8 to a byte
         return d

@@ -1018,13 +1018,16 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
     # samples), through their transposes: TimeResponseData copies what it is given, and a
     # copy of the recorded arrays would double a long run's memory.  Its placeholders are
     # never written, so they cost no memory either.
-    resp = ct.TimeResponseData(
-        out_t, np.empty((diagram.noutputs, out_t.size)),
-        np.empty((diagram.nstates, out_t.size)) if return_states else None,
-        np.empty((diagram.ninputs, out_t.size)),
-        output_labels=list(diagram.output_labels), input_labels=list(diagram.input_labels),
-        state_labels=list(diagram.state_labels) if return_states else None,
-        sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso())
+    def response(t, y, x, u, **status):
+        return ct.TimeResponseData(
+            t, y, x, u, output_labels=list(diagram.output_labels),
+            input_labels=list(diagram.input_labels),
+            state_labels=list(diagram.state_labels) if x is not None else None,
+            sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso(), **status)
+
+    resp = response(out_t, np.empty((diagram.noutputs, out_t.size)),
+                    np.empty((diagram.nstates, out_t.size)) if return_states else None,
+                    np.empty((diagram.ninputs, out_t.size)))
     out_y = resp.y.T
     out_x = resp.x.T if return_states else None
     if progress is None:
@@ -1054,12 +1057,8 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
         resp.t[...] = out_t
         resp.u[...] = u_out
     else:                         # the samples recorded before the failure, with its reason
-        resp = ct.TimeResponseData(
-            out_t, out_y.T, out_x.T if out_x is not None else None, u_out,
-            output_labels=list(diagram.output_labels), input_labels=list(diagram.input_labels),
-            state_labels=list(diagram.state_labels) if out_x is not None else None,
-            sysname=diagram.name, params=dict(params or {}), issiso=diagram.issiso(),
-            success=False, message=str(failure))
+        resp = response(out_t, out_y.T, out_x.T if out_x is not None else None, u_out,
+                        success=False, message=str(failure))
     resp.stats = sim.stats_dict()
     resp.hold_times = sim.hold_times()
     return resp
