@@ -149,3 +149,26 @@ def test_quiet_option_silences_notes_for_the_process(monkeypatch):
         assert seen == [True]
     finally:
         _progress.set_quiet(False)
+
+
+def test_a_changed_kernel_helper_is_a_new_generated_module(tmp_path):
+    """numba's cache sees a change in a cached function's own file only: a kernel that calls
+    a changed helper of ivdrem.blocks._kernels would load machine code built from the old
+    helper.  The helpers' digest stands in every generated module's text, so changing a
+    helper file changes the digest, hence the module's name: compiled afresh."""
+    from ivdrem.sim import cache as compile_cache
+    from ivdrem.sim.compiled import _kernel_module
+    from ivdrem.blocks.mixing import mixing_output
+    root = tmp_path / "pkg"
+    for rel in compile_cache.HELPER_FILES:
+        dst = root / rel
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        dst.write_bytes((Path(compile_cache.__file__).resolve().parents[1] / rel).read_bytes())
+    same = compile_cache.helpers_digest(root)
+    assert same == compile_cache.helpers_digest()
+    assert f"# helpers {same}" in compile_cache.GENERATED_HEADER
+    name, src = _kernel_module(mixing_output, "def mixing_output(): pass\n", None)
+    assert f"# helpers {same}" in src
+    helper = root / compile_cache.HELPER_FILES[0]
+    helper.write_text(helper.read_text() + "\n# a changed helper\n")
+    assert compile_cache.helpers_digest(root) != same

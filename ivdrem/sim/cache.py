@@ -18,11 +18,27 @@ from pathlib import Path
 from .._atomic import write_text_atomic
 
 __all__ = ["cache_dir", "source_hash", "write_generated", "import_generated", "import_path",
-           "GENERATED_HEADER"]
+           "GENERATED_HEADER", "helpers_digest"]
+
+#: the package files every generated module imports its helpers from
+HELPER_FILES = ("blocks/_kernels.py", "sim/_native.py")
+
+
+def helpers_digest(root=Path(__file__).resolve().parents[1], files=HELPER_FILES):
+    """Digest of the helpers' sources.  numba's cache notices a change in the file of a
+    cached function only, not in a function of another file it calls and compiles in: the
+    digest in every generated module's text (hence its name) makes such a change a new
+    module, compiled afresh, where it would otherwise load machine code built from the old
+    helpers."""
+    h = hashlib.sha256()
+    for rel in files:
+        h.update(rel.encode() + b"\0" + (Path(root) / rel).read_bytes() + b"\0")
+    return h.hexdigest()[:20]
+
 
 #: the first lines of every generated kernel module: what a kernel may call
-GENERATED_HEADER = ["import math", "import numpy as np", "from numba import njit",
-                    "from ivdrem.blocks._kernels import *",
+GENERATED_HEADER = [f"# helpers {helpers_digest()}", "import math", "import numpy as np",
+                    "from numba import njit", "from ivdrem.blocks._kernels import *",
                     "from ivdrem.sim._native import call_c"]
 
 
