@@ -288,3 +288,35 @@ def test_mixing_factory_checks_its_arguments():
         block_library.mixing(5, "eigen", f_rel=-1.0)
     spec = block_library.mixing(5, "channel").ivdrem
     assert spec.outputs == [("Delta", 5), ("calY", 5), ("Delta_log10", 5)]
+
+
+@pytest.mark.parametrize("n", [5, 20, 43])
+@pytest.mark.parametrize("cond", [1e2, 1e5, 1e7, 1e8, 1e10])
+def test_eigen_values_against_mpmath_on_both_routes(n, cond):
+    """"eigen" takes singular values and an LU solve while sigma_min/sigma_max of P is
+    above EIGEN_FAST_MIN_RATIO, the signed SVD below it: on either side Delta and calY
+    agree with their definition in mpmath (60 digits) to a few cond(P) eps, the accuracy
+    of the problem itself (1e-10 where cond <= 1e5)."""
+    from ivdrem.blocks._kernels import EIGEN_FAST_MIN_RATIO
+    rng = np.random.default_rng(int(n * 17 + np.log10(cond)))
+    Q1, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    Q2, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    Psi = 50.0 * Q1 @ np.diag(np.logspace(0, -np.log10(cond), n)) @ Q2.T
+    Y = rng.standard_normal(n)
+    D, calY, L = run_values("eigen", Y, Psi)
+    with mp.workdps(60):
+        M = mp.matrix(Psi.tolist())
+        nrm = mp.mnorm(M, "f")
+        s = 1 + nrm
+        P = M / s
+        f = F_REL * nrm / s
+        N = mp.fprod([sv + f for sv in mp.svd_r(P, compute_uv=False)])
+        d = mp.det(P)
+        ref_D = float(d / N)
+        ref_Y = np.array([float(v / (s * N)) for v in d * (P ** -1) * mp.matrix(Y.tolist())])
+        ref_L = float(mp.log10(abs(d / N)))
+    tol = max(1e-10, 100 * cond * np.finfo(float).eps)
+    assert abs(D[0] - ref_D) <= tol * abs(ref_D)
+    assert np.abs(calY - ref_Y).max() <= tol * np.abs(ref_Y).max()
+    assert abs(L[0] - ref_L) <= tol          # decades: the relative error of Delta / ln 10
+    assert (1.0 / cond > EIGEN_FAST_MIN_RATIO) == (cond < 1e9)   # both routes are covered

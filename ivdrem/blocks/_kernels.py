@@ -3,8 +3,20 @@
 Kept free of Python objects so that the same call works from a kernel running in plain
 Python (reference path) and from generated numba code (compiled path).
 """
+import llvmlite.binding as llvm
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import get_cython_function_address
+
+# LAPACK from scipy, called by symbol name from cached machine code: the symbols are bound
+# to scipy's routines at import, so a kernel loaded from the disk cache finds them in a new
+# process (an address baked into the code would not survive it).
+for _name in ("dgesdd", "dgesv"):
+    llvm.add_symbol(f"ivdrem_{_name}",
+                    get_cython_function_address("scipy.linalg.cython_lapack", _name))
+_PTR = types.voidptr
+_dgesdd = types.ExternalFunction("ivdrem_dgesdd", types.void(*([_PTR] * 14)))
+_dgesv = types.ExternalFunction("ivdrem_dgesv", types.void(*([_PTR] * 8)))
 
 
 @njit(cache=True)
@@ -49,6 +61,49 @@ def svd_signed(A):
     if np.linalg.det(Vt) < 0.0:
         s = -s
     return U, sig, Vt, s
+
+
+@njit(cache=True)
+def svdvals_solve(P, Y, sig, x):
+    """The singular values of P (descending, into sig) and x = P^-1 Y, by LAPACK's dgesdd
+    without singular vectors and dgesv (an LU with partial pivoting): about a third of the
+    cost of the full SVD (none of U, V).  Returns sign(det P), or 0.0 where P is singular
+    to working precision or LAPACK fails (the caller then takes the SVD route)."""
+    n = P.shape[0]
+    a = np.empty((n, n))             # column-major copies of P (LAPACK's order)
+    b = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            a[j, i] = P[i, j]
+            b[j, i] = P[i, j]
+    lwork = 10 * n + 10              # dgesdd, JOBZ = 'N': 3n + max(n, 7n) suffices
+    work = np.empty(lwork)
+    iwork = np.empty(8 * n, np.int32)
+    ipiv = np.empty(n, np.int32)
+    nn = np.array([n], np.int32)     # Fortran's arguments by reference
+    one = np.array([1], np.int32)
+    lw = np.array([lwork], np.int32)
+    info = np.zeros(1, np.int32)
+    job = np.array([ord("N")], np.uint8)
+    dummy = np.empty(1)
+    _dgesdd(job.ctypes, nn.ctypes, nn.ctypes, a.ctypes, nn.ctypes, sig.ctypes, dummy.ctypes,
+            one.ctypes, dummy.ctypes, one.ctypes, work.ctypes, lw.ctypes, iwork.ctypes,
+            info.ctypes)
+    if info[0] != 0:
+        return 0.0
+    for i in range(n):
+        x[i] = Y[i]
+    _dgesv(nn.ctypes, one.ctypes, b.ctypes, nn.ctypes, ipiv.ctypes, x.ctypes, nn.ctypes,
+           info.ctypes)
+    if info[0] != 0:
+        return 0.0
+    sgn = 1.0
+    for i in range(n):               # det P = prod u_ii, one sign flip per row interchange
+        if ipiv[i] != i + 1:
+            sgn = -sgn
+        if b[i, i] < 0.0:
+            sgn = -sgn
+    return sgn
 
 
 @njit(cache=True)
@@ -264,6 +319,37 @@ def _channel_coefficients(sig, coef):
     return True
 
 
+#: "eigen" takes the route of :func:`_eigen_fast` while sigma_min/sigma_max of P is above
+#: this: its error (that of an LU solve, about cond(P) eps) then stays within that of the
+#: SVD route's adjugate (tests/test_mixing.py); below, and at a singular P, the SVD route.
+EIGEN_FAST_MIN_RATIO = 1e-9
+
+
+@njit(cache=True)
+def _eigen_fast(Y, P, s, f, Delta, calY, logD):
+    """"eigen" without singular vectors: adj(P) = det(P) P^-1 for a regular P, so
+    Delta = sign(det P) prod sigma_j/(sigma_j + f) and calY = adj(P) Y/(s prod(sigma_j + f))
+    = Delta P^-1 Y / s, from the singular values and one LU solve (svdvals_solve) instead
+    of the SVD's vectors and an O(n^3) adjugate.  False (nothing written) where P is too
+    close to singular for the solve (EIGEN_FAST_MIN_RATIO)."""
+    n = Y.shape[0]
+    sig = np.empty(n)
+    x = np.empty(n)
+    sgn = svdvals_solve(P, Y, sig, x)
+    if sgn == 0.0 or not sig[n - 1] > EIGEN_FAST_MIN_RATIO * sig[0]:
+        return False
+    d = sgn
+    acc = 0.0                                           # log10 r_j = -log1p(f/sigma_j)/ln 10
+    for k in range(n):
+        d *= sig[k] / (sig[k] + f)
+        acc += -np.log1p(f / sig[k]) / np.log(10.0)
+    Delta[0] = d
+    logD[0] = acc
+    for i in range(n):
+        calY[i] = d * x[i] / s
+    return True
+
+
 @njit(cache=True)
 def mixing_values(code, Y, Psi, f_rel, guard, Delta, calY, logD):
     """The mixing step (17) in variant `code` (MIXING_VARIANTS): writes Delta, calY and
@@ -275,6 +361,8 @@ def mixing_values(code, Y, Psi, f_rel, guard, Delta, calY, logD):
     for i in range(n):
         for j in range(n):
             P[i, j] = Psi[i * n + j] / s
+    if code == 1 and nrm > 0.0 and _eigen_fast(Y, P, s, f_rel * nrm / s, Delta, calY, logD):
+        return
     U, sig, Vt, s_uv = svd_signed(P)
     coef = np.empty(n)
     C = np.empty((n, n))
