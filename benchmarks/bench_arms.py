@@ -85,14 +85,15 @@ def resolve_model(spec):
 
 def _experiment(model):
     """The planar arms' experiment, or for another arm the configuration's own (the real-arm
-    reference and disturbance designed for it, q(0) on the reference)."""
+    reference and disturbance designed for it, q(0) on the reference, the window T)."""
     import re
     m = re.fullmatch(r"planar-(\d+)", model.name)
     if m:
         return planar_experiment(int(m.group(1)))
     from ivdrem.experiments.config import closed_loop_kwargs, load_config
     kw = closed_loop_kwargs(load_config(overrides={"model.name": model.name}), "iv-drem")
-    return {k: kw[k] for k in ("trajectory", "disturbance", "q0", "dq0")}
+    # T: the window the real-arm design gives (a common period of reference and disturbance)
+    return {k: kw[k] for k in ("trajectory", "disturbance", "q0", "dq0", "T")}
 
 
 # ----------------------------------------------------------------- reference Ψ and Δ

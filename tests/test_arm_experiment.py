@@ -341,3 +341,68 @@ def test_validate_config_alone_checks_the_limits(tmp_path, fake_urdf):
     c["trajectory"]["offset"] = [1.4, 0.0]             # joint 1's upper limit is 1.5 rad
     with pytest.raises(ConfigError, match=r"joint 1 \('j1'\) at t = "):
         validate_config(c)
+
+
+def test_window_is_a_common_period_of_reference_and_disturbance():
+    """design_window: the shortest common period of ω_f and the disturbance's frequencies of
+    at least 20 s (40 s for the design: reference period 10 s, disturbance on the π/20 rad/s
+    grid); none for incommensurate frequencies or a sinusoid reference; the configuration
+    takes it for both windowed laws unless the user sets T."""
+    c = load_config(overrides={"model.name": "planar-2"})
+    tr, d = c["trajectory"], c["disturbance"]
+    assert arm.design_window(tr, d) == pytest.approx(40.0)
+    assert c["iv_drem"]["T"] == pytest.approx(40.0)
+    assert c["composite_learning"]["T"] == pytest.approx(40.0)
+    for w in [tr["omega_f"]] + list(d["omega"]):          # a whole number of cycles each
+        assert w * 40.0 / (2 * math.pi) == pytest.approx(round(w * 40.0 / (2 * math.pi)), abs=1e-9)
+    detuned = dict(d, omega=[1.037 * w for w in d["omega"]])
+    assert arm.design_window(tr, detuned) is None
+    fast = dict(d, omega=[tr["omega_f"] * 2.5, tr["omega_f"] * 1.5])   # period 4 s: 20 s
+    assert arm.design_window(tr, fast) == pytest.approx(20.0)
+    assert arm.design_window(tr, fast, t_min=25.0) == pytest.approx(40.0)   # next multiple
+    off = dict(d, amplitude=[d["amplitude"][0], 0.0])      # a zero sinusoid does not count
+    assert arm.design_window(tr, off) == pytest.approx(20.0)
+    assert arm.design_window({"amplitude": [1, 1], "omega": [1, 2], "phase": [0, 0],
+                              "offset": [0, 0]}, d) is None
+    user = load_config(overrides={"model.name": "planar-2", "iv_drem.T": 25.0})
+    assert user["iv_drem"]["T"] == 25.0 and user["composite_learning"]["T"] == pytest.approx(40.0)
+    assert load_config()["iv_drem"]["T"] == 20.0                              # the paper's
+
+
+def test_over_a_common_period_the_instrument_is_blind_to_the_disturbance():
+    """Why the window is a common period: the extension (15a)'s disturbance part
+    ∫_{t-T}^t ζ w ds (W of (16) before the averaging; KA3's integral (19)) vanishes once the
+    window is full, while over T = 20 s it does not.  ζ of (14) and w of (13) integrated
+    here by their exact first-order-hold updates along the reference (no closed loop)."""
+    c = load_config(overrides={"model.name": "planar-2"})
+    from scipy.integrate import trapezoid
+    m = model_from_config(c)
+    tr, d = c["trajectory"], c["disturbance"]
+    n, nth, l, dt = m.n, m.ntheta, 50.0, 2e-3
+    t = np.arange(0.0, 100.0 + dt / 2, dt)
+    q, dq, ddq = fourier_series(t, tr["omega_f"], tr["a"], tr["b"], tr["offset"])
+    Phi = np.empty((t.size, n, nth))
+    for k in range(t.size):
+        m.functions.Phi(q[k], dq[k], dq[k], ddq[k], Phi[k])
+    taud = np.asarray(d["amplitude"]) * np.sin(np.outer(t, d["omega"]))
+    e = math.exp(-l * dt)
+    b2 = 1.0 - (1.0 - e) / (l * dt)
+
+    def filt(X):                       # x' = l (u - x), u linear between samples
+        Z = np.zeros_like(X)
+        for k in range(1, X.shape[0]):
+            Z[k] = e * Z[k - 1] + (1 - e) * X[k - 1] + b2 * (X[k] - X[k - 1])
+        return Z
+
+    Z, w = filt(Phi), filt(-taud)
+    g = np.einsum("tja,tj->ta", Z, w)                 # ζ w, the integrand of (15a)
+    G = np.einsum("tja,tjb->tab", Z, Z)               # ζ ζ^T: the excitation's scale
+    end = t.size - 1
+
+    def window(X, T):
+        k0 = end - int(round(T / dt))
+        return trapezoid(X[k0:], dx=dt, axis=0)
+
+    scale = np.linalg.norm(window(G, 40.0))
+    assert np.linalg.norm(window(g, 40.0)) <= 1e-10 * scale    # measured 2.8e-16
+    assert np.linalg.norm(window(g, 20.0)) >= 1e-2 * scale     # measured 0.068

@@ -19,6 +19,12 @@ docs/experiment.md ("The real-arm experiment") states the rules; in short:
   instrument must not share a frequency with the disturbance).
 - gains: K_i = 2 max(1, M_ii(q(0))) (N m s/rad): the paper's K = 2 as the floor, and a joint
   bandwidth K_i / M_ii of at least 2 1/s on heavy joints.
+- window: T of (15a) (IV-DREM's, and composite learning's (35) alike) is the shortest
+  common period of the reference and the disturbance of at least the paper's 20 s
+  (:func:`design_window`; 40 s for the designed pair): over a whole common period every
+  product of an instrument harmonic with a disturbance sinusoid integrates to zero, so the
+  window's share of the disturbance, W of (16), leaves the averaged regression like 1/F
+  (Proposition 2 with the window's term gone) instead of like Ḟ/F.
 
 Joints without limits (the planar arms) use the range ±:data:`FREE_HALF_RANGE` rad around 0
 and the velocity limit :data:`FREE_VELOCITY` rad/s.
@@ -32,7 +38,7 @@ import numpy as np
 from ..blocks.sources import fourier_bounds, fourier_series
 
 __all__ = ["joint_names", "joint_limits", "design_trajectory", "initial_state",
-           "design_disturbance", "design_gains", "trajectory_series", "check_limits",
+           "design_disturbance", "design_gains", "design_window", "trajectory_series", "check_limits",
            "LimitError", "excitation"]
 
 #: Period 2π/ω_f of the reference (s); two periods fill IV-DREM's window T = 20 s.
@@ -54,6 +60,11 @@ EFFORT_FRACTION = 0.2
 #: Position half-range (rad) and velocity limit (rad/s) of a joint the model gives no limit.
 FREE_HALF_RANGE = math.pi / 2
 FREE_VELOCITY = 2.5
+#: The window T of (15a) the design starts from (the paper's) and the longest it gives: a
+#: common period above it is not looked for (the delay history and the calibration over
+#: [0, 2T] grow with T).
+WINDOW_MIN = 20.0
+WINDOW_MAX = 60.0
 #: Disturbance frequencies, in units of π/20 rad/s, in order of preference (the paper's
 #: 0.5π and 0.05π first).
 _DIST_STEPS = (10, 1, 5, 3, 7, 9, 2, 6, 11, 13, 14, 15, 17, 18, 19, 21, 22, 23, 25, 26)
@@ -239,6 +250,34 @@ def design_disturbance(model, trajectory, theta=None) -> dict:
     n = model.n
     return {"amplitude": amp.tolist(), "omega": omegas, "phase": [0.0] * n,
             "offset": [0.0] * n}
+
+
+def design_window(trajectory, disturbance, *, t_min=WINDOW_MIN, t_max=WINDOW_MAX):
+    """The window T (s) of the extension (15a) for a Fourier `trajectory` and a sinusoidal
+    `disturbance` ([trajectory] and [disturbance] tables): the shortest common period of the
+    reference's fundamental ω_f and every disturbance frequency that is at least `t_min`,
+    or None where there is none up to `t_max` (incommensurate frequencies, or a sinusoid
+    reference).  ζ of (14) is periodic with the reference and w of (13) a sum of the
+    disturbance's sinusoids, so over such a window each product ζ_i w_j integrates to zero
+    (none of the disturbance's frequencies is a harmonic of ω_f: :func:`design_disturbance`)
+    and the window contributes nothing to W of (16) once it is full."""
+    if trajectory.get("kind", "sinusoid") != "fourier":
+        return None
+    amp = np.abs(np.asarray(disturbance["amplitude"], float))
+    omegas = [float(trajectory["omega_f"])] + [
+        abs(float(w)) for w, a in zip(disturbance["omega"], amp) if a > 0 and w != 0]
+    slowest = min(omegas)
+    if not slowest > 0:
+        return None
+    period = 2 * math.pi / slowest
+    for k in range(1, int(t_max / period + 1e-9) + 1):
+        T = k * period
+        cycles = [w * T / (2 * math.pi) for w in omegas]
+        if all(abs(c - round(c)) <= 1e-9 * max(1.0, c) for c in cycles):
+            # a common period: its multiples are too; the first one at least t_min
+            T *= max(1, math.ceil(t_min / T - 1e-9))
+            return float(T) if T <= t_max + 1e-9 else None
+    return None
 
 
 def design_gains(model, q0, theta=None) -> list:

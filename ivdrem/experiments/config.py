@@ -307,7 +307,7 @@ MODEL_FOLLOWING = {
 }
 #: Keys whose default follows the Fourier reference (the real-arm experiment of
 #: docs/experiment.md, :mod:`ivdrem.experiments.arm`): q(0) on the reference, the
-#: disturbance scaled to the arm, gains per joint.  Each gets (model, config, a memo
+#: disturbance scaled to the arm, gains per joint, the windows T of (15a) and (35).  Each gets (model, config, a memo
 #: shared by one filling).
 ARM_FOLLOWING = {
     ("initial", "q0"): lambda m, c, memo: _memo(memo, "x0", lambda: _arm().initial_state(c["trajectory"]))[0],
@@ -315,6 +315,9 @@ ARM_FOLLOWING = {
     ("controller", "K"): lambda m, c, memo: _arm().design_gains(m, c["initial"]["q0"], c["model"]["theta"]),
     **{("disturbance", k): (lambda k: lambda m, c, memo: _memo(memo, "tau_d", lambda: _arm().design_disturbance(
         m, c["trajectory"], c["model"]["theta"]))[k])(k) for k in ("amplitude", "omega", "phase", "offset")},
+    # after the disturbance: a common period of reference and disturbance (None: the law's T)
+    **{(section, "T"): lambda m, c, memo: _memo(memo, "T", lambda: _arm().design_window(
+        c["trajectory"], c["disturbance"])) for section in ("iv_drem", "composite_learning")},
 }
 
 
@@ -368,7 +371,9 @@ def _follow_model(cfg: dict, user_set: set) -> None:
         memo: dict = {}
         for (section, key), fn in ARM_FOLLOWING.items():
             if (section, key) not in user_set:
-                cfg[section][key] = fn(model, cfg, memo)
+                value = fn(model, cfg, memo)
+                if value is not None:
+                    cfg[section][key] = value
     except (TypeError, ValueError, IndexError, KeyError):
         pass
 
