@@ -576,7 +576,6 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
         for a in range(n):
             for b in range(n):
                 col = n + a * n + b
-                _adjugate_y_derivative(a, b, A, G, B, AY, BY, GtY, s_uv, dF)
                 dD = C[b, a]
                 dL = dls[a, b] / ln10
                 if code == 1:
@@ -584,12 +583,30 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
                     dD = D * dls[a, b] if sig[m] > 0.0 else dD - D * Lam[a, b]
                 jac[rows_D, col] = (dD - qD * D * g[col - n]) / s
                 jac[rows_L, col] = (dL - qL * g[col - n]) / s
-                for c in range(n):
-                    dFc = dF[c]
+        # d(C Y)_c/dP_ab (_adjugate_y_derivative's sums, term for term) row by row: each
+        # row of jac written in order, not one entry per row in turn (a cache line each)
+        gbT = np.empty((n, n))               # G_ab + B_ba, A_ba, GtY_b + BY_b
+        AT = np.empty((n, n))
+        t2 = np.empty(n)
+        for a in range(n):
+            for b in range(n):
+                gbT[a, b] = G[a, b] + B[b, a]
+                AT[a, b] = A[b, a]
+        for b in range(n):
+            t2[b] = GtY[b] + BY[b]
+        for c in range(n):
+            row = rows_Y + c
+            for a in range(n):
+                Aca = A[c, a]
+                Bca = B[c, a]
+                for b in range(n):
+                    col = n + a * n + b
+                    dFc = s_uv * (gbT[a, b] * AY[c] + AT[a, b] * BY[c] - Aca * t2[b]
+                                  - Bca * AY[b])
                     if code == 1:
                         dFc -= CY[c] * Lam[a, b]
                     # calY = F s^-1, F of degree qF: s^-2 (dF - (qF + 1) F g)
-                    jac[rows_Y + c, col] = (dFc - (qF - eF) * CY[c] * g[col - n]) / (s * s)
+                    jac[row, col] = (dFc - (qF - eF) * CY[c] * g[col - n]) / (s * s)
         for i in range(n):
             for j in range(n):
                 jac[rows_Y + i, j] = C[i, j] / s
