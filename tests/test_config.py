@@ -58,6 +58,32 @@ def test_default_is_section_8_of_spec():
         assert list(c[s]) == list(SCHEMA[s])
 
 
+#: overrides of the snapshot's planar-3 case: every key that does not follow the model
+_PLANAR3 = {"model.name": "planar-3", "initial.q0": [0.1, 0.2, 0.3],
+            "trajectory.amplitude": [0.1, 0.2, 0.3], "trajectory.omega": [1.0, 1.5, 2.0],
+            "trajectory.phase": [0.0, 0.0, 0.0], "trajectory.offset": [0.0, 0.0, 0.0],
+            "disturbance.amplitude": [1.0, 1.0, 1.0], "disturbance.omega": [0.5, 0.6, 0.7],
+            "disturbance.phase": [0.0, 0.0, 0.0], "disturbance.offset": [0.0, 0.0, 0.0]}
+
+
+def test_effective_configurations_equal_the_snapshot():
+    """default_config() and load_config() of the default, the example files and a
+    planar-3 arm (the keys that follow the model) are the values, sections and key order
+    recorded in tests/data/config_snapshot.json, whatever file or registry they come from."""
+    import json
+    snap = json.loads((ROOT / "tests" / "data" / "config_snapshot.json").read_text("utf-8"))
+    got = {"default_config": default_config(), "load_config": load_config(),
+           "overrides planar-3": load_config(overrides=_PLANAR3)}
+    for name in ("paper", "planar3", "instrument"):
+        got[f"examples/{name}.toml"] = load_config(ROOT / "examples" / f"{name}.toml")
+    assert set(got) == set(snap)
+    for case, cfg in got.items():
+        plain = json.loads(json.dumps(cfg))
+        assert plain == snap[case], case
+        assert [(s, list(t)) for s, t in plain.items()] == \
+            [(s, list(t)) for s, t in snap[case].items()], case
+
+
 def test_default_is_a_fresh_copy():
     a = load_config()
     a["controller"]["K"][0] = 99.0
