@@ -91,16 +91,36 @@ def test_default_is_a_fresh_copy():
     assert default_config()["controller"]["K"] == [2.0, 2.0]
 
 
-def test_example_paper_toml_loads_and_equals_default():
-    example = ROOT / "examples" / "paper.toml"
-    assert load_config(example) == load_config()
-    # and it really sets every key (it is the documented full example)
+def _toml(path):
     try:
         import tomllib
     except ModuleNotFoundError:  # Python 3.10
         import tomli as tomllib
-    raw = tomllib.loads(example.read_text("utf-8"))
-    assert {s: set(t) for s, t in raw.items()} == {s: set(t) for s, t in schema().items()}
+    return tomllib.loads(Path(path).read_text("utf-8"))
+
+
+def test_example_paper_toml_is_the_effective_default_key_by_key():
+    """examples/paper.toml documents the embedded default: it sets every key of every
+    section (the laws' sections too), each to the value the default has (default.toml's,
+    or the law registry's), so neither can change without the other."""
+    example = ROOT / "examples" / "paper.toml"
+    raw, default = _toml(example), default_config()
+    assert list(raw) == list(default) == list(schema())
+    drift = [f"{s}.{k}: paper.toml {raw[s].get(k)!r}, default {v!r}"
+             for s, table in default.items() for k, v in table.items() if raw[s].get(k) != v]
+    extra = [f"{s}.{k}" for s, table in raw.items() for k in table if k not in default[s]]
+    assert not drift and not extra, "\n".join(drift + extra)
+    assert load_config(example) == load_config()
+
+
+def test_default_toml_has_no_law_section():
+    """A law's gains have one source, its registry entry (Law.keys, Law.defaults): the
+    packaged default.toml holds only the sections every run reads."""
+    from ivdrem.experiments.config import SECTIONS
+    raw = _toml(ROOT / "ivdrem" / "experiments" / "default.toml")
+    assert list(raw) == list(SECTIONS)
+    assert {s for s in schema() if s not in SECTIONS} == \
+        {"iv_drem", "composite_learning", "sigma_modification"}
 
 
 def test_user_file_is_merged_key_by_key(tmp_path):
