@@ -261,6 +261,16 @@ def default_mixing(model) -> str:
     return "paper" if is_paper_arm(model) else DEFAULT_MIXING_OTHER_ARMS
 
 
+def arm_gain_rule(law: Law, model, gamma=None, mixing=None) -> tuple:
+    """(gamma, mixing) of `law` on `model` as closed_loop takes them: on every arm but the
+    paper's, a law with the mixing step (17) left at None gets the mixing that works at the
+    arm's size and γ "auto" (γ of (21) from a calibration run, docs/mixing.md)."""
+    if "mixing" in law.defaults and not is_paper_arm(model):
+        mixing = default_mixing(model) if mixing is None else mixing
+        gamma = "auto" if gamma is None and "gamma" in law.defaults else gamma
+    return gamma, mixing
+
+
 def resolve_params(law: Law, given: dict) -> dict:
     """The law's defaults overridden by the non-None entries of ``given``."""
     out = dict(law.defaults)

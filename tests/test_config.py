@@ -352,8 +352,7 @@ def test_a_configuration_names_the_module_that_registers_its_laws(tmp_path):
         assert c["experiment"]["plugins"] == [str(tmp_path / "my_laws.py")]
         kw = closed_loop_kwargs(c, "normalised-iv-drem")
         assert kw.get("law_params", kw).get("nu") == 2.5
-        diagrams = check_runs(c)                      # the preflight builds its loop
-        assert set(diagrams) == {"normalised-iv-drem", "iv-drem"}
+        check_runs(c)                                 # the preflight prices its loop
         # a worker validating the (absolute) configuration imports it the same way
         from ivdrem.experiments.config import validate_config
         assert validate_config(c)["experiment"]["plugins"] == c["experiment"]["plugins"]
