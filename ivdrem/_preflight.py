@@ -2,9 +2,10 @@
 
 Every option and every output location is checked first, so that a mistake costs a second,
 not the minutes of a run: the solver method, the cost of each law's run (output memory and
-a lower bound on the step count, :mod:`ivdrem.sim.guards`), the FMU check's horizon, and
-that the compile cache can be written.  The commands call these in order and print the
-error (exit status 2) without having simulated anything.
+a lower bound on the step count, :mod:`ivdrem.sim.guards`), a gamma = "auto" whose Δ the
+reference estimate puts below the doubles, the FMU check's horizon, and that the compile
+cache can be written.  The commands call these in order and print the error (exit status
+2) without having simulated anything: γ "auto" is calibrated by its law's run.
 """
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ import math
 from ._paths import check_writable_dir
 
 __all__ = ["PreflightError", "add_run_options", "solver_methods", "check_method",
-           "check_runs", "check_inertia", "check_law_cost", "pricing_diagram", "check_fmu_check_t_end", "check_cache_dir", "horizon_note",
+           "check_runs", "check_inertia", "check_law_cost", "pricing_diagram",
+           "check_gamma_auto", "check_fmu_check_t_end", "check_cache_dir", "horizon_note",
            "timing_text", "CONCLUSIONS_HORIZON", "FMU_CHECK_COMM_STEPS"]
 
 #: The horizon (s) that conclusions C1-C3 are stated for: the paper's Figures 1-4 and the
@@ -93,11 +95,12 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
     """Price every law's run of `config` (and the FMU check's, if a horizon is given)
     before any of them starts; raises ValueError (CostLimitError) with the numbers.
 
-    Returns {law: diagram}, built as the runs build them (``law_diagram``: a γ "auto" is
-    chosen here, once, and a gain the rule refuses stops the command before any run);
-    pass them to ``run_paper(..., diagrams=...)``."""
-    from .experiments.config import closed_loop_kwargs, model_from_config, solver_kwargs
-    from .experiments.paper import law_diagram
+    It prices, it does not simulate: each law's loop is built with a placeholder for a γ
+    "auto" (:func:`pricing_diagram`) and dropped before the next; then a γ "auto" whose
+    mixing the reference estimate puts below the doubles is refused
+    (:func:`check_gamma_auto`).  Each run builds its own loop and calibrates γ "auto"
+    there, once (``experiments.paper.law_diagram``)."""
+    from .experiments.config import model_from_config, solver_kwargs
     from .sim.guards import (check_diagram_cost, check_run_time, oscillation_steps,
                              paper_loop_steps, run_seconds)
     from .sim.methods import REFERENCE_METHOD, method_info
@@ -105,15 +108,13 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
     model = model_from_config(config)
     check_inertia(config, model)
     exp = config["experiment"]
-    diagrams, walls, calibrate = {}, [], []
+    walls, fmu_loop = [], None
     for law in exp["laws"]:
         solver = solver_kwargs(config, law)
-        if closed_loop_kwargs(config, law).get("gamma") == "auto":
-            d = pricing_diagram(config, law, model)    # γ chosen after every run is priced
-            calibrate.append(law)
-        else:
-            diagrams[law] = d = law_diagram(config, law, model=model, engine=engine)
+        d = pricing_diagram(config, law, model)
         check_law_cost(config, law, d, engine=engine, allow_long=allow_long)
+        if law == "iv-drem" and fmu_check_t_end is not None:
+            fmu_loop = d                   # the FMU check's loop, priced below
         # the paper's 2-link loop: the measured step count and time per step
         # (ivdrem.sim.guards); another robot's loop keeps the lower bound above
         measured = paper_loop_steps(law, solver["method"], float(exp["t_end"])) \
@@ -136,14 +137,38 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
                        engine=engine, allow_long=allow_long,
                        what=f"the {len(walls)} runs")
     if fmu_check_t_end is not None:
-        d = diagrams.get("iv-drem") or pricing_diagram(config, "iv-drem", model)
+        d = fmu_loop or pricing_diagram(config, "iv-drem", model)
         h = min(FMU_CHECK_COMM_STEPS)   # its Python reference: fixed steps, the finest
         check_diagram_cost(d, float(fmu_check_t_end), engine=engine, method=REFERENCE_METHOD, h=h,
                            dt_out=h, return_states=False, allow_long=allow_long,
                            what=f"the FMU check (--fmu-check-t-end {float(fmu_check_t_end):g} s)")
-    for law in calibrate:     # every run priced: now γ "auto", once per law
-        diagrams[law] = law_diagram(config, law, model=model, engine=engine)
-    return diagrams
+    for law in exp["laws"]:     # every run priced: the refusals of γ "auto" that need no run
+        check_gamma_auto(config, law, model)
+
+
+def _gain_rule(config, law, model) -> tuple:
+    """(closed_loop's keyword arguments of `law`, its mixing, whether its loop calibrates
+    γ "auto"): closed_loop's rule (ivdrem.laws.arm_gain_rule) on the configured values; a
+    law without Δ refuses "auto" in closed_loop itself."""
+    from .experiments.config import closed_loop_kwargs
+    from .laws import arm_gain_rule, get_law
+    spec = get_law(law)
+    kw = closed_loop_kwargs(config, law)
+    gamma, mixing = arm_gain_rule(spec, model, kw.get("gamma"), kw.get("mixing"))
+    return kw, mixing, gamma == "auto" and spec.uses_delta
+
+
+def check_gamma_auto(config, law, model):
+    """Refuse `law`'s γ "auto" now, without simulating, when the reference estimate of
+    mean Δ² (ivdrem.diagrams.gamma_auto.check_reference_delta) is far below the doubles:
+    the composite term (21) could not be formed.  Returns the estimate, or None for a law
+    whose γ is not "auto"."""
+    kw, mixing, auto = _gain_rule(config, law, model)
+    if not auto:
+        return None
+    from .diagrams.gamma_auto import check_reference_delta
+    return check_reference_delta(law, model, {**kw, "mixing": mixing},
+                                 variant=mixing or "paper")
 
 
 def fastest_omega(config) -> float:
@@ -181,9 +206,8 @@ def pricing_diagram(config, law, model):
     """The closed loop of `law` as far as its cost goes: a γ "auto" is left at a
     placeholder (the cost does not depend on γ's value), so nothing is calibrated."""
     from .diagrams import closed_loop
-    from .experiments.config import closed_loop_kwargs
-    kw = closed_loop_kwargs(config, law)
-    if kw.get("gamma") == "auto":
+    kw, _, auto = _gain_rule(config, law, model)
+    if auto:
         kw["gamma"] = 1.0
     return closed_loop(law, model, **kw)
 

@@ -40,7 +40,7 @@ def _cmd_paper(args):
             json_path = check_replaceable(user_path(args.json), "JSON file",
                                           overwrite=args.overwrite, ours=_is_paper_json)
         check_cache_dir(args.engine)
-        diagrams = check_runs(config, engine=args.engine, allow_long=args.allow_long)
+        check_runs(config, engine=args.engine, allow_long=args.allow_long)
     except (ConfigError, PreflightError, OutputLocationError, ValueError, ImportError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
@@ -54,8 +54,8 @@ def _cmd_paper(args):
     from .diagrams.gamma_auto import GainRuleError
     try:
         run = run_paper(config, progress=want_progress(not args.quiet), engine=args.engine,
-                        allow_long=args.allow_long, log=print, diagrams=diagrams)
-    except GainRuleError as e:       # refused after the calibration, before the run
+                        allow_long=args.allow_long, log=print)
+    except GainRuleError as e:       # refused by the calibration, before that law's run
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     except SimulationError as e:

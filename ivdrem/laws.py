@@ -8,9 +8,11 @@ place:
 * ``build(ctx)``: the blocks that compute ``theta_c`` (and their outputs worth recording),
   given a :class:`LawContext` (model, sizes and the law's parameters);
 * ``defaults``: the law's default gains (keyword arguments of ``build``);
-* ``section``: the configuration table holding those gains (``[iv_drem]``, ...); a
-  section the built-in configuration does not have is created from ``defaults``
-  (numbers and vectors), so a TOML file sets the law's gains in ``[section]``;
+* ``section``: the configuration table holding those gains (``[iv_drem]``, ...), made
+  from the registry alone: its keys are the numeric ``defaults``, with the type, range
+  and configuration default that ``keys`` declares for a gain (:class:`Key`), so a TOML
+  file sets the law's gains in ``[section]`` and a built-in law is configured like a
+  user's;
 * ``color`` and ``label``: the law's colour and legend label in every figure;
 * ``equation``, ``description``: what the report and the docs say about it.
 
@@ -25,11 +27,13 @@ from typing import Callable
 import numpy as np
 
 from . import blocks as block_library
+from ._config_keys import Key, in_range, magnitude
 from .blocks._kernels import MIXING_VARIANTS as _VARIANTS
 from .blocks.mixing import start_of_term
 
 __all__ = ["Law", "LawContext", "LAWS", "register_law", "get_law", "law_names",
-           "mixed_regression_blocks", "MIXING_VARIANTS", "default_mixing", "is_paper_arm"]
+           "mixed_regression_blocks", "MIXING_VARIANTS", "default_mixing", "is_paper_arm",
+           "Key", "in_range", "magnitude"]
 
 
 @dataclass
@@ -58,6 +62,9 @@ class Law:
     # {closed_loop keyword: configuration key "section.key"} that the law's run reads; None:
     # a user's law, whose gains are its section's keys (its defaults) passed as law_params
     config: dict | None = None
+    # {key: Key} of `section`: a gain's type, range and default in the configuration; a
+    # numeric default not declared here is checked as a number or a vector only
+    keys: dict | None = None
     uses_delta: bool = False               # has the mixed regression (17): Delta, calY
     instrument: str | None = None          # recorded instrument signal (zeta or phi)
     linestyle: str = "-"                   # with the colour: five laws told apart in grey too
@@ -75,6 +82,16 @@ def register_law(law: Law, *, replace: bool = False) -> Law:
         raise ValueError("a law needs a non-empty string name")
     if law.name in LAWS and not replace:
         raise ValueError(f"law {law.name!r} is already registered (pass replace=True)")
+    if law.keys is not None:
+        if not law.section:
+            raise ValueError(f"law {law.name!r} declares keys but no section to hold them")
+        for k, spec in law.keys.items():
+            if not isinstance(spec, Key):
+                raise TypeError(f"law {law.name!r}: key {k!r} must be an ivdrem.laws.Key, "
+                                f"got {type(spec).__name__}")
+            if spec.default is None and law.defaults.get(k) is None:
+                raise ValueError(f"law {law.name!r}: key {k!r} of [{law.section}] has no "
+                                 "default (in the law's defaults or the Key's default)")
     LAWS[law.name] = law
     return law
 
@@ -161,30 +178,65 @@ def _build_none(ctx):
 #: F0 of (15b), γ of (21) (the paper's 1e10) and the mixing of (17) (docs/mixing.md)
 _IV_DREM_DEFAULTS = dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, mixing="paper")
 
+#: the largest gain the configuration accepts: the paper's γ is 1e10; 1e300 overflows Δ·γ at
+#: the first step
+GAIN_MAX = 1e12
+#: a sliding window T of (15a) or of composite learning's integrals: h_max follows T/2
+_WINDOW = Key("float", **in_range(2e-6, 1e6, "h_max follows T/2, at least 1e-06 s"))
+
+#: the configuration keys of [iv_drem] with their ranges; on any arm but the paper's the
+#: mixing and γ follow the model, as in closed_loop
+_IV_DREM_KEYS = {
+    "T": _WINDOW,
+    "p": Key("float", check=lambda x: 1 <= x <= 1e3, requirement=">= 1 and <= 1000"),
+    "F0": Key("float", **in_range(0, GAIN_MAX, open_lo=True)),
+    # the paper's mixing on a large arm needs gamma of order 1/mean(Delta^2) (UR5: 9e119,
+    # docs/mixing.md), so only the bound of gamma = "auto" applies
+    "gamma": Key("float_or_auto", check=lambda x: 0 < x < 1e300,
+                 requirement="> 0 and below 1e300 (the bound of gamma = 'auto')",
+                 follow=lambda m: "auto"),
+    "mixing": Key("str", choices=_VARIANTS, follow=lambda m: default_mixing(m)),
+}
+#: [composite_learning]: window T, γ of (35) and the max-hold's threshold ε
+_COMPOSITE_LEARNING_KEYS = {
+    "T": _WINDOW,
+    "gamma": Key("float", **in_range(0, GAIN_MAX, open_lo=True)),
+    "epsilon": Key("float", **in_range(0, 1e6, open_lo=True)),
+}
+#: [sigma_modification]: σ and θ* of ϑ_c = σ(θ* − θ̂) (erratum E5); the configuration's θ*
+#: is a guess for the paper's arm (zeros on any other), closed_loop's the model's own θ
+_SIGMA_MODIFICATION_KEYS = {
+    "sigma": Key("float", **in_range(0, 1e6, "sigma = 0 is the law 'none'", open_lo=True)),
+    "theta_star": Key("vec", "ntheta", **magnitude(1e6, "as model.theta"),
+                      default=(1.0, 0.2, 0.3, 0.3, 1.0), follow=lambda m: [0.0] * m.ntheta),
+}
+
 
 def _keys(section, names):
     return {name: f"{section}.{name}" for name in names}
 
 
-_IV_DREM_CONFIG = _keys("iv_drem", _IV_DREM_DEFAULTS)
+_IV_DREM_CONFIG = _keys("iv_drem", _IV_DREM_KEYS)
 
 for _law in (
     Law("iv-drem", _build_iv_drem, "IV-DREM, (11)+(21)", "#0072B2", "eqs. (11) + (21)",
         "proposed: instrumental-variables DREM, ζ from the reference trajectory (14)",
         section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS), config=_IV_DREM_CONFIG,
-        uses_delta=True, instrument="zeta"),
+        keys=_IV_DREM_KEYS, uses_delta=True, instrument="zeta"),
     Law("composite-learning", _build_composite_learning, "composite learning, (35)", "#E69F00",
         "eq. (35)", "baseline of Pan & Yu: max-held window integrals of φ",
         section="composite_learning", defaults=dict(T=20.0, gamma=1.0, epsilon=1e-9),
-        config=_keys("composite_learning", ("T", "gamma", "epsilon"))),
+        config=_keys("composite_learning", _COMPOSITE_LEARNING_KEYS),
+        keys=_COMPOSITE_LEARNING_KEYS),
     Law("drem", _build_drem, "DREM without IV", "#009E73", "eqs. (11) + (21), ζ := φ",
         "DREM with the measured regressor φ in place of the instrument",
         section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS), config=_IV_DREM_CONFIG,
-        uses_delta=True, instrument="phi", linestyle="--"),
+        keys=_IV_DREM_KEYS, uses_delta=True, instrument="phi", linestyle="--"),
     Law("sigma-modification", _build_sigma, "σ-modification", "#D55E00",
         "ϑ_c = σ(θ* − θ̂) (erratum E5)", "leakage toward a prior guess θ*",
         section="sigma_modification", defaults=dict(sigma=0.1, theta_star=None),
-        config=_keys("sigma_modification", ("sigma", "theta_star")), linestyle="-."),
+        config=_keys("sigma_modification", _SIGMA_MODIFICATION_KEYS),
+        keys=_SIGMA_MODIFICATION_KEYS, linestyle="-."),
     Law("none", _build_none, "no composite term", "#000000", "ϑ_c = 0",
         "plain disturbance-rejection adaptive control", config={}, linestyle=":"),
 ):
@@ -207,6 +259,16 @@ def default_mixing(model) -> str:
     """The mixing of (17) that works at this model's size: the paper's for its own arm,
     DEFAULT_MIXING_OTHER_ARMS otherwise (measured in docs/mixing.md)."""
     return "paper" if is_paper_arm(model) else DEFAULT_MIXING_OTHER_ARMS
+
+
+def arm_gain_rule(law: Law, model, gamma=None, mixing=None) -> tuple:
+    """(gamma, mixing) of `law` on `model` as closed_loop takes them: on every arm but the
+    paper's, a law with the mixing step (17) left at None gets the mixing that works at the
+    arm's size and γ "auto" (γ of (21) from a calibration run, docs/mixing.md)."""
+    if "mixing" in law.defaults and not is_paper_arm(model):
+        mixing = default_mixing(model) if mixing is None else mixing
+        gamma = "auto" if gamma is None and "gamma" in law.defaults else gamma
+    return gamma, mixing
 
 
 def resolve_params(law: Law, given: dict) -> dict:

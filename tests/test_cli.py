@@ -123,25 +123,82 @@ def test_a_missing_optional_extra_is_one_line_not_a_traceback(tmp_path, monkeypa
     assert not (tmp_path / "p.fmu").exists()
 
 
-def test_gamma_auto_is_calibrated_once_per_command(tmp_path, monkeypatch):
-    """The preflight builds each law's loop as its run does (γ "auto" chosen there, with the
-    run's solver settings) and hands it to the run: one calibration, not two."""
+def test_gamma_auto_is_calibrated_once_per_law_by_its_run(tmp_path, monkeypatch):
+    """planar-3 (γ "auto" for iv-drem and drem, a number for composite learning): the
+    preflight only prices and calibrates nothing; each run calibrates its own loop once,
+    with the run's method."""
     import ivdrem.diagrams.gamma_auto as gamma_auto
-    real = gamma_auto.calibrate_gamma
-    calls = []
+    import ivdrem.experiments.paper as paper
+    real, real_run = gamma_auto.calibrate_gamma, paper.run_paper
+    calls, at_run = [], []
 
-    def counting(*a, **k):
-        calls.append(k.get("method"))
-        return real(*a, **k)
+    def counting(law, *a, **k):
+        calls.append((law, k.get("method")))
+        return real(law, *a, **k)
+
+    def run_paper(*a, **k):
+        at_run.append(list(calls))
+        return real_run(*a, **k)
     monkeypatch.setattr(gamma_auto, "calibrate_gamma", counting)
+    monkeypatch.setattr(paper, "run_paper", run_paper)
     out = tmp_path / "o.json"
     from pathlib import Path
     cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"
-    assert main(["paper", "--config", str(cfg), "--t-end", "1", "--laws",
-                 "iv-drem", "--json", str(out), "--quiet"]) == 0
-    assert calls == ["rodas5p"]                      # once, with the run's method
+    assert main(["paper", "--config", str(cfg), "--t-end", "1", "--laws", "iv-drem",
+                 "composite-learning", "drem", "--json", str(out), "--quiet"]) == 0
+    assert at_run == [[]]                                # the preflight calibrated nothing
+    assert calls == [("iv-drem", "rodas5p"), ("drem", "rodas5p")]   # once per law, the run's
     data = json.loads(out.read_text())
-    assert math.isfinite(data["iv-drem"]["gamma"]) and data["iv-drem"]["gamma"] != 1e10
+    for law in ("iv-drem", "drem"):
+        assert math.isfinite(data[law]["gamma"]) and data[law]["gamma"] != 1e10
+    assert data["composite-learning"]["gamma"] == 1.0
+
+
+def test_the_preflight_prices_and_simulates_nothing(monkeypatch):
+    """check_runs of `paper` and `report` (with the FMU check's horizon), every law on
+    planar-3: no simulation, no calibration; the reference estimate of Δ is asked once for
+    each law with γ "auto"."""
+    import ivdrem.diagrams.gamma_auto as gamma_auto
+    import ivdrem.sim as sim
+    from pathlib import Path
+    from ivdrem._preflight import check_runs
+    from ivdrem.experiments.config import load_config
+
+    def never(*a, **k):
+        raise AssertionError("simulated")
+    real, asked = gamma_auto.check_reference_delta, []
+
+    def estimate(law, *a, **k):
+        asked.append(law)
+        return real(law, *a, **k)
+    monkeypatch.setattr(sim, "simulate", never)     # what a calibration would call
+    monkeypatch.setattr(gamma_auto, "calibrate_gamma", never)
+    monkeypatch.setattr(gamma_auto, "check_reference_delta", estimate)
+    cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"
+    config = load_config(cfg, {"experiment.laws": "all"})
+    assert check_runs(config) is None
+    assert check_runs(config, fmu_check_t_end=1.0) is None
+    assert asked == ["iv-drem", "drem"] * 2
+
+
+def test_a_delta_below_the_doubles_is_refused_by_the_preflight(tmp_path, monkeypatch, capsys):
+    """γ "auto" with a mixing whose reference estimate of mean Δ² is far below the doubles:
+    `paper` exits 2 naming the mixing before any run, and nothing is calibrated."""
+    import ivdrem.diagrams.gamma_auto as gamma_auto
+    import ivdrem.experiments.paper as paper
+
+    def never(*a, **k):
+        raise AssertionError("simulated")
+    monkeypatch.setattr(gamma_auto, "reference_mean_delta2", lambda *a, **k: [-400.0])
+    monkeypatch.setattr(gamma_auto, "calibrate_gamma", never)
+    monkeypatch.setattr(paper, "run_paper", never)
+    from pathlib import Path
+    cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"
+    assert main(["paper", "--config", str(cfg), "--t-end", "1", "--laws", "iv-drem",
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "mixing 'eigen' on model 'planar-3'" in err and "before its calibration run" in err
+    assert "Traceback" not in err
 
 
 def test_the_command_line_parser_loads_no_report_machinery():

@@ -1,5 +1,8 @@
 """Every registered law in a full closed loop (one short run each, shared by the tests),
 checked against a second evaluation path; and the law registry itself."""
+import dataclasses
+import re
+
 import numpy as np
 import pytest
 
@@ -176,6 +179,84 @@ def test_a_registered_law_brings_its_own_configuration_table(tmp_path):
     assert "leak-to-guess" not in diagrams.LAWS
     with pytest.raises(ConfigError, match="section 'leak_to_guess' is not known"):
         load_config(f)
+
+
+def test_a_built_in_laws_section_is_its_registry_entry():
+    """[iv_drem], [composite_learning], [sigma_modification]: keys, checks and defaults are
+    the registry entry's (Law.keys over Law.defaults); a replaced entry is what the
+    configuration then checks, with the key and the new range in the message."""
+    from ivdrem.experiments.config import ConfigError, default_config, load_config, schema
+    sch, default = schema(), default_config()
+    for name in ("iv-drem", "drem", "composite-learning", "sigma-modification"):
+        law = registry.get_law(name)
+        assert sch[law.section] == law.keys, name
+        assert list(default[law.section]) == list(law.keys)
+        for k, spec in law.keys.items():
+            want = law.defaults[k] if spec.default is None else list(spec.default)
+            assert default[law.section][k] == want, (name, k)
+    assert registry.get_law("none").section is None
+    real = registry.get_law("composite-learning")
+    narrow = dict(real.keys, epsilon=registry.Key("float", **registry.in_range(0, 1e-3,
+                                                                              open_lo=True)))
+    registry.register_law(dataclasses.replace(real, keys=narrow), replace=True)
+    try:
+        with pytest.raises(ConfigError, match=re.escape(
+                "config key 'composite_learning.epsilon' must be > 0 and <= 0.001, got 0.01")):
+            load_config(overrides={"composite_learning.epsilon": 0.01})
+    finally:
+        registry.register_law(real, replace=True)
+    assert load_config(overrides={"composite_learning.epsilon": 0.01})[
+        "composite_learning"]["epsilon"] == 0.01
+
+
+def test_a_user_law_declares_its_keys_like_a_built_in_law(tmp_path):
+    """A user law with Law.keys: its section's ranges, lengths and model-following defaults
+    are checked and filled as the built-in laws' are (a gain it does not declare is a
+    number, as before); a bad declaration is refused when the law is registered."""
+    from ivdrem import blocks as block_library
+    from ivdrem.experiments.config import ConfigError, closed_loop_kwargs, load_config
+
+    def build(ctx):
+        return [block_library.sigma_modification_term(ctx.ntheta, ctx.params["sigma"],
+                                                      ctx.params["theta_star"])], []
+    Key, in_range, magnitude = registry.Key, registry.in_range, registry.magnitude
+    keys = {"sigma": Key("float", **in_range(0, 1, "a leak", open_lo=True)),
+            "theta_star": Key("vec", "ntheta", **magnitude(10.0),
+                              follow=lambda m: [0.5] * m.ntheta)}
+    registry.register_law(registry.Law(
+        "leak-checked", build, "leak, checked", "#456789", section="leak_checked",
+        defaults={"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0], "rate": 2.0},
+        keys=keys))
+    try:
+        cfg = load_config(overrides={"experiment.laws": ["leak-checked"]})
+        assert cfg["leak_checked"] == {"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0],
+                                       "rate": 2.0}     # not declared: a number, unchecked
+        assert load_config(overrides={"leak_checked.rate": -1e9})["leak_checked"]["rate"] == -1e9
+        assert closed_loop_kwargs(cfg, "leak-checked")["law_params"]["sigma"] == 0.05
+        for name, bad, words in (
+                ("leak_checked.sigma", 2.0, "must be > 0 and <= 1 (a leak), got 2.0"),
+                ("leak_checked.sigma", 0.0, "must be > 0 and <= 1 (a leak), got 0.0"),
+                ("leak_checked.theta_star", [11.0, 0, 0, 0, 0],
+                 "entries must be at most 10 in magnitude, got leak_checked.theta_star[0]"),
+                ("leak_checked.theta_star", [0.0] * 4, "must have 5 entries")):
+            with pytest.raises(ConfigError, match=re.escape(f"'{name}' {words}")):
+                load_config(overrides={name: bad})
+        vec3 = [0.1, 0.2, 0.3]
+        planar = load_config(overrides={
+            "model.name": "planar-3", "initial.q0": vec3,
+            **{f"{s}.{k}": vec3 for s in ("trajectory", "disturbance")
+               for k in ("amplitude", "omega", "phase", "offset")}})
+        assert planar["leak_checked"]["theta_star"] == [0.5] * 6     # followed the model
+    finally:
+        registry.LAWS.pop("leak-checked")
+    law = registry.Law("x", build, "x", "#000000", section="x", defaults={"sigma": 0.1},
+                       keys={"sigma": Key("float")})
+    for change, err, words in (({"section": None}, ValueError, "declares keys but no section"),
+                               ({"keys": {"sigma": 1.0}}, TypeError, "must be an ivdrem.laws.Key"),
+                               ({"keys": {"nu": Key("float")}}, ValueError, "'nu' of [x] has no default")):
+        with pytest.raises(err, match=re.escape(words)):
+            registry.register_law(dataclasses.replace(law, **change))
+    assert "x" not in registry.LAWS
 
 
 def test_replace_checks_signal_sizes():

@@ -349,15 +349,13 @@ def fake_paper(monkeypatch):
 
     import ivdrem.experiments.paper as real
 
-    def run_paper(config, *, laws=None, progress=True, engine="compiled", log=None,
-                  diagrams=None):
-        calls.append({"config": config, "laws": laws, "progress": progress, "engine": engine,
-                      "diagrams": diagrams})
+    def run_paper(config, *, laws=None, progress=True, engine="compiled", log=None):
+        calls.append({"config": config, "laws": laws, "progress": progress, "engine": engine})
         return synthetic_paper_run(config, dt=0.05)
 
     mod = types.ModuleType("ivdrem.experiments.paper")
     mod.run_paper = run_paper
-    mod.law_diagram = real.law_diagram      # the preflight builds the real loops
+    mod.law_diagram = real.law_diagram      # the FMU check's loop without a run's γ
     monkeypatch.setitem(sys.modules, "ivdrem.experiments.paper", mod)
     return calls
 

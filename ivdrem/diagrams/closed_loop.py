@@ -91,10 +91,8 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
         from ..models import two_link
         model = two_link()
     n, nth = model.n, model.ntheta
-    if "mixing" in spec.defaults and not law_registry.is_paper_arm(model):
-        # every arm but the paper's: the mixing and gain rule that work at its size
-        mixing = law_registry.default_mixing(model) if mixing is None else mixing
-        gamma = "auto" if gamma is None and "gamma" in spec.defaults else gamma
+    # every arm but the paper's: the mixing and gain rule that work at its size
+    gamma, mixing = law_registry.arm_gain_rule(spec, model, gamma, mixing)
     if mixing is not None and "mixing" not in spec.defaults:
         raise ValueError(f"law {law!r} has no mixing step (17); mixing={mixing!r} applies to "
                          "laws with the mixed regression (iv-drem, drem)")

@@ -16,14 +16,14 @@ import difflib
 import hashlib
 import functools
 import math
-from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
-from ..laws import LAWS as _LAW_REGISTRY, MIXING_VARIANTS, default_mixing, get_law, law_names
+from .._config_keys import POSITIVE, Key, in_range, magnitude
+from ..laws import LAWS as _LAW_REGISTRY, get_law, law_names
 
 try:  # Python >= 3.11
     import tomllib
@@ -68,117 +68,61 @@ class ConfigError(ValueError):
 
 
 # --------------------------------------------------------------------------- schema
-@dataclass(frozen=True)
-class _Key:
-    kind: str  # "float", "str", "strlist", "names", "vec", "mat", "float_or_vec", "float_or_auto"
-    length: str | None = None  # "n" or "ntheta" for vectors
-    check: Callable[[float], bool] | None = None  # applied to every number
-    requirement: str = ""  # text of the check, for messages
-    choices: tuple[str, ...] | None = None
-
-
-def _positive(x: float) -> bool:
-    return x > 0
-
-
-def _nonneg(x: float) -> bool:
-    return x >= 0
-
-
-_POS = dict(check=_positive, requirement="> 0")
-_NONNEG = dict(check=_nonneg, requirement=">= 0")
-
-
-def _range(lo: float, hi: float, why: str = "", *, open_lo: bool = False) -> dict:
-    """A check `lo <= x <= hi` (`lo < x` with open_lo) and its text for the message: a value
-    outside it overflows the loop's products (a huge gain) or divides by almost zero (a tiny
-    observer weight) within the first steps, where the run would report a block instead of
-    the key."""
-    # a positive lower bound reads "> 0 (at least lo)", like h_max and dt_out
-    low = f"> {lo:g}" if open_lo else ">= 0" if lo == 0 else \
-        f"> 0 (at least {lo:g})" if lo > 0 else f">= {lo:g}"
-    check = (lambda x: lo < x <= hi) if open_lo else (lambda x: lo <= x <= hi)
-    return dict(check=check, requirement=f"{low} and <= {hi:g}" + (f" ({why})" if why else ""))
-
-
-def _magnitude(hi: float, why: str = "") -> dict:
-    return dict(check=lambda x: abs(x) <= hi,
-                requirement=f"at most {hi:g} in magnitude" + (f" ({why})" if why else ""))
-
-
-#: the largest gain accepted: the paper's γ is 1e10; 1e300 overflows Δ·γ at the first step
-_GAIN_MAX = 1e12
 #: frequencies of the reference and the disturbance: each period needs steps of its own,
 #: so 1e6 rad/s is already about 5e7 steps over the paper's 300 s (docs/experiment.md)
 _OMEGA_MAX = 1e4
 
-SCHEMA: dict[str, dict[str, _Key]] = {
+#: The sections every law's run reads, their keys and checks (:class:`ivdrem.laws.Key`).
+#: Each law's own section ([iv_drem], ...) is its registry entry's (``Law.keys``, or its
+#: numeric ``defaults``): :func:`schema` places those after [filters].
+SECTIONS: dict[str, dict[str, Key]] = {
     "experiment": {
-        "t_end": _Key("float", **_POS),
-        "laws": _Key("strlist"),  # checked against the law registry at validation
+        "t_end": Key("float", **POSITIVE),
+        "laws": Key("strlist"),  # checked against the law registry at validation
         # lower bounds of ivdrem.sim.guards (DT_OUT_MIN, H_MAX_MIN), kept equal by a test
-        "dt_out": _Key("float", check=lambda x: x >= 1e-6, requirement="> 0 (at least 1e-06 s)"),
+        "dt_out": Key("float", check=lambda x: x >= 1e-6, requirement="> 0 (at least 1e-06 s)"),
     },
     "model": {
-        "name": _Key("str"),
-        "theta": _Key("vec", "ntheta", **_magnitude(1e6, "SI units: kg, kg m, kg m^2")),
-        "g": _Key("float", **_magnitude(1e3, "m/s^2")),
+        "name": Key("str"),
+        "theta": Key("vec", "ntheta", **magnitude(1e6, "SI units: kg, kg m, kg m^2")),
+        "g": Key("float", **magnitude(1e3, "m/s^2")),
     },
     "initial": {
-        "q0": _Key("vec", "n", **_magnitude(1e3, "rad or m")),
-        "dq0": _Key("vec", "n", **_magnitude(1e3, "rad/s or m/s")),
-        "theta_hat0": _Key("vec", "ntheta", **_magnitude(1e6, "as model.theta")),
+        "q0": Key("vec", "n", **magnitude(1e3, "rad or m")),
+        "dq0": Key("vec", "n", **magnitude(1e3, "rad/s or m/s")),
+        "theta_hat0": Key("vec", "ntheta", **magnitude(1e6, "as model.theta")),
     },
     "controller": {
-        "alpha": _Key("float", **_range(0, 1e6, open_lo=True)),
-        "K": _Key("vec", "n", **_range(0, 1e6, open_lo=True)),
-        "delta_mu": _Key("float", check=lambda x: 0 < x < 1, requirement="in (0, 1)"),
-        "Gamma": _Key("float_or_vec", "ntheta", **_range(0, 1e6, open_lo=True)),
-        "mu0": _Key("float", **_range(0, 1e6)),
-        "mu1": _Key("float", **_range(1e-6, 1e6, "the observer divides by mu(0) = mu1")),
-        "observer_variant": _Key("str", choices=OBSERVER_VARIANTS),
+        "alpha": Key("float", **in_range(0, 1e6, open_lo=True)),
+        "K": Key("vec", "n", **in_range(0, 1e6, open_lo=True)),
+        "delta_mu": Key("float", check=lambda x: 0 < x < 1, requirement="in (0, 1)"),
+        "Gamma": Key("float_or_vec", "ntheta", **in_range(0, 1e6, open_lo=True)),
+        "mu0": Key("float", **in_range(0, 1e6)),
+        "mu1": Key("float", **in_range(1e-6, 1e6, "the observer divides by mu(0) = mu1")),
+        "observer_variant": Key("str", choices=OBSERVER_VARIANTS),
     },
     "filters": {
-        "l": _Key("float", **_range(0, 1e6, open_lo=True)),
-    },
-    "iv_drem": {
-        "T": _Key("float", **_range(2e-6, 1e6, "h_max follows T/2, at least 1e-06 s")),
-        "p": _Key("float", check=lambda x: 1 <= x <= 1e3, requirement=">= 1 and <= 1000"),
-        "F0": _Key("float", **_range(0, _GAIN_MAX, open_lo=True)),
-        # the paper's mixing on a large arm needs gamma of order 1/mean(Delta^2) (UR5: 9e119,
-        # docs/mixing.md), so only the bound of gamma = "auto" applies
-        "gamma": _Key("float_or_auto", check=lambda x: 0 < x < 1e300,
-                      requirement="> 0 and below 1e300 (the bound of gamma = 'auto')"),
-        "mixing": _Key("str", choices=MIXING_VARIANTS),
-    },
-    "composite_learning": {
-        "T": _Key("float", **_range(2e-6, 1e6, "h_max follows T/2, at least 1e-06 s")),
-        "gamma": _Key("float", **_range(0, _GAIN_MAX, open_lo=True)),
-        "epsilon": _Key("float", **_range(0, 1e6, open_lo=True)),
-    },
-    "sigma_modification": {
-        "sigma": _Key("float", **_range(0, 1e6, "sigma = 0 is the law 'none'", open_lo=True)),
-        "theta_star": _Key("vec", "ntheta", **_magnitude(1e6, "as model.theta")),
+        "l": Key("float", **in_range(0, 1e6, open_lo=True)),
     },
     "trajectory": {
-        "amplitude": _Key("vec", "n", **_magnitude(1e6)),
-        "omega": _Key("vec", "n", **_magnitude(_OMEGA_MAX, "rad/s")),
-        "phase": _Key("vec", "n", **_magnitude(1e3, "rad")),
-        "offset": _Key("vec", "n", **_magnitude(1e6)),
+        "amplitude": Key("vec", "n", **magnitude(1e6)),
+        "omega": Key("vec", "n", **magnitude(_OMEGA_MAX, "rad/s")),
+        "phase": Key("vec", "n", **magnitude(1e3, "rad")),
+        "offset": Key("vec", "n", **magnitude(1e6)),
     },
     "disturbance": {
-        "amplitude": _Key("vec", "n", **_magnitude(1e6)),
-        "omega": _Key("vec", "n", **_magnitude(_OMEGA_MAX, "rad/s")),
-        "phase": _Key("vec", "n", **_magnitude(1e3, "rad")),
-        "offset": _Key("vec", "n", **_magnitude(1e6)),
+        "amplitude": Key("vec", "n", **magnitude(1e6)),
+        "omega": Key("vec", "n", **magnitude(_OMEGA_MAX, "rad/s")),
+        "phase": Key("vec", "n", **magnitude(1e3, "rad")),
+        "offset": Key("vec", "n", **magnitude(1e6)),
     },
     "solver": {
-        "method": _Key("str", choices=SOLVER_METHODS),
-        "rtol": _Key("float", **_range(1e-12, 0.5, "a relative tolerance")),
-        "atol": _Key("float", **_range(1e-14, 1.0)),
-        "h": _Key("float", **_range(1e-9, 1e3, "the initial or fixed step, s")),
-        "h_max": _Key("float", check=lambda x: 1e-6 <= x <= 1e6,
-                       requirement="> 0 (at least 1e-06 s) and <= 1e+06 s"),
+        "method": Key("str", choices=SOLVER_METHODS),
+        "rtol": Key("float", **in_range(1e-12, 0.5, "a relative tolerance")),
+        "atol": Key("float", **in_range(1e-14, 1.0)),
+        "h": Key("float", **in_range(1e-9, 1e3, "the initial or fixed step, s")),
+        "h_max": Key("float", check=lambda x: 1e-6 <= x <= 1e6,
+                      requirement="> 0 (at least 1e-06 s) and <= 1e+06 s"),
     },
 }
 
@@ -190,24 +134,24 @@ TRAJECTORY_KINDS = {
     "fourier": ("kind", "omega_f", "a", "b", "offset"),      # docs/experiment.md
 }
 
-#: Keys a section may hold beyond :data:`SCHEMA`'s (none of them in the paper's
+#: Keys a section may hold beyond :data:`SECTIONS`' (none of them in the paper's
 #: configuration): the model from a URDF file and its options, the Fourier reference.
-OPTIONAL: dict[str, dict[str, _Key]] = {
+OPTIONAL: dict[str, dict[str, Key]] = {
     "experiment": {
         # Python files (relative to the configuration file) or module names that register
         # the user's own laws (ivdrem.laws.register_law); imported before the laws are read
-        "plugins": _Key("names"),
+        "plugins": Key("names"),
     },
     "model": {
-        "urdf": _Key("str"),            # a path, relative to the configuration file
-        "friction": _Key("str", choices=FRICTION),
-        "joints": _Key("names"),
+        "urdf": Key("str"),            # a path, relative to the configuration file
+        "friction": Key("str", choices=FRICTION),
+        "joints": Key("names"),
     },
     "trajectory": {
-        "kind": _Key("str", choices=tuple(TRAJECTORY_KINDS)),
-        "omega_f": _Key("float", **_range(0, _OMEGA_MAX, "rad/s", open_lo=True)),
-        "a": _Key("mat", "n"),
-        "b": _Key("mat", "n"),
+        "kind": Key("str", choices=tuple(TRAJECTORY_KINDS)),
+        "omega_f": Key("float", **in_range(0, _OMEGA_MAX, "rad/s", open_lo=True)),
+        "a": Key("mat", "n"),
+        "b": Key("mat", "n"),
     },
 }
 
@@ -294,16 +238,14 @@ def model_dims(config_or_name) -> tuple[int, int]:
 
 
 #: Keys whose default follows the model when the configuration names a model other than
-#: the paper's arm and does not set them: zeros, the paper's per-joint gain, the model's
-#: own parameter values, and gamma = "auto" (γ of (21) scaled to this robot's Δ).
+#: the paper's arm and does not set them: zeros, the paper's per-joint gain and the model's
+#: own parameter values.  A law's keys follow the model by their ``Key.follow`` (the
+#: registry's: θ* = 0, gamma = "auto", the mixing that works at this robot's size).
 MODEL_FOLLOWING = {
     ("model", "theta"): lambda m: [float(v) for v in m.theta_values],
     ("initial", "dq0"): lambda m: [0.0] * m.n,
     ("initial", "theta_hat0"): lambda m: [0.0] * m.ntheta,
     ("controller", "K"): lambda m: [2.0] * m.n,
-    ("sigma_modification", "theta_star"): lambda m: [0.0] * m.ntheta,
-    ("iv_drem", "gamma"): lambda m: "auto",
-    ("iv_drem", "mixing"): lambda m: default_mixing(m),
 }
 #: Keys whose default follows the Fourier reference (the real-arm experiment of
 #: docs/experiment.md, :mod:`ivdrem.experiments.arm`): q(0) on the reference, the
@@ -341,9 +283,10 @@ def _user_traj_keys(user_set: set) -> set:
 
 
 def _follow_model(cfg: dict, user_set: set) -> None:
-    """Fill the keys the user did not set from the configured model: MODEL_FOLLOWING for a
-    model other than the paper's arm; with no [trajectory] key set for such a model (or
-    ``trajectory.kind = "fourier"``), the real-arm experiment's reference and ARM_FOLLOWING."""
+    """Fill the keys the user did not set from the configured model: MODEL_FOLLOWING and the
+    laws' ``Key.follow`` for a model other than the paper's arm; with no [trajectory] key
+    set for such a model (or ``trajectory.kind = "fourier"``), the real-arm experiment's
+    reference and ARM_FOLLOWING."""
     mcfg = cfg["model"]
     is_default = "urdf" not in mcfg and mcfg.get("name") == DEFAULT_MODEL
     user_traj = _user_traj_keys(user_set)
@@ -352,7 +295,9 @@ def _follow_model(cfg: dict, user_set: set) -> None:
         return
     model = model_from_config(cfg)
     if not is_default:
-        for (section, key), fn in MODEL_FOLLOWING.items():
+        laws = {(section, key): spec.follow for section, keys in _law_tables().items()
+                for key, (spec, _) in keys.items() if spec.follow is not None}
+        for (section, key), fn in {**MODEL_FOLLOWING, **laws}.items():
             if (section, key) not in user_set:
                 cfg[section][key] = fn(model)
     if not fourier:
@@ -469,12 +414,11 @@ def _resolve_urdf(user: Mapping, base: Path | None) -> None:
 
 # --------------------------------------------------------------------------- loading
 def default_config() -> dict:
-    """A fresh copy of the embedded default configuration, with the default gains of every
-    registered law that has a section of its own (:func:`_law_sections`)."""
-    cfg = copy.deepcopy(_default_raw())
-    for section, defaults in _law_sections().items():
-        cfg[section] = copy.deepcopy(defaults)
-    return cfg
+    """A fresh copy of the embedded default configuration: the sections of default.toml
+    and, from the law registry, the default gains of every registered law that has a
+    section of its own (:func:`_law_sections`), in the order of :func:`schema`."""
+    raw, laws = _default_raw(), _law_sections()
+    return {s: copy.deepcopy(laws[s] if s in laws else raw[s]) for s in schema()}
 
 
 _DEFAULT_CACHE: dict | None = None
@@ -596,33 +540,65 @@ def _suggest(word: str, valid, prefix=" (did you mean ", suffix="?)") -> str:
     return f"{prefix}'{close[0]}'{suffix}" if close else ""
 
 
-def _law_key(value) -> _Key:
+def _law_key(value) -> Key:
     """Schema entry of a registered law's gain, from its default: a number or a vector."""
     if isinstance(value, (list, tuple, np.ndarray)):
-        return _Key("vec")
-    return _Key("float")
+        return Key("vec")
+    return Key("float")
 
 
-def _law_sections() -> dict:
-    """{section: {key: default}} of the registered laws whose ``section`` the built-in
-    schema does not have: a law added with ``register_law(Law(..., section="my_law",
-    defaults=...))`` is configured in its own table [my_law], keys = its numeric defaults."""
-    out = {}
+def _config_value(value):
+    """A law's default as the configuration holds it: a vector as a list of floats."""
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [float(v) for v in np.asarray(value, float).ravel()]
+    return value
+
+
+def _law_tables() -> dict:
+    """{section: {key: (spec, default)}} of the registered laws' own tables, in registry
+    order; a section shared by several laws ([iv_drem]) is its first law's, and one named
+    like a section of :data:`SECTIONS` is not the law's to define.  A law added
+    with ``register_law(Law(..., section="my_law", defaults=..., keys=...))`` is configured
+    in its table [my_law] like a built-in law: a gain it declares in ``keys`` has that
+    type, range and default; any other numeric default is a number or a vector."""
+    out: dict = {}
     for law in _LAW_REGISTRY.values():
-        if law.section and law.section not in SCHEMA and law.section not in out:
-            out[law.section] = {k: (list(np.asarray(v, float).ravel())
-                                    if isinstance(v, (list, tuple, np.ndarray)) else v)
-                                for k, v in law.defaults.items()
-                                if v is not None and not isinstance(v, (str, bool))}
+        if not law.section or law.section in out or law.section in SECTIONS:
+            continue
+        declared = law.keys or {}
+        table = {}
+        for k, v in law.defaults.items():
+            if k in declared:
+                spec = declared[k]
+                table[k] = (spec, _config_value(v if spec.default is None else spec.default))
+            elif v is not None and not isinstance(v, (str, bool)):
+                table[k] = (_law_key(v), _config_value(v))
+        for k, spec in declared.items():
+            if k not in table:
+                table[k] = (spec, _config_value(spec.default))
+        out[law.section] = table
     return out
 
 
+def _law_sections() -> dict:
+    """{section: {key: default}} of the registered laws' own tables (:func:`_law_tables`)."""
+    return {s: {k: d for k, (_, d) in keys.items()} for s, keys in _law_tables().items()}
+
+
+#: The laws' own sections follow the loop's shared gains ([controller], [filters]) and
+#: precede its signals ([trajectory], [disturbance]) and the solver.
+_LAWS_AFTER = "filters"
+
+
 def schema() -> dict:
-    """The configuration's sections and keys: :data:`SCHEMA` plus one section per
-    registered law that brings its own (:func:`_law_sections`)."""
-    out = dict(SCHEMA)
-    for section, defaults in _law_sections().items():
-        out[section] = {k: _law_key(v) for k, v in defaults.items()}
+    """The configuration's sections and keys: :data:`SECTIONS` with, after [filters], one
+    section per registered law that has its own (:func:`_law_tables`)."""
+    laws = {s: {k: spec for k, (spec, _) in keys.items()} for s, keys in _law_tables().items()}
+    out: dict = {}
+    for section, keys in SECTIONS.items():
+        out[section] = keys
+        if section == _LAWS_AFTER:
+            out.update(laws)
     return out
 
 
@@ -662,7 +638,7 @@ def _number(name: str, value: Any) -> float:
 
 
 def _section_keys(section: str, table: Mapping, keys: Mapping) -> dict:
-    """{key: spec} a section must (SCHEMA, per variant) and may (OPTIONAL) hold."""
+    """{key: spec} a section must (:func:`schema`, per variant) and may (OPTIONAL) hold."""
     extra = OPTIONAL.get(section, {})
     if section == "model" and "urdf" in table:
         if "name" in table:
@@ -685,8 +661,9 @@ def _section_keys(section: str, table: Mapping, keys: Mapping) -> dict:
 def validate_config(cfg: Mapping) -> dict:
     """Check a complete configuration dict; return a normalized deep copy.
 
-    Every section and key of the schema must be present (use :func:`load_config`
-    to fill missing ones from the default); the keys of :data:`OPTIONAL` may be.  The
+    Every section and key of :data:`SECTIONS` must be present (use :func:`load_config`
+    to fill missing ones from the default); a law's own section takes the registry's
+    defaults for the keys it lacks; the keys of :data:`OPTIONAL` may be.  The
     reference must stay inside the model's joint limits over the run.
     Raises :class:`ConfigError`.
     """
@@ -771,7 +748,7 @@ def _check_step_bounds(cfg: Mapping) -> None:
                 f"or lengthen {where}")
 
 
-def _validate_value(name: str, spec: _Key, value: Any):
+def _validate_value(name: str, spec: Key, value: Any):
     if spec.kind == "str":
         if not isinstance(value, str):
             raise ConfigError(f"config key '{name}' must be a string, got {type(value).__name__} {value!r}")

@@ -33,16 +33,17 @@ class PaperRun:
 def law_diagram(config, law, *, model=None, engine="compiled"):
     """The closed loop of `law` from `config`, as its run simulates it.
 
-    With ``iv_drem.gamma = "auto"`` the γ of (21) is chosen here, once, by a calibration run
-    with the run's own solver settings (``ivdrem.diagrams.gamma_auto``); the choice is in
-    ``diagram.gamma_choice``.  The commands' preflight builds these diagrams (a gain the
-    rule refuses stops the command before any run) and hands them to :func:`run_paper`.
+    With ``iv_drem.gamma = "auto"`` the γ of (21) is chosen here by a calibration run with
+    the run's own solver settings (``ivdrem.diagrams.gamma_auto``, kept on disk, so a
+    repeat reads it); the choice is in ``diagram.gamma_choice``.  The commands' preflight
+    only prices the runs and refuses, without simulating, a γ "auto" whose Δ underflows
+    (``ivdrem._preflight.check_runs``).
     """
     model = model_from_config(config) if model is None else model
     kw = closed_loop_kwargs(config, law)
-    if kw.get("gamma") == "auto":
-        kw["calibration"] = dict(engine=engine, dt_out=float(config["experiment"]["dt_out"]),
-                                 **solver_kwargs(config, law))
+    # used by closed_loop only when it chooses γ "auto" (also by its rule for other arms)
+    kw["calibration"] = dict(engine=engine, dt_out=float(config["experiment"]["dt_out"]),
+                             **solver_kwargs(config, law))
     return closed_loop(law, model, **kw)
 
 
@@ -73,12 +74,12 @@ def run_law(config, law, *, model=None, progress=True, engine="compiled", log=No
 
 
 def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=None,
-              allow_long=False, diagrams=None):
+              allow_long=False):
     """Run every law of the configuration (default: the embedded paper experiment).
 
-    `progress` shows a bar per law when stderr is a terminal and CI is not set;
-    `diagrams` ({law: diagram} from :func:`law_diagram`, e.g. the preflight's) are used
-    instead of building them again (a γ "auto" is then not calibrated twice).
+    `progress` shows a bar per law when stderr is a terminal and CI is not set.  Each run
+    builds its loop (:func:`law_diagram`, γ "auto" calibrated there, once) and drops it
+    when it ends, so one law's loop is held at a time.
     """
     config = load_config() if config is None else config
     laws = list(config["experiment"]["laws"] if laws is None else laws)
@@ -88,6 +89,5 @@ def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=N
     show = want_progress(progress)   # one rule for every bar (ivdrem._progress)
     for law in laws:
         run.runs[law] = run_law(config, law, model=model, progress=show, engine=engine,
-                                allow_long=allow_long, log=log,
-                                diagram=(diagrams or {}).get(law))
+                                allow_long=allow_long, log=log)
     return run

@@ -110,9 +110,9 @@ def _preflight(args):
     out = check_writable_dir(user_path(args.out), "report directory")
     html_path, pdf_path = report_paths(out, overwrite=args.overwrite)
     check_cache_dir(args.engine)
-    diagrams = check_runs(config, engine=args.engine, allow_long=args.allow_long,
-                          fmu_check_t_end=None if args.no_fmu_check else args.fmu_check_t_end)
-    return config, html_path, pdf_path, diagrams
+    check_runs(config, engine=args.engine, allow_long=args.allow_long,
+               fmu_check_t_end=None if args.no_fmu_check else args.fmu_check_t_end)
+    return config, html_path, pdf_path
 
 
 def _write_or_keep(run, out, check, overwrite):
@@ -140,7 +140,7 @@ def run_report_command(args) -> int:
     args.overwrite = getattr(args, "overwrite", False)
     args.allow_long = getattr(args, "allow_long", False)
     try:
-        config, html_path, pdf_path, diagrams = _preflight(args)
+        config, html_path, pdf_path = _preflight(args)
     except (ConfigError, PreflightError, ReportError, OutputLocationError, ValueError,
             ImportError) as exc:
         print(f"ivdrem report: error: {exc}", file=sys.stderr)
@@ -156,8 +156,7 @@ def run_report_command(args) -> int:
     progress = want_progress(not args.quiet)
     extra = {"allow_long": True} if args.allow_long else {}
     try:
-        run = run_paper(config, progress=progress, engine=args.engine, log=print,
-                        diagrams=diagrams, **extra)
+        run = run_paper(config, progress=progress, engine=args.engine, log=print, **extra)
     except SimulationError as exc:
         print(f"ivdrem report: simulation failed: {exc}", file=sys.stderr)
         return 1

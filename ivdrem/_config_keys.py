@@ -1,0 +1,54 @@
+"""The declaration of one configuration key: its type, the check of its values and the text
+of that check for the error message.
+
+A leaf module: the configuration (:mod:`ivdrem.experiments.config`) declares the sections
+every run reads with it, and the law registry (:mod:`ivdrem.laws`) each law's own section,
+so a built-in law's gains are checked like a user's law's.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+__all__ = ["Key", "in_range", "magnitude", "POSITIVE"]
+
+
+@dataclass(frozen=True)
+class Key:
+    """One configuration key.
+
+    kind: "float", "str", "strlist", "names", "vec", "mat", "float_or_vec", "float_or_auto";
+    length: "n" or "ntheta" for a vector; check: applied to every number, with
+    requirement its text for the message; choices: the strings a "str" key accepts.
+    A law's key may also give default: the configuration's default on the paper's arm where
+    it differs from the law's ``defaults`` (closed_loop's), and follow(model): its default
+    on any other model.
+    """
+    kind: str
+    length: str | None = None
+    check: Callable[[float], bool] | None = None
+    requirement: str = ""
+    choices: tuple[str, ...] | None = None
+    default: Any = None
+    follow: Callable[[Any], Any] | None = None
+
+
+POSITIVE = dict(check=lambda x: x > 0, requirement="> 0")
+
+
+def in_range(lo: float, hi: float, why: str = "", *, open_lo: bool = False) -> dict:
+    """A check `lo <= x <= hi` (`lo < x` with open_lo) and its text for the message: a value
+    outside it overflows the loop's products (a huge gain) or divides by almost zero (a tiny
+    observer weight) within the first steps, where the run would report a block instead of
+    the key."""
+    # a positive lower bound reads "> 0 (at least lo)", like h_max and dt_out
+    low = f"> {lo:g}" if open_lo else ">= 0" if lo == 0 else \
+        f"> 0 (at least {lo:g})" if lo > 0 else f">= {lo:g}"
+    check = (lambda x: lo < x <= hi) if open_lo else (lambda x: lo <= x <= hi)
+    return dict(check=check, requirement=f"{low} and <= {hi:g}" + (f" ({why})" if why else ""))
+
+
+def magnitude(hi: float, why: str = "") -> dict:
+    """A check `|x| <= hi` and its text for the message."""
+    return dict(check=lambda x: abs(x) <= hi,
+                requirement=f"at most {hi:g} in magnitude" + (f" ({why})" if why else ""))
