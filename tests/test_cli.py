@@ -123,35 +123,77 @@ def test_a_missing_optional_extra_is_one_line_not_a_traceback(tmp_path, monkeypa
     assert not (tmp_path / "p.fmu").exists()
 
 
-def test_gamma_auto_is_calibrated_once_per_law_by_its_run(tmp_path, monkeypatch):
+def _record_simulations(monkeypatch):
+    """Every simulation as (kind, law): "calibration" (a run of the loop with its γ
+    overridden, ivdrem.diagrams.gamma_auto) or "run" (a law's run, ivdrem.experiments.paper)."""
+    import ivdrem.experiments.paper as paper
+    import ivdrem.sim as sim
+    events = []
+
+    def wrap(real, kind):
+        def simulate(diagram, *a, **k):
+            events.append((kind, diagram.name.split("[")[1].rstrip("]")))
+            return real(diagram, *a, **k)
+        return simulate
+    monkeypatch.setattr(sim, "simulate", wrap(sim.simulate, "calibration"))
+    monkeypatch.setattr(paper, "simulate", wrap(paper.simulate, "run"))
+    return events
+
+
+def test_gamma_auto_is_calibrated_once_per_law_before_any_run(tmp_path, monkeypatch):
     """planar-3 (γ "auto" for iv-drem and drem, a number for composite learning): the
-    preflight only prices and calibrates nothing; each run calibrates its own loop once,
-    with the run's method."""
+    preflight only prices and calibrates nothing; each law with γ "auto" is calibrated
+    once, with the run's method, and the laws after the first before any run starts."""
     import ivdrem.diagrams.gamma_auto as gamma_auto
     import ivdrem.experiments.paper as paper
     real, real_run = gamma_auto.calibrate_gamma, paper.run_paper
-    calls, at_run = [], []
+    methods, at_run = [], []
 
     def counting(law, *a, **k):
-        calls.append((law, k.get("method")))
+        methods.append(k.get("method"))
         return real(law, *a, **k)
 
     def run_paper(*a, **k):
-        at_run.append(list(calls))
+        at_run.append(list(events))
         return real_run(*a, **k)
     monkeypatch.setattr(gamma_auto, "calibrate_gamma", counting)
     monkeypatch.setattr(paper, "run_paper", run_paper)
+    events = _record_simulations(monkeypatch)
     out = tmp_path / "o.json"
     from pathlib import Path
     cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"
     assert main(["paper", "--config", str(cfg), "--t-end", "1", "--laws", "iv-drem",
                  "composite-learning", "drem", "--json", str(out), "--quiet"]) == 0
-    assert at_run == [[]]                                # the preflight calibrated nothing
-    assert calls == [("iv-drem", "rodas5p"), ("drem", "rodas5p")]   # once per law, the run's
+    assert at_run == [[]]                                # the preflight simulated nothing
+    assert events == [("calibration", "drem"), ("calibration", "iv-drem"), ("run", "iv-drem"),
+                      ("run", "composite-learning"), ("run", "drem")]
+    assert set(methods) == {"rodas5p"}                   # the run's own method
     data = json.loads(out.read_text())
     for law in ("iv-drem", "drem"):
         assert math.isfinite(data[law]["gamma"]) and data[law]["gamma"] != 1e10
     assert data["composite-learning"]["gamma"] == 1.0
+
+
+def test_a_gain_its_calibration_refuses_stops_the_command_before_any_run(tmp_path, monkeypatch,
+                                                                         capsys):
+    """A later law's γ "auto" refused by the rule after its calibration run (not by the
+    preflight's estimate): exit 2 naming it, and no law has run (nothing computed lost)."""
+    import ivdrem.diagrams.gamma_auto as gamma_auto
+    real = gamma_auto.gamma_from_delta
+
+    def refuse_drem(t, delta, *a, **k):
+        if events and events[-1] == ("calibration", "drem"):
+            raise gamma_auto.GainRuleError("gamma = 'auto' refused for the test (drem)")
+        return real(t, delta, *a, **k)
+    monkeypatch.setattr(gamma_auto, "gamma_from_delta", refuse_drem)
+    events = _record_simulations(monkeypatch)
+    from pathlib import Path
+    cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path / "cache"))   # no kept choices
+    assert main(["paper", "--config", str(cfg), "--t-end", "1", "--laws", "iv-drem", "drem",
+                 "--json", str(tmp_path / "o.json"), "--quiet"]) == 2
+    assert "refused for the test (drem)" in capsys.readouterr().err
+    assert [e for e in events if e[0] == "run"] == []
 
 
 def test_the_preflight_prices_and_simulates_nothing(monkeypatch):

@@ -79,7 +79,8 @@ def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=N
 
     `progress` shows a bar per law when stderr is a terminal and CI is not set.  Each run
     builds its loop (:func:`law_diagram`, γ "auto" calibrated there, once) and drops it
-    when it ends, so one law's loop is held at a time.
+    when it ends, so one law's loop is held at a time; the γ "auto" of every law after the
+    first is chosen before the first run starts.
     """
     config = load_config() if config is None else config
     laws = list(config["experiment"]["laws"] if laws is None else laws)
@@ -87,6 +88,12 @@ def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=N
     run = PaperRun(config=config, theta=np.asarray(config["model"]["theta"], float),
                    model=model)
     show = want_progress(progress)   # one rule for every bar (ivdrem._progress)
+    # a γ "auto" that its calibration refuses must stop the command before any law has
+    # run (nothing computed is lost): the later laws' choices are made first and kept on
+    # disk (ivdrem.diagrams.gamma_auto), so each run's own loop reads its choice
+    for law in laws[1:]:
+        if closed_loop_kwargs(config, law).get("gamma") == "auto":
+            law_diagram(config, law, model=model, engine=engine)
     for law in laws:
         run.runs[law] = run_law(config, law, model=model, progress=show, engine=engine,
                                 allow_long=allow_long, log=log)
