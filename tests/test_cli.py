@@ -123,6 +123,18 @@ def test_a_missing_optional_extra_is_one_line_not_a_traceback(tmp_path, monkeypa
     assert not (tmp_path / "p.fmu").exists()
 
 
+def _fresh_calibrations(monkeypatch, where):
+    """Calibrations kept in `where` (empty) instead of the shared cache: one made by an
+    earlier test run would otherwise be read instead of simulated."""
+    import ivdrem.diagrams.gamma_auto as gamma_auto
+    real = gamma_auto._calibration_path
+
+    def path(diagram, settings):
+        p = real(diagram, settings)
+        return None if p is None else where / p.name
+    monkeypatch.setattr(gamma_auto, "_calibration_path", path)
+
+
 def _record_simulations(monkeypatch):
     """Every simulation as (kind, law): "calibration" (a run of the loop with its γ
     overridden, ivdrem.diagrams.gamma_auto) or "run" (a law's run, ivdrem.experiments.paper)."""
@@ -158,6 +170,7 @@ def test_gamma_auto_is_calibrated_once_per_law_before_any_run(tmp_path, monkeypa
         return real_run(*a, **k)
     monkeypatch.setattr(gamma_auto, "calibrate_gamma", counting)
     monkeypatch.setattr(paper, "run_paper", run_paper)
+    _fresh_calibrations(monkeypatch, tmp_path)
     events = _record_simulations(monkeypatch)
     out = tmp_path / "o.json"
     from pathlib import Path
@@ -189,7 +202,7 @@ def test_a_gain_its_calibration_refuses_stops_the_command_before_any_run(tmp_pat
     events = _record_simulations(monkeypatch)
     from pathlib import Path
     cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"
-    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path / "cache"))   # no kept choices
+    _fresh_calibrations(monkeypatch, tmp_path)
     assert main(["paper", "--config", str(cfg), "--t-end", "1", "--laws", "iv-drem", "drem",
                  "--json", str(tmp_path / "o.json"), "--quiet"]) == 2
     assert "refused for the test (drem)" in capsys.readouterr().err
