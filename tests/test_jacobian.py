@@ -145,6 +145,45 @@ def test_chain_rule_on_tiny_diagram(tiny):
                                    tiny_exact(x), rtol=1e-5, atol=1e-6)
 
 
+def added_osc_jacobian(t, x, u, jac, a):
+    # osc_jacobian with its rows added into the buffer (kernels may), raising part-way
+    # through for x0 > 10 (a kernel that fails after it wrote)
+    jac[0, 0] += x[1]
+    jac[0, 1] += x[0]
+    jac[1, 0] += np.cos(x[0])
+    if x[0] > 10.0:
+        raise ValueError("x0 above 10 for the test")
+    jac[2, 1] += 1.0
+    jac[3, 0] += -a
+    jac[3, 2] += 1.0
+
+
+def test_a_jacobian_kernel_that_raised_leaves_no_stale_entries():
+    """A Jacobian kernel's buffer holds 0 at every entry read before the kernel runs (it
+    may add into them: cleared as it is read).  A kernel that raises after writing leaves
+    entries behind: the next Jacobian of the same workspace clears the whole buffer first,
+    so it equals one from a fresh workspace; and repeated Jacobians do not accumulate."""
+    from ivdrem.sim.errors import BlockError
+    blocks = [
+        make_block(BlockSpec("osc", [("u", 1)], [("y", 2)], [("x", 2)], np.array([0.3, -0.2]),
+                             ("a",), osc_output, osc_update, jacobian=added_osc_jacobian),
+                   {"a": TINY_A}),
+        make_block(BlockSpec("grow", [], [("g", 1)], [("g", 1)], np.ones(1), ("b",),
+                             grow_output, grow_update), {"b": TINY_B})]
+    d = assemble(blocks, ["y"], name="tiny_raising_jacobian", connections=[["osc.u[0]", "grow.g[0]"]])
+    sim = Simulator(d)
+    x = np.array([0.4, -0.3, 1.2])
+    first = sim.engine.jacobian(0.4, x, sim.W)
+    np.testing.assert_array_equal(sim.engine.jacobian(0.4, x, sim.W), first)
+    assert first[0, 1] == 1.0 and first[1, 0] == -TINY_A
+    with pytest.raises(BlockError, match="block .osc. raised .* jacobian"):
+        sim.engine.jacobian(0.4, np.array([11.0, -0.3, 1.2]), sim.W)
+    assert sim.W.jac_dirty[0] == 1
+    np.testing.assert_array_equal(sim.engine.jacobian(0.4, x, sim.W), first)
+    assert sim.W.jac_dirty[0] == 0
+    np.testing.assert_array_equal(sim.engine.jacobian(0.4, x, Simulator(d).W), first)
+
+
 def test_singular_pivot_is_reported(tiny):
     x = np.array([0.4, -0.3, 0.8, 1.2])
     J = tiny.engine.jacobian(0.0, x, tiny.W)

@@ -19,7 +19,9 @@ diagram is the tables), of the report function (``stepper.c``'s ``report_fn``) a
 sampled blocks' sample function (0: none); ``sample_dt`` their periods and
 ``sample_due`` which of them fall on the current sample time (set by the stepper);
 ``record_row`` one sample of the diagram's outputs, recorded there first where the output
-array is not row-major (a response's (outputs x samples) array, written in place).
+array is not row-major (a response's (outputs x samples) array, written in place);
+``jac_dirty`` 1 while a Jacobian kernel's buffer may hold values at entries that are read
+(a kernel that raised part-way): the next Jacobian clears the whole buffer first.
 """
 from __future__ import annotations
 
@@ -41,7 +43,8 @@ WORKSPACE_LAYOUT = (
     ("failure", "float64", 1), ("table_ints", "int64", 1),
     ("table_floats", "float64", 1), ("scratch", "float64", 1), ("lapack", "int64", 1),
     ("lapack_chars", "uint8", 1), ("lapack_ints", "int32", 1), ("callbacks", "int64", 1),
-    ("sample_dt", "float64", 1), ("sample_due", "int64", 1), ("record_row", "float64", 1))
+    ("sample_dt", "float64", 1), ("sample_due", "int64", 1), ("record_row", "float64", 1),
+    ("jac_dirty", "int64", 1))
 Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
 
 

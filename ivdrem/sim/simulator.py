@@ -264,7 +264,7 @@ def _workspace(plan, cap, nu_ext, ny, nu, n_kernels, tables):
         lapack_ints=np.zeros(5 + _diagram.dsyevd_liwork(nmat), dtype=np.int32),
         callbacks=np.zeros(3, dtype=np.int64), sample_dt=plan.sampling.periods.copy(),
         sample_due=np.zeros(plan.sampling.periods.size, dtype=np.int64),
-        record_row=np.zeros(plan.diagram.noutputs))
+        record_row=np.zeros(plan.diagram.noutputs), jac_dirty=np.zeros(1, dtype=np.int64))
 
 
 def _grow(W):

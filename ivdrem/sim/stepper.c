@@ -631,11 +631,17 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
     double *y0 = scratch_part(c, SC_Y0, NULL);
     double *ym = scratch_part(c, SC_YM, NULL);
     double *hh = scratch_part(c, SC_HH, NULL);
-    double *jl = scratch_part(c, SC_JL, NULL);
+    i64 njl;
+    double *jl = scratch_part(c, SC_JL, &njl);
+    if (c->jac_dirty[0] != 0) {      /* a kernel raised part-way through the last Jacobian */
+        for (i64 i = 0; i < njl; i++) jl[i] = 0.0;
+        c->jac_dirty[0] = 0;
+    }
     i64 nS;
     double *S = scratch_part(c, SC_S, &nS);
     for (i64 i = 0; i < ng; i++) F[njb + i] = jac_gains.p[i];
     ivec fd = int_table(c, T_FD);
+    i64 jl0 = 0;          /* where the next Jacobian kernel's own buffer starts in jl */
     for (i64 kb = 0; kb < fd.n / N_FD_COLUMNS; kb++) {
         const i64 *r = fd.p + kb * N_FD_COLUMNS;
         i64 nx = r[FD_NX], nu = r[FD_NU], ny = r[FD_NY];
@@ -645,20 +651,24 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
         copy_into(ub, 0, ub0, 0, nu);
         i64 p0 = r[FD_P0];
         if (r[FD_WJAC] >= 0) {
-            /* only the entries read below are cleared (a kernel may add into them): the
-             * others may hold what an earlier kernel wrote, and are never read (clearing the
-             * whole (ny + nx) x (nx + nu) buffer cost about 1 ms per Jacobian on the UR5) */
-            for (i64 g = fd_g_ptr.p[kb]; g < fd_g_ptr.p[kb + 1]; g++)
-                for (i64 cc = fd_gc_ptr.p[g]; cc < fd_gc_ptr.p[g + 1]; cc++)
-                    for (i64 e = fd_e_ptr.p[cc]; e < fd_e_ptr.p[cc + 1]; e++)
-                        jl[fd_e_row.p[e] * (nx + nu) + fd_col.p[cc]] = 0.0;
-            call_kernel(c, wnx, r[FD_WJAC], t, xb, 0, ub, 0, jl, 0, p0);
+            /* the kernel's own (ny + nx) x (nx + nu) buffer, in which the entries read are 0
+             * before it runs (it may add into them): each is cleared as it is read, in the
+             * same pass (a pass of its own cost about 1 ms per Jacobian on the Panda, a cache
+             * line per entry); the entries it writes and nothing reads are its own */
+            double *jb = jl + jl0;
+            jl0 += (ny + nx) * (nx + nu);
+            c->jac_dirty[0] = 1;
+            call_kernel(c, wnx, r[FD_WJAC], t, xb, 0, ub, 0, jb, 0, p0);
             for (i64 g = fd_g_ptr.p[kb]; g < fd_g_ptr.p[kb + 1]; g++)
                 for (i64 cc = fd_gc_ptr.p[g]; cc < fd_gc_ptr.p[g + 1]; cc++) {
                     i64 col = fd_col.p[cc];
-                    for (i64 e = fd_e_ptr.p[cc]; e < fd_e_ptr.p[cc + 1]; e++)
-                        F[fd_e_slot.p[e]] = jl[fd_e_row.p[e] * (nx + nu) + col];
+                    for (i64 e = fd_e_ptr.p[cc]; e < fd_e_ptr.p[cc + 1]; e++) {
+                        double *v = jb + fd_e_row.p[e] * (nx + nu) + col;
+                        F[fd_e_slot.p[e]] = *v;
+                        *v = 0.0;
+                    }
                 }
+            c->jac_dirty[0] = 0;
             continue;
         }
         int central = r[FD_CENTRAL] != 0;

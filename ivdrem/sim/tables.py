@@ -183,6 +183,10 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     maxu = int(max(prog.fd_nu.max(initial=0), 1))
     maxyf = int(max((prog.fd_ny + prog.fd_nx).max(initial=0), 1))
     maxcol = int(max((prog.fd_nx + prog.fd_nu).max(initial=0), 1))
+    # a block with a Jacobian kernel has a (ny + nx) x (nx + nu) buffer of its own, one
+    # after the other in the order of fd (stepper.c's diagram_jacobian_at)
+    jl_size = sum(int((prog.fd_ny[kb] + prog.fd_nx[kb]) * (prog.fd_nx[kb] + prog.fd_nu[kb]))
+                  for kb, row in enumerate(fd) if row[7] >= 0)
     # the sizes of the work arrays in the workspace field scratch (_diagram.SC_*), the one
     # place they are laid out: the history push's vectors, the max-hold eigensolver's
     # matrix, eigenvalues and dsyevd work (its minimum for eigenvectors), the Jacobian's
@@ -193,7 +197,7 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
              _diagram.SC_F: prog.n_jb + len(prog.gains), _diagram.SC_XB: maxx,
              _diagram.SC_XB0: maxx, _diagram.SC_UB: maxu, _diagram.SC_UB0: maxu,
              _diagram.SC_YP: maxyf, _diagram.SC_Y0: maxyf, _diagram.SC_YM: maxyf,
-             _diagram.SC_HH: max(len(prog.col), 1), _diagram.SC_JL: maxyf * maxcol,
+             _diagram.SC_HH: max(len(prog.col), 1), _diagram.SC_JL: max(jl_size, 1),
              _diagram.SC_S: prog.n_slots}
     scratch_offsets = np.cumsum([0] + [sizes[i] for i in range(_diagram.N_SCRATCH)])
     dims = dict(NJB=prog.n_jb)
