@@ -182,18 +182,19 @@ def adj_derivative_parts(U, sig, Vt):
     for k in range(m):
         if sig[k] > 0.0:
             rho[k] = sig[m] / sig[k]
-    A = np.empty((n, n))
-    G = np.empty((n, n))
+    A = np.zeros((n, n))
+    G = np.zeros((n, n))
     B = np.empty((n, n))
+    UT = np.ascontiguousarray(U.T)
+    # each entry's sum over k in order, as a row at a time (contiguous inner loops)
     for i in range(n):
+        for k in range(n):
+            ca = Vt[k, i] * w[k]
+            cg = U[i, k] * rho[k]
+            for j in range(n):
+                A[i, j] += ca * UT[k, j]
+                G[i, j] += cg * Vt[k, j]
         for j in range(n):
-            a = 0.0
-            g = 0.0
-            for k in range(n):
-                a += Vt[k, i] * w[k] * U[j, k]
-                g += U[i, k] * rho[k] * Vt[k, j]
-            A[i, j] = a
-            G[i, j] = g
             B[i, j] = Vt[m, i] * U[j, m]
     return A, G, B
 
@@ -284,12 +285,16 @@ def _log10_sum(sig):
 def _scaled_adjugate(U, Vt, coef, s_uv, out):
     """out = s_UV V diag(coef) U^T."""
     n = coef.shape[0]
-    for i in range(n):
+    UT = np.ascontiguousarray(U.T)
+    acc = np.zeros(n)
+    for i in range(n):                  # each sum over k in order, a row at a time
+        acc[:] = 0.0
+        for k in range(n):
+            c = Vt[k, i] * coef[k]
+            for j in range(n):
+                acc[j] += c * UT[k, j]
         for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += Vt[k, i] * coef[k] * U[j, k]
-            out[i, j] = s_uv * acc
+            out[i, j] = s_uv * acc[j]
 
 
 @njit(cache=True)
@@ -469,13 +474,13 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
     A, G, B = adj_derivative_parts(U, sig, Vt)
     # dlogsig[a, b] = sum_j u_aj v_bj / sigma_j = d sum_j log sigma_j / dP_ab
     dls = np.zeros((n, n))
-    for a in range(n):
-        for b in range(n):
-            acc = 0.0
-            for j in range(n):
-                if sig[j] > 0.0:
-                    acc += U[a, j] * Vt[j, b] / sig[j]
-            dls[a, b] = acc
+    for a in range(n):                  # each sum over j in order, a row at a time
+        for j in range(n):
+            if sig[j] > 0.0:
+                u = U[a, j]
+                sj = sig[j]
+                for b in range(n):
+                    dls[a, b] += u * Vt[j, b] / sj
     scale_A = 1.0                          # A (and C) carry this factor: N or K below
     rows_D = 0
     rows_Y = k
@@ -499,36 +504,44 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
         products_without(r, m, wN)
         for i in range(m):
             wN[i] /= tau[i] * tau[m]
-        for i in range(n):
-            for j in range(n):
-                acc = 0.0
-                for l in range(n):
-                    acc += Vt[l, i] * wN[l] * U[j, l]
-                A[i, j] = acc
+        UT = np.ascontiguousarray(U.T)
+        A[:, :] = 0.0
+        for i in range(n):              # each sum over l in order, a row at a time
+            for l in range(n):
+                c = Vt[l, i] * wN[l]
+                for j in range(n):
+                    A[i, j] += c * UT[l, j]
         # Lam = d log N / dP = U diag(1/tau) V^T + f_rel P/||P||_F sum 1/tau
         # (||P||_F = nrm / s and f = f_rel ||P||_F, so df/dP = f_rel P / ||P||_F)
         sinv = 0.0
         for j in range(n):
             sinv += 1.0 / tau[j]
-        Lam = np.empty((n, n))
+        Lam = np.zeros((n, n))
         pn = nrm / s
-        for a in range(n):
+        for a in range(n):              # each sum over j in order, a row at a time
+            for j in range(n):
+                u = U[a, j]
+                tj = tau[j]
+                for b in range(n):
+                    Lam[a, b] += u * Vt[j, b] / tj
             for b in range(n):
-                acc = 0.0
-                for j in range(n):
-                    acc += U[a, j] * Vt[j, b] / tau[j]
-                Lam[a, b] = acc + f_rel * P[a, b] / pn * sinv
+                Lam[a, b] = Lam[a, b] + f_rel * P[a, b] / pn * sinv
         # d log10 Delta / dP without the cancellation of dls - Lam:
         # 1/sigma_j - 1/tau_j = f / (sigma_j tau_j)
-        for a in range(n):
+        dls[:, :] = 0.0
+        for a in range(n):              # each sum over j in order, a row at a time
+            for j in range(n):
+                u = U[a, j]
+                if sig[j] > 0.0:
+                    wj = f / (sig[j] * tau[j])
+                    for b in range(n):
+                        dls[a, b] += u * Vt[j, b] * wj
+                else:
+                    tj = tau[j]
+                    for b in range(n):
+                        dls[a, b] -= u * Vt[j, b] / tj
             for b in range(n):
-                acc = 0.0
-                for j in range(n):
-                    if sig[j] > 0.0:
-                        acc += U[a, j] * Vt[j, b] * (f / (sig[j] * tau[j]))
-                    else:
-                        acc -= U[a, j] * Vt[j, b] / tau[j]
-                dls[a, b] = acc - f_rel * P[a, b] / pn * sinv
+                dls[a, b] = dls[a, b] - f_rel * P[a, b] / pn * sinv
     else:
         full = _channel_coefficients(sig, coef)
         if not full:
