@@ -137,7 +137,7 @@ class _Layout:
     variables: list = field(default_factory=list)  # dicts, index = vr + 1
 
     @property
-    def np(self):
+    def n_params(self):
         return len(self.param_names)
 
     # value references (0-based), mirrored by plant_model.h
@@ -149,7 +149,7 @@ class _Layout:
     def vr_tau_d(self, i): return 5 * self.n + i
     def vr_p(self, k): return 6 * self.n + k
     @property
-    def vr_substep(self): return 6 * self.n + self.np
+    def vr_substep(self): return 6 * self.n + self.n_params
 
 
 def _check_vector(name, value, n):
@@ -199,7 +199,7 @@ def _layout(model, q0, dq0, substep) -> _Layout:
     for i in range(n):
         V.append(dict(name=f"tau_d[{i}]", causality="input", variability="continuous",
                       start=0.0, unit="N.m", description=f"disturbance torque {i}"))
-    for k in range(lay.np):
+    for k in range(lay.n_params):
         V.append(dict(name=names[k], causality="parameter", variability="fixed",
                       initial="exact", start=values[k], unit=lay.param_units[k],
                       description=descr[k]))
