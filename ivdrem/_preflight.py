@@ -16,7 +16,7 @@ from ._paths import check_writable_dir
 
 __all__ = ["PreflightError", "add_run_options", "solver_methods", "check_method",
            "check_runs", "check_inertia", "check_law_cost", "pricing_diagram",
-           "check_gamma_auto", "check_fmu_check_t_end", "check_cache_dir", "horizon_note",
+           "check_gamma_auto", "gain_rule", "check_fmu_check_t_end", "check_cache_dir", "horizon_note",
            "timing_text", "CONCLUSIONS_HORIZON", "FMU_CHECK_COMM_STEPS"]
 
 #: The horizon (s) that conclusions C1-C3 are stated for: the paper's Figures 1-4 and the
@@ -146,7 +146,7 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
         check_gamma_auto(config, law, model)
 
 
-def _gain_rule(config, law, model) -> tuple:
+def gain_rule(config, law, model) -> tuple:
     """(closed_loop's keyword arguments of `law`, its mixing, whether its loop calibrates
     γ "auto"): closed_loop's rule (ivdrem.laws.arm_gain_rule) on the configured values; a
     law without Δ refuses "auto" in closed_loop itself."""
@@ -163,7 +163,7 @@ def check_gamma_auto(config, law, model):
     mean Δ² (ivdrem.diagrams.gamma_auto.check_reference_delta) is far below the doubles:
     the composite term (21) could not be formed.  Returns the estimate, or None for a law
     whose γ is not "auto"."""
-    kw, mixing, auto = _gain_rule(config, law, model)
+    kw, mixing, auto = gain_rule(config, law, model)
     if not auto:
         return None
     from .diagrams.gamma_auto import check_reference_delta
@@ -206,7 +206,7 @@ def pricing_diagram(config, law, model):
     """The closed loop of `law` as far as its cost goes: a γ "auto" is left at a
     placeholder (the cost does not depend on γ's value), so nothing is calibrated."""
     from .diagrams import closed_loop
-    kw, _, auto = _gain_rule(config, law, model)
+    kw, _, auto = gain_rule(config, law, model)
     if auto:
         kw["gamma"] = 1.0
     return closed_loop(law, model, **kw)

@@ -5,6 +5,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._preflight import gain_rule
 from .._progress import want_progress
 from ..diagrams import closed_loop
 from ..sim import simulate
@@ -92,7 +93,7 @@ def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=N
     # run (nothing computed is lost): the later laws' choices are made first and kept on
     # disk (ivdrem.diagrams.gamma_auto), so each run's own loop reads its choice
     for law in laws[1:]:
-        if closed_loop_kwargs(config, law).get("gamma") == "auto":
+        if gain_rule(config, law, model)[2]:
             law_diagram(config, law, model=model, engine=engine)
     for law in laws:
         run.runs[law] = run_law(config, law, model=model, progress=show, engine=engine,
