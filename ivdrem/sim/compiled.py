@@ -18,7 +18,7 @@ import numpy as np
 
 from .. import __version__
 from ..blocks import _kernels
-from ..blocks._core import effective_params, kernel_args
+from ..blocks._core import effective_params, flat_kernel, kernel_args
 from . import _template
 from .cache import (GENERATED_HEADER, cache_dir, import_generated as _import,  # noqa: F401
                     source_hash as _hash, write_generated as _write)
@@ -526,9 +526,15 @@ class CompiledEngine:
         else:
             x = np.array(W.failure[2:2 + b.sys.nstates])
             u = np.array(W.us[b.u])
-            fn = b.sys.updfcn if role == "update" else b.sys.outfcn
+            params = effective_params(b.sys, self.plan.diagram, self.plan.params)
             try:
-                fn(t, x, u, effective_params(b.sys, self.plan.diagram, self.plan.params))
+                if role == "jacobian":     # its Python kernel into a buffer of its own shape
+                    ny, nx, nu = b.sys.noutputs, b.sys.nstates, b.sys.ninputs
+                    flat_kernel(b.spec, "jacobian")(t, x, u, np.zeros((ny + nx, nx + nu)),
+                                                    *kernel_args(b.spec, params))
+                else:
+                    fn = b.sys.updfcn if role == "update" else b.sys.outfcn
+                    fn(t, x, u, params)
             except Exception as e:     # the block's own error, re-raised from Python
                 cause = e
         kind = " (running in Python)" if getattr(b.spec, "runs", "") == "python" else ""
