@@ -41,7 +41,8 @@ __all__ = ["joint_names", "joint_limits", "design_trajectory", "initial_state",
            "design_disturbance", "design_gains", "design_window", "trajectory_series", "check_limits",
            "LimitError", "excitation"]
 
-#: Period 2π/ω_f of the reference (s); two periods fill IV-DREM's window T = 20 s.
+#: Period 2π/ω_f of the reference (s); four periods fill the window T = 40 s
+#: (:func:`design_window`).
 PERIOD = 10.0
 #: Harmonics per joint.
 HARMONICS = 5
