@@ -182,11 +182,10 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     maxx = int(max(prog.fd_nx.max(initial=0), 1))
     maxu = int(max(prog.fd_nu.max(initial=0), 1))
     maxyf = int(max((prog.fd_ny + prog.fd_nx).max(initial=0), 1))
-    maxcol = int(max((prog.fd_nx + prog.fd_nu).max(initial=0), 1))
     # a block with a Jacobian kernel has a (ny + nx) x (nx + nu) buffer of its own, one
     # after the other in the order of fd (stepper.c's diagram_jacobian_at)
     jl_size = sum(int((prog.fd_ny[kb] + prog.fd_nx[kb]) * (prog.fd_nx[kb] + prog.fd_nu[kb]))
-                  for kb, row in enumerate(fd) if row[7] >= 0)
+                  for kb, row in enumerate(fd) if row[_diagram.FD_WJAC] >= 0)
     # the sizes of the work arrays in the workspace field scratch (_diagram.SC_*), the one
     # place they are laid out: the history push's vectors, the max-hold eigensolver's
     # matrix, eigenvalues and dsyevd work (its minimum for eigenvectors), the Jacobian's
