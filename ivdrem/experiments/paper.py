@@ -48,6 +48,19 @@ def law_diagram(config, law, *, model=None, engine="compiled"):
     return closed_loop(law, model, **kw)
 
 
+def _choose_gamma(config, law, model, engine):
+    """γ "auto" of `law` chosen (and kept on disk) as :func:`law_diagram`'s closed_loop
+    chooses it, without building the run's loop; nothing for a law with another γ."""
+    kw, mixing, auto = gain_rule(config, law, model)
+    if not auto:
+        return
+    from ..diagrams.gamma_auto import calibrate_gamma
+    args = {k: v for k, v in kw.items() if k != "gamma"}
+    args["mixing"] = mixing
+    calibrate_gamma(law, model, args, engine=engine,
+                    dt_out=float(config["experiment"]["dt_out"]), **solver_kwargs(config, law))
+
+
 def run_law(config, law, *, model=None, progress=True, engine="compiled", log=None,
             allow_long=False, diagram=None):
     """Simulate the closed loop of `law` from `config` (built by :func:`law_diagram`
@@ -93,8 +106,7 @@ def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=N
     # run (nothing computed is lost): the later laws' choices are made first and kept on
     # disk (ivdrem.diagrams.gamma_auto), so each run's own loop reads its choice
     for law in laws[1:]:
-        if gain_rule(config, law, model)[2]:
-            law_diagram(config, law, model=model, engine=engine)
+        _choose_gamma(config, law, model, engine)
     for law in laws:
         run.runs[law] = run_law(config, law, model=model, progress=show, engine=engine,
                                 allow_long=allow_long, log=log)
