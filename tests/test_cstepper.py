@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ivdrem.diagrams import closed_loop
-from ivdrem.sim import _cstepper, _template, compiled
+from ivdrem.sim import _cstepper, _diagram, _template, compiled
 from ivdrem.sim.simulator import WORKSPACE_LAYOUT, Simulator
 from ivdrem.sim.tables import INT_FIELDS
 
@@ -104,11 +104,14 @@ def test_a_damaged_library_in_the_cache_is_built_again(tmp_path):
     # and it runs: the sparse LU of a 2 x 2 system against numpy (a full pattern, its rows
     # swapped by perm: J's values in the pattern's order are those of J[perm][:, perm])
     J = np.array([[1.0, 2.0], [0.5, -3.0]])
-    LU, piv = np.zeros(4 + 2 * 2), np.zeros(2, dtype=np.int64)
+    LU, piv = np.zeros(4 + _diagram.LU_WORK_ROWS * 2), np.zeros(2, dtype=np.int64)
     perm, rowptr = np.array([1, 0]), np.array([0, 2, 4])
     colidx, diagp = np.array([0, 1, 0, 1]), np.array([0, 3])
     values = J[perm][:, perm].ravel()
-    assert st.slu_factor(values, 2, 10.0, LU, piv, perm, rowptr, colidx, diagp) == _template.OK
+    no_panels = (np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                 np.zeros(0, dtype=np.int64))
+    assert st.slu_factor(values, 2, 10.0, LU, piv, perm, rowptr, colidx, diagp,
+                         *no_panels) == _template.OK
     b = np.array([1.0, -2.0])
     x = b.copy()
     st.slu_solve(LU, 2, perm, rowptr, colidx, diagp, x)

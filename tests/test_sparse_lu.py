@@ -13,6 +13,7 @@ from scipy import sparse
 from scipy.sparse import linalg as sparse_linalg
 
 from ivdrem.sim import sparse_lu
+from ivdrem.sim._template import SINGULAR
 
 
 # ------------------------------------------------------------------ the reference
@@ -166,3 +167,119 @@ def test_filled_pattern_equals_dense_elimination_on_planar_loops(n_joints):
     pattern = _loop_pattern(n_joints)
     got = assert_same_as_reference(pattern)
     assert got.n == pattern.shape[0] > 150
+
+
+# ------------------------------------------------------------------ the panels
+def _factor(slu, values, c, *, panels):
+    """slu_factor of c I - J (J's values in the pattern's order) with or without the panels:
+    (status, the work array: L + U values, inverse pivots, ...)."""
+    from ivdrem.sim import _diagram
+    from ivdrem.sim.compiled import load_c_stepper
+    n = slu.n
+    LU, piv = np.zeros(slu.nnz_lu + _diagram.LU_WORK_ROWS * n), np.zeros(n, dtype=np.int64)
+    parts = ((slu.panel_rows, slu.panel_kptr, slu.panel_k) if panels else
+             (np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64),
+              np.zeros(0, dtype=np.int64)))
+    st = load_c_stepper().slu_factor(values, n, float(c), LU, piv, slu.perm, slu.rowptr,
+                                     slu.colidx, slu.diagp, *parts)
+    return st, LU[:slu.nnz_lu + n]
+
+
+def _adaptation_like(seed, n_slow=100, n_theta=20, n_fast=20):
+    """A pattern shaped as the IV-DREM loop's: slow rows (the window and the averages) fed
+    by fast columns, parameter rows reading every slow column and a few of each other, fast
+    rows reading the parameters; natural order, so the parameter rows come after the slow
+    ones with long, shared L parts."""
+    rng = np.random.default_rng(seed)
+    n = n_slow + n_theta + n_fast
+    P = np.zeros((n, n), dtype=bool)
+    th, fa = n_slow, n_slow + n_theta
+    for i in range(n_slow):
+        P[i, fa + rng.choice(n_fast, 3, replace=False)] = True
+    P[th:fa, :n_slow] = rng.random((n_theta, n_slow)) < 0.9
+    P[th:fa, th:fa] = rng.random((n_theta, n_theta)) < 0.3
+    P[fa:, th:] = rng.random((n_fast, n_theta + n_fast)) < 0.3
+    csr = as_csr(P)
+    order = np.arange(n)
+    return P, sparse_lu.SymbolicLU(order, sparse_lu._filled_rows(csr, order), csr.nnz, "natural")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_panels_give_the_row_by_row_factor_bit_for_bit(seed):
+    """Rows eliminated in panels get the same operations in the same order as row by row:
+    every value of L + U and every inverse pivot equal, also with exact zeros among the
+    multipliers (the row-by-row elimination skips them); and the solve agrees with numpy."""
+    from ivdrem.sim.tables import dense_to_sparse
+    P, slu = _adaptation_like(seed)
+    n = slu.n
+    assert slu.panel_rows.size >= 2            # the parameter rows come in panels
+    assert np.all(np.diff(slu.panel_rows) >= sparse_lu.LU_PANEL)
+    rng = np.random.default_rng(seed)
+    J = np.where(P, rng.standard_normal((n, n)), 0.0)
+    J[rng.random((n, n)) < 0.05] = 0.0         # exact zeros at structural entries
+    values = dense_to_sparse(J, slu.perm, slu.rowptr, slu.colidx)
+    for c in (3.0, 50.0):
+        st1, rows = _factor(slu, values, c, panels=False)
+        st2, panel = _factor(slu, values, c, panels=True)
+        assert st1 == st2 == 0
+        assert np.array_equal(rows, panel)
+    from ivdrem.sim.compiled import load_c_stepper
+    b = rng.standard_normal(n)
+    x = b.copy()
+    _, LU = _factor(slu, values, 50.0, panels=True)
+    LU = np.concatenate([LU, np.zeros(n)])
+    load_c_stepper().slu_solve(LU, n, slu.perm, slu.rowptr, slu.colidx, slu.diagp, x)
+    np.testing.assert_allclose(x, np.linalg.solve(50.0 * np.eye(n) - J, b), rtol=1e-12,
+                               atol=1e-14)
+    # the long rows of L are solved two at a time: the same sums as one row at a time
+    assert np.array_equal(x, _solve_one_row_at_a_time(slu, LU, b))
+
+
+def _solve_one_row_at_a_time(slu, LU, b):
+    """Forward and back substitution with the factor's values, each row's sum in the
+    pattern's order (Python floats: the same double operations, one at a time)."""
+    n, rp, ci, dp = slu.n, slu.rowptr, slu.colidx, slu.diagp
+    vals, inv = LU[:slu.nnz_lu], LU[slu.nnz_lu:slu.nnz_lu + n]
+    y = [float(b[slu.perm[i]]) for i in range(n)]
+    for i in range(n):
+        s = y[i]
+        for p in range(rp[i], dp[i]):
+            s -= float(vals[p]) * y[ci[p]]
+        y[i] = s
+    for i in range(n - 1, -1, -1):
+        s = y[i]
+        for p in range(dp[i] + 1, rp[i + 1]):
+            s -= float(vals[p]) * y[ci[p]]
+        y[i] = s * float(inv[i])
+    out = np.empty(n)
+    out[slu.perm] = y
+    return out
+
+
+def test_a_singular_pivot_inside_a_panel_is_reported():
+    from ivdrem.sim.tables import dense_to_sparse
+    P, slu = _adaptation_like(0)
+    n = slu.n
+    row = int(slu.panel_rows[0]) + 3            # a row in the middle of the first panel
+    J = np.where(P, 0.1, 0.0)
+    J[slu.perm[row], slu.perm[row]] = 7.0       # c = 7: a zero pivot before elimination
+    J[slu.perm[row], :slu.perm[row]] = 0.0      # ... and after it (nothing subtracted)
+    values = dense_to_sparse(J, slu.perm, slu.rowptr, slu.colidx)
+    assert _factor(slu, values, 7.0, panels=False)[0] == _factor(slu, values, 7.0,
+                                                                 panels=True)[0] == SINGULAR
+    values[slu.rowptr[row]] = np.nan
+    assert _factor(slu, values, 50.0, panels=True)[0] == SINGULAR
+
+
+def test_the_planar_loop_adaptation_rows_are_panels_with_the_same_factor():
+    from ivdrem.sim.tables import dense_to_sparse
+    pattern = _loop_pattern(4)
+    slu = sparse_lu._symbolic_lu(pattern)
+    assert slu.panel_rows.size >= 1
+    rng = np.random.default_rng(4)
+    n = slu.n
+    J = np.where(pattern, rng.standard_normal(pattern.shape), 0.0)
+    values = dense_to_sparse(J, slu.perm, slu.rowptr, slu.colidx)
+    st1, rows = _factor(slu, values, 30.0, panels=False)
+    st2, panel = _factor(slu, values, 30.0, panels=True)
+    assert st1 == st2 == 0 and np.array_equal(rows, panel)

@@ -320,7 +320,8 @@ _ENTRY_POINTS = {
     "lowest_eigenpair": ("status", "W=W u=f nvec=n nmat=n lam=R"),
     "hist_lookup": ("status", "W=W tq=d off=n size=n out=F"),
     "work_sizes": (None, "W=W n=n out=I"),
-    "slu_factor": ("int", "J=f n=n c=d LU=F piv=I perm=i rowptr=i colidx=i diagp=i"),
+    "slu_factor": ("int", "J=f n=n c=d LU=F piv=I perm=i rowptr=i colidx=i diagp=i "
+                          "panel_rows=i npanels=N panel_kptr=i panel_k=i"),
     "slu_solve": (None, "LU=F n=n perm=i rowptr=i colidx=i diagp=i b=F"),
     "dense_factor": ("int", "J=f:nn n=N c=d LU=F:lu piv=I:n"),
     "dense_solve": (None, "LU=f:lu n=N piv=i b=F:n"),

@@ -91,6 +91,14 @@ H_EP = 6        # index of epsilon in P
 # A = c I - J is refused: with static (diagonal) pivoting it signals a near-singular A or
 # growth; the integrator then shrinks the step, which makes c I - J more diagonally dominant
 PIVOT_RTOL = 1e-12
+# rows of the static-pattern LU eliminated together (sparse_lu.panels): one cache line of
+# doubles per column of the panel's work block
+LU_PANEL = 8
+# the factor's work array: the values of L + U, then n inverse pivots and LU_PANEL rows of n
+# (the panel's work block; its first row is the one-row elimination's and the solve's)
+LU_WORK_ROWS = 1 + LU_PANEL
+# rows of L at least this long are solved in pairs (stepper.c's slu_solve)
+SOLVE_PAIR_MIN = 64
 
 
 def dsyevd_lwork(n):

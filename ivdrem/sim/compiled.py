@@ -20,6 +20,7 @@ from .. import __version__
 from ..blocks import _kernels
 from ..blocks._core import effective_params, flat_kernel, kernel_args
 from . import _template
+from ._diagram import LU_WORK_ROWS
 from .cache import (GENERATED_HEADER, cache_dir, import_generated as _import,  # noqa: F401
                     source_hash as _hash, write_generated as _write)
 from .errors import BLOCK_RAISED_MESSAGE, BlockError, CompileError  # noqa: F401
@@ -599,10 +600,11 @@ class CompiledEngine:
             LU = np.zeros((n + 2, n))
             st = self.module.dense_factor(J, float(c), LU, piv)
         else:
-            LU = np.zeros(int(tb.lu_rowptr[-1]) + 2 * n)
+            LU = np.zeros(int(tb.lu_rowptr[-1]) + LU_WORK_ROWS * n)
             st = self.module.slu_factor(dense_to_sparse(J, tb.lu_perm, tb.lu_rowptr,
                                                         tb.lu_colidx), n, float(c), LU, piv,
-                                        tb.lu_perm, tb.lu_rowptr, tb.lu_colidx, tb.lu_diagp)
+                                        tb.lu_perm, tb.lu_rowptr, tb.lu_colidx, tb.lu_diagp,
+                                        tb.lu_panel_rows, tb.lu_panel_kptr, tb.lu_panel_k)
         return int(st), LU, piv
 
     def solve(self, LU, piv, b, *, dense=False):

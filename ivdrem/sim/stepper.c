@@ -545,16 +545,95 @@ static void fd_scatter(const double *yp, const double *ym, const double *hh, i64
     }
 }
 
+/* The static pattern's rows: perm, CSR (rowptr, colidx, diagp) and the panels
+ * (sparse_lu.panels: first rows, and the columns each eliminates, kptr / k) */
+typedef struct {
+    const i64 *perm, *rowptr, *colidx, *diagp, *panel_rows, *panel_kptr, *panel_k;
+    i64 npanels;
+} SluPattern;
+
+/* Rows s .. s + LU_PANEL - 1 eliminated together into the work block Wb (column j of the
+ * panel at Wb[j LU_PANEL ..]): each row k of U is subtracted from every row with an L entry
+ * at k, in increasing k, as the rows one by one would (the same operations, in the same
+ * order, entry by entry; a zero multiplier is skipped as there).  Row s + g is finished
+ * (pivot checked, values stored) once every column before s + g is eliminated. */
+static int slu_panel(const double *J, double cc, double *vals, double *inv, double *Wb,
+                     const SluPattern *pt, i64 s, const i64 *ks, i64 nk) {
+    const i64 *rowptr = pt->rowptr, *colidx = pt->colidx, *diagp = pt->diagp;
+    double rmax[LU_PANEL];
+    for (i64 g = 0; g < LU_PANEL; g++)
+        for (i64 p = rowptr[s + g]; p < rowptr[s + g + 1]; p++) {
+            double *wc = Wb + colidx[p] * LU_PANEL;
+            for (i64 r = 0; r < LU_PANEL; r++) wc[r] = 0.0;
+        }
+    for (i64 g = 0; g < LU_PANEL; g++) {
+        double m = 0.0;
+        for (i64 p = rowptr[s + g]; p < rowptr[s + g + 1]; p++) {
+            double a = -J[p];
+            if (colidx[p] == s + g) a += cc;
+            Wb[colidx[p] * LU_PANEL + g] = a;
+            if (!(fabs(a) <= m)) m = fabs(a);
+        }
+        rmax[g] = m;
+    }
+    i64 done = 0;                   /* rows s .. s + done - 1 are finished */
+    for (i64 e = 0; e <= nk; e++) {
+        i64 k = e < nk ? ks[e] : s + LU_PANEL;
+        while (done < LU_PANEL && s + done <= k) {
+            i64 i = s + done;
+            for (i64 p = rowptr[i]; p < rowptr[i + 1]; p++)
+                vals[p] = Wb[colidx[p] * LU_PANEL + done];
+            double d = vals[diagp[i]];
+            if (!(fabs(d) > PIVOT_RTOL * rmax[done]) || !isfinite(d) || !isfinite(rmax[done]))
+                return SINGULAR;
+            inv[i] = 1.0 / d;
+            done++;
+        }
+        if (e == nk) break;
+        i64 r0 = k < s ? 0 : k - s + 1;         /* the rows with column k in their L part */
+        double *wk = Wb + k * LU_PANEL, l[LU_PANEL];
+        int all = r0 == 0;
+        for (i64 r = r0; r < LU_PANEL; r++) {
+            l[r] = wk[r] * inv[k];
+            wk[r] = l[r];
+            if (l[r] == 0.0) all = 0;
+        }
+        i64 q0 = diagp[k] + 1, q1 = rowptr[k + 1];
+        if (all) {                  /* one short dense update per entry of row k of U */
+            for (i64 q = q0; q < q1; q++) {
+                double v = vals[q], *wc = Wb + colidx[q] * LU_PANEL;
+                for (i64 r = 0; r < LU_PANEL; r++) wc[r] -= l[r] * v;
+            }
+        } else {
+            for (i64 r = r0; r < LU_PANEL; r++)
+                if (l[r] != 0.0)
+                    for (i64 q = q0; q < q1; q++) Wb[colidx[q] * LU_PANEL + r] -= l[r] * vals[q];
+        }
+    }
+    return OK;
+}
+
 /* c I - J factored in the static pattern (ivdrem/sim/sparse_lu.py): J holds df/dx at the
  * pattern's positions (zero at the fill, tables.jacobian_positions); LU holds the factor's
- * values, then the inverse pivots and a work row (ivdrem_work_sizes) */
-static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv, const i64 *perm,
-                      const i64 *rowptr, const i64 *colidx, const i64 *diagp) {
+ * values, then the inverse pivots and LU_PANEL work rows (ivdrem_work_sizes).  Row by row,
+ * but the panels' rows together (slu_panel) */
+static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv,
+                      const SluPattern *pt) {
+    const i64 *rowptr = pt->rowptr, *colidx = pt->colidx, *diagp = pt->diagp;
     double *vals = LU;
     double *inv = LU + rowptr[n];
     double *w = inv + n;
-    for (i64 i = 0; i < n; i++) piv[i] = perm[i];
+    i64 next = 0;                  /* the next panel */
+    for (i64 i = 0; i < n; i++) piv[i] = pt->perm[i];
     for (i64 i = 0; i < n; i++) {
+        if (next < pt->npanels && pt->panel_rows[next] == i) {
+            const i64 *kp = pt->panel_kptr + next;
+            int st = slu_panel(J, cc, vals, inv, w, pt, i, pt->panel_k + kp[0], kp[1] - kp[0]);
+            if (st != OK) return st;
+            i += LU_PANEL - 1;
+            next++;
+            continue;
+        }
         double rmax = 0.0;
         for (i64 p = rowptr[i]; p < rowptr[i + 1]; p++) {
             i64 j = colidx[p];
@@ -578,15 +657,38 @@ static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv, c
     return OK;
 }
 
-static void slu_solve(double *LU, i64 n, const i64 *perm, const i64 *rowptr, const i64 *colidx,
-                      const i64 *diagp, double *b) {
+static void slu_solve(double *LU, i64 n, const SluPattern *pt, double *b) {
+    const i64 *perm = pt->perm, *rowptr = pt->rowptr, *colidx = pt->colidx, *diagp = pt->diagp;
     const double *vals = LU;
     const double *inv = LU + rowptr[n];
     double *y = LU + rowptr[n] + n;
     for (i64 i = 0; i < n; i++) y[i] = b[perm[i]];
     for (i64 i = 0; i < n; i++) {
+        i64 a0 = rowptr[i], a1 = diagp[i];
+        if (a1 - a0 >= SOLVE_PAIR_MIN && i + 1 < n) {
+            /* a long row and the next summed side by side over the columns before i, where
+             * the next row does not wait for y[i]: two chains of dependent subtractions in
+             * flight instead of one (each row's own order kept, so the same sums) */
+            i64 b0 = rowptr[i + 1], b1 = diagp[i + 1], lo = b0, hi = b1;
+            while (lo < hi) {                   /* the next row's first column >= i */
+                i64 mid = lo + (hi - lo) / 2;
+                if (colidx[mid] < i) lo = mid + 1; else hi = mid;
+            }
+            i64 m = imin(a1 - a0, lo - b0);
+            double s = y[i], u = y[i + 1];
+            for (i64 k = 0; k < m; k++) {
+                s -= vals[a0 + k] * y[colidx[a0 + k]];
+                u -= vals[b0 + k] * y[colidx[b0 + k]];
+            }
+            for (i64 p = a0 + m; p < a1; p++) s -= vals[p] * y[colidx[p]];
+            y[i] = s;
+            for (i64 p = b0 + m; p < b1; p++) u -= vals[p] * y[colidx[p]];
+            y[i + 1] = u;
+            i++;
+            continue;
+        }
         double s = y[i];
-        for (i64 p = rowptr[i]; p < diagp[i]; p++) s -= vals[p] * y[colidx[p]];
+        for (i64 p = a0; p < a1; p++) s -= vals[p] * y[colidx[p]];
         y[i] = s;
     }
     for (i64 i = n - 1; i >= 0; i--) {
@@ -711,10 +813,17 @@ static int diagram_jacobian(Ctx *c, double t, const double *x, double *J, i64 n,
 static int dense_factor(const double *J, i64 n, double cc, double *LU, i64 *piv);
 static void dense_solve(const double *LU, i64 n, const i64 *piv, double *b);
 
+static SluPattern slu_pattern(Ctx *c) {
+    ivec rows = int_table(c, T_LU_PANEL_ROWS);
+    return (SluPattern){int_table(c, T_LU_PERM).p, int_table(c, T_LU_ROWPTR).p,
+                        int_table(c, T_LU_COLIDX).p, int_table(c, T_LU_DIAGP).p, rows.p,
+                        int_table(c, T_LU_PANEL_KPTR).p, int_table(c, T_LU_PANEL_K).p, rows.n};
+}
+
 static int newton_factor(Ctx *c, const double *J, i64 n, double cc, double *LU, i64 *piv) {
     if (c->callback) return dense_factor(J, n, cc, LU, piv);
-    return slu_factor(J, n, cc, LU, piv, int_table(c, T_LU_PERM).p, int_table(c, T_LU_ROWPTR).p,
-                      int_table(c, T_LU_COLIDX).p, int_table(c, T_LU_DIAGP).p);
+    SluPattern pt = slu_pattern(c);
+    return slu_factor(J, n, cc, LU, piv, &pt);
 }
 
 static void newton_solve(Ctx *c, double *LU, const i64 *piv, i64 n, double *b) {
@@ -722,8 +831,8 @@ static void newton_solve(Ctx *c, double *LU, const i64 *piv, i64 n, double *b) {
         dense_solve(LU, n, piv, b);
         return;
     }
-    slu_solve(LU, n, int_table(c, T_LU_PERM).p, int_table(c, T_LU_ROWPTR).p,
-              int_table(c, T_LU_COLIDX).p, int_table(c, T_LU_DIAGP).p, b);
+    SluPattern pt = slu_pattern(c);
+    slu_solve(LU, n, &pt, b);
 }
 
 /* ----------------------------------------------------------------- methods */
@@ -1395,7 +1504,7 @@ EXPORT void ivdrem_work_sizes(const i64 *waddr, const i64 *wshape, i64 n, i64 *o
     }
     i64 nnz = int_table(&c, T_LU_ROWPTR).p[n];
     out[0] = nnz;
-    out[1] = nnz + 2 * n;
+    out[1] = nnz + LU_WORK_ROWS * n;
 }
 
 EXPORT int ivdrem_fd_jacobian(const i64 *waddr, const i64 *wshape, double *P, double t,
@@ -1427,13 +1536,16 @@ EXPORT int ivdrem_hist_lookup(const i64 *waddr, const i64 *wshape, double tq, i6
 
 EXPORT int ivdrem_slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv,
                              const i64 *perm, const i64 *rowptr, const i64 *colidx,
-                             const i64 *diagp) {
-    return slu_factor(J, n, cc, LU, piv, perm, rowptr, colidx, diagp);
+                             const i64 *diagp, const i64 *panel_rows, i64 npanels,
+                             const i64 *panel_kptr, const i64 *panel_k) {
+    SluPattern pt = {perm, rowptr, colidx, diagp, panel_rows, panel_kptr, panel_k, npanels};
+    return slu_factor(J, n, cc, LU, piv, &pt);
 }
 
 EXPORT void ivdrem_slu_solve(double *LU, i64 n, const i64 *perm, const i64 *rowptr,
                              const i64 *colidx, const i64 *diagp, double *b) {
-    slu_solve(LU, n, perm, rowptr, colidx, diagp, b);
+    SluPattern pt = {perm, rowptr, colidx, diagp, NULL, NULL, NULL, 0};
+    slu_solve(LU, n, &pt, b);
 }
 
 EXPORT int ivdrem_dense_factor(const double *J, i64 n, double cc, double *LU, i64 *piv) {

@@ -33,7 +33,8 @@ TABLES_LAYOUT = (
     ("jac_run_f", "int64", 1), ("jac_run_src", "int64", 1), ("jac_run_len", "int64", 1),
     ("jac_j_pos", "int64", 1), ("jac_j_slot", "int64", 1), ("jac_gains", "float64", 1),
     ("lu_perm", "int64", 1), ("lu_rowptr", "int64", 1), ("lu_colidx", "int64", 1),
-    ("lu_diagp", "int64", 1), ("fill_runs", "int64", 2), ("fill_run_gain", "float64", 1),
+    ("lu_diagp", "int64", 1), ("lu_panel_rows", "int64", 1), ("lu_panel_kptr", "int64", 1),
+    ("lu_panel_k", "int64", 1), ("fill_runs", "int64", 2), ("fill_run_gain", "float64", 1),
     ("fill_run_ranges", "int64", 1), ("scratch_offsets", "int64", 1),
     ("slope_flags", "int64", 1))
 DiagramTables = namedtuple("DiagramTables", [f for f, _, _ in TABLES_LAYOUT])
@@ -220,6 +221,8 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         jac_j_pos=jacobian_positions(prog, slu), jac_j_slot=_i64(prog.j_slot),
         jac_gains=np.asarray(prog.gains, dtype=float), lu_perm=_i64(slu.perm),
         lu_rowptr=_i64(slu.rowptr), lu_colidx=_i64(slu.colidx), lu_diagp=_i64(slu.diagp),
+        lu_panel_rows=_i64(slu.panel_rows), lu_panel_kptr=_i64(slu.panel_kptr),
+        lu_panel_k=_i64(slu.panel_k),
         scratch_offsets=_i64(scratch_offsets), slope_flags=slope_flags(plan)))
 
 
