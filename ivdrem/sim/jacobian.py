@@ -491,9 +491,9 @@ class JacobianProgram:
         hit = _PROGRAMS.get(key)
         if hit is not None:             # the same structure: the same program, bit for bit
             _PROGRAMS.move_to_end(key)
-            self.__dict__.update(hit.__dict__)
+            self.__dict__.update({k: v for k, v in hit.items() if k != "fd_block_index"})
             self.plan = plan
-            self.fd_blocks = [plan.blocks[b.index] for b in hit.fd_blocks]
+            self.fd_blocks = [plan.blocks[i] for i in hit["fd_block_index"]]
             return
         path = _program_path(key)
         if not self._read(path, plan, patterns):
@@ -502,9 +502,17 @@ class JacobianProgram:
         for v in self.__dict__.values():
             if isinstance(v, np.ndarray):
                 v.flags.writeable = False      # shared by every plan of this structure
-        _PROGRAMS[key] = self
+        _PROGRAMS[key] = self._shared()
         while len(_PROGRAMS) > _PROGRAMS_MAX:
             _PROGRAMS.popitem(last=False)
+
+    def _shared(self):
+        """What every plan of this structure shares, kept in this process: the program
+        without its plan and blocks (a plan holds its diagram: on the Panda's loop 1.65 GiB
+        of python-control's connection maps, which the cache must not keep alive)."""
+        d = {k: v for k, v in self.__dict__.items() if k not in ("plan", "fd_blocks")}
+        d["fd_block_index"] = [b.index for b in self.fd_blocks]
+        return d
 
     # ---- kept on disk: the arrays and counts, the differentiated blocks by index
     def _stored(self):
