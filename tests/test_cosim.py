@@ -155,6 +155,74 @@ def test_divergence_is_reported(fmu):
         cosimulate(fmu, 0.2, comm_step=1e-3, K=2000.0, progress=False)
 
 
+def test_divergence_stops_the_comparison_before_the_reference(fmu, monkeypatch):
+    """compare_to_python co-simulates at the coarsest step first (listed last here): when the
+    coupling diverges there, its error (time, H, cause) is raised and the all-Python loop is
+    neither built nor simulated, and no other step is co-simulated."""
+    import ivdrem.diagrams as diagrams
+    import ivdrem.fmu.cosim as cosim
+    import ivdrem.sim as sim
+    from ivdrem.sim import SimulationError
+    calls = {"simulate": 0, "closed_loop": 0, "cosim": []}
+
+    def simulate(*a, **k):
+        calls["simulate"] += 1
+        raise AssertionError("the reference ran")
+
+    real_closed_loop, real_cosimulate = diagrams.closed_loop, cosim.cosimulate
+
+    def closed_loop(*a, **k):
+        if not k.get("external_plant"):
+            calls["closed_loop"] += 1
+        return real_closed_loop(*a, **k)
+
+    def cosimulate(*a, **k):
+        calls["cosim"].append(k["comm_step"])
+        return real_cosimulate(*a, **k)
+    monkeypatch.setattr(sim, "simulate", simulate)
+    monkeypatch.setattr(diagrams, "closed_loop", closed_loop)
+    monkeypatch.setattr(cosim, "cosimulate", cosimulate)
+    with pytest.raises(SimulationError,
+                       match=r"comm_step H = 0.001 s failed near t = .*smaller comm_step"):
+        compare_to_python(fmu, 0.2, (5e-4, 2.5e-4, 1e-3), K=2000.0, progress=False)
+    assert calls == {"simulate": 0, "closed_loop": 0, "cosim": [1e-3]}
+
+
+def test_comparison_equals_the_runs_one_by_one(comparison, fmu):
+    """Whatever order compare_to_python runs them in, its numbers are those of the
+    reference and the co-simulations run one at a time, bit for bit."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import simulate
+    ref = simulate(closed_loop("iv-drem"), T_END, method="rk4", h=min(STEPS),
+                   dt_out=min(STEPS), return_states=False, progress=False)
+    np.testing.assert_array_equal(comparison.reference.outputs, ref.outputs)
+    labels = list(ref.output_labels)
+    for i, H in enumerate(STEPS):
+        res = cosimulate(fmu, T_END, comm_step=H, progress=False)
+        np.testing.assert_array_equal(comparison.results[i].outputs, res.outputs)
+        stride = round(H / min(STEPS))
+        for s in comparison.signals:
+            rows = [j for j, lab in enumerate(labels) if lab.startswith(s + "[")]
+            err = np.max(np.abs(res.outputs[rows] - ref.outputs[rows][:, ::stride]))
+            assert comparison.errors[s][i] == err, (s, H)
+    assert list(comparison.wall) == ["python"] + [f"cosim H={H:g}" for H in STEPS]
+
+
+def test_reference_cost_is_refused_before_any_run(fmu, monkeypatch):
+    """The reference's cost guard is priced from the controller before the first
+    co-simulation (not after it, as simulate's own guard would be)."""
+    import ivdrem.fmu.cosim as cosim
+    from ivdrem.sim.guards import CostLimitError
+
+    def cosimulate(*a, **k):
+        raise AssertionError("a co-simulation ran")
+    monkeypatch.setattr(cosim, "cosimulate", cosimulate)
+    with pytest.raises(CostLimitError, match="the all-Python reference run would record .* GiB"):
+        compare_to_python(fmu, 40000.0, (1e-3, 5e-4, 2.5e-4), progress=False)
+    with pytest.raises(ValueError, match="unknown signal 'nope'"):
+        compare_to_python(fmu, 0.01, signals=("q", "nope"), progress=False)
+
+
 def test_cleanup_on_error(fmu, monkeypatch):
     """An error in the middle of the run still terminates/frees the FMU and its files."""
     import fmpy

@@ -60,7 +60,7 @@ from ..sim.methods import REFERENCE_METHOD, method_info
 from .describe import read_description
 from .instance import FmuError, FmuInstance
 
-__all__ = ["cosimulate", "compare_to_python", "CosimComparison", "CosimError",
+__all__ = ["cosimulate", "compare_to_python", "controller_diagram", "CosimComparison", "CosimError",
            "COMPARED_SIGNALS", "EXPECTED_ORDER"]
 
 #: Signals compared by :func:`compare_to_python` (q, theta_hat, tau_d_hat).
@@ -188,10 +188,19 @@ def _want_progress(progress):
     return want_progress(progress)
 
 
+def controller_diagram(law, model, **config):
+    """The co-simulation's controller: every block of ``closed_loop(law, model, **config)``
+    but the plant (inputs q, dq; the FMU gets the plant's start values and θ)."""
+    from ivdrem.diagrams import closed_loop
+    ctrl_cfg = {k: v for k, v in config.items() if k not in ("q0", "dq0", "theta")}
+    return closed_loop(law, model, external_plant=True, **ctrl_cfg)
+
+
 # ----------------------------------------------------------------------------- cosimulate
 def cosimulate(fmu_path, t_end, *, law="iv-drem", comm_step=1e-3, model=None,
                engine="compiled", method="rk4", ctrl_step=DEFAULT_CTRL_STEP, rtol=1e-8,
-               atol=1e-10, fmu_substep=None, progress=None, desc=None, **config):
+               atol=1e-10, fmu_substep=None, progress=None, desc=None, controller=None,
+               **config):
     """Co-simulate the controller of ``law`` (ivdrem Simulator) with the plant FMU at ``fmu_path``.
 
     Parameters
@@ -221,6 +230,9 @@ def cosimulate(fmu_path, t_end, *, law="iv-drem", comm_step=1e-3, model=None,
     progress : bool, optional
         tqdm progress bar on stderr, drawn only on a terminal and not in CI
         (:func:`ivdrem._progress.want_progress`); False: never.
+    controller : ct.InterconnectedSystem, optional
+        The controller diagram, ``controller_diagram(law, model, **config)``, if the caller
+        has built it already (default: built here).
     **config
         Keyword arguments of :func:`~ivdrem.diagrams.closed_loop` (gains, ``theta_hat0``,
         trajectory, disturbance ...).  ``q0``, ``dq0`` (default: the Python plant's, i.e.
@@ -247,7 +259,6 @@ def cosimulate(fmu_path, t_end, *, law="iv-drem", comm_step=1e-3, model=None,
     CosimError         the FMU returned an error during the run (with its log message).
     ivdrem.sim.SimulationError  the controller diverged (e.g. ``H`` too large).
     """
-    from ivdrem.diagrams import closed_loop
     from ivdrem.models import two_link
     from ivdrem.sim import Simulator, SimulationError
 
@@ -282,8 +293,7 @@ def cosimulate(fmu_path, t_end, *, law="iv-drem", comm_step=1e-3, model=None,
         sub = float("nan")
 
     # the controller: all blocks of the closed loop but the plant
-    ctrl_cfg = {k: v for k, v in config.items() if k not in ("q0", "dq0", "theta")}
-    ctrl = closed_loop(law, model, external_plant=True, **ctrl_cfg)
+    ctrl = controller_diagram(law, model, **config) if controller is None else controller
     in_labels = list(ctrl.input_labels)            # q[0..n-1], dq[0..n-1]
     if sorted(in_labels) != sorted([f"q[{i}]" for i in range(n)] + [f"dq[{i}]" for i in range(n)]):
         raise ValueError(f"controller inputs {in_labels} are not q, dq")
@@ -461,8 +471,14 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
     :data:`EXPECTED_ORDER` = 0.7 .. 1.5).  The integrators (RK4 in the FMU and the
     controller, reference RK4 at the finest ``H``) are fourth order and do not show.
 
-    The reference run's cost is checked first (:mod:`ivdrem.sim.guards`; ``allow_long``
-    lifts the limits).
+    Order of the work (the cheap, decisive part first): the arguments, the controller
+    diagram (the signals are checked on its outputs) and the reference run's cost
+    (:mod:`ivdrem.sim.guards`, from the controller's sizes plus the plant's q, q'; ``allow_long``
+    lifts the limits); then the co-simulation at the coarsest step, which is the one the
+    explicit coupling is least stable at (module docstring, "Stability").  If it fails
+    (divergence, FMU error), its error (the time, ``H`` and the cause) is raised before the
+    all-Python loop is built or run.  Then the reference, then the other steps.  Each
+    closed loop is dropped once it has run, so at most one diagram is held at a time.
     """
     from ivdrem.diagrams import closed_loop
     from ivdrem.models import two_link
@@ -481,9 +497,17 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
             raise ValueError(f"communication step {H:g} is not a whole multiple of the "
                              f"smallest one, {h_min:g}")
         strides.append(int(round(r)))
-    # signals must exist in the result (checked on the full diagram's labels)
-    full = closed_loop(law, model, **config)
-    labels = list(full.output_labels)
+    fixed_ref = method_info(ref_method).fixed_step
+    if fixed_ref:
+        h = h_min if ref_h is None else float(ref_h)
+        r = h_min / h if h > 0 else math.nan
+        if not (math.isfinite(h) and h > 0 and abs(r - round(r)) < 1e-9 * max(1.0, r)):
+            raise ValueError(f"ref_h = {h:g} s must divide the smallest communication step "
+                             f"{h_min:g} s (the reference is sampled there)")
+    # the controller of the first co-simulation; its outputs with q, dq in front are the
+    # closed loop's (checked again on the full diagram below)
+    ctrl = controller_diagram(law, model, **config)
+    labels = list(ctrl.input_labels) + list(ctrl.output_labels)
     idx = {}
     for s in signals:
         cols = [i for i, lab in enumerate(labels) if lab == s or lab.startswith(s + "[")]
@@ -491,16 +515,33 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
             names = sorted({lab.split("[")[0] for lab in labels})
             raise ValueError(f"unknown signal {s!r}; outputs are {', '.join(names)}")
         idx[s] = cols
+    _check_reference_cost(ctrl, t_end, method=ref_method, h=h if fixed_ref else 1e-3,
+                          dt_out=h_min, engine=engine, allow_long=allow_long)
 
     show = _want_progress(progress)
     wall = {}
+    results = [None] * len(comm_steps)
+
+    def run_cosim(i, controller=None):
+        t0 = _time.perf_counter()
+        res = cosimulate(fmu_path, t_end, law=law, comm_step=comm_steps[i], model=model,
+                         engine=engine, progress=show, controller=controller, **config)
+        wall[f"cosim H={comm_steps[i]:g}"] = _time.perf_counter() - t0
+        if list(res.output_labels) != labels:
+            raise RuntimeError(f"co-simulation outputs {res.output_labels} differ from the "
+                               f"closed loop's {labels}")  # pragma: no cover
+        results[i] = res
+
+    coarsest = comm_steps.index(max(comm_steps))
+    run_cosim(coarsest, ctrl)           # raises here if the coupling diverges at this H
+    del ctrl
+
+    full = closed_loop(law, model, **config)
+    if list(full.output_labels) != labels:
+        raise RuntimeError(f"closed-loop outputs {full.output_labels} differ from the "
+                           f"co-simulation's {labels}")  # pragma: no cover
     t0 = _time.perf_counter()
-    if method_info(ref_method).fixed_step:
-        h = h_min if ref_h is None else float(ref_h)
-        r = h_min / h if h > 0 else math.nan
-        if not (math.isfinite(h) and h > 0 and abs(r - round(r)) < 1e-9 * max(1.0, r)):
-            raise ValueError(f"ref_h = {h:g} s must divide the smallest communication step "
-                             f"{h_min:g} s (the reference is sampled there)")
+    if fixed_ref:
         ref = simulate(full, t_end, method=ref_method, h=h, dt_out=h_min, engine=engine,
                        return_states=False, progress=show, desc=f"Python {law}",
                        allow_long=allow_long)
@@ -509,24 +550,19 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
                        dt_out=h_min, engine=engine, return_states=False, progress=show,
                        desc=f"Python {law}", allow_long=allow_long)
     wall["python"] = _time.perf_counter() - t0
+    del full
+    for i in range(len(comm_steps)):
+        if results[i] is None:
+            run_cosim(i)
     Yref = np.asarray(ref.outputs)
-    results = []
     errors = {s: np.zeros(len(comm_steps)) for s in signals}
-    for i, H in enumerate(comm_steps):
-        t0 = _time.perf_counter()
-        res = cosimulate(fmu_path, t_end, law=law, comm_step=H, model=model, engine=engine,
-                         progress=show, **config)
-        wall[f"cosim H={H:g}"] = _time.perf_counter() - t0
-        if list(res.output_labels) != labels:
-            raise RuntimeError(f"co-simulation outputs {res.output_labels} differ from the "
-                               f"closed loop's {labels}")  # pragma: no cover
+    for i, res in enumerate(results):
         Yc = np.asarray(res.outputs)
         Yr = Yref[:, ::strides[i]]
         if Yr.shape != Yc.shape:  # pragma: no cover - guarded by _steps
             raise RuntimeError(f"sample mismatch {Yr.shape} vs {Yc.shape}")
         for s in signals:
             errors[s][i] = float(np.max(np.abs(Yc[idx[s]] - Yr[idx[s]])))
-        results.append(res)
     orders = {}
     for s in signals:
         e = errors[s]
@@ -534,6 +570,23 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
             math.log(e[i] / e[i + 1]) / math.log(comm_steps[i] / comm_steps[i + 1])
             if e[i] > 0 and e[i + 1] > 0 and comm_steps[i] != comm_steps[i + 1] else math.nan
             for i in range(len(comm_steps) - 1)])
+    # wall times listed as before: the reference, then the steps in the order given
+    wall = {"python": wall["python"],
+            **{k: wall[k] for k in (f"cosim H={H:g}" for H in comm_steps)}}
     return CosimComparison(law=law, t_end=float(t_end), comm_steps=comm_steps,
                            signals=tuple(signals), errors=errors, orders=orders,
                            reference=ref, results=results, wall=wall)
+
+
+def _check_reference_cost(controller, t_end, **kwargs):
+    """The guard (:func:`ivdrem.sim.guards.check_cost`) of the all-Python reference run,
+    priced before anything runs from the controller diagram: the closed loop is the
+    controller plus the plant, whose states and outputs are its inputs q, q' (the same
+    guard runs again in ``simulate`` on the full diagram)."""
+    from ivdrem.sim.guards import check_cost
+    from ivdrem.sim.sampled import sample_period
+    periods = [p for p in map(sample_period, getattr(controller, "syslist", ())) if p > 0]
+    return check_cost(t_end, noutputs=controller.noutputs + controller.ninputs,
+                      nstates=controller.nstates + controller.ninputs, return_states=False,
+                      sample_period=min(periods, default=None),
+                      what="the all-Python reference run", **kwargs)
