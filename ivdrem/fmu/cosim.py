@@ -60,8 +60,9 @@ from ..sim.methods import REFERENCE_METHOD, method_info
 from .describe import read_description
 from .instance import FmuError, FmuInstance
 
-__all__ = ["cosimulate", "compare_to_python", "controller_diagram", "CosimComparison", "CosimError",
-           "COMPARED_SIGNALS", "EXPECTED_ORDER"]
+__all__ = ["cosimulate", "compare_to_python", "controller_diagram", "coupling_stability",
+           "CosimComparison", "CosimError", "CouplingStability", "COMPARED_SIGNALS",
+           "EXPECTED_ORDER", "DIVERGING_GROWTH"]
 
 #: Signals compared by :func:`compare_to_python` (q, theta_hat, tau_d_hat).
 COMPARED_SIGNALS = ("q", "theta_hat", "tau_d_hat")
@@ -388,6 +389,148 @@ def cosimulate(fmu_path, t_end, *, law="iv-drem", comm_step=1e-3, model=None,
                   "wall_s": _time.perf_counter() - wall0,
                   "us_per_step": us_step}
     return resp
+
+
+# ----------------------------------------------------------------------------- stability
+#: Growth per communication step of the coupling's linearization at t = 0 (see
+#: :func:`coupling_stability`) from which on the co-simulation is predicted to diverge.  1
+#: is the stability limit; the margin covers what the linearization leaves out (θ̂'s
+#: adaptation, gravity's and M(q)'s dependence on q within a step, Coriolis and friction).
+DIVERGING_GROWTH = 1.5
+
+#: ... and the growth over the horizon that the prediction needs as well: the simulator
+#: stops a run whose state grows more than 1e6-fold (ivdrem.sim, divergence check).
+DIVERGING_HORIZON_GROWTH = 1e6
+
+
+@dataclass(frozen=True)
+class CouplingStability:
+    """Result of :func:`coupling_stability`: the explicit coupling at ``comm_step``,
+    linearized at t = 0.
+
+    ``growth``: spectral radius of the one-step map (None: no prediction, ``not_analysed``
+    says why); ``rate``: its fastest mode's rate λ_max(M(q0)⁻¹(K + δ_μ μ(0))) in 1/s;
+    ``m_min``: smallest eigenvalue of M(q0); ``mu``: μ(0); ``limit``, ``limit_end``:
+    2 / λ_max at t = 0 and at ``t_end`` (μ(t_end), M(q0)), the communication steps below
+    which the fastest mode's sample-and-hold loop is stable.
+    """
+    comm_step: float
+    t_end: float
+    growth: float | None
+    rate: float
+    m_min: float
+    mu: float
+    mu_end: float
+    limit: float
+    limit_end: float
+    not_analysed: str | None = None
+
+    @property
+    def diverges(self) -> bool:
+        """True if the co-simulation at ``comm_step`` is predicted to diverge within
+        ``t_end``: growth >= :data:`DIVERGING_GROWTH` per step and growth^N >=
+        :data:`DIVERGING_HORIZON_GROWTH` over the N steps of the horizon."""
+        if self.growth is None or not self.growth >= DIVERGING_GROWTH:
+            return False
+        steps = round(self.t_end / self.comm_step)
+        return steps * math.log(self.growth) >= math.log(DIVERGING_HORIZON_GROWTH)
+
+    def reason(self) -> str:
+        """The prediction in words, with its numbers."""
+        H = self.comm_step
+        if self.growth is None:
+            return f"no prediction for comm_step H = {H:g} s: {self.not_analysed}"
+        text = (f"the explicit coupling at H = {H * 1e3:g} ms, linearized at t = 0, grows by "
+                f"{self.growth:.3g} per step (spectral radius of the one-step map): the "
+                f"fastest closed-loop mode, lambda_max(M(q0)^-1 (K + delta_mu mu(0))) = "
+                f"{self.rate:.4g} 1/s (smallest eigenvalue of M(q0) {self.m_min:.3g}, "
+                f"mu(0) = {self.mu:g}), has H lambda_max = {H * self.rate:.3g}")
+        if not self.diverges:
+            return text + f"; no divergence predicted (it takes {DIVERGING_GROWTH:g} per step)"
+        steps = math.log(DIVERGING_HORIZON_GROWTH) / math.log(self.growth)
+        above = " (above 2)" if H * self.rate > 2 else ""
+        return (text + f"{above}; an error grows {DIVERGING_HORIZON_GROWTH:.0g}-fold within "
+                f"{steps:.0f} steps ({steps * H * 1e3:.2g} ms of the {self.t_end:g} s).  A "
+                f"stable coupling needs H below 2 / lambda_max = {self.limit * 1e3:.2g} ms at "
+                f"t = 0 and {self.limit_end * 1e3:.2g} ms at t = {self.t_end:g} s (mu = "
+                f"{self.mu_end:g}, with M(q0))")
+
+
+def _one_step_map(rate, H, mu, alpha):
+    """The co-simulation's one-step map of one mode of M⁻¹(K + δ_μ μ), linearized at
+    t = 0 with θ̂ = 0 (module docstring, "Stability"): state (δq, δq', δw), w = M⁻¹ u_f of
+    the observer (7); the FMU integrates the plant with the force f = -rate (alpha δq +
+    δq') - δw held over the step (r of (9): δr = -(δq' + alpha δq)), the controller u_f with
+    its rate mu (K + δ_μ μ) δr^- held (u' = -tau of (7) with tau of (9): u_f cancels)."""
+    f = np.array([-rate * alpha, -rate, -1.0])
+    P = np.zeros((3, 3), dtype=complex)
+    P[0] = np.array([1.0, H, 0.0]) + 0.5 * H * H * f
+    P[1] = np.array([0.0, 1.0, 0.0]) + H * f
+    P[2] = np.array([0.0, 0.0, 1.0]) + H * mu * rate * np.array([alpha, 1.0, 0.0])
+    return P
+
+
+def coupling_stability(model, comm_step, t_end, **config) -> CouplingStability:
+    """Predict from the model and the configuration alone (no diagram, no run) whether the
+    explicit coupling of :func:`cosimulate` at ``comm_step`` diverges within ``t_end``.
+
+    The one-step map of the co-simulation is linearized at t = 0, at the plant's start
+    (q0, q'0) with θ̂ = θ̂0 = 0: the FMU integrates M(q) q'' = tau + ... with tau of (9),
+    tau = (K + δ_μ μ) r + Πᵀθ̂ - u_f, held over the step, and the controller integrates
+    u_f of (7) with q, q' held.  With θ̂ = 0 a perturbation of (q, q', u_f) sees only
+    A = M(q0)⁻¹(K + δ_μ μ(0)), α and μ(0), and the map of each eigenvalue of A
+    (:func:`_one_step_map`) gives the growth per step; the fastest mode's is close to
+    |1 - H λ_max(A)| (module docstring, "Stability").  Left out: θ̂'s adaptation (gain Γ),
+    the dependence of M and G on q within a step, Coriolis and friction at q'0; hence the
+    margin :data:`DIVERGING_GROWTH`.
+
+    ``config``: keyword arguments of :func:`~ivdrem.diagrams.closed_loop` (its defaults
+    for what is not given).  No prediction (``growth`` None) for a nonzero ``theta_hat0``
+    (then Πᵀθ̂ adds a filtered velocity gain μ M(q, θ̂0) the map leaves out) or user blocks
+    (``replace``).
+    """
+    import inspect
+
+    from ivdrem.blocks import _validate as checks
+    from ivdrem.diagrams import closed_loop
+
+    H = float(comm_step)
+    _steps(t_end, H)
+    defaults = {k: p.default for k, p in inspect.signature(closed_loop).parameters.items()}
+
+    def given(key):
+        v = config.get(key)
+        return defaults[key] if v is None else v
+    n = model.n
+    q0, dq0 = _initial_state(model, config)
+    theta = config.get("theta")
+    theta = np.asarray(model.theta_values if theta is None else theta, dtype=float)
+    K = checks.square("control_law", "K", given("K"), n, pd=True)
+    delta_mu, alpha = float(given("delta_mu")), float(given("alpha"))
+    mu0, mu1 = float(given("mu0")), float(given("mu1"))
+    M = np.empty((n, n))
+    model.functions.M(q0, theta, M)
+    m_eig = np.linalg.eigvalsh(0.5 * (M + M.T))
+    if not (np.all(np.isfinite(M)) and m_eig[0] > 0):
+        raise ValueError(f"the inertia matrix M(q0) of model {model.name!r} is not positive "
+                         f"definite (smallest eigenvalue {m_eig[0]:.3g})")
+
+    def rates(mu):
+        return np.linalg.eigvals(np.linalg.solve(M, K + delta_mu * mu * np.eye(n)))
+    mu, mu_end = mu1, mu0 * float(t_end) + mu1
+    lam = rates(mu)
+    rate = float(np.max(np.abs(lam)))
+    limit_end = 2.0 / float(np.max(np.abs(rates(mu_end))))
+    common = dict(comm_step=H, t_end=float(t_end), rate=rate, m_min=float(m_eig[0]), mu=mu,
+                  mu_end=mu_end, limit=2.0 / rate, limit_end=limit_end)
+    theta_hat0 = config.get("theta_hat0")
+    if theta_hat0 is not None and np.any(np.asarray(theta_hat0, dtype=float) != 0):
+        return CouplingStability(growth=None, not_analysed="theta_hat0 is not zero", **common)
+    if config.get("replace"):
+        return CouplingStability(growth=None, not_analysed="blocks are replaced", **common)
+    growth = max(float(np.max(np.abs(np.linalg.eigvals(_one_step_map(a, H, mu, alpha)))))
+                 for a in lam)
+    return CouplingStability(growth=growth, **common)
 
 
 # ----------------------------------------------------------------------------- comparison
