@@ -43,6 +43,29 @@ delta_mu mu(t))`` (README, "Performance").  For the paper's gains and ``mu = t +
 runs need a smaller ``H`` (the all-Python loop, with error-controlled steps, does not).
 Measured: the paper loop co-simulated at ``H = 1e-3`` diverges at t = 261 s
 (``mu = 276``, ``H (2 + 0.8 mu) / 0.11 = 2.0``); the error then says so.
+
+Why 2: with θ̂ = 0 (its start, θ̂0 = 0), a perturbation of the plant's velocity changes
+``tau = (K + delta_mu mu) r + Pi^T theta_hat - u_f`` of (9) by ``-(K + delta_mu mu) dq'``,
+which the FMU holds over the step, so the velocity is multiplied by
+``I - H M(q)^-1 (K + delta_mu mu)`` per step: an eigenvalue ``lambda`` of
+``M^-1 (K + delta_mu mu)`` with ``H lambda > 2`` overshoots by more than it corrects.  The
+observer's ``u_f`` of (7) adds an integral action (``u_f' = -mu (K + delta_mu mu) r``: its own
+term cancels), the position enters through ``r = e' + alpha e``;
+:func:`coupling_stability` takes all three into account (one 3 x 3 map per eigenvalue,
+``_one_step_map``) and predicts, from the model and the configuration only, the growth per
+step of the linearized coupling at t = 0.  At least :data:`DIVERGING_GROWTH` = 1.5 (and a
+million-fold growth within the horizon) is taken as a divergence: the report's FMU check is
+then not run (``ivdrem.reports.cli.fmu_check``).  On the Panda (examples/panda.toml) at
+``H = 1 ms``: ``lambda_max = 2994 /s`` (the wrist, smallest eigenvalue of M(q0) 0.0047),
+growth 1.98 per step, against an observed e-folding rate of 776 /s (a factor 2.2 per step)
+in the co-simulation, which diverges at t = 21 ms.  On the 2-link arm with a larger K:
+predicted 1.12 (K = 330) and more diverged within 0.1 s, 1.03-1.09 (K = 315-325) ran 1 s
+(q_2 moves from 0.3 pi towards q_d,2(0) = 0.6 pi, where M's smallest eigenvalue is larger:
+from 0.35 pi on the same gain's growth is below 1); the threshold 1.5 (K = 390) diverges at
+25 ms (tests/test_cosim.py).  The prediction is at t = 0 only: mu(t) grows, so a coupling
+stable at the start can diverge later, as the paper's loop at 261 s; then
+:func:`compare_to_python`, which co-simulates at its coarsest step first, stops with that
+run's error before the all-Python loop is built.
 """
 from __future__ import annotations
 
@@ -620,8 +643,9 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
     lifts the limits); then the co-simulation at the coarsest step, which is the one the
     explicit coupling is least stable at (module docstring, "Stability").  If it fails
     (divergence, FMU error), its error (the time, ``H`` and the cause) is raised before the
-    all-Python loop is built or run.  Then the reference, then the other steps.  Each
-    closed loop is dropped once it has run, so at most one diagram is held at a time.
+    all-Python loop is built or run.  Then the reference, then the other steps; each
+    closed loop is built only when it is about to run, and this function keeps none of them
+    after its run.
     """
     from ivdrem.diagrams import closed_loop
     from ivdrem.models import two_link
