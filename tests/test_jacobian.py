@@ -815,3 +815,27 @@ def test_a_jacobian_program_is_built_once_per_structure_and_equals_a_fresh_one()
     assert jacobian._program_key(plan2, p2.patterns) != key
     other = DiagramPlan.from_diagram(closed_loop("composite-learning"))
     assert jacobian.JacobianProgram(other).run_dst is not p1.run_dst
+
+
+def test_the_program_cache_keeps_no_diagram():
+    """The process-wide cache of programs keeps each program without the plan it was built
+    from: a simulated diagram (python-control's dense connection map: 1.2 GiB on the Panda)
+    is freed once its caller drops it, and the next diagram of that structure still gets
+    the cached program, bound to its own plan."""
+    import gc
+    import weakref
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import jacobian
+    from ivdrem.sim.plan import DiagramPlan
+    jacobian._PROGRAMS.clear()
+    diagram = closed_loop("iv-drem")
+    first = jacobian.JacobianProgram(DiagramPlan.from_diagram(diagram))
+    gone = weakref.ref(diagram)
+    run_dst = first.run_dst
+    del diagram, first
+    gc.collect()
+    assert gone() is None
+    plan = DiagramPlan.from_diagram(closed_loop("iv-drem"))
+    again = jacobian.JacobianProgram(plan)
+    assert again.run_dst is run_dst and again.plan is plan
+    assert all(b in plan.blocks for b in again.fd_blocks)

@@ -356,7 +356,7 @@ def _local_patterns(plan, seed):
 #: Jacobian programs of this process by the structure they are built from: every simulate()
 #: of a diagram (the calibration of gamma = "auto", then the run, then the report's) needs
 #: the same one, and building it took 3-5 s on the real arms (millions of multiply-adds
-#: scheduled in Python)
+#: scheduled in Python).  Each entry is a program's attributes without its plan (a dict)
 _PROGRAMS: OrderedDict = OrderedDict()
 _PROGRAMS_MAX = 8
 
@@ -491,9 +491,9 @@ class JacobianProgram:
         hit = _PROGRAMS.get(key)
         if hit is not None:             # the same structure: the same program, bit for bit
             _PROGRAMS.move_to_end(key)
-            self.__dict__.update(hit.__dict__)
+            self.__dict__.update(hit)
             self.plan = plan
-            self.fd_blocks = [plan.blocks[b.index] for b in hit.fd_blocks]
+            self.fd_blocks = [plan.blocks[i] for i in hit["fd_blocks"]]
             return
         path = _program_path(key)
         if not self._read(path, plan, patterns):
@@ -502,7 +502,11 @@ class JacobianProgram:
         for v in self.__dict__.values():
             if isinstance(v, np.ndarray):
                 v.flags.writeable = False      # shared by every plan of this structure
-        _PROGRAMS[key] = self
+        # the cache keeps the program, not the plan it was built from: that plan's diagram
+        # holds python-control's dense connection map (1.2 GiB on the Panda), which would
+        # otherwise live as long as the process; the differentiated blocks by index
+        _PROGRAMS[key] = {**self.__dict__, "plan": None,
+                          "fd_blocks": [b.index for b in self.fd_blocks]}
         while len(_PROGRAMS) > _PROGRAMS_MAX:
             _PROGRAMS.popitem(last=False)
 
