@@ -208,6 +208,32 @@ def test_comparison_equals_the_runs_one_by_one(comparison, fmu):
     assert list(comparison.wall) == ["python"] + [f"cosim H={H:g}" for H in STEPS]
 
 
+def test_one_closed_loop_at_a_time(fmu, monkeypatch):
+    """While the all-Python reference runs, the only closed loop alive is its own (the
+    first co-simulation's controller is freed), and none is kept after the comparison."""
+    import weakref
+    import ivdrem.diagrams as diagrams
+    import ivdrem.sim as sim
+    built, alive_at_reference = [], []
+    real_closed_loop, real_simulate = diagrams.closed_loop, sim.simulate
+
+    def closed_loop(*a, **k):
+        d = real_closed_loop(*a, **k)
+        built.append((d.name, weakref.ref(d)))
+        return d
+
+    def simulate(*a, **k):
+        alive_at_reference.append([name for name, ref in built if ref() is not None])
+        return real_simulate(*a, **k)
+    monkeypatch.setattr(diagrams, "closed_loop", closed_loop)
+    monkeypatch.setattr(sim, "simulate", simulate)
+    compare_to_python(fmu, 0.01, progress=False)
+    assert [name for name, _ in built] == ["controller[iv-drem]", "closed_loop[iv-drem]",
+                                           "controller[iv-drem]", "controller[iv-drem]"]
+    assert alive_at_reference == [["closed_loop[iv-drem]"]]
+    assert [name for name, ref in built if ref() is not None] == []
+
+
 def test_reference_cost_is_refused_before_any_run(fmu, monkeypatch):
     """The reference's cost guard is priced from the controller before the first
     co-simulation (not after it, as simulate's own guard would be)."""

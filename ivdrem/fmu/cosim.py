@@ -70,6 +70,7 @@ run's error before the all-Python loop is built.
 from __future__ import annotations
 
 import ctypes
+import gc
 import math
 import sys
 import time as _time
@@ -702,6 +703,7 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
     coarsest = comm_steps.index(max(comm_steps))
     run_cosim(coarsest, ctrl)           # raises here if the coupling diverges at this H
     del ctrl
+    _release_diagrams()
 
     full = closed_loop(law, model, **config)
     if list(full.output_labels) != labels:
@@ -718,9 +720,11 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
                        desc=f"Python {law}", allow_long=allow_long)
     wall["python"] = _time.perf_counter() - t0
     del full
+    _release_diagrams()
     for i in range(len(comm_steps)):
         if results[i] is None:
             run_cosim(i)
+            _release_diagrams()
     Yref = np.asarray(ref.outputs)
     errors = {s: np.zeros(len(comm_steps)) for s in signals}
     for i, res in enumerate(results):
@@ -743,6 +747,14 @@ def compare_to_python(fmu_path, t_end, comm_steps=(1e-3, 5e-4, 2.5e-4), *, law="
     return CosimComparison(law=law, t_end=float(t_end), comm_steps=comm_steps,
                            signals=tuple(signals), errors=errors, orders=orders,
                            reference=ref, results=results, wall=wall)
+
+
+def _release_diagrams():
+    """Free the closed loops no longer referenced before the next one is built: a diagram
+    holds python-control's dense connection map (1.2 GiB on the Panda) and its own reference
+    cycles (the InterconnectedSystem's closures), so it waits for a full collection, which
+    a few large arrays do not trigger."""
+    gc.collect()
 
 
 def _check_reference_cost(controller, t_end, **kwargs):
