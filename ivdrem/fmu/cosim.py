@@ -435,8 +435,9 @@ class CouplingStability:
     ``growth``: spectral radius of the one-step map (None: no prediction, ``not_analysed``
     says why); ``rate``: its fastest mode's rate λ_max(M(q0)⁻¹(K + δ_μ μ(0))) in 1/s;
     ``m_min``: smallest eigenvalue of M(q0); ``mu``: μ(0); ``limit``, ``limit_end``:
-    2 / λ_max at t = 0 and at ``t_end`` (μ(t_end), M(q0)), the communication steps below
-    which the fastest mode's sample-and-hold loop is stable.
+    2 / λ_max at t = 0 and at ``t_end`` (μ(t_end), M(q0)), the largest communication steps
+    at which the fastest mode's velocity loop alone is stable (u_f's integral action moves
+    the limit of the whole map up by a factor 2 / (2 - H μ)).
     """
     comm_step: float
     t_end: float
@@ -481,11 +482,13 @@ class CouplingStability:
 
 
 def _one_step_map(rate, H, mu, alpha):
-    """The co-simulation's one-step map of one mode of M⁻¹(K + δ_μ μ), linearized at
-    t = 0 with θ̂ = 0 (module docstring, "Stability"): state (δq, δq', δw), w = M⁻¹ u_f of
-    the observer (7); the FMU integrates the plant with the force f = -rate (alpha δq +
-    δq') - δw held over the step (r of (9): δr = -(δq' + alpha δq)), the controller u_f with
-    its rate mu (K + δ_μ μ) δr^- held (u' = -tau of (7) with tau of (9): u_f cancels)."""
+    """The co-simulation's one-step map of one mode (eigenvalue `rate`) of
+    M⁻¹(K + δ_μ μ), linearized at t = 0 with θ̂ = 0 (module docstring, "Stability"): state
+    (δq, δq', δw) with w = M⁻¹ u_f of the observer (7), and δr = -(δq' + alpha δq)
+    (r = e' + alpha e, docs/conventions.md).  The FMU integrates the plant exactly under the
+    held force M⁻¹ δtau = -rate (alpha δq + δq') - δw (tau of (9)); the controller
+    integrates u_f' = mu (u - u_f), u = -tau of (7), whose rate -mu (K + δ_μ μ) δr (u_f's
+    own term cancels) is constant with q, q' held."""
     f = np.array([-rate * alpha, -rate, -1.0])
     P = np.zeros((3, 3), dtype=complex)
     P[0] = np.array([1.0, H, 0.0]) + 0.5 * H * H * f
@@ -526,7 +529,7 @@ def coupling_stability(model, comm_step, t_end, **config) -> CouplingStability:
         v = config.get(key)
         return defaults[key] if v is None else v
     n = model.n
-    q0, dq0 = _initial_state(model, config)
+    q0, _ = _initial_state(model, config)
     theta = config.get("theta")
     theta = np.asarray(model.theta_values if theta is None else theta, dtype=float)
     K = checks.square("control_law", "K", given("K"), n, pd=True)
