@@ -16,7 +16,8 @@ from ._paths import check_writable_dir
 
 __all__ = ["PreflightError", "add_run_options", "solver_methods", "check_method",
            "check_runs", "check_inertia", "check_law_cost", "pricing_diagram",
-           "check_gamma_auto", "gain_rule", "check_fmu_check_t_end", "check_cache_dir", "horizon_note",
+           "check_gamma_auto", "gain_rule", "check_fmu_check_t_end", "fmu_check_prediction",
+           "check_cache_dir", "horizon_note",
            "timing_text", "CONCLUSIONS_HORIZON", "FMU_CHECK_COMM_STEPS"]
 
 #: The horizon (s) that conclusions C1-C3 are stated for: the paper's Figures 1-4 and the
@@ -136,7 +137,7 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
                        " + ".join(f"{law} {w / 60:.0f} min" for law, w in walls),
                        engine=engine, allow_long=allow_long,
                        what=f"the {len(walls)} runs")
-    if fmu_check_t_end is not None:
+    if fmu_check_t_end is not None and not fmu_check_prediction(config, fmu_check_t_end).diverges:
         d = fmu_loop or pricing_diagram(config, "iv-drem", model)
         h = min(FMU_CHECK_COMM_STEPS)   # its Python reference: fixed steps, the finest
         check_diagram_cost(d, float(fmu_check_t_end), engine=engine, method=REFERENCE_METHOD, h=h,
@@ -229,6 +230,16 @@ def _is_paper_robot(config) -> bool:
     table of ivdrem.sim.guards was measured on)."""
     m = config.get("model", {})
     return m.get("urdf") is None and m.get("name") in ("two-link", "planar-2")
+
+
+def fmu_check_prediction(config, t_end):
+    """The FMU check's explicit coupling at its coarsest communication step, predicted
+    from the model and the configuration alone (:func:`ivdrem.fmu.cosim.coupling_stability`:
+    ``.diverges``, ``.reason()``); a check predicted to diverge is not run, nor priced."""
+    from .experiments.config import closed_loop_kwargs, model_from_config
+    from .fmu.cosim import coupling_stability
+    return coupling_stability(model_from_config(config), max(FMU_CHECK_COMM_STEPS),
+                              float(t_end), **closed_loop_kwargs(config, "iv-drem"))
 
 
 def check_fmu_check_t_end(t_end) -> float:

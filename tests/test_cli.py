@@ -236,6 +236,24 @@ def test_the_preflight_prices_and_simulates_nothing(monkeypatch):
     assert asked == ["iv-drem", "drem"] * 2
 
 
+def test_the_preflight_does_not_price_an_fmu_check_predicted_to_diverge():
+    """The FMU check's reference is priced (and refused when too long) only if the check is
+    going to run: with K = 2000 on the 2-link arm its 1 ms coupling is predicted to diverge
+    (ivdrem.fmu.cosim.coupling_stability), so a horizon whose reference would be refused
+    does not stop the report."""
+    from ivdrem._preflight import check_runs, fmu_check_prediction
+    from ivdrem.experiments.config import load_config
+    from ivdrem.sim.guards import CostLimitError
+    config = load_config(None, {"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"]})
+    assert not fmu_check_prediction(config, 40000.0).diverges
+    with pytest.raises(CostLimitError, match="the FMU check"):
+        check_runs(config, fmu_check_t_end=40000.0)
+    stiff = load_config(None, {"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"],
+                               "controller.K": [2000.0, 2000.0]})
+    assert fmu_check_prediction(stiff, 40000.0).diverges
+    assert check_runs(stiff, fmu_check_t_end=40000.0) is None
+
+
 def test_a_delta_below_the_doubles_is_refused_by_the_preflight(tmp_path, monkeypatch, capsys):
     """γ "auto" with a mixing whose reference estimate of mean Δ² is far below the doubles:
     `paper` exits 2 naming the mixing before any run, and nothing is calibrated."""

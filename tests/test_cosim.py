@@ -155,6 +155,174 @@ def test_divergence_is_reported(fmu):
         cosimulate(fmu, 0.2, comm_step=1e-3, K=2000.0, progress=False)
 
 
+def test_divergence_stops_the_comparison_before_the_reference(fmu, monkeypatch):
+    """compare_to_python co-simulates at the coarsest step first (listed last here): when the
+    coupling diverges there, its error (time, H, cause) is raised and the all-Python loop is
+    neither built nor simulated, and no other step is co-simulated."""
+    import ivdrem.diagrams as diagrams
+    import ivdrem.fmu.cosim as cosim
+    import ivdrem.sim as sim
+    from ivdrem.sim import SimulationError
+    calls = {"simulate": 0, "closed_loop": 0, "cosim": []}
+
+    def simulate(*a, **k):
+        calls["simulate"] += 1
+        raise AssertionError("the reference ran")
+
+    real_closed_loop, real_cosimulate = diagrams.closed_loop, cosim.cosimulate
+
+    def closed_loop(*a, **k):
+        if not k.get("external_plant"):
+            calls["closed_loop"] += 1
+        return real_closed_loop(*a, **k)
+
+    def cosimulate(*a, **k):
+        calls["cosim"].append(k["comm_step"])
+        return real_cosimulate(*a, **k)
+    monkeypatch.setattr(sim, "simulate", simulate)
+    monkeypatch.setattr(diagrams, "closed_loop", closed_loop)
+    monkeypatch.setattr(cosim, "cosimulate", cosimulate)
+    with pytest.raises(SimulationError,
+                       match=r"comm_step H = 0.001 s failed near t = .*smaller comm_step"):
+        compare_to_python(fmu, 0.2, (5e-4, 2.5e-4, 1e-3), K=2000.0, progress=False)
+    assert calls == {"simulate": 0, "closed_loop": 0, "cosim": [1e-3]}
+
+
+def test_comparison_equals_the_runs_one_by_one(comparison, fmu):
+    """Whatever order compare_to_python runs them in, its numbers are those of the
+    reference and the co-simulations run one at a time, bit for bit."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import simulate
+    ref = simulate(closed_loop("iv-drem"), T_END, method="rk4", h=min(STEPS),
+                   dt_out=min(STEPS), return_states=False, progress=False)
+    np.testing.assert_array_equal(comparison.reference.outputs, ref.outputs)
+    labels = list(ref.output_labels)
+    for i, H in enumerate(STEPS):
+        res = cosimulate(fmu, T_END, comm_step=H, progress=False)
+        np.testing.assert_array_equal(comparison.results[i].outputs, res.outputs)
+        stride = round(H / min(STEPS))
+        for s in comparison.signals:
+            rows = [j for j, lab in enumerate(labels) if lab.startswith(s + "[")]
+            err = np.max(np.abs(res.outputs[rows] - ref.outputs[rows][:, ::stride]))
+            assert comparison.errors[s][i] == err, (s, H)
+    assert list(comparison.wall) == ["python"] + [f"cosim H={H:g}" for H in STEPS]
+
+
+def test_one_closed_loop_at_a_time(fmu, monkeypatch):
+    """While the all-Python reference runs, the only closed loop alive is its own (the
+    first co-simulation's controller is freed), and none is kept after the comparison."""
+    import weakref
+    import ivdrem.diagrams as diagrams
+    import ivdrem.sim as sim
+    built, alive_at_reference = [], []
+    real_closed_loop, real_simulate = diagrams.closed_loop, sim.simulate
+
+    def closed_loop(*a, **k):
+        d = real_closed_loop(*a, **k)
+        built.append((d.name, weakref.ref(d)))
+        return d
+
+    def simulate(*a, **k):
+        alive_at_reference.append([name for name, ref in built if ref() is not None])
+        return real_simulate(*a, **k)
+    monkeypatch.setattr(diagrams, "closed_loop", closed_loop)
+    monkeypatch.setattr(sim, "simulate", simulate)
+    compare_to_python(fmu, 0.01, progress=False)
+    assert [name for name, _ in built] == ["controller[iv-drem]", "closed_loop[iv-drem]",
+                                           "controller[iv-drem]", "controller[iv-drem]"]
+    assert alive_at_reference == [["closed_loop[iv-drem]"]]
+    assert [name for name, ref in built if ref() is not None] == []
+
+
+def test_reference_cost_is_refused_before_any_run(fmu, monkeypatch):
+    """The reference's cost guard is priced from the controller before the first
+    co-simulation (not after it, as simulate's own guard would be)."""
+    import ivdrem.fmu.cosim as cosim
+    from ivdrem.sim.guards import CostLimitError
+
+    def cosimulate(*a, **k):
+        raise AssertionError("a co-simulation ran")
+    monkeypatch.setattr(cosim, "cosimulate", cosimulate)
+    with pytest.raises(CostLimitError, match="the all-Python reference run would record .* GiB"):
+        compare_to_python(fmu, 40000.0, (1e-3, 5e-4, 2.5e-4), progress=False)
+    with pytest.raises(ValueError, match="unknown signal 'nope'"):
+        compare_to_python(fmu, 0.01, signals=("q", "nope"), progress=False)
+
+
+def _gain_for_growth(target, H=1e-3):
+    """The 2-link arm's K (scalar) at which the predicted growth per step is `target`."""
+    from ivdrem.fmu.cosim import coupling_stability
+    lo, hi = 2.0, 1e5
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if coupling_stability(two_link(), H, 1.0, K=mid).growth < target:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
+def test_prediction_on_the_paper_arm_runs_the_check():
+    """The paper's loop at its three steps: no divergence predicted (the comparison above
+    runs and converges at first order), and the fastest mode is M(q0)^-1 (K + delta_mu mu)."""
+    from ivdrem.fmu.cosim import coupling_stability
+    m = two_link()
+    M = np.empty((2, 2))
+    m.functions.M(np.array([0.0, 0.3 * np.pi]), np.asarray(m.theta_values, float), M)
+    for H in STEPS:
+        st = coupling_stability(m, H, 300.0)
+        assert not st.diverges and st.growth < 1.0 + 1e-9, st.reason()
+        fastest = max(np.linalg.eigvals(np.linalg.solve(M, (2 + 0.8 * 15) * np.eye(2))).real)
+        assert st.rate == pytest.approx(fastest)
+        assert "no divergence predicted" in st.reason()
+
+
+def test_predicted_divergence_does_diverge(fmu):
+    """Soundness on the 2-link arm: at the gain where the predicted growth per step reaches
+    the threshold DIVERGING_GROWTH (K ~ 390; the scalar bound H lambda_max = 2.5), the
+    co-simulation diverges within a few dozen steps; just below, nothing is predicted.
+    (Measured: K = 330, growth 1.12, already diverges at t = 0.096 s; K = 315-325, growth
+    1.03-1.09, runs 1 s: the margin of the threshold.)"""
+    from ivdrem.fmu.cosim import DIVERGING_GROWTH, coupling_stability
+    from ivdrem.sim import SimulationError
+    K = _gain_for_growth(DIVERGING_GROWTH)
+    st = coupling_stability(two_link(), 1e-3, 1.0, K=K)
+    assert st.diverges and 2.4 < 1e-3 * st.rate < 2.6, st.reason()
+    assert not coupling_stability(two_link(), 1e-3, 1.0, K=0.99 * K).diverges
+    with pytest.raises(SimulationError, match=r"comm_step H = 0.001 s failed near t = 0.0[0-4]"):
+        cosimulate(fmu, 1.0, comm_step=1e-3, K=K, progress=False)
+    # the growth of the fastest mode is about |1 - H lambda_max| (module docstring)
+    big = coupling_stability(two_link(), 1e-3, 1.0, K=2000.0)
+    assert big.diverges and big.growth == pytest.approx(1e-3 * big.rate - 1, rel=0.02)
+    assert "A stable coupling needs H below" in big.reason()
+
+
+def test_prediction_needs_the_horizon_and_its_assumptions():
+    """Not predicted: a horizon too short for a million-fold growth, a nonzero theta_hat0
+    (then Pi^T theta_hat adds a velocity gain the map leaves out), replaced blocks."""
+    from ivdrem.fmu.cosim import coupling_stability
+    m = two_link()
+    K = _gain_for_growth(1.9)
+    assert coupling_stability(m, 1e-3, 1.0, K=K).diverges
+    assert not coupling_stability(m, 1e-3, 0.01, K=K).diverges     # 1.9^10 < 1e6
+    st = coupling_stability(m, 1e-3, 1.0, K=K, theta_hat0=[1.0, 0, 0, 0, 0])
+    assert st.growth is None and not st.diverges and "theta_hat0" in st.reason()
+    assert coupling_stability(m, 1e-3, 1.0, K=K, theta_hat0=np.zeros(5)).diverges
+    assert coupling_stability(m, 1e-3, 1.0, K=K, replace={"disturbance": None}).growth is None
+    with pytest.raises(ValueError, match="whole number of communication steps"):
+        coupling_stability(m, 1e-3, 0.0105)
+
+
+def test_report_check_on_the_paper_arm_is_run():
+    """The report's FMU check (ivdrem.reports.cli.fmu_check) on the paper's configuration:
+    not predicted to diverge, so run, and first order."""
+    from ivdrem.experiments.config import load_config
+    from ivdrem.reports.cli import fmu_check
+    rows, cmp = fmu_check(load_config(None), 1.0, progress=False)
+    assert cmp.ok and rows["verdict"]["max |co-sim − Python|"].startswith("OK")
+    assert len(rows) == 1 + 3 * 3
+
+
 def test_cleanup_on_error(fmu, monkeypatch):
     """An error in the middle of the run still terminates/frees the FMU and its files."""
     import fmpy

@@ -420,6 +420,31 @@ def test_cli_no_fmu_check(fake_paper, fake_fmu_check, tmp_path, text_only):
     assert fake_fmu_check == []
 
 
+def test_cli_fmu_check_predicted_to_diverge_is_not_run(fake_paper, tmp_path, capsys, text_only,
+                                                       monkeypatch):
+    """A configuration whose explicit coupling at the check's 1 ms cannot be stable
+    (K = 2000 on the 2-link arm: H lambda_max = 12.6) gets no FMU export and no
+    co-simulation; the command says so and why, and the report states it was not run."""
+    import ivdrem.fmu as fmu_mod
+    import ivdrem.fmu.cosim as cosim_mod
+
+    def refuse(*a, **k):
+        raise AssertionError("the FMU check was started")
+    monkeypatch.setattr(fmu_mod, "export_fmu", refuse)
+    monkeypatch.setattr(cosim_mod, "compare_to_python", refuse)
+    cfg = tmp_path / "stiff.toml"
+    cfg.write_text("[controller]\nK = [2000.0, 2000.0]\n")
+    out = tmp_path / "out"
+    assert run_report_command(parse(["--config", str(cfg), "--out", str(out), "--t-end", "30",
+                                     "--quiet"])) == 0
+    err = capsys.readouterr().err
+    assert "ivdrem report: FMU check not run: predicted to diverge" in err
+    assert "H lambda_max = 12.6" in err and "--no-fmu-check" in err
+    assert "AssertionError" not in err
+    html = (out / "ivdrem-paper.html").read_text()
+    assert "not run: predicted to diverge" in html and "--no-fmu-check" in html
+
+
 @pytest.mark.parametrize("text, argv, message", [
     ("[controller]\nKp = [1, 1]\n", [], "did you mean 'controller.K'?"),
     ("", ["--laws", "iv-drem", "composite"], "law 'composite' is not known"),

@@ -163,6 +163,7 @@ def main_cosim(argv=None) -> int:
                            method=REFERENCE_METHOD, h=min(steps), dt_out=min(steps),
                            return_states=False, allow_long=args.allow_long,
                            what="the reference run")
+        del reference      # compare_to_python builds each loop when it runs, one at a time
     except (ValueError, OSError, ImportError) as exc:   # OSError: missing FMU, cache
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2

@@ -17,7 +17,8 @@ from .._preflight import (PreflightError, add_run_options, check_cache_dir, chec
 from .._progress import want_progress
 from ..experiments.config import LAWS, ConfigError, load_config
 
-__all__ = ["add_report_arguments", "run_report_command", "config_from_args"]
+__all__ = ["add_report_arguments", "run_report_command", "config_from_args", "fmu_check",
+           "FmuCheckNotRun"]
 
 
 def add_report_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -48,10 +49,21 @@ def add_report_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
     return parser
 
 
+class FmuCheckNotRun(Exception):
+    """The FMU check is predicted to diverge and was not run; the message says why, with
+    the numbers, and what to do instead."""
+
+
 def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False, allow_long=False,
               gamma=None):
     """Export the plant FMU, co-simulate the IV-DREM controller against it at three
     communication steps, and return (rows for the report table, comparison).
+
+    First, before exporting or building anything, the explicit coupling at the coarsest
+    step is predicted from the model and the configuration
+    (:func:`ivdrem._preflight.fmu_check_prediction`); if it diverges, :class:`FmuCheckNotRun`
+    is raised with the reason.  Then :func:`~ivdrem.fmu.cosim.compare_to_python`, which
+    co-simulates at the coarsest step before it builds the all-Python loop.
 
     With ``iv_drem.gamma = "auto"`` the check uses `gamma`, the γ the report's IV-DREM run
     chose; without it, the one the rule gives with the run's own solver
@@ -60,10 +72,19 @@ def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False, allow_lo
     import tempfile
     from pathlib import Path
 
+    from .._preflight import FMU_CHECK_COMM_STEPS, fmu_check_prediction
     from ..experiments.config import closed_loop_kwargs, model_from_config
     from ..fmu import export_fmu
     from ..fmu.cosim import compare_to_python
 
+    predicted = fmu_check_prediction(config, t_end)
+    if predicted.diverges:
+        raise FmuCheckNotRun(
+            f"predicted to diverge: {predicted.reason()}.  The check co-simulates at H = "
+            + ", ".join(f"{H * 1e3:g}" for H in FMU_CHECK_COMM_STEPS)
+            + f" ms; to check the plant FMU on this arm use `ivdrem cosim --config FILE.toml "
+            f"--comm-step H --t-end {float(t_end):g}` with H below "
+            f"{predicted.limit_end * 1e3:.2g} ms, or leave the check out with --no-fmu-check")
     model = model_from_config(config)
     kw = closed_loop_kwargs(config, "iv-drem")
     if kw.get("gamma") == "auto":
@@ -174,6 +195,9 @@ def run_report_command(args) -> int:
                                    gamma=getattr(ivdrem_run, "gamma", None), **extra)
             print(cmp.table())
             print(cmp.verdict())
+        except FmuCheckNotRun as exc:
+            print(f"ivdrem report: FMU check not run: {exc}", file=sys.stderr)
+            check = {"FMU check": {"result": f"not run: {exc}"}}
         except Exception as exc:   # no C compiler, ...: the report still gets written
             print(f"ivdrem report: FMU check skipped: {exc}", file=sys.stderr)
             check = {"FMU check": {"result": f"not run: {exc}"}}
