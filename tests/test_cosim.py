@@ -367,6 +367,31 @@ def test_cli_bad_input(capsys, tmp_path):
     assert main_cosim(["--law", "nonsense"]) == 2
 
 
+def test_cli_refuses_a_coupling_predicted_to_diverge_before_building_anything(
+        capsys, tmp_path, monkeypatch):
+    """ivdrem cosim with gains whose 1 ms coupling is predicted to diverge (K = 2000 on the
+    2-link arm: H lambda_max = 12.6) stops with exit 2 and the prediction's numbers, before
+    any closed loop is built or FMU exported; --despite-prediction runs it, and it then
+    fails as predicted (exit 1)."""
+    import ivdrem.diagrams as diagrams
+    from ivdrem.fmu import export as fmu_export
+    cfg = tmp_path / "stiff.toml"
+    cfg.write_text("[controller]\nK = [2000.0, 2000.0]\n")
+    built = []
+    real_closed_loop, real_export = diagrams.closed_loop, fmu_export.export_fmu
+    monkeypatch.setattr(diagrams, "closed_loop", lambda *a, **k: built.append("loop")
+                        or real_closed_loop(*a, **k))
+    monkeypatch.setattr(fmu_export, "export_fmu", lambda *a, **k: built.append("fmu")
+                        or real_export(*a, **k))
+    assert main_cosim(["--config", str(cfg), "--t-end", "0.1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "predicted to diverge" in err and "--comm-step below" in err
+    assert not built
+    assert main_cosim(["--config", str(cfg), "--t-end", "0.1", "--quiet",
+                       "--despite-prediction"]) == 1
+    assert "run failed" in capsys.readouterr().err and built
+
+
 def test_cli_takes_a_configuration_and_another_robot(capsys, tmp_path, fmu):
     """ivdrem cosim --config: the configuration's robot (planar-3), gains, reference and q(0)
     on both sides; its plant FMU exported from that model; first order in H."""

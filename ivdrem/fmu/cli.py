@@ -97,6 +97,9 @@ def _cosim_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-long", action="store_true", dest="allow_long",
                    help="run even when the reference run's estimated memory or step count "
                         "exceeds the limits of ivdrem.sim.guards")
+    p.add_argument("--despite-prediction", action="store_true", dest="despite_prediction",
+                   help="co-simulate even where the coupling at H is predicted to diverge "
+                        "(by default that is refused before anything is built)")
     p.add_argument("--controller-fmu", default=None, metavar="FILE", dest="controller_fmu",
                    help="close this controller FMU (ivdrem fmu export --controller) around the "
                         "plant FMU in FMPy and compare with the C reference controller")
@@ -149,6 +152,16 @@ def main_cosim(argv=None) -> int:
         config = load_config(None if args.config is None else user_path(args.config))
         model = model_from_config(config)
         loop_kw = closed_loop_kwargs(config, args.law)
+        if not args.despite_prediction:
+            # the explicit coupling at H, linearized at t = 0 (docs: README, "Co-simulation
+            # check"): a run predicted to diverge is refused before any build or export
+            from .cosim import coupling_stability
+            predicted = coupling_stability(model, H, args.t_end, **loop_kw)
+            if predicted.diverges:
+                raise ValueError(
+                    f"the co-simulation is predicted to diverge: {predicted.reason()}.  Give "
+                    f"--comm-step below {predicted.limit_end * 1e3:.2g} ms, or "
+                    "--despite-prediction to run it anyway")
         if fmu_path is not None:  # missing, not an FMU, damaged, no CS, not this robot's plant
             from .cosim import _check_interface
             from .describe import read_description
