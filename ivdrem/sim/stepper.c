@@ -552,6 +552,12 @@ typedef struct {
     i64 npanels;
 } SluPattern;
 
+/* a pivot d of a row whose largest entry of c I - J was rmax: refused when tiny or not
+ * finite (PIVOT_RTOL; the integrator then shrinks the step) */
+static inline int pivot_ok(double d, double rmax) {
+    return fabs(d) > PIVOT_RTOL * rmax && isfinite(d) && isfinite(rmax);
+}
+
 /* Rows s .. s + LU_PANEL - 1 eliminated together into the work block Wb (column j of the
  * panel at Wb[j LU_PANEL ..]): each row k of U is subtracted from every row with an L entry
  * at k, in increasing k, as the rows one by one would (the same operations, in the same
@@ -584,8 +590,7 @@ static int slu_panel(const double *J, double cc, double *vals, double *inv, doub
             for (i64 p = rowptr[i]; p < rowptr[i + 1]; p++)
                 vals[p] = Wb[colidx[p] * LU_PANEL + done];
             double d = vals[diagp[i]];
-            if (!(fabs(d) > PIVOT_RTOL * rmax[done]) || !isfinite(d) || !isfinite(rmax[done]))
-                return SINGULAR;
+            if (!pivot_ok(d, rmax[done])) return SINGULAR;
             inv[i] = 1.0 / d;
             done++;
         }
@@ -651,7 +656,7 @@ static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv,
         }
         for (i64 p = rowptr[i]; p < rowptr[i + 1]; p++) vals[p] = w[colidx[p]];
         double d = vals[diagp[i]];
-        if (!(fabs(d) > PIVOT_RTOL * rmax) || !isfinite(d) || !isfinite(rmax)) return SINGULAR;
+        if (!pivot_ok(d, rmax)) return SINGULAR;
         inv[i] = 1.0 / d;
     }
     return OK;
