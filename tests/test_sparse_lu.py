@@ -148,18 +148,22 @@ def test_an_ordering_stops_once_it_has_more_entries_than_the_limit():
     assert sparse_lu._filled_rows(csr, order, limit=nnz - 1) is None
 
 
-def _loop_pattern(n_joints):
+def _loop_plan(n_joints):
     from ivdrem.diagrams import closed_loop
     from ivdrem.experiments.config import closed_loop_kwargs, load_config, model_from_config
     from ivdrem.sim.compiled import _check_kernels
-    from ivdrem.sim.jacobian import JacobianProgram
     from ivdrem.sim.plan import DiagramPlan
     # gamma pinned: "auto" would calibrate it by a run, which the pattern does not need
     cfg = load_config(overrides={"model.name": f"planar-{n_joints}", "iv_drem.gamma": 1.0})
     loop = closed_loop("iv-drem", model_from_config(cfg), **closed_loop_kwargs(cfg, "iv-drem"))
     plan = DiagramPlan.from_diagram(loop)
     _check_kernels(plan)
-    return JacobianProgram(plan).pattern
+    return plan
+
+
+def _loop_pattern(n_joints):
+    from ivdrem.sim.jacobian import JacobianProgram
+    return JacobianProgram(_loop_plan(n_joints)).pattern
 
 
 @pytest.mark.parametrize("n_joints", [3, 4])
@@ -283,3 +287,147 @@ def test_the_planar_loop_adaptation_rows_are_panels_with_the_same_factor():
     st1, rows = _factor(slu, values, 30.0, panels=False)
     st2, panel = _factor(slu, values, 30.0, panels=True)
     assert st1 == st2 == 0 and np.array_equal(rows, panel)
+
+
+# ------------------------------------------------------------------ the group refinement
+def dense_cost(pattern, order):
+    """(multiply-adds, entries of L + U) of eliminating P A P^T, counted on the dense boolean
+    elimination: row i subtracts, for every k < i in its filled row, row k's upper part."""
+    n = pattern.shape[0]
+    F = dense_elimination(np.asarray(pattern, bool) | np.eye(n, dtype=bool), order)
+    upper = np.array([F[k, k + 1:].sum() for k in range(n)], dtype=int)
+    madds = sum(int(upper[np.flatnonzero(F[i, :i])].sum()) for i in range(n))
+    return madds, int(F.sum())
+
+
+@pytest.mark.parametrize("n,density", [(1, 0.5), (12, 0.2), (60, 0.05), (120, 0.03)])
+def test_elimination_cost_equals_the_dense_count_on_every_path(n, density):
+    """The cost the search minimises, three ways: from the filled rows, from the one-pass
+    kernel run as Python and compiled by numba, each against the dense elimination; and a
+    cost limit below the cost stops the kernel, one at the cost does not."""
+    from numba import njit
+    rng = np.random.default_rng(n)
+    pattern = rng.random((n, n)) < density
+    csr = as_csr(pattern)
+    compiled = njit(sparse_lu._elimination_cost_kernel)
+    for order in (np.arange(n), rng.permutation(n)):
+        ref = dense_cost(pattern, order)
+        assert sparse_lu.elimination_cost(sparse_lu._filled_rows(csr, order)) == ref
+        ip, ix = csr.indptr.astype(np.int64), csr.indices.astype(np.int64)
+        w = sparse_lu.SOLVES_PER_FACTOR
+        for kernel in (sparse_lu._elimination_cost_kernel, compiled):
+            assert tuple(kernel(ip, ix, order, w, np.inf)) == ref
+            total = float(ref[0] + w * ref[1])
+            assert tuple(kernel(ip, ix, order, w, total)) == ref
+            assert tuple(kernel(ip, ix, order, w, total - 1.0)) == (-1, -1)
+        assert sparse_lu._filled_rows(csr, order, cost_limit=total - 1) is None
+
+
+def _two_stage_adaptation(n_slow=30, n_theta=6, n_fast=8, seed=0):
+    """An IV-DREM-shaped pattern with its groups: fast states (filters), slow states each
+    read from two fast ones (the window), parameters reading every slow state and feeding
+    the fast ones (the control).  Minimum degree on A^T + A does not see that nothing reads
+    the parameters but the fast states."""
+    rng = np.random.default_rng(seed)
+    n = n_fast + n_slow + n_theta
+    fast, slow, theta = (np.arange(n_fast), n_fast + np.arange(n_slow),
+                         n_fast + n_slow + np.arange(n_theta))
+    P = np.zeros((n, n), dtype=bool)
+    for i in slow:
+        P[i, rng.choice(fast, 2, replace=False)] = True
+    P[np.ix_(theta, slow)] = True
+    P[np.ix_(fast, fast)] = rng.random((n_fast, n_fast)) < 0.3
+    P[np.ix_(fast[:2], theta)] = True
+    groups = np.concatenate([np.zeros(n_fast), np.ones(n_slow), 2 * np.ones(n_theta)])
+    return P, groups.astype(int)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_group_moves_lower_the_cost_and_keep_every_group_in_order(seed):
+    P, groups = _two_stage_adaptation(seed=seed)
+    n = P.shape[0]
+    base = sparse_lu._symbolic_lu(P)
+    csr = as_csr(P)
+    start = dense_cost(P, base.perm)
+    found = sparse_lu.refine_by_groups(csr, base.perm, groups)
+    assert found is not None
+    order, madds, nnz = found
+    assert np.array_equal(np.sort(order), np.arange(n))
+    assert (madds, nnz) == dense_cost(P, order)       # what the search reports, recounted
+    w = sparse_lu.SOLVES_PER_FACTOR
+    assert madds + w * nnz < (1 - sparse_lu.REFINE_MIN_GAIN) * (start[0] + w * start[1])
+    for g in np.unique(groups):                        # a group moved whole, in its order
+        assert np.array_equal(order[groups[order] == g], base.perm[groups[base.perm] == g])
+    # a single group has nothing to move
+    assert sparse_lu.refine_by_groups(csr, base.perm, np.zeros(n, dtype=int)) is None
+
+
+def test_the_refined_order_factors_and_solves_as_numpy(tmp_path, monkeypatch):
+    """The planar-4 loop's real pattern with its state groups: the refined order costs less
+    than the least-fill one, and c I - J factored in it solves as numpy does."""
+    from ivdrem.sim.compiled import load_c_stepper
+    from ivdrem.sim.tables import dense_to_sparse
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path))
+    pattern, groups = _loop_pattern_and_groups(4)
+    sparse_lu._SYMBOLIC.clear()
+    slu = sparse_lu.symbolic_lu(pattern, groups)
+    base = sparse_lu._symbolic_lu(pattern)
+    w = sparse_lu.SOLVES_PER_FACTOR
+    cost = [m + w * e for m, e in (dense_cost(pattern, s.perm) for s in (slu, base))]
+    assert cost[0] < cost[1] and slu.ordering.endswith("groups moved")
+    rng = np.random.default_rng(8)
+    n = slu.n
+    J = np.where(pattern, rng.standard_normal(pattern.shape), 0.0)
+    values = dense_to_sparse(J, slu.perm, slu.rowptr, slu.colidx)
+    st, LU = _factor(slu, values, 40.0, panels=True)
+    assert st == 0
+    b = rng.standard_normal(n)
+    x = b.copy()
+    load_c_stepper().slu_solve(np.concatenate([LU, np.zeros(n)]), n, slu.perm, slu.rowptr,
+                               slu.colidx, slu.diagp, x)
+    np.testing.assert_allclose(x, np.linalg.solve(40.0 * np.eye(n) - J, b), rtol=1e-12,
+                               atol=1e-14)
+
+
+def _loop_pattern_and_groups(n_joints):
+    from ivdrem.sim.jacobian import JacobianProgram
+    plan = _loop_plan(n_joints)
+    return JacobianProgram(plan).pattern, plan.state_groups()
+
+
+def test_state_groups_are_the_blocks_state_vectors():
+    plan = _loop_plan(2)
+    loop, groups = plan.diagram, plan.state_groups()
+    labels = np.array([f"{s.name}.{lab.split('[', 1)[0]}" for s in loop.syslist
+                       for lab in s.state_labels])
+    assert groups.shape == (loop.nstates,)
+    for a in range(loop.nstates):               # the same group exactly where the same vector
+        assert np.array_equal(groups == groups[a], labels == labels[a])
+    assert groups.max() + 1 == len(set(labels.tolist())) > 5
+
+
+def test_the_refined_order_is_kept_on_disk_and_a_damaged_file_is_searched_again(
+        tmp_path, monkeypatch):
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path))
+    P, groups = _two_stage_adaptation()
+    sparse_lu._SYMBOLIC.clear()
+    first = sparse_lu.symbolic_lu(P, groups)
+    assert sparse_lu.symbolic_lu(P, groups) is first            # the same process
+    files = list((tmp_path / "lu-orders").glob("*.npz"))
+    assert len(files) == 1
+    sparse_lu._SYMBOLIC.clear()
+
+    def no_search(*a, **k):
+        raise AssertionError("searched again")
+    with monkeypatch.context() as m:
+        m.setattr(sparse_lu, "refine_by_groups", no_search)
+        again = sparse_lu.symbolic_lu(P, groups)                 # another process: from disk
+    assert np.array_equal(again.perm, first.perm) and again.ordering == first.ordering
+    assert np.array_equal(again.colidx, first.colidx)
+    files[0].write_bytes(b"not an npz")
+    sparse_lu._SYMBOLIC.clear()
+    assert np.array_equal(sparse_lu.symbolic_lu(P, groups).perm, first.perm)
+    assert sparse_lu._read_order(files[0], P.shape[0]) is not None  # rewritten
+    # groups of the wrong size are refused before any work
+    with pytest.raises(ValueError, match="groups has 3 entries"):
+        sparse_lu.symbolic_lu(P, [0, 1, 2])

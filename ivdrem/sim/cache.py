@@ -13,12 +13,16 @@ import hashlib
 import importlib.util
 import os
 import sys
+from functools import lru_cache
 from pathlib import Path
 
+import numpy as np
+
+from .. import __version__
 from .._atomic import write_text_atomic
 
-__all__ = ["cache_dir", "source_hash", "write_generated", "import_generated", "import_path",
-           "GENERATED_HEADER", "helpers_digest"]
+__all__ = ["cache_dir", "package_digest", "source_hash", "write_generated",
+           "import_generated", "import_path", "GENERATED_HEADER", "helpers_digest"]
 
 #: the package files every generated module imports its helpers from
 HELPER_FILES = ("blocks/_kernels.py", "sim/_native.py")
@@ -86,3 +90,23 @@ def import_path(name, path):
         sys.modules.pop(name, None)
         raise
     return mod
+
+
+#: the installed ivdrem package, whose sources key everything kept across processes
+PACKAGE_ROOT = Path(__file__).resolve().parent.parent
+
+
+@lru_cache(maxsize=1)
+def package_digest():
+    """sha256 of every Python and C source of the installed ivdrem package (read once per
+    process): a result on disk is reused only by the exact code that computed it; None
+    where the sources cannot be read (nothing is then kept)."""
+    h = hashlib.sha256(f"{__version__} {sys.version} {np.__version__}".encode())
+    try:
+        for f in sorted(PACKAGE_ROOT.rglob("*")):
+            if f.suffix in (".py", ".c", ".h") and "__pycache__" not in f.parts:
+                h.update(f.relative_to(PACKAGE_ROOT).as_posix().encode())
+                h.update(f.read_bytes())
+    except OSError:
+        return None
+    return h.hexdigest()

@@ -256,7 +256,7 @@ def generate_source(plan, param_slots=None):
             wrapper_nx.append(b.sys.nstates)
     # the Jacobian's FD program and the Newton matrix's static LU pattern
     prog = JacobianProgram(plan)
-    slu = symbolic_lu(prog.pattern)
+    slu = symbolic_lu(prog.pattern, plan.state_groups())
     tables = build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu)
     return DiagramProgram(list(deps.items()), wrappers, tables)
 

@@ -46,15 +46,14 @@ from __future__ import annotations
 import hashlib
 import sys
 from collections import OrderedDict
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
 from .._atomic import write_file_atomic
 from ..blocks._core import bind_model, kernel_args
-from .cache import cache_dir
+from .cache import PACKAGE_ROOT as _PACKAGE_ROOT, cache_dir
+from .cache import package_digest as _package_digest
 from .foreign import ForeignSpec
 
 __all__ = ["block_pattern", "JacobianProgram", "DeclarationError"]
@@ -129,26 +128,6 @@ def _probe_inputs(spec, args, nx, nu, ny, seed):
     the sizes, the seed, the parameters' names and values."""
     return (spec.model.key if spec.model is not None else None, nx, nu, ny, seed,
             tuple(spec.param_names), tuple(_value_key(a) for a in args))
-
-
-#: the installed ivdrem package, whose sources key everything kept across processes
-_PACKAGE_ROOT = Path(__file__).resolve().parent.parent
-
-
-@lru_cache(maxsize=1)
-def _package_digest():
-    """sha256 of every Python and C source of the installed ivdrem package (read once per
-    process): a result on disk is reused only by the exact code that computed it; None
-    where the sources cannot be read (nothing is then kept)."""
-    h = hashlib.sha256(f"{__version__} {sys.version} {np.__version__}".encode())
-    try:
-        for f in sorted(_PACKAGE_ROOT.rglob("*")):
-            if f.suffix in (".py", ".c", ".h") and "__pycache__" not in f.parts:
-                h.update(f.relative_to(_PACKAGE_ROOT).as_posix().encode())
-                h.update(f.read_bytes())
-    except OSError:
-        return None
-    return h.hexdigest()
 
 
 def _kernel_names(funcs):

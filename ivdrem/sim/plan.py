@@ -242,6 +242,17 @@ class DiagramPlan:
     def state_labels(self):
         return list(self.diagram.state_labels)
 
+    def state_groups(self):
+        """The group of every state, numbered from 0: its block and the name of its state
+        vector (``q`` of ``q[3]``), so that a block's vectors are moved as wholes when the
+        Newton matrix's ordering is refined (sparse_lu.refine_by_groups)."""
+        ids, out = {}, np.zeros(self.diagram.nstates, dtype=np.int64)
+        for b in self.blocks:
+            for i, label in enumerate(b.sys.state_labels):
+                out[b.x.start + i] = ids.setdefault((b.index, label.split("[", 1)[0]),
+                                                    len(ids))
+        return out
+
     def state_owner(self, i):
         for b in self.blocks:
             if b.x.start <= i < b.x.stop:
