@@ -106,7 +106,7 @@ def test_a_damaged_library_in_the_cache_is_built_again(tmp_path):
     J = np.array([[1.0, 2.0], [0.5, -3.0]])
     LU, piv = np.zeros(4 + _diagram.LU_WORK_ROWS * 2), np.zeros(2, dtype=np.int64)
     perm, rowptr = np.array([1, 0]), np.array([0, 2, 4])
-    colidx, diagp = np.array([0, 1, 0, 1]), np.array([0, 3])
+    colidx, diagp = np.array([0, 1, 0, 1], dtype=np.int32), np.array([0, 3])
     values = J[perm][:, perm].ravel()
     no_panels = (np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64),
                  np.zeros(0, dtype=np.int64))
@@ -144,3 +144,24 @@ def test_the_entry_point_table_matches_the_c_prototypes():
                 for a in m.group(2).replace("\n", " ").split(",")]
         assert argtypes == want, name
         assert res == (ctypes.c_int if m.group(1) == "int" else None), name
+
+
+def test_an_int32_table_is_packed_as_its_count_and_values_two_to_an_int64():
+    """The index tables the Jacobian and the LU read as int32 (tables._i32): pack() stores
+    the count, then the values (odd counts padded), which i32_table in stepper.c reads back;
+    a value beyond int32 is refused when the tables are built."""
+    import pytest
+    from ivdrem.sim import tables
+    for values in ([], [7], [-1, 2, 2 ** 31 - 1], list(range(10))):
+        packed = tables._packed_i32(tables._i32(values))
+        assert packed.dtype == np.int64 and packed[0] == len(values)
+        assert packed.size == 1 + (len(values) + 1) // 2
+        assert packed[1:].view(np.int32)[:len(values)].tolist() == values
+    with pytest.raises(OverflowError, match="beyond int32"):
+        tables._i32([0, 2 ** 31])
+    int32 = [f for f, dt, _ in tables.TABLES_LAYOUT if dt == "int32"]
+    assert {"lu_colidx", "jac_run_dst", "jac_j_pos", "fd_e_slot"} <= set(int32)
+    ints, _ = tables.pack(tables.empty_tables())
+    for f in int32:                      # every int32 table of no diagram: a count of 0
+        k = tables.INT_FIELDS.index(f)
+        assert ints[ints[k]] == 0 and ints[k + 1] - ints[k] == 1

@@ -189,17 +189,17 @@ def _factor(slu, values, c, *, panels):
     return st, LU[:slu.nnz_lu + n]
 
 
-def _adaptation_like(seed, n_slow=100, n_theta=20, n_fast=20):
-    """A pattern shaped as the IV-DREM loop's: slow rows (the window and the averages) fed
-    by fast columns, parameter rows reading every slow column and a few of each other, fast
-    rows reading the parameters; natural order, so the parameter rows come after the slow
-    ones with long, shared L parts."""
+def _adaptation_like(seed, n_slow=100, n_theta=20, n_fast=24, reads=16):
+    """A pattern shaped as the IV-DREM loop's: slow rows (the window and the averages) each
+    fed by `reads` fast columns, parameter rows reading every slow column and a few of each
+    other, fast rows reading the parameters; natural order, so the parameter rows come
+    after the slow ones with long, shared L parts."""
     rng = np.random.default_rng(seed)
     n = n_slow + n_theta + n_fast
     P = np.zeros((n, n), dtype=bool)
     th, fa = n_slow, n_slow + n_theta
     for i in range(n_slow):
-        P[i, fa + rng.choice(n_fast, 3, replace=False)] = True
+        P[i, fa + rng.choice(n_fast, reads, replace=False)] = True
     P[th:fa, :n_slow] = rng.random((n_theta, n_slow)) < 0.9
     P[th:fa, th:fa] = rng.random((n_theta, n_theta)) < 0.3
     P[fa:, th:] = rng.random((n_fast, n_theta + n_fast)) < 0.3
@@ -275,8 +275,24 @@ def test_a_singular_pivot_inside_a_panel_is_reported():
     assert _factor(slu, values, 50.0, panels=True)[0] == SINGULAR
 
 
-def test_the_planar_loop_adaptation_rows_are_panels_with_the_same_factor():
+def test_panels_are_chosen_only_over_long_rows_of_u(monkeypatch):
+    """Each row of U a panel reads costs it LU_PANEL multipliers: over short rows the row by
+    row elimination is cheaper, and no panel is chosen."""
+    for reads in (3, 16):
+        slu = _adaptation_like(0, reads=reads)[1]
+        ulen = slu.rowptr[1:] - slu.diagp - 1
+        for p in range(slu.panel_rows.size):
+            cols = slu.panel_k[slu.panel_kptr[p]:slu.panel_kptr[p + 1]]
+            assert ulen[cols].mean() >= sparse_lu.PANEL_MIN_ULEN
+    assert _adaptation_like(0, reads=16)[1].panel_rows.size >= 2
+    monkeypatch.setattr(sparse_lu, "PANEL_MIN_ULEN", 10**6)
+    assert _adaptation_like(0, reads=16)[1].panel_rows.size == 0
+
+
+def test_the_planar_loop_adaptation_rows_are_panels_with_the_same_factor(monkeypatch):
     from ivdrem.sim.tables import dense_to_sparse
+    # the panel code on a real loop's pattern, whatever the cost rule would choose there
+    monkeypatch.setattr(sparse_lu, "PANEL_MIN_ULEN", 0)
     pattern = _loop_pattern(4)
     slu = sparse_lu._symbolic_lu(pattern)
     assert slu.panel_rows.size >= 1

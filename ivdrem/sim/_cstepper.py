@@ -308,7 +308,8 @@ class CStepper:
 #: The C entry points called from Python as they are, one row each: name (without the
 #: ``ivdrem_`` prefix) -> (result, its arguments in the C order as ``name=kind[:shape]``).
 #: Kinds: ``W`` a workspace (its field addresses and shapes), ``f``/``F`` a float64 array
-#: read/written, ``i``/``I`` an int64 array read/written, ``d`` a float, ``n`` an integer;
+#: read/written, ``i``/``I`` an int64 array read/written, ``j`` an int32 array read (the LU
+#: pattern's column indices), ``d`` a float, ``n`` an integer;
 #: not passed from Python: ``N`` the last dimension of the array before it, ``T`` a float64
 #: temporary of N entries, ``R`` a one-entry result (returned).  A shape (in N) is
 #: checked.  Results: ``status`` (a failure code becomes a RuntimeError), ``int`` or None
@@ -320,14 +321,14 @@ _ENTRY_POINTS = {
     "lowest_eigenpair": ("status", "W=W u=f nvec=n nmat=n lam=R"),
     "hist_lookup": ("status", "W=W tq=d off=n size=n out=F"),
     "work_sizes": (None, "W=W n=n out=I"),
-    "slu_factor": ("int", "J=f n=n c=d LU=F piv=I perm=i rowptr=i colidx=i diagp=i "
+    "slu_factor": ("int", "J=f n=n c=d LU=F piv=I perm=i rowptr=i colidx=j diagp=i "
                           "panel_rows=i npanels=N panel_kptr=i panel_k=i"),
-    "slu_solve": (None, "LU=F n=n perm=i rowptr=i colidx=i diagp=i b=F"),
+    "slu_solve": (None, "LU=F n=n perm=i rowptr=i colidx=j diagp=i b=F"),
     "dense_factor": ("int", "J=f:nn n=N c=d LU=F:lu piv=I:n"),
     "dense_solve": (None, "LU=f:lu n=N piv=i b=F:n"),
 }
 _SHAPES = {"n": lambda n: (n,), "nn": lambda n: (n, n), "lu": lambda n: (n + 2, n)}
-_KIND_DTYPE = {"f": np.float64, "F": np.float64, "i": np.int64, "I": np.int64}
+_KIND_DTYPE = {"f": np.float64, "F": np.float64, "i": np.int64, "I": np.int64, "j": np.int32}
 
 
 def _ctypes_signatures():

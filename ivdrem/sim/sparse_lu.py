@@ -47,6 +47,10 @@ __all__ = ["symbolic_lu", "SymbolicLU", "panels", "refine_by_groups", "eliminati
 #: multiply-adds, and at least this share of them fall on L entries all its rows have
 PANEL_MIN_WORK = 64 * LU_PANEL
 PANEL_MIN_SHARED = 0.5
+#: ... and when the rows of U it subtracts are on average at least this long: each costs the
+#: panel LU_PANEL multipliers, so short ones are cheaper row by row (Panda, t = 60 s: rows of
+#: U 28 long, 2.45 -> 2.0 ms with panels; 4.7 long after the group refinement, 0.83 -> 0.92)
+PANEL_MIN_ULEN = 12
 
 #: linear solves per factorisation (Rodas5P: one factor, eight stages each solving once): an
 #: entry of L + U costs a solve's multiply-add this many times for one of the factorisation's
@@ -59,8 +63,8 @@ REFINE_MAX_TRIES = 2000
 
 
 class SymbolicLU:
-    """perm, rowptr, colidx, diagp (int64) of the filled pattern; nnz_a, nnz_lu, fill; the
-    panels (:func:`panels`): first rows, and for each the columns it eliminates."""
+    """perm, rowptr, diagp (int64) and colidx (int32) of the filled pattern; nnz_a, nnz_lu,
+    fill; the panels (:func:`panels`): first rows, and for each the columns it eliminates."""
 
     def __init__(self, perm, rows, nnz_a, ordering):
         n = len(rows)
@@ -69,8 +73,9 @@ class SymbolicLU:
         self.ordering = ordering
         sizes = np.fromiter((r.size for r in rows), dtype=np.int64, count=n)
         self.rowptr = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
-        self.colidx = (np.concatenate(rows).astype(np.int64) if n
-                       else np.zeros(0, dtype=np.int64))
+        # int32, as the factorisation and the solves read them (tables._i32)
+        self.colidx = (np.concatenate(rows).astype(np.int32) if n
+                       else np.zeros(0, dtype=np.int32))
         self.diagp = self.rowptr[:-1] + np.fromiter(
             (int(np.searchsorted(r, i)) for i, r in enumerate(rows)), dtype=np.int64, count=n)
         self.nnz_a = int(nnz_a)
@@ -91,8 +96,9 @@ def panels(rowptr, colidx, diagp, width=LU_PANEL):
     Rows are taken from the top: a panel starts at row s when its rows' elimination costs
     at least PANEL_MIN_WORK multiply-adds (the sum over each row's L entries k of the length
     of row k of U) and at least PANEL_MIN_SHARED of that falls on columns k < s in every
-    row's L part, the updates done for all rows at once; otherwise row s is eliminated
-    alone and the search moves on by one row."""
+    row's L part, and the rows of U it reads are on average PANEL_MIN_ULEN long, the
+    updates done for all rows at once; otherwise row s is eliminated alone and the search
+    moves on by one row."""
     rowptr, colidx, diagp = (np.asarray(a, dtype=np.int64) for a in (rowptr, colidx, diagp))
     n = diagp.size
     ulen = rowptr[1:] - diagp - 1
@@ -109,9 +115,11 @@ def panels(rowptr, colidx, diagp, width=LU_PANEL):
             shared = lower[s][lower[s] < s]
             for r in range(s + 1, s + width):
                 shared = np.intersect1d(shared, lower[r], assume_unique=True)
-            if width * int(ulen[shared].sum()) >= PANEL_MIN_SHARED * total:
+            merged = np.unique(np.concatenate(lower[s:s + width]))
+            if (width * int(ulen[shared].sum()) >= PANEL_MIN_SHARED * total
+                    and merged.size and ulen[merged].mean() >= PANEL_MIN_ULEN):
                 first.append(s)
-                ks.append(np.unique(np.concatenate(lower[s:s + width])))
+                ks.append(merged)
                 s += width
                 continue
         s += 1

@@ -36,6 +36,7 @@ typedef int64_t i64;
 #define EXPORT __attribute__((visibility("default")))
 
 typedef struct { const i64 *p; i64 n; } ivec;
+typedef struct { const int32_t *p; i64 n; } jvec;   /* an int32 index table (tables._i32) */
 typedef struct { const double *p; i64 n; } fvec;
 
 /* the reference engine's diagram: one Python function, called through a ctypes callback as
@@ -101,6 +102,13 @@ static void bind_ctx(Ctx *c, const i64 *addr, const i64 *shape, double *P) {
 /* ---------------------------------------------------------------- tables (ivdrem/sim/tables.py) */
 static inline ivec int_table(const Ctx *c, int f) {
     ivec v = {c->table_ints + c->table_ints[f], c->table_ints[f + 1] - c->table_ints[f]};
+    return v;
+}
+
+/* an index table of int32 values: its count, then the values two to an int64 entry */
+static inline jvec i32_table(const Ctx *c, int f) {
+    const i64 *b = c->table_ints + c->table_ints[f];
+    jvec v = {(const int32_t *)(b + 1), b[0]};
     return v;
 }
 
@@ -496,8 +504,8 @@ static int push_history(Ctx *c, double t) {
 /* the chain rule's multiply-adds, run by run (ivdrem/sim/jacobian.py, _runs): a run of
  * consecutive destinations takes one factor times consecutive sources, or consecutive
  * factors alone (src < 0); the runs never overlap their sources */
-static void jac_chain(const double *F, double *S, i64 nS, ivec dst, ivec fidx, ivec src,
-                      ivec len, ivec j_pos, ivec j_slot, double *J) {
+static void jac_chain(const double *F, double *S, i64 nS, jvec dst, jvec fidx, jvec src,
+                      jvec len, jvec j_pos, jvec j_slot, double *J) {
     for (i64 i = 0; i < nS; i++) S[i] = 0.0;
     for (i64 r = 0; r < dst.n; r++) {
         double *restrict d = S + dst.p[r];
@@ -535,7 +543,7 @@ static void fd_shift(double *xb, double *ub, const double *xb0, const double *ub
 }
 
 static void fd_scatter(const double *yp, const double *ym, const double *hh, i64 c0, i64 c1,
-                       ivec e_ptr, ivec e_row, ivec e_slot, double *JB) {
+                       ivec e_ptr, jvec e_row, jvec e_slot, double *JB) {
     for (i64 c = c0; c < c1; c++) {
         double inv = 1.0 / hh[c];
         for (i64 e = e_ptr.p[c]; e < e_ptr.p[c + 1]; e++) {
@@ -548,7 +556,8 @@ static void fd_scatter(const double *yp, const double *ym, const double *hh, i64
 /* The static pattern's rows: perm, CSR (rowptr, colidx, diagp) and the panels
  * (sparse_lu.panels: first rows, and the columns each eliminates, kptr / k) */
 typedef struct {
-    const i64 *perm, *rowptr, *colidx, *diagp, *panel_rows, *panel_kptr, *panel_k;
+    const i64 *perm, *rowptr, *diagp, *panel_rows, *panel_kptr, *panel_k;
+    const int32_t *colidx;              /* int32: read once per entry of L + U per solve */
     i64 npanels;
 } SluPattern;
 
@@ -565,7 +574,8 @@ static inline int pivot_ok(double d, double rmax) {
  * (pivot checked, values stored) once every column before s + g is eliminated. */
 static int slu_panel(const double *J, double cc, double *vals, double *inv, double *Wb,
                      const SluPattern *pt, i64 s, const i64 *ks, i64 nk) {
-    const i64 *rowptr = pt->rowptr, *colidx = pt->colidx, *diagp = pt->diagp;
+    const i64 *rowptr = pt->rowptr, *diagp = pt->diagp;
+    const int32_t *colidx = pt->colidx;
     double rmax[LU_PANEL];
     for (i64 g = 0; g < LU_PANEL; g++)
         for (i64 p = rowptr[s + g]; p < rowptr[s + g + 1]; p++) {
@@ -624,7 +634,8 @@ static int slu_panel(const double *J, double cc, double *vals, double *inv, doub
  * but the panels' rows together (slu_panel) */
 static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv,
                       const SluPattern *pt) {
-    const i64 *rowptr = pt->rowptr, *colidx = pt->colidx, *diagp = pt->diagp;
+    const i64 *rowptr = pt->rowptr, *diagp = pt->diagp;
+    const int32_t *colidx = pt->colidx;
     double *vals = LU;
     double *inv = LU + rowptr[n];
     double *w = inv + n;
@@ -663,7 +674,8 @@ static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv,
 }
 
 static void slu_solve(double *LU, i64 n, const SluPattern *pt, double *b) {
-    const i64 *perm = pt->perm, *rowptr = pt->rowptr, *colidx = pt->colidx, *diagp = pt->diagp;
+    const i64 *perm = pt->perm, *rowptr = pt->rowptr, *diagp = pt->diagp;
+    const int32_t *colidx = pt->colidx;
     const double *vals = LU;
     const double *inv = LU + rowptr[n];
     double *y = LU + rowptr[n] + n;
@@ -727,8 +739,8 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
     ivec fd_gc_ptr = int_table(c, T_FD_GC_PTR);
     ivec fd_col = int_table(c, T_FD_COL);
     ivec fd_e_ptr = int_table(c, T_FD_E_PTR);
-    ivec fd_e_row = int_table(c, T_FD_E_ROW);
-    ivec fd_e_slot = int_table(c, T_FD_E_SLOT);
+    jvec fd_e_row = i32_table(c, T_FD_E_ROW);
+    jvec fd_e_slot = i32_table(c, T_FD_E_SLOT);
     double *F = scratch_part(c, SC_F, NULL);
     double *xb = scratch_part(c, SC_XB, NULL);
     double *xb0 = scratch_part(c, SC_XB0, NULL);
@@ -803,9 +815,9 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
             fd_scatter(yp, central ? ym : y0, hh, c0, c1, fd_e_ptr, fd_e_row, fd_e_slot, F);
         }
     }
-    jac_chain(F, S, nS, int_table(c, T_JAC_RUN_DST), int_table(c, T_JAC_RUN_F),
-              int_table(c, T_JAC_RUN_SRC), int_table(c, T_JAC_RUN_LEN), int_table(c, T_JAC_J_POS),
-              int_table(c, T_JAC_J_SLOT), J);
+    jac_chain(F, S, nS, i32_table(c, T_JAC_RUN_DST), i32_table(c, T_JAC_RUN_F),
+              i32_table(c, T_JAC_RUN_SRC), i32_table(c, T_JAC_RUN_LEN), i32_table(c, T_JAC_J_POS),
+              i32_table(c, T_JAC_J_SLOT), J);
     return OK;
 }
 
@@ -821,8 +833,8 @@ static void dense_solve(const double *LU, i64 n, const i64 *piv, double *b);
 static SluPattern slu_pattern(Ctx *c) {
     ivec rows = int_table(c, T_LU_PANEL_ROWS);
     return (SluPattern){int_table(c, T_LU_PERM).p, int_table(c, T_LU_ROWPTR).p,
-                        int_table(c, T_LU_COLIDX).p, int_table(c, T_LU_DIAGP).p, rows.p,
-                        int_table(c, T_LU_PANEL_KPTR).p, int_table(c, T_LU_PANEL_K).p, rows.n};
+                        int_table(c, T_LU_DIAGP).p, rows.p, int_table(c, T_LU_PANEL_KPTR).p,
+                        int_table(c, T_LU_PANEL_K).p, i32_table(c, T_LU_COLIDX).p, rows.n};
 }
 
 static int newton_factor(Ctx *c, const double *J, i64 n, double cc, double *LU, i64 *piv) {
@@ -1540,16 +1552,16 @@ EXPORT int ivdrem_hist_lookup(const i64 *waddr, const i64 *wshape, double tq, i6
 }
 
 EXPORT int ivdrem_slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv,
-                             const i64 *perm, const i64 *rowptr, const i64 *colidx,
+                             const i64 *perm, const i64 *rowptr, const int32_t *colidx,
                              const i64 *diagp, const i64 *panel_rows, i64 npanels,
                              const i64 *panel_kptr, const i64 *panel_k) {
-    SluPattern pt = {perm, rowptr, colidx, diagp, panel_rows, panel_kptr, panel_k, npanels};
+    SluPattern pt = {perm, rowptr, diagp, panel_rows, panel_kptr, panel_k, colidx, npanels};
     return slu_factor(J, n, cc, LU, piv, &pt);
 }
 
 EXPORT void ivdrem_slu_solve(double *LU, i64 n, const i64 *perm, const i64 *rowptr,
-                             const i64 *colidx, const i64 *diagp, double *b) {
-    SluPattern pt = {perm, rowptr, colidx, diagp, NULL, NULL, NULL, 0};
+                             const int32_t *colidx, const i64 *diagp, double *b) {
+    SluPattern pt = {perm, rowptr, diagp, NULL, NULL, NULL, colidx, 0};
     slu_solve(LU, n, &pt, b);
 }
 
