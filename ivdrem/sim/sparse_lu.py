@@ -231,7 +231,8 @@ def refine_by_groups(A, order, groups):
     SOLVES_PER_FACTOR solves (:func:`_cost`).  The search is greedy: every move of a group
     to just before another group's first state, or to the end, is tried in turn, and kept
     when it lowers the cost by REFINE_MIN_GAIN; a pass without a kept move ends it.  An
-    order whose fill alone exceeds the best cost stops early (``_filled_rows``' limit)."""
+    order is abandoned as soon as its rows so far cost more than the best (the cost
+    limit of :func:`_order_cost`)."""
     groups = np.asarray(groups)
     names = list(dict.fromkeys(groups[order].tolist()))
     if len(names) < 2:
@@ -242,13 +243,15 @@ def refine_by_groups(A, order, groups):
     for _ in range(REFINE_MAX_ROUNDS):
         kept = False
         for g in names:
+            # g's states and the others, each in their order, are the same whichever move
+            # of g is kept
+            moved = groups[order] == g
+            block, rest = order[moved], order[~moved]
             for before in names + [None]:
                 if before == g or tries >= REFINE_MAX_TRIES:
                     continue
-                moved = groups[order] == g
-                rest = order[~moved]
                 at = rest.size if before is None else int(np.argmax(groups[rest] == before))
-                cand = np.concatenate([rest[:at], order[moved], rest[at:]])
+                cand = np.concatenate([rest[:at], block, rest[at:]])
                 if np.array_equal(cand, order):
                     continue
                 tries += 1
@@ -372,12 +375,11 @@ def _grouped_symbolic_lu(pattern, groups):
     n = pattern.shape[0]
     path = _order_path(pattern, groups)
     kept = _read_order(path, n)
-    A = (sparse.csr_matrix(pattern, dtype=float) + sparse.identity(n, format="csr"))
-    A.data[:] = 1.0
+    A = _pattern_csr(pattern)
     if kept is not None:
         order, name = kept
         return SymbolicLU(order, _filled_rows(A, order), A.nnz, name)
-    base = _symbolic_lu(pattern)
+    base = _symbolic_lu(pattern, A)
     refined = refine_by_groups(A, base.perm, groups)
     if refined is None:
         order, name = np.array(base.perm), base.ordering
@@ -395,11 +397,19 @@ def _grouped_symbolic_lu(pattern, groups):
     return SymbolicLU(order, _filled_rows(A, order), A.nnz, name)
 
 
-def _symbolic_lu(pattern):
+def _pattern_csr(pattern):
+    """The pattern of c I - J as CSR (ones), its diagonal stored."""
     n = pattern.shape[0]
     A = (sparse.csr_matrix(np.asarray(pattern, dtype=bool), dtype=float)
          + sparse.identity(n, format="csr"))
     A.data[:] = 1.0
+    return A
+
+
+def _symbolic_lu(pattern, A=None):
+    """The least-fill candidate ordering of `pattern` (A: its _pattern_csr, if built)."""
+    A = _pattern_csr(pattern) if A is None else A
+    n = A.shape[0]
     nnz_a = A.nnz
     # candidates in the order that breaks ties: the first with the least fill wins
     candidates = [("natural", np.arange(n))]
