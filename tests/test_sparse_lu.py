@@ -378,6 +378,17 @@ def test_group_moves_lower_the_cost_and_keep_every_group_in_order(seed):
     assert sparse_lu.refine_by_groups(csr, base.perm, np.zeros(n, dtype=int)) is None
 
 
+def test_the_compiled_search_finds_the_python_search_s_order(monkeypatch):
+    """The search of a real arm's loop evaluates its orders with the numba-compiled cost
+    (REFINE_COMPILED_FROM states or more): the same moves, the same order as in Python."""
+    P, groups = _two_stage_adaptation(seed=1)
+    base, csr = sparse_lu._symbolic_lu(P), as_csr(P)
+    in_python = sparse_lu.refine_by_groups(csr, base.perm, groups)
+    monkeypatch.setattr(sparse_lu, "REFINE_COMPILED_FROM", 0)
+    compiled = sparse_lu.refine_by_groups(csr, base.perm, groups)
+    assert np.array_equal(compiled[0], in_python[0]) and compiled[1:] == in_python[1:]
+
+
 def test_the_refined_order_factors_and_solves_as_numpy(tmp_path, monkeypatch):
     """The planar-4 loop's real pattern with its state groups: the refined order costs less
     than the least-fill one, and c I - J factored in it solves as numpy does."""
