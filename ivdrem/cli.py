@@ -212,5 +212,65 @@ def _run_command(argv):
     return args.func(args)
 
 
+def run():
+    """The ``ivdrem`` console script and ``python -m ivdrem``: :func:`main` in a process of
+    its own, which it starts and ends faster than a plain ``sys.exit(main())`` (a caller
+    in Python uses :func:`main`, which changes neither).
+
+    Start: the cyclic garbage collector is paused while python-control, scipy and numpy
+    are imported, and what they allocated is frozen out of later collections.  Those
+    collections find nothing to free there: 0.11 s of the 2.6 s of ``ivdrem paper
+    --t-end 1``, measured.
+
+    End: once the command has returned, its output is flushed and the exit handlers
+    (``atexit``) have run, the process exits without the interpreter's teardown.  Freeing
+    every module's objects one by one took 0.5 s at the end of ``ivdrem paper``; nothing
+    of a command's work is lost by skipping it, since every file is written and closed
+    before the command returns.  An error or Ctrl-C keeps the ordinary exit.
+    """
+    import gc
+    gc.disable()
+    try:
+        from . import laws  # noqa: F401 - python-control and its scipy, as every command
+    except BaseException:
+        gc.enable()
+        raise
+    gc.freeze()
+    gc.enable()
+    code = main()
+    _exit_now(code)
+
+
+def _exit_now(code):
+    """Exit with `code` (main's return value) after flushing and the exit handlers, but
+    without the interpreter's teardown; the ordinary exit if the output cannot be flushed
+    (a closed pipe: Python's own report of it is kept)."""
+    import atexit
+    import os
+    code = 0 if code is None else code
+    if not isinstance(code, int):
+        sys.exit(code)
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        sys.exit(code)
+    run_handlers = getattr(atexit, "_run_exitfuncs", None)   # CPython's own, kept private
+    if run_handlers is None:
+        sys.exit(code)
+    run_handlers()
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        pass
+    try:     # C code's own buffered output (an FMU that prints), which os._exit would drop
+        import ctypes
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):
+        pass
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
