@@ -1,29 +1,15 @@
-"""Robot models: the paper's 2-link arm and an n-link planar arm, plus a name registry."""
+"""Robot models in sympy: the paper's 2-link arm and an n-link planar arm (by name:
+:func:`ivdrem.models.get_model`, in :mod:`ivdrem.models.registry`)."""
 from __future__ import annotations
-
-import re
 
 import numpy as np
 import sympy as sp
 
-from .base import RobotModel
 from .euler_lagrange import EulerLagrangeModel
-from .urdf import ARM_NAMES, arm
+from .registry import MODEL_NAMES, TWO_LINK_THETA, get_model, model_names
 
 __all__ = ["two_link", "planar_arm", "get_model", "model_names", "MODEL_NAMES",
            "TWO_LINK_THETA"]
-
-#: The paper's parameter values (Section 4).
-TWO_LINK_THETA = (1.3, 0.28, 0.32, 0.4, 1.4)
-
-#: Names accepted by :func:`get_model` (the URDF arms need the ``arms`` extra).
-MODEL_NAMES = ("two-link", "planar-N (N >= 1, e.g. planar-3)", *ARM_NAMES)
-
-
-def model_names():
-    """The names :func:`get_model` accepts: ``"two-link"``, the pattern ``"planar-N"``
-    (N >= 1) and the named URDF arms (:func:`ivdrem.models.arm`)."""
-    return MODEL_NAMES
 
 
 def two_link(theta=None, g=9.81):
@@ -193,21 +179,3 @@ def planar_arm(n, lengths=None, g=9.81, friction=False, theta_values=None, *,
     return EulerLagrangeModel(f"planar-{n}", q, theta, M, potential=P, F=F, dq=dq,
                               constants=constants, theta_values=theta_values,
                               theta_names=[str(s) for s in theta], parameter_units=units)
-
-
-def get_model(name, **kwargs):
-    """Model by name: ``"two-link"``, ``"planar-N"`` or a named arm (``"panda"``, ``"ur5"``,
-    ``"iiwa"``, ``"xarm7"``); keyword arguments are passed on.  A model is returned as is."""
-    if isinstance(name, RobotModel):
-        return name
-    key = str(name).strip().lower()
-    if key in ("two-link", "two_link", "2-link"):
-        return two_link(**kwargs)
-    mt = re.fullmatch(r"planar[-_](\d+)", key)
-    if mt and int(mt.group(1)) >= 1:
-        return planar_arm(int(mt.group(1)), **kwargs)
-    if key in ARM_NAMES:
-        if "g" in kwargs:
-            kwargs["gravity"] = kwargs.pop("g")
-        return arm(key, **kwargs)
-    raise ValueError(f"unknown model {name!r}; valid names: " + ", ".join(MODEL_NAMES))
