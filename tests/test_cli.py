@@ -283,3 +283,50 @@ def test_the_command_line_parser_loads_no_report_machinery():
             "if m in sys.modules]; assert not bad, bad; "
             "assert callable(r.write_report) and 'ivdrem.reports.report' in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# ---------------------------------------------------------------- the console script's exit
+def _console(code, tmp_path, *args):
+    """Run `code` (which ends by calling ivdrem.cli.run) in a child process with argv."""
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=600)
+
+
+_WITH_HANDLER = ("import atexit, gc, sys\n"
+                 "atexit.register(lambda: print('handler ran; gc enabled:', gc.isenabled()))\n"
+                 "sys.argv[0] = 'ivdrem'\n"
+                 "from ivdrem.cli import run\n"
+                 "run()\n"
+                 "print('not reached')\n")
+
+
+def test_the_console_script_keeps_every_output_and_its_exit_handlers(tmp_path):
+    """run() skips the interpreter's teardown: the command's printed lines, its file and
+    the exit handlers must all be there, and the exit status must be the command's."""
+    out = tmp_path / "paper.json"
+    p = _console(_WITH_HANDLER, tmp_path, "paper", "--t-end", "0.5", "--laws",
+                 "composite-learning", "--json", str(out), "--quiet")
+    assert p.returncode == 0, p.stderr[-2000:]
+    lines = p.stdout.splitlines()
+    assert lines[0].strip().startswith("composite-learning: |theta_err|(t_end)")
+    assert lines[-2] == f"wrote {out}"                  # the command's last line, flushed
+    assert lines[-1] == "handler ran; gc enabled: True"  # then the handlers, GC back on
+    assert "not reached" not in p.stdout
+    assert set(json.loads(out.read_text())) == {"composite-learning"}
+
+
+def test_the_console_script_exits_with_the_commands_status(tmp_path):
+    p = _console(_WITH_HANDLER, tmp_path, "paper", "--t-end", "-1", "--quiet")
+    assert p.returncode == 2
+    assert "--t-end must be a finite number of seconds > 0" in p.stderr
+    assert p.stdout.splitlines() == ["handler ran; gc enabled: True"]
+    # an argparse error is a SystemExit: the ordinary exit, its status and the handlers
+    p = _console(_WITH_HANDLER, tmp_path, "paper", "--no-such-option")
+    assert p.returncode == 2 and "unrecognized arguments" in p.stderr
+    assert p.stdout.splitlines() == ["handler ran; gc enabled: True"]
+
+
+def test_python_m_ivdrem_is_the_console_script(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "ivdrem", "paper", "--t-end", "-1"],
+                       capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert p.returncode == 2 and "--t-end" in p.stderr
