@@ -226,12 +226,16 @@ def run():
     (``atexit``) have run, the process exits without the interpreter's teardown.  Freeing
     every module's objects one by one took 0.5 s at the end of ``ivdrem paper``; nothing
     of a command's work is lost by skipping it, since every file is written and closed
-    before the command returns.  An error or Ctrl-C keeps the ordinary exit.
+    before the command returns.  An exception that escapes the command (argparse's exit
+    included) keeps the ordinary exit.
     """
     import gc
     gc.disable()
     try:
         from . import laws  # noqa: F401 - python-control and its scipy, as every command
+    except KeyboardInterrupt:
+        gc.enable()
+        sys.exit(interrupted("ivdrem"))
     except BaseException:
         gc.enable()
         raise

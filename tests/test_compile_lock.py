@@ -86,3 +86,13 @@ def test_a_cache_that_cannot_hold_the_lock_file_imports_without_a_lock(tmp_path,
     mod = import_generated(tmp_path, "ivdrem_locktest_ro", "VALUE = 3\n")
     assert mod.VALUE == 3
     assert not list(tmp_path.glob(".*.lock"))
+
+
+def test_a_users_module_imported_by_path_gets_no_lock_file_beside_it(tmp_path):
+    """import_path also imports a configuration's plugin files (experiment.plugins): a
+    user's directory must not receive a lock file."""
+    from ivdrem.sim.cache import import_path
+    user = tmp_path / "my_laws.py"
+    user.write_text("VALUE = 7\n")
+    assert import_path("ivdrem_locktest_user", user).VALUE == 7
+    assert not [p for p in tmp_path.rglob("*") if p.name.endswith(".lock")]

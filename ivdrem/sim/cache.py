@@ -72,35 +72,37 @@ def write_generated(cdir, name, src):
 
 def import_generated(cdir, name, src):
     """The module `name` of source `src`, written to `cdir` and imported (once per
-    process); a module whose import failed is not left in sys.modules."""
+    process); a module whose import failed is not left in sys.modules.  Imported under the
+    module's lock (:func:`compile_lock`): another process importing it at the same time
+    waits, then loads the machine code this one compiled."""
     if name in sys.modules:
         return sys.modules[name]
-    return import_path(name, write_generated(cdir, name, src))
+    path = write_generated(cdir, name, src)
+    with compile_lock(path):
+        return import_path(name, path)
 
 
 def import_path(name, path):
     """The module `name` of the Python file at `path`, imported once per process; a module
-    whose import failed is not left in sys.modules.  Imported under the module's lock
-    (:func:`compile_lock`): another process importing it at the same time waits, then
-    loads the machine code this one compiled."""
+    whose import failed is not left in sys.modules.  (No lock: `path` may be a user's
+    file, beside which nothing is written.)"""
     if name in sys.modules:
         return sys.modules[name]
-    with compile_lock(path):
-        spec = importlib.util.spec_from_file_location(name, path)
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        try:
-            spec.loader.exec_module(mod)
-        except BaseException:
-            sys.modules.pop(name, None)
-            raise
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    try:
+        spec.loader.exec_module(mod)
+    except BaseException:
+        sys.modules.pop(name, None)
+        raise
     return mod
 
 
 @contextmanager
 def compile_lock(path):
-    """An exclusive lock on the generated module at `path`, held while it is imported
-    (numba compiles its kernels then, or loads them from its cache).
+    """An exclusive lock on the generated module at `path` in the cache directory, held
+    while it is imported (numba compiles its kernels then, or loads them from its cache).
 
     The laws' loops share most kernels (plant, observer, filters): two study workers
     starting one law each on an empty cache compiled the shared ones twice, at once (28 s
