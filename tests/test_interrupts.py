@@ -40,8 +40,24 @@ def _interrupt_after(seconds):
     return timer
 
 
+@pytest.fixture
+def ctrl_c_delivered():
+    """Python's Ctrl-C handler for the test, also where the test process was started with
+    SIGINT ignored: a shell's background job (``( pytest ... & )`` in a script) inherits
+    that, Python then installs no handler, and the SIGINT this test sends itself would be
+    dropped while the 1e4 s run it is meant to stop goes on for hours (reproduced so)."""
+    before = signal.getsignal(signal.SIGINT)
+    if before in (signal.SIG_IGN, signal.SIG_DFL, None):
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        if before is not None:
+            signal.signal(signal.SIGINT, before)
+
+
 @pytest.mark.parametrize("case", ["compiled", "compiled-python-block", "reference"])
-def test_ctrl_c_inside_simulate_is_a_keyboard_interrupt(case):
+def test_ctrl_c_inside_simulate_is_a_keyboard_interrupt(case, ctrl_c_delivered):
     """The compiled loop without Python blocks handles a pending Ctrl-C at its reports
     (200 per run); a Python block's or the reference engine's callback raises it; either
     way simulate raises KeyboardInterrupt, soon, and not as a BlockError."""
@@ -128,8 +144,11 @@ def test_a_real_ctrl_c_during_the_paper_run_exits_130(tmp_path):
     """)
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ, PYTHONPATH=root)
+    # started as a terminal starts it: SIGINT at its default, so that Python installs its
+    # Ctrl-C handler even where this test process inherited SIGINT ignored
     res = subprocess.run([sys.executable, "-c", driver], capture_output=True, text=True,
-                         env=env, cwd=tmp_path, timeout=300)
+                         env=env, cwd=tmp_path, timeout=300,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert res.returncode == 130, res.stderr[-2000:]
     assert res.stderr.strip().splitlines()[-1] == "ivdrem: interrupted (Ctrl-C)"
     assert "Traceback" not in res.stderr
