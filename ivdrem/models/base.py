@@ -100,6 +100,14 @@ class RobotModel:
             pass
         return src
 
+    def _memo_source(self, prefix, make):
+        """``source(prefix)``'s memory: `make(prefix)` once per prefix and model object
+        (in ``self._source_cache``), the prefix checked first."""
+        prefix = self._check_prefix(prefix)
+        if prefix not in self._source_cache:
+            self._source_cache[prefix] = make(prefix)
+        return self._source_cache[prefix]
+
     @staticmethod
     def _check_prefix(prefix):
         prefix = str(prefix)

@@ -453,10 +453,9 @@ class EulerLagrangeModel(RobotModel):
         The fragment needs ``import math`` and ``import numpy as np`` at the top of the
         module it is placed in, and is numba-nopython compilable.
         """
-        prefix = self._check_prefix(prefix)
-        if prefix not in self._source_cache:   # sympy's printing: minutes for a large arm
-            self._source_cache[prefix] = self._disk_cached_source(prefix, self.generate_source)
-        return self._source_cache[prefix]
+        # sympy's printing takes minutes for a large arm: kept on disk
+        return self._memo_source(
+            prefix, lambda p: self._disk_cached_source(p, self.generate_source))
 
     def generate_source(self, prefix: str = "") -> str:
         """:meth:`source` made from the symbolic model, without any cache."""

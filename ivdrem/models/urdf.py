@@ -631,10 +631,7 @@ class RigidBodyModel(RobotModel):
         arrays of the chain, the kernels of :mod:`ivdrem.models.rigid_body` and thin
         functions calling them.  Needs ``import math`` and ``import numpy as np``;
         numba-nopython compilable."""
-        prefix = self._check_prefix(prefix)
-        if prefix not in self._source_cache:
-            self._source_cache[prefix] = self._generate(prefix)
-        return self._source_cache[prefix]
+        return self._memo_source(prefix, self._generate)
 
     def _generate(self, P):
         c = self._chain
