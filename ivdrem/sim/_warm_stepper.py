@@ -17,7 +17,7 @@ import sys
 import types
 from pathlib import Path
 
-from .cache import cache_dir, compile_lock
+from .cache import cache_dir, compile_lock, import_path
 
 _CHILD_ENV = "IVDREM_STEPPER_CHILD"
 _SWITCH_ENVS = ("IVDREM_COMPILE_CHILD", "IVDREM_STEPPER_PREFETCH")
@@ -125,12 +125,9 @@ def _job(argv):
     importing the compiled engine)."""
     if argv[:1] != ["--modules"]:
         raise SystemExit("usage: the child's job is --modules NAME ...")
-    import importlib.util
     cdir = cache_dir()       # the parent's, passed as IVDREM_CACHE_DIR
     for name in argv[1:]:
         path = Path(cdir) / f"{name}.py"
         with compile_lock(path):   # a module the parent compiles too is compiled once
-            spec = importlib.util.spec_from_file_location(name, path)
-            mod = sys.modules[name] = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(mod)
+            import_path(name, path)
     return 0

@@ -238,7 +238,7 @@ def refine_by_groups(A, order, groups):
     if len(names) < 2:
         return None
     best = _order_cost(A, order, np.inf)
-    best_cost, start = _cost(*best), _cost(*best)
+    best_cost = start = _cost(*best)
     tries = 0
     for _ in range(REFINE_MAX_ROUNDS):
         kept = False
