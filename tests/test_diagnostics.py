@@ -349,3 +349,39 @@ def test_model_functions_over_samples_without_a_compiled_module(monkeypatch):
     monkeypatch.setattr(compiled, "model_module", refuse)
     slow = dg._model_at_samples(model, "Phi", (2, 5), q, q, q, q)
     np.testing.assert_array_equal(fast, slow)
+
+
+# ------------------------------------------------------------------ a run shorter than the window
+def test_short_horizon_note_follows_the_start_of_the_composite_term():
+    # scale-free mixings start (21) at T (ramp T/10); the paper's at 0; any windowed law
+    # needs its window full; a law without a window is judged on any horizon
+    assert diagnostics.short_horizon_note(1.0, 40.0, "eigen") == (
+        "not evaluated: the composite term starts at T = 40 s (the run ends at t = 1 s)")
+    assert diagnostics.short_horizon_note(43.0, 40.0, "channel").startswith("not evaluated")
+    assert diagnostics.short_horizon_note(45.0, 40.0, "eigen") == ""
+    assert "before the window T = 20 s is full" in diagnostics.short_horizon_note(
+        10.0, 20.0, "paper")
+    assert diagnostics.short_horizon_note(30.0, 20.0, "paper") == ""
+    assert diagnostics.short_horizon_note(1.0, 20.0, None, windowed=False) == ""
+
+
+def test_a_run_shorter_than_the_window_gives_no_verdict_about_learning(tmp_path, capsys):
+    """planar-3 ("eigen" mixing, the term starts at T) for 1 s: the learning checks are not
+    decided, no learning warning is printed or written, and the note says why."""
+    import json
+    from ivdrem.cli import main
+    out_json = tmp_path / "o.json"
+    assert main(["paper", "--config", "examples/planar3.toml", "--t-end", "1",
+                 "--laws", "iv-drem", "--json", str(out_json), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "does not learn" not in text and "has not learned" not in text
+    assert "inactive" not in text
+    assert "note: not evaluated: the composite term starts at T" in text
+    data = json.loads(out_json.read_text())
+    assert data["iv-drem"]["warnings"] == []
+    checks = {c["id"]: c for c in data["iv-drem"]["diagnostics"]["checks"]}
+    for cid in ("LEARN", "ACTIVE", "RATE"):
+        assert checks[cid]["verdict"] == diagnostics.UNDECIDED, cid
+        assert checks[cid]["note"].startswith("not evaluated: the composite term starts at T")
+    # what a short run can judge keeps its own verdict and note
+    assert not checks["KA2"]["note"].startswith("not evaluated")
