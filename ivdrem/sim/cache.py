@@ -21,6 +21,7 @@ import numpy as np
 
 from .. import __version__
 from .._atomic import write_text_atomic
+from .._cache_home import cache_dir   # noqa: F401 - one definition, read before numba loads
 
 __all__ = ["cache_dir", "package_digest", "source_hash", "write_generated",
            "import_generated", "import_path", "compile_lock", "GENERATED_HEADER",
@@ -48,13 +49,6 @@ GENERATED_HEADER = [f"# helpers {helpers_digest()}", "import math", "import nump
                     "from ivdrem.sim._native import call_c"]
 
 
-def cache_dir() -> Path:
-    """$IVDREM_CACHE_DIR, else $XDG_CACHE_HOME/ivdrem (default ~/.cache/ivdrem)."""
-    d = os.environ.get("IVDREM_CACHE_DIR")
-    if d:
-        return Path(d)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "ivdrem"
 
 
 def source_hash(text):
