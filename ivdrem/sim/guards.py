@@ -35,7 +35,8 @@ __all__ = ["CostLimitError", "CostEstimate", "estimate_cost", "check_cost",
            "check_bounds", "MAX_OUTPUT_BYTES", "MAX_STEPS", "H_MAX_MIN", "DT_OUT_MIN",
            "DEFAULT_H_MAX", "check_diagram_cost", "paper_loop_steps", "check_run_time",
            "run_seconds", "SECONDS_PER_STEP", "MAX_RUN_SECONDS", "PAPER_LOOP_STEPS_300S",
-           "oscillation_steps", "STEPS_PER_PERIOD_MIN"]
+           "oscillation_steps", "STEPS_PER_PERIOD_MIN", "check_interconnect_size",
+           "interconnect_bytes", "MAX_INTERCONNECT_BYTES"]
 
 #: Largest output grid (returned samples of outputs and states), bytes: 2 GiB.
 MAX_OUTPUT_BYTES = 2 * 2**30
@@ -267,3 +268,59 @@ def check_diagram_cost(diagram, t_end, **kwargs) -> CostEstimate:
     periods = [p for p in map(sample_period, getattr(diagram, "syslist", ())) if p > 0]
     return check_cost(t_end, noutputs=diagram.noutputs, nstates=diagram.nstates,
                       sample_period=min(periods, default=None), **kwargs)
+
+
+#: Largest memory (bytes) the dense maps of one ``ct.interconnect`` may take: the limit of
+#: the output grid, and never more than half of this machine's memory.  python-control
+#: keeps a dense connection map of every block input against every block output (plus the
+#: input and output maps): at nθ = 134 (a 20-link chain) that was 105 GiB, requested after
+#: 185 s of work.
+MAX_INTERCONNECT_BYTES = MAX_OUTPUT_BYTES
+
+
+def _physical_memory() -> float | None:
+    try:
+        import os
+        return float(os.sysconf("SC_PAGE_SIZE")) * float(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def interconnect_bytes(ninputs, noutputs, n_ext_inputs=0, n_ext_outputs=0) -> float:
+    """Bytes of the dense maps python-control's InterconnectedSystem holds for blocks with
+    `ninputs` inputs and `noutputs` outputs in all: connect_map (inputs x outputs),
+    input_map (inputs x external inputs), output_map (external outputs x (outputs +
+    inputs)), float64 each."""
+    return 8.0 * (ninputs * noutputs + ninputs * n_ext_inputs
+                  + n_ext_outputs * (noutputs + ninputs))
+
+
+def check_interconnect_size(blocks, *, n_ext_inputs=0, n_ext_outputs=0, what="the diagram",
+                            max_bytes=None):
+    """Refuse, before ``ct.interconnect`` allocates them, dense maps beyond
+    :data:`MAX_INTERCONNECT_BYTES` (or half the machine's memory), with the numbers.
+    Returns the estimate (bytes) otherwise."""
+    nin = sum(int(b.ninputs) for b in blocks)
+    nout = sum(int(b.noutputs) for b in blocks)
+    nx = sum(int(b.nstates) for b in blocks)
+    need = interconnect_bytes(nin, nout, n_ext_inputs, n_ext_outputs)
+    limit = MAX_INTERCONNECT_BYTES if max_bytes is None else float(max_bytes)
+    ram = _physical_memory()
+    if ram is not None and max_bytes is None:
+        limit = min(limit, 0.5 * ram)
+    if need > limit:
+        raise CostLimitError(
+            f"{what} is too large to assemble: {len(blocks)} blocks with {nx:,} states, "
+            f"{nin:,} block inputs and {nout:,} block outputs; python-control's dense "
+            f"connection maps alone take {nin:,} x {nout:,} x 8 bytes = {_gib(need)}, above "
+            f"the limit of {_gib(limit)} (ivdrem.sim.guards): use a model with fewer "
+            "parameters (URDF joints=[...] to lock joints, no friction terms)")
+    return need
+
+
+def loop_states(n, ntheta) -> int:
+    """States of the IV-DREM closed loop (paper mixing) of an arm with `n` joints and
+    `ntheta` parameters, 2nθ² + 5n·nθ + 3nθ + 4n, known before any block is built; equal
+    to the built loop's count on the 2-link and planar-3 arms (tests/test_user_round_two.py)."""
+    n, nt = int(n), int(ntheta)
+    return 2 * nt * nt + 5 * n * nt + 3 * nt + 4 * n
