@@ -79,9 +79,8 @@ def method_overrides(name, config_path=None) -> dict:
     user = {}
     if config_path is not None:
         try:   # a broken file is reported by load_config, with its own message
-            from .experiments.config import tomllib
-            with open(config_path, "rb") as f:
-                user = tomllib.load(f).get("solver", {})
+            from .experiments.config import read_toml
+            user = read_toml(config_path)[0].get("solver", {})   # never a FIFO or a device
         except Exception:
             user = {}
     out = {"solver.method": name}

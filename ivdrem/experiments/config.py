@@ -481,11 +481,16 @@ def read_toml(path, what: str = "config file", error=None) -> tuple[dict, str]:
     """(table, text) of a TOML file; a missing, unreadable, non-UTF-8 or invalid file raises
     `error` (default ConfigError) naming `what` and the path."""
     error = ConfigError if error is None else error
+    from .._paths import InputFileError, read_input_bytes
     p = Path(path)
-    try:
-        text = p.read_text("utf-8")
+    try:    # a FIFO, a device or a runaway file: refused, never read (ivdrem._paths)
+        text = read_input_bytes(p, what).decode("utf-8")
     except FileNotFoundError:
         raise error(f"{what} '{p}' not found") from None
+    except IsADirectoryError:
+        raise error(f"{what} '{p}' is a directory, not a file") from None
+    except InputFileError as exc:
+        raise error(str(exc)) from None
     except UnicodeDecodeError as exc:
         raise error(f"{what} '{p}' is not UTF-8 text (TOML must be UTF-8): "
                     f"byte {exc.object[exc.start]:#04x} at offset {exc.start}") from None

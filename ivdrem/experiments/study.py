@@ -282,26 +282,76 @@ class RunStore:
 
 
 # --------------------------------------------------------------------------- the cluster
+def probe_scheduler(address: str, timeout: float = SCHEDULER_TIMEOUT_S) -> None:
+    """Raise :class:`StudyError` (one line) unless a Dask scheduler answers at the tcp
+    `address` within `timeout` seconds in all: Dask's own connection (its handshake) and
+    an ``identity`` request whose reply names a scheduler.  A port that accepts and stays
+    silent, one that answers HTTP (a dashboard) or another Dask server (a worker) are told
+    apart here; ``Client`` alone waits forever for the first and gives a raw TimeoutError
+    for the second."""
+    import asyncio
+
+    from distributed.comm import connect
+
+    async def ask():
+        comm = await connect(address, timeout=timeout)
+        try:
+            await comm.write({"op": "identity"})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    def fail(why):
+        return StudyError(f"--scheduler {address}: {why}; start one with `dask scheduler` "
+                          "(default port 8786) and give its address")
+    try:
+        reply = asyncio.run(asyncio.wait_for(ask(), timeout))
+    except (asyncio.TimeoutError, TimeoutError):
+        raise fail(f"no Dask scheduler answered within {timeout:g} s (the port accepted a "
+                   "connection and stayed silent, or the host did not answer)") from None
+    except Exception as exc:     # noqa: BLE001 - every failure of the probe is one line
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        if len(text) > 200:
+            text = text[:200] + "..."
+        raise fail(f"no Dask scheduler there ({type(exc).__name__}: {text})") from None
+    kind = reply.get("type") if isinstance(reply, dict) else None
+    if kind != "Scheduler":
+        raise fail(f"a Dask {kind} answered there, not a scheduler" if kind else
+                   "the server there does not speak Dask's protocol")
+
+
+def _check_scheduler(workers: int | None, scheduler: str | None) -> str | None:
+    """The --scheduler address made whole (``tcp://`` added), checked and probed
+    (:func:`probe_scheduler`), or None for the local cluster.  Called first in a study,
+    so a wrong address fails within :data:`SCHEDULER_TIMEOUT_S`, before any other work."""
+    if scheduler is None:
+        return None
+    if workers is not None:
+        raise StudyError("--workers applies to the local cluster only; a --scheduler "
+                         "has the workers its cluster started")
+    if "://" not in scheduler:
+        scheduler = "tcp://" + scheduler
+    from distributed.comm import parse_address, parse_host_port
+    try:   # a malformed address is refused before a client exists (no late traceback)
+        protocol, loc = parse_address(scheduler)
+        if protocol in ("tcp", "tls"):
+            parse_host_port(loc)
+    except ValueError as exc:
+        raise StudyError(f"--scheduler {scheduler!r} is not a Dask scheduler address "
+                         f"({exc}); give e.g. tcp://HOST:8786") from None
+    if protocol == "tcp":   # tls needs the cluster's certificates: Client's own check
+        probe_scheduler(scheduler)
+    return scheduler
+
+
 def _connect(workers: int | None, scheduler: str | None):
-    """(client, cluster or None).  An unreachable scheduler raises StudyError quickly."""
+    """(client, cluster or None) for a scheduler address checked by
+    :func:`_check_scheduler`, or a local cluster of `workers` processes."""
     import logging
 
     from dask.distributed import Client, LocalCluster
 
     if scheduler is not None:
-        if workers is not None:
-            raise StudyError("--workers applies to the local cluster only; a --scheduler "
-                             "has the workers its cluster started")
-        if "://" not in scheduler:
-            scheduler = "tcp://" + scheduler
-        from distributed.comm import parse_address, parse_host_port
-        try:   # a malformed address is refused before a client exists (no late traceback)
-            protocol, loc = parse_address(scheduler)
-            if protocol in ("tcp", "tls"):
-                parse_host_port(loc)
-        except ValueError as exc:
-            raise StudyError(f"--scheduler {scheduler!r} is not a Dask scheduler address "
-                             f"({exc}); give e.g. tcp://HOST:8786") from None
         try:
             client = Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S}s",
                             set_as_default=False)
@@ -375,6 +425,7 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     Everything is checked before the first run starts: the study file, every run's
     configuration, the output directory and the scheduler (StudyError).
     """
+    scheduler = _check_scheduler(workers, scheduler)    # within 5 s, before any other work
     spec = read_study(study)
     runs = expand_study(spec)
     if out is None:
@@ -581,11 +632,13 @@ def run_study_command(args) -> int:
     except StudyError as exc:
         print(f"ivdrem study: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:      # Ctrl-C, or SIGTERM (ivdrem.cli.Terminated)
+        from ..cli import EXIT_INTERRUPTED
         done = len(RunStore(Path(out)).load())
-        print(f"\nivdrem study: interrupted; {done} finished run(s) are saved in {out}/runs; "
-              "continue with --resume", file=sys.stderr)
-        return 130
+        how = getattr(exc, "label", "Ctrl-C")
+        print(f"\nivdrem study: interrupted ({how}); {done} finished run(s) are saved in "
+              f"{out}/runs; continue with --resume", file=sys.stderr)
+        return 128 + exc.signum if hasattr(exc, "signum") else EXIT_INTERRUPTED
     print(summary_text(df, out))
     return 1 if df.attrs.get("lost") else 0
 
