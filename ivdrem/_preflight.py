@@ -257,11 +257,24 @@ def check_fmu_check_t_end(t_end) -> float:
 
 def check_cache_dir(engine) -> None:
     """The compiled engine writes generated modules to the cache: refuse an unwritable one
-    now rather than when the first (or a later) diagram compiles."""
+    now rather than when the first (or a later) diagram compiles; and a C compiler that
+    does not run (:func:`check_c_compiler`)."""
+    check_c_compiler()          # both engines step in C (ivdrem/sim/stepper.c)
     if engine != "compiled":
         return
     from .sim.compiled import cache_dir
     check_writable_dir(cache_dir(), "compile cache directory (IVDREM_CACHE_DIR)")
+
+
+def check_c_compiler() -> None:
+    """$CC (or cc) must run (``--version``) before any work: CC=/bin/false or a missing
+    compiler is one line naming it and what to install, not a traceback at the first run."""
+    from .sim import _cstepper
+    from .sim.compiled import C_COMPILER_HINT
+    try:
+        _cstepper._compiler()
+    except _cstepper.CStepperUnavailable as e:
+        raise PreflightError(f"{e}; {C_COMPILER_HINT}") from None
 
 
 def horizon_note(config) -> str | None:

@@ -269,6 +269,28 @@ def main(argv=None):
             return _main(argv)
     except KeyboardInterrupt as exc:
         return interrupted("ivdrem", exc)
+    except OSError as exc:
+        line = _cache_fault_line(exc)
+        if line is None:
+            raise
+        print(f"ivdrem: error: {line}", file=sys.stderr)
+        return 1
+
+
+def _cache_fault_line(exc) -> str | None:
+    """One line for a cache fault that reached the top (ivdrem.sim.cache.CacheFault, or a
+    disk that filled up while writing anything), naming the file and the remedy; None for
+    any other error."""
+    import errno
+    from .sim.cache import CacheFault, cache_dir
+    if isinstance(exc, CacheFault):
+        return str(exc)
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        where = exc.filename or "a file"
+        return (f"no space left on the device while writing {where} ({exc.strerror}): free "
+                f"some space there; ivdrem's compile cache is {cache_dir()} "
+                "(IVDREM_CACHE_DIR moves it)")
+    return None
 
 
 def _main(argv=None):

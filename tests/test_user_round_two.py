@@ -475,3 +475,87 @@ def test_many_parameters_make_one_panel_per_law_and_figure_2_is_zoomed():
         assert hi - lo < 0.01                         # the steady state fills the panel
     finally:
         metrics.signal = orig
+
+
+# --------------------------------------------------------------------------- 8. cache faults, phases
+def test_a_compiler_that_does_not_run_is_one_line_before_any_work(tmp_path):
+    """main: CC=/bin/false gave a traceback ("please report this") at the first run."""
+    env = dict(os.environ, CC="/bin/false")
+    for argv in (["paper", "--t-end", "1"], ["report", "--t-end", "1", "--out", str(tmp_path / "r")]):
+        res = _ivdrem(argv, cwd=tmp_path, env=env, timeout=120)
+        assert res.returncode == 2, res.stderr[-2000:]
+        lines = res.stderr.strip().splitlines()
+        assert "C compiler '/bin/false' does not run" in lines[-1] and "Traceback" not in res.stderr
+
+
+def test_a_garbled_numba_index_is_a_cache_miss_with_one_line(tmp_path):
+    """main: a raw UnpicklingError from numba's cache."""
+    (tmp_path / "garbled_mod.py").write_text(
+        "from numba import njit\n@njit(cache=True)\ndef f(x):\n    return x + 1\n")
+    code = textwrap.dedent("""
+        import sys
+        sys.path.insert(0, sys.argv[1])
+        from ivdrem.sim.cache import guard_numba_index
+        guard_numba_index()
+        import garbled_mod
+        print(garbled_mod.f(1))
+    """)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "nb"), PYTHONPATH=str(ROOT))
+    run = lambda: subprocess.run([sys.executable, "-c", code, str(tmp_path)],  # noqa: E731
+                                 capture_output=True, text=True, env=env, timeout=120)
+    assert run().stdout.strip() == "2"
+    index, = (tmp_path / "nb").rglob("*.nbi")
+    index.write_bytes(b"garbage, not a pickle")
+    res = run()
+    assert res.returncode == 0 and res.stdout.strip() == "2", res.stderr[-2000:]
+    assert "numba's cache index" in res.stderr and "UnpicklingError" in res.stderr
+    assert "Traceback" not in res.stderr
+    assert index.exists() and index.read_bytes() != b"garbage, not a pickle"   # written anew
+
+
+def test_a_full_disk_while_building_the_stepper_is_one_line_and_leaves_nothing(tmp_path,
+                                                                                monkeypatch):
+    """main: "the C compiler did not build ivdrem's stepper; please report this", 488 KB
+    of litter."""
+    import errno
+    from ivdrem.sim import _cstepper
+    from ivdrem.sim.cache import CacheFault
+    real = Path.write_text
+
+    def full(self, *a, **k):
+        if self.name == "stepper.c":
+            raise OSError(errno.ENOSPC, "No space left on device", str(self))
+        return real(self, *a, **k)
+    monkeypatch.setattr(Path, "write_text", full)
+    with pytest.raises(CacheFault) as info:
+        _cstepper.build(tmp_path)
+    msg = str(info.value)
+    assert str(tmp_path) in msg and "IVDREM_CACHE_DIR" in msg and "\n" not in msg
+    assert list(tmp_path.iterdir()) == []
+    assert cli._cache_fault_line(info.value) == msg
+
+
+def test_a_slow_step_says_what_it_does_in_a_log_too(monkeypatch):
+    """main: off a terminal nothing between the set-up and the results (19-134 s)."""
+    import io
+    from ivdrem import _progress
+    monkeypatch.delenv("CI", raising=False)
+    monkeypatch.setattr(_progress, "SLOW_STEP_S", 0.2)
+    log = io.StringIO()
+    with _progress.preparing("compiling X", cached_in="/c", stream=log, only_if_slow=True):
+        time.sleep(0.6)
+    lines = log.getvalue().splitlines()
+    assert len(lines) == 2 and "compiling X; cached in /c" in lines[0] and "done in" in lines[1]
+    quick = io.StringIO()
+    with _progress.preparing("quick", stream=quick, only_if_slow=True):
+        pass
+    time.sleep(0.3)
+    assert quick.getvalue() == ""
+    _progress.set_quiet(True)
+    try:
+        quiet = io.StringIO()
+        with _progress.preparing("compiling Y", stream=quiet, only_if_slow=True):
+            time.sleep(0.4)
+        assert quiet.getvalue() == ""
+    finally:
+        _progress.set_quiet(False)

@@ -453,9 +453,12 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     wanted = {r.hash: r for r in runs}
     todo = [h for h in dict.fromkeys(r.hash for r in runs) if h not in have]
     records = {h: rec for h, rec in have.items() if h in wanted}
-    try:   # before a cluster starts: the output directory, then what each run will cost
+    try:   # before a cluster starts: the output directory, the C compiler, then what each
+        # run will cost
         check_writable_dir(out, "study directory (--out)")
-    except OutputLocationError as exc:
+        from .._preflight import check_c_compiler
+        check_c_compiler()
+    except (OutputLocationError, ValueError) as exc:
         raise StudyError(str(exc)) from None
     check_study_cost([wanted[h] for h in todo])
 
