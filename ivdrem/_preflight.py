@@ -94,6 +94,7 @@ def method_overrides(name, config_path=None) -> dict:
 def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=None):
     """Price every law's run of `config` (and the FMU check's, if a horizon is given)
     before any of them starts; raises ValueError (CostLimitError) with the numbers.
+    Returns [(law, estimated seconds)] of the runs whose time is estimated.
 
     It prices, it does not simulate: each law's loop is built with a placeholder for a γ
     "auto" (:func:`pricing_diagram`) and dropped before the next; then a γ "auto" whose
@@ -108,7 +109,7 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
     model = model_from_config(config)
     check_inertia(config, model)
     exp = config["experiment"]
-    walls, fmu_loop = [], None
+    walls, sources, fmu_loop = [], [], None
     for law in exp["laws"]:
         solver = solver_kwargs(config, law)
         d = pricing_diagram(config, law, model)
@@ -117,7 +118,8 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
             fmu_loop = d                   # the FMU check's loop, priced below
         # the paper's 2-link loop: the measured step count and time per step
         # (ivdrem.sim.guards); another robot's loop keeps the lower bound above
-        measured = paper_loop_steps(law, solver["method"], float(exp["t_end"])) \
+        measured = paper_loop_steps(law, solver["method"], float(exp["t_end"]),
+                                    rtol=solver.get("rtol")) \
             if _is_paper_robot(config) else None
         if method_info(solver["method"]).adaptive:
             # any robot: an adaptive method follows the fastest sinusoid (a lower bound)
@@ -131,9 +133,12 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
                            engine=engine, allow_long=allow_long,
                            what=f"the {law} run ({float(exp['t_end']):g} s)")
             walls.append((law, wall))
+            sources.append(source)
     if len(walls) > 1:
+        tight = [src for src in sources if "rtol =" in src]
         check_run_time(sum(w for _, w in walls),
-                       " + ".join(f"{law} {w / 60:.0f} min" for law, w in walls),
+                       " + ".join(f"{law} {w / 60:.0f} min" for law, w in walls)
+                       + (f"; {tight[0].rsplit('; ', 1)[-1]}" if tight else ""),
                        engine=engine, allow_long=allow_long,
                        what=f"the {len(walls)} runs")
     if fmu_check_t_end is not None and not fmu_check_prediction(config, fmu_check_t_end).diverges:
@@ -144,6 +149,22 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
                            what=f"the FMU check (--fmu-check-t-end {float(fmu_check_t_end):g} s)")
     for law in exp["laws"]:     # every run priced: the refusals of γ "auto" that need no run
         check_gamma_auto(config, law, model)
+    return walls
+
+
+#: A command whose runs are estimated above this many seconds says so before they start.
+LONG_RUN_NOTE_S = 60.0
+
+
+def long_run_note(walls) -> str | None:
+    """One line announcing runs estimated above :data:`LONG_RUN_NOTE_S` (the list
+    :func:`check_runs` returns), or None."""
+    total = sum(w for _, w in walls or ())
+    if total <= LONG_RUN_NOTE_S:
+        return None
+    parts = ", ".join(f"{law} {w / 60:.1f} min" for law, w in walls)
+    return (f"note: the runs are estimated at about {total / 60:.0f} min ({parts}; measured "
+            "step counts and times per step, ivdrem.sim.guards)")
 
 
 def gain_rule(config, law, model) -> tuple:

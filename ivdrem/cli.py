@@ -15,7 +15,7 @@ def _cmd_paper(args):
     from .experiments.config import ConfigError, load_config
     from ._paths import STDOUT, OutputLocationError, check_replaceable, user_path
     from ._preflight import (PreflightError, check_cache_dir, check_runs, method_overrides,
-                             horizon_note, timing_text)
+                             horizon_note, long_run_note, timing_text)
     from ._progress import want_progress
     prog = "ivdrem paper"
     overrides = {}
@@ -43,13 +43,16 @@ def _cmd_paper(args):
             json_path = check_replaceable(user_path(args.json), "JSON file",
                                           overwrite=args.overwrite, ours=_is_paper_json)
         check_cache_dir(args.engine)
-        check_runs(config, engine=args.engine, allow_long=args.allow_long)
+        walls = check_runs(config, engine=args.engine, allow_long=args.allow_long)
     except (ConfigError, PreflightError, OutputLocationError, ValueError, ImportError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     note = horizon_note(config)
     if note and set(config["experiment"]["laws"]) >= {"iv-drem", "composite-learning"}:
         print(f"{prog}: {note}", file=sys.stderr)
+    long_note = long_run_note(walls)
+    if long_note and not args.quiet:      # minutes ahead: said before they start
+        print(f"{prog}: {long_note}", file=sys.stderr)
     # with --json - standard output carries the JSON alone: every line goes to stderr
     say = print if json_path != STDOUT else functools.partial(print, file=sys.stderr)
 

@@ -559,3 +559,29 @@ def test_a_slow_step_says_what_it_does_in_a_log_too(monkeypatch):
         assert quiet.getvalue() == ""
     finally:
         _progress.set_quiet(False)
+
+
+def test_tight_tolerances_are_priced_from_measured_step_counts():
+    """main: rtol = 1e-12 priced with the default tolerance's step counts (the 300 s run
+    silent for minutes); measured here: 16 186, 103 658 steps for 10, 30 s (IV-DREM)."""
+    from ivdrem.sim.guards import (CostLimitError, PAPER_LOOP_STEPS_BY_RTOL, paper_loop_steps,
+                                   tolerance_factor)
+    from ivdrem._preflight import check_runs, long_run_note
+    from ivdrem.experiments.config import load_config
+    assert tolerance_factor(2e-4, 300.0) == (1.0, None)
+    assert tolerance_factor(1e-3, 300.0)[0] == 1.0
+    # at the measured points the factor is the measured ratio
+    for rtol, (s10, s30) in PAPER_LOOP_STEPS_BY_RTOL.items():
+        assert math.isclose(tolerance_factor(rtol, 30.0)[0], max(1.0, s30 / 437), rel_tol=1e-9)
+        assert math.isclose(tolerance_factor(rtol, 10.0)[0], max(1.0, s10 / 140), rel_tol=1e-9)
+    # monotone in rtol, and the estimate at 60 s within 15 % of the 399 k steps measured
+    f = [tolerance_factor(r, 60.0)[0] for r in (1e-5, 1e-7, 1e-9, 1e-11, 1e-12, 1e-13)]
+    assert f == sorted(f)
+    steps60 = paper_loop_steps("iv-drem", "rodas5p", 60.0, rtol=1e-12)[0][0]
+    assert 0.85 * 399_000 < steps60 < 1.3 * 399_000, steps60
+    tight = {"solver.rtol": 1e-12, "solver.atol": 1e-14}
+    with pytest.raises(CostLimitError, match="raise solver.rtol"):
+        check_runs(load_config(overrides=tight))                        # 300 s: ~40 min
+    walls = check_runs(load_config(overrides={**tight, "experiment.t_end": 60.0}))
+    assert "estimated at about" in long_run_note(walls)
+    assert long_run_note(check_runs(load_config(overrides={"experiment.t_end": 60.0}))) is None

@@ -216,9 +216,13 @@ def model_from_config(config: Mapping):
         raise ConfigError(f"config key 'model.name' must be a string, got {m.get('name')!r}")
     joints = m.get("joints")
     g = m.get("g")
-    return _build(m.get("name"), None if urdf is None else str(urdf), stamp,
-                  None if g is None else float(g), m.get("friction"),
-                  None if joints is None else tuple(joints))
+    from .._progress import preparing
+    # a large symbolic arm (planar-20) builds in sympy for minutes the first time: said
+    with preparing(f"building the model {urdf or m.get('name')} (the first time; sympy or "
+                   "Pinocchio)", only_if_slow=True):
+        return _build(m.get("name"), None if urdf is None else str(urdf), stamp,
+                      None if g is None else float(g), m.get("friction"),
+                      None if joints is None else tuple(joints))
 
 
 def model_label(config: Mapping) -> str:
