@@ -194,6 +194,15 @@ def test_a_link_and_a_joint_of_one_name_are_told_apart(tmp_path):
     model = from_urdf(path)
     assert model.n == 2 and model.joint_names == ["j1", "gripper"]
     assert from_urdf(path, joints=["j1"]).n == 1
+    # the file itself, where example-robot-data ships it
+    from ivdrem.models.urdf import _data_dir
+    robots = _data_dir("example-robot-data")
+    so100 = None if robots is None else robots / "so_arm_description/urdf/so100.urdf"
+    if so100 is not None and so100.is_file():
+        full = from_urdf(so100)
+        assert full.n == 6 and full.joint_names[-1] == "gripper"
+        arm5 = from_urdf(so100, joints=full.joint_names[:5])
+        assert arm5.n == 5
 
 
 def test_the_named_arms_pass_the_checks():

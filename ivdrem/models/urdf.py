@@ -312,6 +312,26 @@ def _pinocchio():
     return pinocchio
 
 
+def _untie_frame_names(pin, model):
+    """A link named as a joint (example-robot-data's SO-100: "gripper"): Pinocchio's frame
+    lookups by name, buildReducedModel's among them, would find both ("Several frames
+    match the filter"); the link's frames get the suffix ``#link``."""
+    joint_names = set(model.names)
+    for frame in model.frames:
+        if frame.type != pin.FrameType.JOINT and frame.name in joint_names:
+            frame.name = f"{frame.name}#link"
+    return model
+
+
+def _chain_model(path, locked):
+    """Pinocchio's model of the URDF at `path` with the joints `locked` (names) locked at
+    their neutral position: the chain a RigidBodyModel describes."""
+    pin = _pinocchio()
+    full = _untie_frame_names(pin, pin.buildModelFromUrdf(str(path)))
+    lock = [full.getJointId(j) for j in locked]
+    return pin.buildReducedModel(full, lock, pin.neutral(full)) if lock else full
+
+
 def _parse(path, joints, gravity, friction, friction_width, armature):
     """The chain data of the URDF at ``path`` (a dict; see :class:`RigidBodyModel`)."""
     pin = _pinocchio()
@@ -333,6 +353,7 @@ def _parse(path, joints, gravity, friction, friction_width, armature):
     names = [full.names[i] for i in range(1, full.njoints)]
     if not names:
         _fail(path, "has no revolute, continuous or prismatic joint")
+    _untie_frame_names(pin, full)
     xml_joints = {j.get("name"): j for j in root.findall("joint")}
     if joints is None:
         # the actuated joints must form one chain from the root
@@ -559,9 +580,7 @@ def _build(path, joints, gravity, friction, friction_width, armature, base):
     ns = len(std_names)
     theta_std = np.asarray(chain["theta_standard"])
     if base:
-        full = pin.buildModelFromUrdf(chain["urdf"])
-        lock = [full.getJointId(j) for j in chain["locked"]]
-        pmodel = pin.buildReducedModel(full, lock, pin.neutral(full)) if lock else full
+        pmodel = _chain_model(chain["urdf"], chain["locked"])
         pmodel.gravity.linear = np.asarray(chain["gravity"])
         n = len(chain["parent"])
         rng = np.random.default_rng(20260)
@@ -632,6 +651,9 @@ def from_urdf(path, *, base=True, friction=None, joints=None, gravity=9.81, arma
             chain = json.loads(cfile.read_text())
         except (OSError, ValueError):
             chain = None
+        if chain is not None:   # the checks of the text hold for a cached build too (an
+            # older ivdrem cached files they refuse); XML only, no Pinocchio
+            _check_chain(path, _check_urdf_text(path, path.read_text()), chain["joint_names"])
     if chain is None:
         chain = _build(path, options["joints"], gravity, friction, friction_width, armature,
                        base)
@@ -738,10 +760,7 @@ class RigidBodyModel(RobotModel):
 
     def pinocchio_model(self):
         """The Pinocchio model of the same chain (the reference the tests check against)."""
-        import pinocchio as pin
-        full = pin.buildModelFromUrdf(self.urdf)
-        lock = [full.getJointId(j) for j in self._chain["locked"]]
-        m = pin.buildReducedModel(full, lock, pin.neutral(full)) if lock else full
+        m = _chain_model(self.urdf, self._chain["locked"])
         m.gravity.linear = self.gravity
         return m
 
