@@ -291,9 +291,16 @@ def probe_scheduler(address: str, timeout: float = SCHEDULER_TIMEOUT_S) -> None:
     for the second."""
     import asyncio
 
-    from distributed.comm import connect
+    from distributed.comm import connect, parse_address, parse_host_port
+
+    stage = ["connect"]
 
     async def ask():
+        # a plain TCP connection first: "nothing listens" and "listens but is silent" differ
+        host, port = parse_host_port(parse_address(address)[1])
+        _, writer = await asyncio.open_connection(host, port)
+        writer.close()
+        stage[0] = "answer"
         comm = await connect(address, timeout=timeout)
         try:
             await comm.write({"op": "identity"})
@@ -301,23 +308,28 @@ def probe_scheduler(address: str, timeout: float = SCHEDULER_TIMEOUT_S) -> None:
         finally:
             comm.abort()
 
-    def fail(why):
-        return StudyError(f"--scheduler {address}: {why}; start one with `dask scheduler` "
-                          "(default port 8786) and give its address")
+    hint = "is it running, and is the address right? (`dask scheduler` listens on 8786)"
     try:
         reply = asyncio.run(asyncio.wait_for(ask(), timeout))
     except (asyncio.TimeoutError, TimeoutError):
-        raise fail(f"no Dask scheduler answered within {timeout:g} s (the port accepted a "
-                   "connection and stayed silent, or the host did not answer)") from None
+        what = ("the port accepted the connection but nothing answered Dask's handshake "
+                "(not a Dask scheduler?)" if stage[0] == "answer" else
+                "no answer to the connection (a firewall, or a host that is down?)")
+        raise StudyError(f"cannot reach the Dask scheduler at {address} within "
+                         f"{timeout:g} s: {what}; {hint}") from None
     except Exception as exc:     # noqa: BLE001 - every failure of the probe is one line
         text = " ".join(str(exc).split()) or type(exc).__name__
         if len(text) > 200:
             text = text[:200] + "..."
-        raise fail(f"no Dask scheduler there ({type(exc).__name__}: {text})") from None
+        what = ("the server there does not speak Dask's protocol (an HTTP dashboard?)"
+                if stage[0] == "answer" else f"{type(exc).__name__}: {text}")
+        raise StudyError(f"cannot reach the Dask scheduler at {address} within "
+                         f"{timeout:g} s ({what}); {hint}") from None
     kind = reply.get("type") if isinstance(reply, dict) else None
     if kind != "Scheduler":
-        raise fail(f"a Dask {kind} answered there, not a scheduler" if kind else
-                   "the server there does not speak Dask's protocol")
+        raise StudyError(f"the server at {address} is " + (
+            f"a Dask {kind}, not a scheduler" if kind else
+            "not a Dask scheduler (its answer is not Dask's)") + f"; {hint}")
 
 
 def _check_scheduler(workers: int | None, scheduler: str | None) -> str | None:
