@@ -236,12 +236,25 @@ def interrupted(prog, exc=None):
     return EXIT_INTERRUPTED
 
 
+def _swallowing(frame) -> bool:
+    """Whether an exception raised in `frame` would be reported as "Exception ignored" and
+    dropped: inside a garbage-collector callback (``gc.callbacks``) or a ``__del__``."""
+    import gc
+    codes = {getattr(getattr(cb, "__func__", cb), "__code__", None) for cb in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in codes or frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
 class _sigterm_as_interrupt:
     """While a command runs in the main thread of a process that left SIGTERM at its
     default (killing the process on the spot, no clean-up), SIGTERM raises
     :class:`Terminated`; the handler found is restored after."""
 
     def __enter__(self):
+        import os
         import signal
         import threading
         self.previous = None
@@ -251,6 +264,11 @@ class _sigterm_as_interrupt:
             return self     # the embedding program's own handler (or SIGTERM ignored)
 
         def on_sigterm(signum, frame):
+            if _swallowing(frame):
+                # Python would print "Exception ignored" and go on (a gc callback such as
+                # Dask's GC diagnosis, a __del__): deliver it again once that returned
+                threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
+                return
             exc = Terminated()
             exc.signum = signum
             raise exc
