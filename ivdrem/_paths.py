@@ -12,19 +12,93 @@ result and, if that still fails at the end, keeps it in a fallback file and says
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from pathlib import Path
 
 from ._atomic import write_text_atomic
 
 __all__ = ["caller_cwd", "user_path", "OutputLocationError", "check_writable",
-           "check_writable_file", "check_writable_dir", "check_replaceable", "write_text_or_keep"]
+           "check_writable_file", "check_writable_dir", "check_replaceable", "write_text_or_keep",
+           "InputFileError", "read_input_bytes", "not_a_regular_file", "STDOUT",
+           "MAX_INPUT_BYTES"]
+
+#: the path that means standard output, where a command can write a stream there
+STDOUT = "-"
+#: the most ivdrem reads of a file given to it (a configuration, a study, a JSON file it
+#: may replace): no text it reads comes near this, and a device such as /dev/zero or a
+#: runaway file is refused instead of read into memory
+MAX_INPUT_BYTES = 16 * 2**20
 
 CALLER_CWD_ENV = "IVDREM_CALLER_CWD"
 
 
 class OutputLocationError(OSError):
     """An output location that cannot be written; the message names it."""
+
+
+class InputFileError(OSError):
+    """A file given to ivdrem that it will not read (not a regular file, too large); the
+    message names it."""
+
+
+_KINDS = ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+          (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
+          (stat.S_ISDIR, "a directory"))
+
+
+def _kind(mode: int) -> str:
+    for test, name in _KINDS:
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def not_a_regular_file(path) -> str | None:
+    """What `path` is when it exists and is not a regular file ("a character device", "a
+    FIFO (named pipe)", ...), following symbolic links; None for a regular file or no file.
+    Asked of the status only: such a file is never opened (a FIFO would block, /dev/zero
+    never ends)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    return None if stat.S_ISREG(mode) else _kind(mode)
+
+
+def read_input_bytes(path, what: str, limit: int = MAX_INPUT_BYTES) -> bytes:
+    """The bytes of the regular file `path`, at most `limit` of them.
+
+    Raises FileNotFoundError for no file, :class:`InputFileError` (naming `what` and the
+    path) for a device, FIFO, socket or directory, or a file above `limit`, and OSError
+    for one that cannot be read.  Opened without blocking (a FIFO with no writer would
+    wait forever in a plain open()) and checked on the open descriptor, so what is read is
+    what was checked."""
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    fd = os.open(path, flags)
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise InputFileError(f"{what} {path} is {_kind(st.st_mode)}, not a regular file; "
+                                 "ivdrem reads only regular files")
+        if st.st_size > limit:
+            raise InputFileError(f"{what} {path} has {st.st_size:,} bytes, more than the "
+                                 f"{limit // 2**20} MiB ivdrem reads of such a file")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        chunks, size = [], 0
+        while size <= limit:
+            chunk = os.read(fd, min(1 << 20, limit + 1 - size))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+        if size > limit:      # grew while read
+            raise InputFileError(f"{what} {path} has more than the {limit // 2**20} MiB "
+                                 "ivdrem reads of such a file")
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
 
 
 def caller_cwd() -> Path:
@@ -86,6 +160,12 @@ def check_writable_file(path, what: str) -> Path:
     path = Path(path)
     if path.is_dir():
         raise OutputLocationError(f"{what} {path} is a directory; give a file name")
+    kind = not_a_regular_file(path)
+    if kind is not None:   # os.replace would put a file in the device's place; never read
+        raise OutputLocationError(
+            f"{what} {path} is {kind}, not a regular file: ivdrem writes a new file and "
+            "renames it over the old one, so it writes only to regular files; give a file "
+            "name" + (f" (or {STDOUT} for standard output)" if what == "JSON file" else ""))
     if os.path.lexists(path) and not os.access(path, os.W_OK):
         raise OutputLocationError(f"{what} {path} exists and is not writable")
     check_writable(path.parent, what, target=path)

@@ -79,9 +79,8 @@ def method_overrides(name, config_path=None) -> dict:
     user = {}
     if config_path is not None:
         try:   # a broken file is reported by load_config, with its own message
-            from .experiments.config import tomllib
-            with open(config_path, "rb") as f:
-                user = tomllib.load(f).get("solver", {})
+            from .experiments.config import read_toml
+            user = read_toml(config_path)[0].get("solver", {})   # never a FIFO or a device
         except Exception:
             user = {}
     out = {"solver.method": name}
@@ -95,6 +94,7 @@ def method_overrides(name, config_path=None) -> dict:
 def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=None):
     """Price every law's run of `config` (and the FMU check's, if a horizon is given)
     before any of them starts; raises ValueError (CostLimitError) with the numbers.
+    Returns [(law, estimated seconds)] of the runs whose time is estimated.
 
     It prices, it does not simulate: each law's loop is built with a placeholder for a γ
     "auto" (:func:`pricing_diagram`) and dropped before the next; then a γ "auto" whose
@@ -109,7 +109,7 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
     model = model_from_config(config)
     check_inertia(config, model)
     exp = config["experiment"]
-    walls, fmu_loop = [], None
+    walls, sources, fmu_loop = [], [], None
     for law in exp["laws"]:
         solver = solver_kwargs(config, law)
         d = pricing_diagram(config, law, model)
@@ -118,7 +118,8 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
             fmu_loop = d                   # the FMU check's loop, priced below
         # the paper's 2-link loop: the measured step count and time per step
         # (ivdrem.sim.guards); another robot's loop keeps the lower bound above
-        measured = paper_loop_steps(law, solver["method"], float(exp["t_end"])) \
+        measured = paper_loop_steps(law, solver["method"], float(exp["t_end"]),
+                                    rtol=solver.get("rtol")) \
             if _is_paper_robot(config) else None
         if method_info(solver["method"]).adaptive:
             # any robot: an adaptive method follows the fastest sinusoid (a lower bound)
@@ -132,9 +133,12 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
                            engine=engine, allow_long=allow_long,
                            what=f"the {law} run ({float(exp['t_end']):g} s)")
             walls.append((law, wall))
+            sources.append(source)
     if len(walls) > 1:
+        tight = [src for src in sources if "rtol =" in src]
         check_run_time(sum(w for _, w in walls),
-                       " + ".join(f"{law} {w / 60:.0f} min" for law, w in walls),
+                       " + ".join(f"{law} {w / 60:.0f} min" for law, w in walls)
+                       + (f"; {tight[0].rsplit('; ', 1)[-1]}" if tight else ""),
                        engine=engine, allow_long=allow_long,
                        what=f"the {len(walls)} runs")
     if fmu_check_t_end is not None and not fmu_check_prediction(config, fmu_check_t_end).diverges:
@@ -145,6 +149,22 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
                            what=f"the FMU check (--fmu-check-t-end {float(fmu_check_t_end):g} s)")
     for law in exp["laws"]:     # every run priced: the refusals of γ "auto" that need no run
         check_gamma_auto(config, law, model)
+    return walls
+
+
+#: A command whose runs are estimated above this many seconds says so before they start.
+LONG_RUN_NOTE_S = 60.0
+
+
+def long_run_note(walls) -> str | None:
+    """One line announcing runs estimated above :data:`LONG_RUN_NOTE_S` (the list
+    :func:`check_runs` returns), or None."""
+    total = sum(w for _, w in walls or ())
+    if total <= LONG_RUN_NOTE_S:
+        return None
+    parts = ", ".join(f"{law} {w / 60:.1f} min" for law, w in walls)
+    return (f"note: the runs are estimated at about {total / 60:.0f} min ({parts}; measured "
+            "step counts and times per step, ivdrem.sim.guards)")
 
 
 def gain_rule(config, law, model) -> tuple:
@@ -258,11 +278,24 @@ def check_fmu_check_t_end(t_end) -> float:
 
 def check_cache_dir(engine) -> None:
     """The compiled engine writes generated modules to the cache: refuse an unwritable one
-    now rather than when the first (or a later) diagram compiles."""
+    now rather than when the first (or a later) diagram compiles; and a C compiler that
+    does not run (:func:`check_c_compiler`)."""
+    check_c_compiler()          # both engines step in C (ivdrem/sim/stepper.c)
     if engine != "compiled":
         return
     from .sim.compiled import cache_dir
     check_writable_dir(cache_dir(), "compile cache directory (IVDREM_CACHE_DIR)")
+
+
+def check_c_compiler() -> None:
+    """$CC (or cc) must run (``--version``) before any work: CC=/bin/false or a missing
+    compiler is one line naming it and what to install, not a traceback at the first run."""
+    from .sim import _cstepper
+    from .sim.compiled import C_COMPILER_HINT
+    try:
+        _cstepper._compiler()
+    except _cstepper.CStepperUnavailable as e:
+        raise PreflightError(f"{e}; {C_COMPILER_HINT}") from None
 
 
 def horizon_note(config) -> str | None:

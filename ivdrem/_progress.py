@@ -9,6 +9,10 @@ A *note* (:func:`note`, :func:`preparing`) is one line on stderr saying what a l
 preparation step is doing (generating a model's code, compiling it) and that its result is
 cached; it follows the same rule, and a command's ``--quiet`` silences it for the whole
 process (:func:`set_quiet`).
+
+Off a terminal (a log file, a pipe; not in CI, not with ``--quiet``) a step that is still
+running after :data:`SLOW_STEP_S` seconds says so in one line, and again when it is done:
+a log shows what a minute of compiling was, and a quick step adds nothing to it.
 """
 from __future__ import annotations
 
@@ -54,13 +58,38 @@ def note(message: str, stream=None) -> bool:
     return True
 
 
+#: Seconds after which a preparation step still running says so off a terminal.
+SLOW_STEP_S = 5.0
+
+
 @contextmanager
-def preparing(what: str, cached_in=None, stream=None):
+def preparing(what: str, cached_in=None, stream=None, *, only_if_slow=False):
     """A long preparation step: a note before it (what, and where its result is cached)
-    and one after it with its wall time."""
+    and one after it with its wall time; off a terminal (or with `only_if_slow`, for a
+    step that is often quick: loading compiled code from the cache) the same two lines
+    only if the step lasts longer than :data:`SLOW_STEP_S`."""
+    import threading
+    stream = sys.stderr if stream is None else stream
     where = f"; cached in {cached_in} for later runs" if cached_in is not None else ""
-    shown = note(f"{what}{where} ...", stream=stream)
+    shown = False if only_if_slow else note(f"{what}{where} ...", stream=stream)
     t0 = time.perf_counter()
-    yield
+    late = []
+    timer = None
+    if not shown and not _quiet and not os.environ.get("CI"):
+        def say_late():
+            late.append(True)
+            print(f"ivdrem: {what}{where} (running for {SLOW_STEP_S:g} s) ...", file=stream,
+                  flush=True)
+        timer = threading.Timer(SLOW_STEP_S, say_late)
+        timer.daemon = True
+        timer.start()
+    try:
+        yield
+    finally:
+        if timer is not None:
+            timer.cancel()
     if shown:
         note(f"{what}: done in {time.perf_counter() - t0:.1f} s", stream=stream)
+    elif late:
+        print(f"ivdrem: {what}: done in {time.perf_counter() - t0:.1f} s", file=stream,
+              flush=True)

@@ -1,7 +1,8 @@
-"""Command line: ``ivdrem paper | report | fmu export | cosim``."""
+"""Command line: ``ivdrem paper | study | report | examples | fmu export | cosim``."""
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -12,9 +13,9 @@ __all__ = ["main"]
 
 def _cmd_paper(args):
     from .experiments.config import ConfigError, load_config
-    from ._paths import OutputLocationError, check_replaceable, user_path
+    from ._paths import STDOUT, OutputLocationError, check_replaceable, user_path
     from ._preflight import (PreflightError, check_cache_dir, check_runs, method_overrides,
-                             horizon_note, timing_text)
+                             horizon_note, long_run_note, timing_text)
     from ._progress import want_progress
     prog = "ivdrem paper"
     overrides = {}
@@ -36,17 +37,24 @@ def _cmd_paper(args):
             if args.t_end is not None and "experiment.t_end" in str(e):
                 raise PreflightError(f"--t-end {args.t_end:g} s: {e}") from None
             raise
-        if args.json:
+        if args.json == STDOUT:      # the JSON alone on stdout; the lines go to stderr
+            json_path = STDOUT
+        elif args.json:
             json_path = check_replaceable(user_path(args.json), "JSON file",
                                           overwrite=args.overwrite, ours=_is_paper_json)
         check_cache_dir(args.engine)
-        check_runs(config, engine=args.engine, allow_long=args.allow_long)
+        walls = check_runs(config, engine=args.engine, allow_long=args.allow_long)
     except (ConfigError, PreflightError, OutputLocationError, ValueError, ImportError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     note = horizon_note(config)
     if note and set(config["experiment"]["laws"]) >= {"iv-drem", "composite-learning"}:
         print(f"{prog}: {note}", file=sys.stderr)
+    long_note = long_run_note(walls)
+    if long_note and not args.quiet:      # minutes ahead: said before they start
+        print(f"{prog}: {long_note}", file=sys.stderr)
+    # with --json - standard output carries the JSON alone: every line goes to stderr
+    say = print if json_path != STDOUT else functools.partial(print, file=sys.stderr)
 
     from .experiments.metrics import conclusions, format_conclusions, summary
     from .experiments.paper import run_paper
@@ -54,7 +62,7 @@ def _cmd_paper(args):
     from .diagrams.gamma_auto import GainRuleError
     try:
         run = run_paper(config, progress=want_progress(not args.quiet), engine=args.engine,
-                        allow_long=args.allow_long, log=print)
+                        allow_long=args.allow_long, log=say)
     except GainRuleError as e:       # refused by the calibration, before that law's run
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
@@ -64,18 +72,18 @@ def _cmd_paper(args):
     out = {law: summary(lr, run.theta) for law, lr in run.runs.items()}
     for law, s in out.items():
         st = run.runs[law].stats
-        print(f"{law:>20s}: |theta_err|(t_end) = {s['theta_err_norm']:.4g}, "
-              f"max|e| last 20% = {s['e_max_last20']:.3g} rad, "
-              f"RMS tau_d err last 20% = {s['tau_d_err_rms_last20']:.4g} N m  "
-              f"({st['steps']} steps, {timing_text(st)})")
+        say(f"{law:>20s}: |theta_err|(t_end) = {s['theta_err_norm']:.4g}, "
+            f"max|e| last 20% = {s['e_max_last20']:.3g} rad, "
+            f"RMS tau_d err last 20% = {s['tau_d_err_rms_last20']:.4g} N m  "
+            f"({st['steps']} steps, {timing_text(st)})")
     # the conclusions the laws run allow (C4 needs iv-drem and drem, C1-C3 composite learning)
     evaluated = [c for c in conclusions(run) if c["verdict"] is not None]
     if evaluated:
-        print(format_conclusions(evaluated))
+        say(format_conclusions(evaluated))
     from .experiments.diagnostics import diagnose_run, format_diagnostics, to_json
     for law, d in diagnose_run(run).items():   # the assumptions of Theorem 2 on this run
         from .experiments.diagnostics import learning_warnings
-        print(format_diagnostics(d))
+        say(format_diagnostics(d))
         out[law]["diagnostics"] = to_json(d)
         out[law]["warnings"] = learning_warnings(d)
         gamma = getattr(run.runs[law], "gamma", None)
@@ -86,8 +94,11 @@ def _cmd_paper(args):
     # a run that does not learn says so last, under its numbers (docs/diagnostics.md, LEARN)
     for law in out:
         for w in out[law]["warnings"]:
-            print(f"{law}: WARNING: {w}")
-    if json_path is not None:
+            say(f"{law}: WARNING: {w}")
+    if json_path == STDOUT:
+        sys.stdout.write(json.dumps(out, indent=2) + "\n")
+        sys.stdout.flush()
+    elif json_path is not None:
         from ._paths import write_text_or_keep
         where, failed = write_text_or_keep(json_path, json.dumps(out, indent=2) + "\n")
         if failed is not None:
@@ -100,13 +111,36 @@ def _cmd_paper(args):
 
 def _is_paper_json(path) -> bool:
     """Whether `path` holds what ``ivdrem paper --json`` writes (per law: its summary)."""
-    try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    from ._paths import read_input_bytes
+    try:     # bounded, and never a device or a FIFO (ivdrem._paths)
+        data = json.loads(read_input_bytes(path, "JSON file").decode("utf-8"))
     except (OSError, ValueError):
         return False
     return (isinstance(data, dict) and bool(data)
             and all(isinstance(v, dict) and {"theta_err_norm", "theta_hat"} <= set(v)
                     for v in data.values()))
+
+
+def _cmd_examples(args):
+    """``ivdrem examples [DIR]``: list the examples, or write them into DIR."""
+    from ._bundled import ExamplesError, describe_examples, write_examples
+    from ._paths import user_path
+    try:
+        if args.dir is None:
+            print(describe_examples())
+            print("write them with: ivdrem examples DIR")
+            return 0
+        dest = user_path(args.dir)
+        written = write_examples(dest, overwrite=args.overwrite)
+    except ExamplesError as e:
+        print(f"ivdrem examples: error: {e}", file=sys.stderr)
+        return 2
+    if written:
+        print(f"wrote {len(written)} file(s) to {dest}: " + ", ".join(p.name for p in written))
+    else:
+        print(f"{dest} already holds every example, unchanged")
+    print(f"e.g.  ivdrem paper --config {dest / 'paper.toml'}")
+    return 0
 
 
 def _cmd_study(args):
@@ -139,7 +173,8 @@ def build_parser():
                          + ", ".join(law_names()) + " (default: iv-drem composite-learning)")
     pp.add_argument("--json", default=None, metavar="FILE",
                     help="write per-law numbers as JSON (an existing file only if ivdrem "
-                         "wrote it, or with --overwrite)")
+                         "wrote it, or with --overwrite; - for standard output, the other "
+                         "lines then go to stderr)")
     pp.add_argument("--overwrite", action="store_true",
                     help="replace an existing --json file that ivdrem did not write")
     pp.add_argument("--config", default=None, metavar="FILE.toml",
@@ -153,6 +188,14 @@ def build_parser():
     from .experiments.study import add_study_arguments
     add_study_arguments(sp)
     sp.set_defaults(func=_cmd_study)
+
+    ep = sub.add_parser("examples", help="list the example configurations, studies and "
+                                         "custom law, or write them into DIR")
+    ep.add_argument("dir", nargs="?", default=None, metavar="DIR",
+                    help="directory to write them into (made if missing)")
+    ep.add_argument("--overwrite", action="store_true",
+                    help="replace files in DIR that have other text")
+    ep.set_defaults(func=_cmd_examples)
 
     rp = sub.add_parser("report", help="run the paper experiment and write the PDF/HTML report")
     add_report_arguments(rp)
@@ -171,19 +214,104 @@ def build_parser():
 EXIT_INTERRUPTED = 130
 
 
-def interrupted(prog):
-    """The one line a command prints when Ctrl-C stops it (no traceback)."""
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (systemd, Kubernetes, a batch scheduler stopping a job), raised where Python
+    raises Ctrl-C's KeyboardInterrupt, so that every command stops the same way: the same
+    clean-up (a study's saved runs, the temporaries, the cluster's processes), the same one
+    line."""
+
+    signum = 15
+    label = "SIGTERM"
+
+
+def interrupted(prog, exc=None):
+    """The one line a command prints when Ctrl-C or SIGTERM stops it (no traceback), and
+    its exit status, 128 + the signal's number as a shell reports it.  Called in the
+    ``except KeyboardInterrupt`` clause: `exc` defaults to the exception being handled."""
+    exc = sys.exc_info()[1] if exc is None else exc
+    if isinstance(exc, Terminated):
+        print(f"{prog}: interrupted ({exc.label})", file=sys.stderr)
+        return 128 + exc.signum
     print(f"{prog}: interrupted (Ctrl-C)", file=sys.stderr)
     return EXIT_INTERRUPTED
+
+
+def _swallowing(frame) -> bool:
+    """Whether an exception raised in `frame` would be reported as "Exception ignored" and
+    dropped: inside a garbage-collector callback (``gc.callbacks``) or a ``__del__``."""
+    import gc
+    codes = {getattr(getattr(cb, "__func__", cb), "__code__", None) for cb in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in codes or frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
+class _sigterm_as_interrupt:
+    """While a command runs in the main thread of a process that left SIGTERM at its
+    default (killing the process on the spot, no clean-up), SIGTERM raises
+    :class:`Terminated`; the handler found is restored after."""
+
+    def __enter__(self):
+        import os
+        import signal
+        import threading
+        self.previous = None
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+            return self     # the embedding program's own handler (or SIGTERM ignored)
+
+        def on_sigterm(signum, frame):
+            if _swallowing(frame):
+                # Python would print "Exception ignored" and go on (a gc callback such as
+                # Dask's GC diagnosis, a __del__): deliver it again once that returned
+                threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
+                return
+            exc = Terminated()
+            exc.signum = signum
+            raise exc
+        self.previous = signal.signal(signal.SIGTERM, on_sigterm)
+        return self
+
+    def __exit__(self, *exc):
+        if self.previous is not None:
+            import signal
+            signal.signal(signal.SIGTERM, self.previous)
+        return False
 
 
 def main(argv=None):
     from ._threads import one_blas_thread
     try:
-        with one_blas_thread():   # ivdrem's own process: small LAPACK calls, one thread each
+        with _sigterm_as_interrupt(), one_blas_thread():
+            # ivdrem's own process: small LAPACK calls, one thread each
             return _main(argv)
-    except KeyboardInterrupt:
-        return interrupted("ivdrem")
+    except KeyboardInterrupt as exc:
+        return interrupted("ivdrem", exc)
+    except OSError as exc:
+        line = _cache_fault_line(exc)
+        if line is None:
+            raise
+        print(f"ivdrem: error: {line}", file=sys.stderr)
+        return 1
+
+
+def _cache_fault_line(exc) -> str | None:
+    """One line for a cache fault that reached the top (ivdrem.sim.cache.CacheFault, or a
+    disk that filled up while writing anything), naming the file and the remedy; None for
+    any other error."""
+    import errno
+    from .sim.cache import CacheFault, cache_dir
+    if isinstance(exc, CacheFault):
+        return str(exc)
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        where = exc.filename or "a file"
+        return (f"no space left on the device while writing {where} ({exc.strerror}): free "
+                f"some space there; ivdrem's compile cache is {cache_dir()} "
+                "(IVDREM_CACHE_DIR moves it)")
+    return None
 
 
 def _main(argv=None):
@@ -233,9 +361,9 @@ def run():
     gc.disable()
     try:
         from . import laws  # noqa: F401 - python-control and its scipy, as every command
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         gc.enable()
-        sys.exit(interrupted("ivdrem"))
+        sys.exit(interrupted("ivdrem", exc))
     except BaseException:
         gc.enable()
         raise

@@ -6,6 +6,7 @@ import control as ct
 
 from .. import blocks as block_library
 from .. import laws as law_registry
+from ..sim.guards import check_interconnect_size
 from ..sim.plan import check_signal_sizes, signal_sizes
 
 __all__ = ["closed_loop", "LAWS", "assemble", "check_connected"]
@@ -47,6 +48,8 @@ def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
     if dup:
         raise ValueError(f"duplicate block names in diagram: {sorted(dup)}")
     kw = {} if connections is None else {"connections": connections}
+    # python-control's dense maps, priced before it allocates them (ivdrem.sim.guards)
+    check_interconnect_size(blocks, n_ext_inputs=len(list(inputs)), what=f"diagram {name!r}")
     diagram = ct.interconnect(blocks, inputs=list(inputs), outputs=outputs, name=name,
                               check_unused=False, **kw)
     check_connected(diagram)
@@ -54,7 +57,7 @@ def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
     return diagram
 
 
-def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Gamma=0.01,
+def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, Gamma=0.01,
                 mu0=1.0, mu1=15.0, observer_variant="corrected", l=50.0, T=None, p=None,
                 F0=None, gamma=None, mixing=None, epsilon=None, sigma=None, theta_star=None,
                 theta_hat0=None, q0=None, dq0=None, theta=None, trajectory=None,
@@ -62,10 +65,17 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
                 calibration=None):
     """The paper's closed loop with composite term `law`, as one InterconnectedSystem.
 
-    Parameters are the paper's experiment by default; the law's own gains (T, p, F0,
+    Parameters are the paper's experiment by default (K = 2); the law's own gains (T, p, F0,
     gamma, epsilon, sigma, theta_star) default to its entry of the registry ``ivdrem.laws``.  `trajectory`
     and `disturbance` are either dicts of sinusoid parameters (amplitude, omega, phase,
-    offset) or ready nlsys blocks with outputs (q_d, dq_d, ddq_d) and (tau_d).  `replace`
+    offset) or ready nlsys blocks with outputs (q_d, dq_d, ddq_d) and (tau_d).
+
+    Any other model (a URDF arm, a planar arm) gets the real-arm experiment of
+    docs/experiment.md, as a configuration naming that model does
+    (:mod:`ivdrem.experiments.arm`): what is left at None of `trajectory` (the Fourier
+    reference inside the joint limits), `disturbance` (scaled to the torque that reference
+    needs), `q0`, `dq0` (on the reference), `K` (per joint) and the window `T` (a common
+    period of reference and disturbance) is designed for the model.  `replace`
     maps block names to user blocks with the same signal names, e.g.
     ``replace={"disturbance": my_block}``.
 
@@ -91,6 +101,10 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
         from ..models import two_link
         model = two_link()
     n, nth = model.n, model.ntheta
+    paper_arm = model.name == "two-link" and n == 2
+    if not paper_arm:   # the real-arm experiment, as a configuration naming this model gets it
+        trajectory, disturbance, q0, dq0, K, T = _arm_experiment(
+            model, spec, theta, trajectory, disturbance, q0, dq0, K, T)
     # every arm but the paper's: the mixing and gain rule that work at its size
     gamma, mixing = law_registry.arm_gain_rule(spec, model, gamma, mixing)
     if mixing is not None and "mixing" not in spec.defaults:
@@ -116,13 +130,12 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
         diagram = closed_loop(law, model, gamma=choice["gamma"], **args)
         diagram.gamma_choice = choice
         return diagram
-    if model.name == "two-link" and n == 2:
+
+    if paper_arm:
         trajectory = PAPER_TRAJECTORY if trajectory is None else trajectory
         disturbance = PAPER_DISTURBANCE if disturbance is None else disturbance
         q0 = [0.0, 0.3 * np.pi] if q0 is None else q0
-    elif trajectory is None or disturbance is None:
-        raise ValueError(f"model {model.name!r}: give `trajectory` and `disturbance` "
-                         "(the paper's defaults are for the 2-link arm)")
+    K = 2.0 if K is None else K
 
     def source(spec, factory):
         if isinstance(spec, ct.NonlinearIOSystem):
@@ -178,6 +191,44 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=2.0, delta_mu=0.8, Ga
         # read by ivdrem.sim.plan: the replaced plant's start, by state name
         diagram.ivdrem_start = {replace["plant"].name: start}
     return diagram
+
+
+def _arm_experiment(model, spec, theta, trajectory, disturbance, q0, dq0, K, T):
+    """(trajectory, disturbance, q0, dq0, K, T) of the real-arm experiment for `model`
+    (docs/experiment.md), each one the caller left at None designed by the functions the
+    configuration uses for that model (``ivdrem.experiments.config``, ARM_FOLLOWING): the
+    Fourier reference, q(0) = q_d(0), q̇(0) = 0, the disturbance scaled to the arm, the gains
+    per joint and the window T of (15a) for a law that has one."""
+    from ..experiments import arm as arm_experiment
+    from ..blocks.sources import fourier_trajectory
+    table = trajectory
+    if trajectory is None:
+        table = arm_experiment.design_trajectory(model)
+    elif isinstance(trajectory, dict):
+        table = {"kind": "sinusoid", **trajectory}
+    elif disturbance is None or q0 is None or (T is None and "T" in spec.defaults):
+        raise ValueError(f"model {model.name!r}: with a trajectory block of your own, give "
+                         "`disturbance`, `q0` and the window `T` too (the real-arm "
+                         "experiment designs them from a reference it can evaluate)")
+    if disturbance is None:
+        disturbance = arm_experiment.design_disturbance(model, table, theta)
+    if q0 is None or dq0 is None:
+        q_start, dq_start = arm_experiment.initial_state(table)
+        q0 = np.asarray(q_start, float) if q0 is None else q0
+        dq0 = np.asarray(dq_start, float) if dq0 is None else dq0
+    if K is None:
+        K = np.diag(arm_experiment.design_gains(model, q0, theta))
+    if T is None and "T" in spec.defaults and isinstance(disturbance, dict):
+        T = arm_experiment.design_window(table, disturbance)   # None: the law's own T
+    if trajectory is None:
+        trajectory = fourier_trajectory(model.n, float(table["omega_f"]),
+                                        np.asarray(table["a"], float),
+                                        np.asarray(table["b"], float),
+                                        np.asarray(table["offset"], float))
+    if isinstance(disturbance, dict):
+        disturbance = {k: np.asarray(disturbance[k], float)
+                       for k in ("amplitude", "omega", "phase", "offset")}
+    return trajectory, disturbance, q0, dq0, K, T
 
 
 def _replaced_plant_start(plant, n, q0, dq0):

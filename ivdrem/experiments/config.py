@@ -216,9 +216,13 @@ def model_from_config(config: Mapping):
         raise ConfigError(f"config key 'model.name' must be a string, got {m.get('name')!r}")
     joints = m.get("joints")
     g = m.get("g")
-    return _build(m.get("name"), None if urdf is None else str(urdf), stamp,
-                  None if g is None else float(g), m.get("friction"),
-                  None if joints is None else tuple(joints))
+    from .._progress import preparing
+    # a large symbolic arm (planar-20) builds in sympy for minutes the first time: said
+    with preparing(f"building the model {urdf or m.get('name')} (the first time; sympy or "
+                   "Pinocchio)", only_if_slow=True):
+        return _build(m.get("name"), None if urdf is None else str(urdf), stamp,
+                      None if g is None else float(g), m.get("friction"),
+                      None if joints is None else tuple(joints))
 
 
 def model_label(config: Mapping) -> str:
@@ -481,11 +485,16 @@ def read_toml(path, what: str = "config file", error=None) -> tuple[dict, str]:
     """(table, text) of a TOML file; a missing, unreadable, non-UTF-8 or invalid file raises
     `error` (default ConfigError) naming `what` and the path."""
     error = ConfigError if error is None else error
+    from .._paths import InputFileError, read_input_bytes
     p = Path(path)
-    try:
-        text = p.read_text("utf-8")
+    try:    # a FIFO, a device or a runaway file: refused, never read (ivdrem._paths)
+        text = read_input_bytes(p, what).decode("utf-8")
     except FileNotFoundError:
         raise error(f"{what} '{p}' not found") from None
+    except IsADirectoryError:
+        raise error(f"{what} '{p}' is a directory, not a file") from None
+    except InputFileError as exc:
+        raise error(str(exc)) from None
     except UnicodeDecodeError as exc:
         raise error(f"{what} '{p}' is not UTF-8 text (TOML must be UTF-8): "
                     f"byte {exc.object[exc.start]:#04x} at offset {exc.start}") from None

@@ -282,26 +282,88 @@ class RunStore:
 
 
 # --------------------------------------------------------------------------- the cluster
+def probe_scheduler(address: str, timeout: float = SCHEDULER_TIMEOUT_S) -> None:
+    """Raise :class:`StudyError` (one line) unless a Dask scheduler answers at the tcp
+    `address` within `timeout` seconds in all: Dask's own connection (its handshake) and
+    an ``identity`` request whose reply names a scheduler.  A port that accepts and stays
+    silent, one that answers HTTP (a dashboard) or another Dask server (a worker) are told
+    apart here; ``Client`` alone waits forever for the first and gives a raw TimeoutError
+    for the second."""
+    import asyncio
+
+    from distributed.comm import connect, parse_address, parse_host_port
+
+    stage = ["connect"]
+
+    async def ask():
+        # a plain TCP connection first: "nothing listens" and "listens but is silent" differ
+        host, port = parse_host_port(parse_address(address)[1])
+        _, writer = await asyncio.open_connection(host, port)
+        writer.close()
+        stage[0] = "answer"
+        comm = await connect(address, timeout=timeout)
+        try:
+            await comm.write({"op": "identity"})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    hint = "is it running, and is the address right? (`dask scheduler` listens on 8786)"
+    try:
+        reply = asyncio.run(asyncio.wait_for(ask(), timeout))
+    except (asyncio.TimeoutError, TimeoutError):
+        what = ("the port accepted the connection but nothing answered Dask's handshake "
+                "(not a Dask scheduler?)" if stage[0] == "answer" else
+                "no answer to the connection (a firewall, or a host that is down?)")
+        raise StudyError(f"cannot reach the Dask scheduler at {address} within "
+                         f"{timeout:g} s: {what}; {hint}") from None
+    except Exception as exc:     # noqa: BLE001 - every failure of the probe is one line
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        if len(text) > 200:
+            text = text[:200] + "..."
+        what = ("the server there does not speak Dask's protocol (an HTTP dashboard?)"
+                if stage[0] == "answer" else f"{type(exc).__name__}: {text}")
+        raise StudyError(f"cannot reach the Dask scheduler at {address} within "
+                         f"{timeout:g} s ({what}); {hint}") from None
+    kind = reply.get("type") if isinstance(reply, dict) else None
+    if kind != "Scheduler":
+        raise StudyError(f"the server at {address} is " + (
+            f"a Dask {kind}, not a scheduler" if kind else
+            "not a Dask scheduler (its answer is not Dask's)") + f"; {hint}")
+
+
+def _check_scheduler(workers: int | None, scheduler: str | None) -> str | None:
+    """The --scheduler address made whole (``tcp://`` added), checked and probed
+    (:func:`probe_scheduler`), or None for the local cluster.  Called first in a study,
+    so a wrong address fails within :data:`SCHEDULER_TIMEOUT_S`, before any other work."""
+    if scheduler is None:
+        return None
+    if workers is not None:
+        raise StudyError("--workers applies to the local cluster only; a --scheduler "
+                         "has the workers its cluster started")
+    if "://" not in scheduler:
+        scheduler = "tcp://" + scheduler
+    from distributed.comm import parse_address, parse_host_port
+    try:   # a malformed address is refused before a client exists (no late traceback)
+        protocol, loc = parse_address(scheduler)
+        if protocol in ("tcp", "tls"):
+            parse_host_port(loc)
+    except ValueError as exc:
+        raise StudyError(f"--scheduler {scheduler!r} is not a Dask scheduler address "
+                         f"({exc}); give e.g. tcp://HOST:8786") from None
+    if protocol == "tcp":   # tls needs the cluster's certificates: Client's own check
+        probe_scheduler(scheduler)
+    return scheduler
+
+
 def _connect(workers: int | None, scheduler: str | None):
-    """(client, cluster or None).  An unreachable scheduler raises StudyError quickly."""
+    """(client, cluster or None) for a scheduler address checked by
+    :func:`_check_scheduler`, or a local cluster of `workers` processes."""
     import logging
 
     from dask.distributed import Client, LocalCluster
 
     if scheduler is not None:
-        if workers is not None:
-            raise StudyError("--workers applies to the local cluster only; a --scheduler "
-                             "has the workers its cluster started")
-        if "://" not in scheduler:
-            scheduler = "tcp://" + scheduler
-        from distributed.comm import parse_address, parse_host_port
-        try:   # a malformed address is refused before a client exists (no late traceback)
-            protocol, loc = parse_address(scheduler)
-            if protocol in ("tcp", "tls"):
-                parse_host_port(loc)
-        except ValueError as exc:
-            raise StudyError(f"--scheduler {scheduler!r} is not a Dask scheduler address "
-                             f"({exc}); give e.g. tcp://HOST:8786") from None
         try:
             client = Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S}s",
                             set_as_default=False)
@@ -375,6 +437,7 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     Everything is checked before the first run starts: the study file, every run's
     configuration, the output directory and the scheduler (StudyError).
     """
+    scheduler = _check_scheduler(workers, scheduler)    # within 5 s, before any other work
     spec = read_study(study)
     runs = expand_study(spec)
     if out is None:
@@ -402,9 +465,12 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     wanted = {r.hash: r for r in runs}
     todo = [h for h in dict.fromkeys(r.hash for r in runs) if h not in have]
     records = {h: rec for h, rec in have.items() if h in wanted}
-    try:   # before a cluster starts: the output directory, then what each run will cost
+    try:   # before a cluster starts: the output directory, the C compiler, then what each
+        # run will cost
         check_writable_dir(out, "study directory (--out)")
-    except OutputLocationError as exc:
+        from .._preflight import check_c_compiler
+        check_c_compiler()
+    except (OutputLocationError, ValueError) as exc:
         raise StudyError(str(exc)) from None
     check_study_cost([wanted[h] for h in todo])
 
@@ -581,11 +647,13 @@ def run_study_command(args) -> int:
     except StudyError as exc:
         print(f"ivdrem study: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:      # Ctrl-C, or SIGTERM (ivdrem.cli.Terminated)
+        from ..cli import EXIT_INTERRUPTED
         done = len(RunStore(Path(out)).load())
-        print(f"\nivdrem study: interrupted; {done} finished run(s) are saved in {out}/runs; "
-              "continue with --resume", file=sys.stderr)
-        return 130
+        how = getattr(exc, "label", "Ctrl-C")
+        print(f"\nivdrem study: interrupted ({how}); {done} finished run(s) are saved in "
+              f"{out}/runs; continue with --resume", file=sys.stderr)
+        return 128 + exc.signum if hasattr(exc, "signum") else EXIT_INTERRUPTED
     print(summary_text(df, out))
     return 1 if df.attrs.get("lost") else 0
 

@@ -532,7 +532,8 @@ def coupling_stability(model, comm_step, t_end, **config) -> CouplingStability:
     q0, _ = _initial_state(model, config)
     theta = config.get("theta")
     theta = np.asarray(model.theta_values if theta is None else theta, dtype=float)
-    K = checks.square("control_law", "K", given("K"), n, pd=True)
+    K = checks.square("control_law", "K", 2.0 if given("K") is None else given("K"), n,
+                      pd=True)   # closed_loop: K = 2 unless given (the paper's)
     delta_mu, alpha = float(given("delta_mu")), float(given("alpha"))
     mu0, mu1 = float(given("mu0")), float(given("mu1"))
     M = np.empty((n, n))

@@ -160,7 +160,135 @@ def _check_urdf_text(path, text):
         if len(js) > 1:
             _fail(path, f"link {ln!r} is the child of several joints ({', '.join(js)}): a "
                   "closed chain, which ivdrem does not model")
+    # names: two links or two joints of one name make the file ambiguous (refused); a link
+    # and a joint of one name (example-robot-data's SO-100: "gripper") are told apart by
+    # their kind where the model is built (_parse)
+    for kind, elements in (("link", root.findall("link")), ("joint", joints)):
+        seen = set()
+        for el in elements:
+            name = el.get("name")
+            if name is None or not name.strip():
+                _fail(path, f"a <{kind}> has no name")
+            if name in seen:
+                _fail(path, f"two <{kind}> elements are named {name!r}; {kind} names must "
+                      "be unique")
+            seen.add(name)
     return root
+
+
+def _numbers(path, where, text, count):
+    """`count` finite numbers of the attribute text `text` (of `where`), or a URDFError."""
+    try:
+        vals = [float(v) for v in str(text).split()]
+    except ValueError:
+        vals = []
+    if len(vals) != count or not all(math.isfinite(v) for v in vals):
+        _fail(path, f"{where} must be {count} finite number{'s' if count > 1 else ''}, "
+              f"got {text!r}")
+    return vals
+
+
+def _number(path, where, text):
+    return _numbers(path, where, text, 1)[0]
+
+
+#: relative tolerance of the inertia checks (principal moments of URDF files exported
+#: from CAD are rounded to a few digits: a thin disc's I_zz = I_xx + I_yy may come out a
+#: few units of the last digit above the sum)
+INERTIA_RTOL = 1e-6
+
+
+def _check_inertial(path, link_name, inertial):
+    """A physically possible <inertial>: a finite mass >= 0 (0 only for a frame without
+    inertia, a tool flange), and a rotational inertia about
+    the centre of mass whose principal moments are >= 0 (positive semi-definite: a point
+    mass, I = 0, is allowed) and satisfy the triangle inequality I_1 + I_2 >= I_3 (no body
+    has a principal moment above the sum of the other two)."""
+    where = f"link {link_name!r}"
+    mass = inertial.find("mass")
+    if mass is None or mass.get("value") is None:
+        _fail(path, f"{where}: its <inertial> has no <mass value=...>")
+    m = _number(path, f"{where}: mass", mass.get("value"))
+    if m < 0:
+        _fail(path, f"{where}: mass {m:g} kg; a mass is >= 0")
+    origin = inertial.find("origin")
+    if origin is not None:
+        for attr in ("xyz", "rpy"):
+            if origin.get(attr) is not None:
+                _numbers(path, f"{where}: <inertial><origin {attr}>", origin.get(attr), 3)
+    el = inertial.find("inertia")
+    if el is None:
+        _fail(path, f"{where}: its <inertial> has no <inertia>")
+    comp = {}
+    for k in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz"):
+        comp[k] = 0.0 if el.get(k) is None else _number(path, f"{where}: inertia {k}", el.get(k))
+    inertia = np.array([[comp["ixx"], comp["ixy"], comp["ixz"]],
+                        [comp["ixy"], comp["iyy"], comp["iyz"]],
+                        [comp["ixz"], comp["iyz"], comp["izz"]]])
+    lam = np.linalg.eigvalsh(inertia)
+    scale = max(float(np.sum(np.abs(lam))), 1e-300)
+    text = ", ".join(f"{k}={comp[k]:g}" for k in ("ixx", "iyy", "izz", "ixy", "ixz", "iyz"))
+    if m == 0 and np.any(inertia != 0):   # a massless frame (a tool flange) has none
+        _fail(path, f"{where}: mass 0 kg with a rotational inertia ({text}); a body "
+              "without mass has none")
+    if lam[0] < -INERTIA_RTOL * scale:
+        _fail(path, f"{where}: its rotational inertia ({text}) is not positive "
+              f"semi-definite (principal moment {lam[0]:.4g} kg m^2 < 0): no body has it")
+    if lam[0] + lam[1] < lam[2] - INERTIA_RTOL * scale:
+        _fail(path, f"{where}: its principal moments {lam[0]:.4g}, {lam[1]:.4g}, "
+              f"{lam[2]:.4g} kg m^2 ({text}) break the triangle inequality "
+              f"I1 + I2 >= I3 that every body's inertia satisfies")
+
+
+def _check_chain(path, root, chain):
+    """The joints of `chain` and every link they move, from the URDF's text, before any
+    model is built: limits (lower <= upper), a nonzero finite axis, and a physically
+    possible inertia for each moving link that has one (links fixed to a moving one and
+    the links of locked joints are part of it)."""
+    by_name = {j.get("name"): j for j in root.findall("joint")}
+    for jn in chain:
+        j = by_name.get(jn)
+        if j is None:
+            continue
+        axis = j.find("axis")
+        if axis is not None and axis.get("xyz") is not None:
+            xyz = _numbers(path, f"joint {jn!r}: axis xyz", axis.get("xyz"), 3)
+            if not any(xyz):
+                _fail(path, f"joint {jn!r}: its axis is xyz=\"0 0 0\" (no direction); give "
+                      "the unit vector it turns or slides along")
+        limit = j.find("limit")
+        if limit is not None and j.get("type") in ("revolute", "prismatic"):
+            lo, hi = (None if limit.get(k) is None else
+                      _number(path, f"joint {jn!r}: limit {k}", limit.get(k))
+                      for k in ("lower", "upper"))
+            if lo is not None and hi is not None and lo > hi:
+                _fail(path, f"joint {jn!r}: limit lower={lo:g} is above upper={hi:g}")
+            for k in ("velocity", "effort"):
+                if limit.get(k) is not None:
+                    v = _number(path, f"joint {jn!r}: limit {k}", limit.get(k))
+                    if v < 0:
+                        _fail(path, f"joint {jn!r}: limit {k}={v:g} is negative")
+    # every link below the first joint of the chain moves with the arm
+    children = {}
+    for j in root.findall("joint"):
+        p, c = j.find("parent"), j.find("child")
+        if p is not None and c is not None:
+            children.setdefault(p.get("link"), []).append(c.get("link"))
+    first = by_name.get(chain[0]) if chain else None
+    start = first.find("child").get("link") if first is not None and \
+        first.find("child") is not None else None
+    links = {ln.get("name"): ln for ln in root.findall("link")}
+    todo, moving = [start] if start is not None else [], []
+    while todo:
+        name = todo.pop()
+        if name in moving:
+            continue
+        moving.append(name)
+        todo.extend(children.get(name, []))
+    for name in moving:
+        el = links.get(name)
+        if el is not None and el.find("inertial") is not None:
+            _check_inertial(path, name, el.find("inertial"))
 
 
 def _link_has_inertia(root, link, seen=None):
@@ -184,6 +312,26 @@ def _pinocchio():
     return pinocchio
 
 
+def _untie_frame_names(pin, model):
+    """A link named as a joint (example-robot-data's SO-100: "gripper"): Pinocchio's frame
+    lookups by name, buildReducedModel's among them, would find both ("Several frames
+    match the filter"); the link's frames get the suffix ``#link``."""
+    joint_names = set(model.names)
+    for frame in model.frames:
+        if frame.type != pin.FrameType.JOINT and frame.name in joint_names:
+            frame.name = f"{frame.name}#link"
+    return model
+
+
+def _chain_model(path, locked):
+    """Pinocchio's model of the URDF at `path` with the joints `locked` (names) locked at
+    their neutral position: the chain a RigidBodyModel describes."""
+    pin = _pinocchio()
+    full = _untie_frame_names(pin, pin.buildModelFromUrdf(str(path)))
+    lock = [full.getJointId(j) for j in locked]
+    return pin.buildReducedModel(full, lock, pin.neutral(full)) if lock else full
+
+
 def _parse(path, joints, gravity, friction, friction_width, armature):
     """The chain data of the URDF at ``path`` (a dict; see :class:`RigidBodyModel`)."""
     pin = _pinocchio()
@@ -205,6 +353,7 @@ def _parse(path, joints, gravity, friction, friction_width, armature):
     names = [full.names[i] for i in range(1, full.njoints)]
     if not names:
         _fail(path, "has no revolute, continuous or prismatic joint")
+    _untie_frame_names(pin, full)
     xml_joints = {j.get("name"): j for j in root.findall("joint")}
     if joints is None:
         # the actuated joints must form one chain from the root
@@ -249,6 +398,7 @@ def _parse(path, joints, gravity, friction, friction_width, armature):
         if child is not None and not _link_has_inertia(root, child):
             _fail(path, f"link {child!r} (moved by joint {jn!r}) has no <inertial>: its mass "
                   "and inertia are unknown")
+    _check_chain(path, root, chain)        # limits, axes, inertias: before any model
     lock = [full.getJointId(j) for j in names if j not in chain]
     model = (pin.buildReducedModel(full, lock, pin.neutral(full)) if lock else full)
     n = model.njoints - 1
@@ -268,6 +418,8 @@ def _parse(path, joints, gravity, friction, friction_width, armature):
         else:
             _fail(path, f"joint {model.names[i]!r} is of Pinocchio type {sn}; ivdrem models "
                   "revolute, continuous and prismatic joints")
+        if not (np.all(np.isfinite(u)) and np.linalg.norm(u) > 0):
+            _fail(path, f"joint {model.names[i]!r}: its axis has no direction ({u.tolist()})")
         axis.append(u / np.linalg.norm(u))
         M0 = model.jointPlacements[i]
         Rp.append(np.asarray(M0.rotation, float))
@@ -337,7 +489,8 @@ def _parse(path, joints, gravity, friction, friction_width, armature):
         theta.append(arm_vals)
     return dict(
         joint_names=[model.names[i] for i in range(1, model.njoints)],
-        link_names=[model.frames[model.getFrameId(model.names[i])].name
+        # the joint's own frame: a link may bear a joint's name (the SO-100's "gripper")
+        link_names=[model.frames[model.getFrameId(model.names[i], pin.FrameType.JOINT)].name
                     for i in range(1, model.njoints)],
         parent=parent, jtype=jtype, axis=np.array(axis).tolist(), Rp=np.array(Rp).tolist(),
         pp=np.array(pp).tolist(), continuous=continuous, gravity=g.tolist(),
@@ -427,9 +580,7 @@ def _build(path, joints, gravity, friction, friction_width, armature, base):
     ns = len(std_names)
     theta_std = np.asarray(chain["theta_standard"])
     if base:
-        full = pin.buildModelFromUrdf(chain["urdf"])
-        lock = [full.getJointId(j) for j in chain["locked"]]
-        pmodel = pin.buildReducedModel(full, lock, pin.neutral(full)) if lock else full
+        pmodel = _chain_model(chain["urdf"], chain["locked"])
         pmodel.gravity.linear = np.asarray(chain["gravity"])
         n = len(chain["parent"])
         rng = np.random.default_rng(20260)
@@ -500,6 +651,9 @@ def from_urdf(path, *, base=True, friction=None, joints=None, gravity=9.81, arma
             chain = json.loads(cfile.read_text())
         except (OSError, ValueError):
             chain = None
+        if chain is not None:   # the checks of the text hold for a cached build too (an
+            # older ivdrem cached files they refuse); XML only, no Pinocchio
+            _check_chain(path, _check_urdf_text(path, path.read_text()), chain["joint_names"])
     if chain is None:
         chain = _build(path, options["joints"], gravity, friction, friction_width, armature,
                        base)
@@ -606,10 +760,7 @@ class RigidBodyModel(RobotModel):
 
     def pinocchio_model(self):
         """The Pinocchio model of the same chain (the reference the tests check against)."""
-        import pinocchio as pin
-        full = pin.buildModelFromUrdf(self.urdf)
-        lock = [full.getJointId(j) for j in self._chain["locked"]]
-        m = pin.buildReducedModel(full, lock, pin.neutral(full)) if lock else full
+        m = _chain_model(self.urdf, self._chain["locked"])
         m.gravity.linear = self.gravity
         return m
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import math
 import platform
 import re
 import subprocess
@@ -16,7 +17,18 @@ import numpy as np
 from ..experiments import metrics
 from ..experiments.diagnostics import measured_label
 
-__all__ = ["Table", "ReportContent", "build_content", "versions", "git_commit", "fmt"]
+__all__ = ["Table", "ReportContent", "build_content", "versions", "git_commit", "fmt", "pow10"]
+
+
+def pow10(exponent: float, digits: int = 2) -> str:
+    """10**exponent written as a number, "5.0e-09", for any exponent (a decimal logarithm
+    far below the doubles' range too: "5.0e-400"); never a fractional exponent ("1e-8.3"
+    is no number)."""
+    e = math.floor(exponent)
+    mantissa = 10.0 ** (exponent - e)
+    if round(mantissa, digits - 1) >= 10.0:
+        mantissa, e = mantissa / 10.0, e + 1
+    return f"{mantissa:.{digits - 1}f}e{e:+03d}"
 
 
 @dataclass
@@ -407,9 +419,9 @@ def _mixing_table(run, diags: Mapping) -> Table | None:
         if worst < math.log10(DELTA2_MIN):
             rule = "refused: Δ² below the smallest double, γΔ² = 0 in doubles"
         elif log_gamma > math.log10(GAMMA_MAX):
-            rule = f"refused: γ = 1e{log_gamma:.0f} above {GAMMA_MAX:.0e}"
+            rule = f"refused: γ = {pow10(log_gamma)} above {GAMMA_MAX:.0e}"
         else:
-            rule = f"γ ≈ 1e{log_gamma:.1f}"
+            rule = f"γ ≈ {pow10(log_gamma)}"
         if v in ran:
             c = {c["id"]: c for c in diags[ran[v]]["checks"]}.get("LEARN", {})
             m = c.get("measured", {})
@@ -420,7 +432,7 @@ def _mixing_table(run, diags: Mapping) -> Table | None:
             result = "learns nothing from (21): the term cannot be formed (not run)"
         else:
             result = "not run here"
-        span = (f"1e{worst:.1f}" if len(est) == 1 else f"1e{min(est):.1f} … 1e{max(est):.1f}")
+        span = (pow10(worst) if len(est) == 1 else f"{pow10(min(est))} … {pow10(max(est))}")
         rows.append([v, span, rule, result])
     return Table("mixing", f"Mixing variants of (17) on this arm (nθ = {model.ntheta})",
                  ["mixing", "mean Δ² over [T, 2T] (reference estimate)", "gain rule",

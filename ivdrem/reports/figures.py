@@ -77,6 +77,12 @@ _EXTRA_COLORS = ["#D55E00", "#56B4E9", "#000000", "#F0E442"]
 WIDTH = 8.27  # inches: A4 width, so that PDF pages of figures and text line up
 PANEL_H = 2.05
 DECADES_FOR_LOG = 2.0
+#: Most component panels a figure draws one per component; above it (a URDF arm's 36
+#: parameters) each law gets one panel with every component, so a page keeps legible panels.
+MAX_COMPONENT_PANELS = 8
+#: Start-up share of the run left out of a zoomed panel's y range (Figure 2: e starts at
+#: 0.8 rad and settles to 1e-3 rad, so the whole range hides the steady state).
+ZOOM_SKIP = 0.05
 
 
 def law_color(law: str, order: int = 0) -> str:
@@ -311,23 +317,56 @@ def fig_delta_W(run):
     return FigureSpec("fig1", title, caption, fig)
 
 
-def _component_figure(run, key, title, caption, fn, comp_label, norm_label, unit, *, truth=None):
+def _zoom(ax, t_from: float) -> bool:
+    """y limits of `ax` from its lines after `t_from` (10 % margin): the steady state
+    fills the panel, the start-up beyond it is clipped.  False if nothing to zoom to."""
+    lo, hi = math.inf, -math.inf
+    for line in ax.get_lines():
+        x = np.asarray(line.get_xdata(), dtype=float)
+        y = np.asarray(line.get_ydata(), dtype=float)
+        keep = (x >= t_from) & np.isfinite(y)
+        if keep.any():
+            lo, hi = min(lo, float(y[keep].min())), max(hi, float(y[keep].max()))
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return False
+    span = hi - lo if hi > lo else max(abs(hi), 1e-12)
+    ax.set_ylim(lo - 0.1 * span, hi + 0.1 * span)
+    return True
+
+
+def _component_figure(run, key, title, caption, fn, comp_label, norm_label, unit, *, truth=None,
+                      zoom=False, layered=False):
+    """One panel per component (and ‖x‖ last); above :data:`MAX_COMPONENT_PANELS`
+    components one panel per law with all of them.  `zoom`: component panels' y range
+    from the run after its first :data:`ZOOM_SKIP`; `layered`: laws whose curves nearly
+    coincide drawn wide below and the proposed law narrow on top, so each stays visible."""
     laws = list(run.runs)
     first = run.runs[laws[0]]
     k = fn(first).shape[0]
+    if k > MAX_COMPONENT_PANELS:
+        return _overlay_figure(run, key, title, caption, fn, comp_label, norm_label, unit,
+                               truth=truth)
     panels = k + (1 if norm_label else 0)
     fig, axes = _grid(panels, caption_lines=len(_caption_lines(caption)))
     for i, law in enumerate(laws):
         lr = run.runs[law]
         x = fn(lr)
         t = _t(lr)
+        kw = {}
+        if layered:
+            kw = dict(lw=1.0) if law == "iv-drem" else dict(lw=2.6, alpha=0.75)
         for j in range(k):
-            _plot(axes[j], t, x[j], law, i)
+            _plot(axes[j], t, x[j], law, i, **kw)
     for j in range(k):
         axes[j].set_ylabel(comp_label(j) + f" ({unit})" if unit else comp_label(j))
         if truth is not None:
             tt = _t(first)
             axes[j].plot([tt[0], tt[-1]], [truth[j], truth[j]], color="black", ls="--", lw=1.0)
+    if zoom:
+        t0 = min(_t(lr)[0] for lr in run.runs.values())
+        t1 = max(_t(lr)[-1] for lr in run.runs.values())
+        for j in range(k):
+            _zoom(axes[j], t0 + ZOOM_SKIP * (t1 - t0))
     extra = []
     if truth is not None:
         extra.append(Line2D([], [], color="black", ls="--", label="true θ"))
@@ -337,11 +376,44 @@ def _component_figure(run, key, title, caption, fn, comp_label, norm_label, unit
     return FigureSpec(key, title, caption, fig)
 
 
+def _overlay_figure(run, key, title, caption, fn, comp_label, norm_label, unit, *, truth=None):
+    """Many components (a URDF arm's parameters): one panel per law with every component
+    (thin lines), and ‖x‖ of every law last."""
+    laws = list(run.runs)
+    k = fn(run.runs[laws[0]]).shape[0]
+    caption = (f"{caption} All {k} components of each law in one panel (one per law; "
+               f"a page of {k} panels would be unreadable).")
+    panels = len(laws) + (1 if norm_label else 0)
+    fig, axes = _grid(panels, cols=1, titles=True, caption_lines=len(_caption_lines(caption)))
+    label = comp_label(0).replace("{1}", "{j}").replace(",1}", ",j}")   # e_j, θ̃_j, τ_d,j
+    for i, law in enumerate(laws):
+        lr = run.runs[law]
+        x, t = fn(lr), _t(lr)
+        ax = axes[i]
+        for j in range(k):
+            _plot(ax, t, x[j], law, i, lw=0.7, alpha=0.8)
+        if truth is not None:
+            for j in range(k):
+                ax.axhline(truth[j], color="black", ls="--", lw=0.5, alpha=0.5)
+        ax.set_ylabel(label + (f" ({unit})" if unit else ""))
+        ax.set_title(f"{law_label(law)}: {k} components")
+    extra = []
+    if truth is not None:
+        extra.append(Line2D([], [], color="black", ls="--", label="true θ"))
+    if norm_label:
+        _norm_panel(axes[-1], run, laws, fn, norm_label + (f" ({unit})" if unit else ""))
+    _finish(fig, axes, title, caption, laws, run, extra_handles=extra)
+    return FigureSpec(key, title, caption, fig)
+
+
 def fig_tracking_error(run):
     return _component_figure(
         run, "fig2", "Figure 2. Tracking error e(t)",
-        "e = q_d − q for each joint; the last panel is ‖e‖ (log scale when it spans decades).",
-        lambda lr: metrics.signal(lr, "e"), lambda j: rf"$e_{{{j + 1}}}$", r"$\|e\|$", "rad")
+        "e = q_d − q for each joint, its y range zoomed to the run after the first "
+        f"{ZOOM_SKIP:.0%} (the start-up, from q(0) ≠ q_d(0), is clipped there); the last panel "
+        "is ‖e‖ over the whole run (log scale when it spans decades).",
+        lambda lr: metrics.signal(lr, "e"), lambda j: rf"$e_{{{j + 1}}}$", r"$\|e\|$", "rad",
+        zoom=True)
 
 
 def fig_theta_error(run):
@@ -373,8 +445,10 @@ def fig_theta_hat(run):
 def fig_torque(run):
     return _component_figure(
         run, "fig6", "Figure 6. Control torque τ(t)",
-        "τ = (K + δ_μ μ) r + Πᵀθ̂ − u_f, eq. (9).",
-        lambda lr: metrics.signal(lr, "tau"), lambda j: rf"$\tau_{{{j + 1}}}$", None, "N·m")
+        "τ = (K + δ_μ μ) r + Πᵀθ̂ − u_f, eq. (9). The laws' torques nearly coincide: "
+        "IV-DREM is drawn narrow on top of the other laws' wide, lighter lines.",
+        lambda lr: metrics.signal(lr, "tau"), lambda j: rf"$\tau_{{{j + 1}}}$", None, "N·m",
+        layered=True)
 
 
 def fig_auxiliary(run):

@@ -71,6 +71,34 @@ def _wrap(text: str, width_in: float, size: float, bold: bool = False) -> list[s
     return lines
 
 
+def _longest_word(texts, size: float, bold: bool) -> float:
+    return max((_width_in(w, size, bold) for s in texts for w in str(s).split()), default=0.0)
+
+
+def column_widths(t: Table, width: float, size: float, pad: float) -> list[float]:
+    """Column widths (inches) summing to `width`: the table's proportions, except that
+    every column is at least as wide as its longest word (header words bold), so no word
+    is broken ("metho d", "0.04217 99") while the other columns can give room.  Only when
+    the longest words alone exceed `width` do the columns share it in their proportion."""
+    total = sum(t.widths)
+    want = [w / total * width for w in t.widths]
+    need = [max(_longest_word([h], size, True), _longest_word([r[j] for r in t.rows], size,
+                                                              False)) + 2 * pad + 0.01
+            for j, h in enumerate(t.header)]
+    if sum(need) > width:
+        return [n / sum(need) * width for n in need]
+    fixed = [False] * len(want)
+    while True:      # pin the columns below their need, share the rest in proportion
+        room = width - sum(n for n, f in zip(need, fixed) if f)
+        free = sum(w for w, f in zip(want, fixed) if not f)
+        widths = [n if f else w / free * room for n, w, f in zip(need, want, fixed)]
+        short = [j for j, (w, n) in enumerate(zip(widths, need)) if not fixed[j] and w < n]
+        if not short:
+            return widths
+        for j in short:
+            fixed[j] = True
+
+
 def plan_table_pages(heights, head_h, first_avail, page_avail):
     """Split the rows of a table over pages so that no page holds a lone row.
 
@@ -171,10 +199,9 @@ class TextPages:
 
     def table(self, t: Table, size: float = 8):
         width = PAGE_W - 2 * MARGIN_X
-        total = sum(t.widths)
-        colw = [w / total * width for w in t.widths]
         lh = self._lh(size)
         pad = 0.04
+        colw = column_widths(t, width, size, pad)
 
         def row_lines(cells, bold=False):
             return [_wrap(c, w - 2 * pad, size, bold) for c, w in zip(cells, colw)]

@@ -132,10 +132,21 @@ def _compiler():
 @functools.lru_cache(maxsize=None)
 def _compiler_version(cc):
     try:
-        return subprocess.run([cc, "--version"], capture_output=True, text=True,
-                              timeout=60).stdout
+        res = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=60)
     except (OSError, subprocess.SubprocessError) as e:
         raise CStepperUnavailable(f"C compiler {cc!r} does not run: {e}") from e
+    if res.returncode != 0:      # CC=/bin/false, a wrapper that fails: not a compiler
+        raise CStepperUnavailable(f"C compiler {cc!r} does not run: '{cc} --version' exited "
+                                  f"with status {res.returncode}")
+    return res.stdout
+
+
+def _disk_full(cache, what):
+    """The one line for a compile cache on a full disk, naming it and the remedy."""
+    from .cache import CacheFault
+    return CacheFault(f"the compile cache {cache} is on a full disk (No space left on device) "
+                      f"while {what}: free some space there, or point IVDREM_CACHE_DIR at a "
+                      "directory on a disk with room (ivdrem's caches take about 100 MB)")
 
 
 def build(cache):
@@ -149,18 +160,26 @@ def build(cache):
     lib = Path(cache) / f"ivdrem_cstepper_{key}.so"
     if lib.exists():
         return lib
-    lib.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=lib.parent, prefix=".cstepper-") as tmp:
-        tmp = Path(tmp)
-        (tmp / "stepper_consts.h").write_text(hdr)
-        (tmp / "stepper.c").write_text(src)
-        out = tmp / lib.name
-        cmd = [cc, *CFLAGS, "-I", str(tmp), str(tmp / "stepper.c"), "-o", str(out), "-lm"]
-        res = subprocess.run(cmd, capture_output=True, text=True)
-        if res.returncode != 0:
-            raise CStepperBuildFailed(f"building the C stepper failed ({' '.join(cmd)}):\n"
-                                      f"{res.stderr}")
-        os.replace(out, lib)     # atomic: another process sees the whole file or none
+    try:
+        lib.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=lib.parent, prefix=".cstepper-") as tmp:
+            tmp = Path(tmp)
+            (tmp / "stepper_consts.h").write_text(hdr)
+            (tmp / "stepper.c").write_text(src)
+            out = tmp / lib.name
+            cmd = [cc, *CFLAGS, "-I", str(tmp), str(tmp / "stepper.c"), "-o", str(out), "-lm"]
+            res = subprocess.run(cmd, capture_output=True, text=True)
+            if res.returncode != 0:
+                if "No space left on device" in res.stderr or "Disk quota exceeded" in res.stderr:
+                    raise _disk_full(cache, "building the C stepper")
+                raise CStepperBuildFailed(f"building the C stepper failed ({' '.join(cmd)}):\n"
+                                          f"{res.stderr}")
+            os.replace(out, lib)     # atomic: another process sees the whole file or none
+    except OSError as e:         # the temporary directory went with the with-block
+        import errno
+        if e.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise _disk_full(cache, "building the C stepper") from None
+        raise
     return lib
 
 

@@ -21,10 +21,11 @@ import numpy as np
 
 from .. import __version__
 from .._atomic import write_text_atomic
+from .._cache_home import cache_dir   # noqa: F401 - one definition, read before numba loads
 
 __all__ = ["cache_dir", "package_digest", "source_hash", "write_generated",
            "import_generated", "import_path", "compile_lock", "GENERATED_HEADER",
-           "helpers_digest"]
+           "helpers_digest", "CacheFault", "guard_numba_index"]
 
 #: the package files every generated module imports its helpers from
 HELPER_FILES = ("blocks/_kernels.py", "sim/_native.py")
@@ -48,13 +49,6 @@ GENERATED_HEADER = [f"# helpers {helpers_digest()}", "import math", "import nump
                     "from ivdrem.sim._native import call_c"]
 
 
-def cache_dir() -> Path:
-    """$IVDREM_CACHE_DIR, else $XDG_CACHE_HOME/ivdrem (default ~/.cache/ivdrem)."""
-    d = os.environ.get("IVDREM_CACHE_DIR")
-    if d:
-        return Path(d)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "ivdrem"
 
 
 def source_hash(text):
@@ -82,12 +76,51 @@ def import_generated(cdir, name, src):
         return import_path(name, path)
 
 
+class CacheFault(OSError):
+    """A compile cache that cannot serve (full, damaged, no compiler): the message names the
+    cache and the remedy, in one line."""
+
+
+def guard_numba_index() -> None:
+    """Make a damaged numba cache index (a truncated or garbled ``.nbi``: a disk that filled
+    up, a copy cut short) a cache miss instead of a raw ``UnpicklingError`` deep inside a
+    run: the file is removed, one line on stderr names it, and numba compiles that function
+    again and writes a new index.  numba's own contract for a missing or stale index is the
+    same empty answer.  Wraps ``numba.core.caching.IndexDataCacheFile._load_index`` (a
+    private method, numba 0.59-0.61; tests/test_user_round_two.py garbles an index), once
+    per process."""
+    import pickle
+
+    from numba.core import caching
+    load = caching.IndexDataCacheFile._load_index
+    if getattr(load, "_ivdrem", False):
+        return
+
+    def _load_index(self):
+        try:
+            return load(self)
+        except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError,
+                ImportError, IndexError) as exc:
+            path = getattr(self, "_index_path", "?")
+            print(f"ivdrem: numba's cache index {path} was unreadable "
+                  f"({type(exc).__name__}); removed it, compiling that function again",
+                  file=sys.stderr, flush=True)
+            try:
+                os.unlink(path)
+            except OSError:
+                pass
+            return {}
+    _load_index._ivdrem = True
+    caching.IndexDataCacheFile._load_index = _load_index
+
+
 def import_path(name, path):
     """The module `name` of the Python file at `path`, imported once per process; a module
     whose import failed is not left in sys.modules.  (No lock: `path` may be a user's
     file, beside which nothing is written.)"""
     if name in sys.modules:
         return sys.modules[name]
+    guard_numba_index()       # the module's numba kernels load their cached machine code
     spec = importlib.util.spec_from_file_location(name, path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[name] = mod

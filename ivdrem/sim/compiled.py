@@ -21,6 +21,7 @@ from ..blocks import _kernels
 from ..blocks._core import effective_params, flat_kernel, kernel_args
 from . import _template
 from ._diagram import LU_WORK_ROWS
+from .._progress import preparing
 from .cache import (GENERATED_HEADER, cache_dir, import_generated as _import,  # noqa: F401
                     source_hash as _hash, write_generated as _write)
 from .errors import BLOCK_RAISED_MESSAGE, BlockError, CompileError  # noqa: F401
@@ -482,15 +483,19 @@ class CompiledEngine:
     def __init__(self, plan, params=None):
         self.plan = plan
         param_slots, self.P = _param_layout(plan)
-        self.program = generate_source(plan, param_slots)
-        # the C stepper is built (or loaded) on a thread while this process compiles its
-        # kernels: the C compiler is a process of its own
-        with ThreadPoolExecutor(1, thread_name_prefix="ivdrem-cstepper") as pool:
-            pending = pool.submit(load_c_stepper)
-            try:
-                _load_kernels(self.program.deps)
-            finally:
-                self.module = pending.result()
+        # a first run generates and compiles for minutes: said, on a terminal or in a log
+        with preparing(f"generating and compiling the kernels of diagram "
+                       f"{plan.diagram.name!r} (numba; loaded from the cache when they are "
+                       "there)", cached_in=cache_dir(), only_if_slow=True):
+            self.program = generate_source(plan, param_slots)
+            # the C stepper is built (or loaded) on a thread while this process compiles
+            # its kernels: the C compiler is a process of its own
+            with ThreadPoolExecutor(1, thread_name_prefix="ivdrem-cstepper") as pool:
+                pending = pool.submit(load_c_stepper)
+                try:
+                    _load_kernels(self.program.deps)
+                finally:
+                    self.module = pending.result()
         self.stepper = self.module.name
         self.integrate = self.module.integrate
         self.tables = self.program.tables

@@ -35,7 +35,9 @@ __all__ = ["CostLimitError", "CostEstimate", "estimate_cost", "check_cost",
            "check_bounds", "MAX_OUTPUT_BYTES", "MAX_STEPS", "H_MAX_MIN", "DT_OUT_MIN",
            "DEFAULT_H_MAX", "check_diagram_cost", "paper_loop_steps", "check_run_time",
            "run_seconds", "SECONDS_PER_STEP", "MAX_RUN_SECONDS", "PAPER_LOOP_STEPS_300S",
-           "oscillation_steps", "STEPS_PER_PERIOD_MIN"]
+           "oscillation_steps", "STEPS_PER_PERIOD_MIN", "check_interconnect_size",
+           "interconnect_bytes", "MAX_INTERCONNECT_BYTES", "tolerance_factor",
+           "PAPER_LOOP_STEPS_BY_RTOL"]
 
 #: Largest output grid (returned samples of outputs and states), bytes: 2 GiB.
 MAX_OUTPUT_BYTES = 2 * 2**30
@@ -72,10 +74,61 @@ SECONDS_PER_STEP = {"compiled": (2.0e-4, 2.3e-5), "reference": (0.19, 7.5e-3)}
 MAX_RUN_SECONDS = 1800.0
 
 
-def paper_loop_steps(law, method, t_end):
+#: Rodas5P's accepted steps on the paper's IV-DREM loop against its rtol (atol = rtol/100),
+#: over 10 s and 30 s: {rtol: (steps over 10 s, steps over 30 s)}, measured (2 cores).
+#: Down to rtol 1e-8 the steps grow like rtol^-0.23 (a 4th-order error estimate: about
+#: rtol^-1/5) and like t_end; tighter, rounding limits the step and the count grows faster
+#: than t_end (t_end^1.2 at 1e-10, t_end^1.7 at 1e-12: 16 k, 104 k steps for 10, 30 s, and
+#: 399 k for 60 s, so a 300 s run at 1e-12 is millions of steps).
+PAPER_LOOP_STEPS_BY_RTOL = {2e-4: (140, 437), 1e-6: (480, 1498), 1e-8: (1328, 4138),
+                            1e-10: (3713, 14_000), 1e-12: (16_186, 103_658)}
+
+
+def _steps_at(row, t_end):
+    """Steps of a (10 s, 30 s) row at t_end: the power law through its two points."""
+    s10, s30 = row
+    b = math.log(s30 / s10) / math.log(3.0)
+    return s30 * (t_end / 30.0) ** b
+
+
+def tolerance_factor(rtol, t_end, default_rtol=2e-4):
+    """(steps at `rtol` / steps at the default rtol over t_end, source) for Rodas5P on the
+    paper's loop, from :data:`PAPER_LOOP_STEPS_BY_RTOL`: interpolated in log rtol, each row
+    extrapolated in t_end by its own growth; beyond the tightest row, extended by the last
+    two rows' slope.  1 for an rtol at or above the default."""
+    if rtol is None or not rtol < default_rtol:
+        return 1.0, None
+    t_end = max(float(t_end), 1e-9)
+    rows = sorted(PAPER_LOOP_STEPS_BY_RTOL.items(), reverse=True)    # loosest first
+    logs = [(math.log10(r), math.log(_steps_at(row, t_end))) for r, row in rows]
+    x = math.log10(rtol)
+    (x0, y0), (x1, y1) = next(((a, b) for a, b in zip(logs, logs[1:]) if b[0] <= x),
+                              (logs[-2], logs[-1]))
+    y = y0 + (y1 - y0) * (x - x0) / (x1 - x0)
+    base = math.log(_steps_at(PAPER_LOOP_STEPS_BY_RTOL[default_rtol], t_end)) \
+        if default_rtol in PAPER_LOOP_STEPS_BY_RTOL else logs[0][1]
+    factor = max(1.0, math.exp(y - base))
+    return factor, (f"rtol = {rtol:g}: {factor:.3g}x the steps of rtol {default_rtol:g} "
+                    f"over {t_end:g} s (measured at rtol 2e-4 ... 1e-12, 10 and 30 s)")
+
+
+def paper_loop_steps(law, method, t_end, rtol=None):
     """((steps, explicit steps), source) the paper's loop takes for `law` over t_end with
     an adaptive `method`, from the measured table above (a law not measured takes the
-    largest count measured); None for a method without a measurement."""
+    largest count measured); None for a method without a measurement.  A Rodas5P `rtol`
+    below the default multiplies the implicit steps (:func:`tolerance_factor`; the
+    explicit ones follow composite learning's sample grid)."""
+    found = _measured_steps(law, method, t_end)
+    if found is None or method != "rodas5p":
+        return found
+    factor, why = tolerance_factor(rtol, t_end, method_info(method).rtol)
+    if why is None:
+        return found
+    (imp, exp), src = found
+    return (imp * factor, exp), f"{src}; {why}"
+
+
+def _measured_steps(law, method, t_end):
     t_end = float(t_end)
     scale = t_end / 300.0
     if method == "dp45":
@@ -118,12 +171,17 @@ def check_run_time(wall, source, *, engine="compiled", allow_long=False, what="t
     exceeds :data:`MAX_RUN_SECONDS`, giving the estimate and its `source`."""
     limit = MAX_RUN_SECONDS if limit_s is None else limit_s
     if wall > limit and not allow_long:
+        remedies = ["shorten t_end"]
+        if engine != "compiled":
+            remedies.append("use engine='compiled' (command line: --engine compiled)")
+        if "rtol =" in source:
+            remedies.append("raise solver.rtol (the default of the method is priced "
+                            "from its own step counts)")
         raise CostLimitError(
             f"{what} would take about {_duration(wall)} on the {engine} engine ({source}; "
             f"measured time per step, ivdrem.sim.guards), above the limit of "
-            f"{_duration(limit)}: shorten t_end, use engine='compiled' (command line: "
-            "--engine compiled), or allow it with allow_long=True (command line: "
-            "--allow-long)")
+            f"{_duration(limit)}: {', '.join(remedies)}, or allow it with allow_long=True "
+            "(command line: --allow-long)")
     return wall
 
 
@@ -267,3 +325,59 @@ def check_diagram_cost(diagram, t_end, **kwargs) -> CostEstimate:
     periods = [p for p in map(sample_period, getattr(diagram, "syslist", ())) if p > 0]
     return check_cost(t_end, noutputs=diagram.noutputs, nstates=diagram.nstates,
                       sample_period=min(periods, default=None), **kwargs)
+
+
+#: Largest memory (bytes) the dense maps of one ``ct.interconnect`` may take: the limit of
+#: the output grid, and never more than half of this machine's memory.  python-control
+#: keeps a dense connection map of every block input against every block output (plus the
+#: input and output maps): at nθ = 134 (a 20-link chain) that was 105 GiB, requested after
+#: 185 s of work.
+MAX_INTERCONNECT_BYTES = MAX_OUTPUT_BYTES
+
+
+def _physical_memory() -> float | None:
+    try:
+        import os
+        return float(os.sysconf("SC_PAGE_SIZE")) * float(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def interconnect_bytes(ninputs, noutputs, n_ext_inputs=0, n_ext_outputs=0) -> float:
+    """Bytes of the dense maps python-control's InterconnectedSystem holds for blocks with
+    `ninputs` inputs and `noutputs` outputs in all: connect_map (inputs x outputs),
+    input_map (inputs x external inputs), output_map (external outputs x (outputs +
+    inputs)), float64 each."""
+    return 8.0 * (ninputs * noutputs + ninputs * n_ext_inputs
+                  + n_ext_outputs * (noutputs + ninputs))
+
+
+def check_interconnect_size(blocks, *, n_ext_inputs=0, n_ext_outputs=0, what="the diagram",
+                            max_bytes=None):
+    """Refuse, before ``ct.interconnect`` allocates them, dense maps beyond
+    :data:`MAX_INTERCONNECT_BYTES` (or half the machine's memory), with the numbers.
+    Returns the estimate (bytes) otherwise."""
+    nin = sum(int(b.ninputs) for b in blocks)
+    nout = sum(int(b.noutputs) for b in blocks)
+    nx = sum(int(b.nstates) for b in blocks)
+    need = interconnect_bytes(nin, nout, n_ext_inputs, n_ext_outputs)
+    limit = MAX_INTERCONNECT_BYTES if max_bytes is None else float(max_bytes)
+    ram = _physical_memory()
+    if ram is not None and max_bytes is None:
+        limit = min(limit, 0.5 * ram)
+    if need > limit:
+        raise CostLimitError(
+            f"{what} is too large to assemble: {len(blocks)} blocks with {nx:,} states, "
+            f"{nin:,} block inputs and {nout:,} block outputs; python-control's dense "
+            f"connection maps alone take {nin:,} x {nout:,} x 8 bytes = {_gib(need)}, above "
+            f"the limit of {_gib(limit)} (ivdrem.sim.guards): use a model with fewer "
+            "parameters (URDF joints=[...] to lock joints, no friction terms)")
+    return need
+
+
+def loop_states(n, ntheta) -> int:
+    """States of the IV-DREM closed loop (paper mixing) of an arm with `n` joints and
+    `ntheta` parameters, 2nθ² + 5n·nθ + 3nθ + 4n, known before any block is built; equal
+    to the built loop's count on the 2-link and planar-3 arms (tests/test_user_round_two.py)."""
+    n, nt = int(n), int(ntheta)
+    return 2 * nt * nt + 5 * n * nt + 3 * nt + 4 * n

@@ -934,6 +934,30 @@ def _initial_state(diagram, initial_state, name, params):
     return x0
 
 
+def _as_diagram(system):
+    """`system` as a ``ct.InterconnectedSystem``: a diagram as given; a single
+    continuous-time block (``ct.nlsys``, ``ct.ss``, ``ct.tf``) as a diagram of that one block
+    with the same inputs, outputs and states (``ivdrem.pycontrol.flatten``); anything else
+    refused, pointing to ``ivdrem.pycontrol.input_output_response``, which takes every
+    python-control system with python-control's own arguments."""
+    if isinstance(system, ct.InterconnectedSystem):
+        return system
+    if isinstance(system, (ct.NonlinearIOSystem, ct.TransferFunction)) \
+            and not ct.isdtime(system, strict=True) \
+            and None not in (system.ninputs, system.nstates, system.noutputs):
+        from ..pycontrol import flatten
+        return flatten(system)
+    why = ("a discrete-time system" if isinstance(system, ct.InputOutputSystem)
+           and ct.isdtime(system, strict=True) else
+           "a system whose sizes are left open" if isinstance(system, ct.InputOutputSystem)
+           else f"a {type(system).__name__}")
+    raise TypeError(f"simulate() runs a python-control diagram (ct.interconnect, "
+                    f"ivdrem.diagrams) or a continuous-time block, got {why}; "
+                    f"ivdrem.pycontrol.input_output_response(sys, T, U, X0) runs any "
+                    f"python-control system on ivdrem's simulator with "
+                    f"ct.input_output_response's arguments")
+
+
 def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None, *,
              t_eval=None, method=DEFAULT_METHOD, engine="compiled", h=1e-3, rtol=None,
              atol=None, h_max=None, dt_out=None, progress=None, return_states=True,
@@ -984,9 +1008,7 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
     compile_s, ...) and ``.hold_times`` (t_e of each max-hold).
     """
     # every argument is checked here, before the plan, the compile and the run
-    if not isinstance(diagram, ct.InterconnectedSystem):
-        raise TypeError("simulate() needs a ct.InterconnectedSystem (from ct.interconnect "
-                        f"or ivdrem.diagrams), got {type(diagram).__name__}")
+    diagram = _as_diagram(diagram)
     diagram = continuous_diagram(diagram)       # discrete-time blocks: sampled
     check_solver_settings(method, h, rtol, atol, h_max, x_limit, max_steps)
     t0, t_end, T = _time_span(timepts, t_end)
