@@ -323,3 +323,19 @@ def test_the_package_has_one_newton_euler():
     assert printed in model.c_source("x_")
     # the Python side of the model calls the same kernels (rigid_body's, compiled)
     assert "_rbk._rb_Phi(" in model.source("")
+
+
+def _kernel_with_a_slice(x: "real[N]", out: "real[N]"):
+    out[0:2] = x[0:2]
+
+
+def _kernel_without_types(x, out):
+    out[0] = x[0]
+
+
+def test_the_printer_refuses_what_it_does_not_translate():
+    from ivdrem.models._c_printer import CPrintError, print_kernels
+    with pytest.raises(CPrintError, match=r"_kernel_with_a_slice \(line \d+\): slices"):
+        print_kernels([_kernel_with_a_slice], "x_")
+    with pytest.raises(CPrintError, match="_kernel_without_types.*'x' has no type annotation"):
+        print_kernels([_kernel_without_types], "x_")
