@@ -19,6 +19,7 @@ import numpy as np
 
 __all__ = ["RobotModel", "REGRESSOR_ARGS", "FUNCTION_NAMES", "SINGULAR_INERTIA_MESSAGE"]
 
+#: The message of the error raised where M(q) is not positive definite.
 SINGULAR_INERTIA_MESSAGE = "inertia matrix M(q) is not positive definite (singular inertia)"
 
 #: The regressors and their vector arguments, in signature order.

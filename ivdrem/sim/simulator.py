@@ -36,6 +36,8 @@ __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METH
            "MethodInfo"]
 
 
+#: The engines of :func:`simulate`: tables and numba kernels, or python-control's own
+#: evaluation of the diagram (both run the one C stepper).
 ENGINES = ("compiled", "reference")
 
 def _check_positive(name, v):
