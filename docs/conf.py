@@ -78,6 +78,7 @@ sphinx_gallery_conf = {
     "plot_gallery": "True",
     "within_subsection_order": "FileNameSortKey",
     "min_reported_time": 1,
+    "run_stale_examples": True,        # every build runs every example (they take seconds)
 }
 
 # --- HTML ---------------------------------------------------------------------------
