@@ -38,4 +38,4 @@ axes[1].set_ylabel(r"$\hat\theta$")
 axes[1].legend(loc="center", ncol=5, fontsize="small")
 axes[1].set_xlabel("t (s)")
 fig.tight_layout()
-plt.show()                     # a window where there is a display; nothing with MPLBACKEND=Agg
+plt.show()  # a window where there is a display (nothing with MPLBACKEND=Agg)

@@ -33,4 +33,4 @@ ax.set_ylabel(r"$\|\tilde\theta\|$")
 ax.set_title("Parameter error on the paper's arm (60 s)")
 ax.legend()
 fig.tight_layout()
-plt.show()                     # a window where there is a display; nothing with MPLBACKEND=Agg
+plt.show()  # a window where there is a display (nothing with MPLBACKEND=Agg)

@@ -42,4 +42,4 @@ ax.set_xlabel("t (s)")
 ax.set_ylabel("φ (rad)")
 ax.legend()
 fig.tight_layout()
-plt.show()                     # a window where there is a display; nothing with MPLBACKEND=Agg
+plt.show()  # a window where there is a display (nothing with MPLBACKEND=Agg)

@@ -33,4 +33,4 @@ for j, ax in enumerate(axes):
 axes[0].legend()
 axes[-1].set_xlabel("t (s)")
 fig.tight_layout()
-plt.show()                     # a window where there is a display; nothing with MPLBACKEND=Agg
+plt.show()  # a window where there is a display (nothing with MPLBACKEND=Agg)

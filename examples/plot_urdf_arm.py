@@ -41,4 +41,4 @@ ax.set_ylabel("holding torque G(q) (N·m)")
 ax.set_title("UR5: torque that holds the arm, ivdrem's regressor (= Pinocchio)")
 ax.legend()
 fig.tight_layout()
-plt.show()                     # a window where there is a display; nothing with MPLBACKEND=Agg
+plt.show()  # a window where there is a display (nothing with MPLBACKEND=Agg)
