@@ -283,6 +283,13 @@ class _sigterm_as_interrupt:
 
 
 def main(argv=None):
+    """Run the ``ivdrem`` command line with `argv` (default: ``sys.argv[1:]``).
+
+    Returns the exit status: 0 on success, 1 when the results could not be written where
+    asked (they are kept elsewhere and the path is printed), 2 for refused options or
+    input, 130 after Ctrl-C.  The console script ``ivdrem`` is :func:`run`, which calls
+    this and exits without the interpreter's teardown.
+    """
     from ._threads import one_blas_thread
     try:
         with _sigterm_as_interrupt(), one_blas_thread():

@@ -51,6 +51,14 @@ class LawContext:
 
 @dataclass(frozen=True)
 class Law:
+    """A law of the registry: how `closed_loop` builds its composite term ϑ_c, its gains
+    and their configuration table, and how the figures show it.
+
+    ``build(ctx)`` returns the blocks computing ``theta_c`` (and extra recorded outputs);
+    ``label``, ``color`` and ``equation`` are used by the report; ``section`` and
+    ``defaults`` make the law's table of the configuration.  Register one with
+    :func:`register_law`.
+    """
     name: str
     build: Callable[[LawContext], tuple]   # ctx -> (blocks, extra recorded outputs)
     label: str
@@ -97,6 +105,7 @@ def register_law(law: Law, *, replace: bool = False) -> Law:
 
 
 def get_law(name: str) -> Law:
+    """The registered :class:`Law` called `name`; a ValueError names the known laws."""
     try:
         return LAWS[name]
     except KeyError:
@@ -104,6 +113,7 @@ def get_law(name: str) -> Law:
 
 
 def law_names() -> tuple[str, ...]:
+    """Names of the registered laws, in registration order (the built-in five first)."""
     return tuple(LAWS)
 
 

@@ -1,4 +1,5 @@
-"""Every code block in README.md, docs/ and benchmarks/README.md runs as written.
+"""Every code block in README.md, CHANGELOG.md, the pages of docs/ and benchmarks/README.md
+runs as written (the site's own build and API checks are in tests/test_site.py).
 
 * ``python`` blocks of one page run in order, as one script (a reader pastes them into one
   session), in a fresh process whose working directory is an empty folder holding a link
@@ -27,9 +28,21 @@ except ModuleNotFoundError:  # Python 3.10
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PAGES = sorted([REPO / "README.md", REPO / "benchmarks" / "README.md",
-                *(REPO / "docs").glob("*.md")])
-_FENCE = re.compile(r"^```([A-Za-z0-9_+-]*)\s*$")
+#: folders of docs/ that the site's build writes (git-ignored), not pages anyone wrote
+GENERATED = ("_build", "gallery", "api/generated")
+
+
+def doc_pages():
+    """The Markdown pages of docs/ written by hand (the site's sources), sorted."""
+    docs = REPO / "docs"
+    return sorted(p for p in docs.rglob("*.md")
+                  if not any(p.is_relative_to(docs / g) for g in GENERATED))
+
+
+PAGES = sorted([REPO / "README.md", REPO / "CHANGELOG.md", REPO / "benchmarks" / "README.md",
+                *doc_pages()])
+# a language (```python) or a MyST directive with its argument (```{include} ../CHANGELOG.md)
+_FENCE = re.compile(r"^```(\{[A-Za-z0-9_:-]+\}|[A-Za-z0-9_+-]*)(?:\s.*)?$")
 
 
 def code_blocks(path: Path):
@@ -54,9 +67,11 @@ def _rel(p: Path) -> str:
 
 def test_the_block_reader_sees_every_fence(tmp_path):
     page = tmp_path / "p.md"
-    page.write_text("a\n```python\nx = 1\n```\ntext\n```\nout\n```\n```bash\nls\n```\n",
+    page.write_text("a\n```python\nx = 1\n```\ntext\n```\nout\n```\n```bash\nls\n```\n"
+                    "```{toctree}\n:maxdepth: 1\n\npage\n```\n```{include} ../x.md\n```\n",
                     encoding="utf-8")
-    assert code_blocks(page) == [("python", 3, "x = 1"), ("", 7, "out"), ("bash", 10, "ls")]
+    assert code_blocks(page) == [("python", 3, "x = 1"), ("", 7, "out"), ("bash", 10, "ls"),
+                                 ("{toctree}", 13, ":maxdepth: 1\n\npage"), ("{include}", 18, "")]
     page.write_text("```python\nx = 1\n", encoding="utf-8")
     with pytest.raises(AssertionError, match="not closed"):
         code_blocks(page)
@@ -105,7 +120,7 @@ def _parse_ivdrem(words):
 def _check_command(page, line, words):
     if words[0] == "./run":
         words = words[1:] or ["report"]
-        if words[0] == "test":
+        if words[0] in ("test", "docs"):     # the set-up, then pytest / sphinx (run's own)
             return
         if words[0] == "python":
             script = REPO / words[1]

@@ -29,6 +29,12 @@ def cache_dir() -> Path:
 
 
 def load_library(model, *, flags=("-O2",)):
+    """The controller's C library for `model`, built (or read from the compile cache) and
+    loaded with ctypes, its functions' argument and result types declared.
+
+    `flags` are the C compiler's flags; the library is built in the compile cache under
+    the model's key, so a later call loads the built library.
+    """
     lib = ctypes.CDLL(str(build_library(model, cache_dir() / model.key[:16], flags=flags)))
     lib.ivc_init.restype = ctypes.c_void_p
     lib.ivc_init.argtypes = [_c_double_p, ctypes.c_char_p, ctypes.c_size_t]

@@ -33,6 +33,7 @@ __all__ = ["param_layout", "generate_controller_sources", "build_library", "LAW_
            "CORE_SOURCE"]
 
 _HERE = Path(__file__).resolve().parent
+#: The hand-written C core of the controller library, shared by every model and law.
 CORE_SOURCE = _HERE / "ivdrem_controller.c"
 
 #: law name -> code of the parameter ``law``

@@ -21,8 +21,11 @@ import numpy as np
 
 __all__ = ["FmuPlant", "sampled_loop", "as_response", "PAPER_DISTURBANCE", "PAPER_Q0"]
 
+#: The paper's external torque τ_d,i = A_i sin(ω_i t) (Section 4), as keywords of
+#: :func:`ivdrem.blocks.disturbance`.
 PAPER_DISTURBANCE = dict(amplitude=[7.5, 1.5], omega=[0.5 * np.pi, 0.05 * np.pi],
                          phase=[0.0, 0.0], offset=[0.0, 0.0])
+#: The paper's initial joint positions q(0) = (0, 0.3π) rad.
 PAPER_Q0 = (0.0, 0.3 * np.pi)
 
 

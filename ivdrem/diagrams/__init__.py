@@ -2,7 +2,9 @@
 from .closed_loop import closed_loop, assemble, check_connected
 
 
-def __getattr__(name):            # LAWS: the law registry's names, read on each access
+#: ``LAWS``: names of the registered laws (:func:`ivdrem.laws.law_names`), read from the
+#: registry on each access, so a law registered later is in it.
+def __getattr__(name):
     if name == "LAWS":
         from ..laws import law_names
         return law_names()

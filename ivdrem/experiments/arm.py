@@ -76,6 +76,7 @@ class LimitError(ValueError):
 
 
 def joint_names(model) -> list[str]:
+    """Names of the model's joints (the URDF's, for an arm), else ``"joint 1"``, ...."""
     names = getattr(model, "joint_names", None)
     if names is not None and len(names) == model.n:
         return [str(s) for s in names]

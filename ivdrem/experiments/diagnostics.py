@@ -11,15 +11,17 @@ id         condition                                                            
 KA1        Δ ∉ L2 (Remark 4, C2 of Theorem 2): ∫₀ᵗ Δ² ds keeps growing            (a)
 PE         excitation (18): β = min |det ∫_{t−T}^t ζφᵀ| and whether Δ vanishes     (a)
 KA2        λ = μ⁻¹τ̇_d ∈ L2 (Property 4.1): ∫₀ᵗ ‖τ̇_d‖²/μ² ds levels off           (b)
-KA3        condition (19): ∫₀ᵗ ζ_kj w_j ds bounded; shared frequencies of ζ, τ_d    (c)
+KA3        condition (19): ∫₀ᵗ ζ_kj w_j ds bounded; shared frequencies            (c)
+           of ζ and τ_d
 P2         Proposition 2, eq. (20): |𝒲_i| F/Ḟ bounded                             (d)
 P4.2       Property 4.2 for the chosen μ(t) and δ_μ: ρ, δ_ρ, μ_LB                  –
 RATE       ‖θ̃(t)‖ ≈ C t^(−a) over the last half                                  (e)
 V          Lyapunov function (23) against the bound of the proof of Theorem 2     (f)
-ACTIVE     the composite term γΔ²λ_max(Γ) is large enough to act on this horizon   (a)
-LEARN      the run learns: ‖θ̃‖ does not grow (and is halved, laws with Δ), the bias  (e)
-           floor ‖𝒲‖/|Δ| of (17) stays below half of ‖θ̃(0)‖; otherwise a warning
-           naming the cause and a remedy
+ACTIVE     the composite term γΔ²λ_max(Γ) is large enough to act on this          (a)
+           horizon
+LEARN      the run learns: ‖θ̃‖ does not grow (and is halved, laws with Δ);       (e)
+           the bias floor ‖𝒲‖/|Δ| of (17) stays below half of ‖θ̃(0)‖;
+           otherwise a warning naming the cause and a remedy
 =========  ===================================================================  ========
 
 Verdicts are "holds", "fails", "not decided" (the horizon is too short to tell, e.g. a
@@ -44,6 +46,8 @@ __all__ = ["diagnose", "measured_label", "diagnose_run", "tau_d_decomposition", 
            "HOLDS", "FAILS", "UNDECIDED", "NA", "to_json", "format_diagnostics",
            "short_horizon_note", "HORIZON_CHECKS"]
 
+#: The verdicts of a check: it holds, it fails, the horizon is too short to decide, or the
+#: law has no such signal.
 HOLDS, FAILS, UNDECIDED, NA = "holds", "fails", "not decided", "not applicable"
 
 #: decay exponents k of a windowed mean ~ t^(-k): k <= L2_HOLD -> not square integrable

@@ -25,6 +25,8 @@ class LawRun:
 
 @dataclass
 class PaperRun:
+    """The runs of one experiment: its configuration, the true θ, the model, and a
+    :class:`LawRun` per law (``runs``, by law name, in the order they ran)."""
     config: dict
     theta: np.ndarray
     model: object

@@ -424,18 +424,36 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
               warm_up_laws: bool = False, on_run: Callable[[RunSpec, dict], None] | None = None):
     """Run a study file (path) or dict; returns the results as a pandas DataFrame.
 
-    out : output directory (default: ``studies/<name of the study file>``).
-    workers : worker processes of the local cluster (default: one per core).
-    scheduler : address of a running Dask scheduler (``tcp://HOST:PORT``) instead.
-    resume : skip the runs whose record is already in ``out/runs``.
-    progress : a bar over runs on stderr (default: when stderr is a terminal).
-    report : write ``out/study.html`` and ``out/study.pdf`` at the end.
-    warm_up_laws : compile each law in one task before its runs start (default: no; the
-        first run of a law on each worker loads it from the disk cache, or compiles it).
-    on_run : called as ``on_run(run, record)`` after each run's record is saved.
-
     Everything is checked before the first run starts: the study file, every run's
-    configuration, the output directory and the scheduler (StudyError).
+    configuration, the output directory and the scheduler (:class:`StudyError`).
+
+    Parameters
+    ----------
+    study : str, Path or dict
+        The study file (docs/studies.md), or the same as a nested dict (then `out` is
+        required).
+    out : str or Path, optional
+        Output directory (default: ``studies/<name of the study file>``).
+    workers : int, optional
+        Worker processes of the local cluster (default: one per core).
+    scheduler : str, optional
+        Address of a running Dask scheduler (``tcp://HOST:PORT``) instead.
+    resume : bool
+        Skip the runs whose record is already in ``out/runs``.
+    progress : bool, optional
+        A bar over runs on stderr (default: when stderr is a terminal).
+    report : bool
+        Write ``out/study.html`` and ``out/study.pdf`` at the end.
+    warm_up_laws : bool
+        Compile each law in one task before its runs start (default: no; the first run of
+        a law on each worker loads it from the disk cache, or compiles it).
+    on_run : callable, optional
+        Called as ``on_run(run, record)`` after each run's record is saved.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per run: the study's keys, the status and the metrics.
     """
     scheduler = _check_scheduler(workers, scheduler)    # within 5 s, before any other work
     spec = read_study(study)

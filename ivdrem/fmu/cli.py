@@ -153,7 +153,7 @@ def main_cosim(argv=None) -> int:
         model = model_from_config(config)
         loop_kw = closed_loop_kwargs(config, args.law)
         if not args.despite_prediction:
-            # the explicit coupling at H, linearized at t = 0 (docs: README, "Co-simulation
+            # the explicit coupling at H, linearized at t = 0 (docs/fmu.md, "Co-simulation
             # check"): a run predicted to diverge is refused before any build or export
             from .cosim import coupling_stability
             predicted = coupling_stability(model, H, args.t_end, **loop_kw)

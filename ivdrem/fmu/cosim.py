@@ -38,7 +38,7 @@ should roughly halve the difference to the all-Python closed loop (observed orde
 
 Stability: the explicit coupling delays the feedback by up to one step, so ``H`` must stay
 well below the fastest closed-loop time constant, about ``m_min / (lambda_max(K) +
-delta_mu mu(t))`` (README, "Performance").  For the paper's gains and ``mu = t + 15`` this is
+delta_mu mu(t))`` (docs/performance.md).  For the paper's gains and ``mu = t + 15`` this is
 ~2.4 ms at 40 s and ~0.43 ms at 300 s: ``H = 1e-3`` is fine for the 40 s runs here, long
 runs need a smaller ``H`` (the all-Python loop, with error-controlled steps, does not).
 Measured: the paper loop co-simulated at ``H = 1e-3`` diverges at t = 261 s

@@ -202,7 +202,7 @@ class FmuInstance:
         return err
 
     def call(self, what, fn, *args):
-        """fn(*args); an exception becomes :class:`FmuError` with the FMU's messages."""
+        """``fn(*args)``; an exception becomes :class:`FmuError` with the FMU's messages."""
         mark = self._count[0]
         try:
             return fn(*args)

@@ -77,6 +77,7 @@ class FmuPlantInfo:
 # as literals, so the generated code is the same in every process (see _address_table).
 
 def fmu_plant_update(t, x, u, dx, fmi, vr_in, vr_out, perm):
+    """The FMU plant block's update kernel: dx = the FMU's state derivatives at (t, x, u)."""
     # states   x = [q (n), dq (n)] (the FMU's state k' = perm[k] is the block's state k)
     # inputs   u = [tau (n), tau_d (n)]
     # params   fmi: C addresses [component, fmi2SetTime, fmi2SetContinuousStates,
@@ -129,6 +130,7 @@ def fmu_plant_update(t, x, u, dx, fmi, vr_in, vr_out, perm):
 
 
 def fmu_plant_output(t, x, u, y, fmi, vr_in, vr_out, perm):
+    """The FMU plant block's output kernel: y = the FMU's outputs [q, dq] at (t, x, u)."""
     # states   x = [q (n), dq (n)];  inputs u = [tau (n), tau_d (n)] (as in the update)
     # outputs  y = [q (n), dq (n)] = fmi2GetReal of the FMU's outputs
     nx = x.shape[0]

@@ -22,6 +22,7 @@ import numpy as np
 __all__ = ["RobotModel", "REGRESSOR_ARGS", "FUNCTION_NAMES", "SINGULAR_INERTIA_MESSAGE",
            "C_FUNCTION_ARGS", "PIVOT_RTOL"]
 
+#: The message of the error raised where M(q) is not positive definite.
 SINGULAR_INERTIA_MESSAGE = "inertia matrix M(q) is not positive definite (singular inertia)"
 
 #: The regressors and their vector arguments, in signature order.

@@ -70,6 +70,7 @@ ARM_FILES = {
     "xarm7": ("example-robot-data", "xarm_description/urdf/xarm7.urdf", None),
     "iiwa": ("pybullet", "kuka_iiwa/model.urdf", None),
 }
+#: Names of the arms :func:`arm` knows (their URDF files come with the ``arms`` extra).
 ARM_NAMES = tuple(ARM_FILES)
 
 

@@ -33,6 +33,8 @@ def pow10(exponent: float, digits: int = 2) -> str:
 
 @dataclass
 class Table:
+    """A table of the report (HTML and PDF): its id, title, header, rows, relative column
+    widths, a note under it and the column holding PASS / FAIL verdicts, if any."""
     key: str  # html id
     title: str
     header: list[str]
@@ -44,6 +46,8 @@ class Table:
 
 @dataclass
 class ReportContent:
+    """Everything a report shows except its figures: title page, conclusions, tables and
+    the configuration as TOML; written by both the HTML and the PDF writer."""
     title: str
     subtitle: str
     meta: list[tuple[str, str]]  # (label, value) lines of the title page
@@ -152,7 +156,7 @@ def _errata(cfg: Mapping, laws: list[str]) -> Table:
          f"Frobenius norm in the mixing, horizon t_end = {fmt(cfg['experiment']['t_end'])} s."],
         ["–", "The paper's Πᵀr in eqs. (11) and (35) is a typo.", "Π r (an nθ-vector) is used."],
     ]
-    return Table("errata", "Errata and choices (README: conventions and errata)", ["", "issue in the paper", "what this run uses"],
+    return Table("errata", "Errata and choices (docs/conventions.md)", ["", "issue in the paper", "what this run uses"],
                  rows, [0.06, 0.47, 0.47])
 
 
@@ -469,6 +473,9 @@ def registry_law(name):
 
 
 def build_content(run, *, fmu_check=None, generated=None) -> ReportContent:
+    """The :class:`ReportContent` of a :class:`~ivdrem.experiments.paper.PaperRun`: its
+    conclusions, diagnostics, errata, parameters and solver statistics, with the FMU
+    check's results (`fmu_check`) and the time stamp `generated` (default: now, UTC)."""
     from ..experiments.config import dump_toml, model_label
 
     cfg = run.config

@@ -86,6 +86,8 @@ ZOOM_SKIP = 0.05
 
 
 def law_color(law: str, order: int = 0) -> str:
+    """The law's colour in every figure (a law outside the registry gets the `order`-th
+    spare colour)."""
     return LAW_STYLE.get(law, (_EXTRA_COLORS[order % len(_EXTRA_COLORS)], law))[0]
 
 
@@ -98,11 +100,13 @@ def law_linestyle(law: str) -> str:
 
 
 def law_label(law: str) -> str:
+    """The law's label in legends, e.g. "IV-DREM, (11)+(21)"."""
     return LAW_STYLE.get(law, (None, law))[1]
 
 
 @dataclass
 class FigureSpec:
+    """A figure of the report: its HTML id, title, caption and matplotlib figure."""
     key: str  # html id, e.g. "fig1"
     title: str  # e.g. "Figure 1. Regressor Δ(t) and disturbance 𝒲(t)"
     caption: str

@@ -17,7 +17,8 @@ from .content import ReportContent, Table
 
 __all__ = ["TextPages", "write_text_pages", "PAGE_W", "PAGE_H"]
 
-PAGE_W, PAGE_H = 8.27, 11.69  # A4, inches
+#: The PDF report's page size: A4, in inches.
+PAGE_W, PAGE_H = 8.27, 11.69
 MARGIN_X, MARGIN_TOP, MARGIN_BOTTOM = 0.7, 0.75, 0.75
 EM = 0.56  # average glyph width of DejaVu Sans in em (only for the narrowest column)
 _TEXT_TO_PATH = TextToPath()

@@ -67,7 +67,7 @@ def write_report(run, outdir, *, fmu_check=None, basename="ivdrem-paper", overwr
 
     ``run`` is a PaperRun (``ivdrem.experiments.paper``): figures 1-4 of the paper plus
     estimates, torque and auxiliary signals, the conclusions C1-C3 with their numbers,
-    the parameters, the errata (README: conventions and errata), solver statistics, versions and the
+    the parameters, the errata (docs/conventions.md, "Errata and choices"), solver statistics, versions and the
     git commit.  ``fmu_check`` (optional) is a dict of numbers (or of rows) rendered as
     a table.
 

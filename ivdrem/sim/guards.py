@@ -7,7 +7,7 @@ Two numbers are known before the first step:
 * the number of steps: exactly ``ceil(t_end / h)`` for a fixed-step method (RK4), a lower
   bound ``t_end / h_max`` for an adaptive one (its steps never exceed ``h_max``; for
   Dormand-Prince the loop's stiffness makes the real count larger: ~140 000 steps against
-  the bound 30 000 for the paper's 300 s run, README "Performance").  Which of the two a
+  the bound 30 000 for the paper's 300 s run, docs/performance.md).  Which of the two a
   method is, the method registry says (:mod:`ivdrem.sim.methods`, ``adaptive``).
 
 For the paper's 2-link loop the commands also know what a run really costs: its step
@@ -42,12 +42,13 @@ __all__ = ["CostLimitError", "CostEstimate", "estimate_cost", "check_cost",
 #: Largest output grid (returned samples of outputs and states), bytes: 2 GiB.
 MAX_OUTPUT_BYTES = 2 * 2**30
 #: Largest lower bound on the step count, per engine.  Compiled: ~45 µs per
-#: Dormand-Prince step of the paper's loop (README "Performance": 12.5 s for 2 x 140 000
+#: Dormand-Prince step of the paper's loop (docs/performance.md: 12.5 s for 2 x 140 000
 #: steps), so 1e7 steps is about 8 minutes; reference (python-control evaluation, ~300x
 #: slower per step): 1e5 steps is about 25 minutes.
 MAX_STEPS = {"compiled": 10_000_000, "reference": 100_000}
 #: Smallest accepted h_max (s) and output spacing dt_out (s).
 H_MAX_MIN = 1e-6
+#: Smallest accepted output spacing dt_out (s).
 DT_OUT_MIN = 1e-6
 #: The simulator's largest default h_max (it takes min(0.05, T/4) for the shortest delay T).
 DEFAULT_H_MAX = 0.05
@@ -61,7 +62,7 @@ DEFAULT_H_MAX = 0.05
 PAPER_LOOP_STEPS_300S = {("iv-drem", "rodas5p"): (5863, 0),
                          ("composite-learning", "rodas5p"): (6032, 19992)}
 #: Dormand-Prince on the same loop is stability-bound (steps grow like t_end**2):
-#: ~140 000 steps for 300 s (README "Performance").
+#: ~140 000 steps for 300 s (docs/performance.md).
 PAPER_LOOP_DP45_STEPS_300S = 140_000
 #: Measured seconds per accepted step on the paper's loop, per engine: (a step with a
 #: Jacobian and an LU: Rodas5P, or any step of an explicit method; an explicit BS23 step

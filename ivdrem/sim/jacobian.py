@@ -19,8 +19,9 @@ kernels only
 * central differences, step eps^(1/3) max(|v|, 1) (accurate to about eps^(2/3) relative),
   for blocks that call the robot model without a kernel of their own (a user's block): their trigonometric terms, multiplied by gains such
   as mu(t), make forward differences' rounding error eps |f| / h reach 1e-6 of an entry
-  (measured on planar_arm(3)); two kernel calls per group.  The chain rule then follows the same topological order as the
-right-hand side: for the blocks in order of direct feedthrough
+  (measured on planar_arm(3)); two kernel calls per group.
+
+The chain rule then follows the same topological order as the right-hand side: for the blocks in order of direct feedthrough
 
     du_b/dx = sum_j C[b, j] dy_j/dx         (connection map; diagram inputs are constants)
     dy_b/dx = dy_b/dx_b E_b + dy_b/du_b du_b/dx
@@ -448,7 +449,8 @@ def _entries_by_row(entries):
 class JacobianProgram:
     """Index arrays of the block finite differences and of the chain rule for one plan.
 
-    Attributes used by the code generator (all int64 arrays unless said):
+    Attributes used by the code generator (all int64 arrays unless said)::
+
       fd_blocks: [BlockEntry] of the differentiated blocks, in FD order
       fd_x0, fd_nx, fd_u0, fd_nu, fd_ny: per differentiated block
       g_ptr (per block -> groups), gc_ptr (per group -> columns), col (local column),

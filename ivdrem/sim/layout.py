@@ -46,6 +46,9 @@ WORKSPACE_LAYOUT = (
     ("sample_dt", "float64", 1), ("sample_due", "int64", 1), ("record_row", "float64", 1),
     ("jac_dirty", "int64", 1))
 Workspace = namedtuple("Workspace", [f for f, _, _ in WORKSPACE_LAYOUT])
+Workspace.__doc__ = """The work arrays of a run, one field per row of :data:`WORKSPACE_LAYOUT`
+(history of the delays, max-hold state, Jacobian scratch, LAPACK work, ...): allocated once,
+so a step allocates nothing."""
 
 
 def layout_constants():

@@ -60,7 +60,9 @@ if len({m.id for m in _ROWS}) != len(_ROWS):           # pragma: no cover - a ta
 
 #: The user methods, by name (the first is the default).
 METHOD_TABLE = {name: m for name, m in _ALL.items() if m.user}
+#: Names of the user methods (``simulate(..., method=NAME)``).
 METHODS = tuple(METHOD_TABLE)
+#: The method of a run that names none: Rodas5P (stiff, L-stable).
 DEFAULT_METHOD = "rodas5p"
 #: the method a StiffnessWarning recommends (L-stable)
 STIFF_METHOD = "rodas5p"
@@ -72,9 +74,13 @@ DEFAULT_TOLERANCES = {name: (m.rtol, m.atol) for name, m in METHOD_TABLE.items()
 
 # the dispatch ids, named for the stepping code (_template.py; stepper.c gets them from
 # the generated header)
+#: Dispatch id of fixed-step RK4.
 RK4 = _ALL["rk4"].id
+#: Dispatch id of Dormand-Prince 5(4).
 DP45 = _ALL["dp45"].id
+#: Dispatch id of Rodas5P.
 RODAS5P = _ALL["rodas5p"].id
+#: Dispatch id of Bogacki-Shampine 3(2) (the pinned steps of a Rodas5P run).
 BS23 = _ALL["bs23"].id
 
 

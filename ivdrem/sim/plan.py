@@ -101,6 +101,9 @@ class BlockEntry:
 
 @dataclass
 class DiagramPlan:
+    """What a simulation needs from a diagram, read once: its blocks with their slices of
+    the state, input and output vectors, the initial state, the connection map, the
+    blocks' evaluation order (direct feedthrough), the transport delays and the max-holds."""
     diagram: object
     blocks: list
     x0: np.ndarray

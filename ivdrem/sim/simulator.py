@@ -36,6 +36,8 @@ __all__ = ["simulate", "Simulator", "SimulationError", "StiffnessWarning", "METH
            "MethodInfo"]
 
 
+#: The engines of :func:`simulate`: tables and numba kernels, or python-control's own
+#: evaluation of the diagram (both run the one C stepper).
 ENGINES = ("compiled", "reference")
 
 def _check_positive(name, v):
@@ -966,46 +968,75 @@ def simulate(diagram, timepts=None, inputs=0.0, initial_state=None, params=None,
     """Simulate a closed diagram; returns ct.TimeResponseData.
 
     The arguments follow ``ct.input_output_response`` (docs/simulation.md, "Calling
-    convention"):
+    convention").  Every argument is checked before the plan, the compile and the run.
 
-    timepts : an end time (the run covers [0, timepts]) or an array of increasing times
-        (the run covers [timepts[0], timepts[-1]]; outputs at timepts unless t_eval or
-        dt_out says otherwise).
-    inputs : the diagram's external inputs: a number (every input), a vector of ninputs
+    Parameters
+    ----------
+    diagram : ct.InterconnectedSystem
+        The diagram (from ``ct.interconnect`` or :func:`ivdrem.diagrams.closed_loop`);
+        discrete-time blocks in it are sampled (:func:`ivdrem.sim.sampled`).
+    timepts : float or array_like
+        An end time (the run covers [0, timepts]) or an array of increasing times (the run
+        covers [timepts[0], timepts[-1]]; outputs at timepts unless t_eval or dt_out says
+        otherwise).
+    inputs : float or array_like
+        The diagram's external inputs: a number (every input), a vector of ninputs
         constants, or an (ninputs, len(timepts)) array over timepts, linearly interpolated
         as python-control does (steps of the adaptive methods end at the interpolant's
         kinks); a list of per-input parts as python-control accepts.
-    initial_state : None (each block's own initial state), a full state vector, a number,
-        or a list with one entry per subsystem (None: that block's own initial state).
-    params : parameter overrides, passed to every block that has a parameter of that name
+    initial_state : array_like or list, optional
+        None (each block's own initial state), a full state vector, a number, or a list
+        with one entry per subsystem (None: that block's own initial state).
+    params : dict, optional
+        Parameter overrides, passed to every block that has a parameter of that name
         (python-control semantics), validated by the blocks.
-    t_eval : output times (within the simulated interval); default timepts (an array) or
-        a grid of spacing dt_out (default 0.01 s) from the start.
 
-    Older names keep working: ``t_end`` (= a number timepts), ``x0`` (= initial_state),
-    ``u`` (= constant inputs).
+    Returns
+    -------
+    ct.TimeResponseData
+        The response, which also carries ``inputs`` (the inputs at the output times),
+        ``params``, ``.stats`` (steps, rejected, rhs_calls, jacobians, sim_s, compile_s,
+        wall_s = sim_s + compile_s, ...) and ``.hold_times`` (t_e of each max-hold).
 
-    Other parameters
+    Other Parameters
     ----------------
-    method : a name of :data:`METHOD_TABLE`: "rodas5p" (L-stable Rosenbrock 5(4), the
-        default), "dp45" (Dormand-Prince 5(4)) or "rk4" (fixed step h).
-    engine : "compiled" (tables and numba kernels, default) or "reference" (python-control
+    t_eval : array_like, optional
+        Output times (within the simulated interval); default timepts (an array) or a grid
+        of spacing dt_out (default 0.01 s) from the start.
+    method : str
+        A name of :data:`METHOD_TABLE`: "rodas5p" (L-stable Rosenbrock 5(4), the default),
+        "dp45" (Dormand-Prince 5(4)) or "rk4" (fixed step h).
+    engine : str
+        "compiled" (tables and numba kernels, default) or "reference" (python-control
         evaluation); both run the C stepper.
-    h : RK4 step, or the initial step of an adaptive method.
-    rtol, atol : tolerances of an adaptive method (default per method,
-        ``DEFAULT_TOLERANCES``).
-    h_max : largest step (default: min(0.05, T/4) for an explicit method, T/2 for the stiff
+    h : float
+        RK4 step, or the initial step of an adaptive method.
+    rtol, atol : float, optional
+        Tolerances of an adaptive method (default per method, ``DEFAULT_TOLERANCES``).
+    h_max : float, optional
+        Largest step (default: min(0.05, T/4) for an explicit method, T/2 for the stiff
         one, T the shortest transport delay).
-    dt_out : spacing of the returned samples (when neither t_eval nor an array timepts
-        gives them).
-    progress : show a progress bar; default: when stderr is a terminal.
-    allow_long : run beyond the cost limits of :mod:`ivdrem.sim.guards` (memory, steps).
-    partial : a run stopped by a SimulationError returns the samples before the stop, with
+    dt_out : float, optional
+        Spacing of the returned samples (when neither t_eval nor an array timepts gives
+        them).
+    progress : bool, optional
+        Show a progress bar; default: when stderr is a terminal.
+    return_states : bool
+        Whether the response holds the states, as in python-control.
+    x_limit : float
+        A state beyond this magnitude stops the run with a SimulationError.
+    max_steps : int
+        The most steps a run may take.
+    desc : str, optional
+        The progress bar's label.
+    allow_long : bool
+        Run beyond the cost limits of :mod:`ivdrem.sim.guards` (memory, steps).
+    partial : bool
+        A run stopped by a SimulationError returns the samples before the stop, with
         ``success`` False and the error as ``message`` (python-control's ignore_errors).
-
-    The response carries ``inputs`` (the inputs at the output times), ``params``,
-    ``.stats`` (steps, rejected, rhs_calls, jacobians, sim_s, compile_s, wall_s = sim_s +
-    compile_s, ...) and ``.hold_times`` (t_e of each max-hold).
+    t_end, x0, u
+        Older names that keep working: ``t_end`` (= a number timepts), ``x0``
+        (= initial_state), ``u`` (= constant inputs).
     """
     # every argument is checked here, before the plan, the compile and the run
     diagram = _as_diagram(diagram)

@@ -38,10 +38,14 @@ TABLES_LAYOUT = (
     ("fill_run_ranges", "int64", 1), ("scratch_offsets", "int64", 1),
     ("slope_flags", "int64", 1))
 DiagramTables = namedtuple("DiagramTables", [f for f, _, _ in TABLES_LAYOUT])
+DiagramTables.__doc__ = """The diagram as the compiled engine reads it, one array per row of
+:data:`TABLES_LAYOUT`: blocks in evaluation order, connections, delays, max-holds, the
+Jacobian's program and the LU pattern."""
 #: the int64 and float64 fields, in the order pack() concatenates them; an "int32" field (an
 #: index table read a million times per Jacobian or solve) is packed among the int64 ones as
 #: its count, then its values two to an int64 entry (stepper.c i32_table)
 INT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt in ("int64", "int32"))
+#: the float64 fields, in the order pack() concatenates them
 FLOAT_FIELDS = tuple(f for f, dt, _ in TABLES_LAYOUT if dt == "float64")
 #: entries of DiagramTables.dims (scalars of the diagram the compiled code reads)
 DIMS = ("NJB",)
