@@ -24,7 +24,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 
-def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c", mu_max=135.0):
+def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c", mu_max=135.0,
+        K=None):
     from ivdrem.controller.clib import CController
     from ivdrem.controller.loop import ModelPlant, sampled_loop
     from ivdrem.controller.sampled import SampledController, inertia_scaled_gains
@@ -35,9 +36,12 @@ def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c",
     q0, dq0 = arm.initial_state(traj)
     dist = arm.design_disturbance(m, traj)
     T = arm.design_window(traj, dist) or 20.0
-    K = np.array(arm.design_gains(m, q0))
-    if design == "inertia-scaled":
-        K = inertia_scaled_gains(m, K, q0, h, mu_max=mu_max)
+    if K is not None:                       # the same K (1/s or N m s) on every joint
+        K = np.full(m.n, float(K))
+    else:
+        K = np.array(arm.design_gains(m, q0))
+        if design == "inertia-scaled":
+            K = inertia_scaled_gains(m, K, q0, h, mu_max=mu_max)
     cls = CController if backend == "c" else SampledController
     ctl = cls(m, law, h=h, K=K, T=T, trajectory=traj, design=design, gamma=gamma,
               mixing="eigen", mix_every=mix_every, mu_max=mu_max)
@@ -73,12 +77,14 @@ def main(argv=None):
                          "gamma 'auto' (0.5 / (lambda_max(Gamma) mean Delta^2)) gives ~50")
     ap.add_argument("--mix-every", type=int, default=10)
     ap.add_argument("--mu-max", type=float, default=135.0)
+    ap.add_argument("--K", type=float, default=None,
+                    help="one K for every joint (default: inertia_scaled_gains of design_gains)")
     ap.add_argument("--backend", default="c", choices=("c", "python"))
     a = ap.parse_args(argv)
     print(f"load {os.getloadavg()}", flush=True)
     for name in a.arms.split(","):
         r = run(name, h=a.h, t_end=a.t_end, design=a.design, gamma=a.gamma,
-                mix_every=a.mix_every, backend=a.backend, mu_max=a.mu_max)
+                mix_every=a.mix_every, backend=a.backend, mu_max=a.mu_max, K=a.K)
         print(r, flush=True)
     print(f"load {os.getloadavg()}", flush=True)
     return 0
