@@ -138,36 +138,12 @@ def _c_double(x: float) -> str:
 
 
 def _regressor_code(model):
-    """C functions ivc_<R>(args..., out) of the regressors, out row major n x ntheta."""
-    n, nth = model.n, model.ntheta
-    csub = {k: sp.Float(v, 17) for k, v in model.constants.items()}
-    groups = {"q": model.q, "dq": model.dq, "a": model.a, "v": model.v, "dv": model.dv}
-    specs = [("Phi_M", model.Phi_M, ("q", "a")), ("Phi_C", model.Phi_C, ("q", "dq", "v")),
-             ("Phi_dM", model.Phi_dM, ("q", "dq", "a")), ("Phi_G", model.Phi_G, ("q",)),
-             ("Phi_F", model.Phi_F, ("dq",)), ("Phi", model.Phi, ("q", "dq", "v", "dv"))]
-    funcs = []
-    for name, expr, args in specs:
-        ren = dict(csub)
-        for g, syms in groups.items():
-            for i, s in enumerate(syms):
-                ren[s] = sp.Symbol(f"{g}[{i}]")
-        E = sp.Matrix(expr).xreplace(ren)
-        allowed = {sp.Symbol(f"{g}[{i}]") for g in args for i in range(n)}
-        extra = set().union(*(e.free_symbols for e in E)) - allowed
-        if extra:
-            raise ValueError(f"model {model.name!r}: {name} has unexpected symbols "
-                             f"{sorted(map(str, extra))}")
-        exprs = [E[i, j] for i in range(n) for j in range(nth)]
-        repl, red = sp.cse(exprs, symbols=sp.numbered_symbols("w"), order="none")
-        body = [f"    const double {s} = {sp.ccode(e, standard='C99')};" for s, e in repl]
-        body += [f"    out[{k}] = {sp.ccode(e, standard='C99')};" for k, e in enumerate(red)]
-        text = "\n".join(body)
-        unused = [f"    (void){a};" for a in args
-                  if not re.search(rf"(?<![A-Za-z_]){a}\[", text)]
-        sig = ", ".join(f"const double *{a}" for a in args)
-        funcs.append(f"void ivc_{name}({sig}, double *out) {{\n"
-                     + "\n".join(unused + body) + "\n}\n")
-    return funcs, specs
+    """The model's C face (``model.c_source("ivc_")``, docs/models.md): ivc_<R>(args...,
+    out) of the regressors, out row major n x ntheta, for any robot model; and the
+    regressors' (name, None, arguments)."""
+    from ..models.base import REGRESSOR_ARGS
+    specs = [(name, None, args) for name, args in REGRESSOR_ARGS.items()]
+    return [model.c_source("ivc_")], specs
 
 
 def _version():
