@@ -63,27 +63,30 @@ def test_prediction_against_runs_two_link(two_link_plant, K, stable):
 
 
 def test_prediction_against_runs_panda(tmp_path):
-    """The paper's design (K of examples/panda.toml, μ₁ = 15) on the Panda's URDF at 1 ms
-    is predicted at 1.67 per step (1e6-fold within 27 ms) and diverges in the plant FMU
-    within 30 ms; at h = 0.5 ms it is predicted stable and runs."""
+    """The paper's design (its feedback (9), K of examples/panda.toml, μ₁ = 15) on the
+    Panda's URDF at 1 ms is predicted at 1.67 per step (1e6-fold within 27 ms) and diverges
+    in the plant FMU within 30 ms; at h = 0.5 ms it is predicted stable and runs; the
+    inertia-scaled design (the URDF arms' default) is predicted stable at 1 ms and runs."""
     from ivdrem.controller.sampled import SampledController
     from ivdrem.fmu import export_fmu
     model = get_model("panda")
     K = [2.0, 5.448, 2.175, 2.003, 2.0, 2.0, 2.0]
     plant = export_fmu(model, tmp_path / "Panda.fmu")
-    st = sampled_stability(model, "none", K=K, h=1e-3, t_end=0.0, points=1, suggest=True)
+    paper = dict(K=K, design="paper")
+    st = sampled_stability(model, "none", h=1e-3, t_end=0.0, points=1, suggest=True, **paper)
     assert not st.stable and st.growth > 1.5, st.reason()
     assert st.stable_h == 5e-4
     line = st.reason()
     assert "\n" not in line and "1.67" in line and "--h 0.0005" in line
-    diverged, _ = _run(SampledController(model, "none", K=K, h=1e-3), plant, 0.1,
+    diverged, _ = _run(SampledController(model, "none", h=1e-3, **paper), plant, 0.1,
                        NO_DISTURBANCE)
     assert diverged is not None and diverged <= 0.03
-    st = sampled_stability(model, "none", K=K, h=5e-4, t_end=0.0, points=1)
-    assert st.stable and st.growth < 1.0
-    diverged, rec = _run(SampledController(model, "none", K=K, h=5e-4), plant, 0.1,
-                         NO_DISTURBANCE)
-    assert diverged is None and np.abs(rec["q"]).max() < 3.0
+    for h, design in ((5e-4, paper), (1e-3, dict(K=K, design="inertia-scaled"))):
+        st = sampled_stability(model, "none", h=h, t_end=0.0, points=1, **design)
+        assert st.stable and st.growth < 1.0, st.reason()
+        diverged, rec = _run(SampledController(model, "none", h=h, **design), plant, 0.1,
+                             NO_DISTURBANCE)
+        assert diverged is None and np.abs(rec["q"]).max() < 3.0
 
 
 def test_prediction_threshold_and_horizon():

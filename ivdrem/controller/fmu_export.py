@@ -360,23 +360,16 @@ def controller_design(config, law, *, h=None, mu_max=None):
             raise ValueError(f"the sampled controller has no option {k} = {v!r} (from the "
                              f"configuration, law {law}); docs/controller.md lists its options")
         out[k] = v
-    if "trajectory" in out and not isinstance(out["trajectory"], dict) and \
-            "trajectory" in accepted and not _takes_fourier():
-        raise ValueError("the sampled controller takes a sinusoidal reference only; the "
-                         "configuration's reference is a Fourier series ([trajectory] kind = "
-                         "\"fourier\"): give [trajectory] amplitude, omega, phase, offset")
+    table = config["trajectory"]
+    if table.get("kind", "sinusoid") == "fourier":     # as the table, not closed_loop's block
+        out["trajectory"] = {"kind": "fourier", "omega_f": float(table["omega_f"]),
+                             **{k: np.asarray(table[k], dtype=float)
+                                for k in ("a", "b", "offset")}}
     if h is not None:
         out["h"] = float(h)
     if mu_max is not None:
         out["mu_max"] = float(mu_max)
     return out
-
-
-def _takes_fourier():
-    """True once the sampled controller generates the real-arm experiment's Fourier reference
-    (a trajectory given as ivdrem.blocks.sources.fourier_trajectory's block)."""
-    from . import sampled
-    return getattr(sampled, "FOURIER_REFERENCE", False)
 
 
 def check_window(design, law):
