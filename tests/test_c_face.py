@@ -19,6 +19,8 @@ from ivdrem.models.base import C_FUNCTION_ARGS, PIVOT_RTOL, SINGULAR_INERTIA_MES
 REL = 1e-12
 NSTATES = 200
 PREFIX = "tcf_"
+#: against Pinocchio: a second algorithm (ABA), so its round-off, amplified by cond M(q)
+ABA_REL = 1e-9
 
 
 def c_library(model, directory, prefix=PREFIX):
@@ -205,3 +207,48 @@ def test_compiler_errors_are_one_line_naming_the_compiler(tmp_path, monkeypatch)
     msg = str(exc.value)
     assert "\n" not in msg and "failed to build a broken file" in msg
     assert "undeclared_name" in msg and "undeclared_name" in exc.value.output
+
+
+#: every named arm, and the UR5 with friction and armature (their columns, offsets and
+#: the smooth Coulomb sign in C)
+ARMS = {"panda": {}, "ur5": {}, "iiwa": {}, "xarm7": {},
+        "ur5+friction+armature": dict(friction={"viscous": 0.8, "coulomb": 1.5},
+                                      armature=[0.1, 0.2, 0.1, 0.05, 0.05, 0.02])}
+
+
+@pytest.fixture(scope="module", params=list(ARMS))
+def arm_and_lib(request, tmp_path_factory):
+    from ivdrem.models import arm
+    try:
+        model = arm(request.param.split("+")[0], **ARMS[request.param])
+    except ImportError as exc:      # the arms' data packages (ivdrem[arms])
+        pytest.skip(str(exc))
+    return model, c_library(model, tmp_path_factory.mktemp(request.param))
+
+
+def test_urdf_arm_c_face_equals_python(arm_and_lib):
+    model, lib = arm_and_lib
+    worst = compare_all(model, lib)
+    print(f"\n{model.name}: " + ", ".join(f"{k} {v:.1e}" for k, v in worst.items()))
+    assert max(worst.values()) <= REL, worst
+
+
+def test_urdf_arm_forward_dynamics_equals_pinocchio_aba(arm_and_lib):
+    import pinocchio as pin
+    model, lib = arm_and_lib
+    if any(model._chain[k] for k in ("viscous", "coulomb", "armature")):
+        pytest.skip("Pinocchio's aba has no friction nor armature")
+    pm = model.pinocchio_model()
+    data = pm.createData()
+    theta = np.asarray(model.theta_values, float)
+    worst = 0.0
+    for q, dq, _, _, a in _states(model, np.random.default_rng(7)):
+        tau = 5.0 * a
+        got = np.empty(model.n)
+        assert lib.tcf_forward_dynamics(_p(q), _p(dq), _p(tau), _p(theta), got.ctypes.data_as(
+            ctypes.POINTER(ctypes.c_double))) == 0
+        ref = pin.aba(pm, data, model.pinocchio_configuration(q), dq, tau)
+        worst = max(worst, _rel(got, ref))
+    print(f"\n{model.name}: forward dynamics against Pinocchio aba, {NSTATES} states: "
+          f"{worst:.1e}")
+    assert worst <= ABA_REL
