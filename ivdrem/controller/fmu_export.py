@@ -86,6 +86,22 @@ def _variables(model, par):
                       description=f"external torque estimate {i} of the last step"))
     V.append(dict(name="Delta", causality="output", variability="discrete",
                   initial="calculated", description="Delta of the mixing step (17), last step"))
+    V += _parameters(model, par)
+    for i in range(n):      # after the parameters: the value references above stay as they were
+        V.append(dict(name=f"q_d[{i}]", causality="output", variability="discrete",
+                      initial="calculated", unit="rad",
+                      description=f"reference q_d,{i} of the last step (before the first: "
+                                  "at t = 0)"))
+    for i in range(n):
+        V.append(dict(name=f"dq_d[{i}]", causality="output", variability="discrete",
+                      initial="calculated", unit="rad/s",
+                      description=f"reference dq_d,{i} of the last step (before the first: "
+                                  "at t = 0)"))
+    return V
+
+
+def _parameters(model, par):
+    V = []
     off = 0
     for name, size, descr in param_layout(model):
         for i in range(size):
@@ -203,8 +219,8 @@ def _build_description3(ident):
 def _fmu_header(model, V, guid):
     n, nth = model.n, model.ntheta
     npar = sum(s for _, s, _ in param_layout(model))
-    pars = V[4 * n + nth + 1:]
-    assert len(pars) == npar
+    pars = V[4 * n + nth + 1:4 * n + nth + 1 + npar]
+    assert len(pars) == npar and V[4 * n + nth + 1 + npar]["name"] == "q_d[0]"
     names = ", ".join('"' + v["name"] + '"' for v in pars)
     tun = ", ".join("1" if v["variability"] == "tunable" else "0" for v in pars)
     exp = ", ".join("0" if v.get("hidden") else "1" for v in pars)
@@ -220,6 +236,8 @@ def _fmu_header(model, V, guid):
 #define VR_TAU_D_HAT {3 * n + nth}
 #define VR_DELTA {4 * n + nth}
 #define VR_PAR {4 * n + nth + 1}
+#define VR_Q_D {4 * n + nth + 1 + npar}
+#define VR_DQ_D {4 * n + nth + 1 + npar + n}
 #define VR_TIME {len(V)}
 static const char *const PARAMETER_NAMES[IVC_NPAR] = {{{names}}};
 static const int PARAMETER_TUNABLE[IVC_NPAR] = {{{tun}}};
@@ -403,13 +421,17 @@ def check_generated(model):
             from None
 
 
-def resolve_gamma(model, law, design):
-    """γ = "auto" resolved to a number (the continuous loop's rule, ivdrem.controller.block
-    .auto_gamma): returns (design with γ a number, the calibration's record or None)."""
+def resolve_gamma(model, law, design, config):
+    """γ = "auto" resolved to a number by the continuous loop's rule
+    (:func:`ivdrem.diagrams.gamma_auto.calibrate_gamma` on the configuration's closed loop,
+    the same γ `ivdrem paper` takes, cached with it): returns (design with γ a number, the
+    calibration's record or None)."""
     if design.get("gamma") != "auto":
         return design, None
-    from .block import auto_gamma
-    choice = auto_gamma(model, law, design)
+    from ..diagrams.gamma_auto import calibrate_gamma
+    from ..experiments.config import closed_loop_kwargs
+    args = {k: v for k, v in closed_loop_kwargs(config, law).items() if k != "gamma"}
+    choice = calibrate_gamma(law, model, args)
     return {**design, "gamma": float(choice["gamma"])}, choice
 
 
@@ -488,7 +510,7 @@ def main_export_controller(args) -> int:
             design = controller_design(config, args.law, h=h, mu_max=mu_max)
             check_window(design, args.law)
             check_generated(model)
-            design, choice = resolve_gamma(model, args.law, design)
+            design, choice = resolve_gamma(model, args.law, design, config)
             if choice is not None:
                 extra += f", gamma = {design['gamma']:.4g} (auto)"
         SampledController(model, args.law, **design)           # every other check
