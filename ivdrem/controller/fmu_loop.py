@@ -100,7 +100,8 @@ def fmpy_closed_loop(controller_fmu, plant_fmu, t_end, *, q0=None, dq0=None,
     """Controller FMU + plant FMU in FMPy, Jacobi, communication step h = the controller
     FMU's parameter h (:func:`controller_period`); the record of
     :func:`ivdrem.controller.loop.sampled_loop` (t, q, dq, tau, tau_d, theta_hat, and the
-    controller's other ``outputs``, e.g. "q_d").
+    controller's other ``outputs`` of its step at t_k, e.g. "q_d": the reference at t_k; at
+    t_end the controller takes one more step for them).
 
     ``q0``, ``dq0``: the plant's start; default the controller's reference q_d(0), q̇_d(0)
     (its outputs q_d, dq_d: the arm starts on the reference), or for an FMU without them
@@ -137,20 +138,22 @@ def fmpy_closed_loop(controller_fmu, plant_fmu, t_end, *, q0=None, dq0=None,
             c = np.array(ctrl.get(c_out))
             tau, th = c[:n], c[n:n + nth]
             tau_d = disturbance_at(t, disturbance)
-            if k == N or k % every == 0:
+            keep = k == N or k % every == 0
+            if keep:
                 rec["t"].append(t)
                 rec["q"].append(y[:n])
                 rec["dq"].append(y[n:])
                 rec["tau"].append(tau)
                 rec["tau_d"].append(tau_d)
                 rec["theta_hat"].append(th)
+            ctrl.set(c_in, list(y))
+            ctrl.step(t, h)
+            if keep:        # the outputs of step k (q_d: the reference at t_k), as sampled_loop
                 for o, vrs in extra.items():
                     rec[o].append(np.array(ctrl.get(vrs)))
             if k == N:
                 break
-            ctrl.set(c_in, list(y))
             plant.set(p_in, [*tau, *tau_d])
-            ctrl.step(t, h)
             plant.step(t, h)
         return {k: np.array(v) for k, v in rec.items()}
     finally:
