@@ -256,3 +256,34 @@ def test_ur5_export_validates_and_equals_the_c_library(ur5_fmus, version):
     assert np.allclose(out["q_d"], rq, rtol=0, atol=1e-12)
     assert np.allclose(out["dq_d"], rdq, rtol=0, atol=1e-12)
     assert np.abs(out["tau"]).max() > 0.1
+
+
+def test_ur5_controller_fmu_closed_around_its_plant_fmu(ur5_fmus, tmp_path):
+    """The UR5's controller FMU around the UR5's plant FMU at 1 kHz in FMPy (the host reads
+    h and the start q_d(0), dq_d(0) from the FMU): 2 s without divergence, the arm near its
+    reference (the 300 s run is benchmarks/bench_arm_fmu_loop.py's)."""
+    from ivdrem.controller.fmu_loop import fmpy_closed_loop
+    from ivdrem.fmu import export_fmu
+    model, design, fmus = ur5_fmus
+    plant = export_fmu(model, tmp_path / "UR5.fmu")
+    rec = fmpy_closed_loop(fmus[2], plant, 2.0, every=100, outputs=("q_d", "dq_d"))
+    assert np.array_equal(rec["q"][0], rec["q_d"][0])        # started on the reference
+    assert np.all(np.isfinite(rec["q"])) and np.abs(rec["q"] - rec["q_d"]).max() < 0.2
+
+
+def test_an_unnamed_urdf_arm_around_pybullet():
+    """example-robot-data's UR3 (not a named arm): exported from its default experiment and
+    closed by the PyBullet harness at 1 kHz for 1 s, predicted stable, no divergence."""
+    pytest.importorskip("pybullet")
+    import importlib.util
+    from pathlib import Path
+    spec = importlib.util.spec_from_file_location(
+        "bullet_harness", Path(__file__).parents[1] / "benchmarks" / "bullet_harness.py")
+    harness = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(harness)
+    urdf = harness.default_urdf()
+    if not urdf.is_file():
+        pytest.skip("example-robot-data is not installed")
+    r = harness.run(urdf, 1.0, mix_every=20, every=250)
+    assert r["model"] == "ur3" and r["growth"] < 1.0 and r["diverged"] is None
+    assert max(e for _, e, _ in r["rows"]) < 0.5
