@@ -252,3 +252,90 @@ def test_urdf_arm_forward_dynamics_equals_pinocchio_aba(arm_and_lib):
     print(f"\n{model.name}: forward dynamics against Pinocchio aba, {NSTATES} states: "
           f"{worst:.1e}")
     assert worst <= ABA_REL
+
+
+# ------------------------------------------------------------------ one source of each
+PACKAGE = Path(__file__).resolve().parents[1] / "ivdrem"
+
+
+def _cholesky_like(fn_node):
+    """A function that factors a matrix: a square root and an inner-product update
+    ``x -= a[.., k] * b[.., k]`` inside nested loops (what every Cholesky does)."""
+    import ast
+    has_sqrt = any(isinstance(n, ast.Call) and getattr(n.func, "attr", getattr(n.func, "id", ""))
+                   == "sqrt" for n in ast.walk(fn_node))
+    update = any(isinstance(n, ast.AugAssign) and isinstance(n.op, ast.Sub)
+                 and isinstance(n.value, ast.BinOp) and isinstance(n.value.op, ast.Mult)
+                 and isinstance(n.value.left, ast.Subscript)
+                 and isinstance(n.value.right, ast.Subscript) for n in ast.walk(fn_node))
+    return has_sqrt and update
+
+
+def test_the_package_has_one_cholesky_per_language():
+    """Python: one factorisation (rigid_body._rb_cholesky), every solve with M(q) calls it;
+    C: none written by hand (fmi2_plant.c and every generated C face use the one printed
+    from it)."""
+    import ast
+    found = []
+    for path in PACKAGE.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.FunctionDef) and _cholesky_like(node):
+                found.append(f"{path.relative_to(PACKAGE)}:{node.name}")
+    assert found == ["models/rigid_body.py:_rb_cholesky"], found
+    # the symbolic models' generated forward dynamics and the blocks' solve call it
+    assert "_linalg._rb_spd_solve(" in get_model("two-link").source("")
+    kernels = (PACKAGE / "blocks" / "_kernels.py").read_text()
+    assert "_rb_cholesky(L)" in kernels
+    # C: the hand-written sources factor nothing
+    assert "sqrt(" not in (PACKAGE / "fmu" / "fmi2_plant.c").read_text()
+    for path in PACKAGE.rglob("*.c"):       # the stepper's LU, the controller's SVD: no
+        if path.name != "fmi2_plant.c":     # Cholesky in any other hand-written C
+            assert "cholesky" not in path.read_text().lower(), path
+    # and every C face holds the printed one, once
+    from ivdrem.models._c_printer import print_kernels
+    from ivdrem.models.rigid_body import C_CHOLESKY
+    printed = print_kernels(C_CHOLESKY, "x_")
+    body = printed.split("\n\n", 1)[1]
+    for model in (get_model("two-link"), SYMBOLIC["planar-2+friction"]()):
+        src = model.c_source("x_")
+        assert src.count(body) == 1 and src.count("sqrt(") == 1
+
+
+def test_the_package_has_one_newton_euler():
+    """The recursion is rigid_body's Python kernels; a URDF model's C face is their print;
+    the plant FMU's C is the C face (no recursion written in ivdrem/fmu)."""
+    from ivdrem.models import arm
+    from ivdrem.models._c_printer import print_kernels
+    from ivdrem.models.rigid_body import C_CHOLESKY, C_KERNELS
+    export = (PACKAGE / "fmu" / "export.py").read_text()
+    plant_c = (PACKAGE / "fmu" / "fmi2_plant.c").read_text()
+    for text in (export, plant_c):
+        for word in ("rnea", "xmotion", "body_pose", "cross3", "for (int"):
+            assert word not in text, word
+    assert 'model.c_source("plant_")' in export
+    try:
+        model = arm("ur5")
+    except ImportError as exc:
+        pytest.skip(str(exc))
+    printed = print_kernels([f for f in C_KERNELS if f not in C_CHOLESKY], "x_",
+                            printed=C_CHOLESKY)
+    assert printed in model.c_source("x_")
+    # the Python side of the model calls the same kernels (rigid_body's, compiled)
+    assert "_rbk._rb_Phi(" in model.source("")
+
+
+def _kernel_with_a_slice(x: "real[N]", out: "real[N]"):
+    out[0:2] = x[0:2]
+
+
+def _kernel_without_types(x, out):
+    out[0] = x[0]
+
+
+def test_the_printer_refuses_what_it_does_not_translate():
+    from ivdrem.models._c_printer import CPrintError, print_kernels
+    with pytest.raises(CPrintError, match=r"_kernel_with_a_slice \(line \d+\): slices"):
+        print_kernels([_kernel_with_a_slice], "x_")
+    with pytest.raises(CPrintError, match="_kernel_without_types.*'x' has no type annotation"):
+        print_kernels([_kernel_without_types], "x_")

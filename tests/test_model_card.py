@@ -176,3 +176,20 @@ def test_the_plant_fmu_of_a_card_model_is_the_sympy_models(cache):
     read = get_model("planar-2")
     assert isinstance(read, CardModel)
     assert generate_sources(read) == generate_sources(planar_arm(2))
+
+
+def test_the_c_face_of_a_carded_model_is_read_without_sympy(tmp_path):
+    """The C face (model.c_source) of a card model comes from the cache by key, without
+    building the sympy model, and is the sympy model's text."""
+    code = ("import sys, hashlib; from ivdrem.models import get_model; "
+            "m = get_model('planar-2'); src = m.c_source('ivc_'); "
+            "print(type(m).__name__, 'sympy' in sys.modules, "
+            "hashlib.sha256(src.encode()).hexdigest())")
+    env = {**os.environ, "IVDREM_CACHE_DIR": str(tmp_path)}
+    outs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           env=env, timeout=300) for _ in range(2)]
+    assert [o.returncode for o in outs] == [0, 0], [o.stderr[-2000:] for o in outs]
+    first, second = (o.stdout.split() for o in outs)
+    assert first[:2] == ["EulerLagrangeModel", "True"]
+    assert second[:2] == ["CardModel", "False"]
+    assert first[2:] == second[2:]                 # the same text

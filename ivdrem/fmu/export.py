@@ -1,16 +1,15 @@
-"""Export the robot plant of an :class:`~ivdrem.models.EulerLagrangeModel` as an FMI 2.0 FMU.
+"""Export the robot plant of any robot model of ivdrem as an FMI 2.0 FMU.
 
-The FMU is generated C, not a Python wrapper: the plant's ``M(q)`` and bias
-``b(q, q') = C(q, q') q' + F(q') + G(q)`` are printed from the same sympy model that the
-Python plant (``model.functions.forward_dynamics``) comes from, with sympy's C99 printer
-after common-subexpression elimination (``sympy.cse``); for an arm from a URDF
-(:class:`~ivdrem.models.RigidBodyModel`) they are the same recursive Newton-Euler algorithm
-as its Python kernels (:mod:`ivdrem.models.rigid_body`), written in C over the chain's
-constant arrays (``M`` column by column, ``b`` in one pass), its parameters the base
-parameters.  A fixed, hand-written C file
-(``fmi2_plant.c``, style of the FMI Reference FMUs) implements the FMI 2.0 API on top of
-it: ``q'' = M^-1 (tau + tau_d - b)`` by Cholesky, a state machine, error checks, FMU state
-get/set/serialize.  One binary provides model exchange and co-simulation.
+The FMU is generated C, not a Python wrapper: ``plant_model.c`` is the model's C face
+(``model.c_source("plant_")``, docs/models.md): for a symbolic model sympy's C99 printing
+of M, C, G, F after common-subexpression elimination, for an arm from a URDF the recursive
+Newton-Euler kernels of :mod:`ivdrem.models.rigid_body` printed to C; in both the same
+numbers as the Python plant (``model.functions.forward_dynamics``).  Its
+``forward_dynamics_k`` gives ``q'' = M^-1 (tau + tau_d - b)`` by the package's one Cholesky,
+with the model's constants (``g``, link lengths) from the FMU's parameters.  A fixed,
+hand-written C file (``fmi2_plant.c``, style of the FMI Reference FMUs) implements the FMI
+2.0 API on top of it: a state machine, error checks, FMU state get/set/serialize.  One
+binary provides model exchange and co-simulation.
 
 FMU contents::
 
@@ -52,11 +51,8 @@ from __future__ import annotations
 
 import hashlib
 import html
-import os
 import platform
 import re
-import shutil
-import subprocess
 import sys
 import tempfile
 import uuid
@@ -228,8 +224,9 @@ def _dependencies(model):
     block diagonal over these components, and generically full inside each).
     """
     n = model.n
-    if _is_rigid_body(model):
-        # every joint of a serial arm couples with every other (M^-1 is full): dense
+    if not isinstance(getattr(model, "M", None), sp.MatrixBase):
+        # no symbolic structure (a URDF arm): every joint of a serial arm couples with
+        # every other (M^-1 is full): dense
         return [dict(q=list(range(n)), dq=list(range(n)), tau=list(range(n)),
                      theta=list(range(model.ntheta)), const=[]) for _ in range(n)]
     M = sp.Matrix(model.M)
@@ -264,17 +261,6 @@ def _dependencies(model):
 
 
 # ----------------------------------------------------------------------------- C code
-_MATH_CONSTANTS = {
-    "M_E": "2.718281828459045235360287471352662498", "M_LOG2E": "1.442695040888963407359924681001892137",
-    "M_LOG10E": "0.434294481903251827651128918916605082", "M_LN2": "0.693147180559945309417232121458176568",
-    "M_LN10": "2.302585092994045684017991454684364208", "M_PI": "3.141592653589793238462643383279502884",
-    "M_PI_2": "1.570796326794896619231321691639751442", "M_PI_4": "0.785398163397448309615660845819875721",
-    "M_1_PI": "0.318309886183790671537767526745028724", "M_2_PI": "0.636619772367581343075535053490057448",
-    "M_2_SQRTPI": "1.128379167095512573896158903121545172", "M_SQRT2": "1.414213562373095048801688724209698079",
-    "M_SQRT1_2": "0.707106781186547524400844362104849039",
-}
-
-
 def _c_double(x: float) -> str:
     s = repr(float(x))
     return s if ("e" in s or "." in s or "inf" in s or "nan" in s) else s + ".0"
@@ -284,87 +270,44 @@ def _c_string(s: str) -> str:
     return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
-def _model_code(model, lay: _Layout, guid: str, deps_comment: str) -> tuple[str, str]:
-    """plant_model.h and plant_model.c for ``model``."""
-    n = model.n
-    ren = {}
-    for i in range(n):
-        ren[model.q[i]] = sp.Symbol(f"q[{i}]")
-        ren[model.dq[i]] = sp.Symbol(f"dq[{i}]")
-    for k, s in enumerate(list(model.theta) + list(model.constants)):
-        ren[s] = sp.Symbol(f"p[{k}]")
-    M = sp.Matrix(model.M).xreplace(ren)
-    b = (sp.Matrix(model.C) * sp.Matrix(model.dq) + sp.Matrix(model.F)
-         + sp.Matrix(model.G)).xreplace(ren)
-    allowed = set(ren.values())
-    for e in list(M) + list(b):
-        extra = _free(e) - allowed
-        if extra:
-            raise ValueError(f"model {model.name!r}: M, C, F, G contain symbols that are not q, dq, "
-                             f"theta or constants: {', '.join(sorted(map(str, extra)))}")
-
-    def emit(exprs, targets):
-        repl, red = sp.cse(exprs, symbols=sp.numbered_symbols("w"), order="none")
-        lines = [f"    const double {s} = {sp.ccode(e, standard='C99')};" for s, e in repl]
-        lines += [f"    {t} = {sp.ccode(e, standard='C99')};" for t, e in zip(targets, red)]
-        return lines
-
-    lower = [(i, j) for i in range(n) for j in range(i + 1)]
-    mass_lines = emit([M[i, j] for i, j in lower], [f"M[{i * n + j}]" for i, j in lower])
-    mass_lines += [f"    M[{j * n + i}] = M[{i * n + j}];" for i, j in lower if i != j]
-    bias_lines = emit(list(b), [f"b[{i}]" for i in range(n)])
-
-    def uses(lines, arg):  # "q[" must not match "dq["
-        return any(re.search(rf"(?<![A-Za-z_]){re.escape(arg)}\[", ln) for ln in lines)
-
-    used = {"mass_q": uses(mass_lines, "q"), "mass_p": uses(mass_lines, "p"),
-            "bias_q": uses(bias_lines, "q"), "bias_dq": uses(bias_lines, "dq"),
-            "bias_p": uses(bias_lines, "p")}
-
-    def unused(flag, arg):
-        return [] if used[flag] else [f"    (void){arg};"]
-
-    header = _header(model, lay, guid, "the sympy model")
-    consts = "\n".join(f"#ifndef {k}\n#define {k} {v}\n#endif" for k, v in _MATH_CONSTANTS.items()
-                       if any(re.search(rf"\b{k}\b", ln) for ln in mass_lines + bias_lines))
+def _plant_code(model, lay: _Layout, guid: str, deps_comment: str) -> tuple[str, str]:
+    """plant_model.h and plant_model.c: the model's C face (``model.c_source("plant_")``,
+    docs/models.md), whatever its kind, and the FMU's constant data."""
+    header = _header(model, lay, guid)
     pnames = ", ".join(_c_string(nm) for nm in lay.param_names)
     pvals = ", ".join(_c_double(v) for v in lay.param_values)
     pmap = "\n".join(f" *   p[{k}] = {nm}" for k, nm in enumerate(lay.param_names))
-    source = f"""/* plant_model.c: generated by ivdrem {_version()} from the sympy model "{model.name}"
- * (model key {model.key}) with sympy {sp.__version__}: sympy.cse + sympy.ccode (C99).
- * Do not edit.
+    source = f"""/* plant_model.c: generated by ivdrem {_version()} from the model "{model.name}"
+ * (model key {model.key}): its C face and the FMU's start values.  Do not edit.
  *
  *   M(q) q'' + C(q, q') q' + F(q') + G(q) = tau + tau_d
  *
- * q[i], dq[i]: joint positions and velocities; parameter vector p:
+ * q[i], dq[i]: joint positions and velocities; parameter vector p (theta, then the model
+ * constants k):
 {pmap}
  *
 {deps_comment}
  */
-#include <math.h>
 #include "plant_model.h"
-{consts}
-
+#define PLANT_FN PLANT_INTERNAL
+{model.c_source("plant_")}
 const double Q_START[NQ] = {{{", ".join(_c_double(v) for v in lay.q0)}}};
 const double DQ_START[NQ] = {{{", ".join(_c_double(v) for v in lay.dq0)}}};
 const double P_START[NP] = {{{pvals}}};
 const char *const PARAMETER_NAMES[NP] = {{{pnames}}};
 
-void plant_mass(const double *q, const double *p, double *M) {{
-{chr(10).join(unused("mass_q", "q") + unused("mass_p", "p") + mass_lines)}
-}}
-
-void plant_bias(const double *q, const double *dq, const double *p, double *b) {{
-{chr(10).join(unused("bias_q", "q") + unused("bias_dq", "dq") + unused("bias_p", "p") + bias_lines)}
+int plant_accelerations(const double *q, const double *dq, const double *tau,
+                        const double *p, double *ddq) {{
+    return plant_forward_dynamics_k(q, dq, tau, p, p + NTHETA, ddq);
 }}
 """
     return header, source
 
 
-def _header(model, lay: _Layout, guid: str, origin: str) -> str:
+def _header(model, lay: _Layout, guid: str) -> str:
     """plant_model.h: the layout used by fmi2_plant.c."""
     n = model.n
-    return f"""/* plant_model.h: generated by ivdrem {_version()} from {origin} "{model.name}"
+    return f"""/* plant_model.h: generated by ivdrem {_version()} from the model "{model.name}"
  * (model key {model.key}). Do not edit. Layout used by fmi2_plant.c. */
 #ifndef PLANT_MODEL_H
 #define PLANT_MODEL_H
@@ -399,214 +342,14 @@ PLANT_INTERNAL extern const double DQ_START[NQ];
 PLANT_INTERNAL extern const double P_START[NP];
 PLANT_INTERNAL extern const char *const PARAMETER_NAMES[NP];
 
-/* M(q) (row major, NQ x NQ) */
-PLANT_INTERNAL void plant_mass(const double *q, const double *p, double *M);
-/* b(q, dq) = C(q, dq) dq + F(dq) + G(q) */
-PLANT_INTERNAL void plant_bias(const double *q, const double *dq, const double *p, double *b);
+/* q'' solving M(q) q'' = tau - C(q, q') q' - F(q') - G(q) with the parameters p (theta,
+ * then the model constants): the model's forward_dynamics_k.  0, or 1 when M(q) is not
+ * positive definite (the package's one rule, docs/models.md). */
+PLANT_INTERNAL int plant_accelerations(const double *q, const double *dq, const double *tau,
+                                       const double *p, double *ddq);
 
 #endif
 """
-
-def _is_rigid_body(model) -> bool:
-    from ivdrem.models import RigidBodyModel
-    return isinstance(model, RigidBodyModel)
-
-
-def _c_array(values) -> str:
-    return "{" + ", ".join(_c_double(v) for v in np.asarray(values, float).reshape(-1)) + "}"
-
-
-# The recursive Newton-Euler algorithm of ivdrem.models.rigid_body in C (docs/models.md):
-# body frames, spatial vectors (linear, angular), the base accelerating at -g.
-_RNEA_C = r"""
-static void body_pose(int j, double qj, double R[3][3], double p[3]) {
-    const double *u = AXIS[j];
-    if (JTYPE[j] == 0) {
-        const double c = cos(qj), s = sin(qj), t = 1.0 - c;
-        const double E[3][3] = {
-            {c + t * u[0] * u[0], t * u[0] * u[1] - s * u[2], t * u[0] * u[2] + s * u[1]},
-            {t * u[0] * u[1] + s * u[2], c + t * u[1] * u[1], t * u[1] * u[2] - s * u[0]},
-            {t * u[0] * u[2] - s * u[1], t * u[1] * u[2] + s * u[0], c + t * u[2] * u[2]}};
-        for (int r = 0; r < 3; r++) {
-            for (int k = 0; k < 3; k++)
-                R[r][k] = RP[j][r][0] * E[0][k] + RP[j][r][1] * E[1][k] + RP[j][r][2] * E[2][k];
-            p[r] = PP[j][r];
-        }
-    } else {
-        for (int r = 0; r < 3; r++) {
-            for (int k = 0; k < 3; k++) R[r][k] = RP[j][r][k];
-            p[r] = PP[j][r] + (RP[j][r][0] * u[0] + RP[j][r][1] * u[1] + RP[j][r][2] * u[2]) * qj;
-        }
-    }
-}
-
-static void cross3(const double *a, const double *b, double *out) {
-    out[0] = a[1] * b[2] - a[2] * b[1];
-    out[1] = a[2] * b[0] - a[0] * b[2];
-    out[2] = a[0] * b[1] - a[1] * b[0];
-}
-
-/* motion m (parent frame) in the frame (R, p): (R^T (m_l - p x m_a), R^T m_a) */
-static void xmotion(double R[3][3], const double *p, const double *m, double *out) {
-    double px[3], t[3];
-    cross3(p, m + 3, px);
-    for (int r = 0; r < 3; r++) t[r] = m[r] - px[r];
-    for (int r = 0; r < 3; r++) {
-        out[r] = R[0][r] * t[0] + R[1][r] * t[1] + R[2][r] * t[2];
-        out[3 + r] = R[0][r] * m[3] + R[1][r] * m[4] + R[2][r] * m[5];
-    }
-}
-
-/* tau = C(q, w) w + M(q) acc + grav G(q) for standard link parameters pi */
-static void rnea(const double *q, const double *w, const double *acc, double grav,
-                 const double *pi, double *tau) {
-    double R[NQ][3][3], p[NQ][3], V[NQ][6], A[NQ][6], f[NQ][6];
-    for (int j = 0; j < NQ; j++) {
-        double vp[6] = {0, 0, 0, 0, 0, 0}, ap[6], t[6], sw[6] = {0, 0, 0, 0, 0, 0};
-        body_pose(j, q[j], R[j], p[j]);
-        if (PARENT[j] < 0) {
-            for (int r = 0; r < 3; r++) { ap[r] = -grav * GRAV[r]; ap[3 + r] = 0.0; }
-        } else {
-            for (int r = 0; r < 6; r++) { vp[r] = V[PARENT[j]][r]; ap[r] = A[PARENT[j]][r]; }
-        }
-        const int off = JTYPE[j] == 0 ? 3 : 0;
-        for (int r = 0; r < 3; r++) sw[off + r] = AXIS[j][r] * w[j];
-        xmotion(R[j], p[j], vp, t);
-        for (int r = 0; r < 6; r++) V[j][r] = t[r] + sw[r];
-        xmotion(R[j], p[j], ap, t);
-        for (int r = 0; r < 3; r++) t[off + r] += AXIS[j][r] * acc[j];
-        /* + V x (S w): (w x sw_l + v x sw_a, w x sw_a) */
-        double c1[3], c2[3], c3[3];
-        cross3(V[j] + 3, sw, c1);
-        cross3(V[j], sw + 3, c2);
-        cross3(V[j] + 3, sw + 3, c3);
-        for (int r = 0; r < 3; r++) { A[j][r] = t[r] + c1[r] + c2[r]; A[j][3 + r] = t[3 + r] + c3[r]; }
-        /* body force f = I A + V x* (I V) about the joint frame's origin */
-        const double *P = pi + 10 * j;
-        const double m = P[0], h[3] = {P[1], P[2], P[3]};
-        const double I[3][3] = {{P[4], P[5], P[7]}, {P[5], P[6], P[8]}, {P[7], P[8], P[9]}};
-        const double *v = V[j], *om = V[j] + 3, *a = A[j], *al = A[j] + 3;
-        double hw[3], hv[3], ha[3], hal[3], L[3], H[3], wL[3], wH[3], vL[3];
-        cross3(h, om, hw);
-        cross3(h, v, hv);
-        cross3(h, a, ha);
-        cross3(h, al, hal);
-        for (int r = 0; r < 3; r++) {
-            L[r] = m * v[r] - hw[r];
-            H[r] = I[r][0] * om[0] + I[r][1] * om[1] + I[r][2] * om[2] + hv[r];
-        }
-        cross3(om, L, wL);
-        cross3(om, H, wH);
-        cross3(v, L, vL);
-        for (int r = 0; r < 3; r++) {
-            f[j][r] = m * a[r] - hal[r] + wL[r];
-            f[j][3 + r] = I[r][0] * al[0] + I[r][1] * al[1] + I[r][2] * al[2] + ha[r] + wH[r] + vL[r];
-        }
-    }
-    for (int j = NQ - 1; j >= 0; j--) {
-        const int off = JTYPE[j] == 0 ? 3 : 0;
-        tau[j] = AXIS[j][0] * f[j][off] + AXIS[j][1] * f[j][off + 1] + AXIS[j][2] * f[j][off + 2];
-        const int pa = PARENT[j];
-        if (pa >= 0) {
-            double fl[3], nl[3], pf[3];
-            for (int r = 0; r < 3; r++) {
-                fl[r] = R[j][r][0] * f[j][0] + R[j][r][1] * f[j][1] + R[j][r][2] * f[j][2];
-                nl[r] = R[j][r][0] * f[j][3] + R[j][r][1] * f[j][4] + R[j][r][2] * f[j][5];
-            }
-            cross3(p[j], fl, pf);
-            for (int r = 0; r < 3; r++) { f[pa][r] += fl[r]; f[pa][3 + r] += nl[r] + pf[r]; }
-        }
-    }
-}
-
-/* standard parameters with K pi = theta: the base ones in their columns, the others 0 */
-static void standard_parameters(const double *p, double *pi) {
-    for (int k = 0; k < NSTD; k++) pi[k] = 0.0;
-    for (int b = 0; b < NTHETA; b++) pi[BASE[b]] = p[b];
-}
-
-void plant_mass(const double *q, const double *p, double *M) {
-    double pi[NSTD], z[NQ], e[NQ], tau[NQ];
-    standard_parameters(p, pi);
-    for (int i = 0; i < NQ; i++) z[i] = 0.0;
-    for (int k = 0; k < NQ; k++) {
-        for (int i = 0; i < NQ; i++) e[i] = (i == k) ? 1.0 : 0.0;
-        rnea(q, z, e, 0.0, pi, tau);
-        for (int i = 0; i < NQ; i++) M[i * NQ + k] = tau[i];
-        if (IA >= 0) M[k * NQ + k] += pi[IA + k];
-    }
-}
-
-void plant_bias(const double *q, const double *dq, const double *p, double *b) {
-    double pi[NSTD], z[NQ];
-    standard_parameters(p, pi);
-    for (int i = 0; i < NQ; i++) z[i] = 0.0;
-    rnea(q, dq, z, 1.0, pi, b);
-    for (int i = 0; i < NQ; i++) {
-        if (FV >= 0) b[i] += pi[FV + i] * dq[i];
-        if (FC >= 0) b[i] += pi[FC + i] * tanh(dq[i] / FRICTION_WIDTH);
-    }
-}
-"""
-
-
-def _rigid_body_code(model, lay: _Layout, guid: str, deps_comment: str) -> tuple[str, str]:
-    """plant_model.h and plant_model.c of a URDF arm: the recursive Newton-Euler algorithm
-    of ivdrem.models.rigid_body in C, over the chain as constant arrays."""
-    n = model.n
-    ch = model._chain
-    nl = 10 * n
-    fv = nl if ch["viscous"] else -1
-    fc = nl + (n if ch["viscous"] else 0) if ch["coulomb"] else -1
-    ia = (nl + (n if ch["viscous"] else 0) + (n if ch["coulomb"] else 0)) if ch["armature"] else -1
-    header = _header(model, lay, guid, "the URDF model")
-    pmap = "\n".join(f" *   p[{k}] = {nm}" for k, nm in enumerate(lay.param_names))
-    groups = "\n".join(f" *   {nm} = " + " + ".join(f"{c:.17g} {s}" for c, s in terms)
-                       for nm, _, _, terms in model.parameter_table())
-    pnames = ", ".join(_c_string(nm) for nm in lay.param_names)
-    pvals = ", ".join(_c_double(v) for v in lay.param_values)
-
-    def mat(rows):
-        return "{" + ", ".join(_c_array(r) for r in rows) + "}"
-
-    source = f"""/* plant_model.c: generated by ivdrem {_version()} from the URDF model "{model.name}"
- * ({model.urdf}; model key {model.key}): the recursive Newton-Euler algorithm over the
- * chain's constant data.  Do not edit.
- *
- *   M(q) q'' + C(q, q') q' + F(q') + G(q) = tau + tau_d
- *
- * joints: {", ".join(model.joint_names)}
- * q[i], dq[i]: joint positions and velocities; parameter vector p (base parameters):
-{pmap}
- * each the combination of standard parameters (10 per link about its joint frame:
- * m, mx, my, mz, Ixx, Ixy, Iyy, Ixz, Iyz, Izz; friction fv, fc; armature Ia):
-{groups}
- *
-{deps_comment}
- */
-#include <math.h>
-#include "plant_model.h"
-
-#define NSTD {model.nstandard}
-#define FV {fv}
-#define FC {fc}
-#define IA {ia}
-#define FRICTION_WIDTH {_c_double(model.friction_width)}
-
-static const int PARENT[NQ] = {{{", ".join(str(int(x)) for x in ch["parent"])}}};
-static const int JTYPE[NQ] = {{{", ".join(str(int(x)) for x in ch["jtype"])}}};
-static const double AXIS[NQ][3] = {mat(ch["axis"])};
-static const double RP[NQ][3][3] = {{{", ".join(mat(r) for r in ch["Rp"])}}};
-static const double PP[NQ][3] = {mat(ch["pp"])};
-static const double GRAV[3] = {_c_array(ch["gravity"])};
-static const int BASE[NTHETA] = {{{", ".join(str(int(x)) for x in model.base_columns)}}};
-
-const double Q_START[NQ] = {{{", ".join(_c_double(v) for v in lay.q0)}}};
-const double DQ_START[NQ] = {{{", ".join(_c_double(v) for v in lay.dq0)}}};
-const double P_START[NP] = {{{pvals}}};
-const char *const PARAMETER_NAMES[NP] = {{{pnames}}};
-{_RNEA_C}"""
-    return header, source
 
 
 def _version():
@@ -733,7 +476,7 @@ def _documentation(model, lay, model_identifier) -> str:
 <html><head><meta charset="utf-8"><title>{html.escape(model_identifier)}</title></head><body>
 <h1>ivdrem plant FMU: {html.escape(model.name)}</h1>
 <p>Euler-Lagrange robot with n = {model.n} joints,
-M(q) q'' + C(q, q') q' + F(q') + G(q) = tau + tau_d, generated C code (sympy) for FMI 2.0
+M(q) q'' + C(q, q') q' + F(q') + G(q) = tau + tau_d, generated C code (the model's C face) for FMI 2.0
 model exchange and co-simulation in one binary. States x = [q, dq]; outputs q, dq.</p>
 <p><b>Co-simulation:</b> fmi2DoStep(t, H) integrates with k = ceil(H / cs_substep) fixed
 classical Runge-Kutta (RK4) sub-steps of size H / k &lt;= cs_substep (default {lay.substep:g} s);
@@ -773,8 +516,7 @@ def generate_sources(model, *, q0=None, dq0=None, substep=DEFAULT_SUBSTEP,
     framework = (_HERE / "fmi2_plant.c").read_text()
     # the GUID identifies the generated code and interface: hash of everything but itself
     mark = "@GUID@"
-    header, source = (_rigid_body_code if _is_rigid_body(model) else _model_code)(
-        model, lay, mark, dcomment)
+    header, source = _plant_code(model, lay, mark, dcomment)
     xml = _model_description(model, lay, mark, ident, deps)
     digest = hashlib.sha256("\0".join([framework, header, source, xml]).encode()).hexdigest()
     guid = "{" + str(uuid.uuid5(uuid.NAMESPACE_URL, "ivdrem-fmu:" + digest)) + "}"
@@ -806,26 +548,16 @@ def _platform():
 
 
 def compile_binary(src_dir, out_file, *, cc=None, extra_flags=()):
-    """Compile the C sources in ``src_dir`` into the shared library ``out_file``.
-
-    Flags: -O2, C99, position independent, only the fmi2 functions exported
-    (-fvisibility=hidden), linked against libm, and (Linux) no undefined symbols left
-    (-Wl,--no-undefined): the binary needs nothing but libc and libm.
-    """
+    """Compile the C sources in ``src_dir`` into the shared library ``out_file`` by
+    :mod:`ivdrem._cc` (its one rule: ``cc``, ``$CC`` or ``cc``; -O2, C99, position
+    independent, -Wall -Wextra, linked against libm, no undefined symbols on Linux), with
+    only the fmi2 functions exported (-fvisibility=hidden): the binary needs nothing but
+    libc and libm.  Returns the compiler's warnings (empty if none)."""
+    from .._cc import compile_shared
     src_dir = Path(src_dir)
-    cc = cc or os.environ.get("CC") or "cc"
-    if shutil.which(cc) is None:
-        raise RuntimeError(f"C compiler {cc!r} not found (set CC or pass cc=...)")
-    cmd = [cc, "-shared", "-fPIC", "-O2", "-std=c99", "-fvisibility=hidden",
-           "-Wall", "-Wextra", "-I", str(src_dir)]
-    if sys.platform.startswith("linux"):
-        cmd += ["-Wl,--no-undefined"]
-    cmd += [str(src_dir / f) for f in FMU_SOURCE_FILES]
-    cmd += ["-o", str(out_file), "-lm", *extra_flags]
-    res = subprocess.run(cmd, capture_output=True, text=True)
-    if res.returncode != 0:
-        raise RuntimeError(f"compiling the FMU failed ({' '.join(cmd)}):\n{res.stderr}")
-    return res.stderr  # warnings, if any
+    return compile_shared([src_dir / f for f in FMU_SOURCE_FILES], out_file,
+                          what=f"the FMU binary from {src_dir}", cc=cc,
+                          include_dirs=[src_dir], hidden=True, extra_flags=extra_flags)
 
 
 def is_ivdrem_fmu(path) -> bool:

@@ -3,8 +3,8 @@
  *     M(q) q'' + C(q,q') q' + F(q') + G(q) = tau + tau_d
  *
  * Shipped unchanged in every FMU exported by ivdrem (ivdrem/fmu/export.py); all model
- * specific parts (sizes, value references, start values, M(q) and the bias vector
- * b = C q' + F + G) come from the generated plant_model.h / plant_model.c.
+ * specific parts (sizes, value references, start values, the model's C face with its
+ * forward dynamics) come from the generated plant_model.h / plant_model.c.
  *
  * Structure and state machine follow the FMI Reference FMUs
  * (github.com/modelica/Reference-FMUs, src/fmi2Functions.c): every function checks that it
@@ -12,9 +12,9 @@
  * fmi2Error (the instance then enters the Error state, FMI 2.0.4 section 2.1.3), never
  * crashes. State machine: FMI 2.0.4 figures 6 (model exchange) and 7 (co-simulation).
  *
- * Dynamics: q'' = M(q)^-1 (tau + tau_d - b), solved by a Cholesky factorisation, which
- * also checks that M(q) is symmetric positive definite (parameters that make M singular
- * or indefinite give fmi2Error with a message).
+ * Dynamics: q'' = M(q)^-1 (tau + tau_d - b), by the model's C face (plant_model.c), whose
+ * Cholesky factorisation also checks that M(q) is positive definite by the package's one
+ * rule (parameters that make M singular or indefinite give fmi2Error with a message).
  *
  * Co-simulation: fmi2DoStep integrates over [t, t+H] with k = ceil(H/h) fixed-step
  * classical Runge-Kutta (RK4) sub-steps of equal size H/k <= h, where h is the parameter
@@ -168,44 +168,16 @@ static void vrName(fmi2ValueReference vr, char *buf, size_t n) {
 
 /* ---------------------------------------------------------------- dynamics */
 
-/* q'' = M(q)^-1 (tau + tau_d - b(q, q')) by Cholesky M = L L^T (Golub & Van Loan, Alg. 4.2.1).
- * Returns 0 on success, 1 if M is not positive definite (pivot <= PIVOT_TOL * max diag),
- * 2 if a result is not finite. */
-#define PIVOT_TOL 1e-13
-
+/* q'' = M(q)^-1 (tau + tau_d - b(q, q')) by the model's C face (forward_dynamics_k: a
+ * Cholesky with the package's one rule for "positive definite", docs/models.md).
+ * Returns 0 on success, 1 if M is not positive definite, 2 if a result is not finite. */
 static int accelerations(const double *p, const double *x, const double *u, double *ddq) {
-    double M[NQ * NQ], b[NQ], L[NQ * NQ], y[NQ], dmax = 0;
-    int i, j, k;
-    plant_mass(x, p, M);
-    plant_bias(x, x + NQ, p, b);
-    for (i = 0; i < NQ; i++) {
-        if (fabs(M[i * NQ + i]) > dmax) dmax = fabs(M[i * NQ + i]);
-        y[i] = u[i] + u[NQ + i] - b[i]; /* tau + tau_d - b */
-    }
-    if (!(dmax > 0) || !isfinite(dmax)) return 1;
-    for (j = 0; j < NQ; j++) {
-        double d = M[j * NQ + j];
-        for (k = 0; k < j; k++) d -= L[j * NQ + k] * L[j * NQ + k];
-        if (!(d > PIVOT_TOL * dmax)) return 1;
-        L[j * NQ + j] = sqrt(d);
-        for (i = j + 1; i < NQ; i++) {
-            double s = M[i * NQ + j];
-            for (k = 0; k < j; k++) s -= L[i * NQ + k] * L[j * NQ + k];
-            L[i * NQ + j] = s / L[j * NQ + j];
-        }
-    }
-    for (i = 0; i < NQ; i++) { /* forward substitution L z = y */
-        for (k = 0; k < i; k++) y[i] -= L[i * NQ + k] * y[k];
-        y[i] /= L[i * NQ + i];
-    }
-    for (i = NQ - 1; i >= 0; i--) { /* back substitution L^T q'' = z */
-        for (k = i + 1; k < NQ; k++) y[i] -= L[k * NQ + i] * y[k];
-        y[i] /= L[i * NQ + i];
-    }
-    for (i = 0; i < NQ; i++) {
-        if (!isfinite(y[i])) return 2;
-        ddq[i] = y[i];
-    }
+    double tau[NQ];
+    int i;
+    for (i = 0; i < NQ; i++) tau[i] = u[i] + u[NQ + i]; /* tau + tau_d */
+    if (plant_accelerations(x, x + NQ, tau, p, ddq) != 0) return 1;
+    for (i = 0; i < NQ; i++)
+        if (!isfinite(ddq[i])) return 2;
     return 0;
 }
 

@@ -47,15 +47,21 @@ FUNCTION_NAMES = ("Phi_M", "Phi_C", "Phi_dM", "Phi_G", "Phi_F", "Phi",
                   *(f"{r}_jac" for r in REGRESSOR_ARGS))
 
 
+def kernels_digest():
+    """16 hex digits naming the source of :mod:`ivdrem.models.rigid_body` (the kernels every
+    model's generated source calls): part of that source, so numba's cache of a model
+    module is never the code of older kernels."""
+    import hashlib
+    import inspect
+    from . import rigid_body
+    return hashlib.sha256(inspect.getsource(rigid_body).encode()).hexdigest()[:16]
+
+
 def linalg_import(prefix):
     """The line of a symbolic model's source that imports the package's one Cholesky
     (``_rb_spd_solve`` of :mod:`ivdrem.models.rigid_body`, compiled), named by the kernels'
     hash so that numba's cache of a model module never keeps an older kernel's code."""
-    import hashlib
-    import inspect
-    from . import rigid_body
-    digest = hashlib.sha256(inspect.getsource(rigid_body).encode()).hexdigest()[:16]
-    return (f"# kernels: ivdrem.models.rigid_body {digest}\n"
+    return (f"# kernels: ivdrem.models.rigid_body {kernels_digest()}\n"
             f"import ivdrem.models._rigid_body_jit as {prefix}_linalg\n\n\n")
 
 

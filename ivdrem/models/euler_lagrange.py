@@ -131,6 +131,19 @@ class _Printer(PythonCodePrinter):
         return str(int(expr))
 
 
+#: <math.h> constants sympy's C printer may use, which strict C99 does not define
+_C_MATH_CONSTANTS = {
+    "M_E": "2.718281828459045235360287471352662498", "M_LOG2E": "1.442695040888963407359924681001892137",
+    "M_LOG10E": "0.434294481903251827651128918916605082", "M_LN2": "0.693147180559945309417232121458176568",
+    "M_LN10": "2.302585092994045684017991454684364208", "M_PI": "3.141592653589793238462643383279502884",
+    "M_PI_2": "1.570796326794896619231321691639751442", "M_PI_4": "0.785398163397448309615660845819875721",
+    "M_1_PI": "0.318309886183790671537767526745028724", "M_2_PI": "0.636619772367581343075535053490057448",
+    "M_2_SQRTPI": "1.128379167095512573896158903121545172", "M_SQRT2": "1.414213562373095048801688724209698079",
+    "M_SQRT1_2": "0.707106781186547524400844362104849039",
+}
+
+
+
 # ----------------------------------------------------------------------------- model
 class EulerLagrangeModel(RobotModel):
     """An n-DoF Euler-Lagrange robot ``M q'' + C q' + F + G = tau`` linear in ``theta``.
@@ -678,4 +691,7 @@ class EulerLagrangeModel(RobotModel):
                    f"{P}FN {_c_prototype(prefix, 'forward_dynamics')} {{\n"
                    f"    return {prefix}forward_dynamics_k(q, dq, tau, theta, "
                    f"{prefix}constants, ddq);\n}}\n")
-        return "\n" + "\n".join(out)
+        text = "\n".join(out)
+        consts = "".join(f"#ifndef {k}\n#define {k} {v}\n#endif\n"
+                         for k, v in _C_MATH_CONSTANTS.items() if re.search(rf"\b{k}\b", text))
+        return "\n" + consts + text

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import hashlib
 import importlib.metadata
-import inspect
 import json
 import math
 import sysconfig
@@ -520,7 +519,8 @@ def from_urdf(path, *, base=True, friction=None, joints=None, gravity=9.81, arma
 
 # ----------------------------------------------------------------------------- model
 def _kernels_hash():
-    return hashlib.sha256(inspect.getsource(rigid_body).encode()).hexdigest()[:16]
+    from .base import kernels_digest
+    return kernels_digest()
 
 
 def _c_double(x):
