@@ -26,6 +26,7 @@ typedef struct {
     double held[NM], lambda_min_held;           /* composite learning: (Y_b, Psi_b)(t_e) */
     double D_held[IVC_NTHETA], calY_held[IVC_NTHETA]; /* mixing (17) of the last mixing sample */
     double qd[IVC_NQ], dqd[IVC_NQ];             /* the reference at the last sample */
+    double Vwarm[IVC_NTHETA * IVC_NTHETA], has_warm; /* the last mixing's rotations */
     /* window (15a): partial block, running sum, shadow sum, previous sample */
     double P[NM], S[NM], shadow[NM], g_prev[NM];
     double pos, i, nshadow, has_prev;
@@ -281,12 +282,25 @@ static double det_lu(double *A, int n) {
 
 /* One-sided Jacobi SVD of the n x n matrix A (row major): A V = U diag(sig), V a product
  * of rotations (det V = +1), U orthogonal (columns of zero singular values completed by
- * Gram-Schmidt).  Returns det(U) as +-1. */
-static double svd_jacobi(const double *A, int n, double *U, double *sig, double *V) {
+ * Gram-Schmidt).  Returns det(U) as +-1.  V0 (or NULL: the identity) starts V from the
+ * rotations of a previous, nearby A (the window moves little between two mixings: one or
+ * two sweeps instead of ten); a pair is rotated while |a_j . a_k| > tol |a_j| |a_k|. */
+static double svd_jacobi(const double *A, int n, double *U, double *sig, double *V,
+                         const double *V0, double tol) {
     int i, j, k, sweep;
     double W[IVC_NTHETA * IVC_NTHETA];
-    for (i = 0; i < n * n; i++) { U[i] = A[i]; V[i] = 0.0; }
-    for (i = 0; i < n; i++) V[i * n + i] = 1.0;
+    if (V0) {                  /* warm start: the rotations of the last mixing, U = A V0 */
+        for (i = 0; i < n; i++)
+            for (j = 0; j < n; j++) {
+                double acc = 0;
+                for (k = 0; k < n; k++) acc += A[i * n + k] * V0[k * n + j];
+                U[i * n + j] = acc;
+            }
+        memcpy(V, V0, sizeof(double) * n * n);
+    } else {
+        for (i = 0; i < n * n; i++) { U[i] = A[i]; V[i] = 0.0; }
+        for (i = 0; i < n; i++) V[i * n + i] = 1.0;
+    }
     for (sweep = 0; sweep < 80; sweep++) {
         int rotated = 0;
         for (j = 0; j < n - 1; j++)
@@ -297,7 +311,7 @@ static double svd_jacobi(const double *A, int n, double *U, double *sig, double 
                     b += U[i * n + k] * U[i * n + k];
                     g += U[i * n + j] * U[i * n + k];
                 }
-                if (g == 0.0 || fabs(g) <= 1e-16 * sqrt(a * b)) continue;
+                if (g == 0.0 || fabs(g) <= tol * sqrt(a * b)) continue;
                 rotated = 1;
                 zeta = (b - a) / (2.0 * g);
                 t = (zeta >= 0 ? 1.0 : -1.0) / (fabs(zeta) + sqrt(1.0 + zeta * zeta));
@@ -376,7 +390,7 @@ static void products_without(const double *x, double *out) {
  *                 calY_i = (C Y)_i / c_i.
  * Delta has one entry (paper, eigen) or IVC_NTHETA (channel). */
 static void mixing(int code, const double *Y, const double *Psi, double f_rel, double guard,
-                   double *Delta, double *calY) {
+                   double *Delta, double *calY, double *Vwarm, double *has_warm) {
     enum { n = IVC_NTHETA };
     double P[n * n], U[n * n], V[n * n], sig[n], coef[n], r[n], big = 0, ss = 0, nrm, s, suv, d;
     int i, j, k, m;
@@ -390,7 +404,12 @@ static void mixing(int code, const double *Y, const double *Psi, double f_rel, d
         return;
     }
     for (k = 0; k < n * n; k++) P[k] = Psi[k] / s;
-    suv = svd_jacobi(P, n, U, sig, V);           /* det V = +1 */
+    if (code == 0) suv = svd_jacobi(P, n, U, sig, V, NULL, 1e-16);     /* det V = +1 */
+    else {      /* the scale-free variants: warm started, LAPACK's tolerance sqrt(n) eps */
+        suv = svd_jacobi(P, n, U, sig, V, *has_warm != 0 ? Vwarm : NULL, sqrt((double)n) * 2.220446049250313e-16);
+        memcpy(Vwarm, V, sizeof V);
+        *has_warm = 1;
+    }
     if (code == 0) {
         products_without(sig, coef);
         d = suv;
@@ -601,7 +620,7 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
         if (fmod(s->k, (double)c->mix_every) == 0.0) {                    /* multi-rate */
             double D[nth];
             mixing(c->mixing, s->Yavg, s->Yavg + nth, par[IVC_P_F_REL], par[IVC_P_GUARD],
-                   D, s->calY_held);                                     /* (17), E4 */
+                   D, s->calY_held, s->Vwarm, &s->has_warm);             /* (17), E4 */
             for (i = 0; i < nth; i++) s->D_held[i] = c->mixing == IVC_MIXING_CHANNEL ? D[i] : D[0];
         }
         if (c->mixing != IVC_MIXING_PAPER) { t_on = c->T; t_ramp = IVC_START_RAMP_REL * c->T; }

@@ -55,7 +55,8 @@ from .discrete import averaging_factor, mu_integral, mu_saturated
 from .window import BlockWindow
 
 __all__ = ["SampledController", "SAMPLED_LAWS", "PAPER_TRAJECTORY", "phi1", "DESIGNS",
-           "GRAVITY_OPTIONS", "REFERENCE_HARMONICS", "default_design", "default_mixing"]
+           "GRAVITY_OPTIONS", "REFERENCE_HARMONICS", "default_design", "default_mixing",
+           "inertia_scaled_gains"]
 
 #: sampled designs of the feedback of (9) (docs/controller.md, "Sampled designs")
 DESIGNS = ("paper", "inertia-scaled")
@@ -111,6 +112,23 @@ def _vector(name, value, n):
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name} must be finite, got {a}")
     return a
+
+
+def inertia_scaled_gains(model, K, q0, h, *, delta_mu=0.8, mu_max=135.0, product=0.5,
+                         theta=None):
+    """The "inertia-scaled" design's K (1/s) from joint gains K (N m s/rad, e.g.
+    ivdrem.experiments.arm.design_gains): K_i / M_ii(q0) (the same feedback as the paper's
+    at q0 on the diagonal), at most product/h - delta_mu mu_max, so that the per-step
+    factor 1 - h (K_i + delta_mu mu) of the sampled feedback stays in [1 - product, 1)
+    (docs/controller.md, "Sampled designs")."""
+    th = np.asarray(model.theta_values if theta is None else theta, dtype=float)
+    M = np.empty((model.n, model.n))
+    model.functions.M(np.asarray(q0, dtype=float), th, M)
+    cap = product / h - delta_mu * mu_max
+    if not cap > 0:
+        raise ValueError(f"h (delta_mu mu_max) = {h * delta_mu * mu_max:.3g} leaves no room for "
+                         f"K below the product {product}: lower mu_max or h")
+    return np.minimum(np.asarray(K, dtype=float) / np.diag(M), cap)
 
 
 def _limit(name, value, n):
