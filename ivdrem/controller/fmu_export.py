@@ -387,6 +387,22 @@ def controller_design(config, law, *, h=None, mu_max=None):
         out["h"] = float(h)
     if mu_max is not None:
         out["mu_max"] = float(mu_max)
+    from ..experiments.config import model_from_config
+    from .sampled import default_design, inertia_scaled_gains
+    model = model_from_config(config)
+    if out.get("design", default_design(model)) == "inertia-scaled" and "K" in out:
+        # the configuration's K is the continuous loop's joint gain (N m s); the sampled
+        # inertia-scaled feedback M̂(q)(K + δ_μ μ) r takes K in 1/s (docs/controller.md,
+        # "Sampled designs"): K_i / M_ii(q0), capped for the step h
+        K = np.diag(np.asarray(out["K"], dtype=float)) if np.ndim(out["K"]) == 2 \
+            else np.asarray(out["K"], dtype=float)
+        sig = inspect.signature(SampledController.__init__).parameters
+        out["K"] = np.diag(inertia_scaled_gains(
+            model, K, np.asarray(config["initial"]["q0"], dtype=float),
+            out.get("h", sig["h"].default),
+            delta_mu=out.get("delta_mu", sig["delta_mu"].default),
+            mu_max=out.get("mu_max", sig["mu_max"].default),
+            theta=np.asarray(config["model"]["theta"], dtype=float)))
     return out
 
 

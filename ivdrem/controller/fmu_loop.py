@@ -32,6 +32,8 @@ class _Slave:
         def logger(env, inst, status, cat, msg):
             self.messages.append(msg.decode() if isinstance(msg, bytes) else str(msg))
         ident = md.coSimulation.modelIdentifier
+        m = re.fullmatch(r"ivdrem controller (\S+) (\S+)", md.modelName or "")
+        self.model_name = m.group(2) if m else None
         if md.fmiVersion.startswith("3"):       # FMI 3.0: Float64 access, no setupExperiment
             from fmpy.fmi3 import FMU3Slave
             self.fmu = FMU3Slave(guid=md.guid, unzipDirectory=self.dir, modelIdentifier=ident,
@@ -104,8 +106,8 @@ def fmpy_closed_loop(controller_fmu, plant_fmu, t_end, *, q0=None, dq0=None,
     t_end the controller takes one more step for them).
 
     ``q0``, ``dq0``: the plant's start; default the controller's reference q_d(0), q̇_d(0)
-    (its outputs q_d, dq_d: the arm starts on the reference), or for an FMU without them
-    the paper's q(0) = (0, 0.3 pi) and rest.  A non-finite plant state stops the run with
+    (its outputs q_d, dq_d: the arm starts on the reference), for the paper's 2-link arm
+    (and an FMU without those outputs) the paper's q(0) = (0, 0.3 pi) at rest.  A non-finite plant state stops the run with
     a ValueError naming the time (the loop diverged)."""
     h = controller_period(controller_fmu, controller_start)
     N = _steps(t_end, h)
@@ -163,9 +165,10 @@ def fmpy_closed_loop(controller_fmu, plant_fmu, t_end, *, q0=None, dq0=None,
 
 
 def _reference_start(ctrl):
-    """(q_d(0), q̇_d(0)) from the controller FMU's outputs after initialisation, or the
-    paper's start (0, 0.3 pi) at rest for an FMU without the reference outputs."""
-    if "q_d[0]" not in ctrl.vr:
+    """(q_d(0), q̇_d(0)) from the controller FMU's outputs after initialisation; the paper's
+    start (0, 0.3 pi) at rest for the paper's arm (its experiment starts off the reference,
+    Section 4) and for an FMU without the reference outputs."""
+    if "q_d[0]" not in ctrl.vr or ctrl.model_name == "two-link":
         return np.array(PAPER_Q0), None
     n = sum(1 for k in ctrl.vr if k.startswith("q_d["))
     q = np.array(ctrl.get(ctrl.refs([f"q_d[{i}]" for i in range(n)])))
