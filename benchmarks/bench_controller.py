@@ -16,7 +16,7 @@ depend on its value; the export resolves it).
 Usage::
 
     ./run python benchmarks/bench_controller.py [--models two-link,panda,ur5,iiwa,xarm7]
-                                                [--laws iv-drem] [--t-end 300]
+                                                [--laws iv-drem] [--t-end 300] [--mix-every M]
 """
 from __future__ import annotations
 
@@ -79,7 +79,7 @@ TARGET_US = {"two-link": (4.9, None), "panda": (100.0, 500.0)}
 WINDOW_TARGET_MIB = 64.0
 
 
-def arm_parameters(name, law, h=1e-3):
+def arm_parameters(name, law, h=1e-3, mix_every=None):
     """The flat parameter vector of the controller of ``law`` for the experiment of the
     model ``name`` (the paper's for the 2-link arm, the real-arm experiment otherwise)."""
     from ivdrem.controller.codegen import param_vector
@@ -95,6 +95,8 @@ def arm_parameters(name, law, h=1e-3):
     design = controller_design(config, law, h=h)
     if design.get("gamma") == "auto":
         design["gamma"] = 1.0
+    if mix_every is not None:
+        design["mix_every"] = int(mix_every)
     return model, param_vector(SampledController(model, law, **design))
 
 
@@ -104,6 +106,9 @@ def main(argv=None):
     ap.add_argument("--laws", default="iv-drem")
     ap.add_argument("--t-end", type=float, default=300.0, dest="t_end",
                     help="seconds of 1 kHz steps per arm (default %(default)g)")
+    ap.add_argument("--mix-every", type=int, default=None, dest="mix_every",
+                    help="the URDF arms' mixing (17) every m samples (multi-rate; default: "
+                         "the controller's)")
     args = ap.parse_args(argv)
 
     from ivdrem.controller.codegen import generate_controller_sources
@@ -119,7 +124,7 @@ def main(argv=None):
     with tempfile.TemporaryDirectory(prefix="ivdrem_bench_ctl_") as tmp:
         for name in args.models.split(","):
             for law in args.laws.split(","):
-                model, par = arm_parameters(name, law)
+                model, par = arm_parameters(name, law, mix_every=args.mix_every)
                 d = Path(tmp) / f"{name}_{law}"
                 d.mkdir()
                 for fn, text in generate_controller_sources(model, par).items():
