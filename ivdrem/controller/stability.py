@@ -217,7 +217,11 @@ class SampledStability:
 
 
 def _reference_points(t_end, h, count):
-    ts = np.linspace(0.0, float(t_end), count)
+    """0, t_end and count - 2 times between at golden-ratio spacing: evenly spaced points
+    share the phase of a periodic reference whose period divides the spacing (the real-arm
+    experiment's 10 s against a 120 s horizon), these do not."""
+    t_end = float(t_end)
+    ts = [0.0, t_end] + [((i * 0.6180339887498949) % 1.0) * t_end for i in range(1, count - 1)]
     return sorted({round(t / h) * h for t in ts})
 
 
