@@ -6,7 +6,9 @@ its code generated from the symbolic M, G, F) and
 :mod:`ivdrem.models.rigid_body` over constant arrays of its chain).  Both generate Python
 source (``source(prefix)``) defining the same functions with the same signatures (listed in
 :mod:`ivdrem.models.euler_lagrange`), from which the plain-Python reference path
-(``functions``), numba (``jit_functions``) and the compiled engine's model module are made.
+(``functions``), numba (``jit_functions``) and the compiled engine's model module are made,
+and one C99 translation unit (``c_source(prefix)``, the *C face*: the same functions in C,
+for the plant FMU and the controller's library; docs/models.md).
 """
 from __future__ import annotations
 
