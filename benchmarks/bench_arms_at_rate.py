@@ -24,7 +24,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 
-def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c"):
+def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c", mu_max=135.0,
+        K=None):
     from ivdrem.controller.clib import CController
     from ivdrem.controller.loop import ModelPlant, sampled_loop
     from ivdrem.controller.sampled import SampledController, inertia_scaled_gains
@@ -35,19 +36,22 @@ def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c")
     q0, dq0 = arm.initial_state(traj)
     dist = arm.design_disturbance(m, traj)
     T = arm.design_window(traj, dist) or 20.0
-    K = np.array(arm.design_gains(m, q0))
-    if design == "inertia-scaled":
-        K = inertia_scaled_gains(m, K, q0, h)
+    if K is not None:                       # the same K (1/s or N m s) on every joint
+        K = np.full(m.n, float(K))
+    else:
+        K = np.array(arm.design_gains(m, q0))
+        if design == "inertia-scaled":
+            K = inertia_scaled_gains(m, K, q0, h, mu_max=mu_max)
     cls = CController if backend == "c" else SampledController
     ctl = cls(m, law, h=h, K=K, T=T, trajectory=traj, design=design, gamma=gamma,
-              mixing="eigen", mix_every=mix_every, mu_max=135.0)
+              mixing="eigen", mix_every=mix_every, mu_max=mu_max)
     plant = ModelPlant(m, q0, dq0)
     th = np.asarray(m.theta_values)
     t0 = time.perf_counter()
     try:
         rec = sampled_loop(ctl, plant, t_end, disturbance=dist, every=int(round(0.1 / h)))
     except (FloatingPointError, ValueError, RuntimeError) as exc:
-        return dict(arm=name, h=h, design=design, diverged=f"{type(exc).__name__}: {exc}"[:160],
+        return dict(arm=name, h=h, design=design, diverged=f"{type(exc).__name__}: {exc}"[:300],
                     wall=time.perf_counter() - t0)
     wall = time.perf_counter() - t0
     ref = SampledController(m, "none", trajectory=traj, h=h)
@@ -72,12 +76,15 @@ def main(argv=None):
                     help="gamma of (21); 'eigen' keeps Delta near 1, so the rule of "
                          "gamma 'auto' (0.5 / (lambda_max(Gamma) mean Delta^2)) gives ~50")
     ap.add_argument("--mix-every", type=int, default=10)
+    ap.add_argument("--mu-max", type=float, default=135.0)
+    ap.add_argument("--K", type=float, default=None,
+                    help="one K for every joint (default: inertia_scaled_gains of design_gains)")
     ap.add_argument("--backend", default="c", choices=("c", "python"))
     a = ap.parse_args(argv)
     print(f"load {os.getloadavg()}", flush=True)
     for name in a.arms.split(","):
         r = run(name, h=a.h, t_end=a.t_end, design=a.design, gamma=a.gamma,
-                mix_every=a.mix_every, backend=a.backend)
+                mix_every=a.mix_every, backend=a.backend, mu_max=a.mu_max, K=a.K)
         print(r, flush=True)
     print(f"load {os.getloadavg()}", flush=True)
     return 0

@@ -78,10 +78,10 @@ def test_per_step_growth_of_the_feedback(name):
     assert worst_scaled == pytest.approx(1 - h * (k + 0.8 * mu), abs=1e-9)
 
 
-def _closed_loop(model, design, t_end, law="none", **kw):
+def _closed_loop(model, design, t_end, law="none", K=2.0, **kw):
     from ivdrem.controller.loop import ModelPlant, sampled_loop
     traj, q0, dq0, dist, T = _experiment(model)
-    ctl = SampledController(model, law, K=2.0, T=kw.pop("T", T), trajectory=traj,
+    ctl = SampledController(model, law, K=K, T=kw.pop("T", T), trajectory=traj,
                             design=design, **kw)
     return ctl, sampled_loop(ctl, ModelPlant(model, q0, dq0), t_end, disturbance=dist,
                              every=100)
@@ -90,12 +90,15 @@ def _closed_loop(model, design, t_end, law="none", **kw):
 @pytest.mark.parametrize("name", ["panda", "xarm7"])
 def test_inertia_scaled_loop_holds_at_1_khz_where_the_papers_diverges(name):
     """The real-arm experiment at h = 1 ms around the arm's own dynamics (RK4, torque held):
-    the paper's design diverges within 0.3 s, the inertia-scaled one tracks for 3 s."""
+    the paper's design (K = 2 N m s) diverges within 0.3 s, the inertia-scaled one with the
+    bandwidth K = 400 1/s (h (K + delta_mu mu) about 0.41) tracks within 0.1 rad for 3 s
+    (measured 0.016-0.049 rad on the xArm7; with K = 2 1/s the xArm7's designed disturbance
+    of 5-10 N m on its heavy joints throws it off in 0.9 s)."""
     m = get_model(name)
     with pytest.raises((FloatingPointError, ValueError)):
         _closed_loop(m, "paper", 0.3)
-    ctl, rec = _closed_loop(m, "inertia-scaled", 3.0)
-    assert np.all(np.isfinite(rec["q"])) and np.abs(rec["q"][-1] - ctl.q_d).max() < 0.5
+    ctl, rec = _closed_loop(m, "inertia-scaled", 3.0, K=400.0)
+    assert np.all(np.isfinite(rec["q"])) and np.abs(rec["q"][-1] - ctl.q_d).max() < 0.1
 
 
 # ----------------------------------------------------------------------- the robot's contract

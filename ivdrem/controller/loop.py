@@ -217,9 +217,13 @@ class ModelPlant:
         return self.q.copy(), self.dq.copy()
 
     def step(self, t, h, tau, tau_d):
-        self._step(self.q, self.dq, np.asarray(tau, dtype=float),
-                   np.asarray(tau_d, dtype=float), self.theta, float(h), self.substeps,
-                   self.gravity)
+        try:
+            self._step(self.q, self.dq, np.asarray(tau, dtype=float),
+                       np.asarray(tau_d, dtype=float), self.theta, float(h), self.substeps,
+                       self.gravity)
+        except ValueError as exc:        # M(q) singular along a diverged motion
+            raise FloatingPointError(f"the plant diverged in [{t:.6g}, {t + h:.6g}] s: "
+                                     f"{exc}") from None
         if not (np.all(np.isfinite(self.q)) and np.all(np.isfinite(self.dq))):
             raise FloatingPointError(f"the plant diverged at t = {t + h:.6g} s "
                                      f"(q = {self.q}, dq = {self.dq})")
