@@ -419,7 +419,11 @@ def check_window(design, law):
         raise ValueError(f"--h must be a number > 0, got {h!r}")
     N = round(T / h)
     if abs(N * h - T) > 1e-9 * T or N % block or N == 0:
-        good = T / (block * max(1, round(T / (block * h))))
+        def fits(x):
+            m = round(T / x)
+            return abs(m * x - T) <= 1e-9 * T and m % block == 0 and m > 0
+        nice = [x for x in (2e-3, 1e-3, 5e-4, 2.5e-4, 2e-4, 1e-4, 5e-5) if x <= h and fits(x)]
+        good = nice[0] if nice else T / (block * max(1, round(T / (block * h))))
         raise ValueError(f"--h {h:g} does not divide the window T = {T:g} s of (15a) into "
                          f"whole blocks of {block} samples (T / h = {T / h:.6g}); give an h "
                          f"with T / h a multiple of {block}, e.g. --h {good:g}")
