@@ -66,6 +66,8 @@ static void vrName(unsigned int vr, char *buf, size_t n) {
     else if (vr < VR_DELTA)      snprintf(buf, n, "tau_d_hat[%u]", vr - VR_TAU_D_HAT);
     else if (vr == VR_DELTA)     snprintf(buf, n, "Delta");
     else if (vr < VR_PAR + IVC_NPAR) snprintf(buf, n, "%s", PARAMETER_NAMES[vr - VR_PAR]);
+    else if (vr < VR_DQ_D)       snprintf(buf, n, "q_d[%u]", vr - VR_Q_D);
+    else if (vr < VR_DQ_D + IVC_NQ) snprintf(buf, n, "dq_d[%u]", vr - VR_DQ_D);
     else                         snprintf(buf, n, "#%u", vr);
 }
 
@@ -137,13 +139,34 @@ int fc_enter_initialization(FcInstance *S, const char *f) {
     return FC_OK;
 }
 
+/* The reference at t = 0, before the first step (a host starts the arm on it): the library
+ * gives the reference of its last step (ivc_reference), so one step is taken at t = 0 from
+ * the inputs as set and the whole state is restored, bit for bit (ivc_get/set_state). */
+static int referenceAtStart(FcInstance *S) {
+    size_t size = ivc_state_size(S->ctl);
+    void *buf = malloc(size);
+    double tau[IVC_NQ];
+    int ok;
+    if (!buf) return 0;
+    ok = ivc_get_state(S->ctl, buf, size) == IVC_OK &&
+         ivc_step(S->ctl, 0.0, S->d.in, S->d.in + IVC_NQ, tau) == IVC_OK &&
+         ivc_reference(S->ctl, S->ref0, S->ref0 + IVC_NQ) == IVC_OK;
+    ok = ivc_set_state(S->ctl, buf, size) == IVC_OK && ok;
+    free(buf);
+    return ok;
+}
+
 int fc_exit_initialization(FcInstance *S, const char *f) {
     char msg[256];
     if (fc_invalid_state(S, f, FC_InitializationMode)) return FC_ERROR;
     ivc_free(S->ctl);
-    S->ctl = ivc_init(S->d.par, msg, sizeof msg);        /* the only allocation */
+    S->ctl = ivc_init(S->d.par, msg, sizeof msg);        /* the allocations: here, and */
     if (!S->ctl) {
         fc_error(S, "%s: %s.", f, msg);
+        return fc_fail(S);
+    }
+    if (!referenceAtStart(S)) {                          /* a copy of the state, freed */
+        fc_error(S, "%s: the reference at t = 0: %s.", f, ivc_message(S->ctl));
         return fc_fail(S);
     }
     S->d.has_controller = 1;
@@ -178,14 +201,20 @@ static int checkArrays(FcInstance *S, const char *f, size_t nvr, const void *vr,
 
 int fc_get_real(FcInstance *S, const char *f, int mask, const unsigned int vr[], size_t nvr,
                 double value[], int with_time) {
-    double th[IVC_NTHETA], tdh[IVC_NQ], D = 0.0, tau[IVC_NQ];
+    double th[IVC_NTHETA], tdh[IVC_NQ], D = 0.0, tau[IVC_NQ], ref[2 * IVC_NQ];
     size_t i;
     if (fc_invalid_state(S, f, mask)) return FC_ERROR;
     if (checkArrays(S, f, nvr, vr, value)) return FC_ERROR;
-    if (S->ctl) ivc_outputs(S->ctl, th, tdh, &D, tau);
-    else {
+    if (S->ctl) {
+        ivc_outputs(S->ctl, th, tdh, &D, tau);
+        /* q_d, dq_d: the reference of the last step (the one tau was computed for); before
+         * the first step, the reference at t = 0 */
+        if (ivc_time(S->ctl) > 0.0) ivc_reference(S->ctl, ref, ref + IVC_NQ);
+        else memcpy(ref, S->ref0, sizeof ref);
+    } else {
         for (i = 0; i < IVC_NTHETA; i++) th[i] = S->d.par[IVC_P_THETA_HAT0 + i];
         for (i = 0; i < IVC_NQ; i++) tdh[i] = tau[i] = 0.0;
+        for (i = 0; i < 2 * IVC_NQ; i++) ref[i] = 0.0;
     }
     for (i = 0; i < nvr; i++) {
         unsigned int r = vr[i];
@@ -195,6 +224,7 @@ int fc_get_real(FcInstance *S, const char *f, int mask, const unsigned int vr[],
         else if (r < VR_DELTA) value[i] = tdh[r - VR_TAU_D_HAT];
         else if (r == VR_DELTA) value[i] = D;
         else if (r < VR_PAR + IVC_NPAR) value[i] = S->ctl ? ivc_get_param(S->ctl, (int)(r - VR_PAR)) : S->d.par[r - VR_PAR];
+        else if (r < VR_Q_D + 2 * IVC_NQ) value[i] = ref[r - VR_Q_D];
         else if (with_time && r == VR_TIME) value[i] = S->d.time;
         else {
             fc_error(S, "%s: unknown value reference %u.", f, r);

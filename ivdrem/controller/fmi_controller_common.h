@@ -53,6 +53,7 @@ struct FcInstance {
     FcHead d;
     ivc_controller *ctl;                /* created by ExitInitializationMode */
     char *instanceName;
+    double ref0[2 * IVC_NQ];            /* q_d(0), dq_d(0): the reference before the first step */
     void (*logger)(void);               /* the host's callback; only emit calls it, cast back */
     void *env;
     FcEmit emit;

@@ -86,6 +86,22 @@ def _variables(model, par):
                       description=f"external torque estimate {i} of the last step"))
     V.append(dict(name="Delta", causality="output", variability="discrete",
                   initial="calculated", description="Delta of the mixing step (17), last step"))
+    V += _parameters(model, par)
+    for i in range(n):      # after the parameters: the value references above stay as they were
+        V.append(dict(name=f"q_d[{i}]", causality="output", variability="discrete",
+                      initial="calculated", unit="rad",
+                      description=f"reference q_d,{i} of the last step (before the first: "
+                                  "at t = 0)"))
+    for i in range(n):
+        V.append(dict(name=f"dq_d[{i}]", causality="output", variability="discrete",
+                      initial="calculated", unit="rad/s",
+                      description=f"reference dq_d,{i} of the last step (before the first: "
+                                  "at t = 0)"))
+    return V
+
+
+def _parameters(model, par):
+    V = []
     off = 0
     for name, size, descr in param_layout(model):
         for i in range(size):
@@ -203,8 +219,8 @@ def _build_description3(ident):
 def _fmu_header(model, V, guid):
     n, nth = model.n, model.ntheta
     npar = sum(s for _, s, _ in param_layout(model))
-    pars = V[4 * n + nth + 1:]
-    assert len(pars) == npar
+    pars = V[4 * n + nth + 1:4 * n + nth + 1 + npar]
+    assert len(pars) == npar and V[4 * n + nth + 1 + npar]["name"] == "q_d[0]"
     names = ", ".join('"' + v["name"] + '"' for v in pars)
     tun = ", ".join("1" if v["variability"] == "tunable" else "0" for v in pars)
     exp = ", ".join("0" if v.get("hidden") else "1" for v in pars)
@@ -220,6 +236,8 @@ def _fmu_header(model, V, guid):
 #define VR_TAU_D_HAT {3 * n + nth}
 #define VR_DELTA {4 * n + nth}
 #define VR_PAR {4 * n + nth + 1}
+#define VR_Q_D {4 * n + nth + 1 + npar}
+#define VR_DQ_D {4 * n + nth + 1 + npar + n}
 #define VR_TIME {len(V)}
 static const char *const PARAMETER_NAMES[IVC_NPAR] = {{{names}}};
 static const int PARAMETER_TUNABLE[IVC_NPAR] = {{{tun}}};
@@ -334,22 +352,207 @@ def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=Fals
     return path
 
 
+#: closed_loop's arguments that belong to the plant or the host, not to the controller: the
+#: arm's start, its true parameters and the disturbance (a host sets them, fmu_loop.py)
+HOST_KEYS = ("q0", "dq0", "theta", "disturbance")
+
+
+def controller_design(config, law, *, h=None, mu_max=None):
+    """The arguments of :class:`~ivdrem.controller.sampled.SampledController` for the
+    experiment of ``config`` (:func:`ivdrem.experiments.config.load_config`) and ``law``:
+    the gains, the reference, the window T, the mixing, γ as configured ("auto" left for
+    :func:`resolve_gamma`), ``h`` and ``mu_max`` when given.  An option of the experiment
+    the sampled controller does not have is refused in one line (ValueError)."""
+    import inspect
+    from ..experiments.config import closed_loop_kwargs
+    kw = closed_loop_kwargs(config, law)
+    accepted = set(inspect.signature(SampledController.__init__).parameters) - {"self", "model",
+                                                                                "law"}
+    out = {}
+    for k, v in kw.items():
+        if k in HOST_KEYS:
+            continue
+        if k == "mixing" and k not in accepted and v in (None, "paper"):
+            continue        # the paper's mixing (17) is the sampled controller's own
+        if k not in accepted:
+            raise ValueError(f"the sampled controller has no option {k} = {v!r} (from the "
+                             f"configuration, law {law}); docs/controller.md lists its options")
+        out[k] = v
+    table = config["trajectory"]
+    if table.get("kind", "sinusoid") == "fourier":     # as the table, not closed_loop's block
+        out["trajectory"] = {"kind": "fourier", "omega_f": float(table["omega_f"]),
+                             **{k: np.asarray(table[k], dtype=float)
+                                for k in ("a", "b", "offset")}}
+    if h is not None:
+        out["h"] = float(h)
+    if mu_max is not None:
+        out["mu_max"] = float(mu_max)
+    from ..experiments.config import model_from_config
+    from .sampled import default_design, inertia_scaled_gains
+    model = model_from_config(config)
+    if out.get("design", default_design(model)) == "inertia-scaled" and "K" in out:
+        # the configuration's K is the continuous loop's joint gain (N m s); the sampled
+        # inertia-scaled feedback M̂(q)(K + δ_μ μ) r takes K in 1/s (docs/controller.md,
+        # "Sampled designs"): K_i / M_ii(q0), capped for the step h
+        K = np.diag(np.asarray(out["K"], dtype=float)) if np.ndim(out["K"]) == 2 \
+            else np.asarray(out["K"], dtype=float)
+        sig = inspect.signature(SampledController.__init__).parameters
+        out["K"] = np.diag(inertia_scaled_gains(
+            model, K, np.asarray(config["initial"]["q0"], dtype=float),
+            out.get("h", sig["h"].default),
+            delta_mu=out.get("delta_mu", sig["delta_mu"].default),
+            mu_max=out.get("mu_max", sig["mu_max"].default),
+            theta=np.asarray(config["model"]["theta"], dtype=float)))
+    return out
+
+
+def check_window(design, law):
+    """h must divide the window T of (15a) into whole blocks: one line naming both if not."""
+    from ..laws import get_law  # noqa: F401  (the law's name is checked by the caller)
+    if law not in ("iv-drem", "drem", "composite-learning"):
+        return
+    h = float(design.get("h", 1e-3))
+    T = design.get("T")
+    T = 20.0 if T is None else float(T)
+    block = int(design.get("block", 10))
+    if not (np.isfinite(h) and h > 0):
+        raise ValueError(f"--h must be a number > 0, got {h!r}")
+    N = round(T / h)
+    if abs(N * h - T) > 1e-9 * T or N % block or N == 0:
+        def fits(x):
+            m = round(T / x)
+            return abs(m * x - T) <= 1e-9 * T and m % block == 0 and m > 0
+        nice = [x for x in (2e-3, 1e-3, 5e-4, 2.5e-4, 2e-4, 1e-4, 5e-5) if x <= h and fits(x)]
+        good = nice[0] if nice else T / (block * max(1, round(T / (block * h))))
+        raise ValueError(f"--h {h:g} does not divide the window T = {T:g} s of (15a) into "
+                         f"whole blocks of {block} samples (T / h = {T / h:.6g}); give an h "
+                         f"with T / h a multiple of {block}, e.g. --h {good:g}")
+
+
+def check_generated(model):
+    """The controller's C code for ``model`` can be generated: one line naming the model and
+    the reason if not (before any long work)."""
+    try:
+        generate_controller_sources(model)
+    except Exception as exc:    # the generator's own failure, whatever it raised
+        raise ValueError(f"the controller's C code cannot be generated for model "
+                         f"{model.name!r} ({type(model).__name__}): {type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0] if str(exc) else ''}".rstrip(": ")) \
+            from None
+
+
+def resolve_gamma(model, law, design, config):
+    """γ = "auto" resolved to a number by the continuous loop's rule
+    (:func:`ivdrem.diagrams.gamma_auto.calibrate_gamma` on the configuration's closed loop,
+    the same γ `ivdrem paper` takes, cached with it): returns (design with γ a number, the
+    calibration's record or None)."""
+    if design.get("gamma") != "auto":
+        return design, None
+    from ..diagrams.gamma_auto import calibrate_gamma
+    from ..experiments.config import closed_loop_kwargs
+    args = {k: v for k, v in closed_loop_kwargs(config, law).items() if k != "gamma"}
+    choice = calibrate_gamma(law, model, args)
+    return {**design, "gamma": float(choice["gamma"])}, choice
+
+
+def predict(model, law, design, config=None):
+    """The sampled loop's stability (ivdrem.controller.stability) for the experiment of
+    ``config`` (its θ, disturbance and horizon; None: the model's θ, the paper's disturbance
+    on the 2-link arm, 300 s) over the horizon, and until μ saturates."""
+    from .loop import PAPER_DISTURBANCE, disturbance_at
+    from .stability import sampled_stability
+    if config is None:
+        theta, t_end = model.theta_values, 300.0
+        dist = PAPER_DISTURBANCE if model.n == 2 and model.name == "two-link" else None
+    else:
+        from ..experiments.config import closed_loop_kwargs
+        kw = closed_loop_kwargs(config, law)
+        theta, t_end, dist = kw["theta"], float(config["experiment"]["t_end"]), \
+            kw.get("disturbance")
+    mu0 = float(design.get("mu0", 1.0))
+    mu1, mu_max = float(design.get("mu1", 15.0)), float(design.get("mu_max", 135.0))
+    if mu0 > 0 and np.isfinite(mu_max):
+        t_end = max(t_end, (mu_max - mu1) / mu0)      # the largest gain is reached too
+    return sampled_stability(model, law, theta=theta, t_end=t_end,
+                             disturbance=None if dist is None else
+                             (lambda t: disturbance_at(t, dist)), **design)
+
+
+def _model_override(name):
+    """load_config's overrides for ``--model``: a URDF file or a model name."""
+    from pathlib import Path as _P
+    from .._paths import user_path
+    if name is None:
+        return {}
+    if str(name).lower().endswith(".urdf") or _P(user_path(name)).is_file():
+        return {"model.urdf": str(user_path(name))}
+    return {"model.name": str(name)}
+
+
 def main_export_controller(args) -> int:
-    """``ivdrem fmu export --controller``: the parsed arguments of ivdrem.fmu.cli."""
+    """``ivdrem fmu export --controller``: the parsed arguments of ivdrem.fmu.cli.
+
+    Without ``--config`` and for the paper's arms (two-link, planar-N) the controller has
+    SampledController's defaults (the paper's experiment); with ``--config``, or a URDF arm
+    by ``--model``, the configuration's experiment becomes the FMU's defaults.  Before
+    anything is built: the options, h against the window T, the C code's generation, γ
+    "auto" resolved, and the sampled loop's stability (refused if predicted unstable unless
+    ``--despite-prediction``).  Exit 0 written, 2 refused (one line on stderr)."""
     import sys
     from .._paths import user_path
     from ..models import get_model
+    prog = "ivdrem fmu export"
+    mu_max = 135.0 if args.mu_max is None else args.mu_max
+    h = 1e-3 if args.h is None else args.h
+    extra = ""
     try:
         if args.no_compile or args.q0 is not None or args.dq0 is not None:
             raise ValueError("--no-compile, --q0 and --dq0 are options of the plant FMU, not "
                              "of --controller")
-        model = get_model(args.model)
-        path = export_controller_fmu(model, user_path(args.output), law=args.law, cc=args.cc,
-                                     overwrite=args.overwrite, mu_max=args.mu_max,
-                                     fmi_version=getattr(args, "fmi_version", 2))
+        if args.law not in LAW_CODES:
+            raise ValueError(f"law {args.law!r} has no sampled controller; choose one of "
+                             f"{', '.join(LAW_CODES)}")
+        path = user_path(args.output)
+        check_replaceable(path, "FMU file", overwrite=args.overwrite, ours=is_ivdrem_fmu)
+        paper_arm = args.config is None and (args.model is None or re.fullmatch(
+            r"two[-_]link|2-link|planar[-_]\d+", str(args.model).strip().lower()))
+        if paper_arm:
+            model = get_model(args.model or "two-link")
+            design = dict(mu_max=mu_max, h=h)
+            check_window(dict(design, **_law_window(args.law)), args.law)
+            check_generated(model)
+            config = None
+        else:
+            from ..experiments.config import load_config, model_from_config
+            config = load_config(None if args.config is None else user_path(args.config),
+                                 _model_override(args.model))
+            model = model_from_config(config)
+            design = controller_design(config, args.law, h=h, mu_max=mu_max)
+            check_window(design, args.law)
+            check_generated(model)
+            design, choice = resolve_gamma(model, args.law, design, config)
+            if choice is not None:
+                extra += f", gamma = {design['gamma']:.4g} (auto)"
+        SampledController(model, args.law, **design)           # every other check
+        if not args.despite_prediction:
+            st = predict(model, args.law, design, config)
+            if not st.stable:
+                raise ValueError(st.reason() + "; or --despite-prediction")
+            extra += f", predicted growth {st.growth:.4g} per step"
+        path = export_controller_fmu(model, path, law=args.law, cc=args.cc,
+                                     overwrite=args.overwrite,
+                                     fmi_version=getattr(args, "fmi_version", 2), **design)
     except (ValueError, RuntimeError, NotImplementedError, OSError) as exc:
-        print(f"ivdrem fmu export: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {path} (controller, law {args.law}, model {model.name}, n = {model.n}, "
-          f"ntheta = {model.ntheta}, h = 1 ms, mu_max = {args.mu_max:g})")
+          f"ntheta = {model.ntheta}, h = {design.get('h', h) * 1e3:g} ms, "
+          f"mu_max = {design.get('mu_max', mu_max):g}{extra})")
     return 0
+
+
+def _law_window(law):
+    """The law's default window T (its registry entry), for the h check of the paper path."""
+    from ..laws import get_law
+    T = get_law(law).defaults.get("T")
+    return {} if T is None else {"T": T}

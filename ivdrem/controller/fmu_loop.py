@@ -15,9 +15,9 @@ import tempfile
 
 import numpy as np
 
-from .loop import PAPER_DISTURBANCE, disturbance_at
+from .loop import PAPER_DISTURBANCE, PAPER_Q0, disturbance_at
 
-__all__ = ["fmpy_closed_loop", "libcosim_closed_loop"]
+__all__ = ["fmpy_closed_loop", "libcosim_closed_loop", "controller_period"]
 
 
 class _Slave:
@@ -32,6 +32,8 @@ class _Slave:
         def logger(env, inst, status, cat, msg):
             self.messages.append(msg.decode() if isinstance(msg, bytes) else str(msg))
         ident = md.coSimulation.modelIdentifier
+        m = re.fullmatch(r"ivdrem controller (\S+) (\S+)", md.modelName or "")
+        self.model_name = m.group(2) if m else None
         if md.fmiVersion.startswith("3"):       # FMI 3.0: Float64 access, no setupExperiment
             from fmpy.fmi3 import FMU3Slave
             self.fmu = FMU3Slave(guid=md.guid, unzipDirectory=self.dir, modelIdentifier=ident,
@@ -67,56 +69,120 @@ class _Slave:
             shutil.rmtree(self.dir, ignore_errors=True)
 
 
-def fmpy_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0.3 * np.pi),
-                     dq0=None, disturbance=PAPER_DISTURBANCE, every=100, controller_start=None):
-    """Controller FMU + plant FMU in FMPy, Jacobi, communication step h; the record of
-    :func:`ivdrem.controller.loop.sampled_loop` (t, q, dq, tau, tau_d, theta_hat)."""
-    n = len(q0)
-    dq0 = np.zeros(n) if dq0 is None else dq0
-    start = {f"q[{i}]": q0[i] for i in range(n)}
-    start.update({f"dq[{i}]": dq0[i] for i in range(n)})
-    plant = _Slave(plant_fmu, "plant", start)
+def controller_period(controller_fmu, controller_start=None):
+    """The sample period h of an ivdrem controller FMU: its parameter ``h`` (the start value
+    in its modelDescription.xml, or ``controller_start["h"]`` when the host sets it).  The
+    hosts ask the FMU for it, as Drake's simulator asks a system for its period."""
+    from fmpy import read_model_description
+    if controller_start and "h" in controller_start:
+        h = float(controller_start["h"])
+    else:
+        md = read_model_description(str(controller_fmu))
+        v = next((v for v in md.modelVariables if v.name == "h"), None)
+        if v is None or v.causality != "parameter":
+            raise ValueError(f"{controller_fmu} has no parameter h: not a controller FMU "
+                             "exported by ivdrem (ivdrem fmu export --controller)")
+        h = float(v.start)
+    if not (np.isfinite(h) and h > 0):
+        raise ValueError(f"{controller_fmu}: the sample period h must be > 0, got {h!r}")
+    return h
+
+
+def _steps(t_end, h):
+    N = int(round(t_end / h))
+    if not (t_end > 0 and N >= 1 and abs(N * h - t_end) <= 1e-9 * max(1.0, t_end)):
+        raise ValueError(f"t_end = {t_end:g} s must be a whole number of the controller's "
+                         f"samples h = {h:g} s")
+    return N
+
+
+def fmpy_closed_loop(controller_fmu, plant_fmu, t_end, *, q0=None, dq0=None,
+                     disturbance=PAPER_DISTURBANCE, every=100, controller_start=None,
+                     outputs=()):
+    """Controller FMU + plant FMU in FMPy, Jacobi, communication step h = the controller
+    FMU's parameter h (:func:`controller_period`); the record of
+    :func:`ivdrem.controller.loop.sampled_loop` (t, q, dq, tau, tau_d, theta_hat, and the
+    controller's other ``outputs`` of its step at t_k, e.g. "q_d": the reference at t_k; at
+    t_end the controller takes one more step for them).
+
+    ``q0``, ``dq0``: the plant's start; default the controller's reference q_d(0), q̇_d(0)
+    (its outputs q_d, dq_d: the arm starts on the reference), for the paper's 2-link arm
+    (and an FMU without those outputs) the paper's q(0) = (0, 0.3 pi) at rest.  A non-finite plant state stops the run with
+    a ValueError naming the time (the loop diverged)."""
+    h = controller_period(controller_fmu, controller_start)
+    N = _steps(t_end, h)
     ctrl = _Slave(controller_fmu, "controller", dict(controller_start or {}))
+    plant = None
     try:
+        if q0 is None:
+            q0, dq0_ref = _reference_start(ctrl)
+            dq0 = dq0_ref if dq0 is None else dq0
+        n = len(q0)
+        dq0 = np.zeros(n) if dq0 is None else dq0
+        start = {f"q[{i}]": q0[i] for i in range(n)}
+        start.update({f"dq[{i}]": dq0[i] for i in range(n)})
+        plant = _Slave(plant_fmu, "plant", start)
         nth = sum(1 for k in ctrl.vr if k.startswith("theta_hat["))
         p_out = plant.refs([f"q[{i}]" for i in range(n)] + [f"dq[{i}]" for i in range(n)])
         p_in = plant.refs([f"tau[{i}]" for i in range(n)] + [f"tau_d[{i}]" for i in range(n)])
         c_in = ctrl.refs([f"q[{i}]" for i in range(n)] + [f"dq[{i}]" for i in range(n)])
-        c_out = ctrl.refs([f"tau[{i}]" for i in range(n)] + [f"theta_hat[{j}]" for j in range(nth)]
-)
-        N = int(round(t_end / h))
-        rec = {k: [] for k in ("t", "q", "dq", "tau", "tau_d", "theta_hat")}
+        c_out = ctrl.refs([f"tau[{i}]" for i in range(n)] + [f"theta_hat[{j}]" for j in range(nth)])
+        extra = {o: ctrl.refs(sorted((k for k in ctrl.vr if k.split("[")[0] == o),
+                                     key=lambda k: int(k[len(o) + 1:-1]) if "[" in k else 0))
+                 for o in outputs}
+        rec = {k: [] for k in ("t", "q", "dq", "tau", "tau_d", "theta_hat", *outputs)}
         for k in range(N + 1):
             t = k * h
             y = np.array(plant.get(p_out))
+            if not np.all(np.isfinite(y)):
+                raise ValueError(f"the loop diverged: the plant's state is not finite at "
+                                 f"t = {t:g} s (step {k} of h = {h:g} s)")
             c = np.array(ctrl.get(c_out))
             tau, th = c[:n], c[n:n + nth]
             tau_d = disturbance_at(t, disturbance)
-            if k == N or k % every == 0:
+            keep = k == N or k % every == 0
+            if keep:
                 rec["t"].append(t)
                 rec["q"].append(y[:n])
                 rec["dq"].append(y[n:])
                 rec["tau"].append(tau)
                 rec["tau_d"].append(tau_d)
                 rec["theta_hat"].append(th)
+            ctrl.set(c_in, list(y))
+            ctrl.step(t, h)
+            if keep:        # the outputs of step k (q_d: the reference at t_k), as sampled_loop
+                for o, vrs in extra.items():
+                    rec[o].append(np.array(ctrl.get(vrs)))
             if k == N:
                 break
-            ctrl.set(c_in, list(y))
             plant.set(p_in, [*tau, *tau_d])
-            ctrl.step(t, h)
             plant.step(t, h)
         return {k: np.array(v) for k, v in rec.items()}
     finally:
         ctrl.close()
-        plant.close()
+        if plant is not None:
+            plant.close()
 
 
-def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0.3 * np.pi),
+def _reference_start(ctrl):
+    """(q_d(0), q̇_d(0)) from the controller FMU's outputs after initialisation; the paper's
+    start (0, 0.3 pi) at rest for the paper's arm (its experiment starts off the reference,
+    Section 4) and for an FMU without the reference outputs."""
+    if "q_d[0]" not in ctrl.vr or ctrl.model_name == "two-link":
+        return np.array(PAPER_Q0), None
+    n = sum(1 for k in ctrl.vr if k.startswith("q_d["))
+    q = np.array(ctrl.get(ctrl.refs([f"q_d[{i}]" for i in range(n)])))
+    dq = np.array(ctrl.get(ctrl.refs([f"dq_d[{i}]" for i in range(n)])))
+    return q, dq
+
+
+def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, q0=PAPER_Q0,
                          dq0=None, disturbance=PAPER_DISTURBANCE, every=100):
-    """Controller FMU + plant FMU in libcosim (``libcosimpy``, its fixed-step algorithm):
-    q, dq and tau connected FMU to FMU by libcosim; the disturbance tau_d(t_k) set on the
-    plant before each step by an override manipulator.  Same record as
-    :func:`fmpy_closed_loop` (t, q, dq, tau, tau_d, theta_hat)."""
+    """Controller FMU + plant FMU in libcosim (``libcosimpy``, its fixed-step algorithm,
+    step = the controller FMU's h, :func:`controller_period`): q, dq and tau connected FMU
+    to FMU by libcosim; the disturbance tau_d(t_k) set on the plant before each step by an
+    override manipulator.  Same record as :func:`fmpy_closed_loop` (t, q, dq, tau, tau_d,
+    theta_hat)."""
     from fmpy import read_model_description
     from libcosimpy.CosimExecution import CosimExecution
     from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
@@ -127,7 +193,8 @@ def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, h=1e-3, q0=(0.0, 0
     vr_c = {v.name: v.valueReference for v in
             read_model_description(str(controller_fmu)).modelVariables}
     nth = sum(1 for k in vr_c if k.startswith("theta_hat["))
-    steps = int(round(t_end / h))
+    h = controller_period(controller_fmu)
+    steps = _steps(t_end, h)
     step_ns = int(round(h * 1e9))
     if abs(step_ns * 1e-9 - h) > 1e-15:
         raise ValueError(f"libcosim steps in whole nanoseconds; h = {h} is not")
@@ -253,7 +320,7 @@ def main_cosim_controller(args) -> int:
             else:
                 plant = user_path(args.fmu)
             t0 = time.perf_counter()
-            rec = fmpy_closed_loop(cpath, plant, args.t_end, h=h, q0=q0)
+            rec = fmpy_closed_loop(cpath, plant, args.t_end, q0=q0)
             wall = time.perf_counter() - t0
             ref_ctl = CController.from_params(model, law, par)
             p = FmuPlant(plant, q0, np.zeros(model.n))

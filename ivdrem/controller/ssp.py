@@ -39,7 +39,8 @@ def write_ssp(controller_fmu, plant_fmu, path, *, q0=(0.0, 0.3 * np.pi), dq0=Non
     mp = read_model_description(str(plant_fmu))
     n = sum(1 for v in mp.modelVariables if v.name.startswith("q["))
     dq0 = np.zeros(n) if dq0 is None else np.asarray(dq0, float)
-    h = mc.defaultExperiment.stepSize
+    from .fmu_loop import controller_period
+    h = controller_period(controller_fmu)
     starts = "\n".join(
         f'                  <ssv:Parameter name="{nm}[{i}]"><ssv:Real value="{float(val[i])!r}"/>'
         '</ssv:Parameter>' for nm, val in (("q", q0), ("dq", dq0)) for i in range(n))
@@ -102,16 +103,29 @@ def write_ssp(controller_fmu, plant_fmu, path, *, q0=(0.0, 0.3 * np.pi), dq0=Non
     return path
 
 
-def libcosim_ssp_loop(ssp_path, t_end, *, h=1e-3, q0=(0.0, 0.3 * np.pi), dq0=None,
+def _controller_period(ssp_path):
+    """The controller FMU's h (its parameter), read from the FMU inside the SSP file."""
+    import tempfile
+    from .fmu_loop import controller_period
+    with zipfile.ZipFile(ssp_path) as zf, tempfile.TemporaryDirectory() as tmp:
+        inner = Path(tmp) / "Controller.fmu"
+        inner.write_bytes(zf.read("resources/Controller.fmu"))
+        return controller_period(inner)
+
+
+def libcosim_ssp_loop(ssp_path, t_end, *, q0=(0.0, 0.3 * np.pi), dq0=None,
                       disturbance=PAPER_DISTURBANCE, every=100):
     """Run an SSP file of :func:`write_ssp` in libcosim (its SSP loader and fixed-step
-    algorithm), the disturbance set on the plant's open tau_d input before each step by an
-    override manipulator; record as :func:`ivdrem.controller.fmu_loop.fmpy_closed_loop`
-    but from t = every h.  libcosimpy 0.0.6 loads the connections but does not apply the
-    parameter binding to the plant's q, dq (outputs with initial="exact"; measured:
-    q(0) = 0), so q0, dq0 are set again here with ``real_initial_value``."""
+    algorithm, step = the controller FMU's parameter h), the disturbance set on the plant's
+    open tau_d input before each step by an override manipulator; record as
+    :func:`ivdrem.controller.fmu_loop.fmpy_closed_loop` but from t = every h.  libcosimpy
+    0.0.6 loads the connections but does not apply the parameter binding to the plant's q,
+    dq (outputs with initial="exact"; measured: q(0) = 0), so q0, dq0 are set again here
+    with ``real_initial_value``."""
     from libcosimpy.CosimExecution import CosimExecution
     from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
+    from .fmu_loop import _steps
+    h = _controller_period(ssp_path)
     log_output_level(CosimLogLevel.ERROR)
     ex = CosimExecution.from_ssp_file(str(ssp_path), step_size=int(round(h * 1e9)))
     ip = ex.slave_index_from_instance_name("plant")
@@ -126,5 +140,5 @@ def libcosim_ssp_loop(ssp_path, t_end, *, h=1e-3, q0=(0.0, 0.3 * np.pi), dq0=Non
     for i in range(n):
         ex.real_initial_value(ip, vr_p[f"q[{i}]"], float(q0[i]))
         ex.real_initial_value(ip, vr_p[f"dq[{i}]"], float(dq0[i]))
-    steps = int(round(t_end / h))
+    steps = _steps(t_end, h)
     return run_libcosim(ex, ip, ic, vr_p, vr_c, n, nth, steps, h, every, disturbance)

@@ -20,9 +20,13 @@ def _parser() -> argparse.ArgumentParser:
                        description="Generate C for the plant of a model of ivdrem.models, "
                                    "compile it with the system C compiler and write an FMI 2.0 "
                                    "FMU (model exchange + co-simulation).")
-    e.add_argument("--model", default="two-link",
-                   help="model name (default two-link), any of ivdrem.models: "
-                        + ", ".join(_model_names()))
+    e.add_argument("--model", default=None,
+                   help="model name (default: the configuration's, else two-link), any of "
+                        "ivdrem.models: " + ", ".join(_model_names())
+                        + "; --controller also takes a URDF file")
+    e.add_argument("--config", default=None, metavar="ARM.toml",
+                   help="experiment configuration: its robot, and with --controller its "
+                        "experiment as the FMU's defaults (reference, gains, window, law)")
     e.add_argument("-o", "--output", required=True, metavar="FILE.fmu",
                    help="output file (an existing one only if ivdrem exported it, or with "
                         "--overwrite)")
@@ -40,8 +44,14 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--law", default="iv-drem", help="--controller: the law (default iv-drem)")
     e.add_argument("--fmi-version", type=int, choices=(2, 3), default=2, dest="fmi_version",
                    help="--controller: FMI 2.0 or 3.0 co-simulation FMU (default 2)")
-    e.add_argument("--mu-max", type=float, default=135.0, dest="mu_max",
-                   help="--controller: saturation of mu (default %(default)g)")
+    e.add_argument("--mu-max", type=float, default=None, dest="mu_max",
+                   help="--controller: saturation of mu (default 135)")
+    e.add_argument("--h", type=float, default=None, dest="h", metavar="H",
+                   help="--controller: sample period in s (default 0.001); must divide the "
+                        "window T")
+    e.add_argument("--despite-prediction", action="store_true", dest="despite_prediction",
+                   help="--controller: export even a sampled loop predicted unstable (by "
+                        "default refused before anything is built)")
     return p
 
 
@@ -56,7 +66,12 @@ def main_fmu(argv=None) -> int:
         from .._paths import user_path
         from .export import export_fmu
         try:
-            model = get_model(args.model)
+            if args.config is not None:
+                from ivdrem.experiments.config import load_config, model_from_config
+                over = {} if args.model is None else {"model.name": args.model}
+                model = model_from_config(load_config(user_path(args.config), over))
+            else:
+                model = get_model(args.model or "two-link")
             path = export_fmu(model, user_path(args.output), q0=args.q0, dq0=args.dq0,
                               substep=args.substep, cc=args.cc, compile=not args.no_compile,
                               overwrite=args.overwrite)

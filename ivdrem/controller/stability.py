@@ -1,0 +1,276 @@
+"""Will the sampled loop hold at h?  The growth per step of the controller closed around a
+zero-order-hold plant, predicted from the model and the gains before any export or run.
+
+A controller that runs every h seconds and a plant that holds its torque over the step make
+one discrete-time system, the *one-step map* x_{k+1} = P(t_k, x_k).  Its linearisation
+about the arm on its reference has a spectral radius ρ: an error grows by ρ per step, so the
+loop diverges when ρ > 1 (the velocity loop alone: |1 - h k / λ_min(M(q))|, unstable
+beyond h k / λ_min(M) = 2, docs/controller.md).  :func:`sampled_stability` computes ρ by
+finite differences of the same code a run uses, one controller step
+(:meth:`SampledController.step <ivdrem.controller.sampled.SampledController.step>`) and one
+plant step (RK4 sub-steps of the plant FMU's ``cs_substep``, torque held), so a change of the
+algorithm changes the prediction with it:
+
+* state: the plant's q, q̇ at t_k, the torque u the plant holds over [t_k, t_k+1] (delay 1:
+  τ_{k-1}; delay 0: none), and the controller's states that move within a step: every
+  n-vector of :meth:`SampledController.state` (the observer's u_f of (7), the filtered
+  torque z_f of (13) ...) and every n × nθ filter (Φ_f, Φ_Mf of (7), ξ, η of (13), ζ of
+  (14)) seen through θ̂ (its coordinate S θ̂: the torque (9) reads these filters only as
+  Πᵀθ̂, and each is affine in itself, so S θ̂ is a state of its own);
+* frozen: θ̂ (taken at θ̂₀ and at the true θ: the adaptation (11) moves it at the rate Γ,
+  far slower than a sample), the window (15a), the averaging (15b) and the mixing (17)
+  (they reach the torque through θ̂ only, so the map is computed with the law's composite
+  term left out: the controller of law "none" with the same gains);
+* operating points: the arm on the reference, q = q_d(t), q̇ = q̇_d(t), holding the torque
+  the reference needs (the inverse dynamics with the true θ, less the disturbance, so the
+  plant's q̈ = q̈_d), at :data:`POINTS` times spread over the horizon (μ(t) of (7)-(9) grows
+  with t, and the reference visits the arm's workspace).  Every filter of the controller
+  is affine in its own state, so the linearisation does not depend on their values.
+
+A loop is predicted unstable when the largest ρ over the points exceeds
+:data:`UNSTABLE_GROWTH`; :meth:`SampledStability.reason` says it in one line with the
+numbers and what to change (a smaller h, found by the same prediction, or the gains).
+Checked against runs (tests/test_controller_export.py): the paper's design on the Panda at
+1 ms is predicted at ρ ≈ 2 and diverges within tens of milliseconds; the paper's 2-link
+design is predicted stable and runs; on the 2-link arm a K between the two sides of the
+predicted boundary diverges or does not, as predicted.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["SampledStability", "sampled_stability", "loop_growth", "UNSTABLE_GROWTH",
+           "POINTS", "UnstableDesignError"]
+
+#: The growth per step from which a sampled loop is refused: an error then grows at least
+#: 1e6-fold within 1400 steps (1.4 s at 1 kHz).  Slightly above 1 so that finite-difference
+#: noise and the slow modes (e^{-α h}, the integral action of u_f) never decide.
+UNSTABLE_GROWTH = 1.01
+
+#: Operating points along the reference (times spread over the horizon).
+POINTS = 4
+
+#: Relative finite-difference step of the linearisation.
+_EPS = 1e-7
+
+
+class UnstableDesignError(ValueError):
+    """A sampled loop predicted unstable (its message: the numbers, what to change)."""
+
+    def __init__(self, stability):
+        super().__init__(stability.reason())
+        self.stability = stability
+
+
+def _rk4_plant(model, theta, q, dq, u, h, substep):
+    """The plant FMU's step: ceil(h / substep) equal RK4 sub-steps of
+    M(q) q̈ + C(q, q̇) q̇ + F(q̇) + G(q) = u with u held."""
+    fd = model.jit_functions.forward_dynamics
+    k = max(1, math.ceil(h / substep - 1e-9))
+    s = h / k
+    a = np.empty(model.n)
+
+    def f(q, dq):
+        fd(q, dq, u, theta, a)
+        return a.copy()
+    for _ in range(k):
+        k1q, k1v = dq, f(q, dq)
+        k2q, k2v = dq + 0.5 * s * k1v, f(q + 0.5 * s * k1q, dq + 0.5 * s * k1v)
+        k3q, k3v = dq + 0.5 * s * k2v, f(q + 0.5 * s * k2q, dq + 0.5 * s * k2v)
+        k4q, k4v = dq + s * k3v, f(q + s * k3q, dq + s * k3v)
+        q = q + s / 6 * (k1q + 2 * k2q + 2 * k3q + k4q)
+        dq = dq + s / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
+    return q, dq
+
+
+def _coordinates(controller, state, theta_hat):
+    """[(key, kind)] of the controller's fast states: kind "vec" (an n-vector) or "proj"
+    (an n × nθ filter seen through θ̂); θ̂ itself and everything else are frozen."""
+    n, nth = controller.n, controller.ntheta
+    out = []
+    proj = bool(np.any(theta_hat != 0))
+    for key, v in state.items():
+        if key == "theta_hat" or not isinstance(v, np.ndarray):
+            continue
+        if v.shape == (n,):
+            out.append((key, "vec"))
+        elif v.shape == (n, nth) and proj:
+            out.append((key, "proj"))
+    return out
+
+
+def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=None):
+    """ρ of the one-step map at time t (a sample time), the arm on the reference, with θ̂
+    frozen at ``theta_hat``: (spectral radius, the map's Jacobian)."""
+    from ..fmu.export import DEFAULT_SUBSTEP
+    model, h, n = controller.model, controller.h, controller.n
+    substep = DEFAULT_SUBSTEP if substep is None else float(substep)
+    theta = np.asarray(theta, dtype=float)
+    theta_hat = np.asarray(theta_hat, dtype=float)
+    k = int(round(t / h))
+    t = k * h
+    qd, dqd, ddqd = (np.asarray(x, dtype=float) for x in controller.reference(t))
+    tau_d = np.zeros(n) if disturbance is None else np.asarray(disturbance(t), dtype=float)
+    u0 = model.inverse_dynamics(qd, dqd, ddqd, theta) - tau_d
+    controller.reset()
+    base = controller.state()
+    base["k"] = np.array(k)
+    base["theta_hat"] = theta_hat.copy()
+    coords = _coordinates(controller, base, theta_hat)
+    delay = getattr(controller, "delay", 0)
+    w = theta_hat / max(float(theta_hat @ theta_hat), 1e-300)
+
+    def pack(q, dq, u, s):
+        parts = [q, dq] + ([u] if delay else [])
+        for key, kind in coords:
+            parts.append(s[key] if kind == "vec" else s[key] @ theta_hat)
+        return np.concatenate(parts)
+
+    def unpack(x):
+        q, dq = x[:n], x[n:2 * n]
+        o = 2 * n
+        u = None
+        if delay:
+            u, o = x[o:o + n], o + n
+        s = {kk: (np.copy(v) if isinstance(v, np.ndarray) else v) for kk, v in base.items()}
+        for key, kind in coords:
+            seg = x[o:o + n]
+            o += n
+            if kind == "vec":
+                s[key] = seg.copy()
+            else:           # move S so that S θ̂ = seg (the nearest S along θ̂)
+                s[key] = base[key] + np.outer(seg - base[key] @ theta_hat, w)
+        return q, dq, u, s
+
+    def step(x):
+        q, dq, u, s = unpack(x)
+        controller.set_state(s)
+        tau = controller.step(t, q, dq)
+        applied = u if delay else tau
+        q1, dq1 = _rk4_plant(model, theta, q, dq, applied + tau_d, h, substep)
+        return pack(q1, dq1, tau, controller.state())
+
+    x0 = pack(qd, dqd, u0, base)
+    y0 = step(x0)
+    J = np.empty((x0.size, x0.size))
+    for j in range(x0.size):
+        e = _EPS * max(1.0, abs(x0[j]))
+        x = x0.copy()
+        x[j] += e
+        J[:, j] = (step(x) - y0) / e
+    controller.reset()
+    if not np.all(np.isfinite(J)):
+        return math.inf, J
+    # a state the step leaves as it is and that nothing reads (e.g. the instrument's ζ of
+    # (14) under a law without it) is an eigenvalue 1 of no consequence: left out
+    eye = np.eye(x0.size)
+    keep = ~(np.all(np.abs(J - eye) <= 1e-9, axis=0) & np.all(np.abs(J - eye) <= 1e-9, axis=1))
+    J = J[np.ix_(keep, keep)]
+    return float(np.max(np.abs(np.linalg.eigvals(J)))), J
+
+
+@dataclass(frozen=True)
+class SampledStability:
+    """The prediction of :func:`sampled_stability`.
+
+    ``growth``: the largest spectral radius of the one-step map over the points;
+    ``points``: (t, which θ̂, ρ) per point; ``worst``: the point of ``growth``;
+    ``stable_h``: the largest of a few smaller steps dividing T predicted stable at the
+    worst point (None if none was looked for or none holds).
+    """
+    model: str
+    law: str
+    h: float
+    growth: float
+    points: tuple
+    worst: tuple
+    stable_h: float | None = None
+    threshold: float = UNSTABLE_GROWTH
+
+    @property
+    def stable(self) -> bool:
+        return self.growth <= self.threshold
+
+    def margin(self) -> float:
+        """1 - ρ: how far the worst point is from the stability limit (negative: unstable)."""
+        return 1.0 - self.growth
+
+    def reason(self) -> str:
+        t, which, g = self.worst
+        head = (f"the sampled loop ({self.law} on {self.model}, h = {self.h * 1e3:g} ms) is "
+                f"predicted {'stable' if self.stable else 'unstable'}: an error grows by "
+                f"{g:.3g} per step (spectral radius of the linearised one-step map, "
+                f"largest at t = {t:g} s with theta_hat = {which}")
+        if self.stable:
+            return head + f"; refused above {self.threshold:g})"
+        steps = (math.log(1e6) / math.log(g)) if g > 1 else math.inf
+        text = head + f"; 1e6-fold within {steps:.0f} steps = {steps * self.h * 1e3:.3g} ms)"
+        fix = []
+        if self.stable_h is not None:
+            fix.append(f"h = {self.stable_h * 1e3:g} ms (--h {self.stable_h:g}, predicted "
+                       "stable)")
+        fix.append("smaller gains ([controller] K, mu1, mu0, delta_mu, mu_max)")
+        return text + "; change: " + ", or ".join(fix)
+
+
+def _reference_points(t_end, h, count):
+    """0, t_end and count - 2 times between at golden-ratio spacing: evenly spaced points
+    share the phase of a periodic reference whose period divides the spacing (the real-arm
+    experiment's 10 s against a 120 s horizon), these do not."""
+    t_end = float(t_end)
+    ts = [0.0, t_end] + [((i * 0.6180339887498949) % 1.0) * t_end for i in range(1, count - 1)]
+    return sorted({round(t / h) * h for t in ts})
+
+
+def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturbance=None,
+                      points=POINTS, substep=None, suggest=True, controller_class=None,
+                      **gains) -> SampledStability:
+    """Predict the growth per step of the sampled controller of ``law`` for ``model``
+    (``gains``: the arguments of :class:`~ivdrem.controller.sampled.SampledController`, h
+    among them) closed around the model's plant (true parameters ``theta``, default the
+    model's): the largest spectral radius of the one-step map at ``points`` times in
+    [0, t_end], for θ̂ = θ̂₀ and θ̂ = θ (module docstring).  ``disturbance``: t -> τ_d(t)
+    held by the plant (it moves the operating point only).  ``suggest``: look for a smaller
+    h predicted stable at the worst point (h/2, h/4, h/5, h/10 that divide T)."""
+    from .sampled import SampledController
+    make = SampledController if controller_class is None else controller_class
+    design = make(model, law, **gains)        # the design as given: every check
+    T, block = getattr(design, "T", None), int(getattr(design, "block", 1))
+    del design
+
+    def short(h):
+        # θ̂ is frozen, so the law's composite term, which moves θ̂ only (11), does not
+        # enter the map: the controller of the same gains without it (law "none": no
+        # window (15a), no mixing (17)) has the same torque (9) and fast states, at a
+        # fraction of the cost of a step (Panda: 1.2 ms against 45 ms in Python)
+        return make(model, "none", **{**gains, "h": h, "T": block * h})
+    controller = short(float(gains.get("h", 1e-3)))
+    model = controller.model
+    theta = np.asarray(model.theta_values if theta is None else theta, dtype=float)
+    h = controller.h
+    rows = []
+    for t in _reference_points(t_end, h, points):
+        for which, th in (("theta_hat0", controller.theta_hat0), ("theta", theta)):
+            g, _ = loop_growth(controller, theta, t, theta_hat=th, disturbance=disturbance,
+                               substep=substep)
+            rows.append((t, which, g))
+    worst = max(rows, key=lambda r: r[2])
+    stable_h = None
+    if suggest and worst[2] > UNSTABLE_GROWTH:
+        t, which, _ = worst
+        for div in (2, 4, 5, 10):
+            N = round(T / (h / div)) if T else block
+            if T and (abs(N * h / div - T) > 1e-9 * T or N % block):
+                continue                # h / div does not divide the window T
+            c = short(h / div)
+            th = c.theta_hat0 if which == "theta_hat0" else theta
+            g, _ = loop_growth(c, theta, t, theta_hat=th, disturbance=disturbance,
+                               substep=substep)
+            if g <= UNSTABLE_GROWTH:
+                stable_h = h / div
+                break
+    return SampledStability(model=model.name, law=law, h=h, growth=worst[2],
+                            points=tuple(rows), worst=worst, stable_h=stable_h)
