@@ -593,7 +593,12 @@ def closed_loop(plant, t_end, law="iv-drem", *, controller=None, imperfections=N
         from ..controller.clib import CController
         gains.setdefault("h", plant.h)
         reference = SampledController(model, law, **gains)
-        controller = CController(model, law, **gains)
+        try:
+            controller = CController(model, law, **gains)
+        except (AttributeError, NotImplementedError, TypeError) as exc:
+            raise ValueError(f"the sampled controller's C library has no form for "
+                             f"{model.name!r} yet ({type(exc).__name__}: {exc}); pass a "
+                             "controller= with step(t, q, dq) -> tau") from None
     else:
         reference = None
     h = float(controller.h)
