@@ -7,6 +7,7 @@ import json
 import math
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -59,6 +60,15 @@ def add_arguments(p):
     g.add_argument("--payload-at", type=float, default=0.0, dest="payload_at",
                    help="when it is grasped (s, default 0)")
     g.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
+    g.add_argument("--model", default=None,
+                   help="run on this model instead of the configuration's (e.g. two-link)")
+    g.add_argument("--study", default=None, metavar="FILE.toml",
+                   help="run a robustness study (configuration + [robustness], "
+                        "ivdrem.plants.study) instead of one run per law")
+    g.add_argument("--workers", type=int, default=1,
+                   help="--study: Dask worker processes (default 1: in this process)")
+    g.add_argument("--out", default=None, metavar="DIR",
+                   help="--study: output folder (default studies/<file name>)")
 
 
 def imperfections_from_args(args):
@@ -99,8 +109,12 @@ def main_cosim_mujoco(args) -> int:
     from .._progress import want_progress
     from ..experiments.config import load_config, model_from_config
     from .mujoco import MujocoError, Payload, closed_loop, controller_kwargs, load
+    if args.study is not None:
+        return _main_study(args)
     try:
-        config = load_config(None if args.config is None else user_path(args.config))
+        config = load_config(None if args.config is None else user_path(args.config),
+                             overrides=None if args.model is None
+                             else {"model": {"name": args.model}})
         t_end = float(args.t_end if args.t_end is not None else config["experiment"]["t_end"])
         if not (math.isfinite(t_end) and t_end > 0):
             raise ValueError(f"--t-end must be a finite number > 0, got {t_end:g}")
@@ -180,3 +194,26 @@ def main_cosim_mujoco(args) -> int:
             return 2
         print(f"wrote {path}")
     return status
+
+
+def _main_study(args) -> int:
+    from .._paths import user_path
+    from .study import run_robustness
+    path = user_path(args.study)
+    out = user_path(args.out) if args.out else user_path(Path("studies") / path.stem)
+    if args.workers < 1:
+        print(f"{PROG}: error: --workers must be >= 1, got {args.workers}", file=sys.stderr)
+        return 2
+    try:
+        df, wall = run_robustness(path, out, workers=args.workers, model=args.model,
+                                  t_end=args.t_end, progress=not args.quiet)
+    except (ValueError, OSError, ImportError) as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    show = ["noise_level", "payload_mass", "omega_scale", "seed", "law", "theta_error_end",
+            "theta_error_ratio", "tracking_rms_last", "tau_d_error_rms_last", "status"]
+    import pandas as pd
+    with pd.option_context("display.width", 200):
+        print(df[[c for c in show if c in df]].to_string(index=False))
+    print(f"{len(df)} runs, {args.workers} worker(s), {wall:.1f} s; wrote {out}")
+    return 0 if (df["status"] == "ok").all() else 1

@@ -23,12 +23,11 @@ ratio, the tracking error and τ̃_d RMS over the last 20 %, costs, wall time, s
 ``study.toml`` (the file as given).  A run that fails is a row with its error; the others
 go on.
 
-    python -m ivdrem.plants.study examples/panda-robustness.toml -o studies/panda-robustness
-        [--workers 2] [--t-end T] [--model NAME]
+    ivdrem cosim --plant mujoco --study examples/panda-robustness.toml [--workers 2]
+        [--out DIR] [--t-end T] [--model NAME]
 """
 from __future__ import annotations
 
-import argparse
 import copy
 import itertools
 import math
@@ -39,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["read_robustness", "expand", "run_one", "run_robustness", "main"]
+__all__ = ["read_robustness", "expand", "run_one", "run_robustness", "plot"]
 
 #: keys of [robustness] and their defaults
 DEFAULTS = dict(noise_levels=[0.0, 1.0], payload_mass=[0.0], payload_com=[0.0, 0.0, 0.0],
@@ -184,35 +183,3 @@ def plot(df, path, *, model="?"):
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m ivdrem.plants.study",
-                                 description="A robustness study in MuJoCo (docs/mujoco.md)")
-    ap.add_argument("study", help="study file (configuration + [robustness])")
-    ap.add_argument("-o", "--output", required=True, help="output folder")
-    ap.add_argument("--workers", type=int, default=1)
-    ap.add_argument("--model", default=None, help="run on another model than the file's")
-    ap.add_argument("--t-end", type=float, default=None, dest="t_end")
-    ap.add_argument("--quiet", action="store_true")
-    args = ap.parse_args(argv)
-    if args.workers < 1:
-        print(f"{ap.prog}: error: --workers must be >= 1", file=sys.stderr)
-        return 2
-    try:
-        df, wall = run_robustness(args.study, args.output, workers=args.workers,
-                                  model=args.model, t_end=args.t_end,
-                                  progress=not args.quiet)
-    except (ValueError, OSError, ImportError) as exc:
-        print(f"{ap.prog}: error: {exc}", file=sys.stderr)
-        return 2
-    show = ["noise_level", "payload_mass", "omega_scale", "seed", "law", "theta_error_end",
-            "theta_error_ratio", "tracking_rms_last", "tau_d_error_rms_last", "status"]
-    with __import__("pandas").option_context("display.width", 200):
-        print(df[[c for c in show if c in df]].to_string(index=False))
-    print(f"{len(df)} runs, {args.workers} worker(s), {wall:.1f} s; wrote {args.output}")
-    return 0 if (df["status"] == "ok").all() else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())
