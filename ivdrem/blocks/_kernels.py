@@ -8,6 +8,9 @@ import numpy as np
 from numba import njit, types
 from numba.extending import get_cython_function_address
 
+from ..models._rigid_body_jit import (SINGULAR_INERTIA_MESSAGE, _rb_cholesky,
+                                      _rb_cholesky_solve)
+
 # LAPACK from scipy, called by symbol name from cached machine code: the symbols are bound
 # to scipy's routines at import, so a kernel loaded from the disk cache finds them in a new
 # process (an address baked into the code would not survive it).
@@ -201,35 +204,20 @@ def adj_derivative_parts(U, sig, Vt):
 
 @njit(cache=True)
 def spd_solve(A, B):
-    """B <- A^{-1} B for a symmetric positive definite A (n, n), B (n, k), by Cholesky
-    (A is not modified): the plant's Jacobian solves with the inertia matrix M(q)."""
+    """B <- A^{-1} B for a symmetric positive definite A (n, n), B (n, k), by the package's
+    one Cholesky (ivdrem.models.rigid_body, its one rule for "singular"; A is not
+    modified): the plant's Jacobian solves with the inertia matrix M(q)."""
     n = A.shape[0]
-    k = B.shape[1]
-    L = np.zeros((n, n))
-    for j in range(n):
-        d = A[j, j]
-        for l in range(j):
-            d -= L[j, l] * L[j, l]
-        if not (d > 0.0 and d < np.inf):
-            raise ValueError("inertia matrix M(q) is not positive definite (singular inertia)")
-        d = np.sqrt(d)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for l in range(j):
-                s -= L[i, l] * L[j, l]
-            L[i, j] = s / d
-    for c in range(k):
+    L = A.copy()
+    if _rb_cholesky(L) != 0:
+        raise ValueError(SINGULAR_INERTIA_MESSAGE)
+    col = np.empty(n)
+    for c in range(B.shape[1]):
         for i in range(n):
-            s = B[i, c]
-            for l in range(i):
-                s -= L[i, l] * B[l, c]
-            B[i, c] = s / L[i, i]
-        for i in range(n - 1, -1, -1):
-            s = B[i, c]
-            for l in range(i + 1, n):
-                s -= L[l, i] * B[l, c]
-            B[i, c] = s / L[i, i]
+            col[i] = B[i, c]
+        _rb_cholesky_solve(L, col)
+        for i in range(n):
+            B[i, c] = col[i]
 
 
 # ------------------------------------------------------------------ start of the composite term

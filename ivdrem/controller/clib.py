@@ -47,6 +47,7 @@ def load_library(model, *, flags=("-O2",)):
     lib.ivc_window_bytes.argtypes = [ctypes.c_void_p]
     lib.ivc_free.argtypes = [ctypes.c_void_p]
     lib.ivc_reset.argtypes = [ctypes.c_void_p]
+    lib.ivc_reference.argtypes = [ctypes.c_void_p, _c_double_p, _c_double_p]
     return lib
 
 
@@ -83,7 +84,7 @@ class CController:
     def from_params(cls, model, law, par):
         """The controller of a flat parameter vector (ivdrem_controller.h's layout), e.g.
         the start values of a controller FMU."""
-        from .codegen import LAW_CODES
+        from .codegen import DESIGN_CODES, GRAVITY_CODES, LAW_CODES, MIXING_CODES
         idx, off = {}, 0
         for name, size, _ in param_layout(model):
             idx[name] = slice(off, off + size)
@@ -94,16 +95,27 @@ class CController:
                              f"law code does not match {law!r}")
         g = lambda k: par[idx[k]]  # noqa: E731
         s = lambda k: float(par[idx[k]][0])  # noqa: E731
+        name = lambda codes, k: {v: n for n, v in codes.items()}[int(s(k))]  # noqa: E731
+        n = model.n
+        if s("ref_kind"):
+            trajectory = dict(kind="fourier", omega_f=s("fr_omega_f"),
+                              a=g("fr_a").reshape(n, -1), b=g("fr_b").reshape(n, -1),
+                              offset=g("tr_offset"))
+        else:
+            trajectory = dict(amplitude=g("tr_amplitude"), omega=g("tr_omega"),
+                              phase=g("tr_phase"), offset=g("tr_offset"))
         return cls(model, law, h=s("h"), alpha=s("alpha"),
                    K=g("K").reshape(model.n, model.n), delta_mu=s("delta_mu"),
                    Gamma=g("Gamma_diag"), mu0=s("mu0"), mu1=s("mu1"), mu_max=s("mu_max"),
                    observer_variant="corrected" if s("corrected") else "literal",
                    l=s("l"), T=s("T"), p=s("p"), F0=s("F0"), gamma=s("gamma"),
                    sigma=s("sigma"), epsilon=s("epsilon"), theta_star=g("theta_star"),
-                   theta_hat0=g("theta_hat0"), tau_max=s("tau_max"), delay=int(s("delay")),
-                   block=int(s("block")),
-                   trajectory=dict(amplitude=g("tr_amplitude"), omega=g("tr_omega"),
-                                   phase=g("tr_phase"), offset=g("tr_offset")))
+                   theta_hat0=g("theta_hat0"), tau_max=g("tau_max"), delay=int(s("delay")),
+                   block=int(s("block")), trajectory=trajectory,
+                   design=name(DESIGN_CODES, "design"), mixing=name(MIXING_CODES, "mixing"),
+                   mix_every=int(s("mix_every")), f_rel=s("f_rel"), guard=s("guard"),
+                   gravity=name(GRAVITY_CODES, "gravity"), theta_nominal=g("theta_nominal"),
+                   tau_rate_max=g("tau_rate_max"), first_zero=bool(s("first_zero")))
 
     def __del__(self):
         c = getattr(self, "_c", None)
@@ -136,6 +148,13 @@ class CController:
     def tau_d_hat(self):
         self._outputs()
         return self._tdh.copy()
+
+    def last_reference(self):
+        """(q_d, dq_d) of the last step (ivc_reference)."""
+        qd, dqd = np.zeros(self.n), np.zeros(self.n)
+        self.lib.ivc_reference(self._c, qd.ctypes.data_as(_c_double_p),
+                               dqd.ctypes.data_as(_c_double_p))
+        return qd, dqd
 
     @property
     def Delta(self):

@@ -29,8 +29,11 @@ from pathlib import Path
 import numpy as np
 import sympy as sp
 
+from ..blocks.mixing import START_RAMP_REL
+from .sampled import REFERENCE_HARMONICS
+
 __all__ = ["param_layout", "generate_controller_sources", "build_library", "LAW_CODES",
-           "CORE_SOURCE"]
+           "CORE_SOURCE", "DESIGN_CODES", "GRAVITY_CODES", "MIXING_CODES", "STRUCTURAL"]
 
 _HERE = Path(__file__).resolve().parent
 CORE_SOURCE = _HERE / "ivdrem_controller.c"
@@ -40,7 +43,14 @@ LAW_CODES = {"iv-drem": 0, "composite-learning": 1, "drem": 2, "sigma-modificati
              "none": 4}
 
 #: parameters that fix the memory or the meaning of the state (set before ivc_init)
-STRUCTURAL = ("h", "T", "block", "law", "delay", "corrected")
+STRUCTURAL = ("h", "T", "block", "law", "delay", "corrected", "design", "mixing", "mix_every",
+              "gravity", "ref_kind")
+
+#: design name -> code of the parameter ``design``; gravity option -> code of ``gravity``;
+#: mixing variant -> code of ``mixing`` (ivdrem.blocks._kernels.MIXING_VARIANTS)
+DESIGN_CODES = {"paper": 0, "inertia-scaled": 1}
+GRAVITY_CODES = {"controller": 0, "robot": 1}
+MIXING_CODES = {"paper": 0, "eigen": 1, "channel": 2}
 
 
 def param_layout(model):
@@ -64,7 +74,7 @@ def param_layout(model):
         ("epsilon", 1, "composite learning: threshold of lambda_min"),
         ("theta_star", nth, "sigma-modification prior theta*"),
         ("theta_hat0", nth, "initial estimate theta_hat(0)"),
-        ("tau_max", 1, "torque saturation |tau_i| <= tau_max (inf: none)"),
+        ("tau_max", n, "torque limit |tau_i| <= tau_max_i of the command (N m; inf: none)"),
         ("delay", 1, "0: tau_k applied over [t_k, t_k+1]; 1: over [t_k+1, t_k+2]"),
         ("block", 1, "samples per block sum of the window"),
         ("law", 1, "0 iv-drem, 1 composite-learning, 2 drem, 3 sigma-modification, 4 none"),
@@ -72,7 +82,26 @@ def param_layout(model):
         ("tr_amplitude", n, "reference q_d = A sin(w t + phi) + c: A"),
         ("tr_omega", n, "reference: w (rad/s)"),
         ("tr_phase", n, "reference: phi"),
-        ("tr_offset", n, "reference: c"),
+        ("tr_offset", n, "reference: c (also the Fourier reference's offset)"),
+        ("design", 1, "0 paper: feedback (K + delta_mu mu) r of (9); 1 inertia-scaled: "
+                      "M(q, theta_nominal)(K + delta_mu mu) r, K in 1/s"),
+        ("mixing", 1, "mixing (17): 0 paper, 1 eigen, 2 channel (docs/mixing.md)"),
+        ("mix_every", 1, "the mixing (17) every m samples, held between (multi-rate)"),
+        ("f_rel", 1, "eigen mixing: f0 = f_rel ||Psi||_F"),
+        ("guard", 1, "channel mixing: guard of the (i, i) cofactor"),
+        ("gravity", 1, "0: the law's tau is commanded; 1 robot: tau - G(q, theta_nominal) "
+                       "(the robot adds its own gravity)"),
+        ("theta_nominal", nth, "nominal parameters (the URDF's): inertia-scaled design, "
+                               "gravity robot"),
+        ("tau_rate_max", n, "rate limit |tau_k,i - tau_k-1,i| <= h tau_rate_max_i (N m/s; "
+                            "inf: none)"),
+        ("first_zero", 1, "1: the first command tau_0 is 0"),
+        ("ref_kind", 1, "reference: 0 the sinusoid tr_*, 1 the Fourier series fr_*"),
+        ("fr_omega_f", 1, "Fourier reference: base frequency omega_f (rad/s)"),
+        ("fr_a", n * REFERENCE_HARMONICS,
+         "Fourier reference: a (n x H, row major): q_d,i = c_i + sum_l (a_il sin(l w t) - "
+         "b_il cos(l w t))/(l w)"),
+        ("fr_b", n * REFERENCE_HARMONICS, "Fourier reference: b (n x H, row major)"),
     ]
 
 
@@ -86,7 +115,13 @@ def param_vector(ctrl):
             "theta_hat0": ctrl.theta_hat0, "tau_max": ctrl.tau_max, "delay": ctrl.delay,
             "block": ctrl.block, "law": LAW_CODES[ctrl.law],
             "corrected": 1.0 if ctrl.corrected else 0.0, "tr_amplitude": ctrl.tr_A,
-            "tr_omega": ctrl.tr_w, "tr_phase": ctrl.tr_phi, "tr_offset": ctrl.tr_c}
+            "tr_omega": ctrl.tr_w, "tr_phase": ctrl.tr_phi, "tr_offset": ctrl.tr_c,
+            "design": DESIGN_CODES[ctrl.design], "mixing": MIXING_CODES[ctrl.mixing],
+            "mix_every": ctrl.mix_every, "f_rel": ctrl.f_rel, "guard": ctrl.guard,
+            "gravity": GRAVITY_CODES[ctrl.gravity], "theta_nominal": ctrl.theta_nominal,
+            "tau_rate_max": ctrl.tau_rate_max, "first_zero": 1.0 if ctrl.first_zero else 0.0,
+            "ref_kind": 1.0 if ctrl.fourier else 0.0, "fr_omega_f": ctrl.fr_wf,
+            "fr_a": ctrl.fr_a.reshape(-1), "fr_b": ctrl.fr_b.reshape(-1)}
     out = []
     for name, size, _ in param_layout(ctrl.model):
         v = np.atleast_1d(np.asarray(vals[name], dtype=float)).reshape(-1)
@@ -103,36 +138,12 @@ def _c_double(x: float) -> str:
 
 
 def _regressor_code(model):
-    """C functions ivc_<R>(args..., out) of the regressors, out row major n x ntheta."""
-    n, nth = model.n, model.ntheta
-    csub = {k: sp.Float(v, 17) for k, v in model.constants.items()}
-    groups = {"q": model.q, "dq": model.dq, "a": model.a, "v": model.v, "dv": model.dv}
-    specs = [("Phi_M", model.Phi_M, ("q", "a")), ("Phi_C", model.Phi_C, ("q", "dq", "v")),
-             ("Phi_dM", model.Phi_dM, ("q", "dq", "a")), ("Phi_G", model.Phi_G, ("q",)),
-             ("Phi_F", model.Phi_F, ("dq",)), ("Phi", model.Phi, ("q", "dq", "v", "dv"))]
-    funcs = []
-    for name, expr, args in specs:
-        ren = dict(csub)
-        for g, syms in groups.items():
-            for i, s in enumerate(syms):
-                ren[s] = sp.Symbol(f"{g}[{i}]")
-        E = sp.Matrix(expr).xreplace(ren)
-        allowed = {sp.Symbol(f"{g}[{i}]") for g in args for i in range(n)}
-        extra = set().union(*(e.free_symbols for e in E)) - allowed
-        if extra:
-            raise ValueError(f"model {model.name!r}: {name} has unexpected symbols "
-                             f"{sorted(map(str, extra))}")
-        exprs = [E[i, j] for i in range(n) for j in range(nth)]
-        repl, red = sp.cse(exprs, symbols=sp.numbered_symbols("w"), order="none")
-        body = [f"    const double {s} = {sp.ccode(e, standard='C99')};" for s, e in repl]
-        body += [f"    out[{k}] = {sp.ccode(e, standard='C99')};" for k, e in enumerate(red)]
-        text = "\n".join(body)
-        unused = [f"    (void){a};" for a in args
-                  if not re.search(rf"(?<![A-Za-z_]){a}\[", text)]
-        sig = ", ".join(f"const double *{a}" for a in args)
-        funcs.append(f"void ivc_{name}({sig}, double *out) {{\n"
-                     + "\n".join(unused + body) + "\n}\n")
-    return funcs, specs
+    """The model's C face (``model.c_source("ivc_")``, docs/models.md): ivc_<R>(args...,
+    out) of the regressors, out row major n x ntheta, for any robot model; and the
+    regressors' (name, None, arguments)."""
+    from ..models.base import REGRESSOR_ARGS
+    specs = [(name, None, args) for name, args in REGRESSOR_ARGS.items()]
+    return [model.c_source("ivc_")], specs
 
 
 def _version():
@@ -167,6 +178,10 @@ def generate_controller_sources(model, defaults=None) -> dict:
         + ", double *out);" for name, _, args in specs)
     laws = "\n".join(f"#define IVC_LAW_{k}  {v}" for k, v in
                      (("IV_DREM", 0), ("COMPOSITE", 1), ("DREM", 2), ("SIGMA", 3), ("NONE", 4)))
+    codes = "\n".join(
+        [f"#define IVC_DESIGN_{k.upper().replace('-', '_')}  {v}" for k, v in DESIGN_CODES.items()]
+        + [f"#define IVC_GRAVITY_{k.upper()}  {v}" for k, v in GRAVITY_CODES.items()]
+        + [f"#define IVC_MIXING_{k.upper()}  {v}" for k, v in MIXING_CODES.items()])
     header = f"""/* ivdrem_controller.h: the sampled IV-DREM controller (Glushchenko & Lastochkin,
  * eqs. 7-21) for the robot model "{model.name}" (n = {n} joints, ntheta = {nth} parameters).
  * Generated by ivdrem {_version()} (model key {model.key}). Do not edit.
@@ -189,11 +204,18 @@ def generate_controller_sources(model, defaults=None) -> dict:
  *   state unchanged: IVC_ERR_ARG (wrong t), IVC_ERR_NONFINITE (NaN/Inf in q, dq),
  *   IVC_ERR_DIVERGED (non-finite torque).
  * ivc_outputs(c, theta_hat, tau_d_hat, Delta, tau): the estimate theta_hat(t_k+1), the
- *   disturbance estimate tau_d_hat(t_k), Delta(t_k) of (17), tau_k (any may be NULL).
+ *   disturbance estimate tau_d_hat(t_k), Delta(t_k) of (17) (the smallest channel's for the
+ *   "channel" mixing), tau_k (any may be NULL).
+ * ivc_reference(c, q_d, dq_d): the reference q_d(t_k), dq_d(t_k) of the last step (either
+ *   may be NULL), e.g. to start the arm on it and log the tracking.
  * ivc_state_size / ivc_get_state / ivc_set_state: the whole state (window included) as
  *   bytes, for save and restore; a restored controller continues bit for bit.
- * ivc_set_param(c, IVC_P_x, value): change a gain between steps (not h, T, block, law,
- *   delay, corrected, which fix the memory: give those to ivc_init).
+ * ivc_set_param(c, IVC_P_x, value): change a gain between steps (not the structural h, T,
+ *   block, law, delay, corrected, design, mixing, mix_every, gravity, ref_kind: give those
+ *   to ivc_init).
+ * The command tau_k: the law's (9) (design 1: its feedback scaled by M(q, theta_nominal)),
+ *   minus G(q, theta_nominal) with gravity 1 (the robot adds its own), clipped at +-tau_max,
+ *   within h tau_rate_max of tau_k-1, 0 at k = 0 with first_zero (docs/controller.md).
  * ivc_reset(c): back to t = 0.  ivc_window_bytes(c): memory of the window.
  */
 #ifndef IVDREM_CONTROLLER_H
@@ -204,12 +226,17 @@ def generate_controller_sources(model, defaults=None) -> dict:
 #define IVC_NQ {n}
 #define IVC_NTHETA {nth}
 #define IVC_NPAR {npar}
+#define IVC_NH {REFERENCE_HARMONICS}          /* harmonics per joint of the Fourier reference */
+#define IVC_START_RAMP_REL {_c_double(START_RAMP_REL)}  /* scale-free mixings: term on at T, ramp 0.1 T */
 
 /* parameter vector layout: par[IVC_P_NAME + i] */
 {chr(10).join(idx)}
 
 /* law codes (par[IVC_P_LAW]) */
 {laws}
+
+/* design, gravity and mixing codes (par[IVC_P_DESIGN], par[IVC_P_GRAVITY], par[IVC_P_MIXING]) */
+{codes}
 
 /* return codes */
 #define IVC_OK 0
@@ -242,6 +269,7 @@ IVC_API int ivc_set_param(ivc_controller *c, int index, double value);
 IVC_API double ivc_get_param(const ivc_controller *c, int index);
 IVC_API int ivc_reset(ivc_controller *c);
 IVC_API double ivc_time(const ivc_controller *c);
+IVC_API int ivc_reference(const ivc_controller *c, double *q_d, double *dq_d);
 IVC_API size_t ivc_window_bytes(const ivc_controller *c);
 IVC_API const char *ivc_message(const ivc_controller *c);
 IVC_API void ivc_free(ivc_controller *c);

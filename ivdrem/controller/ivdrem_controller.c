@@ -24,6 +24,8 @@ typedef struct {
     double zf[IVC_NQ], xi[NQT], eta[NQT], X_xi[NQT], X_eta[NQT], zeta[NQT], Yavg[NM];
     double tau_prev[IVC_NQ], tau[IVC_NQ], tau_d_hat[IVC_NQ], Delta;
     double held[NM], lambda_min_held;           /* composite learning: (Y_b, Psi_b)(t_e) */
+    double D_held[IVC_NTHETA], calY_held[IVC_NTHETA]; /* mixing (17) of the last mixing sample */
+    double qd[IVC_NQ], dqd[IVC_NQ];             /* the reference at the last sample */
     /* window (15a): partial block, running sum, shadow sum, previous sample */
     double P[NM], S[NM], shadow[NM], g_prev[NM];
     double pos, i, nshadow, has_prev;
@@ -32,6 +34,7 @@ typedef struct {
 struct ivc_controller {
     double par[IVC_NPAR];
     int law, delay, corrected, block;           /* structural, fixed at ivc_init */
+    int design, mixing, mix_every, gravity, ref_kind;
     long nb;                                    /* blocks in the ring */
     double h, T;
     ivc_state s;
@@ -51,6 +54,9 @@ size_t ivc_window_bytes(const ivc_controller *c) {
 
 void ivc_default_params(double *par) { memcpy(par, IVC_PAR_DEFAULTS, sizeof IVC_PAR_DEFAULTS); }
 
+/* a whole number in 0..last */
+static int is_code(double v, int last) { return v >= 0 && v <= last && floor(v) == v; }
+
 static int check_params(ivc_controller *c, const double *par) {
     int i;
     for (i = 0; i < IVC_NPAR; i++)
@@ -67,9 +73,40 @@ static int check_params(ivc_controller *c, const double *par) {
             { fail(c, "Gamma[%g] = %g must be > 0", (double)i, par[IVC_P_GAMMA_DIAG + i]); return IVC_ERR_ARG; }
     if (!(par[IVC_P_L] > 0 && par[IVC_P_T] > 0 && par[IVC_P_F0] > 0 && par[IVC_P_P] >= 1
           && par[IVC_P_GAMMA] > 0 && par[IVC_P_SIGMA] > 0 && par[IVC_P_EPSILON] > 0
-          && par[IVC_P_TAU_MAX] > 0))
-        { fail(c, "l, T, F0, gamma, sigma, epsilon, tau_max must be > 0 and p >= 1 (p = %g, T = %g)",
+          && par[IVC_P_F_REL] > 0 && par[IVC_P_GUARD] > 0))
+        { fail(c, "l, T, F0, gamma, sigma, epsilon, f_rel, guard must be > 0 and p >= 1 (p = %g, T = %g)",
                par[IVC_P_P], par[IVC_P_T]); return IVC_ERR_ARG; }
+    for (i = 0; i < IVC_NQ; i++) {
+        if (!(par[IVC_P_TAU_MAX + i] > 0))
+            { fail(c, "tau_max[%g] = %g must be > 0 (inf: no limit)", (double)i, par[IVC_P_TAU_MAX + i]); return IVC_ERR_ARG; }
+        if (!(par[IVC_P_TAU_RATE_MAX + i] > 0))
+            { fail(c, "tau_rate_max[%g] = %g must be > 0 (inf: no limit)", (double)i, par[IVC_P_TAU_RATE_MAX + i]); return IVC_ERR_ARG; }
+    }
+    if (!is_code(par[IVC_P_LAW], IVC_LAW_NONE))
+        { fail(c, "law = %g is not a law code 0..%g", par[IVC_P_LAW], IVC_LAW_NONE); return IVC_ERR_ARG; }
+    if (!is_code(par[IVC_P_DELAY], 1))
+        { fail(c, "delay = %g must be 0 or 1%.0s", par[IVC_P_DELAY], 0); return IVC_ERR_ARG; }
+    if (!is_code(par[IVC_P_DESIGN], IVC_DESIGN_INERTIA_SCALED))
+        { fail(c, "design = %g is not a design code (0 paper, 1 inertia-scaled)%.0s", par[IVC_P_DESIGN], 0); return IVC_ERR_ARG; }
+    if (!is_code(par[IVC_P_GRAVITY], IVC_GRAVITY_ROBOT))
+        { fail(c, "gravity = %g is not a gravity code (0 controller, 1 robot)%.0s", par[IVC_P_GRAVITY], 0); return IVC_ERR_ARG; }
+    if (!is_code(par[IVC_P_MIXING], IVC_MIXING_CHANNEL))
+        { fail(c, "mixing = %g is not a mixing code (0 paper, 1 eigen, 2 channel)%.0s", par[IVC_P_MIXING], 0); return IVC_ERR_ARG; }
+    if (!(par[IVC_P_MIX_EVERY] >= 1 && par[IVC_P_MIX_EVERY] <= 1e6 && floor(par[IVC_P_MIX_EVERY]) == par[IVC_P_MIX_EVERY]))
+        { fail(c, "mix_every = %g must be a whole number >= 1%.0s", par[IVC_P_MIX_EVERY], 0); return IVC_ERR_ARG; }
+    if (!is_code(par[IVC_P_REF_KIND], 1) || (par[IVC_P_REF_KIND] == 1 && !(par[IVC_P_FR_OMEGA_F] > 0 && isfinite(par[IVC_P_FR_OMEGA_F]))))
+        { fail(c, "ref_kind = %g must be 0 (sinusoid) or 1 (Fourier, with fr_omega_f = %g > 0)",
+               par[IVC_P_REF_KIND], par[IVC_P_FR_OMEGA_F]); return IVC_ERR_ARG; }
+    {   /* the window (15a): T a whole number of samples h, divisible by block */
+        int law = (int)par[IVC_P_LAW];
+        double h = par[IVC_P_H], T = par[IVC_P_T], N = floor(T / h + 0.5), block = par[IVC_P_BLOCK];
+        if (!(block >= 1 && floor(block) == block))
+            { fail(c, "block = %g must be a whole number >= 1%.0s", block, 0); return IVC_ERR_ARG; }
+        if ((law == IVC_LAW_IV_DREM || law == IVC_LAW_DREM || law == IVC_LAW_COMPOSITE)
+            && (fabs(N * h - T) > 1e-9 * T || fmod(N, block) != 0 || N / block > 1e8))
+            { fail(c, "the window T / h = %.9g must be a whole number of samples divisible by "
+                   "block = %g (choose T a multiple of h block)", T / h, block); return IVC_ERR_ARG; }
+    }
     return IVC_OK;
 }
 
@@ -106,21 +143,7 @@ ivc_controller *ivc_init(const double *par, char *msg, size_t len) {
     block = (int)par[IVC_P_BLOCK];
     h = par[IVC_P_H];
     T = par[IVC_P_T];
-    if (law < 0 || law > IVC_LAW_NONE || (double)law != par[IVC_P_LAW]) {
-        if (msg && len) snprintf(msg, len, "law = %g is not a law code 0..%d", par[IVC_P_LAW], IVC_LAW_NONE);
-        return NULL;
-    }
-    if ((delay != 0 && delay != 1) || (double)delay != par[IVC_P_DELAY]) {
-        if (msg && len) snprintf(msg, len, "delay = %g must be 0 or 1", par[IVC_P_DELAY]);
-        return NULL;
-    }
     N = floor(T / h + 0.5);
-    if (block < 1 || (double)block != par[IVC_P_BLOCK] || fabs(N * h - T) > 1e-9 * T
-        || fmod(N, (double)block) != 0 || N / block > 1e8) {
-        if (msg && len) snprintf(msg, len, "T / h = %.9g must be a whole number of samples "
-                                 "divisible by block = %g", T / h, par[IVC_P_BLOCK]);
-        return NULL;
-    }
     c = (ivc_controller *)calloc(1, sizeof *c);
     if (!c) { if (msg && len) snprintf(msg, len, "out of memory"); return NULL; }
     memcpy(c->par, par, sizeof c->par);
@@ -128,6 +151,11 @@ ivc_controller *ivc_init(const double *par, char *msg, size_t len) {
     c->delay = delay;
     c->corrected = par[IVC_P_CORRECTED] != 0;
     c->block = block;
+    c->design = (int)par[IVC_P_DESIGN];
+    c->mixing = (int)par[IVC_P_MIXING];
+    c->mix_every = (int)par[IVC_P_MIX_EVERY];
+    c->gravity = (int)par[IVC_P_GRAVITY];
+    c->ref_kind = (int)par[IVC_P_REF_KIND];
     c->h = h;
     c->T = T;
     c->nb = (law == IVC_LAW_IV_DREM || law == IVC_LAW_DREM || law == IVC_LAW_COMPOSITE)
@@ -150,12 +178,19 @@ void ivc_free(ivc_controller *c) {
     free(c);
 }
 
+/* the parameters that fix the memory or the meaning of the state (codegen.STRUCTURAL) */
+static int is_structural(int index) {
+    return index == IVC_P_H || index == IVC_P_T || index == IVC_P_BLOCK || index == IVC_P_LAW
+        || index == IVC_P_DELAY || index == IVC_P_CORRECTED || index == IVC_P_DESIGN
+        || index == IVC_P_MIXING || index == IVC_P_MIX_EVERY || index == IVC_P_GRAVITY
+        || index == IVC_P_REF_KIND;
+}
+
 int ivc_set_param(ivc_controller *c, int index, double value) {
     double par[IVC_NPAR];
     if (!c) return IVC_ERR_STATE;
     if (index < 0 || index >= IVC_NPAR) { fail(c, "no parameter %g%.0s", index, 0); return IVC_ERR_ARG; }
-    if (index == IVC_P_H || index == IVC_P_T || index == IVC_P_BLOCK || index == IVC_P_LAW
-        || index == IVC_P_DELAY || index == IVC_P_CORRECTED) {
+    if (is_structural(index)) {
         if (value == c->par[index]) return IVC_OK;
         fail(c, "parameter %g is structural (fixed at ivc_init)%.0s", index, 0);
         return IVC_ERR_ARG;
@@ -192,11 +227,13 @@ int ivc_set_state(ivc_controller *c, const void *buf, size_t size) {
     if (size != ivc_state_size(c)) { fail(c, "state of %g bytes, expected %g", (double)size,
                                           (double)ivc_state_size(c)); return IVC_ERR_ARG; }
     memcpy(par, b + sizeof c->s, sizeof par);
-    if (par[IVC_P_H] != c->par[IVC_P_H] || par[IVC_P_T] != c->par[IVC_P_T]
-        || par[IVC_P_BLOCK] != c->par[IVC_P_BLOCK] || par[IVC_P_LAW] != c->par[IVC_P_LAW]
-        || par[IVC_P_DELAY] != c->par[IVC_P_DELAY] || par[IVC_P_CORRECTED] != c->par[IVC_P_CORRECTED]) {
-        fail(c, "state of another configuration (h, T, block, law, delay)%.0s%.0s", 0, 0);
-        return IVC_ERR_ARG;
+    {
+        int i;
+        for (i = 0; i < IVC_NPAR; i++)
+            if (is_structural(i) && par[i] != c->par[i]) {
+                fail(c, "state of another configuration (parameter %g: %g; structural)", (double)i, par[i]);
+                return IVC_ERR_ARG;
+            }
     }
     memcpy(&c->s, b, sizeof c->s);
     memcpy(c->par, par, sizeof par);
@@ -305,34 +342,132 @@ static double svd_jacobi(const double *A, int n, double *U, double *sig, double 
     return det_lu(W, n) < 0 ? -1.0 : 1.0;
 }
 
-/* the mixing step (17), "paper" variant with erratum E4, as ivdrem.blocks._kernels:
- * s = 1 + ||Psi||_F, P = Psi/s, Delta = det P, calY = adj(P) Y / s, adj by the SVD */
-static double mixing(const double *Y, const double *Psi, double *calY) {
+/* s_UV V diag(coef) U^T Y / div: the adjugate-weighted regression of (17) */
+static void adjugate_times(const double *U, const double *V, const double *coef, double suv,
+                           const double *Y, double div, double *out) {
     enum { n = IVC_NTHETA };
-    double P[n * n], U[n * n], V[n * n], sig[n], pi[n], big = 0, ss = 0, nrm, s, suv, d, pre, suf;
     int i, j, k;
-    for (k = 0; k < n * n; k++) if (fabs(Psi[k]) > big) big = fabs(Psi[k]);
-    if (big > 0) for (k = 0; k < n * n; k++) { double r = Psi[k] / big; ss += r * r; }
-    nrm = big * sqrt(ss);
-    s = 1.0 + nrm;
-    for (k = 0; k < n * n; k++) P[k] = Psi[k] / s;
-    suv = svd_jacobi(P, n, U, sig, V);           /* det V = +1 */
-    pre = 1.0;
-    for (i = 0; i < n; i++) { pi[i] = pre; pre *= sig[i]; }
-    suf = 1.0;
-    for (i = n - 1; i >= 0; i--) { pi[i] *= suf; suf *= sig[i]; }
-    d = suv;
-    for (k = 0; k < n; k++) d *= sig[k];
     for (i = 0; i < n; i++) {
         double acc = 0;
         for (j = 0; j < n; j++) {
             double cij = 0;                      /* adj(P)_ij = s_UV sum_k V_ik pi_k U_jk */
-            for (k = 0; k < n; k++) cij += V[i * n + k] * pi[k] * U[j * n + k];
+            for (k = 0; k < n; k++) cij += V[i * n + k] * coef[k] * U[j * n + k];
             acc += suv * cij * Y[j];
         }
-        calY[i] = acc / s;
+        out[i] = acc / div;
     }
-    return d;
+}
+
+/* prod_{j != i} x_j, by prefix and suffix products (no division) */
+static void products_without(const double *x, double *out) {
+    int i;
+    double pre = 1.0, suf = 1.0;
+    for (i = 0; i < IVC_NTHETA; i++) { out[i] = pre; pre *= x[i]; }
+    for (i = IVC_NTHETA - 1; i >= 0; i--) { out[i] *= suf; suf *= x[i]; }
+}
+
+/* The mixing step (17) in the variants of ivdrem.blocks._kernels.mixing_values
+ * (docs/mixing.md), from a one-sided Jacobi SVD of P = Psi / s, s = 1 + ||Psi||_F:
+ *   paper   (E4)  Delta = det P, calY = adj(P) Y / s;
+ *   eigen         Delta = sign(det P) prod r_j, r_j = sigma_j / (sigma_j + f),
+ *                 f = f_rel ||Psi||_F / s, calY = adj(P) Y / (s prod (sigma_j + f));
+ *   channel       m the smallest singular value, C = adj(P) / prod_{j != m} sigma_j,
+ *                 c_i = sqrt(C_ii^2 + guard^2 ||C_i,:||^2), Delta_i = s s_UV sigma_m / c_i,
+ *                 calY_i = (C Y)_i / c_i.
+ * Delta has one entry (paper, eigen) or IVC_NTHETA (channel). */
+static void mixing(int code, const double *Y, const double *Psi, double f_rel, double guard,
+                   double *Delta, double *calY) {
+    enum { n = IVC_NTHETA };
+    double P[n * n], U[n * n], V[n * n], sig[n], coef[n], r[n], big = 0, ss = 0, nrm, s, suv, d;
+    int i, j, k, m;
+    for (k = 0; k < n * n; k++) if (fabs(Psi[k]) > big) big = fabs(Psi[k]);
+    if (big > 0) for (k = 0; k < n * n; k++) { double q = Psi[k] / big; ss += q * q; }
+    nrm = big * sqrt(ss);
+    s = 1.0 + nrm;
+    if (code == 1 && nrm == 0.0) {
+        Delta[0] = 0.0;
+        for (i = 0; i < n; i++) calY[i] = 0.0;
+        return;
+    }
+    for (k = 0; k < n * n; k++) P[k] = Psi[k] / s;
+    suv = svd_jacobi(P, n, U, sig, V);           /* det V = +1 */
+    if (code == 0) {
+        products_without(sig, coef);
+        d = suv;
+        for (k = 0; k < n; k++) d *= sig[k];
+        Delta[0] = d;
+        adjugate_times(U, V, coef, suv, Y, s, calY);
+    } else if (code == 1) {
+        double f = f_rel * nrm / s;
+        for (k = 0; k < n; k++) r[k] = sig[k] / (sig[k] + f);
+        products_without(r, coef);
+        for (k = 0; k < n; k++) coef[k] /= sig[k] + f;   /* pi_k / prod_j (sigma_j + f) */
+        d = suv;
+        for (k = 0; k < n; k++) d *= r[k];
+        Delta[0] = d;
+        adjugate_times(U, V, coef, suv, Y, s, calY);
+    } else {
+        double C[n * n], c;
+        m = 0;
+        for (k = 1; k < n; k++) if (sig[k] < sig[m]) m = k;
+        for (k = 0; k < n; k++) coef[k] = k == m ? 1.0 : sig[m] / sig[k];
+        for (k = 0; k < n; k++) if (k != m && !(sig[k] > 0.0)) {   /* rank <= n - 2: adj = 0 */
+            for (j = 0; j < n; j++) coef[j] = 0.0;
+            break;
+        }
+        for (i = 0; i < n; i++)
+            for (j = 0; j < n; j++) {
+                double cij = 0;
+                for (k = 0; k < n; k++) cij += V[i * n + k] * coef[k] * U[j * n + k];
+                C[i * n + j] = suv * cij;
+            }
+        for (i = 0; i < n; i++) {
+            double r2 = 0, acc = 0;
+            for (j = 0; j < n; j++) { r2 += C[i * n + j] * C[i * n + j]; acc += C[i * n + j] * Y[j]; }
+            c = sqrt(C[i * n + i] * C[i * n + i] + guard * guard * r2);
+            if (c > 0.0) { calY[i] = acc / c; Delta[i] = s * suv * sig[m] / c; }
+            else { calY[i] = 0.0; Delta[i] = 0.0; }
+        }
+    }
+}
+
+/* w(t) of ivdrem.blocks._kernels.start_weight: 0 before t_on, the C1 ramp 3x^2 - 2x^3 over
+ * t_ramp, then 1 (the composite term of the scale-free mixings starts at t = T) */
+static double start_weight(double t, double t_on, double t_ramp) {
+    double x;
+    if (t >= t_on + t_ramp) return 1.0;
+    if (t <= t_on) return 0.0;
+    x = (t - t_on) / t_ramp;
+    return x * x * (3.0 - 2.0 * x);
+}
+
+/* the reference q_d, dq_d, ddq_d at t: the sinusoid A sin(w t + phi) + c, or the Fourier
+ * series of ivdrem.blocks.sources.fourier_series:
+ * q_d,i = c_i + sum_l (a_il sin(l w t) - b_il cos(l w t)) / (l w) */
+static void reference(const ivc_controller *c, double t, double *qd, double *dqd, double *ddqd) {
+    const double *par = c->par;
+    int i, l;
+    for (i = 0; i < IVC_NQ; i++) {
+        if (c->ref_kind == 0) {
+            double arg = par[IVC_P_TR_OMEGA + i] * t + par[IVC_P_TR_PHASE + i];
+            double sn = sin(arg), cs = cos(arg), A0 = par[IVC_P_TR_AMPLITUDE + i], w = par[IVC_P_TR_OMEGA + i];
+            qd[i] = A0 * sn + par[IVC_P_TR_OFFSET + i];
+            dqd[i] = A0 * w * cs;
+            ddqd[i] = -A0 * w * w * sn;
+        } else {
+            double q = 0, dq = 0, ddq = 0;
+            for (l = 0; l < IVC_NH; l++) {
+                double w = par[IVC_P_FR_OMEGA_F] * (l + 1), sn = sin(w * t), cs = cos(w * t);
+                double a = par[IVC_P_FR_A + i * IVC_NH + l], b = par[IVC_P_FR_B + i * IVC_NH + l];
+                q += (a * sn - b * cs) / w;
+                dq += a * cs + b * sn;
+                ddq += (b * cs - a * sn) * w;
+            }
+            qd[i] = par[IVC_P_TR_OFFSET + i] + q;
+            dqd[i] = dq;
+            ddqd[i] = ddq;
+        }
+    }
 }
 
 /* smallest eigenvalue of the symmetric part of A (n x n) by cyclic Jacobi rotations */
@@ -413,10 +548,11 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
     const double *par;
     ivc_state *s;
     double qd[n], dqd[n], ddqd[n], e[n], de[n], r[n], v[n], dv[n], tau[n], applied[n];
+    double x[n], fb[n], g_hat[n], acting[n], tdh[n];
     double A[NQT], B[NQT], C[NQT], PM[NQT], E[NQT], Pi[NQT], obs[NQT], phi[NQT];
     double F1[NQT], F2[NQT], F3[NQT], F4[NQT];
-    double theta_c[nth], b[nth], g[NM], y[NM], calY[nth];
-    double h, tk, mu, alpha, l, a = 0.0, I, d1, d2, dl, tmax;
+    double theta_c[nth], b[nth], g[NM], y[NM], a[nth];
+    double h, tk, mu, alpha, l, I, d1, d2, dl;
     int i, j, k;
     if (!c) return IVC_ERR_STATE;
     par = c->par;
@@ -435,12 +571,8 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
         }
     alpha = par[IVC_P_ALPHA];
     l = par[IVC_P_L];
+    reference(c, tk, qd, dqd, ddqd);
     for (i = 0; i < n; i++) {
-        double arg = par[IVC_P_TR_OMEGA + i] * tk + par[IVC_P_TR_PHASE + i];
-        double sn = sin(arg), cs = cos(arg), A0 = par[IVC_P_TR_AMPLITUDE + i], w = par[IVC_P_TR_OMEGA + i];
-        qd[i] = A0 * sn + par[IVC_P_TR_OFFSET + i];
-        dqd[i] = A0 * w * cs;
-        ddqd[i] = -A0 * w * w * sn;
         e[i] = qd[i] - q[i];
         de[i] = dqd[i] - dq[i];
         r[i] = de[i] + alpha * e[i];
@@ -457,6 +589,7 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
         Pi[k] = obs[k] + A[k];
     }
     /* composite term vartheta_c(theta_hat) = b_c - a theta_hat */
+    for (i = 0; i < nth; i++) a[i] = 0.0;
     if (c->law == IVC_LAW_COMPOSITE) {
         for (i = 0; i < nth; i++) {
             double acc = 0;
@@ -464,33 +597,85 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
             theta_c[i] = par[IVC_P_GAMMA] * (s->held[i] - acc);            /* (35) */
         }
     } else if (c->law == IVC_LAW_IV_DREM || c->law == IVC_LAW_DREM) {
-        double Dl = mixing(s->Yavg, s->Yavg + nth, calY);               /* (17), E4 */
-        s->Delta = Dl;
-        for (i = 0; i < nth; i++)
-            theta_c[i] = par[IVC_P_GAMMA] * Dl * (calY[i] - Dl * s->theta_hat[i]);   /* (21) */
-        a = par[IVC_P_GAMMA] * Dl * Dl;
+        double gw, t_on = 0.0, t_ramp = 0.0, Dmin;
+        if (fmod(s->k, (double)c->mix_every) == 0.0) {                    /* multi-rate */
+            double D[nth];
+            mixing(c->mixing, s->Yavg, s->Yavg + nth, par[IVC_P_F_REL], par[IVC_P_GUARD],
+                   D, s->calY_held);                                     /* (17), E4 */
+            for (i = 0; i < nth; i++) s->D_held[i] = c->mixing == IVC_MIXING_CHANNEL ? D[i] : D[0];
+        }
+        if (c->mixing != IVC_MIXING_PAPER) { t_on = c->T; t_ramp = IVC_START_RAMP_REL * c->T; }
+        gw = par[IVC_P_GAMMA] * start_weight(tk, t_on, t_ramp);
+        Dmin = s->D_held[0];
+        for (i = 0; i < nth; i++) {
+            double Dl = s->D_held[i];
+            if (Dl < Dmin) Dmin = Dl;
+            theta_c[i] = gw * Dl * (s->calY_held[i] - Dl * s->theta_hat[i]);   /* (21) */
+            a[i] = gw * Dl * Dl;
+        }
+        s->Delta = Dmin;
     } else if (c->law == IVC_LAW_SIGMA) {
-        for (i = 0; i < nth; i++)
+        for (i = 0; i < nth; i++) {
             theta_c[i] = par[IVC_P_SIGMA] * (par[IVC_P_THETA_STAR + i] - s->theta_hat[i]);  /* E5 */
-        a = par[IVC_P_SIGMA];
+            a[i] = par[IVC_P_SIGMA];
+        }
     } else {
         for (i = 0; i < nth; i++) theta_c[i] = 0.0;
     }
-    tmax = par[IVC_P_TAU_MAX];
-    for (i = 0; i < n; i++) {                                            /* (9) */
-        double kr = 0, pt = 0, ot = 0;
+    /* the feedback of (9): x = (K + delta_mu mu) r ("paper"), or M(q, theta_nominal) x
+     * ("inertia-scaled"; M x = Phi_M^T(q, x) theta, Property 1) */
+    for (i = 0; i < n; i++) {
+        double kr = 0;
         for (j = 0; j < n; j++) kr += par[IVC_P_K + i * n + j] * r[j];
+        x[i] = kr + par[IVC_P_DELTA_MU] * mu * r[i];
+    }
+    if (c->design == IVC_DESIGN_INERTIA_SCALED) {
+        ivc_Phi_M(q, x, F1);
+        for (i = 0; i < n; i++) {
+            double acc = 0;
+            for (j = 0; j < nth; j++) acc += F1[i * nth + j] * par[IVC_P_THETA_NOMINAL + j];
+            fb[i] = acc;
+        }
+    } else {
+        for (i = 0; i < n; i++) fb[i] = x[i];
+    }
+    /* gravity "robot": the robot adds g_hat(q) = G(q, theta_nominal) = Phi_G^T(q) theta */
+    if (c->gravity == IVC_GRAVITY_ROBOT) {
+        ivc_Phi_G(q, F4);
+        for (i = 0; i < n; i++) {
+            double acc = 0;
+            for (j = 0; j < nth; j++) acc += F4[i * nth + j] * par[IVC_P_THETA_NOMINAL + j];
+            g_hat[i] = acc;
+        }
+    } else {
+        for (i = 0; i < n; i++) g_hat[i] = 0.0;
+    }
+    for (i = 0; i < n; i++) {                                            /* (9) */
+        double pt = 0, ot = 0, tmax = par[IVC_P_TAU_MAX + i];
         for (j = 0; j < nth; j++) { pt += Pi[i * nth + j] * s->theta_hat[j]; ot += obs[i * nth + j] * s->theta_hat[j]; }
-        tau[i] = ((kr + par[IVC_P_DELTA_MU] * mu * r[i]) + pt) - s->u_f[i];
-        if (tau[i] > tmax) tau[i] = tmax;
+        tau[i] = (fb[i] + pt) - s->u_f[i];
+        if (c->gravity == IVC_GRAVITY_ROBOT) tau[i] = tau[i] - g_hat[i];
+        if (tau[i] > tmax) tau[i] = tmax;                                /* the command's limits */
         if (tau[i] < -tmax) tau[i] = -tmax;
+        if (s->k == 0 && par[IVC_P_FIRST_ZERO] != 0) tau[i] = 0.0;
+        else if (s->k > 0 && isfinite(par[IVC_P_TAU_RATE_MAX + i])) {
+            double dmax = h * par[IVC_P_TAU_RATE_MAX + i];
+            if (tau[i] > s->tau[i] + dmax) tau[i] = s->tau[i] + dmax;
+            if (tau[i] < s->tau[i] - dmax) tau[i] = s->tau[i] - dmax;
+        }
         if (!isfinite(tau[i])) {
             fail(c, "non-finite torque at t = %g (joint %g): the loop diverged", tk, (double)i);
             return IVC_ERR_DIVERGED;
         }
-        s->tau_d_hat[i] = -ot + s->u_f[i];                               /* Section 4 */
+        tdh[i] = -ot + s->u_f[i];                                        /* Section 4 */
     }
-    for (i = 0; i < n; i++) applied[i] = c->delay == 0 ? tau[i] : s->tau_prev[i];
+    /* the torque acting on the arm (the robot adds g_hat), which the filters see */
+    for (i = 0; i < n; i++) {
+        acting[i] = c->gravity == IVC_GRAVITY_ROBOT ? tau[i] + g_hat[i] : tau[i];
+        applied[i] = c->delay == 0 ? acting[i]
+                   : (c->gravity == IVC_GRAVITY_ROBOT ? s->tau[i] + g_hat[i] : s->tau_prev[i]);
+        s->tau_d_hat[i] = tdh[i];
+    }
     /* regression (13) at t_k: xi, eta advanced from t_k-1 with their inputs linear
      * between the samples (first-order hold), then phi^T = l (Phi_M^T(q, dq) - xi) + eta */
     ivc_Phi_M(q, dq, E);
@@ -559,9 +744,12 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
         double acc = 0, G = par[IVC_P_GAMMA_DIAG + j];
         for (k = 0; k < n; k++) acc += Pi[k * nth + j] * r[k];
         b[j] = acc + theta_c[j];
-        s->theta_hat[j] = s->theta_hat[j] + h * phi1(-G * a * h) * G * b[j];
+        s->theta_hat[j] = s->theta_hat[j] + h * phi1(-G * a[j] * h) * G * b[j];
     }
-    for (i = 0; i < n; i++) { s->tau_prev[i] = tau[i]; s->tau[i] = tau[i]; tau_out[i] = tau[i]; }
+    for (i = 0; i < n; i++) {
+        s->tau_prev[i] = acting[i]; s->tau[i] = tau[i]; tau_out[i] = tau[i];
+        s->qd[i] = qd[i]; s->dqd[i] = dqd[i];
+    }
     s->k += 1;
     return IVC_OK;
 }
@@ -577,3 +765,10 @@ int ivc_outputs(const ivc_controller *c, double *theta_hat, double *tau_d_hat, d
 }
 
 double ivc_time(const ivc_controller *c) { return c ? c->s.k * c->h : NAN; }
+
+int ivc_reference(const ivc_controller *c, double *q_d, double *dq_d) {
+    if (!c) return IVC_ERR_STATE;
+    if (q_d) memcpy(q_d, c->s.qd, sizeof c->s.qd);
+    if (dq_d) memcpy(dq_d, c->s.dqd, sizeof c->s.dqd);
+    return IVC_OK;
+}

@@ -19,7 +19,8 @@ import tempfile
 
 import numpy as np
 
-__all__ = ["FmuPlant", "sampled_loop", "as_response", "PAPER_DISTURBANCE", "PAPER_Q0"]
+__all__ = ["FmuPlant", "ModelPlant", "sampled_loop", "as_response", "PAPER_DISTURBANCE",
+           "PAPER_Q0"]
 
 PAPER_DISTURBANCE = dict(amplitude=[7.5, 1.5], omega=[0.5 * np.pi, 0.05 * np.pi],
                          phase=[0.0, 0.0], offset=[0.0, 0.0])
@@ -138,3 +139,90 @@ def as_response(rec):
                 labels.append(f"{name}[{i}]")
     return SimpleNamespace(time=np.asarray(rec["t"]), outputs=np.array(rows),
                            output_labels=labels)
+
+
+# ----------------------------------------------------------------------- a model's own plant
+_RK4_STEPPERS: dict = {}
+
+
+def _rk4_stepper(model):
+    """A compiled RK4 over the model's forward dynamics with the torque held (one per model
+    key): step(q, dq, tau, tau_d, theta, h, nsub, gravity) advances (q, dq) in place by
+    nsub steps of h / nsub; ``gravity``: the plant adds G(q, theta) to the torque itself (a
+    robot that compensates its own gravity)."""
+    key = model.key
+    if key in _RK4_STEPPERS:
+        return _RK4_STEPPERS[key]
+    import numba
+    fd = model.jit_functions.forward_dynamics
+    G = model.jit_functions.G
+    n = model.n
+
+    @numba.njit(cache=False)
+    def step(q, dq, tau, tau_d, theta, h, nsub, gravity):
+        # states   q[n], dq[n] (advanced in place)
+        # inputs   tau[n] (held), tau_d[n] (held), gravity: add G(q, theta) at every stage
+        dt = h / nsub
+        u = np.empty(n)
+        g = np.zeros(n)
+        k1q, k2q, k3q, k4q = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+        k1v, k2v, k3v, k4v = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+        qs, vs = np.empty(n), np.empty(n)
+        for _ in range(nsub):
+            for stage in range(4):
+                if stage == 0:
+                    qs[:] = q
+                    vs[:] = dq
+                elif stage == 1:
+                    qs[:] = q + 0.5 * dt * k1q
+                    vs[:] = dq + 0.5 * dt * k1v
+                elif stage == 2:
+                    qs[:] = q + 0.5 * dt * k2q
+                    vs[:] = dq + 0.5 * dt * k2v
+                else:
+                    qs[:] = q + dt * k3q
+                    vs[:] = dq + dt * k3v
+                if gravity:
+                    G(qs, theta, g)
+                for i in range(n):
+                    u[i] = tau[i] + tau_d[i] + g[i]
+                kq = (k1q, k2q, k3q, k4q)[stage]
+                kv = (k1v, k2v, k3v, k4v)[stage]
+                kq[:] = vs
+                fd(qs, vs, u, theta, kv)
+            for i in range(n):
+                q[i] += dt / 6.0 * (k1q[i] + 2.0 * k2q[i] + 2.0 * k3q[i] + k4q[i])
+                dq[i] += dt / 6.0 * (k1v[i] + 2.0 * k2v[i] + 2.0 * k3v[i] + k4v[i])
+
+    _RK4_STEPPERS[key] = step
+    return step
+
+
+class ModelPlant:
+    """The arm's own dynamics M q'' + C q' + F + G = tau + tau_d (the model's forward
+    dynamics at ``theta``, default its theta_values) integrated by RK4 with ``substeps``
+    steps per sample and the inputs held: a plant for :func:`sampled_loop` without an FMU.
+    ``gravity=True``: the plant adds G(q, theta) to the torque (a robot that compensates
+    its own gravity, as Franka's and UR's torque interfaces do)."""
+
+    def __init__(self, model, q0, dq0, *, theta=None, substeps=4, gravity=False):
+        self.model, self.n = model, model.n
+        self.theta = np.asarray(model.theta_values if theta is None else theta, dtype=float)
+        self.q = np.array(q0, dtype=float)
+        self.dq = np.array(dq0, dtype=float)
+        self.substeps, self.gravity = int(substeps), bool(gravity)
+        self._step = _rk4_stepper(model)
+
+    def outputs(self):
+        return self.q.copy(), self.dq.copy()
+
+    def step(self, t, h, tau, tau_d):
+        self._step(self.q, self.dq, np.asarray(tau, dtype=float),
+                   np.asarray(tau_d, dtype=float), self.theta, float(h), self.substeps,
+                   self.gravity)
+        if not (np.all(np.isfinite(self.q)) and np.all(np.isfinite(self.dq))):
+            raise FloatingPointError(f"the plant diverged at t = {t + h:.6g} s "
+                                     f"(q = {self.q}, dq = {self.dq})")
+
+    def close(self):
+        pass

@@ -47,12 +47,39 @@ import math
 
 import numpy as np
 
-from ..blocks._kernels import mixing_values
+from ..blocks._kernels import MIXING_VARIANTS, mixing_values, start_weight
+from ..blocks.mixing import DEFAULT_F_REL, DEFAULT_GUARD, start_of_term
+from ..blocks.sources import fourier_series
 from ..laws import get_law
 from .discrete import averaging_factor, mu_integral, mu_saturated
 from .window import BlockWindow
 
-__all__ = ["SampledController", "SAMPLED_LAWS", "PAPER_TRAJECTORY", "phi1"]
+__all__ = ["SampledController", "SAMPLED_LAWS", "PAPER_TRAJECTORY", "phi1", "DESIGNS",
+           "GRAVITY_OPTIONS", "REFERENCE_HARMONICS", "default_design", "default_mixing"]
+
+#: sampled designs of the feedback of (9) (docs/controller.md, "Sampled designs")
+DESIGNS = ("paper", "inertia-scaled")
+#: who compensates gravity: the controller's law alone, or the robot ("robot": tau - g_hat)
+GRAVITY_OPTIONS = ("controller", "robot")
+#: harmonics per joint of a Fourier reference (the C library's fixed size; the real-arm
+#: experiment's ivdrem.experiments.arm.HARMONICS)
+REFERENCE_HARMONICS = 5
+
+
+def _is_urdf_arm(model):
+    from ..models.urdf import RigidBodyModel
+    return isinstance(model, RigidBodyModel)
+
+
+def default_design(model):
+    """"paper" for the symbolic arms (the paper's 2-link, planar-N: the paper's (9) holds at
+    1 kHz there), "inertia-scaled" for the URDF arms (docs/controller.md)."""
+    return "inertia-scaled" if _is_urdf_arm(model) else "paper"
+
+
+def default_mixing(model):
+    """"paper" for the symbolic arms, "eigen" for the URDF arms (docs/mixing.md)."""
+    return "eigen" if _is_urdf_arm(model) else "paper"
 
 #: the laws the sampled controller implements (names of ivdrem.laws)
 SAMPLED_LAWS = ("iv-drem", "composite-learning", "drem", "sigma-modification", "none")
@@ -83,6 +110,17 @@ def _vector(name, value, n):
         raise ValueError(f"{name} must have {n} entries, got {a.size}")
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name} must be finite, got {a}")
+    return a
+
+
+def _limit(name, value, n):
+    """A per-joint limit: a number or n numbers, each > 0 (inf: none)."""
+    a = np.asarray(value, dtype=float)
+    a = np.full(n, float(a)) if a.ndim == 0 else a.reshape(-1)
+    if a.size != n:
+        raise ValueError(f"{name} must be a number or {n} numbers, got {a.size}")
+    if not np.all(a > 0):          # NaN fails too
+        raise ValueError(f"{name} must be > 0 (inf: no limit), got {a}")
     return a
 
 
@@ -117,13 +155,33 @@ class SampledController:
     default) plus ``h``, ``mu_max``, ``tau_max`` (torque saturation, default none),
     ``delay`` (0 or 1) and ``block`` (samples per block sum of the window).  ``Gamma``:
     scalar or diagonal (the exact update of (11) above needs a diagonal gain).
+
+    Real arms (docs/controller.md, "Sampled designs" and "The robot's contract"):
+
+    * ``design``: "paper" (the feedback (K + delta_mu mu) r of (9)) or "inertia-scaled"
+      (M(q, theta_nominal)(K + delta_mu mu) r, K in 1/s): default :func:`default_design`;
+    * ``mixing``: "paper", "eigen" or "channel" (docs/mixing.md; default
+      :func:`default_mixing`), with ``f_rel`` ("eigen") and ``guard`` ("channel"); the
+      scale-free variants switch the composite term on at t = T (ramp 0.1 T), as the
+      continuous loop does; ``mix_every``: the mixing (17) every m samples, held between
+      (multi-rate; the filters, the window and theta_hat's update run at every sample);
+    * ``trajectory``: the paper's sinusoid (amplitude, omega, phase, offset) or a Fourier
+      reference {"kind": "fourier", "omega_f", "a", "b", "offset"} of at most
+      REFERENCE_HARMONICS harmonics (ivdrem.experiments.arm.design_trajectory);
+    * ``gravity``: "controller", or "robot" (the robot adds its own g(q): tau - g_hat(q)
+      is commanded, g_hat = G(q, theta_nominal)); ``theta_nominal``: default the model's
+      theta_values (the URDF's);
+    * ``tau_max``, ``tau_rate_max``: per-joint limits of the command (N m, N m/s; a number
+      or n numbers; inf: none); ``first_zero``: the command of t = 0 is 0.
     """
 
     def __init__(self, model=None, law="iv-drem", *, h=1e-3, alpha=1.0, K=2.0,
                  delta_mu=0.8, Gamma=0.01, mu0=1.0, mu1=15.0, mu_max=135.0,
                  observer_variant="corrected", l=50.0, T=None, p=None, F0=None, gamma=None,
                  sigma=None, theta_star=None, epsilon=None, theta_hat0=None, trajectory=None,
-                 tau_max=math.inf, delay=0, block=10):
+                 tau_max=math.inf, delay=0, block=10, design=None, mixing=None, mix_every=1,
+                 f_rel=DEFAULT_F_REL, guard=DEFAULT_GUARD, gravity="controller",
+                 theta_nominal=None, tau_rate_max=math.inf, first_zero=False):
         if model is None:
             from ..models import two_link
             model = two_link()
@@ -168,7 +226,34 @@ class SampledController:
             raise ValueError(f"mu_max = {mu_max} must be >= mu1 = {mu1}")
         self.corrected = observer_variant == "corrected"
         self.l = _positive("l", l)
-        self.tau_max = _positive("tau_max", tau_max, allow_inf=True)
+        self.tau_max = _limit("tau_max", tau_max, n)
+        self.tau_rate_max = _limit("tau_rate_max", tau_rate_max, n)
+        self.first_zero = bool(first_zero)
+        self.design = default_design(model) if design is None else design
+        if self.design not in DESIGNS:
+            raise ValueError(f"design = {design!r} is not a sampled design; choose one of "
+                             f"{', '.join(map(repr, DESIGNS))}")
+        if gravity not in GRAVITY_OPTIONS:
+            raise ValueError(f"gravity = {gravity!r} is not an option; choose 'controller' "
+                             f"(the law's torque is commanded) or 'robot' (the robot adds its "
+                             f"own gravity model: tau - g_hat(q) is commanded)")
+        self.gravity = gravity
+        self.mixing = default_mixing(model) if mixing is None else mixing
+        if self.mixing not in MIXING_VARIANTS:
+            raise ValueError(f"mixing = {mixing!r} is not a variant; choose one of "
+                             f"{', '.join(map(repr, MIXING_VARIANTS))}")
+        self.mix_code = MIXING_VARIANTS.index(self.mixing)
+        self.mix_every = int(mix_every)
+        if self.mix_every != mix_every or self.mix_every < 1:
+            raise ValueError(f"mix_every must be a whole number >= 1, got {mix_every!r}")
+        self.f_rel = _positive("f_rel", f_rel)
+        self.guard = _positive("guard", guard)
+        tn = model.theta_values if theta_nominal is None else theta_nominal
+        if tn is None and (self.design != "paper" or gravity == "robot"):
+            raise ValueError(f"design {self.design!r} and gravity 'robot' need the nominal "
+                             f"parameters theta_nominal (model {model.name!r} has none)")
+        self.theta_nominal = _vector("theta_nominal", tn if tn is not None else np.zeros(nth),
+                                     nth)
         self.delay = int(delay)
         self.uses_window = law in ("iv-drem", "drem", "composite-learning")
         self.averaged = law != "composite-learning"
@@ -185,25 +270,52 @@ class SampledController:
                            else _vector("theta_hat0", theta_hat0, nth))
         if trajectory is None:
             trajectory = PAPER_TRAJECTORY if n == 2 else generic_trajectory(n)
-        tr = trajectory
-        unknown = set(tr) - {"amplitude", "omega", "phase", "offset"}
+        self._set_trajectory(trajectory)
+        self.block = int(block)
+        self.m = nth + nth * nth
+        if self.uses_window:
+            BlockWindow(self.m, self.T, self.h, block=self.block)   # checks T / h early
+        # the composite term's start (docs/mixing.md): t = 0 for "paper", T for the others
+        self.t_on, self.t_ramp = (start_of_term(self.mixing, self.T) if self.averaged
+                                  else (0.0, 0.0))
+        # work buffers (preallocated; the step allocates only small temporaries)
+        z = lambda *s: np.zeros(s)  # noqa: E731
+        self._A, self._B, self._C = z(n, nth), z(n, nth), z(n, nth)
+        self._Pi, self._PM, self._E = z(n, nth), z(n, nth), z(n, nth)
+        self._F = [z(n, nth) for _ in range(4)]
+        self._Delta, self._calY, self._logD = z(nth), z(nth), z(nth)
+        self._Mx = z(n, nth)
+        self.reset()
+
+    def _set_trajectory(self, tr):
+        n, H = self.n, REFERENCE_HARMONICS
+        self.fourier = tr.get("kind", "sinusoid") == "fourier"
+        if self.fourier:
+            unknown = set(tr) - {"kind", "omega_f", "a", "b", "offset", "rank", "cond"}
+            if unknown:
+                raise ValueError(f"unknown Fourier trajectory parameter(s) {sorted(unknown)}")
+            a = np.asarray(tr["a"], dtype=float)
+            b = np.asarray(tr["b"], dtype=float)
+            if a.ndim != 2 or a.shape != b.shape or a.shape[0] != n or a.shape[1] > H:
+                raise ValueError(f"a Fourier trajectory's a and b must be {n} x H matrices "
+                                 f"with H <= {H} harmonics, got {a.shape} and {b.shape}")
+            if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+                raise ValueError("a Fourier trajectory's a and b must be finite")
+            self.fr_a, self.fr_b = np.zeros((n, H)), np.zeros((n, H))
+            self.fr_a[:, :a.shape[1]] = a
+            self.fr_b[:, :b.shape[1]] = b
+            self.fr_wf = _positive("trajectory omega_f", tr["omega_f"])
+            self.tr_A = self.tr_w = self.tr_phi = np.zeros(n)
+            self.tr_c = _vector("trajectory offset", tr.get("offset", 0.0), n)
+            return
+        unknown = set(tr) - {"kind", "amplitude", "omega", "phase", "offset"}
         if unknown:
             raise ValueError(f"unknown trajectory parameter(s) {sorted(unknown)}")
         self.tr_A = _vector("trajectory amplitude", tr["amplitude"], n)
         self.tr_w = _vector("trajectory omega", tr["omega"], n)
         self.tr_phi = _vector("trajectory phase", tr.get("phase", 0.0), n)
         self.tr_c = _vector("trajectory offset", tr.get("offset", 0.0), n)
-        self.block = int(block)
-        self.m = nth + nth * nth
-        if self.uses_window:
-            BlockWindow(self.m, self.T, self.h, block=self.block)   # checks T / h early
-        # work buffers (preallocated; the step allocates only small temporaries)
-        z = lambda *s: np.zeros(s)  # noqa: E731
-        self._A, self._B, self._C = z(n, nth), z(n, nth), z(n, nth)
-        self._Pi, self._PM, self._E = z(n, nth), z(n, nth), z(n, nth)
-        self._F = [z(n, nth) for _ in range(4)]
-        self._Delta, self._calY, self._logD = z(1), z(nth), z(1)
-        self.reset()
+        self.fr_wf, self.fr_a, self.fr_b = 0.0, np.zeros((n, H)), np.zeros((n, H))
 
     # ------------------------------------------------------------------ state
     def reset(self):
@@ -221,9 +333,13 @@ class SampledController:
         self.zeta = np.zeros((n, nth))
         self.Yavg = np.zeros(self.m)
         self.tau_prev = np.zeros(n)      # torque applied over the current sample (delay 1)
-        self.tau = np.zeros(n)
+        self.tau = np.zeros(n)           # the command tau_k (what the robot receives)
         self.tau_d_hat = np.zeros(n)
         self.Delta = 0.0
+        self.D_held = np.zeros(nth)       # mixing (17) of the last mixing sample (multi-rate)
+        self.calY_held = np.zeros(nth)
+        self.q_d = np.zeros(n)            # the reference at the last sample
+        self.dq_d = np.zeros(n)
         self.held = np.zeros(self.m)      # composite learning: (Y_b, Psi_b) at t_e
         self.lambda_min_held = 0.0
         self.window = (BlockWindow(self.m, self.T, self.h, block=self.block)
@@ -231,7 +347,8 @@ class SampledController:
 
     _STATE = ("k", "Phi_f", "Phi_Mf", "u_f", "theta_hat", "zf", "xi", "eta", "X_xi", "X_eta",
               "zeta", "Yavg",
-              "tau_prev", "tau", "tau_d_hat", "Delta", "held", "lambda_min_held")
+              "tau_prev", "tau", "tau_d_hat", "Delta", "held", "lambda_min_held", "D_held",
+              "calY_held", "q_d", "dq_d")
     _WINDOW = ("ring", "pos", "P", "i", "S", "shadow", "nshadow", "g_prev")
 
     def state(self):
@@ -253,10 +370,29 @@ class SampledController:
 
     # ------------------------------------------------------------------ step
     def reference(self, t):
+        """(q_d, dq_d, ddq_d) at t: the sinusoid, or the Fourier series of
+        :func:`ivdrem.blocks.sources.fourier_series`."""
+        if self.fourier:
+            q, dq, ddq = fourier_series(t, self.fr_wf, self.fr_a, self.fr_b, self.tr_c)
+            return q[0], dq[0], ddq[0]
         arg = self.tr_w * t + self.tr_phi
         s, c = np.sin(arg), np.cos(arg)
         return (self.tr_A * s + self.tr_c, self.tr_A * self.tr_w * c,
                 -self.tr_A * self.tr_w * self.tr_w * s)
+
+    def last_reference(self):
+        """(q_d, dq_d) of the last step (the C library's ivc_reference)."""
+        return self.q_d.copy(), self.dq_d.copy()
+
+    def feedback(self, q, r, mu):
+        """The feedback term of (9): (K + delta_mu mu) r ("paper"), or
+        M(q, theta_nominal)(K + delta_mu mu) r ("inertia-scaled"), M x = Phi_M^T(q, x) theta
+        (Property 1)."""
+        x = self.K @ r + self.delta_mu * mu * r
+        if self.design == "paper":
+            return x
+        self.fn.Phi_M(q, x, self._Mx)
+        return self._Mx @ self.theta_nominal
 
     def mu(self, t):
         return mu_saturated(t, self.mu0, self.mu1, self.mu_max)[0]
@@ -295,24 +431,47 @@ class SampledController:
             Psi_h = self.held[nth:].reshape(nth, nth)
             theta_c = self.gamma * (self.held[:nth] - Psi_h @ th)                  # (35)
         elif self.uses_window:
-            mixing_values(0, self.Yavg[:self.ntheta], self.Yavg[self.ntheta:], 1e-6, 1e-3,
-                          self._Delta, self._calY, self._logD)                  # (17), E4
-            D = self._Delta[0]
-            self.Delta = D
-            theta_c = self.gamma * D * (self._calY - D * th)                    # (21)
-            a = self.gamma * D * D
+            if self.k % self.mix_every == 0:                                    # multi-rate
+                mixing_values(self.mix_code, self.Yavg[:self.ntheta], self.Yavg[self.ntheta:],
+                              self.f_rel, self.guard, self._Delta, self._calY,
+                              self._logD)                                       # (17), E4
+                if self.mix_code == 2:                                          # per channel
+                    self.D_held[:] = self._Delta
+                else:
+                    self.D_held[:] = self._Delta[0]
+                self.calY_held[:] = self._calY
+            D = self.D_held if self.mix_code == 2 else self.D_held[0]
+            self.Delta = float(np.min(D)) if self.mix_code == 2 else D
+            gw = self.gamma * start_weight(tk, self.t_on, self.t_ramp)
+            theta_c = gw * D * (self.calY_held - D * th)                        # (21)
+            a = gw * D * D
         elif self.law == "sigma-modification":
             theta_c = self.sigma * (self.theta_star - th)                       # E5
             a = self.sigma
         else:
             theta_c = np.zeros(self.ntheta)
-        tau = (self.K @ r + self.delta_mu * mu * r) + Pi @ th - self.u_f        # (9)
-        if self.tau_max < math.inf:
+        tau = self.feedback(q, r, mu) + Pi @ th - self.u_f                      # (9)
+        # the command: the robot's gravity taken out, the limits, the first command
+        F4 = self._F[3]
+        g_hat = None
+        if self.gravity == "robot":
+            self.fn.Phi_G(q, F4)
+            g_hat = F4 @ self.theta_nominal
+            tau = tau - g_hat
+        if np.any(self.tau_max < math.inf):
             tau = np.clip(tau, -self.tau_max, self.tau_max)
+        if self.k == 0 and self.first_zero:
+            tau = np.zeros(self.n)
+        elif self.k > 0 and np.any(self.tau_rate_max < math.inf):
+            step = h * self.tau_rate_max
+            tau = np.clip(tau, self.tau - step, self.tau + step)
         if not np.all(np.isfinite(tau)):
             raise FloatingPointError(f"non-finite torque at t = {tk}: the loop diverged")
         self.tau_d_hat = -(obs @ th) + self.u_f                                 # Section 4
-        applied = tau if self.delay == 0 else self.tau_prev
+        # the torque acting on the arm (the robot adds g_hat), which the filters see
+        acting = tau if g_hat is None else tau + g_hat
+        applied = acting if self.delay == 0 else (
+            self.tau_prev if g_hat is None else self.tau + g_hat)
         # regression (13) at t_k: phi^T = l (Phi_M^T(q, dq) - xi) + eta
         E = self._E
         fn.Phi_M(q, dq, E)
@@ -358,9 +517,13 @@ class SampledController:
             f = averaging_factor(tk, h, self.p, self.F0)                        # (15b)
             self.Yavg = y + f * (self.Yavg - y)
         b = Pi.T @ r + theta_c                                                  # (11)
-        self.theta_hat = th + h * np.array([phi1(-gi * a * h) for gi in self.Gamma]) \
-            * self.Gamma * b
-        self.tau_prev = tau.copy()
+        if np.ndim(a):                # "channel": one rate per channel
+            f1 = np.array([phi1(-gi * ai * h) for gi, ai in zip(self.Gamma, a)])
+        else:
+            f1 = np.array([phi1(-gi * a * h) for gi in self.Gamma])
+        self.theta_hat = th + h * f1 * self.Gamma * b
+        self.tau_prev = acting.copy()
         self.tau = tau
+        self.q_d, self.dq_d = qd, dqd
         self.k += 1
         return tau.copy()

@@ -13,6 +13,7 @@ import numpy as np  # noqa: F401  (the kernels' global)
 from . import rigid_body as _src
 
 SINGULAR_INERTIA_MESSAGE = _src.SINGULAR_INERTIA_MESSAGE
+PIVOT_RTOL = _src.PIVOT_RTOL
 
 for _fn in _src.KERNELS:
     globals()[_fn.__name__] = numba.njit(cache=True)(

@@ -17,7 +17,8 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["RobotModel", "REGRESSOR_ARGS", "FUNCTION_NAMES", "SINGULAR_INERTIA_MESSAGE"]
+__all__ = ["RobotModel", "REGRESSOR_ARGS", "FUNCTION_NAMES", "SINGULAR_INERTIA_MESSAGE",
+           "C_FUNCTION_ARGS", "PIVOT_RTOL"]
 
 SINGULAR_INERTIA_MESSAGE = "inertia matrix M(q) is not positive definite (singular inertia)"
 
@@ -25,10 +26,44 @@ SINGULAR_INERTIA_MESSAGE = "inertia matrix M(q) is not positive definite (singul
 REGRESSOR_ARGS = {"Phi_M": ("q", "a"), "Phi_C": ("q", "dq", "v"), "Phi_dM": ("q", "dq", "a"),
                   "Phi_G": ("q",), "Phi_F": ("dq",), "Phi": ("q", "dq", "v", "dv")}
 
+#: The rule for "M(q) is positive definite", the same in every language (docs/models.md):
+#: every pivot d_j of its Cholesky factorisation is finite and d_j > PIVOT_RTOL * max_i M_ii.
+PIVOT_RTOL = 1e-13
+
+#: The functions of every model's C face (``c_source``) and their pointer arguments, in
+#: signature order (the last one is written); ``forward_dynamics`` returns an int.
+C_FUNCTION_ARGS = {
+    "Phi_M": ("q", "a", "out"), "Phi_C": ("q", "dq", "v", "out"),
+    "Phi_dM": ("q", "dq", "a", "out"), "Phi_G": ("q", "out"), "Phi_F": ("dq", "out"),
+    "Phi": ("q", "dq", "v", "dv", "out"),
+    "M": ("q", "theta", "out"), "C": ("q", "dq", "theta", "out"), "G": ("q", "theta", "out"),
+    "F": ("dq", "theta", "out"), "forward_dynamics": ("q", "dq", "tau", "theta", "ddq"),
+    "forward_dynamics_k": ("q", "dq", "tau", "theta", "k", "ddq"),
+}
+
 #: The functions every model's source defines (signatures in ivdrem.models.euler_lagrange).
 FUNCTION_NAMES = ("Phi_M", "Phi_C", "Phi_dM", "Phi_G", "Phi_F", "Phi",
                   "M", "C", "G", "F", "forward_dynamics",
                   *(f"{r}_jac" for r in REGRESSOR_ARGS))
+
+
+def linalg_import(prefix):
+    """The line of a symbolic model's source that imports the package's one Cholesky
+    (``_rb_spd_solve`` of :mod:`ivdrem.models.rigid_body`, compiled), named by the kernels'
+    hash so that numba's cache of a model module never keeps an older kernel's code."""
+    import hashlib
+    import inspect
+    from . import rigid_body
+    digest = hashlib.sha256(inspect.getsource(rigid_body).encode()).hexdigest()[:16]
+    return (f"# kernels: ivdrem.models.rigid_body {digest}\n"
+            f"import ivdrem.models._rigid_body_jit as {prefix}_linalg\n\n\n")
+
+
+def _c_prototype(prefix, name):
+    args = C_FUNCTION_ARGS[name]
+    ret = "int" if name.startswith("forward_dynamics") else "void"
+    sig = ", ".join([f"const double *{a}" for a in args[:-1]] + [f"double *{args[-1]}"])
+    return f"{ret} {prefix}{name}({sig})"
 
 
 class RobotModel:
@@ -68,10 +103,11 @@ class RobotModel:
     def source(self, prefix: str = "") -> str:  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def _disk_cached_source(self, prefix, generate):
+    def _disk_cached_source(self, prefix, generate, kind="py"):
         """The source of `prefix` from the compile cache's ``models`` directory, else made by
         `generate(prefix)` (with a note: a large model's symbolic code generation takes
-        minutes) and written there for every later model object and process.
+        minutes) and written there for every later model object and process; `kind` is
+        ``"py"`` (:meth:`source`) or ``"c"`` (:meth:`c_source`).
 
         The file is named by :attr:`key` (the model's content and code generator) and
         ivdrem's version and starts with a line repeating both, checked on reading: a
@@ -82,8 +118,9 @@ class RobotModel:
         from .._atomic import write_text_atomic
         from .._progress import preparing
         from ..sim.cache import cache_dir
-        header = f"# ivdrem model source: key {self.key} ivdrem {__version__} prefix {prefix!r}\n"
-        path = cache_dir() / "models" / f"{self.key[:32]}-{__version__}-{prefix or '_'}.py"
+        header = f"ivdrem model source: key {self.key} ivdrem {__version__} prefix {prefix!r}"
+        header = f"# {header}\n" if kind == "py" else f"/* {header} */\n"
+        path = cache_dir() / "models" / f"{self.key[:32]}-{__version__}-{prefix or '_'}.{kind}"
         try:
             text = path.read_text(encoding="utf-8")
             if text.startswith(header):
@@ -114,6 +151,70 @@ class RobotModel:
         if prefix and not prefix.isidentifier():
             raise ValueError(f"prefix must be a valid Python identifier prefix, got {prefix!r}")
         return prefix
+
+    # ------------------------------------------------------------------ the C face
+    def c_source(self, prefix: str = "") -> str:
+        """One C99 translation unit (``<math.h>`` only, no allocation, workspace on the
+        stack with sizes fixed here) defining the model's functions with names prefixed by
+        `prefix`: the regressors ``Phi_M, Phi_C, Phi_dM, Phi_G, Phi_F, Phi`` (n x nθ, in
+        the model's own parameters), ``M, C`` (n x n), ``G, F`` (n), all row major, and
+        ``int forward_dynamics(q, dq, tau, theta, ddq)`` (0, or 1 when M(q) fails the one
+        positive-definiteness rule, :data:`PIVOT_RTOL`); the same numbers as
+        :attr:`functions`.  Also ``forward_dynamics_k``, whose argument ``k`` holds the
+        model's constants (``<P>NCONST`` of them, in the order of ``model.constants``;
+        the plant FMU's parameters), and the macros ``<P>N``, ``<P>NTHETA``,
+        ``<P>NCONST`` (``<P>`` the prefix upper-cased).  Every function is declared
+        ``<P>FN`` (empty unless the includer defines it, e.g. ``static``).  docs/models.md,
+        "The C face"."""
+        prefix = self._check_c_prefix(prefix)
+        cache = self.__dict__.setdefault("_c_source_cache", {})
+        if prefix not in cache:
+            cache[prefix] = self._make_c_source(prefix)
+        return cache[prefix]
+
+    def _make_c_source(self, prefix):
+        """:meth:`c_source` made from the model (a symbolic model keeps it on disk)."""
+        return self._c_frame(prefix) + self._c_body(prefix)
+
+    def c_declarations(self, prefix: str = "", linkage: str = "") -> str:
+        """The prototypes of :meth:`c_source`'s functions (for a header), each preceded by
+        `linkage` (e.g. a visibility macro)."""
+        prefix = self._check_c_prefix(prefix)
+        lead = f"{linkage} " if linkage else ""
+        return "\n".join(f"{lead}{_c_prototype(prefix, name)};" for name in C_FUNCTION_ARGS) + "\n"
+
+    def _c_body(self, prefix: str) -> str:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @staticmethod
+    def _check_c_prefix(prefix):
+        prefix = str(prefix)
+        if prefix and not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", prefix):
+            raise ValueError(f"prefix must be the start of a C identifier, got {prefix!r}")
+        return prefix
+
+    def _c_frame(self, prefix):
+        P = prefix.upper()
+        from .. import __version__
+        from ._c_printer import print_kernels
+        from .rigid_body import C_CHOLESKY
+        table = "\n".join(f" *   {_c_prototype(prefix, name)}" for name in C_FUNCTION_ARGS)
+        guards = "".join(f"#ifndef {P}{m}\n#define {P}{m} {v}\n#endif\n" for m, v in (
+            ("N", self.n), ("NTHETA", self.ntheta), ("NCONST", len(self.constants)),
+            ("FN", "")))
+        return f"""/* The C face of the ivdrem model "{self.name}" (n = {self.n}, ntheta = {self.ntheta}),
+ * model key {self.key}; generated by ivdrem {__version__}.  Do not edit.
+ * docs/models.md, "The C face": the same functions and numbers as the model's Python code,
+ * matrices row major, regressors n x ntheta in the model's parameters:
+{table}
+ * forward_dynamics returns 0, or 1 when M(q) is not positive definite: a Cholesky pivot
+ * d_j not finite or d_j <= {PIVOT_RTOL!r} max_i M_ii (the one rule of every language).
+ */
+#include <math.h>
+{guards}
+/* The package's one Cholesky, printed from its Python (ivdrem.models.rigid_body,
+ * _rb_cholesky and _rb_cholesky_solve) by ivdrem.models._c_printer. */
+{print_kernels(C_CHOLESKY, prefix)}"""
 
     # ------------------------------------------------------------------ numeric
     def _namespace(self, jit):

@@ -59,6 +59,7 @@ Generated: ``Phi_M_jac``, ``Phi_C_jac``, ``Phi_dM_jac``, ``Phi_G_jac``, ``Phi_F_
 from __future__ import annotations
 
 import hashlib
+import re
 import math
 import types
 from functools import cached_property
@@ -67,13 +68,13 @@ import numpy as np
 import sympy as sp
 from sympy.printing.pycode import PythonCodePrinter
 
-from .base import (FUNCTION_NAMES as _FUNCTION_NAMES, REGRESSOR_ARGS,
-                   SINGULAR_INERTIA_MESSAGE, RobotModel)
+from .base import (FUNCTION_NAMES as _FUNCTION_NAMES, REGRESSOR_ARGS, RobotModel,
+                   linalg_import)
 
 __all__ = ["EulerLagrangeModel", "CODEGEN_VERSION", "REGRESSOR_ARGS"]
 
 #: Bumped whenever the generated source changes shape; part of :attr:`EulerLagrangeModel.key`.
-CODEGEN_VERSION = "2"
+CODEGEN_VERSION = "3"
 
 # ----------------------------------------------------------------------------- helpers
 def _is_zero(expr) -> bool:
@@ -454,11 +455,17 @@ class EulerLagrangeModel(RobotModel):
         module it is placed in, and is numba-nopython compilable.
         """
         # sympy's printing takes minutes for a large arm: kept on disk
-        return self._memo_source(
-            prefix, lambda p: self._disk_cached_source(p, self.generate_source))
+        return self._memo_source(prefix, lambda p: linalg_import(p) + self._disk_cached_source(
+            p, self._generate_body))
 
     def generate_source(self, prefix: str = "") -> str:
         """:meth:`source` made from the symbolic model, without any cache."""
+        prefix = self._check_prefix(prefix)
+        return linalg_import(prefix) + self._generate_body(prefix)
+
+    def _generate_body(self, prefix):
+        # the functions (what the disk cache keeps: the import line names the kernels'
+        # current version, which the cached text must not fix)
         prefix = self._check_prefix(prefix)
         return "\n\n".join(self._gen(name, prefix) for name in _FUNCTION_NAMES) + "\n"
 
@@ -530,7 +537,7 @@ class EulerLagrangeModel(RobotModel):
             return self._emit(full, "dq, theta, out", f"friction F(dq); out ({n},)",
                               [((i,), expr[i]) for i in range(n)], two_d=False)
         if fname == "forward_dynamics":
-            return self._emit_forward_dynamics(full)
+            return self._emit_forward_dynamics(full, prefix)
         raise KeyError(fname)  # pragma: no cover
 
     def _cse(self, exprs):
@@ -565,7 +572,7 @@ class EulerLagrangeModel(RobotModel):
         lines.append("    return None")
         return "\n".join(lines)
 
-    def _emit_forward_dynamics(self, full):
+    def _emit_forward_dynamics(self, full, prefix):
         P = _Printer()
         N = self._numeric
         n = self.n
@@ -596,30 +603,79 @@ class EulerLagrangeModel(RobotModel):
         for i in range(n):
             lines.append(f"    out[{i}] = {P.doprint(red[k])}")
             k += 1
-        lines += [
-            f"    for _j in range({n}):",
-            "        _d = _L[_j, _j]",
-            "        for _k in range(_j):",
-            "            _d -= _L[_j, _k] * _L[_j, _k]",
-            "        if not (_d > 0.0 and _d < math.inf):",
-            f'            raise ValueError("{SINGULAR_INERTIA_MESSAGE}")',
-            "        _d = math.sqrt(_d)",
-            "        _L[_j, _j] = _d",
-            f"        for _i in range(_j + 1, {n}):",
-            "            _s = _L[_i, _j]",
-            "            for _k in range(_j):",
-            "                _s -= _L[_i, _k] * _L[_j, _k]",
-            "            _L[_i, _j] = _s / _d",
-            f"    for _i in range({n}):",
-            "        _s = out[_i]",
-            "        for _k in range(_i):",
-            "            _s -= _L[_i, _k] * out[_k]",
-            "        out[_i] = _s / _L[_i, _i]",
-            f"    for _i in range({n - 1}, -1, -1):",
-            "        _s = out[_i]",
-            f"        for _k in range(_i + 1, {n}):",
-            "            _s -= _L[_k, _i] * out[_k]",
-            "        out[_i] = _s / _L[_i, _i]",
-            "    return None",
-        ]
+        # the package's one Cholesky (ivdrem.models.rigid_body, one rule for "singular")
+        lines += [f"    {prefix}_linalg._rb_spd_solve(_L, out)", "    return None"]
         return "\n".join(lines)
+
+    # ------------------------------------------------------------------ the C face
+    def _c_symbols(self, with_k):
+        """{model symbol: C access symbol} (``q[i]``, ``theta[j]``, ...); the constants as
+        ``k[i]`` if `with_k`, else their values (17 digits: every double round-trips)."""
+        ren = {}
+        for g, syms in (("q", self.q), ("dq", self.dq), ("a", self.a), ("v", self.v),
+                        ("dv", self.dv), ("theta", self.theta)):
+            for i, s in enumerate(syms):
+                ren[s] = sp.Symbol(f"{g}[{i}]")
+        for i, (k, v) in enumerate(self.constants.items()):
+            ren[k] = sp.Symbol(f"k[{i}]") if with_k else sp.Float(v, 17)
+        return ren
+
+    @staticmethod
+    def _c_function(head, args, exprs, targets, tail=()):
+        """A C function `head` whose body assigns sympy `exprs` (after CSE) to `targets`;
+        the pointer arguments it does not read are cast to void."""
+        body = []
+        if exprs:
+            repl, red = sp.cse(list(exprs), symbols=sp.numbered_symbols("w"), order="none")
+            body = [f"    const double {s} = {sp.ccode(e, standard='C99')};" for s, e in repl]
+            body += [f"    {t} = {sp.ccode(e, standard='C99')};" for t, e in zip(targets, red)]
+        text = "\n".join(body)
+        unused = [f"    (void){a};" for a in args
+                  if not re.search(rf"(?<![A-Za-z_]){a}\[", text)]
+        return f"{head} {{\n" + "\n".join(unused + body + list(tail)) + "\n}\n"
+
+    def _make_c_source(self, prefix):
+        # sympy's printing takes minutes for a large arm: kept on disk, as source()
+        return self._disk_cached_source(prefix, super()._make_c_source, kind="c")
+
+    def _c_body(self, prefix):
+        from .base import C_FUNCTION_ARGS, _c_prototype
+        P = prefix.upper()
+        n, nth = self.n, self.ntheta
+        lit = self._c_symbols(False)
+        out = []
+        for name in ("Phi_M", "Phi_C", "Phi_dM", "Phi_G", "Phi_F", "Phi"):
+            # the same printing as the controller's C had (bit-for-bit the same library)
+            E = sp.Matrix(getattr(self, name)).xreplace(lit)
+            out.append(self._c_function(f"{P}FN {_c_prototype(prefix, name)}",
+                                        C_FUNCTION_ARGS[name][:-1],
+                                        [E[i, j] for i in range(n) for j in range(nth)],
+                                        [f"out[{k}]" for k in range(n * nth)]))
+        for name, mat in (("M", self.M), ("C", self.C), ("G", self.G), ("F", self.F)):
+            E = sp.Matrix(mat).xreplace(lit)
+            out.append(self._c_function(f"{P}FN {_c_prototype(prefix, name)}",
+                                        C_FUNCTION_ARGS[name][:-1], list(E),
+                                        [f"out[{k}]" for k in range(len(E))]))
+        # forward dynamics: M(q) (lower triangle) and tau - C dq - F - G, as the Python
+        # forward_dynamics; the constants from k
+        ren = self._c_symbols(True)
+        Mk = sp.Matrix(self.M).xreplace(ren)
+        rhs = (sp.Matrix(self.C) * sp.Matrix(self.dq) + sp.Matrix(self.F)
+               + sp.Matrix(self.G)).xreplace(ren)
+        lower = [(i, j) for i in range(n) for j in range(i + 1)]
+        exprs = [Mk[i, j] for i, j in lower] + [sp.Symbol(f"tau[{i}]") - rhs[i]
+                                                for i in range(n)]
+        targets = [f"A[{i * n + j}]" for i, j in lower] + [f"ddq[{i}]" for i in range(n)]
+        out.append(self._c_function(
+            f"{P}FN {_c_prototype(prefix, 'forward_dynamics_k')}",
+            C_FUNCTION_ARGS["forward_dynamics_k"][:-1], exprs, targets,
+            [f"    if ({prefix}rb_cholesky(A) != 0) return 1;",
+             f"    {prefix}rb_cholesky_solve(A, ddq);", "    return 0;"]).replace(
+                " {\n", f" {{\n    double A[{n * n}];\n", 1))
+        kvals = ", ".join(repr(float(v)) for v in self.constants.values()) or "0.0"
+        out.append(f"static const double {prefix}constants[{max(1, len(self.constants))}] = "
+                   f"{{{kvals}}};\n\n"
+                   f"{P}FN {_c_prototype(prefix, 'forward_dynamics')} {{\n"
+                   f"    return {prefix}forward_dynamics_k(q, dq, tau, theta, "
+                   f"{prefix}constants, ddq);\n}}\n")
+        return "\n" + "\n".join(out)

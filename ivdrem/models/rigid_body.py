@@ -42,12 +42,14 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KERNELS", "SINGULAR_INERTIA_MESSAGE"]
+__all__ = ["KERNELS", "C_KERNELS", "C_CHOLESKY", "SINGULAR_INERTIA_MESSAGE"]
 
-from .base import SINGULAR_INERTIA_MESSAGE
+from .base import PIVOT_RTOL, SINGULAR_INERTIA_MESSAGE
 
 
-def _rb_kinematics(q, jtype, axis, Rp, pp, R, p):
+def _rb_kinematics(q: "const real[N]", jtype: "const int[N]", axis: "const real[N,3]",
+                   Rp: "const real[N,3,3]", pp: "const real[N,3]", R: "real[N,3,3]",
+                   p: "real[N,3]"):
     # pose (R[j], p[j]) of body j in its parent's frame
     n = q.shape[0]
     for j in range(n):
@@ -84,7 +86,8 @@ def _rb_kinematics(q, jtype, axis, Rp, pp, R, p):
                                       + Rp[j, r, 2] * uz) * q[j]
 
 
-def _rb_xmotion(R, p, j, m, out):
+def _rb_xmotion(R: "const real[N,3,3]", p: "const real[N,3]", j: "int", m: "const real[6]",
+                out: "real[6]"):
     # motion m (parent frame) in the frame of body j: (R^T (m_l - p x m_a), R^T m_a)
     tl0 = m[0] - (p[j, 1] * m[5] - p[j, 2] * m[4])
     tl1 = m[1] - (p[j, 2] * m[3] - p[j, 0] * m[5])
@@ -94,7 +97,7 @@ def _rb_xmotion(R, p, j, m, out):
         out[3 + r] = R[j, 0, r] * m[3] + R[j, 1, r] * m[4] + R[j, 2, r] * m[5]
 
 
-def _rb_cross_motion(a, b, out, scale):
+def _rb_cross_motion(a: "const real[6]", b: "const real[6]", out: "real[6]", scale: "real"):
     # out += scale * (a x b) for motions: (a_w x b_l + a_v x b_w, a_w x b_w)
     out[0] += scale * (a[4] * b[2] - a[5] * b[1] + a[1] * b[5] - a[2] * b[4])
     out[1] += scale * (a[5] * b[0] - a[3] * b[2] + a[2] * b[3] - a[0] * b[5])
@@ -104,7 +107,8 @@ def _rb_cross_motion(a, b, out, scale):
     out[5] += scale * (a[3] * b[4] - a[4] * b[3])
 
 
-def _rb_subspace(jtype, axis, j, s, out):
+def _rb_subspace(jtype: "const int[N]", axis: "const real[N,3]", j: "int", s: "real",
+                 out: "real[6]"):
     # out = S_j s (the joint's motion for joint velocity s)
     for r in range(6):
         out[r] = 0.0
@@ -113,7 +117,11 @@ def _rb_subspace(jtype, axis, j, s, out):
         out[off + r] = axis[j, r] * s
 
 
-def _rb_forward(R, p, parent, jtype, axis, w, acc, a0, tangent, d, V, A, dV, dA):
+def _rb_forward(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int[N]",
+                jtype: "const int[N]", axis: "const real[N,3]", w: "const real[N]",
+                acc: "const real[N]", a0: "const real[6]", tangent: "bool",
+                d: "const real[N]", V: "real[N,6]", A: "real[N,6]", dV: "real[N,6]",
+                dA: "real[N,6]"):
     # V_j = X_j V_p + S_j w_j;  A_j = X_j A_p + S_j acc_j + V_j x (S_j w_j); tangents along d
     n = w.shape[0]
     t6 = np.empty(6, dtype=V.dtype)
@@ -157,7 +165,8 @@ def _rb_forward(R, p, parent, jtype, axis, w, acc, a0, tangent, d, V, A, dV, dA)
             _rb_cross_motion(dV[j], sw, dA[j], 1.0)
 
 
-def _rb_body_regressor(V1, V2, A, scale, out):
+def _rb_body_regressor(V1: "const real[6]", V2: "const real[6]", A: "const real[6]",
+                       scale: "real", out: "real[6,10]"):
     # out (6 x 10) += scale * [L(A) + Q(V1, V2)]: the body force regressor
     # Phi_b(V, A) = L(A) + Q(V, V), linear part L and bilinear part Q of
     # f = m a - h x al + w x (m v - h x w),
@@ -243,7 +252,10 @@ def _rb_body_regressor(V1, V2, A, scale, out):
         out[5, 4 + k] += scale * (eb2 + o0 * ew1 - o1 * ew0)
 
 
-def _rb_project(R, p, parent, jtype, axis, Pb, tangent, d, dPb, Y, dY):
+def _rb_project(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int[N]",
+                jtype: "const int[N]", axis: "const real[N,3]", Pb: "const real[N,6,10]",
+                tangent: "bool", d: "const real[N]", dPb: "const real[N,6,10]",
+                Y: "real[N,NSTD]", dY: "real[N,NSTD]"):
     # Y[i, 10 j + c] = S_i^T X*_{i<-j} Pb[j][:, c] over the ancestors i of j (and tangents)
     n = Pb.shape[0]
     F = np.empty((6, 10), dtype=Pb.dtype)
@@ -315,7 +327,7 @@ def _rb_project(R, p, parent, jtype, axis, Pb, tangent, d, dPb, Y, dY):
             k = pk
 
 
-def _rb_scale(x):
+def _rb_scale(x: "const real[N]") -> "real":
     # largest modulus of x (a constant factor of the polar form, never differentiated)
     s = 0.0
     for i in range(x.shape[0]):
@@ -325,12 +337,15 @@ def _rb_scale(x):
     return s
 
 
-def _rb_bodies(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec, Pb, dPb):
-    # body regressors (and tangents along d) of C(q, x) y + M(q) acc + grav * G(q)
+def _rb_bodies(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "const real[N]",
+               grav: "real", tangent: "bool", d: "const real[N]", parent: "const int[N]",
+               jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
+               pp: "const real[N,3]", gvec: "const real[3]", R: "real[N,3,3]", p: "real[N,3]",
+               Pb: "real[N,6,10]", dPb: "real[N,6,10]"):
+    # body regressors (and tangents along d) of C(q, x) y + M(q) acc + grav * G(q), and the
+    # bodies' poses (R, p)
     n = q.shape[0]
     dt = Pb.dtype
-    R = np.empty((n, 3, 3), dtype=dt)
-    p = np.empty((n, 3), dtype=dt)
     _rb_kinematics(q, jtype, axis, Rp, pp, R, p)
     V = np.empty((n, 6), dtype=dt)
     A = np.empty((n, 6), dtype=dt)
@@ -362,7 +377,7 @@ def _rb_bodies(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec
             if tangent:
                 _rb_body_regressor(dV[j], V[j], dA[j], 1.0, dPb[j])
                 _rb_body_regressor(V[j], dV[j], z6, 1.0, dPb[j])
-        return R, p
+        return
     # acceleration and gravity pass (the base accelerates at -g)
     _rb_forward(R, p, parent, jtype, axis, z, acc, a0, tangent, d, V, A, dV, dA)
     for j in range(n):
@@ -373,7 +388,8 @@ def _rb_bodies(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec
     if sx > 0.0 and sy > 0.0:
         for r in range(6):
             a0[r] = 0.0
-        for sgn in (1.0, -1.0):
+        for si in range(2):
+            sgn = 1.0 - 2.0 * si
             for i in range(n):
                 w[i] = x[i] / sx + sgn * y[i] / sy
             _rb_forward(R, p, parent, jtype, axis, w, z, a0, tangent, d, V, A, dV, dA)
@@ -383,20 +399,26 @@ def _rb_bodies(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec
                 if tangent:
                     _rb_body_regressor(dV[j], V[j], dA[j], wt, dPb[j])
                     _rb_body_regressor(V[j], dV[j], z6, wt, dPb[j])
-    return R, p
 
 
-def _rb_links(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec, Y, dY):
+def _rb_links(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "const real[N]",
+              grav: "real", tangent: "bool", d: "const real[N]", parent: "const int[N]",
+              jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
+              pp: "const real[N,3]", gvec: "const real[3]", Y: "real[N,NSTD]",
+              dY: "real[N,NSTD]"):
     # the link part Y[:, :10 n] of the regressor of C(q, x) y + M(q) acc + grav * G(q)
     n = q.shape[0]
     Pb = np.empty((n, 6, 10), dtype=Y.dtype)
     dPb = np.empty((n, 6, 10), dtype=Y.dtype)
-    R, p = _rb_bodies(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec, Pb,
-                      dPb)
+    R = np.empty((n, 3, 3), dtype=Y.dtype)
+    p = np.empty((n, 3), dtype=Y.dtype)
+    _rb_bodies(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec, R, p, Pb, dPb)
     _rb_project(R, p, parent, jtype, axis, Pb, tangent, d, dPb, Y, dY)
 
 
-def _rb_backward(R, p, parent, jtype, axis, f, tau):
+def _rb_backward(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int[N]",
+                 jtype: "const int[N]", axis: "const real[N,3]", f: "real[N,6]",
+                 tau: "real[N]"):
     # tau_j = the joint axis' component of the body force f_j, accumulating each f_j into
     # its parent's frame on the way to the base (children have higher index; f is changed)
     n = f.shape[0]
@@ -419,12 +441,17 @@ def _rb_backward(R, p, parent, jtype, axis, f, tau):
                          + p[j, 0] * fl1 - p[j, 1] * fl0)
 
 
-def _rb_rnea(q, x, y, acc, grav, pi, parent, jtype, axis, Rp, pp, gvec, tau):
+def _rb_rnea(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "const real[N]",
+             grav: "real", pi: "const real[NSTD]", parent: "const int[N]",
+             jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
+             pp: "const real[N,3]", gvec: "const real[3]", tau: "real[N]"):
     # tau = C(q, x) y + M(q) acc + grav G(q) of the links with standard parameters pi:
     # the body forces Phi_b pi_j, accumulated towards the base (children have higher index)
     n = q.shape[0]
     Pb = np.empty((n, 6, 10))
-    R, p = _rb_bodies(q, x, y, acc, grav, False, q, parent, jtype, axis, Rp, pp, gvec, Pb, Pb)
+    R = np.empty((n, 3, 3))
+    p = np.empty((n, 3))
+    _rb_bodies(q, x, y, acc, grav, False, q, parent, jtype, axis, Rp, pp, gvec, R, p, Pb, Pb)
     f = np.zeros((n, 6))
     for j in range(n):
         for r in range(6):
@@ -435,7 +462,9 @@ def _rb_rnea(q, x, y, acc, grav, pi, parent, jtype, axis, Rp, pp, gvec, tau):
     _rb_backward(R, p, parent, jtype, axis, f, tau)
 
 
-def _rb_mass(q, pi, parent, jtype, axis, Rp, pp, out):
+def _rb_mass(q: "const real[N]", pi: "const real[NSTD]", parent: "const int[N]",
+             jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
+             pp: "const real[N,3]", out: "real[N,N]"):
     # M(q) of the links with standard parameters pi, column k the torques of a unit
     # acceleration of joint k (no velocity, no gravity): only k's descendants accelerate
     n = q.shape[0]
@@ -444,6 +473,7 @@ def _rb_mass(q, pi, parent, jtype, axis, Rp, pp, out):
     _rb_kinematics(q, jtype, axis, Rp, pp, R, p)
     A = np.zeros((n, 6))
     f = np.zeros((n, 6))
+    tau = np.empty(n)
     for k in range(n):
         for j in range(n):
             for r in range(6):
@@ -455,46 +485,301 @@ def _rb_mass(q, pi, parent, jtype, axis, Rp, pp, out):
                 _rb_xmotion(R, p, j, A[parent[j]], A[j])
         for j in range(k, n):
             # f = I A about the joint frame: (m a - h x al, I al + h x a)
-            P = pi[10 * j:10 * j + 10]
-            a0, a1, a2, b0, b1, b2 = A[j, 0], A[j, 1], A[j, 2], A[j, 3], A[j, 4], A[j, 5]
-            f[j, 0] = P[0] * a0 - (P[2] * b2 - P[3] * b1)
-            f[j, 1] = P[0] * a1 - (P[3] * b0 - P[1] * b2)
-            f[j, 2] = P[0] * a2 - (P[1] * b1 - P[2] * b0)
-            f[j, 3] = P[4] * b0 + P[5] * b1 + P[7] * b2 + P[2] * a2 - P[3] * a1
-            f[j, 4] = P[5] * b0 + P[6] * b1 + P[8] * b2 + P[3] * a0 - P[1] * a2
-            f[j, 5] = P[7] * b0 + P[8] * b1 + P[9] * b2 + P[1] * a1 - P[2] * a0
-        _rb_backward(R, p, parent, jtype, axis, f, out[:, k])
+            o = 10 * j
+            a0 = A[j, 0]
+            a1 = A[j, 1]
+            a2 = A[j, 2]
+            b0 = A[j, 3]
+            b1 = A[j, 4]
+            b2 = A[j, 5]
+            f[j, 0] = pi[o] * a0 - (pi[o + 2] * b2 - pi[o + 3] * b1)
+            f[j, 1] = pi[o] * a1 - (pi[o + 3] * b0 - pi[o + 1] * b2)
+            f[j, 2] = pi[o] * a2 - (pi[o + 1] * b1 - pi[o + 2] * b0)
+            f[j, 3] = (pi[o + 4] * b0 + pi[o + 5] * b1 + pi[o + 7] * b2 + pi[o + 2] * a2
+                       - pi[o + 3] * a1)
+            f[j, 4] = (pi[o + 5] * b0 + pi[o + 6] * b1 + pi[o + 8] * b2 + pi[o + 3] * a0
+                       - pi[o + 1] * a2)
+            f[j, 5] = (pi[o + 7] * b0 + pi[o + 8] * b1 + pi[o + 9] * b2 + pi[o + 1] * a1
+                       - pi[o + 2] * a0)
+        _rb_backward(R, p, parent, jtype, axis, f, tau)
+        for i in range(n):
+            out[i, k] = tau[i]
 
 
-def _rb_spd_solve(Mq, b):
-    # b <- Mq^-1 b by Cholesky (Mq is overwritten by its factor)
-    n = b.shape[0]
+def _rb_cholesky(A: "real[N,N]") -> "int":
+    # A <- L, A = L L^T (Golub & Van Loan, Alg. 4.2.1), in A's lower triangle; returns 0, or
+    # 1 when A fails the package's one rule for "positive definite" (docs/models.md): a
+    # pivot d_j not finite or d_j <= PIVOT_RTOL max_i A_ii.  The one Cholesky of the
+    # Python side (the C face's cholesky_solve is its C twin, tests/test_c_face.py).
+    n = A.shape[0]
+    dmax = A[0, 0]
+    for i in range(1, n):
+        if A[i, i] > dmax:
+            dmax = A[i, i]
+    if not (dmax > 0.0 and dmax < np.inf):
+        return 1
     for j in range(n):
-        dd = Mq[j, j]
+        dd = A[j, j]
         for k in range(j):
-            dd -= Mq[j, k] * Mq[j, k]
-        if not (dd > 0.0 and dd < np.inf):
-            raise ValueError(SINGULAR_INERTIA_MESSAGE)
+            dd -= A[j, k] * A[j, k]
+        if not (dd > PIVOT_RTOL * dmax and dd < np.inf):
+            return 1
         dd = np.sqrt(dd)
-        Mq[j, j] = dd
+        A[j, j] = dd
         for i in range(j + 1, n):
-            s = Mq[i, j]
+            s = A[i, j]
             for k in range(j):
-                s -= Mq[i, k] * Mq[j, k]
-            Mq[i, j] = s / dd
+                s -= A[i, k] * A[j, k]
+            A[i, j] = s / dd
+    return 0
+
+
+def _rb_cholesky_solve(L: "const real[N,N]", b: "real[N]"):
+    # b <- (L L^T)^-1 b with the factor of _rb_cholesky
+    n = b.shape[0]
     for i in range(n):
         s = b[i]
         for k in range(i):
-            s -= Mq[i, k] * b[k]
-        b[i] = s / Mq[i, i]
+            s -= L[i, k] * b[k]
+        b[i] = s / L[i, i]
     for i in range(n - 1, -1, -1):
         s = b[i]
         for k in range(i + 1, n):
-            s -= Mq[k, i] * b[k]
-        b[i] = s / Mq[i, i]
+            s -= L[k, i] * b[k]
+        b[i] = s / L[i, i]
+
+
+def _rb_spd_solve(Mq, b):
+    # b <- Mq^-1 b by Cholesky (Mq is overwritten by its factor); raises when M(q) fails
+    # the one rule
+    if _rb_cholesky(Mq) != 0:
+        raise ValueError(SINGULAR_INERTIA_MESSAGE)
+    _rb_cholesky_solve(Mq, b)
+
+
+# ---------------------------------------------------------------- a model's functions
+# What a URDF model's functions do (ivdrem.models.urdf: its Python and its C face call these
+# with the chain's constant arrays and workspaces): the standard regressor Y of (n, NSTD)
+# (links, then viscous friction at column fv, Coulomb at fc, armature at ia; -1: none), the
+# base parameters its columns `base` (theta = K pi, docs/models.md), pi(theta) the standard
+# vector with the base values in their columns and 0 elsewhere (Y pi = Y_base theta).
+
+def _rb_std(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "const real[N]",
+            grav: "real", fdq: "const real[N]", fric: "bool", arm: "bool", tangent: "bool",
+            d: "const real[N]", parent: "const int[N]", jtype: "const int[N]",
+            axis: "const real[N,3]", Rp: "const real[N,3,3]", pp: "const real[N,3]",
+            gvec: "const real[3]", fv: "int", fc: "int", ia: "int", width: "real",
+            Y: "real[N,NSTD]", dY: "real[N,NSTD]"):
+    # the standard regressor of C(q, x) y + M(q) acc + grav G(q) (+ F(fdq) if fric,
+    # + armature acc if arm) and its tangent along d
+    n = q.shape[0]
+    ns = Y.shape[1]
+    _rb_links(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec, Y, dY)
+    for i in range(n):
+        for k in range(10 * n, ns):
+            Y[i, k] = 0.0
+            if tangent:
+                dY[i, k] = 0.0
+        if fric:
+            if fv >= 0:
+                Y[i, fv + i] = fdq[i]
+            if fc >= 0:
+                Y[i, fc + i] = np.tanh(fdq[i] / width)
+        if arm:
+            if ia >= 0:
+                Y[i, ia + i] = acc[i]
+
+
+def _rb_select(Y: "const real[N,NSTD]", base: "const int[NTHETA]", out: "real[N,NTHETA]"):
+    # the base columns of the standard regressor
+    n = Y.shape[0]
+    nb = out.shape[1]
+    for i in range(n):
+        for b in range(nb):
+            out[i, b] = Y[i, base[b]]
+
+
+def _rb_pi(theta: "const real[NTHETA]", base: "const int[NTHETA]", pi: "real[NSTD]"):
+    # standard parameters with K pi = theta: the base ones in their columns, the others 0
+    ns = pi.shape[0]
+    nb = theta.shape[0]
+    for k in range(ns):
+        pi[k] = 0.0
+    for b in range(nb):
+        pi[base[b]] = theta[b]
+
+
+def _rb_Phi_M(q: "const real[N]", a: "const real[N]", parent: "const int[N]",
+              jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
+              pp: "const real[N,3]", gvec: "const real[3]", base: "const int[NTHETA]",
+              fv: "int", fc: "int", ia: "int", width: "real", Y: "real[N,NSTD]",
+              out: "real[N,NTHETA]"):
+    # Phi_M^T(q, a) = d(M a)/dtheta
+    n = q.shape[0]
+    z = np.zeros(n)
+    _rb_std(q, z, z, a, 0.0, z, False, True, False, q, parent, jtype, axis, Rp, pp, gvec,
+            fv, fc, ia, width, Y, Y)
+    _rb_select(Y, base, out)
+
+
+def _rb_Phi_C(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
+              parent: "const int[N]", jtype: "const int[N]", axis: "const real[N,3]",
+              Rp: "const real[N,3,3]", pp: "const real[N,3]", gvec: "const real[3]",
+              base: "const int[NTHETA]", fv: "int", fc: "int", ia: "int", width: "real",
+              Y: "real[N,NSTD]", out: "real[N,NTHETA]"):
+    # Phi_C^T(q, dq, v) = d(C(q, dq) v)/dtheta
+    n = q.shape[0]
+    z = np.zeros(n)
+    _rb_std(q, dq, v, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp, gvec,
+            fv, fc, ia, width, Y, Y)
+    _rb_select(Y, base, out)
+
+
+def _rb_Phi_dM(q: "const real[N]", dq: "const real[N]", a: "const real[N]",
+               parent: "const int[N]", jtype: "const int[N]", axis: "const real[N,3]",
+               Rp: "const real[N,3,3]", pp: "const real[N,3]", gvec: "const real[3]",
+               base: "const int[NTHETA]", fv: "int", fc: "int", ia: "int", width: "real",
+               Y: "real[N,NSTD]", dY: "real[N,NSTD]", out: "real[N,NTHETA]"):
+    # Phi_dM^T(q, dq, a) = d(Mdot a)/dtheta: the forward-mode derivative along dq
+    n = q.shape[0]
+    z = np.zeros(n)
+    _rb_std(q, z, z, a, 0.0, z, False, False, True, dq, parent, jtype, axis, Rp, pp, gvec,
+            fv, fc, ia, width, Y, dY)
+    _rb_select(dY, base, out)
+
+
+def _rb_Phi_G(q: "const real[N]", parent: "const int[N]", jtype: "const int[N]",
+              axis: "const real[N,3]", Rp: "const real[N,3,3]", pp: "const real[N,3]",
+              gvec: "const real[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
+              ia: "int", width: "real", Y: "real[N,NSTD]", out: "real[N,NTHETA]"):
+    # Phi_G^T(q) = dG/dtheta
+    n = q.shape[0]
+    z = np.zeros(n)
+    _rb_std(q, z, z, z, 1.0, z, False, False, False, q, parent, jtype, axis, Rp, pp, gvec,
+            fv, fc, ia, width, Y, Y)
+    _rb_select(Y, base, out)
+
+
+def _rb_Phi_F(dq: "const real[N]", base: "const int[NTHETA]", fv: "int", fc: "int",
+              width: "real", Y: "real[N,NSTD]", out: "real[N,NTHETA]"):
+    # Phi_F^T(dq) = dF/dtheta
+    n = dq.shape[0]
+    ns = Y.shape[1]
+    for i in range(n):
+        for k in range(ns):
+            Y[i, k] = 0.0
+        if fv >= 0:
+            Y[i, fv + i] = dq[i]
+        if fc >= 0:
+            Y[i, fc + i] = np.tanh(dq[i] / width)
+    _rb_select(Y, base, out)
+
+
+def _rb_Phi(q: "const real[N]", dq: "const real[N]", v: "const real[N]", dv: "const real[N]",
+            parent: "const int[N]", jtype: "const int[N]", axis: "const real[N,3]",
+            Rp: "const real[N,3,3]", pp: "const real[N,3]", gvec: "const real[3]",
+            base: "const int[NTHETA]", fv: "int", fc: "int", ia: "int", width: "real",
+            Y: "real[N,NSTD]", out: "real[N,NTHETA]"):
+    # Phi^T(q, dq, v, dv) = Phi_M^T(q, dv) + Phi_C^T(q, dq, v) + Phi_F^T(dq) + Phi_G^T(q)
+    _rb_std(q, dq, v, dv, 1.0, dq, True, True, False, q, parent, jtype, axis, Rp, pp, gvec,
+            fv, fc, ia, width, Y, Y)
+    _rb_select(Y, base, out)
+
+
+def _rb_M(q: "const real[N]", theta: "const real[NTHETA]", parent: "const int[N]",
+          jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
+          pp: "const real[N,3]", base: "const int[NTHETA]", ia: "int", pi: "real[NSTD]",
+          out: "real[N,N]"):
+    # the inertia matrix M(q) (links, + armature)
+    n = q.shape[0]
+    _rb_pi(theta, base, pi)
+    _rb_mass(q, pi, parent, jtype, axis, Rp, pp, out)
+    if ia >= 0:
+        for k in range(n):
+            out[k, k] += pi[ia + k]
+
+
+def _rb_C(q: "const real[N]", dq: "const real[N]", theta: "const real[NTHETA]",
+          parent: "const int[N]", jtype: "const int[N]", axis: "const real[N,3]",
+          Rp: "const real[N,3,3]", pp: "const real[N,3]", gvec: "const real[3]",
+          base: "const int[NTHETA]", pi: "real[NSTD]", out: "real[N,N]"):
+    # the Coriolis matrix C(q, dq) (Christoffel-consistent), column k = C(q, dq) e_k
+    n = q.shape[0]
+    _rb_pi(theta, base, pi)
+    z = np.zeros(n)
+    e = np.zeros(n)
+    tau = np.empty(n)
+    for k in range(n):
+        e[k] = 1.0
+        _rb_rnea(q, dq, e, z, 0.0, pi, parent, jtype, axis, Rp, pp, gvec, tau)
+        e[k] = 0.0
+        for i in range(n):
+            out[i, k] = tau[i]
+
+
+def _rb_G(q: "const real[N]", theta: "const real[NTHETA]", parent: "const int[N]",
+          jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
+          pp: "const real[N,3]", gvec: "const real[3]", base: "const int[NTHETA]",
+          pi: "real[NSTD]", out: "real[N]"):
+    # gravity G(q)
+    n = q.shape[0]
+    _rb_pi(theta, base, pi)
+    z = np.zeros(n)
+    _rb_rnea(q, z, z, z, 1.0, pi, parent, jtype, axis, Rp, pp, gvec, out)
+
+
+def _rb_F(dq: "const real[N]", theta: "const real[NTHETA]", base: "const int[NTHETA]",
+          fv: "int", fc: "int", width: "real", pi: "real[NSTD]", out: "real[N]"):
+    # friction F(dq)
+    n = dq.shape[0]
+    _rb_pi(theta, base, pi)
+    for i in range(n):
+        out[i] = 0.0
+        if fv >= 0:
+            out[i] += pi[fv + i] * dq[i]
+        if fc >= 0:
+            out[i] += pi[fc + i] * np.tanh(dq[i] / width)
+
+
+def _rb_forward_dynamics(q: "const real[N]", dq: "const real[N]", tau: "const real[N]",
+                         theta: "const real[NTHETA]", parent: "const int[N]",
+                         jtype: "const int[N]", axis: "const real[N,3]",
+                         Rp: "const real[N,3,3]", pp: "const real[N,3]",
+                         gvec: "const real[3]", base: "const int[NTHETA]", fv: "int",
+                         fc: "int", ia: "int", width: "real", pi: "real[NSTD]",
+                         out: "real[N]") -> "int":
+    # qdd solving M(q) qdd = tau - C(q, dq) dq - F(dq) - G(q); 0, or 1 when M(q) fails the
+    # one rule of _rb_cholesky (out then undefined)
+    n = q.shape[0]
+    b = np.empty(n)
+    f = np.empty(n)
+    Mq = np.empty((n, n))
+    z = np.zeros(n)
+    _rb_F(dq, theta, base, fv, fc, width, pi, f)
+    _rb_pi(theta, base, pi)
+    _rb_rnea(q, dq, dq, z, 1.0, pi, parent, jtype, axis, Rp, pp, gvec, b)
+    for i in range(n):
+        out[i] = tau[i] - b[i] - f[i]
+    _rb_M(q, theta, parent, jtype, axis, Rp, pp, base, ia, pi, Mq)
+    if _rb_cholesky(Mq) != 0:
+        return 1
+    _rb_cholesky_solve(Mq, out)
+    return 0
 
 
 #: The kernels, in dependency order (their source goes into every rigid-body model's code).
 KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
            _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_backward,
-           _rb_rnea, _rb_mass, _rb_spd_solve)
+           _rb_rnea, _rb_mass, _rb_cholesky, _rb_cholesky_solve, _rb_spd_solve,
+           _rb_std, _rb_select, _rb_pi, _rb_Phi_M, _rb_Phi_C, _rb_Phi_dM, _rb_Phi_G,
+           _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics)
+
+#: The kernels of a model's C face (:mod:`ivdrem.models._c_printer`), in dependency order.
+C_KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
+             _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links,
+             _rb_backward, _rb_rnea, _rb_mass, _rb_cholesky, _rb_cholesky_solve,
+             _rb_std, _rb_select, _rb_pi, _rb_Phi_M, _rb_Phi_C, _rb_Phi_dM, _rb_Phi_G,
+             _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics)
+
+#: The Cholesky alone: the C face of every model (a symbolic one too) prints it.
+C_CHOLESKY = (_rb_cholesky, _rb_cholesky_solve)

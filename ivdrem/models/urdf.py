@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import FUNCTION_NAMES, RobotModel
+from .base import C_FUNCTION_ARGS, FUNCTION_NAMES, SINGULAR_INERTIA_MESSAGE, RobotModel
 from . import rigid_body
 
 __all__ = ["from_urdf", "arm", "ARM_NAMES", "RigidBodyModel", "URDFError", "RANK_RTOL",
@@ -523,6 +523,11 @@ def _kernels_hash():
     return hashlib.sha256(inspect.getsource(rigid_body).encode()).hexdigest()[:16]
 
 
+def _c_double(x):
+    s = repr(float(x))
+    return s if ("e" in s or "." in s) else s + ".0"
+
+
 def _array_literal(a, dtype):
     a = np.asarray(a, dtype=dtype)
     body = json.dumps(a.tolist()) if a.size else "[]"
@@ -530,6 +535,37 @@ def _array_literal(a, dtype):
     if dtype is float:
         return f"np.array({body}, dtype=np.float64).reshape({a.shape})"
     return f"np.array({body}, dtype=np.int64).reshape({a.shape})"
+
+
+#: A URDF model's functions: the workspaces each one needs and its kernel's arguments
+#: (rigid_body._rb_<name>), the same in its Python source and its C face
+_GLUE = {
+    "Phi_M": (("Y",), "q, a, {chain}, {base}, {fric}, Y"),
+    "Phi_C": (("Y",), "q, dq, v, {chain}, {base}, {fric}, Y"),
+    "Phi_dM": (("Y", "dY"), "q, dq, a, {chain}, {base}, {fric}, Y, dY"),
+    "Phi_G": (("Y",), "q, {chain}, {base}, {fric}, Y"),
+    "Phi_F": (("Y",), "dq, {base}, {fv}, {fc}, {width}, Y"),
+    "Phi": (("Y",), "q, dq, v, dv, {chain}, {base}, {fric}, Y"),
+    "M": (("pi",), "q, theta, {chain5}, {base}, {ia}, pi"),
+    "C": (("pi",), "q, dq, theta, {chain}, {base}, pi"),
+    "G": (("pi",), "q, theta, {chain}, {base}, pi"),
+    "F": (("pi",), "dq, theta, {base}, {fv}, {fc}, {width}, pi"),
+    "forward_dynamics": (("pi",), "q, dq, tau, theta, {chain}, {base}, {fric}, pi"),
+}
+_GLUE_DOCS = {
+    "Phi_M": "Phi_M^T(q, a) = d(M a)/dtheta; out ({n}, {nb})",
+    "Phi_C": "Phi_C^T(q, dq, v) = d(C v)/dtheta; out ({n}, {nb})",
+    "Phi_dM": "Phi_dM^T(q, dq, a) = d(Mdot a)/dtheta (forward-mode along dq); out ({n}, {nb})",
+    "Phi_G": "Phi_G^T(q) = dG/dtheta; out ({n}, {nb})",
+    "Phi_F": "Phi_F^T(dq) = dF/dtheta; out ({n}, {nb})",
+    "Phi": "Phi^T(q, dq, v, dv) = Phi_M^T(q,dv)+Phi_C^T(q,dq,v)+Phi_F^T+Phi_G^T; out ({n}, {nb})",
+    "M": "inertia matrix M(q); out ({n}, {n})",
+    "C": "Coriolis matrix C(q, dq) (Christoffel); out ({n}, {n})",
+    "G": "gravity G(q); out ({n},)",
+    "F": "friction F(dq); out ({n},)",
+    "forward_dynamics": "qdd solving M(q) qdd = tau - C(q,dq) dq - F(dq) - G(q) (Cholesky); "
+                        "out ({n},)",
+}
 
 
 class RigidBodyModel(RobotModel):
@@ -636,10 +672,7 @@ class RigidBodyModel(RobotModel):
     def _generate(self, P):
         c = self._chain
         n, ns, nb = self.n, self.nstandard, self.ntheta
-        nl = 10 * n
-        fv = nl if c["viscous"] else -1
-        fc = nl + (n if c["viscous"] else 0) if c["coulomb"] else -1
-        ia = nl + (n if c["viscous"] else 0) + (n if c["coulomb"] else 0) if c["armature"] else -1
+        fv, fc, ia = self._offsets()
         K = f"{P}_RB_"
         consts = [
             f"# chain of {self.name}: {', '.join(self.joint_names)}",
@@ -663,41 +696,27 @@ class RigidBodyModel(RobotModel):
         k = f"{kmod}._rb_"
         W = repr(self.friction_width)
         h = repr(_COMPLEX_STEP)
+        glue = []
+        for name, (work, args) in _GLUE.items():
+            doc = _GLUE_DOCS[name].format(n=n, nb=nb)
+            alloc = "".join(f"    {w} = np.empty({({'pi': (ns,)}.get(w, (n, ns)))!r})\n"
+                            for w in work)
+            call = f"{k}{name}({args.format(**self._glue_args(K, chain_args))}, out)"
+            if name == "forward_dynamics":
+                call = (f"if {call} != 0:\n"
+                        f"        raise ValueError({SINGULAR_INERTIA_MESSAGE!r})")
+            glue.append(f"def {P}{name}({', '.join(C_FUNCTION_ARGS[name][:-1])}, out):\n"
+                        f'    """{doc}"""\n{alloc}    {call}\n    return None\n')
         t = f'''
 def {r}std(q, x, y, acc, grav, fdq, fric, arm, tangent, d, Y, dY):
     # the standard regressor ({n}, {ns}) of C(q, x) y + M(q) acc + grav G(q)
     # (+ F(fdq) if fric, + armature acc if arm) and its tangent along d
-    {k}links(q, x, y, acc, grav, tangent, d, {chain_args}, Y, dY)
-    for i in range({n}):
-        for k in range({nl}, {ns}):
-            Y[i, k] = 0.0
-            if tangent:
-                dY[i, k] = 0.0
-        if fric:
-            if {fv} >= 0:
-                Y[i, {fv} + i] = fdq[i]
-            if {fc} >= 0:
-                Y[i, {fc} + i] = np.tanh(fdq[i] / {W})
-        if arm:
-            if {ia} >= 0:
-                Y[i, {ia} + i] = acc[i]
-
-
-def {r}select(Y, out):
-    # the base columns (one indexing operation: cheap on the Python path too)
-    out[:, :] = Y[:, {K}BASE]
+    {k}std(q, x, y, acc, grav, fdq, fric, arm, tangent, d, {chain_args}, {fv}, {fc}, {ia},
+           {W}, Y, dY)
 
 
 def {r}select3(Y, out, col):
     out[:, :, col] = Y[:, {K}BASE]
-
-
-def {r}pi(theta):
-    # standard parameters with K pi = theta: the base ones in their columns, the others 0
-    pi = np.zeros({ns})
-    for b in range({nb}):
-        pi[{K}BASE[b]] = theta[b]
-    return pi
 
 
 def {r}unit(m):
@@ -706,121 +725,7 @@ def {r}unit(m):
     return e
 
 
-def {P}Phi_M(q, a, out):
-    """Phi_M^T(q, a) = d(M a)/dtheta; out ({n}, {nb})"""
-    Y = np.empty(({n}, {ns}))
-    z = np.zeros({n})
-    {r}std(q, z, z, a, 0.0, z, False, True, False, q, Y, Y)
-    {r}select(Y, out)
-    return None
-
-
-def {P}Phi_C(q, dq, v, out):
-    """Phi_C^T(q, dq, v) = d(C v)/dtheta; out ({n}, {nb})"""
-    Y = np.empty(({n}, {ns}))
-    z = np.zeros({n})
-    {r}std(q, dq, v, z, 0.0, z, False, False, False, q, Y, Y)
-    {r}select(Y, out)
-    return None
-
-
-def {P}Phi_dM(q, dq, a, out):
-    """Phi_dM^T(q, dq, a) = d(Mdot a)/dtheta (forward-mode along dq); out ({n}, {nb})"""
-    Y = np.empty(({n}, {ns}))
-    dY = np.empty(({n}, {ns}))
-    z = np.zeros({n})
-    {r}std(q, z, z, a, 0.0, z, False, False, True, dq, Y, dY)
-    {r}select(dY, out)
-    return None
-
-
-def {P}Phi_G(q, out):
-    """Phi_G^T(q) = dG/dtheta; out ({n}, {nb})"""
-    Y = np.empty(({n}, {ns}))
-    z = np.zeros({n})
-    {r}std(q, z, z, z, 1.0, z, False, False, False, q, Y, Y)
-    {r}select(Y, out)
-    return None
-
-
-def {P}Phi_F(dq, out):
-    """Phi_F^T(dq) = dF/dtheta; out ({n}, {nb})"""
-    Y = np.zeros(({n}, {ns}))
-    for i in range({n}):
-        if {fv} >= 0:
-            Y[i, {fv} + i] = dq[i]
-        if {fc} >= 0:
-            Y[i, {fc} + i] = np.tanh(dq[i] / {W})
-    {r}select(Y, out)
-    return None
-
-
-def {P}Phi(q, dq, v, dv, out):
-    """Phi^T(q, dq, v, dv) = Phi_M^T(q,dv)+Phi_C^T(q,dq,v)+Phi_F^T+Phi_G^T; out ({n}, {nb})"""
-    Y = np.empty(({n}, {ns}))
-    {r}std(q, dq, v, dv, 1.0, dq, True, True, False, q, Y, Y)
-    {r}select(Y, out)
-    return None
-
-
-def {P}M(q, theta, out):
-    """inertia matrix M(q); out ({n}, {n})"""
-    pi = {r}pi(theta)
-    {k}mass(q, pi, {K}PARENT, {K}JTYPE, {K}AXIS, {K}RP, {K}PP, out)
-    if {ia} >= 0:
-        for k in range({n}):
-            out[k, k] += pi[{ia} + k]
-    return None
-
-
-def {P}C(q, dq, theta, out):
-    """Coriolis matrix C(q, dq) (Christoffel); out ({n}, {n})"""
-    pi = {r}pi(theta)
-    z = np.zeros({n})
-    tau = np.empty({n})
-    for k in range({n}):
-        e = {r}unit(k)
-        {k}rnea(q, dq, e, z, 0.0, pi, {chain_args}, tau)
-        for i in range({n}):
-            out[i, k] = tau[i]
-    return None
-
-
-def {P}G(q, theta, out):
-    """gravity G(q); out ({n},)"""
-    pi = {r}pi(theta)
-    z = np.zeros({n})
-    {k}rnea(q, z, z, z, 1.0, pi, {chain_args}, out)
-    return None
-
-
-def {P}F(dq, theta, out):
-    """friction F(dq); out ({n},)"""
-    pi = {r}pi(theta)
-    for i in range({n}):
-        out[i] = 0.0
-        if {fv} >= 0:
-            out[i] += pi[{fv} + i] * dq[i]
-        if {fc} >= 0:
-            out[i] += pi[{fc} + i] * np.tanh(dq[i] / {W})
-    return None
-
-
-def {P}forward_dynamics(q, dq, tau, theta, out):
-    """qdd solving M(q) qdd = tau - C(q,dq) dq - F(dq) - G(q) (Cholesky); out ({n},)"""
-    b = np.empty({n})
-    Mq = np.empty(({n}, {n}))
-    f = np.empty({n})
-    pi = {r}pi(theta)
-    z = np.zeros({n})
-    {k}rnea(q, dq, dq, z, 1.0, pi, {chain_args}, b)
-    {P}F(dq, theta, f)
-    for i in range({n}):
-        out[i] = tau[i] - b[i] - f[i]
-    {P}M(q, theta, Mq)
-    {k}spd_solve(Mq, out)
-    return None
-
+''' + "\n\n".join(glue) + f'''
 
 def {P}Phi_M_jac(q, a, out):
     """dPhi_M[i, j]/d(q, a)[c], c = arg * {n} + entry; out ({n}, {nb}, {2 * n})"""
@@ -929,6 +834,70 @@ def {P}Phi_jac(q, dq, v, dv, out):
     return None
 '''
         return imports + "\n" + "\n".join(consts) + "\n\n" + t
+
+    def _offsets(self):
+        """Columns of the viscous, Coulomb friction and armature parameters in the standard
+        vector (-1: none)."""
+        c, n = self._chain, self.n
+        nl = 10 * n
+        fv = nl if c["viscous"] else -1
+        fc = nl + (n if c["viscous"] else 0) if c["coulomb"] else -1
+        ia = nl + (n if c["viscous"] else 0) + (n if c["coulomb"] else 0) if c["armature"] else -1
+        return fv, fc, ia
+
+    def _glue_args(self, K, chain_args):
+        fv, fc, ia = self._offsets()
+        width = repr(self.friction_width)
+        return dict(chain=chain_args, chain5=chain_args.rsplit(",", 1)[0], base=f"{K}BASE",
+                    fric=f"{fv}, {fc}, {ia}, {width}", fv=fv, fc=fc, ia=ia, width=width)
+
+    def _c_body(self, prefix):
+        """The C face's body: the chain's constant arrays, the kernels of
+        ivdrem.models.rigid_body printed to C, and the functions calling them."""
+        from ._c_printer import print_kernels
+        c = self._chain
+        P = prefix.upper()
+        K = f"{prefix}"
+
+        def arr(values, ctype):
+            a = np.asarray(values, dtype=float if ctype == "double" else np.int64).reshape(-1)
+            if ctype == "double":
+                body = ", ".join(_c_double(v) for v in a)
+            else:
+                body = ", ".join(str(int(v)) for v in a)
+            return f"{{{body}}}"
+
+        consts = "\n".join([
+            f"#ifndef {P}NSTD\n#define {P}NSTD {self.nstandard}\n#endif",
+            f"/* the chain: {', '.join(self.joint_names)} */",
+            f"static const int {K}PARENT[{P}N] = {arr(c['parent'], 'int')};",
+            f"static const int {K}JTYPE[{P}N] = {arr(c['jtype'], 'int')};",
+            f"static const double {K}AXIS[{P}N * 3] = {arr(c['axis'], 'double')};",
+            f"static const double {K}RP[{P}N * 9] = {arr(c['Rp'], 'double')};",
+            f"static const double {K}PP[{P}N * 3] = {arr(c['pp'], 'double')};",
+            f"static const double {K}GRAV[3] = {arr(c['gravity'], 'double')};",
+            "/* the base parameters: columns of the standard vector (docs/models.md) */",
+            f"static const int {K}BASE[{P}NTHETA] = {arr(self.base_columns, 'int')};",
+        ])
+        chain_args = ", ".join(f"{K}{a}" for a in ("PARENT", "JTYPE", "AXIS", "RP", "PP",
+                                                    "GRAV"))
+        ga = self._glue_args(K, chain_args)
+        from .rigid_body import C_CHOLESKY, C_KERNELS
+        kernels = print_kernels([f for f in C_KERNELS if f not in C_CHOLESKY], prefix,
+                                printed=C_CHOLESKY)
+        from .base import _c_prototype
+        glue = []
+        for name, (work, args) in _GLUE.items():
+            size = {"pi": f"{P}NSTD"}
+            decl = "".join(f"    double {w}[{size.get(w, f'{P}N * {P}NSTD')}];\n" for w in work)
+            call = f"{prefix}rb_{name}({args.format(**ga)}, {C_FUNCTION_ARGS[name][-1]})"
+            if name == "forward_dynamics":
+                call = "return " + call
+            glue.append(f"{P}FN {_c_prototype(prefix, name)} {{\n{decl}    {call};\n}}\n")
+        glue.append(f"{P}FN {_c_prototype(prefix, 'forward_dynamics_k')} {{\n"
+                    f"    (void)k;  /* a URDF model has no constants */\n"
+                    f"    return {prefix}forward_dynamics(q, dq, tau, theta, ddq);\n}}\n")
+        return "\n" + consts + "\n\n" + kernels + "\n" + "\n".join(glue)
 
     @cached_property
     def functions(self):

@@ -1,0 +1,255 @@
+"""The sampled controller on real arms: the inertia-scaled design, the robot's contract
+(gravity "robot", torque and torque-rate limits, a first command of zero), the Fourier
+reference, the mixing variants and the multi-rate mixing, in the Python reference and the
+C library (docs/controller.md, "Sampled designs" and "The robot's contract").
+
+Independent checks: M(q) x by the model's own M (a second evaluation path of the
+inertia-scaled feedback); a plant that adds its own gravity against a controller that
+compensates it (the same loop two ways); the C library against the Python reference (two
+implementations of the same algorithm, LAPACK against a Jacobi SVD, the Fourier series
+written twice); the per-step growth of the sampled loop's feedback (an eigenvalue bound,
+h k / lambda_min(M) < 2); each option's test fails without the option.
+"""
+import math
+import os
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from ivdrem.controller.sampled import SampledController  # noqa: E402
+from ivdrem.models import get_model, two_link  # noqa: E402
+
+
+def _experiment(model):
+    """The real-arm experiment of docs/experiment.md: reference, q0, disturbance, window."""
+    from ivdrem.experiments import arm
+    traj = arm.design_trajectory(model)
+    q0, dq0 = arm.initial_state(traj)
+    dist = arm.design_disturbance(model, traj)
+    return traj, q0, dq0, dist, arm.design_window(traj, dist) or 20.0
+
+
+def _measurements(ctl, k):
+    """A smooth measured motion near the controller's own reference (no plant needed)."""
+    t = k * ctl.h
+    qd, dqd, _ = ctl.reference(t)
+    return t, qd + 0.05 * np.sin(3 * t) + 0.02, dqd + 0.15 * np.cos(3 * t)
+
+
+# ----------------------------------------------------------------------- the design
+def test_inertia_scaled_feedback_is_the_nominal_inertia_times_the_papers():
+    """M(q, theta_nominal)(K + delta_mu mu) r through Phi_M (Property 1) equals the model's
+    own M(q) times the paper's feedback."""
+    m = get_model("panda")
+    ctl = SampledController(m, "none", K=np.arange(1.0, 8.0), design="inertia-scaled")
+    paper = SampledController(m, "none", K=np.arange(1.0, 8.0), design="paper")
+    rng = np.random.default_rng(1)
+    M = np.empty((m.n, m.n))
+    for _ in range(5):
+        q, r, mu = rng.uniform(-1, 1, m.n), rng.standard_normal(m.n), rng.uniform(15, 135)
+        m.functions.M(q, m.theta_values, M)
+        want = M @ paper.feedback(q, r, mu)
+        assert np.abs(ctl.feedback(q, r, mu) - want).max() <= 1e-12 * np.abs(want).max()
+
+
+@pytest.mark.parametrize("name", ["panda", "xarm7"])
+def test_per_step_growth_of_the_feedback(name):
+    """The feedback applied once per step h = 1 ms, r+ = (I - h M^-1 F) r: the paper's
+    F = (K + delta_mu mu) grows on the light wrists (spectral radius > 1: h k/lambda_min(M)
+    > 2), the inertia-scaled F = M(q)(K + delta_mu mu) contracts by 1 - h (k + delta_mu mu)
+    whatever M(q) (here at 200 random configurations within the joint limits)."""
+    m = get_model(name)
+    rng = np.random.default_rng(0)
+    lo, hi = np.asarray(m.position_limits).T
+    h, k, mu = 1e-3, 2.0, 135.0
+    M = np.empty((m.n, m.n))
+    worst_paper = worst_scaled = 0.0
+    for _ in range(200):
+        q = rng.uniform(np.maximum(lo, -3), np.minimum(hi, 3))
+        m.functions.M(q, m.theta_values, M)
+        Minv = np.linalg.inv(M)
+        F = (k + 0.8 * mu) * np.eye(m.n)
+        worst_paper = max(worst_paper, np.abs(np.linalg.eigvals(np.eye(m.n) - h * Minv @ F)).max())
+        worst_scaled = max(worst_scaled,
+                           np.abs(np.linalg.eigvals(np.eye(m.n) - h * Minv @ (M @ F))).max())
+    assert worst_paper > 2.0                       # measured: Panda 24, xArm7 820
+    assert worst_scaled == pytest.approx(1 - h * (k + 0.8 * mu), abs=1e-9)
+
+
+def _closed_loop(model, design, t_end, law="none", **kw):
+    from ivdrem.controller.loop import ModelPlant, sampled_loop
+    traj, q0, dq0, dist, T = _experiment(model)
+    ctl = SampledController(model, law, K=2.0, T=kw.pop("T", T), trajectory=traj,
+                            design=design, **kw)
+    return ctl, sampled_loop(ctl, ModelPlant(model, q0, dq0), t_end, disturbance=dist,
+                             every=100)
+
+
+@pytest.mark.parametrize("name", ["panda", "xarm7"])
+def test_inertia_scaled_loop_holds_at_1_khz_where_the_papers_diverges(name):
+    """The real-arm experiment at h = 1 ms around the arm's own dynamics (RK4, torque held):
+    the paper's design diverges within 0.3 s, the inertia-scaled one tracks for 3 s."""
+    m = get_model(name)
+    with pytest.raises((FloatingPointError, ValueError)):
+        _closed_loop(m, "paper", 0.3)
+    ctl, rec = _closed_loop(m, "inertia-scaled", 3.0)
+    assert np.all(np.isfinite(rec["q"])) and np.abs(rec["q"][-1] - ctl.q_d).max() < 0.5
+
+
+# ----------------------------------------------------------------------- the robot's contract
+def _gravity_pair(option):
+    from ivdrem.controller.loop import ModelPlant, sampled_loop
+    m = get_model("planar-3")
+    out = []
+    for robot_adds in (False, True):
+        traj = dict(amplitude=[0.3] * 3, omega=[0.5, 0.75, 1.0], phase=[0.0] * 3,
+                    offset=[0.0] * 3)
+        ctl = SampledController(m, "iv-drem", T=0.3, gamma=1e6, mu_max=135.0,
+                                trajectory=traj, gravity=option if robot_adds else "controller")
+        plant = ModelPlant(m, [0.0] * 3, [0.15, 0.225, 0.3], gravity=robot_adds, substeps=8)
+        rec = sampled_loop(ctl, plant, 1.0, disturbance=dict(
+            amplitude=[1.0, 0.5, 0.2], omega=[1.3, 0.7, 2.1], phase=[0.0] * 3,
+            offset=[0.0] * 3), every=50)
+        g = np.array([_gravity(m, q) if robot_adds else np.zeros(3) for q in rec["q"]])
+        out.append((rec, rec["tau"] + g))              # the torque acting on the arm
+    return out
+
+
+def _gravity(model, q):
+    g = np.empty(model.n)
+    model.functions.G(np.asarray(q, float), model.theta_values, g)
+    return g
+
+
+def test_gravity_robot_gives_the_loop_of_a_controller_that_compensates_it():
+    """A plant that adds G(q) itself, with gravity = "robot": theta_hat and the torque
+    acting on the arm as the plain plant with the law's torque (the robot's G(q(t)) moves
+    within a sample where the controller's g_hat(q_k) is held: O(h) apart, measured
+    ~1e-5 relative); with gravity = "controller" gravity counts twice."""
+    (a, ta), (b, tb) = _gravity_pair("robot")
+    assert np.abs(a["theta_hat"] - b["theta_hat"]).max() <= 1e-3 * np.abs(a["theta_hat"]).max()
+    assert np.abs(ta - tb).max() <= 1e-3 * np.abs(ta).max()
+    assert np.abs(a["q"] - b["q"]).max() < 1e-4
+    (a, ta), (b, tb) = _gravity_pair("controller")
+    assert np.abs(a["q"] - b["q"]).max() > 1e-2
+
+
+def _knocked(ctl, k):
+    """The smooth motion, knocked by 0.1 rad at t = 0.2 s (a torque jump of about 2 N m)."""
+    t, q, dq = _measurements(_paper_reference(), k)
+    return t, q + (0.1 if k >= 200 else 0.0), dq
+
+
+_PAPER = []
+
+
+def _paper_reference():
+    if not _PAPER:
+        _PAPER.append(SampledController())
+    return _PAPER[0]
+
+
+def test_torque_rate_limit_first_zero_and_torque_limit_in_python_and_c():
+    """|tau_k - tau_k-1| <= h tau_rate_max (0.1 N m) at every step, tau_0 = 0, |tau_i| <= tau_max_i,
+    the C library as the Python reference; without the options the torque jumps."""
+    from ivdrem.controller.clib import CController
+    lim = dict(tau_rate_max=100.0, first_zero=True, tau_max=[30.0, 8.0])
+    for cls in (SampledController, CController):
+        for opts, holds in ((lim, True), ({}, False)):
+            ctl = cls(law="iv-drem", mu_max=135.0, T=0.5, **opts)
+            taus = np.array([ctl.step(*_knocked(ctl, k)) for k in range(400)])
+            rate_ok = np.abs(np.diff(taus, axis=0)).max() <= 0.1 + 1e-12
+            assert rate_ok == holds
+            assert (np.all(taus[0] == 0.0)) == holds
+            assert (np.abs(taus[:, 1]).max() <= 8.0) == holds
+    py = SampledController(law="iv-drem", mu_max=135.0, T=0.5, **lim)
+    c = CController(law="iv-drem", mu_max=135.0, T=0.5, **lim)
+    for k in range(400):
+        a, b = py.step(*_knocked(py, k)), c.step(*_knocked(c, k))
+        assert np.abs(a - b).max() <= 1e-12 * max(1.0, np.abs(a).max())
+
+
+# ----------------------------------------------------------------------- C = Python
+@pytest.mark.parametrize("opts", [
+    dict(design="inertia-scaled", gravity="robot", mixing="eigen", mix_every=7),
+    dict(design="inertia-scaled", mixing="channel", tau_rate_max=500.0, delay=1),
+    dict(design="paper", mixing="eigen", first_zero=True)])
+def test_c_library_equals_python_reference_with_the_real_arm_options(opts):
+    """planar-3 (nθ = 6), a Fourier reference, the options of a real arm: the C library
+    equals the Python reference to 1e-10 relative over 1500 steps (the 0.3 s window wraps
+    five times, the scale-free mixings start at t = T)."""
+    from ivdrem.controller.clib import CController
+    m = get_model("planar-3")
+    traj = dict(kind="fourier", omega_f=2 * math.pi / 1.5,
+                a=[[0.3, -0.1, 0.05], [0.1, 0.2, -0.1], [-0.2, 0.1, 0.1]],
+                b=[[0.0, 0.1, 0.0], [-0.1, 0.0, 0.05], [0.1, 0.0, -0.05]],
+                offset=[0.1, 0.5, -0.3])
+    kw = dict(mu_max=135.0, T=0.3, gamma=50.0, K=[3.0, 4.0, 5.0], trajectory=traj, **opts)
+    py, c = SampledController(m, "iv-drem", **kw), CController(m, "iv-drem", **kw)
+    worst = 0.0
+    for k in range(1500):
+        t, q, dq = _measurements(py, k)
+        a, b = py.step(t, q, dq), c.step(t, q, dq)
+        worst = max(worst, np.abs(a - b).max() / max(1.0, np.abs(a).max()))
+        if k % 250 == 0:
+            qd, dqd = c.last_reference()
+            assert np.abs(qd - py.q_d).max() <= 1e-13 and np.abs(dqd - py.dq_d).max() <= 1e-13
+    assert worst <= 1e-10
+    th = py.theta_hat
+    assert np.abs(th - c.theta_hat).max() <= 1e-10 * max(1.0, np.abs(th).max())
+    assert py.Delta != 0.0 and abs(py.Delta - c.Delta) <= 1e-9 * abs(py.Delta)
+
+
+def test_multi_rate_mixing_holds_delta_between_mixing_samples():
+    """mix_every = m: Delta changes only at the samples k = 0, m, 2m, ...; m = 1 is the
+    single-rate controller."""
+    m = get_model("planar-3")
+    ctl = SampledController(m, "iv-drem", T=0.3, gamma=50.0, mixing="eigen", mix_every=5)
+    one = SampledController(m, "iv-drem", T=0.3, gamma=50.0, mixing="eigen")
+    deltas, singles = [], []
+    for k in range(700):
+        ctl.step(*_measurements(ctl, k))
+        one.step(*_measurements(one, k))
+        deltas.append(ctl.Delta)
+        singles.append(one.Delta)
+    d = np.array(deltas)
+    changed = np.flatnonzero(np.diff(d) != 0) + 1
+    assert changed.size > 50 and np.all(changed % 5 == 0)
+    assert np.unique(np.array(singles)[400:]).size > 250
+
+
+# ----------------------------------------------------------------------- refusals
+def test_refusals_name_the_number_and_the_option():
+    from ivdrem.controller.codegen import param_layout, param_vector
+    from ivdrem.controller.clib import load_library
+    import ctypes
+    for bad, match in ((dict(T=0.0105), r"T / h = 10\.5"), (dict(design="fast"), "design"),
+                       (dict(gravity="arm"), "gravity"), (dict(mixing="svd"), "mixing"),
+                       (dict(mix_every=0), "mix_every"), (dict(tau_rate_max=0.0), "tau_rate_max"),
+                       (dict(tau_max=[1.0, -1.0]), "tau_max")):
+        with pytest.raises(ValueError, match=match):
+            SampledController(**bad)
+    m = two_link()
+    lib = load_library(m)
+    lib.ivc_check_params.argtypes = [ctypes.POINTER(ctypes.c_double), ctypes.c_char_p,
+                                     ctypes.c_size_t]
+    idx, off = {}, 0
+    for name, size, _ in param_layout(m):
+        idx[name] = off
+        off += size
+    good = param_vector(SampledController(mu_max=135.0))
+    for name, value, match in (("T", 0.0105, "T / h = 10.5"), ("design", 3.0, "design = 3"),
+                               ("gravity", 0.5, "gravity = 0.5"), ("mixing", 4.0, "mixing = 4"),
+                               ("tau_rate_max", 0.0, "tau_rate_max"),
+                               ("mix_every", 1.5, "mix_every = 1.5")):
+        par = good.copy()
+        par[idx[name]] = value
+        msg = ctypes.create_string_buffer(256)
+        assert lib.ivc_check_params(par.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+                                    msg, 256) != 0
+        assert match in msg.value.decode() and "\n" not in msg.value.decode()
+    msg = ctypes.create_string_buffer(256)
+    assert lib.ivc_check_params(good.ctypes.data_as(ctypes.POINTER(ctypes.c_double)),
+                                msg, 256) == 0
