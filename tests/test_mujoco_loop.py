@@ -128,3 +128,28 @@ def test_the_papers_arm_in_mujoco_learns_theta_over_300_s(two_link):
     e = np.linalg.norm(signal(r, "theta_hat") - signal(r, "theta"), axis=0)
     assert e[-1] <= 0.02, e[-1]
     assert e[-1] / e[0] < 0.01
+
+
+@pytest.mark.slow
+def test_the_panda_in_mujoco_equals_its_own_dynamics_in_the_loop():
+    """The Panda (examples/panda.toml, the C library's inertia-scaled design, eigen mixing
+    every 50 samples) around MuJoCo and around the model's own dynamics (RK4, 8 sub-steps,
+    ivdrem.controller.loop.ModelPlant): the same controller, q(0.3 s) equal to first
+    order in MuJoCo's step (one and four steps per sample)."""
+    from ivdrem.controller.clib import CController
+    from ivdrem.controller.loop import ModelPlant, sampled_loop
+    from ivdrem.experiments.config import load_config, model_from_config
+    from ivdrem.plants.mujoco import controller_kwargs
+    config = load_config("examples/panda.toml")
+    model = model_from_config(config)
+    kw, run = controller_kwargs(config, "iv-drem")
+    kw.update(gamma=53.2, mix_every=50, mu_max=135.0)
+    ref = sampled_loop(CController(model, "iv-drem", **kw),
+                       ModelPlant(model, run["q0"], run["dq0"], substeps=8), 0.3,
+                       disturbance=run["disturbance"], every=300)
+    errs = []
+    for substeps in (1, 4):
+        plant = load(model, substeps=substeps, states=20)
+        r = closed_loop(plant, 0.3, **run, every=300, **kw)
+        errs.append(np.abs(signal(r, "q")[:, -1] - ref["q"][-1]).max())
+    assert errs[0] < 1e-3 and 2.5 < errs[0] / errs[1] < 5.5, errs

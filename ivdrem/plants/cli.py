@@ -23,6 +23,12 @@ def add_arguments(p):
                    help="write the numbers (and the plant's report) to FILE")
     g.add_argument("--mu-max", type=float, default=135.0, dest="mu_max",
                    help="saturation of mu of the sampled controller (default %(default)g)")
+    g.add_argument("--gamma", type=float, default=None,
+                   help="γ of (21) instead of the configuration's (its \"auto\" calibrates on "
+                        "the continuous loop first: for the Panda it picks 53.2)")
+    g.add_argument("--mix-every", type=int, default=None, dest="mix_every",
+                   help="mix (17) every N samples, holding Δ between (the controller's "
+                        "default 1; the Panda's eigen mixing costs ~9 ms a sample)")
     g.add_argument("--integrator", default="implicit",
                    choices=("implicit", "implicitfast", "euler", "rk4"),
                    help="MuJoCo's integrator (default %(default)s)")
@@ -154,6 +160,10 @@ def main_cosim_mujoco(args) -> int:
     progress = want_progress(not getattr(args, "quiet", False))
     for law, kw, run in runs:
         kw["mu_max"] = args.mu_max
+        if args.gamma is not None:
+            kw["gamma"] = args.gamma
+        if args.mix_every is not None:
+            kw["mix_every"] = args.mix_every
         if kw.get("gamma") == "auto":
             from ..controller.block import auto_gamma
             kw["gamma"] = auto_gamma(model, law, kw)["gamma"]

@@ -276,7 +276,7 @@ class MujocoPlant:
         # go on from rest
         if not d.time > before:
             raise FloatingPointError(
-                f"the MuJoCo plant diverged near t = {d.time:g} s (a non-finite or too "
+                f"the MuJoCo plant diverged near t = {before:g} s (a non-finite or too "
                 f"large state; integrator {self.integrator}, step "
                 f"{self.mj.opt.timestep:g} s): a smaller step (substeps) or an implicit "
                 "integrator may hold it")
@@ -537,18 +537,17 @@ def _fit_theta(plant, *, states, seed):
 def controller_kwargs(config, law):
     """The sampled controller's arguments and the run's (q0, dq0, disturbance) from an
     experiment configuration (ivdrem.experiments.config): ``closed_loop_kwargs`` without
-    the continuous loop's own keys."""
+    the continuous loop's own keys, the reference as the configuration's table (a sinusoid
+    or the Fourier series of docs/experiment.md)."""
     from ..experiments.config import closed_loop_kwargs
     kw = closed_loop_kwargs(config, law)
     run = dict(q0=kw.pop("q0"), dq0=kw.pop("dq0"), disturbance=kw.pop("disturbance"))
     kw.pop("theta", None)
-    mixing = kw.pop("mixing", "paper")
-    if mixing not in (None, "paper"):
-        raise ValueError(f"the sampled controller mixes as the paper's (17); the "
-                         f"configuration asks for mixing = {mixing!r}")
-    if not isinstance(kw.get("trajectory"), dict):
-        raise ValueError("the sampled controller follows a sinusoidal reference; the "
-                         "configuration's [trajectory] is of another kind")
+    tr = config["trajectory"]
+    if tr.get("kind", "sinusoid") == "fourier":
+        kw["trajectory"] = dict(kind="fourier", omega_f=float(tr["omega_f"]),
+                                a=np.asarray(tr["a"], float), b=np.asarray(tr["b"], float),
+                                offset=np.asarray(tr["offset"], float))
     G = np.asarray(kw.pop("Gamma"), float)
     kw["Gamma"] = np.diag(G) if G.ndim == 2 else G
     return kw, run
