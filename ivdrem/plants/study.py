@@ -14,6 +14,8 @@ A study file is an experiment configuration (as ``examples/paper.toml``) with a
                                             # window T was chosen from the unscaled ones
     seeds = [0, 1]                          # the sensor noise's seed
     mu_max = 135.0
+    gamma = 53.2                            # optional: γ of (21) instead of the config's
+    mix_every = 50                          # optional: mix (17) every N samples
 
 Every combination is run once per law of ``experiment.laws`` (one MuJoCo loop each,
 :func:`ivdrem.plants.mujoco.closed_loop`).  Written to the output folder:
@@ -42,7 +44,7 @@ __all__ = ["read_robustness", "expand", "run_one", "run_robustness", "plot"]
 
 #: keys of [robustness] and their defaults
 DEFAULTS = dict(noise_levels=[0.0, 1.0], payload_mass=[0.0], payload_com=[0.0, 0.0, 0.0],
-                omega_scale=[1.0], seeds=[0], mu_max=135.0)
+                omega_scale=[1.0], seeds=[0], mu_max=135.0, gamma=None, mix_every=None)
 
 
 def read_robustness(path, *, model=None, t_end=None):
@@ -95,6 +97,10 @@ def run_one(config, rob, run) -> dict:
         model = model_from_config(config)
         kw, start = controller_kwargs(config, run["law"])
         kw["mu_max"] = float(rob["mu_max"])
+        if rob["gamma"] is not None:              # instead of the configuration's
+            kw["gamma"] = float(rob["gamma"])
+        if rob["mix_every"] is not None:
+            kw["mix_every"] = int(rob["mix_every"])
         if kw.get("gamma") == "auto":
             from ..controller.block import auto_gamma
             kw["gamma"] = auto_gamma(model, run["law"], kw)["gamma"]
