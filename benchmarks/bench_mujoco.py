@@ -6,8 +6,8 @@ For each arm (the paper's 2-link, planar-6, the Panda and the UR5 by default):
 * ``mj_step``: MuJoCo's step alone (``mujoco.mj_step`` in a Python loop, implicit, 1 ms);
 * ``plant``: :meth:`ivdrem.plants.mujoco.MujocoPlant.step` (the torque set, the divergence
   check) and reading q, q̇;
-* ``controller``: one step of the generated C controller (``CController.step``, ctypes),
-  where the C library has the arm (the sympy models today);
+* ``controller``: one step of the generated C controller (``CController.step``, ctypes;
+  URDF arms: the eigen mixing every ``--mix-every`` samples);
 * ``loop``: one sample of :func:`ivdrem.plants.mujoco.closed_loop` (everything: plant,
   controller, disturbance, sensors off, recording every 100 samples) over ``--t-end``, as
   the loop measures it (``response.costs["loop_us"]``: the run's set-up left out).
@@ -34,7 +34,7 @@ def _best(fn, reps):
     return min(fn() for _ in range(reps))
 
 
-def bench(name, steps, t_end, reps):
+def bench(name, steps, t_end, reps, mix_every):
     import mujoco
     from ivdrem.plants.mujoco import closed_loop, load
     plant = load(name, states=20)
@@ -62,7 +62,11 @@ def bench(name, steps, t_end, reps):
     row["plant"] = _best(plant_step, reps)
     try:
         from ivdrem.controller.clib import CController
-        ctl = CController(plant.model, "iv-drem", mu_max=135.0)
+        from ivdrem.models.urdf import RigidBodyModel
+        gains = dict(mu_max=135.0)
+        if isinstance(plant.model, RigidBodyModel):      # eigen mixing of many parameters
+            gains["mix_every"] = mix_every
+        ctl = CController(plant.model, "iv-drem", **gains)
     except Exception as exc:             # the C library has no URDF arms yet
         row["controller"] = row["loop"] = None
         row["note"] = f"no C controller ({type(exc).__name__})"
@@ -79,7 +83,7 @@ def bench(name, steps, t_end, reps):
     row["controller"] = _best(ctl_step, reps)
 
     def loop():
-        r = closed_loop(plant, t_end, mu_max=135.0, every=100, progress=False)
+        r = closed_loop(plant, t_end, every=100, progress=False, **gains)
         return r.costs["loop_us"]
 
     row["loop"] = _best(loop, reps)
@@ -93,11 +97,13 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=5000)
     ap.add_argument("--t-end", type=float, default=5.0, dest="t_end")
     ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--mix-every", type=int, default=50, dest="mix_every",
+                    help="URDF arms: mix (17) every N samples (default %(default)s)")
     args = ap.parse_args(argv)
     print(f"load average at start: {os.getloadavg()[0]:.1f} (1 min), {os.cpu_count()} cores")
     rows = []
     for name in args.arms.split(","):
-        rows.append(bench(name.strip(), args.steps, args.t_end, args.reps))
+        rows.append(bench(name.strip(), args.steps, args.t_end, args.reps, args.mix_every))
         r = rows[-1]
         fmt = lambda v: "    -" if v is None else f"{v:7.1f}"  # noqa: E731
         if len(rows) == 1:
