@@ -160,3 +160,19 @@ def test_a_diverging_plant_stops_saying_where():
     with pytest.raises(FloatingPointError, match="diverged near t = "):
         for _ in range(100):
             p.step(np.array([1e300, -1e300]))
+
+
+def test_a_payload_on_a_urdf_arm_sits_on_the_last_joints_link():
+    """UR5: the payload's body is the child of the chain's last joint; its θ is the fit of
+    MuJoCo's forces (residual checked inside load) and moves the gravity by m g."""
+    p = load("ur5", payload=Payload(1.0, com=(0.0, 0.0, 0.05)), states=20)
+    assert p.mj.body(p._payload_body).parentid == p.mj.body("wrist_3_link").id
+    q = np.zeros(p.n)
+    p._set_payload(False)
+    _, g0, _ = p.dynamics(q, np.zeros(p.n))
+    p._set_payload(True)
+    _, g1, _ = p.dynamics(q, np.zeros(p.n))
+    G = np.zeros(p.n)
+    p.model.functions.G(q, p.theta_payload, G)
+    assert np.abs(G - g1).max() < 1e-9 * np.abs(g1).max()
+    assert np.abs(g1 - g0).max() > 1.0                     # a 1 kg load on a 0.8 m arm

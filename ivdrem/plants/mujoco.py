@@ -442,7 +442,9 @@ def load(model="two-link", *, urdf=None, h=1e-3, integrator="implicit", substeps
         xml, report = urdf_mjcf(path, model.joint_names)
         root = ET.fromstring(xml)
         report["source"] = str(path)
-        last_body = model.link_names[-1] if model.link_names else None
+        # the payload's body: the child link of the chain's last joint
+        last_body = next((j.find("child").get("link") for j in root.findall("joint")
+                          if j.get("name") == model.joint_names[-1]), None)
     else:
         xml = planar_mjcf(model)
         report = dict(source="MJCF written from the model's θ", locked_joints=[],
