@@ -93,8 +93,9 @@ def _cosim_parser() -> argparse.ArgumentParser:
                     "compare q, theta_hat and tau_d_hat with the all-Python closed loop and "
                     "report the max errors and the observed order of convergence "
                     "(sample-and-hold coupling: first order in H).")
-    p.add_argument("--t-end", type=float, default=40.0,
-                   help="horizon in s (default %(default)g); a multiple of the comm step")
+    p.add_argument("--t-end", type=float, default=None,
+                   help="horizon in s (default 40; --plant mujoco: the configuration's); a "
+                        "multiple of the comm step")
     p.add_argument("--law", default="iv-drem", choices=LAWS,
                    help="composite term of the controller (default %(default)s)")
     p.add_argument("--comm-step", type=float, default=1e-3, metavar="H",
@@ -118,6 +119,11 @@ def _cosim_parser() -> argparse.ArgumentParser:
     p.add_argument("--controller-fmu", default=None, metavar="FILE", dest="controller_fmu",
                    help="close this controller FMU (ivdrem fmu export --controller) around the "
                         "plant FMU in FMPy and compare with the C reference controller")
+    p.add_argument("--plant", default="fmu", choices=("fmu", "mujoco"),
+                   help="fmu: compare with the plant FMU (default); mujoco: close the sampled "
+                        "controller around the arm in MuJoCo (docs/mujoco.md)")
+    from ivdrem.plants.cli import add_arguments
+    add_arguments(p)
     return p
 
 
@@ -139,6 +145,11 @@ def main_cosim(argv=None) -> int:
     except SystemExit as exc:           # --help (0) or an argparse error (2, already printed)
         return int(exc.code or 0)
     prog = "ivdrem cosim"
+    if args.plant == "mujoco":
+        from ivdrem.plants.cli import main_cosim_mujoco
+        return main_cosim_mujoco(args)
+    if args.t_end is None:
+        args.t_end = 40.0
     if args.controller_fmu is not None:
         from ivdrem.controller.fmu_loop import main_cosim_controller
         return main_cosim_controller(args)
