@@ -380,18 +380,20 @@ def test_paper_jacobian_against_mpmath_on_both_routes(n, cond):
 
 
 def test_lu_helpers_against_numpy():
-    """lu_inverse / lu_solve: P A = L U with the pivots recorded, A^-1, the sign and
-    log10 of det A and the exact 1-norm reciprocal condition, against numpy; a zero pivot
-    (an exactly singular A) reports 1/cond = 0."""
+    """lu_inverse / lu_solve: P A = L U with the pivots recorded, A^-1, det A and its
+    log10 and the exact 1-norm reciprocal condition, against numpy; a zero pivot (an
+    exactly singular A) reports 1/cond = 0; log10 |det| where det underflows."""
     from ivdrem.blocks._kernels import lu_inverse, lu_solve
     rng = np.random.default_rng(11)
     for n in (1, 2, 5, 17):
         A = rng.standard_normal((n, n))
         LU, inv, piv = np.empty((n, n)), np.empty((n, n)), np.empty(n, np.int64)
-        sgn, logd, rc = lu_inverse(A, LU, piv, inv)
+        d, logd, rc = lu_inverse(A, LU, piv, inv)
         assert np.allclose(inv, np.linalg.inv(A), rtol=1e-12, atol=1e-12 * np.abs(inv).max())
         sign_np, logabs_np = np.linalg.slogdet(A)
-        assert sgn == sign_np and logd == pytest.approx(logabs_np / np.log(10.0), abs=1e-13)
+        assert np.sign(d) == sign_np and logd == pytest.approx(logabs_np / np.log(10.0),
+                                                                abs=1e-13)
+        assert d == pytest.approx(np.linalg.det(A), rel=1e-12)
         assert rc == pytest.approx(1 / np.linalg.cond(A, 1), rel=1e-10)
         b = rng.standard_normal(n)
         x = b.copy()
@@ -400,3 +402,9 @@ def test_lu_helpers_against_numpy():
     A = np.ones((4, 4))
     LU, inv, piv = np.empty((4, 4)), np.empty((4, 4)), np.empty(4, np.int64)
     assert lu_inverse(A, LU, piv, inv)[2] == 0.0
+    n = 40                                   # det = 1e-400: underflows, its log10 does not
+    A = np.diag(np.full(n, 1e-10)) + 1e-13 * rng.standard_normal((n, n))
+    LU, inv, piv = np.empty((n, n)), np.empty((n, n)), np.empty(n, np.int64)
+    d, logd, rc = lu_inverse(A, LU, piv, inv)
+    assert d == 0.0 and logd == pytest.approx(np.linalg.slogdet(A)[1] / np.log(10.0),
+                                              rel=1e-12)

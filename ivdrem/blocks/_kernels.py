@@ -168,11 +168,9 @@ LU_MIN_RCOND = 1e-9
 @njit(cache=True)
 def lu_factor(A, piv):
     """In place: A <- L\\U of A with partial pivoting (L unit lower, below the diagonal),
-    piv[k] the row interchanged with k at step k.  Returns (sign of det A, log10 |det A|),
-    sign 0.0 where a pivot is exactly zero (A singular to working precision)."""
+    piv[k] the row interchanged with k at step k.  False where a pivot is exactly zero
+    (A singular to working precision; A is then partly factored)."""
     n = A.shape[0]
-    sgn = 1.0
-    logd = 0.0
     for k in range(n):
         p = k
         big = abs(A[k, k])
@@ -182,24 +180,39 @@ def lu_factor(A, piv):
                 p = i
         piv[k] = p
         if not big > 0.0:
-            return 0.0, LOG10_ZERO_SIGMA * n
+            return False
         if p != k:
-            sgn = -sgn
             for j in range(n):
                 t = A[k, j]
                 A[k, j] = A[p, j]
                 A[p, j] = t
         ukk = A[k, k]
-        if ukk < 0.0:
-            sgn = -sgn
-        logd += np.log10(abs(ukk))
         for i in range(k + 1, n):
             lik = A[i, k] / ukk
             A[i, k] = lik
             if lik != 0.0:
                 for j in range(k + 1, n):
                     A[i, j] -= lik * A[k, j]
-    return sgn, logd
+    return True
+
+
+@njit(cache=True)
+def lu_det(LU, piv):
+    """(det A, log10 |det A|) from lu_factor's LU: the product of the pivots, one sign flip
+    per interchange; the logarithm of that product where it is a normal double, else the
+    sum of the pivots' logarithms (finite where det A underflows)."""
+    n = LU.shape[0]
+    d = 1.0
+    for k in range(n):
+        d *= LU[k, k]
+        if piv[k] != k:
+            d = -d
+    if abs(d) >= 2.2250738585072014e-308 and abs(d) < np.inf:
+        return d, np.log10(abs(d))
+    logd = 0.0
+    for k in range(n):
+        logd += np.log10(abs(LU[k, k]))
+    return d, logd
 
 
 @njit(cache=True)
@@ -225,23 +238,24 @@ def lu_solve(LU, piv, b):
 
 
 @njit(cache=True)
-def lu_inverse(A, LU, piv, inv):
-    """LU of A (into LU and piv, as lu_factor) and A^-1 (into inv, column by column).  Returns (sign of det A,
-    log10 |det A|, 1/cond_1(A)) with the exact 1-norm of A^-1 (n solves, O(n^3) like the
-    factorisation, cheaper than an estimate's bookkeeping at the sizes of the mixing);
-    1/cond 0.0 where a pivot is zero (inv then not written)."""
-    n = A.shape[0]
-    anorm = 0.0
-    for j in range(n):
+def _norm1(A):
+    big = 0.0
+    for j in range(A.shape[1]):
         c = 0.0
-        for i in range(n):
-            LU[i, j] = A[i, j]
+        for i in range(A.shape[0]):
             c += abs(A[i, j])
-        anorm = max(anorm, c)
-    sgn, logd = lu_factor(LU, piv)
-    if sgn == 0.0:
-        return 0.0, logd, 0.0
-    col = np.empty(n)
+        big = max(big, c)
+    return big
+
+
+@njit(cache=True)
+def lu_rcond(LU, piv, anorm, col, inv):
+    """1/cond_1(A) = 1/(||A||_1 ||A^-1||_1) from lu_factor's LU, with the exact 1-norm of
+    A^-1 from its columns (n solves, O(n^3) like the factorisation, and at the mixing's
+    sizes cheaper than an estimator's bookkeeping); the columns go into inv when it is
+    n x n (an empty inv: not kept).  col: scratch of n.  0.0 where ||A^-1|| overflows."""
+    n = LU.shape[0]
+    keep = inv.shape[0] == n
     inorm = 0.0
     for j in range(n):
         for i in range(n):
@@ -250,35 +264,46 @@ def lu_inverse(A, LU, piv, inv):
         lu_solve(LU, piv, col)
         c = 0.0
         for i in range(n):
-            inv[i, j] = col[i]
             c += abs(col[i])
+            if keep:
+                inv[i, j] = col[i]
         inorm = max(inorm, c)
     rc = 1.0 / (anorm * inorm)
-    if not rc > 0.0:                    # ||A^-1|| overflowed: as singular
-        rc = 0.0
-    return sgn, logd, rc
+    return rc if rc > 0.0 else 0.0
+
+
+@njit(cache=True)
+def lu_inverse(A, LU, piv, inv):
+    """LU of A (into LU and piv, as lu_factor) and A^-1 (into inv).  Returns (det A,
+    log10 |det A|, 1/cond_1(A)); 1/cond 0.0 (and det 0.0) where a pivot is zero, inv then
+    not written."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(n):
+            LU[i, j] = A[i, j]
+    if not lu_factor(LU, piv):
+        return 0.0, LOG10_ZERO_SIGMA * n, 0.0
+    d, logd = lu_det(LU, piv)
+    return d, logd, lu_rcond(LU, piv, _norm1(A), np.empty(n), inv)
 
 
 @njit(cache=True)
 def _paper_lu(Y, P, s, Delta, calY, logD):
     """The paper's mixing (17) by the LU route: Delta = det P, calY = adj(P) Y / s =
-    det(P) P^-1 Y / s.  False (nothing written) where 1/cond_1(P) < LU_MIN_RCOND."""
+    det(P) P^-1 Y / s.  P is factored in place; False (Delta, calY, logD not written, P
+    overwritten) where 1/cond_1(P) < LU_MIN_RCOND."""
     n = Y.shape[0]
-    LU = np.empty((n, n))
-    inv = np.empty((n, n))
+    anorm = _norm1(P)
     piv = np.empty(n, np.int64)
-    sgn, logd, rc = lu_inverse(P, LU, piv, inv)
-    if not rc >= LU_MIN_RCOND:
+    if not lu_factor(P, piv):
         return False
-    d = 1.0
-    for k in range(n):                  # det P = prod u_kk, one sign flip per interchange
-        d *= LU[k, k]
-        if piv[k] != k:
-            d = -d
     x = np.empty(n)
+    if not lu_rcond(P, piv, anorm, x, np.empty((0, 0))) >= LU_MIN_RCOND:
+        return False
+    d, logd = lu_det(P, piv)
     for i in range(n):
         x[i] = Y[i]
-    lu_solve(LU, piv, x)
+    lu_solve(P, piv, x)
     Delta[0] = d
     logD[0] = logd
     for i in range(n):
@@ -505,8 +530,12 @@ def mixing_values(code, Y, Psi, f_rel, guard, Delta, calY, logD):
             P[i, j] = Psi[i * n + j] / s
     if code == 1 and nrm > 0.0 and _eigen_fast(Y, P, s, f_rel * nrm / s, Delta, calY, logD):
         return
-    if code == 0 and nrm > 0.0 and _paper_lu(Y, P, s, Delta, calY, logD):
-        return
+    if code == 0 and nrm > 0.0:
+        if _paper_lu(Y, P, s, Delta, calY, logD):
+            return
+        for i in range(n):                              # P was factored in place
+            for j in range(n):
+                P[i, j] = Psi[i * n + j] / s
     U, sig, Vt, s_uv = svd_signed(P)
     coef = np.empty(n)
     C = np.empty((n, n))
@@ -593,14 +622,9 @@ def _paper_lu_derivatives(Y, P, s, g, jac):
     LU = np.empty((n, n))
     inv = np.empty((n, n))
     piv = np.empty(n, np.int64)
-    sgn, logd, rc = lu_inverse(P, LU, piv, inv)
+    D, logd, rc = lu_inverse(P, LU, piv, inv)
     if not rc >= LU_MIN_RCOND:
         return False
-    D = 1.0
-    for k in range(n):                  # det P = prod u_kk, one sign flip per interchange
-        D *= LU[k, k]
-        if piv[k] != k:
-            D = -D
     x = np.empty(n)
     for i in range(n):
         x[i] = Y[i]
