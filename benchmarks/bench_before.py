@@ -5,7 +5,8 @@ optionally planar arms) simulated by each version's own package.
 The commit is checked out into a temporary git worktree (removed at the end); each run is a
 child process started with that tree as its working directory and first on PYTHONPATH, so
 it imports that version of ivdrem (this checkout's venv, the same numba, scipy and
-python-control).  The two versions alternate, best of ``--reps``.
+python-control).  The two versions alternate (which goes first alternates between
+repetitions), best of ``--reps``.
 
 * paper's loops (``--laws``): each child builds ``closed_loop(law)``, simulates 1 s (warm:
   kernels loaded from the compile caches) and then times ``simulate(d, t_end)`` as a user
@@ -92,8 +93,10 @@ def main(argv=None):
     best = {}
     try:
         for rep in range(a.reps):
+            # the order within a rep alternates too (a load that drifts favours neither)
+            order = list(trees.items()) if rep % 2 == 0 else list(trees.items())[::-1]
             for law in laws:
-                for name, tree in trees.items():
+                for name, tree in order:
                     r = _run(tree, ["-c", CHILD, law, str(a.t_end)])
                     k = (law, name)
                     b = best.get(k)
@@ -105,7 +108,7 @@ def main(argv=None):
                     print(f"  rep {rep + 1} {law:20s} {name:6s} wall {r['wall']:7.3f} s  cpu "
                           f"{r['cpu']:7.3f} s  steps {r['steps']}", flush=True)
             for arm, variant in arms:
-                for name, tree in trees.items():
+                for name, tree in order:
                     r = _run(tree, ["benchmarks/bench_arms.py", "--one", arm, variant,
                                     str(a.t_end_arms)])
                     k = (f"{arm} {variant}", name)
