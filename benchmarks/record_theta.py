@@ -6,6 +6,7 @@ Usage::
 
     PYTHONPATH=. python benchmarks/record_theta.py OUT.json [--t-end 300]
     PYTHONPATH=. python benchmarks/record_theta.py NEW.json --compare OLD.json
+    PYTHONPATH=. python benchmarks/record_theta.py OUT.json --methods rodas5p
 """
 from __future__ import annotations
 
@@ -34,11 +35,17 @@ def main(argv=None):
     ap.add_argument("out")
     ap.add_argument("--t-end", type=float, default=300.0)
     ap.add_argument("--compare", default=None)
+    ap.add_argument("--methods", default=",".join(METHODS),
+                    help="comma-separated methods (default: all)")
     a = ap.parse_args(argv)
+    methods = [m for m in a.methods.split(",") if m]
+    for m in methods:
+        if m not in METHODS:
+            ap.error(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
     res = {}
     for law in LAWS:
         d = closed_loop(law)
-        for m in METHODS:
+        for m in methods:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 r = simulate(d, a.t_end, method=m, t_eval=[0.0, a.t_end], progress=False,
@@ -56,6 +63,8 @@ def main(argv=None):
         old = json.loads(Path(a.compare).read_text())
         worst = 0.0
         for k, v in res.items():
+            if k not in old:
+                continue
             o = np.array(old[k]["theta_hat"])
             rel = float(np.max(np.abs(np.array(v["theta_hat"]) - o)) / np.max(np.abs(o)))
             worst = max(worst, rel)

@@ -320,3 +320,91 @@ def test_eigen_values_against_mpmath_on_both_routes(n, cond):
     assert np.abs(calY - ref_Y).max() <= tol * np.abs(ref_Y).max()
     assert abs(L[0] - ref_L) <= tol          # decades: the relative error of Delta / ln 10
     assert (1.0 / cond > EIGEN_FAST_MIN_RATIO) == (cond < 1e9)   # both routes are covered
+
+
+def _conditioned(n, cond, rng, scale=50.0):
+    """scale Q1 diag(1 ... 1/cond) Q2^T: a Psi of 2-norm condition number cond."""
+    Q1, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    Q2, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    return scale * Q1 @ np.diag(np.logspace(0, -np.log10(cond), n)) @ Q2.T
+
+
+@pytest.mark.parametrize("n", [5, 20, 43])
+@pytest.mark.parametrize("cond", [1e2, 1e5, 1e7, 1e8, 1e10, 1e14])
+def test_paper_values_against_mpmath_on_both_routes(n, cond):
+    """The paper's mixing takes adj P = det(P) P^-1 from one LU while 1/cond_1(P) is at
+    least LU_MIN_RCOND, the signed SVD below it (cond 1e10 and up at these sizes: the
+    bound is checked to put each case on the route named): on either side Delta, calY and
+    log10|Delta| agree with their definition in mpmath (60 digits) to a few cond(P) eps."""
+    from ivdrem.blocks._kernels import LU_MIN_RCOND
+    rng = np.random.default_rng(int(n * 31 + np.log10(cond)))
+    Psi = _conditioned(n, cond, rng)
+    Y = rng.standard_normal(n)
+    D, calY, L = run_values("paper", Y, Psi)
+    with mp.workdps(60):
+        M = mp.matrix(Psi.tolist())
+        s = 1 + mp.mnorm(M, "f")
+        P = M / s
+        d = mp.det(P)
+        ref_D = float(d)
+        ref_Y = np.array([float(v / s) for v in d * (P ** -1) * mp.matrix(Y.tolist())])
+        ref_L = float(mp.log10(abs(d)))
+        rcond = float(1 / (mp.mnorm(P, 1) * mp.mnorm(P ** -1, 1)))
+    tol = max(1e-10, 100 * cond * np.finfo(float).eps)
+    assert abs(D[0] - ref_D) <= tol * abs(ref_D)
+    assert np.abs(calY - ref_Y).max() <= tol * np.abs(ref_Y).max()
+    assert abs(L[0] - ref_L) <= tol
+    assert (rcond >= LU_MIN_RCOND) == (cond <= 1e8)      # both routes are covered
+
+
+@pytest.mark.parametrize("n", [5, 20])
+@pytest.mark.parametrize("cond", [1e2, 1e5, 1e8, 1e10])
+def test_paper_jacobian_against_mpmath_on_both_routes(n, cond):
+    """The paper's Jacobian, LU route (d det = det tr(P^-1 dP), d adj Y from the inverse)
+    for cond <= 1e8 and signed-SVD route above, against mpmath's closed form: every row to
+    a few cond(P) eps of its largest entry."""
+    rng = np.random.default_rng(int(n * 37 + np.log10(cond)))
+    Psi = _conditioned(n, cond, rng)
+    Y = rng.standard_normal(n)
+    J = run_jac("paper", Y, Psi)
+    ref = mp_paper_jacobian(Y, Psi)
+    tol = max(1e-10, 100 * cond * np.finfo(float).eps)
+    for rows in (slice(0, 1), slice(1, 1 + n)):
+        err = np.abs(J[rows] - ref[rows]).max() / np.abs(ref[rows]).max()
+        assert err <= tol, f"rows {rows}: {err:.2e}"
+    # log10|Delta|: d/dPsi_ab = ((P^-1)_ba - n g_ab) / (s ln 10), g = Psi/||Psi||_F
+    s = 1 + np.linalg.norm(Psi)
+    inv = np.linalg.inv(Psi / s)
+    ref_L = (inv.T - n * Psi / np.linalg.norm(Psi)).ravel() / (s * np.log(10.0))
+    assert np.abs(J[1 + n, n:] - ref_L).max() <= tol * np.abs(ref_L).max()
+
+
+def test_lu_helpers_against_numpy():
+    """lu_inverse / lu_solve: P A = L U with the pivots recorded, A^-1, det A and its
+    log10 and the exact 1-norm reciprocal condition, against numpy; a zero pivot (an
+    exactly singular A) reports 1/cond = 0; log10 |det| where det underflows."""
+    from ivdrem.blocks._kernels import lu_inverse, lu_solve
+    rng = np.random.default_rng(11)
+    for n in (1, 2, 5, 17):
+        A = rng.standard_normal((n, n))
+        LU, inv, piv = np.empty((n, n)), np.empty((n, n)), np.empty(n, np.int64)
+        d, logd, rc = lu_inverse(A, LU, piv, inv)
+        assert np.allclose(inv, np.linalg.inv(A), rtol=1e-12, atol=1e-12 * np.abs(inv).max())
+        sign_np, logabs_np = np.linalg.slogdet(A)
+        assert np.sign(d) == sign_np and logd == pytest.approx(logabs_np / np.log(10.0),
+                                                                abs=1e-13)
+        assert d == pytest.approx(np.linalg.det(A), rel=1e-12)
+        assert rc == pytest.approx(1 / np.linalg.cond(A, 1), rel=1e-10)
+        b = rng.standard_normal(n)
+        x = b.copy()
+        lu_solve(LU, piv, x)
+        assert np.allclose(A @ x, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    A = np.ones((4, 4))
+    LU, inv, piv = np.empty((4, 4)), np.empty((4, 4)), np.empty(4, np.int64)
+    assert lu_inverse(A, LU, piv, inv)[2] == 0.0
+    n = 40                                   # det = 1e-400: underflows, its log10 does not
+    A = np.diag(np.full(n, 1e-10)) + 1e-13 * rng.standard_normal((n, n))
+    LU, inv, piv = np.empty((n, n)), np.empty((n, n)), np.empty(n, np.int64)
+    d, logd, rc = lu_inverse(A, LU, piv, inv)
+    assert d == 0.0 and logd == pytest.approx(np.linalg.slogdet(A)[1] / np.log(10.0),
+                                              rel=1e-12)

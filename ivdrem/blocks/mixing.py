@@ -7,7 +7,9 @@ adj(Psi) Y by prod_j (sigma_j + f0) instead of s^nθ (a per-eigenvalue, least-sq
 normalisation), "channel" divides channel i by its guarded (i, i) cofactor (Delta_i =
 1/[Psi^-1]_ii for a symmetric positive definite Psi).  Determinant and adjugate come from
 the singular value decomposition (ivdrem.blocks._kernels), O(nθ^3) and exact at singular
-Psi; the output Delta_log10 = log10 |Delta| stays finite where Delta underflows.
+Psi, or, while Psi/s is well conditioned, by cheaper routes exact to the same rounding:
+"paper" adj = det * inverse from one LU, "eigen" the singular values and one LU solve
+(docs/mixing.md); the output Delta_log10 = log10 |Delta| stays finite where Delta underflows.
 """
 from __future__ import annotations
 

@@ -11,6 +11,7 @@ import re
 import sys
 import textwrap
 import warnings
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -41,6 +42,19 @@ _ALLOWED_GLOBALS = ({"np", "math", "model", "call_c"}
                     | {k for k in dir(_kernels) if not k.startswith("_")})
 
 
+#: a kernel's dedented source, read once per function object: every ``simulate`` builds
+#: its engine's source again, and reading the 2-link loop's 33 kernels with inspect
+#: (tokenizing their files) was about half of a warm engine's set-up (53 -> 24 ms CPU)
+_SOURCES = weakref.WeakKeyDictionary()
+
+
+def _read_source(fn):
+    src = _SOURCES.get(fn)
+    if src is None:
+        src = _SOURCES[fn] = textwrap.dedent(inspect.getsource(fn))
+    return src
+
+
 def _kernel_source(fn, block_name, has_model):
     """Source of a block kernel, after checking it only uses what its module provides."""
     cv = inspect.getclosurevars(fn)
@@ -56,7 +70,7 @@ def _kernel_source(fn, block_name, has_model):
         if g not in ("np", "math", "model", "call_c") and val is not getattr(_kernels, g, None):
             raise CompileError(f"kernel {fn.__name__} of block '{block_name}': global {g!r} "
                                "shadows an ivdrem.blocks._kernels helper")
-    src = textwrap.dedent(inspect.getsource(fn))
+    src = _read_source(fn)
     if not re.search(r"^def\s+" + re.escape(fn.__name__) + r"\s*\(", src, flags=re.M):
         raise CompileError(f"cannot read the source of kernel {fn.__name__} of block '{block_name}'")
     if not has_model and re.search(r"\bmodel\.", src):
