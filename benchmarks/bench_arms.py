@@ -10,12 +10,12 @@ Usage::
     ./run python benchmarks/bench_arms.py --variants paper,eigen,channel --json out.json
     ./run python benchmarks/bench_arms.py --accuracy           # the mixing's own accuracy only
     OPENBLAS_NUM_THREADS=1 ./run python benchmarks/bench_arms.py --arms ur5,panda --variants eigen --t-end 60
-                                                               # the real arms (docs/mixing.md, "On real arms")
+                                                               # the real arms (docs/mixing-derivations.md, "On real arms")
 
 Run it with ``OPENBLAS_NUM_THREADS=1``: on a shared 2-core machine OpenBLAS's own threads
 slow the mixing's small SVDs down instead of up.  The UR5 and the Panda
 are not in the default list: each first run compiles its loops for minutes and 60 s of
-simulation take minutes more (docs/mixing.md, "On real arms").
+simulation take minutes more (docs/mixing-derivations.md, "On real arms").
 
 ``--arms`` takes model names of ``ivdrem.models.get_model`` or ``module:factory`` (a
 function returning an EulerLagrangeModel).  Each run is a child process (peak memory is its
