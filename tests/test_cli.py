@@ -231,8 +231,10 @@ def test_the_preflight_prices_and_simulates_nothing(monkeypatch):
     monkeypatch.setattr(gamma_auto, "check_reference_delta", estimate)
     cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"
     config = load_config(cfg, {"experiment.laws": "all"})
-    assert check_runs(config) is None
-    assert check_runs(config, fmu_check_t_end=1.0) is None
+    # it returns the estimated wall time of each run it could price ([(law, seconds)])
+    for est in (check_runs(config), check_runs(config, fmu_check_t_end=1.0)):
+        assert {law for law, _ in est} <= set(config["experiment"]["laws"])
+        assert all(s >= 0.0 for _, s in est)
     assert asked == ["iv-drem", "drem"] * 2
 
 
@@ -251,7 +253,7 @@ def test_the_preflight_does_not_price_an_fmu_check_predicted_to_diverge():
     stiff = load_config(None, {"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"],
                                "controller.K": [2000.0, 2000.0]})
     assert fmu_check_prediction(stiff, 40000.0).diverges
-    assert check_runs(stiff, fmu_check_t_end=40000.0) is None
+    assert [law for law, _ in check_runs(stiff, fmu_check_t_end=40000.0)] == ["iv-drem"]
 
 
 def test_a_delta_below_the_doubles_is_refused_by_the_preflight(tmp_path, monkeypatch, capsys):

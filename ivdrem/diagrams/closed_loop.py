@@ -213,7 +213,9 @@ def _arm_experiment(model, spec, theta, trajectory, disturbance, q0, dq0, K, T):
     if disturbance is None:
         disturbance = arm_experiment.design_disturbance(model, table, theta)
     if q0 is None or dq0 is None:
-        q_start, dq_start = arm_experiment.initial_state(table)
+        # a block of the caller's: q0 was required above, and q̇(0) = 0 as in the design
+        q_start, dq_start = (arm_experiment.initial_state(table) if isinstance(table, dict)
+                             else (None, np.zeros(model.n)))
         q0 = np.asarray(q_start, float) if q0 is None else q0
         dq0 = np.asarray(dq_start, float) if dq0 is None else dq0
     if K is None:

@@ -27,6 +27,7 @@ import numpy as np
 
 from .. import __version__
 from . import _diagram, _template, methods
+from .cache import CacheFault
 from .errors import BLOCK_RAISED_MESSAGE
 from .layout import WORKSPACE_LAYOUT, layout_constants
 
@@ -143,7 +144,6 @@ def _compiler_version(cc):
 
 def _disk_full(cache, what):
     """The one line for a compile cache on a full disk, naming it and the remedy."""
-    from .cache import CacheFault
     return CacheFault(f"the compile cache {cache} is on a full disk (No space left on device) "
                       f"while {what}: free some space there, or point IVDREM_CACHE_DIR at a "
                       "directory on a disk with room (ivdrem's caches take about 100 MB)")
