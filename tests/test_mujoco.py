@@ -110,8 +110,13 @@ def test_a_urdf_whose_inertia_mujoco_would_alter_is_refused(tmp_path):
     assert load(from_urdf(good, cache=False), urdf=good).check["M"] < 1e-12
     bad = tmp_path / "bad.urdf"
     bad.write_text(URDF.format(ixx="0.05"))
+    # ivdrem's own URDF checks refuse the file first (docs/models.md) ...
+    from ivdrem.models.urdf import URDFError
+    with pytest.raises(URDFError, match="triangle inequality"):
+        from_urdf(bad, cache=False)
+    # ... and MuJoCo, handed the file beside a model that passed, refuses it too
     with pytest.raises(MujocoError, match="MuJoCo refused the arm"):
-        load(from_urdf(bad, cache=False), urdf=bad)
+        load(from_urdf(good, cache=False), urdf=bad)
 
 
 def test_the_payloads_theta_equals_the_papers_formulas():

@@ -307,6 +307,11 @@ def _paper_lu(Y, P, s, Delta, calY, logD):
     for i in range(n):
         x[i] = Y[i]
     lu_solve(P, piv, x)
+    # a well-conditioned but tiny P (|P| near the smallest doubles) has an inverse beyond
+    # the largest: P^-1 Y overflows where adj(P) Y does not; the SVD route takes it then
+    for i in range(n):
+        if not np.isfinite(d * x[i]):
+            return False
     Delta[0] = d
     logD[0] = logd
     for i in range(n):
@@ -617,6 +622,12 @@ def _paper_lu_derivatives(Y, P, s, g, jac):
     for i in range(n):
         x[i] = Y[i]
     lu_solve(LU, piv, x)
+    for i in range(n):              # an inverse beyond the doubles (a tiny P): SVD route
+        if not np.isfinite(x[i]):
+            return False
+        for j in range(n):
+            if not np.isfinite(inv[i, j]):
+                return False
     ln10 = np.log(10.0)
     rows_L = 1 + n
     for a in range(n):

@@ -47,10 +47,11 @@ LAW_CODES = {"iv-drem": 0, "composite-learning": 1, "drem": 2, "sigma-modificati
 STRUCTURAL = ("h", "T", "block", "law", "delay", "corrected", "design", "mixing", "mix_every",
               "gravity", "ref_kind")
 
-#: design name -> code of the parameter ``design``; gravity option -> code of ``gravity``;
-#: mixing variant -> code of ``mixing`` (ivdrem.blocks._kernels.MIXING_VARIANTS)
+#: design name -> code of the parameter ``design`` (docs/controller.md, "Sampled designs")
 DESIGN_CODES = {"paper": 0, "inertia-scaled": 1}
+#: gravity option -> code of the parameter ``gravity`` ("robot": the robot adds ĝ(q) itself)
 GRAVITY_CODES = {"controller": 0, "robot": 1}
+#: mixing variant -> code of the parameter ``mixing`` (ivdrem.blocks._kernels.MIXING_VARIANTS)
 MIXING_CODES = {"paper": 0, "eigen": 1, "channel": 2}
 
 
