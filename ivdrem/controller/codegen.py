@@ -18,9 +18,7 @@ only) for :class:`ivdrem.controller.clib.CController` (ctypes).
 from __future__ import annotations
 
 import hashlib
-import math
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -30,6 +28,7 @@ import numpy as np
 import sympy as sp
 
 from ..blocks.mixing import START_RAMP_REL
+from ..models._c_printer import c_double as _c_double
 from .sampled import REFERENCE_HARMONICS
 
 __all__ = ["param_layout", "generate_controller_sources", "build_library", "LAW_CODES",
@@ -130,13 +129,6 @@ def param_vector(ctrl):
         assert v.size == size, name
         out.extend(v.tolist())
     return np.array(out)
-
-
-def _c_double(x: float) -> str:
-    if math.isinf(x):
-        return "INFINITY" if x > 0 else "(-INFINITY)"
-    s = repr(float(x))
-    return s if ("e" in s or "." in s) else s + ".0"
 
 
 def _regressor_code(model):

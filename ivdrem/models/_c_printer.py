@@ -41,7 +41,8 @@ _CMP = {ast.Lt: "<", ast.LtE: "<=", ast.Gt: ">", ast.GtE: ">=", ast.Eq: "==",
         ast.NotEq: "!="}
 
 
-def _c_double(x):
+def c_double(x):
+    """A Python float as a C99 double literal (INFINITY for an infinite one)."""
     s = repr(float(x))
     if s == "inf":
         return "INFINITY"
@@ -191,7 +192,7 @@ class _Function:
             if isinstance(e.value, int):
                 return str(e.value)
             if isinstance(e.value, float):
-                return _c_double(e.value)
+                return c_double(e.value)
             self.fail(e, f"constant {e.value!r}")
         if isinstance(e, ast.Name):
             if e.id in self.sizes:
@@ -200,7 +201,7 @@ class _Function:
                 return e.id
             g = self.fn.__globals__.get(e.id)
             if isinstance(g, (int, float)) and not isinstance(g, bool):
-                return _c_double(g) if isinstance(g, float) else str(g)
+                return c_double(g) if isinstance(g, float) else str(g)
             self.fail(e, f"unknown name {e.id!r}")
         if isinstance(e, ast.Attribute):
             if isinstance(e.value, ast.Name) and e.value.id == "np" and e.attr == "inf":

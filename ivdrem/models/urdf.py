@@ -678,11 +678,6 @@ def _kernels_hash():
     return kernels_digest()
 
 
-def _c_double(x):
-    s = repr(float(x))
-    return s if ("e" in s or "." in s) else s + ".0"
-
-
 def _array_literal(a, dtype):
     a = np.asarray(a, dtype=dtype)
     body = json.dumps(a.tolist()) if a.size else "[]"
@@ -1006,7 +1001,7 @@ def {P}Phi_jac(q, dq, v, dv, out):
     def _c_body(self, prefix):
         """The C face's body: the chain's constant arrays, the kernels of
         ivdrem.models.rigid_body printed to C, and the functions calling them."""
-        from ._c_printer import print_kernels
+        from ._c_printer import c_double, print_kernels
         c = self._chain
         P = prefix.upper()
         K = f"{prefix}"
@@ -1014,7 +1009,7 @@ def {P}Phi_jac(q, dq, v, dv, out):
         def arr(values, ctype):
             a = np.asarray(values, dtype=float if ctype == "double" else np.int64).reshape(-1)
             if ctype == "double":
-                body = ", ".join(_c_double(v) for v in a)
+                body = ", ".join(c_double(v) for v in a)
             else:
                 body = ", ".join(str(int(v)) for v in a)
             return f"{{{body}}}"
