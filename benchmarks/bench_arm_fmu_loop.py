@@ -15,7 +15,8 @@ step alone (p50 of ``bench_controller.py``'s driver is the figure for the step).
 Usage::
 
     ./run python benchmarks/bench_arm_fmu_loop.py [--arms panda,ur5,iiwa,xarm7] [--t-end 300]
-                                                  [--h 0.001] [--gamma 50] [--mix-every 1]
+                                                  [--h 0.001] [--gamma 500] [--Gamma 0.001]
+                                                  [--mix-every 10]
 """
 from __future__ import annotations
 
@@ -28,13 +29,15 @@ from pathlib import Path
 import numpy as np
 
 
-def run_arm(name, t_end, h=1e-3, gamma=None, mix_every=None, every=1000, law="iv-drem"):
+def run_arm(name, t_end, h=1e-3, gamma=None, mix_every=None, every=1000, law="iv-drem",
+            Gamma=None):
     from ivdrem.controller.fmu_export import (controller_design, export_controller_fmu,
                                               predict, resolve_gamma)
     from ivdrem.controller.fmu_loop import fmpy_closed_loop
     from ivdrem.experiments.config import closed_loop_kwargs, load_config, model_from_config
     from ivdrem.fmu import export_fmu
-    config = load_config(None, {"model.name": name})
+    config = load_config(None, {"model.name": name,
+                                **({} if Gamma is None else {"controller.Gamma": Gamma})})
     model = model_from_config(config)
     design = controller_design(config, law, h=h)
     if gamma is not None:
@@ -46,7 +49,8 @@ def run_arm(name, t_end, h=1e-3, gamma=None, mix_every=None, every=1000, law="iv
     kw = closed_loop_kwargs(config, law)
     theta = np.asarray(kw["theta"], dtype=float)
     out = dict(arm=name, n=model.n, ntheta=model.ntheta, h=h, growth=st.growth,
-               gamma=design["gamma"], stable=st.stable)
+               gamma=design["gamma"], stable=st.stable, reason=st.reason(),
+               K=np.round(np.diag(design["K"]), 1).tolist())
     with tempfile.TemporaryDirectory(prefix="ivdrem_arm_loop_") as tmp:
         ctl = export_controller_fmu(model, Path(tmp) / "C.fmu", law=law, **design)
         plant = export_fmu(model, Path(tmp) / "P.fmu")
@@ -76,6 +80,8 @@ def main(argv=None):
     ap.add_argument("--h", type=float, default=1e-3)
     ap.add_argument("--gamma", type=float, default=None,
                     help="gamma of (21) (default: the configuration's, 'auto' calibrated)")
+    ap.add_argument("--Gamma", type=float, default=None,
+                    help="Γ of (11) (default: the configuration's)")
     ap.add_argument("--mix-every", type=int, default=None, dest="mix_every",
                     help="the mixing (17) every m samples (default: the controller's)")
     args = ap.parse_args(argv)
@@ -85,7 +91,9 @@ def main(argv=None):
           f"{'diverged':>9} {'θ̃ ratio':>9} {'‖θ̃‖ end':>9} {'|e| end':>9} {'µs/step':>8}",
           flush=True)
     for arm in args.arms.split(","):
-        r = run_arm(arm, args.t_end, h=args.h, gamma=args.gamma, mix_every=args.mix_every)
+        r = run_arm(arm, args.t_end, h=args.h, gamma=args.gamma, mix_every=args.mix_every,
+                    Gamma=args.Gamma)
+        print(f"        K = {r['K']} 1/s; {r['reason']}", flush=True)
         div = "no" if r["diverged"] is None else "YES"
         ratio = f"{r['theta_ratio']:9.4f}" if "theta_ratio" in r else "        -"
         err = f"{r['theta_err_end']:9.4f}" if "theta_err_end" in r else "        -"

@@ -2,10 +2,11 @@
 
 The real-arm experiment of docs/experiment.md (Fourier reference, q(0) = q_d(0), the
 designed disturbance, window T) with IV-DREM, "eigen" mixing every ``--mix-every`` samples,
-the "inertia-scaled" design (K_i = design_gains_i / M_ii(q0), capped:
-ivdrem.controller.sampled.inertia_scaled_gains), closed around the model's forward
-dynamics (RK4, 4 sub-steps per sample, torque and disturbance held;
-ivdrem.controller.loop.ModelPlant).  Prints per arm: ‖θ̃(0)‖ → ‖θ̃(t_end)‖ and their ratio,
+the "inertia-scaled" design (K_i = design_gains_i / M_ii(q0), floored and capped for the
+delay: ivdrem.controller.sampled.inertia_scaled_gains), closed around the model's forward
+dynamics (RK4, ``--substeps`` per sample, 1 by default as the plant FMU at 1 ms; torque and
+disturbance held; ivdrem.controller.loop.ModelPlant), the torque applied ``--delay``
+samples late (1 by default, as around the controller FMU).  Prints per arm: ‖θ̃(0)‖ → ‖θ̃(t_end)‖ and their ratio,
 the largest tracking error over the last 10 s, the largest torque, the wall time.
 
     OPENBLAS_NUM_THREADS=1 ./run python benchmarks/bench_arms_at_rate.py --t-end 300
@@ -25,7 +26,7 @@ import numpy as np  # noqa: E402
 
 
 def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c", mu_max=135.0,
-        K=None):
+        K=None, delay=1, substeps=1, Gamma=0.01):
     from ivdrem.controller.clib import CController
     from ivdrem.controller.loop import ModelPlant, sampled_loop
     from ivdrem.controller.sampled import SampledController, inertia_scaled_gains
@@ -41,11 +42,11 @@ def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c",
     else:
         K = np.array(arm.design_gains(m, q0))
         if design == "inertia-scaled":
-            K = inertia_scaled_gains(m, K, q0, h, mu_max=mu_max)
+            K = inertia_scaled_gains(m, K, q0, h, mu_max=mu_max, delay=delay)
     cls = CController if backend == "c" else SampledController
     ctl = cls(m, law, h=h, K=K, T=T, trajectory=traj, design=design, gamma=gamma,
-              mixing="eigen", mix_every=mix_every, mu_max=mu_max)
-    plant = ModelPlant(m, q0, dq0)
+              mixing="eigen", mix_every=mix_every, mu_max=mu_max, delay=delay, Gamma=Gamma)
+    plant = ModelPlant(m, q0, dq0, substeps=substeps)
     th = np.asarray(m.theta_values)
     t0 = time.perf_counter()
     try:
@@ -59,7 +60,7 @@ def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c",
     qd = np.array([ref.reference(tk)[0] for tk in t])
     last = t >= t[-1] - 10.0
     e0, e1 = np.linalg.norm(th - rec["theta_hat"][0]), np.linalg.norm(th - rec["theta_hat"][-1])
-    return dict(arm=name, h=h, design=design, K=np.round(K, 1).tolist(), T=T,
+    return dict(arm=name, h=h, delay=delay, design=design, K=np.round(K, 1).tolist(), T=T,
                 theta0=e0, theta_end=e1, ratio=e1 / e0,
                 e_last=float(np.abs(rec["q"][last] - qd[last]).max()),
                 tau_max=float(np.abs(rec["tau"]).max()), wall=wall,
@@ -80,11 +81,17 @@ def main(argv=None):
     ap.add_argument("--K", type=float, default=None,
                     help="one K for every joint (default: inertia_scaled_gains of design_gains)")
     ap.add_argument("--backend", default="c", choices=("c", "python"))
+    ap.add_argument("--delay", type=int, default=1, choices=(0, 1),
+                    help="samples between the measurement and the torque (controller FMU: 1)")
+    ap.add_argument("--substeps", type=int, default=1,
+                    help="RK4 sub-steps of the plant per sample (plant FMU at 1 ms: 1)")
+    ap.add_argument("--Gamma", type=float, default=0.01, help="Γ of (11) (scalar)")
     a = ap.parse_args(argv)
     print(f"load {os.getloadavg()}", flush=True)
     for name in a.arms.split(","):
         r = run(name, h=a.h, t_end=a.t_end, design=a.design, gamma=a.gamma,
-                mix_every=a.mix_every, backend=a.backend, mu_max=a.mu_max, K=a.K)
+                mix_every=a.mix_every, backend=a.backend, mu_max=a.mu_max, K=a.K,
+                delay=a.delay, substeps=a.substeps, Gamma=a.Gamma)
         print(r, flush=True)
     print(f"load {os.getloadavg()}", flush=True)
     return 0

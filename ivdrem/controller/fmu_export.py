@@ -475,7 +475,8 @@ def predict(model, law, design, config=None):
         t_end = max(t_end, (mu_max - mu1) / mu0)      # the largest gain is reached too
     return sampled_stability(model, law, theta=theta, t_end=t_end,
                              disturbance=None if dist is None else
-                             (lambda t: disturbance_at(t, dist)), **design)
+                             (lambda t: disturbance_at(t, dist)),
+                             **{**design, "delay": 1})     # the FMU's torque: one sample late
 
 
 def _model_override(name):

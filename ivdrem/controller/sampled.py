@@ -56,7 +56,7 @@ from .window import BlockWindow
 
 __all__ = ["SampledController", "SAMPLED_LAWS", "PAPER_TRAJECTORY", "phi1", "DESIGNS",
            "GRAVITY_OPTIONS", "REFERENCE_HARMONICS", "default_design", "default_mixing",
-           "inertia_scaled_gains"]
+           "inertia_scaled_gains", "gain_budget", "GAIN_FLOOR"]
 
 #: sampled designs of the feedback of (9) (docs/controller.md, "Sampled designs")
 DESIGNS = ("paper", "inertia-scaled")
@@ -114,21 +114,42 @@ def _vector(name, value, n):
     return a
 
 
-def inertia_scaled_gains(model, K, q0, h, *, delta_mu=0.8, mu_max=135.0, product=0.5,
-                         theta=None):
+#: the floor of the "inertia-scaled" design's K (1/s): a closed-loop bandwidth every joint
+#: gets at least (docs/controller.md, "Sampled designs")
+GAIN_FLOOR = 20.0
+
+
+def gain_budget(delay):
+    """The per-step loop gain g = h (K_i + (1 + δ_μ) μ_max) the "inertia-scaled" design
+    allows: half the limit of the discrete loop, z - 1 + g = 0 (delay 0: |1 - g| < 1, g < 2)
+    and z² - z + g = 0 (delay 1, the torque held one sample: g < 1)."""
+    return 1.0 if int(delay) == 0 else 0.5
+
+
+def inertia_scaled_gains(model, K, q0, h, *, delta_mu=0.8, mu_max=135.0, delay=1,
+                         floor=GAIN_FLOOR, budget=None, theta=None):
     """The "inertia-scaled" design's K (1/s) from joint gains K (N m s/rad, e.g.
-    ivdrem.experiments.arm.design_gains): K_i / M_ii(q0) (the same feedback as the paper's
-    at q0 on the diagonal), at most product/h - delta_mu mu_max, so that the per-step
-    factor 1 - h (K_i + delta_mu mu) of the sampled feedback stays in [1 - product, 1)
-    (docs/controller.md, "Sampled designs")."""
+    ivdrem.experiments.arm.design_gains): K_i / M_ii(q0) (the paper's feedback at q0 on the
+    diagonal), at least ``floor`` (a uniform bandwidth on the heavy joints, where
+    K_i / M_ii is ~2 1/s), at most the cap
+
+        h (K_i + δ_μ μ_max + μ_max) <= budget        (default :func:`gain_budget` (delay)),
+
+    the per-step gain of the sampled loop on joint i with the nominal inertia: the feedback
+    M̂(K + δ_μ μ) r of (9) and the observer's injection μ Φ_Mᵀ(q, r) θ̂ ≈ μ M r of (8) with
+    θ̂ = θ (docs/controller.md, "Sampled designs").  ``delay``: 1 for the controller FMU
+    (its torque is applied one sample late), 0 for a host that applies τ_k at once.  The
+    cap wins over the floor; a cap <= 0 is refused naming h and μ_max."""
     th = np.asarray(model.theta_values if theta is None else theta, dtype=float)
     M = np.empty((model.n, model.n))
     model.functions.M(np.asarray(q0, dtype=float), th, M)
-    cap = product / h - delta_mu * mu_max
+    budget = gain_budget(delay) if budget is None else float(budget)
+    cap = budget / h - (1.0 + delta_mu) * mu_max
     if not cap > 0:
-        raise ValueError(f"h (delta_mu mu_max) = {h * delta_mu * mu_max:.3g} leaves no room for "
-                         f"K below the product {product}: lower mu_max or h")
-    return np.minimum(np.asarray(K, dtype=float) / np.diag(M), cap)
+        raise ValueError(f"h (1 + delta_mu) mu_max = {h * (1 + delta_mu) * mu_max:.3g} leaves "
+                         f"no room for K below the per-step budget {budget:g} (delay "
+                         f"{int(delay)}): lower mu_max or h")
+    return np.minimum(np.maximum(np.asarray(K, dtype=float) / np.diag(M), floor), cap)
 
 
 def _limit(name, value, n):

@@ -42,8 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SampledStability", "sampled_stability", "loop_growth", "UNSTABLE_GROWTH",
-           "POINTS", "UnstableDesignError"]
+__all__ = ["SampledStability", "sampled_stability", "loop_growth", "closed_loop_prefix",
+           "UNSTABLE_GROWTH", "POINTS", "PREFIX_POINTS", "UnstableDesignError"]
 
 #: The growth per step from which a sampled loop is refused: an error then grows at least
 #: 1e6-fold within 1400 steps (1.4 s at 1 kHz).  Slightly above 1 so that finite-difference
@@ -52,6 +52,9 @@ UNSTABLE_GROWTH = 1.01
 
 #: Operating points along the reference (times spread over the horizon).
 POINTS = 4
+
+#: States of the simulated closed loop (the prefix) the map is linearised at.
+PREFIX_POINTS = 8
 
 #: Relative finite-difference step of the linearisation.
 _EPS = 1e-7
@@ -102,9 +105,12 @@ def _coordinates(controller, state, theta_hat):
     return out
 
 
-def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=None):
-    """ρ of the one-step map at time t (a sample time), the arm on the reference, with θ̂
-    frozen at ``theta_hat``: (spectral radius, the map's Jacobian)."""
+def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=None,
+                at=None):
+    """ρ of the one-step map at time t (a sample time) with θ̂ frozen at ``theta_hat``:
+    (spectral radius, the map's Jacobian).  The operating point is the arm on the
+    reference holding the torque the reference needs, or ``at`` = (q, q̇, u): a state of
+    the closed loop (u: the torque the plant holds over the step, delay 1)."""
     from ..fmu.export import DEFAULT_SUBSTEP
     model, h, n = controller.model, controller.h, controller.n
     substep = DEFAULT_SUBSTEP if substep is None else float(substep)
@@ -112,9 +118,12 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
     theta_hat = np.asarray(theta_hat, dtype=float)
     k = int(round(t / h))
     t = k * h
-    qd, dqd, ddqd = (np.asarray(x, dtype=float) for x in controller.reference(t))
     tau_d = np.zeros(n) if disturbance is None else np.asarray(disturbance(t), dtype=float)
-    u0 = model.inverse_dynamics(qd, dqd, ddqd, theta) - tau_d
+    if at is None:
+        qd, dqd, ddqd = (np.asarray(x, dtype=float) for x in controller.reference(t))
+        u0 = model.inverse_dynamics(qd, dqd, ddqd, theta) - tau_d
+    else:
+        qd, dqd, u0 = (np.asarray(x, dtype=float) for x in at)
     controller.reset()
     base = controller.state()
     base["k"] = np.array(k)
@@ -143,6 +152,8 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
                 s[key] = seg.copy()
             else:           # move S so that S θ̂ = seg (the nearest S along θ̂)
                 s[key] = base[key] + np.outer(seg - base[key] @ theta_hat, w)
+        if delay:           # the controller's own record of the torque held (its filters'
+            s["tau_prev"] = u.copy()        # input, (7) and (13)) is the plant's
         return q, dq, u, s
 
     def step(x):
@@ -153,6 +164,8 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
         q1, dq1 = _rk4_plant(model, theta, q, dq, applied + tau_d, h, substep)
         return pack(q1, dq1, tau, controller.state())
 
+    if delay:               # the held torque is a state of its own (u above)
+        coords = [c for c in coords if c[0] != "tau_prev"]
     x0 = pack(qd, dqd, u0, base)
     y0 = step(x0)
     J = np.empty((x0.size, x0.size))
@@ -172,6 +185,59 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
     return float(np.max(np.abs(np.linalg.eigvals(J)))), J
 
 
+def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=None,
+                       checkpoints=8, backend="c", **gains):
+    """The sampled loop itself over [0, t_end]: the controller of ``law`` (``gains`` as
+    :class:`~ivdrem.controller.sampled.SampledController`'s, its ``delay`` included) around
+    the plant FMU's RK4 (``substep``; torque and ``disturbance`` held), started on the
+    reference q_d(0), q̇_d(0) as the FMU hosts start it.  Returns (points, diverged):
+    ``checkpoints`` states (t, q, q̇, u held, θ̂) spread over the run, and None or
+    (t, the state 0.1 s before) where the plant's state stopped being finite.
+    ``backend`` "c": the generated C library (:class:`~ivdrem.controller.clib.CController`;
+    the Python reference if it cannot be loaded), "python": SampledController."""
+    from ..fmu.export import DEFAULT_SUBSTEP
+    from .loop import ModelPlant
+    from .sampled import SampledController
+    cls = SampledController
+    if backend == "c":
+        try:
+            from .clib import CController
+            CController(model, law, **gains)
+            cls = CController
+        except Exception:       # no compiler, or a model the generator does not take
+            cls = SampledController
+    ctl = cls(model, law, **gains)
+    h, n = ctl.h, ctl.n
+    substep = DEFAULT_SUBSTEP if substep is None else float(substep)
+    nsub = max(1, math.ceil(h / substep - 1e-9))
+    q0, dq0, _ = (np.asarray(x, dtype=float) for x in SampledController(
+        model, "none", **{**gains, "T": gains.get("block", 10) * h}).reference(0.0))
+    plant = ModelPlant(model, q0, dq0, theta=theta, substeps=nsub)
+    N = int(round(t_end / h))
+    marks = set(np.linspace(0, N, max(2, checkpoints) + 1, dtype=int)[1:].tolist())
+    delay = ctl.delay
+    u = np.zeros(n)
+    points, recent = [], []
+    for k in range(N + 1):
+        t = k * h
+        q, dq = plant.outputs()
+        if k % 100 == 0:
+            recent = recent[-1:] + [(t, q, dq, u.copy(), np.array(ctl.theta_hat))]
+        if k in marks:
+            points.append((t, q, dq, u.copy(), np.array(ctl.theta_hat)))
+        if k == N:
+            break
+        try:
+            tau = ctl.step(t, q, dq)
+            applied = tau if delay == 0 else u
+            plant.step(t, h, applied,
+                       np.zeros(n) if disturbance is None else disturbance(t))
+        except (FloatingPointError, ValueError, RuntimeError):
+            return points, (t, recent[0])
+        u = np.asarray(tau, dtype=float)
+    return points, None
+
+
 @dataclass(frozen=True)
 class SampledStability:
     """The prediction of :func:`sampled_stability`.
@@ -189,6 +255,8 @@ class SampledStability:
     worst: tuple
     stable_h: float | None = None
     threshold: float = UNSTABLE_GROWTH
+    delay: int = 0
+    diverged: float | None = None
 
     @property
     def stable(self) -> bool:
@@ -200,14 +268,18 @@ class SampledStability:
 
     def reason(self) -> str:
         t, which, g = self.worst
-        head = (f"the sampled loop ({self.law} on {self.model}, h = {self.h * 1e3:g} ms) is "
+        head = (f"the sampled loop ({self.law} on {self.model}, h = {self.h * 1e3:g} ms, "
+                f"delay {self.delay}) is "
                 f"predicted {'stable' if self.stable else 'unstable'}: an error grows by "
                 f"{g:.3g} per step (spectral radius of the linearised one-step map, "
                 f"largest at t = {t:g} s with theta_hat = {which}")
         if self.stable:
             return head + f"; refused above {self.threshold:g})"
-        steps = (math.log(1e6) / math.log(g)) if g > 1 else math.inf
-        text = head + f"; 1e6-fold within {steps:.0f} steps = {steps * self.h * 1e3:.3g} ms)"
+        if math.isfinite(g):
+            steps = (math.log(1e6) / math.log(g)) if g > 1 else math.inf
+            text = head + f"; 1e6-fold within {steps:.0f} steps = {steps * self.h * 1e3:.3g} ms)"
+        else:
+            text = head + ")"
         fix = []
         if self.stable_h is not None:
             fix.append(f"h = {self.stable_h * 1e3:g} ms (--h {self.stable_h:g}, predicted "
@@ -227,14 +299,24 @@ def _reference_points(t_end, h, count):
 
 def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturbance=None,
                       points=POINTS, substep=None, suggest=True, controller_class=None,
+                      prefix=None, prefix_points=PREFIX_POINTS, backend="c",
                       **gains) -> SampledStability:
     """Predict the growth per step of the sampled controller of ``law`` for ``model``
     (``gains``: the arguments of :class:`~ivdrem.controller.sampled.SampledController`, h
-    among them) closed around the model's plant (true parameters ``theta``, default the
-    model's): the largest spectral radius of the one-step map at ``points`` times in
-    [0, t_end], for θ̂ = θ̂₀ and θ̂ = θ (module docstring).  ``disturbance``: t -> τ_d(t)
-    held by the plant (it moves the operating point only).  ``suggest``: look for a smaller
-    h predicted stable at the worst point (h/2, h/4, h/5, h/10 that divide T)."""
+    and ``delay`` among them: the controller FMU's hosts have delay 1) closed around the
+    model's plant (true parameters ``theta``, default the model's): the largest spectral
+    radius of the one-step map (module docstring)
+
+    * along the closed loop itself: the loop simulated over the first ``prefix`` seconds
+      (default: the window T, the phase where θ̂ moves by the gradient term of (11) alone;
+      :func:`closed_loop_prefix`, C library unless ``backend="python"``), linearised at
+      ``prefix_points`` of its states with their own θ̂; a prefix that diverges is
+      unstable, its growth taken 0.1 s before;
+    * on the reference at ``points`` times in [0, t_end] (μ(t) grows to μ_max), for
+      θ̂ = θ̂₀, θ̂ = θ and the θ̂ the prefix ended with.
+
+    ``disturbance``: t -> τ_d(t) held by the plant.  ``suggest``: look for a smaller h
+    predicted stable at the worst point (h/2, h/4, h/5, h/10 that divide T)."""
     from .sampled import SampledController
     make = SampledController if controller_class is None else controller_class
     design = make(model, law, **gains)        # the design as given: every check
@@ -251,26 +333,58 @@ def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturba
     model = controller.model
     theta = np.asarray(model.theta_values if theta is None else theta, dtype=float)
     h = controller.h
-    rows = []
+    rows, ops = [], []
+
+    def look(t, which, th, at=None, c=None):
+        g, _ = loop_growth(controller if c is None else c, theta, t, theta_hat=th,
+                           disturbance=disturbance, substep=substep, at=at)
+        return g
+
+    # the loop itself over the gradient phase (t < T: the composite term of (21) is 0
+    # while the window fills, so a windowed law moves θ̂ as the law "none" does)
+    horizon = min(float(t_end), float(T if T else 20.0) if prefix is None else float(prefix))
+    diverged, theta_end = None, None
+    plaw = "none" if law in ("iv-drem", "drem", "composite-learning") else law
+    if horizon >= h and prefix_points > 0:
+        pgains = {**gains, "T": block * h} if plaw == "none" else dict(gains)
+        run, div = closed_loop_prefix(model, plaw, theta, horizon, disturbance=disturbance,
+                                      substep=substep, checkpoints=prefix_points,
+                                      backend=backend, **pgains)
+        for t, q, dq, u, th in run:
+            rows.append((t, "theta_hat(t) of the run", look(t, None, th, (q, dq, u))))
+            ops.append((th, (q, dq, u)))
+            theta_end = th
+        if div is not None:
+            t_div, (t, q, dq, u, th) = div
+            g = look(t, None, th, (q, dq, u))
+            rows.append((t, f"theta_hat(t) of the run, which diverged at t = {t_div:.4g} s",
+                         g if g > UNSTABLE_GROWTH else math.inf))
+            ops.append((th, (q, dq, u)))
+            diverged = t_div
+    cases = [("theta_hat0", controller.theta_hat0), ("theta", theta)]
+    if theta_end is not None and diverged is None and plaw == law:
+        # a law without the window keeps moving θ̂ by the gradient term (and σ): its θ̂ at
+        # the end of the run is looked at under the larger μ to come; a windowed law's θ̂
+        # is taken to θ by the composite term (21) from t = T on (Theorem 1)
+        cases.append((f"theta_hat({horizon:g} s) of the run", theta_end))
     for t in _reference_points(t_end, h, points):
-        for which, th in (("theta_hat0", controller.theta_hat0), ("theta", theta)):
-            g, _ = loop_growth(controller, theta, t, theta_hat=th, disturbance=disturbance,
-                               substep=substep)
-            rows.append((t, which, g))
-    worst = max(rows, key=lambda r: r[2])
+        for which, th in cases:
+            rows.append((t, which, look(t, which, th)))
+            ops.append((th, None))
+    iw = max(range(len(rows)), key=lambda i: rows[i][2])
+    worst = rows[iw]
     stable_h = None
-    if suggest and worst[2] > UNSTABLE_GROWTH:
-        t, which, _ = worst
+    if suggest and worst[2] > UNSTABLE_GROWTH and diverged is None:
+        t = worst[0]
+        th, at = ops[iw]
         for div in (2, 4, 5, 10):
             N = round(T / (h / div)) if T else block
             if T and (abs(N * h / div - T) > 1e-9 * T or N % block):
                 continue                # h / div does not divide the window T
-            c = short(h / div)
-            th = c.theta_hat0 if which == "theta_hat0" else theta
-            g, _ = loop_growth(c, theta, t, theta_hat=th, disturbance=disturbance,
-                               substep=substep)
+            g = look(t, None, th, at, c=short(h / div))
             if g <= UNSTABLE_GROWTH:
                 stable_h = h / div
                 break
     return SampledStability(model=model.name, law=law, h=h, growth=worst[2],
-                            points=tuple(rows), worst=worst, stable_h=stable_h)
+                            points=tuple(rows), worst=worst, stable_h=stable_h,
+                            delay=int(getattr(controller, "delay", 0)), diverged=diverged)
