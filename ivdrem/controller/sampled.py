@@ -56,7 +56,7 @@ from .window import BlockWindow
 
 __all__ = ["SampledController", "SAMPLED_LAWS", "PAPER_TRAJECTORY", "phi1", "DESIGNS",
            "GRAVITY_OPTIONS", "REFERENCE_HARMONICS", "default_design", "default_mixing",
-           "inertia_scaled_gains", "gain_budget", "GAIN_FLOOR"]
+           "inertia_scaled_gains", "gain_budget", "GAIN_FLOOR", "GRADIENT_GAIN"]
 
 #: sampled designs of the feedback of (9) (docs/controller.md, "Sampled designs")
 DESIGNS = ("paper", "inertia-scaled")
@@ -116,7 +116,15 @@ def _vector(name, value, n):
 
 #: the floor of the "inertia-scaled" design's K (1/s): a closed-loop bandwidth every joint
 #: gets at least (docs/controller.md, "Sampled designs")
-GAIN_FLOOR = 20.0
+GAIN_FLOOR = 50.0
+
+
+#: Γ of (11) for the "inertia-scaled" design on URDF arms at the robot's rate, with γ of
+#: (21) at 0.5 / Γ (what γ = "auto" gives with "eigen", Δ ≈ 1: the composite term's rate
+#: Γ γ Δ² kept): the gradient term Γ Π r alone moves θ̂ until the window is full (t < T),
+#: and where it moves M(q, θ̂) along a light wrist the observer's injection μ M(q, θ̂) r of
+#: (8) grows past the per-step budget (docs/controller.md, "Sampled designs")
+GRADIENT_GAIN = 1e-3
 
 
 def gain_budget(delay):

@@ -17,15 +17,22 @@ algorithm changes the prediction with it:
   torque z_f of (13) ...) and every n × nθ filter (Φ_f, Φ_Mf of (7), ξ, η of (13), ζ of
   (14)) seen through θ̂ (its coordinate S θ̂: the torque (9) reads these filters only as
   Πᵀθ̂, and each is affine in itself, so S θ̂ is a state of its own);
-* frozen: θ̂ (taken at θ̂₀ and at the true θ: the adaptation (11) moves it at the rate Γ,
-  far slower than a sample), the window (15a), the averaging (15b) and the mixing (17)
+* frozen: θ̂ (the adaptation (11) moves it at the rate Γ, far slower than a sample), the window (15a), the averaging (15b) and the mixing (17)
   (they reach the torque through θ̂ only, so the map is computed with the law's composite
   term left out: the controller of law "none" with the same gains);
-* operating points: the arm on the reference, q = q_d(t), q̇ = q̇_d(t), holding the torque
-  the reference needs (the inverse dynamics with the true θ, less the disturbance, so the
-  plant's q̈ = q̈_d), at :data:`POINTS` times spread over the horizon (μ(t) of (7)-(9) grows
-  with t, and the reference visits the arm's workspace).  Every filter of the controller
-  is affine in its own state, so the linearisation does not depend on their values.
+* operating points, two kinds: (a) states of the closed loop itself, simulated over the
+  gradient phase (:func:`closed_loop_prefix`: until the window (15a) is full the composite
+  term of (21) is 0, and θ̂ moves by the gradient term Γ Π r of (11) alone), each with the
+  run's own θ̂: the map depends on θ̂ through the observer's injection μ Φ_Mᵀ(q, r) θ̂ =
+  μ M(q, θ̂) r of (8), a velocity feedback whose per-step gain h μ ν(θ̂) (ν the largest
+  generalised eigenvalue of M(q, θ̂) against M(q)) is what made the iiwa and the xArm7
+  diverge with the FMU's one-sample delay while the reference points said 0.999
+  (docs/controller.md, "Sampled designs"); (b) the arm on the reference, q = q_d(t),
+  q̇ = q̇_d(t), holding the torque the reference needs (the inverse dynamics with the true
+  θ, less the disturbance, so the plant's q̈ = q̈_d), at :data:`POINTS` times spread over
+  the horizon (μ(t) of (7)-(9) grows with t) with θ̂₀ and θ.  Every filter of the
+  controller is affine in its own state, so the linearisation does not depend on their
+  values, only on q, q̇, the held torque and θ̂.
 
 A loop is predicted unstable when the largest ρ over the points exceeds
 :data:`UNSTABLE_GROWTH`; :meth:`SampledStability.reason` says it in one line with the
@@ -33,7 +40,8 @@ numbers and what to change (a smaller h, found by the same prediction, or the ga
 Checked against runs (tests/test_controller_export.py): the paper's design on the Panda at
 1 ms is predicted at ρ ≈ 2 and diverges within tens of milliseconds; the paper's 2-link
 design is predicted stable and runs; on the 2-link arm a K between the two sides of the
-predicted boundary diverges or does not, as predicted.
+predicted boundary diverges or does not, as predicted, and the one-sample delay halves
+that boundary (tests/test_sampled_stability.py).
 """
 from __future__ import annotations
 
@@ -284,7 +292,9 @@ class SampledStability:
         if self.stable_h is not None:
             fix.append(f"h = {self.stable_h * 1e3:g} ms (--h {self.stable_h:g}, predicted "
                        "stable)")
-        fix.append("smaller gains ([controller] K, mu1, mu0, delta_mu, mu_max)")
+        fix.append("smaller gains ([controller] K, mu1, mu0, delta_mu, mu_max; Gamma if it "
+                   "diverges along the run: the gradient term moves theta_hat, "
+                   "docs/controller.md 'Sampled designs')")
         return text + "; change: " + ", or ".join(fix)
 
 
