@@ -81,10 +81,15 @@ def main(argv=None):
     ap.add_argument("--gamma", type=float, default=None,
                     help="gamma of (21) (default: the configuration's, 'auto' calibrated)")
     ap.add_argument("--Gamma", type=float, default=None,
-                    help="Γ of (11) (default: the configuration's)")
+                    help="Γ of (11) (default: the inertia-scaled design's GRADIENT_GAIN, 1e-3, "
+                         "with gamma 0.5 / Γ unless --gamma is given)")
     ap.add_argument("--mix-every", type=int, default=None, dest="mix_every",
                     help="the mixing (17) every m samples (default: the controller's)")
     args = ap.parse_args(argv)
+    if args.Gamma is None:
+        from ivdrem.controller.sampled import GRADIENT_GAIN
+        args.Gamma = GRADIENT_GAIN
+        args.gamma = 0.5 / GRADIENT_GAIN if args.gamma is None else args.gamma
     print(f"controller FMU + plant FMU in FMPy, h = {args.h * 1e3:g} ms, {args.t_end:g} s "
           f"(1-min load {os.getloadavg()[0]:.2f})", flush=True)
     print(f"{'arm':<7} {'n':>2} {'nθ':>3} {'gamma':>8} {'growth/step':>12} {'margin':>8} "

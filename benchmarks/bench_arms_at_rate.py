@@ -9,7 +9,7 @@ disturbance held; ivdrem.controller.loop.ModelPlant), the torque applied ``--del
 samples late (1 by default, as around the controller FMU).  Prints per arm: ‖θ̃(0)‖ → ‖θ̃(t_end)‖ and their ratio,
 the largest tracking error over the last 10 s, the largest torque, the wall time.
 
-    OPENBLAS_NUM_THREADS=1 ./run python benchmarks/bench_arms_at_rate.py --t-end 300
+    OPENBLAS_NUM_THREADS=1 nice -n 10 ./run python benchmarks/bench_arms_at_rate.py --t-end 300
     ./run python benchmarks/bench_arms_at_rate.py --arms ur5 --h 2e-3 --t-end 300
     ./run python benchmarks/bench_arms_at_rate.py --arms panda --design paper --t-end 0.2
 """
@@ -73,9 +73,10 @@ def main(argv=None):
     ap.add_argument("--h", type=float, default=1e-3)
     ap.add_argument("--t-end", type=float, default=300.0)
     ap.add_argument("--design", default="inertia-scaled")
-    ap.add_argument("--gamma", type=float, default=50.0,
-                    help="gamma of (21); 'eigen' keeps Delta near 1, so the rule of "
-                         "gamma 'auto' (0.5 / (lambda_max(Gamma) mean Delta^2)) gives ~50")
+    ap.add_argument("--gamma", type=float, default=None,
+                    help="gamma of (21); default 0.5 / Gamma: 'eigen' keeps Delta near 1, so "
+                         "that is what gamma 'auto' (0.5 / (lambda_max(Gamma) mean Delta^2)) "
+                         "gives")
     ap.add_argument("--mix-every", type=int, default=10)
     ap.add_argument("--mu-max", type=float, default=135.0)
     ap.add_argument("--K", type=float, default=None,
@@ -85,8 +86,12 @@ def main(argv=None):
                     help="samples between the measurement and the torque (controller FMU: 1)")
     ap.add_argument("--substeps", type=int, default=1,
                     help="RK4 sub-steps of the plant per sample (plant FMU at 1 ms: 1)")
-    ap.add_argument("--Gamma", type=float, default=0.01, help="Γ of (11) (scalar)")
+    ap.add_argument("--Gamma", type=float, default=None,
+                    help="Γ of (11) (scalar; default the design's GRADIENT_GAIN, 1e-3)")
     a = ap.parse_args(argv)
+    from ivdrem.controller.sampled import GRADIENT_GAIN
+    a.Gamma = GRADIENT_GAIN if a.Gamma is None else a.Gamma
+    a.gamma = 0.5 / a.Gamma if a.gamma is None else a.gamma
     print(f"load {os.getloadavg()}", flush=True)
     for name in a.arms.split(","):
         r = run(name, h=a.h, t_end=a.t_end, design=a.design, gamma=a.gamma,

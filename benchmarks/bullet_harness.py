@@ -36,12 +36,17 @@ def default_urdf():
             / "cmeel.prefix/share/example-robot-data/robots" / UR3)
 
 
-def export(urdf, directory, *, h=1e-3, gamma=50.0, mix_every=None, law="iv-drem"):
-    """The controller FMU of the URDF's default experiment (ivdrem's side of the harness):
-    (FMU path, the model, the configuration, the prediction)."""
+def export(urdf, directory, *, h=1e-3, gamma=None, mix_every=None, law="iv-drem"):
+    """The controller FMU of the URDF's default experiment (ivdrem's side of the harness),
+    with the inertia-scaled design's Γ (GRADIENT_GAIN) and γ = 0.5/Γ unless given
+    (docs/controller.md, "Sampled designs"): (FMU path, the model, the configuration, the
+    prediction)."""
     from ivdrem.controller.fmu_export import controller_design, export_controller_fmu, predict
+    from ivdrem.controller.sampled import GRADIENT_GAIN
     from ivdrem.experiments.config import load_config, model_from_config
-    config = load_config(None, {"model.urdf": str(urdf), "iv_drem.gamma": float(gamma)})
+    gamma = 0.5 / GRADIENT_GAIN if gamma is None else gamma
+    config = load_config(None, {"model.urdf": str(urdf), "iv_drem.gamma": float(gamma),
+                                "controller.Gamma": GRADIENT_GAIN})
     model = model_from_config(config)
     design = controller_design(config, law, h=h)
     if mix_every is not None:
@@ -74,7 +79,7 @@ def bullet_arm(urdf, joint_names, h):
     return cid, body, joints
 
 
-def run(urdf, t_end, *, h=1e-3, gamma=50.0, mix_every=None, every=1000):
+def run(urdf, t_end, *, h=1e-3, gamma=None, mix_every=None, every=1000):
     import pybullet as p
     from ivdrem.controller.fmu_loop import _Slave
     from ivdrem.experiments.config import closed_loop_kwargs
@@ -135,7 +140,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--urdf", default=None, help="URDF file (default: example-robot-data's UR3)")
     ap.add_argument("--t-end", type=float, default=120.0, dest="t_end")
-    ap.add_argument("--gamma", type=float, default=50.0)
+    ap.add_argument("--gamma", type=float, default=None, help="γ of (21) (default 0.5 / Γ)")
     ap.add_argument("--mix-every", type=int, default=None, dest="mix_every")
     args = ap.parse_args(argv)
     urdf = Path(args.urdf) if args.urdf else default_urdf()

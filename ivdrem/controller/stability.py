@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["SampledStability", "sampled_stability", "loop_growth", "closed_loop_prefix",
-           "UNSTABLE_GROWTH", "POINTS", "PREFIX_POINTS", "UnstableDesignError"]
+           "UNSTABLE_GROWTH", "POINTS", "PREFIX_POINTS", "PREFIX_PAST_T", "UnstableDesignError"]
 
 #: The growth per step from which a sampled loop is refused: an error then grows at least
 #: 1e6-fold within 1400 steps (1.4 s at 1 kHz).  Slightly above 1 so that finite-difference
@@ -63,6 +63,13 @@ POINTS = 4
 
 #: States of the simulated closed loop (the prefix) the map is linearised at.
 PREFIX_POINTS = 8
+
+#: The default prefix of a windowed law, in windows T: the gradient phase.  A longer one
+#: (``prefix``, e.g. 1.25 T: a quarter window of the composite term, whose ramp is 0.1 T)
+#: runs the law itself from T on when the C library runs it (the Python reference's mixing
+#: is too slow for it: then T at most); it sees the xArm7 diverge at 42.8 s, and predicts
+#: the UR3 at 1.02 per step at 50 s, which no run has checked yet (docs/controller.md).
+PREFIX_PAST_T = 1.0
 
 #: Relative finite-difference step of the linearisation.
 _EPS = 1e-7
@@ -298,6 +305,16 @@ class SampledStability:
         return text + "; change: " + ", or ".join(fix)
 
 
+def _c_library(model, law, gains):
+    """Whether the generated C library runs the controller of ``law`` for ``model``."""
+    try:
+        from .clib import CController
+        CController(model, law, **gains)
+        return True
+    except Exception:       # no compiler, or a model the generator does not take
+        return False
+
+
 def _reference_points(t_end, h, count):
     """0, t_end and count - 2 times between at golden-ratio spacing: evenly spaced points
     share the phase of a periodic reference whose period divides the spacing (the real-arm
@@ -318,8 +335,9 @@ def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturba
     radius of the one-step map (module docstring)
 
     * along the closed loop itself: the loop simulated over the first ``prefix`` seconds
-      (default: the window T, the phase where θ̂ moves by the gradient term of (11) alone;
-      :func:`closed_loop_prefix`, C library unless ``backend="python"``), linearised at
+      (default :data:`PREFIX_PAST_T` windows T: the phase where θ̂ moves by the gradient
+      term of (11) alone; :func:`closed_loop_prefix`, C library unless
+      ``backend="python"``; past T the law itself, C library only), linearised at
       ``prefix_points`` of its states with their own θ̂; a prefix that diverges is
       unstable, its growth taken 0.1 s before;
     * on the reference at ``points`` times in [0, t_end] (μ(t) grows to μ_max), for
@@ -350,11 +368,18 @@ def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturba
                            disturbance=disturbance, substep=substep, at=at)
         return g
 
-    # the loop itself over the gradient phase (t < T: the composite term of (21) is 0
-    # while the window fills, so a windowed law moves θ̂ as the law "none" does)
-    horizon = min(float(t_end), float(T if T else 20.0) if prefix is None else float(prefix))
+    # the loop itself over the gradient phase and the start of the composite term: until
+    # the window is full (t < T) the term of (21) is 0 and a windowed law moves θ̂ as the
+    # law "none" does; from T on it drives θ̂ to the window's estimate, which on a light
+    # wrist can be far from θ where M is small (the xArm7: docs/controller.md)
+    Tw = float(T if T else 20.0)
+    windowed = law in ("iv-drem", "drem", "composite-learning")
+    with_c = backend == "c" and _c_library(model, law, gains)
+    horizon = min(float(t_end), PREFIX_PAST_T * Tw if prefix is None else float(prefix))
+    if windowed and not with_c:
+        horizon = min(horizon, Tw)
     diverged, theta_end = None, None
-    plaw = "none" if law in ("iv-drem", "drem", "composite-learning") else law
+    plaw = "none" if windowed and horizon <= Tw else law
     if horizon >= h and prefix_points > 0:
         pgains = {**gains, "T": block * h} if plaw == "none" else dict(gains)
         run, div = closed_loop_prefix(model, plaw, theta, horizon, disturbance=disturbance,
@@ -372,7 +397,7 @@ def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturba
             ops.append((th, (q, dq, u)))
             diverged = t_div
     cases = [("theta_hat0", controller.theta_hat0), ("theta", theta)]
-    if theta_end is not None and diverged is None and plaw == law:
+    if theta_end is not None and diverged is None and not windowed:
         # a law without the window keeps moving θ̂ by the gradient term (and σ): its θ̂ at
         # the end of the run is looked at under the larger μ to come; a windowed law's θ̂
         # is taken to θ by the composite term (21) from t = T on (Theorem 1)
