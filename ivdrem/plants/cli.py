@@ -223,12 +223,13 @@ def run_robustness_command(args, *, prog="ivdrem study") -> int:
             return 2
     path = user_path(args.study)
     out = user_path(args.out) if args.out else user_path(Path("studies") / path.stem)
-    workers = args.workers
-    if workers is None:
-        import os
-        workers = os.cpu_count() or 1
-    if workers < 1:
-        print(f"{prog}: error: --workers must be >= 1, got {workers}", file=sys.stderr)
+    import os
+    cores = os.cpu_count() or 1
+    workers = cores if args.workers is None else args.workers
+    if not 1 <= workers <= cores:
+        # as `ivdrem study`: one MuJoCo loop per process, more than one per core is no faster
+        print(f"{prog}: error: --workers must be between 1 and the {cores} cores of this "
+              f"machine, got {workers}", file=sys.stderr)
         return 2
     try:
         df, wall = run_robustness(path, out, workers=workers, model=getattr(args, "model", None),
