@@ -1,6 +1,8 @@
 """``ivdrem cosim --plant mujoco``: the sampled controller closed around the arm in MuJoCo
 (docs/mujoco.md).  Prints and writes (``--json``) per law θ̃ (absolute and relative to
-θ̃(0)), the tracking error, τ̃_d and the per-sample costs."""
+θ̃(0)), the tracking error, τ̃_d and the per-sample costs.  Also the robustness study's
+command (``ivdrem study FILE`` with a [robustness] table) and ``ivdrem report --plant
+mujoco`` (:func:`mujoco_paper_run`: the report builder on MuJoCo runs)."""
 from __future__ import annotations
 
 import json
@@ -70,7 +72,8 @@ def add_arguments(p):
                    help="run on this model instead of the configuration's (e.g. two-link)")
     g.add_argument("--study", default=None, metavar="FILE.toml",
                    help="run a robustness study (configuration + [robustness], "
-                        "ivdrem.plants.study) instead of one run per law")
+                        "ivdrem.plants.study; the same as `ivdrem study FILE`, with --t-end "
+                        "and --model overriding the file's) instead of one run per law")
     g.add_argument("--workers", type=int, default=1,
                    help="--study: Dask worker processes (default 1: in this process)")
     g.add_argument("--out", default=None, metavar="DIR",
