@@ -527,7 +527,9 @@ class JacobianProgram:
       n_jb: number of local-Jacobian values
       run_dst, run_f, run_src, run_len: the chain's multiply-adds as runs, F = [JB, gains]:
           S[dst + k] += F[f] * S[src + k] for k < len (src >= 0), S[dst + k] += F[f + k]
-          (src = -1); n_ins the multiply-adds they hold; gains (float64)
+          (src = -1), S[dst + k] += F[f + k] * S[-2 - src + k] (src <= -2); n_ins the
+          multiply-adds they hold (those of the factors _parameter_zeros finds left out);
+          gains (float64)
       n_slots, j_row, j_col, j_slot: the entry (j_row, j_col) of df/dx is slot j_slot of
           the chain (tables.jacobian_positions places it in the LU pattern's order)
       pattern: boolean n x n structural pattern of df/dx
