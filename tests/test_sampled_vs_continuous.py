@@ -239,3 +239,23 @@ def test_iv_drem_sampled_loop_approaches_the_continuous_loop_at_first_order_in_h
     res = _first_order("iv-drem", 1.0, T=0.2, gamma=1e21, mixing="eigen")
     for key, (d, orders) in res.items():
         assert np.all((orders > 0.8) & (orders < 1.2)), (key, d, orders)
+
+
+def test_real_arm_loop_without_K_takes_the_joint_gains_over_the_nominal_inertia():
+    """closed_loop(design="inertia-scaled") on the UR5 with K left at None: the control
+    law's K is the experiment's joint gains (design_gains, N m s) over M̂_ii(q0), the
+    sampled controller's K before its cap."""
+    from ivdrem.controller.sampled import inertia_scaled_gains
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.experiments import arm
+    m = get_model("ur5")
+    loop = closed_loop("none", m, design="inertia-scaled")
+    law = next(s for s in loop.syslist if s.name == "control_law")
+    q0, _ = arm.initial_state(arm.design_trajectory(m))
+    M = np.empty((m.n, m.n))
+    m.functions.M(np.asarray(q0, float), m.theta_values, M)
+    want = np.asarray(arm.design_gains(m, q0), float) / np.diag(M)
+    np.testing.assert_allclose(np.diag(law.params["K"]), want, rtol=1e-13)
+    np.testing.assert_allclose(inertia_scaled_gains(m, arm.design_gains(m, q0), q0, 1e-3),
+                               np.minimum(want, 0.5 / 1e-3 - DELTA_MU * 135.0), rtol=1e-13)
+    assert "q" in [p for p, _ in law.ivdrem.inputs]

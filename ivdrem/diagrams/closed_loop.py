@@ -117,6 +117,9 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
     if not paper_arm:   # the real-arm experiment, as a configuration naming this model gets it
         trajectory, disturbance, q0, dq0, K, T = _arm_experiment(
             model, spec, theta, trajectory, disturbance, q0, dq0, K, T)
+        if design == "inertia-scaled" and joint_gains:   # before γ = "auto" passes K on
+            K = np.diag(block_library.inertia_scaled_gain(model, np.diag(K), q0,
+                                                          theta_nominal))
     # every arm but the paper's: the mixing and gain rule that work at its size
     gamma, mixing = law_registry.arm_gain_rule(spec, model, gamma, mixing)
     if mixing is not None and "mixing" not in spec.defaults:
@@ -149,8 +152,6 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
         disturbance = PAPER_DISTURBANCE if disturbance is None else disturbance
         q0 = [0.0, 0.3 * np.pi] if q0 is None else q0
     K = 2.0 if K is None else K
-    if design == "inertia-scaled" and joint_gains:
-        K = np.diag(block_library.inertia_scaled_gain(model, np.diag(K), q0, theta_nominal))
 
     def source(spec, factory):
         if isinstance(spec, ct.NonlinearIOSystem):
