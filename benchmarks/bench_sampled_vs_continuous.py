@@ -11,7 +11,7 @@ Prints, per h: max |θ̂_h − θ̂_c| and max |e_h − e_c| over the output tim
 t_end/5 and at t_end), the ratio to the next larger h and the observed order
 log(ratio)/log(h ratio); first order in h gives ratios near 2 per halving.
 
-    ./run python benchmarks/bench_sampled_vs_continuous.py                     # UR5, 2 s
+    ./run python benchmarks/bench_sampled_vs_continuous.py                     # UR5, 1 s
     ./run python benchmarks/bench_sampled_vs_continuous.py --law none --t-end 0.5
 """
 from __future__ import annotations
@@ -52,7 +52,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="ur5")
     ap.add_argument("--law", default="iv-drem")
-    ap.add_argument("--t-end", type=float, default=2.0)
+    ap.add_argument("--t-end", type=float, default=1.0)
     ap.add_argument("--T", type=float, default=0.2, help="window T of (15a), s")
     # on the UR5's reference a window of 0.2 s gives Δ ≈ 1.6e-10 ("eigen" mixing): γ = 1e21
     # makes the composite term of (21) the larger part of θ̂'s motion (γ Δ² Γ ≈ 0.3 /s)
