@@ -393,9 +393,9 @@ def controller_design(config, law, *, h=None, mu_max=None):
     if out.get("design", default_design(model)) == "inertia-scaled" and "K" in out:
         # the configuration's K is the continuous loop's joint gain (N m s); the sampled
         # inertia-scaled feedback M̂(q)(K + δ_μ μ) r takes K in 1/s (docs/controller.md,
-        # "Sampled designs"): K_i / M_ii(q0), capped for the step h
-        K = np.diag(np.asarray(out["K"], dtype=float)) if np.ndim(out["K"]) == 2 \
-            else np.asarray(out["K"], dtype=float)
+        # "Sampled designs"): K_i / M_ii(q0), capped for the step h (from the configured
+        # K: closed_loop_kwargs has already divided it for a configured design)
+        K = np.asarray(config["controller"]["K"], dtype=float)
         sig = inspect.signature(SampledController.__init__).parameters
         out["K"] = np.diag(inertia_scaled_gains(
             model, K, np.asarray(config["initial"]["q0"], dtype=float),

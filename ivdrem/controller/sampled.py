@@ -48,6 +48,7 @@ import math
 import numpy as np
 
 from ..blocks._kernels import MIXING_VARIANTS, mixing_values, start_weight
+from ..blocks.control_law import DESIGNS, inertia_scaled_gain
 from ..blocks.mixing import DEFAULT_F_REL, DEFAULT_GUARD, start_of_term
 from ..blocks.sources import fourier_series
 from ..laws import get_law
@@ -58,8 +59,8 @@ __all__ = ["SampledController", "SAMPLED_LAWS", "PAPER_TRAJECTORY", "phi1", "DES
            "GRAVITY_OPTIONS", "REFERENCE_HARMONICS", "default_design", "default_mixing",
            "inertia_scaled_gains"]
 
-#: sampled designs of the feedback of (9) (docs/controller.md, "Sampled designs")
-DESIGNS = ("paper", "inertia-scaled")
+# DESIGNS: the designs of the feedback of (9), one enumeration with the continuous
+# control-law block (ivdrem.blocks.control_law; docs/controller.md, "Sampled designs")
 #: who compensates gravity: the controller's law alone, or the robot ("robot": tau - g_hat)
 GRAVITY_OPTIONS = ("controller", "robot")
 #: harmonics per joint of a Fourier reference (the C library's fixed size; the real-arm
@@ -121,14 +122,11 @@ def inertia_scaled_gains(model, K, q0, h, *, delta_mu=0.8, mu_max=135.0, product
     at q0 on the diagonal), at most product/h - delta_mu mu_max, so that the per-step
     factor 1 - h (K_i + delta_mu mu) of the sampled feedback stays in [1 - product, 1)
     (docs/controller.md, "Sampled designs")."""
-    th = np.asarray(model.theta_values if theta is None else theta, dtype=float)
-    M = np.empty((model.n, model.n))
-    model.functions.M(np.asarray(q0, dtype=float), th, M)
     cap = product / h - delta_mu * mu_max
     if not cap > 0:
         raise ValueError(f"h (delta_mu mu_max) = {h * delta_mu * mu_max:.3g} leaves no room for "
                          f"K below the product {product}: lower mu_max or h")
-    return np.minimum(np.asarray(K, dtype=float) / np.diag(M), cap)
+    return np.minimum(inertia_scaled_gain(model, K, q0, theta), cap)
 
 
 def _limit(name, value, n):
