@@ -367,8 +367,9 @@ HOST_KEYS = ("q0", "dq0", "theta", "disturbance")
 
 
 #: the multi-rate default of the scale-free mixings (the URDF arms' "eigen"): the mixing of
-#: (Y, Psi)(t_k) every 20 samples, held from t_k+20 (measured on the Panda: a step of 61 µs
-#: median, the slices' worst 350 µs in isolation, against 575 µs median at every sample)
+#: (Y, Psi)(t_k) every 20 samples, held from t_k+20 (measured on the Panda over 300 s: a
+#: step of 90 µs median at load 22-27, the worst step of a mixing period 360 µs alone;
+#: 575 µs median with the mixing at every sample; docs/controller.md)
 MIX_EVERY = 20
 
 
