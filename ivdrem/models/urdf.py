@@ -48,7 +48,6 @@ RANK_RTOL = 1e-10
 #: Width w (rad/s, m/s) of the smooth Coulomb sign tanh(dq / w).
 DEFAULT_FRICTION_WIDTH = 0.01
 
-
 _LINK_PARAMS = ("m", "mx", "my", "mz", "Ixx", "Ixy", "Iyy", "Ixz", "Iyz", "Izz")
 _LINK_UNITS = ("kg", "kg.m", "kg.m", "kg.m", "kg.m2", "kg.m2", "kg.m2", "kg.m2", "kg.m2",
                "kg.m2")
@@ -706,8 +705,8 @@ _GLUE = {
 _JAC_GLUE = {
     "Phi_M_jac": (("Y", "dY"), "q, a, {chain}, {base}, {fric}, Y, dY", ("q", "a"), 2),
     "Phi_C_jac": (("Y", "dY"), "q, dq, v, {chain}, {base}, {fric}, Y, dY", ("q", "dq", "v"), 3),
-    "Phi_dM_jac": (("Y", "dY", "Yc", "dYc"), "q, dq, a, {chain}, {base}, {fric}, Y, dY, Yc, dYc",
-                   ("q", "dq", "a"), 3),
+    "Phi_dM_jac": (("Y", "dY", "Yc", "dYc"),
+                   "q, dq, a, {chain}, {base}, {fric}, Y, dY, Yc, dYc", ("q", "dq", "a"), 3),
     "Phi_G_jac": (("Y", "dY"), "q, {chain}, {base}, {fric}, Y, dY", ("q",), 1),
     "Phi_F_jac": (("Y",), "dq, {base}, {fv}, {fc}, {width}, Y", ("dq",), 1),
     "Phi_jac": (("Y", "dY"), "q, dq, v, dv, {chain}, {base}, {fric}, Y, dY",
