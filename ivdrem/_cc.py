@@ -10,7 +10,8 @@
   built and the compiler's first error; the whole command and output are in
   ``exc.command`` and ``exc.output`` (and a note on the exception, shown in a traceback).
 
-Used by the plant FMU (:func:`ivdrem.fmu.export.compile_binary`), the controller's library
+Used by the plant FMU (:func:`ivdrem.fmu.export.compile_binary`), a URDF arm's C library
+(:mod:`ivdrem.models._c_engine`: the functions the engines call), the controller's library
 (:func:`ivdrem.controller.codegen.build_library`) and FMU
 (:func:`ivdrem.controller.fmu_export.export_controller_fmu`) and the tests of the models' C
 face; the C stepper still calls the compiler its own way (to be moved here).
