@@ -11,6 +11,8 @@ Usage::
     ./run python benchmarks/bench_arms.py --accuracy           # the mixing's own accuracy only
     OPENBLAS_NUM_THREADS=1 ./run python benchmarks/bench_arms.py --arms ur5,panda --variants eigen --t-end 60
                                                                # the real arms (docs/mixing-derivations.md, "On real arms")
+    OPENBLAS_NUM_THREADS=1 ./run python benchmarks/bench_arms.py --step --arms panda,ur5
+                                                               # a Rosenbrock step's parts (docs/performance.md)
 
 Run it with ``OPENBLAS_NUM_THREADS=1``: on a shared 2-core machine OpenBLAS's own threads
 slow the mixing's small SVDs down instead of up.  The UR5 and the Panda
@@ -238,12 +240,87 @@ def run_one(spec, variant, t_end, method="rodas5p", rtol=2e-4, atol=2e-6, h_max=
     return row
 
 
+def step_row(spec, variant="eigen", t_at=None, steps=40, method="rodas5p", rtol=2e-4,
+             atol=2e-6, h_max=5.0, gamma="auto"):
+    """What a Rodas5P step of arm `spec`'s IV-DREM loop costs at t_at (default: 5 s after
+    the window T, when the composite term is on and the adaptation law's rows of df/dx are
+    no longer mostly zero): the next `steps` steps as the stepper takes them, and its parts
+    through the engine's entry points at the state reached (a right-hand side, the Jacobian
+    with the right-hand side it evaluates first, the factorisation of c I - J, a solve).
+    Times are this thread's CPU time (time.thread_time), best of 5, so that a loaded
+    machine's waiting is not counted; the same computation each time."""
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.sim import _template
+    from ivdrem.sim._diagram import LU_WORK_ROWS
+    from ivdrem.sim.simulator import Simulator
+    model = resolve_model(spec)
+    n, nth = model.n, model.ntheta
+    solver = dict(method=method, rtol=rtol, atol=atol, h_max=h_max)
+    exp = _experiment(model)
+    d = closed_loop("iv-drem", model, mixing=variant, gamma=gamma, theta_hat0=np.zeros(nth),
+                    K=2.0 * np.eye(n), **exp,
+                    calibration=solver if isinstance(gamma, str) else None)
+    T = float(exp.get("T") or 20.0)
+    t_at = T + 5.0 if t_at is None else float(t_at)
+    sim = Simulator(d, **solver)
+    sim.advance(t_at)
+    k0, c0, t0 = int(sim.stats[0]), time.thread_time(), sim.t
+    while int(sim.stats[0]) - k0 < steps:
+        sim.advance(sim.t + 0.05)
+    per_step = (time.thread_time() - c0) / (int(sim.stats[0]) - k0)
+    E, W, x, t = sim.engine, sim.W, sim.x.copy(), float(sim.t)
+    mod, tb, P = E.module, E.tables, E.P
+    nx = x.size
+
+    def best(f, reps):
+        f()
+        out = []
+        for _ in range(5):
+            a = time.thread_time()
+            for _ in range(reps):
+                f()
+            out.append((time.thread_time() - a) / reps)
+        return 1e3 * min(out)
+
+    J, tmp, dx = np.zeros(int(tb.lu_rowptr[-1])), np.zeros(nx), np.zeros(nx)
+    rhs = best(lambda: mod.diagram_eval(W, P, _template.RHS, t, x, dx), 20)
+    jac = best(lambda: mod.diagram_jacobian(W, P, t, x, J, tmp), 5)
+    piv = np.zeros(nx, dtype=np.int64)
+    LU = np.zeros(int(tb.lu_rowptr[-1]) + LU_WORK_ROWS * nx)
+    c = 1.0 / (0.2 * max(sim.tf[_template.F_H], 1e-6))
+    fac = best(lambda: mod.slu_factor(J, nx, c, LU, piv, tb.lu_perm, tb.lu_rowptr,
+                                      tb.lu_colidx, tb.lu_diagp, tb.lu_panel_rows,
+                                      tb.lu_panel_kptr, tb.lu_panel_k), 5)
+    b = np.random.default_rng(0).standard_normal(nx)
+    sol = best(lambda: mod.slu_solve(LU, nx, tb.lu_perm, tb.lu_rowptr, tb.lu_colidx,
+                                     tb.lu_diagp, b.copy()), 20)
+    return dict(arm=model.name, states=nx, t=t, t_from=t0, steps=int(sim.stats[0]) - k0,
+                step_ms=1e3 * per_step, rhs_ms=rhs, jacobian_ms=jac, factor_ms=fac,
+                solve_ms=sol, chain_runs=int(tb.jac_run_dst.size),
+                lu_nnz=int(tb.lu_rowptr[-1]), theta_hat=_theta_hat(sim).tolist(),
+                gamma=np.asarray(d.gamma_choice["gamma"] if isinstance(gamma, str) else gamma,
+                                 float).tolist())
+
+
+def _theta_hat(sim):
+    idx = [i for i, label in enumerate(sim.state_labels) if "theta_hat" in label]
+    return np.asarray(sim.x)[idx]
+
+
+def _fmt_step(r):
+    if "failed" in r:
+        return f"{r['arm']:>10s}  failed: {r['failed']}"
+    return (f"{r['arm']:>10s} {r['states']:6d} {r['t_from']:7.2f} {r['steps']:5d} "
+            f"{r['step_ms']:8.2f} {r['rhs_ms']:7.3f} {r['jacobian_ms']:9.3f} "
+            f"{r['factor_ms']:8.3f} {r['solve_ms']:7.3f} {r['chain_runs']:8d} {r['lu_nnz']:8d}")
+
+
 def _states(diagram):
     return int(sum(s.nstates for s in diagram.syslist))
 
 
-def _child(spec, variant, t_end, timeout):
-    cmd = [sys.executable, __file__, "--one", spec, variant, str(t_end)]
+def _child(spec, variant, t_end, timeout, mode="--one"):
+    cmd = [sys.executable, __file__, mode, spec, variant, str(t_end)]
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
@@ -284,12 +361,37 @@ def main(argv=None):
     ap.add_argument("--timeout", type=float, default=1800.0, help="per run, s")
     ap.add_argument("--json", default=None)
     ap.add_argument("--accuracy", action="store_true", help="the mixing's accuracy only")
+    ap.add_argument("--step", action="store_true",
+                    help="a Rosenbrock step's cost and parts per arm, 5 s after the window T")
     ap.add_argument("--one", nargs=3, metavar=("ARM", "VARIANT", "T_END"), help=argparse.SUPPRESS)
+    ap.add_argument("--one-step", nargs=3, metavar=("ARM", "VARIANT", "T_AT"),
+                    help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.one:
         print(json.dumps(run_one(a.one[0], a.one[1], float(a.one[2]))), flush=True)
         return 0
+    if a.one_step:
+        t_at = None if a.one_step[2] == "auto" else float(a.one_step[2])
+        print(json.dumps(step_row(a.one_step[0], a.one_step[1], t_at)), flush=True)
+        return 0
     arms = [s.strip() for s in a.arms.split(",") if s.strip()]
+    if a.step:
+        print(f"# a Rodas5P step of IV-DREM, this thread's CPU ms (load "
+              f"{os.getloadavg()[0]:.1f}); its parts at the state reached, best of 5")
+        print(f"{'arm':>10s} {'states':>6s} {'from t':>7s} {'steps':>5s} {'step ms':>8s} "
+              f"{'rhs ms':>7s} {'jac ms':>9s} {'LU ms':>8s} {'solve':>7s} {'runs':>8s} "
+              f"{'L+U':>8s}")
+        rows = []
+        for spec in arms:
+            # the mixing: the last of --variants ("eigen" by default; the paper's (17) is
+            # not run on the real arms, docs/mixing.md)
+            for v in [v.strip() for v in a.variants.split(",") if v.strip()][-1:]:
+                r = _child(spec, v, "auto", a.timeout, mode="--one-step")
+                rows.append(r)
+                print(_fmt_step(r), flush=True)
+        if a.json:
+            Path(a.json).write_text(json.dumps({"steps": rows}, indent=1))
+        return 0
     print("mixing accuracy on the reference Ψ at t = 40 s (Y = Ψθ, so 𝒲 = 0 exactly):")
     print(f"{'arm':>10s} {'nθ':>4s} {'cond P':>9s} {'Δ (mpmath)':>11s} {'relerr SVD':>11s} "
           f"{'relerr F-L':>11s} {'‖𝒲‖/|Δ| SVD':>13s} {'‖𝒲‖/|Δ| F-L':>13s} {'‖θ‖':>6s}")

@@ -36,40 +36,82 @@ static int cmp(const void *a, const void *b) {
     double x = *(const double *)a, y = *(const double *)b;
     return (x > y) - (x < y);
 }
-int main(int argc, char **argv) {
-    long steps = atol(argv[1]), k;
-    double par[IVC_NPAR], q[IVC_NQ], dq[IVC_NQ], tau[IVC_NQ], qd[IVC_NQ], dqd[IVC_NQ], h;
-    double *us = malloc(sizeof(double) * (size_t)steps);
-    char msg[256];
+static double since(clockid_t clock, const struct timespec *a) {
+    struct timespec b;
+    clock_gettime(clock, &b);
+    return (b.tv_sec - a->tv_sec) * 1e6 + (b.tv_nsec - a->tv_nsec) * 1e-3;
+}
+/* the measured motion of sample k: the reference of the last sample plus an oscillation */
+static void motion(ivc_controller *c, long k, double h, double *q, double *dq) {
+    double qd[IVC_NQ], dqd[IVC_NQ], t = k * h;
     int i;
+    for (i = 0; i < IVC_NQ; i++) qd[i] = dqd[i] = 0.0;
+    if (k > 0) ivc_reference(c, qd, dqd);
+    for (i = 0; i < IVC_NQ; i++) {
+        q[i] = qd[i] + 0.01 * sin(3.0 * t + i);
+        dq[i] = dqd[i] + 0.03 * cos(3.0 * t + i);
+    }
+}
+/* argv: steps, the first sample of the isolated period, its length (samples), repeats */
+int main(int argc, char **argv) {
+    long steps = atol(argv[1]), k0 = atol(argv[2]), period = atol(argv[3]), k, kmax = 0;
+    int repeats = atoi(argv[4]), i, r;
+    double par[IVC_NPAR], q[IVC_NQ], dq[IVC_NQ], tau[IVC_NQ], h, iso = 0.0, isosum = 0.0;
+    double *us = malloc(sizeof(double) * (size_t)steps), *cpu = malloc(sizeof(double) * (size_t)steps);
+    char msg[256];
+    void *saved = NULL;
+    size_t size;
     ivc_controller *c;
     (void)argc;
     ivc_default_params(par);            /* the arm's experiment, generated in */
     h = par[IVC_P_H];
     c = ivc_init(par, msg, sizeof msg);
-    if (!c || !us) { fprintf(stderr, "%s\n", msg); return 1; }
-    for (i = 0; i < IVC_NQ; i++) qd[i] = dqd[i] = 0.0;
+    if (!c || !us || !cpu) { fprintf(stderr, "%s\n", msg); return 1; }
+    size = ivc_state_size(c);
     for (k = 0; k < steps; k++) {
-        struct timespec a, b;
+        struct timespec a, ca;
         double t = k * h;
-        if (k > 0) ivc_reference(c, qd, dqd);       /* the reference of the last sample */
-        for (i = 0; i < IVC_NQ; i++) {
-            q[i] = qd[i] + 0.01 * sin(3.0 * t + i);
-            dq[i] = dqd[i] + 0.03 * cos(3.0 * t + i);
+        motion(c, k, h, q, dq);
+        if (k >= k0 && k < k0 + period) {
+            /* in isolation: the same step `repeats` times from the same state, the fastest
+             * (the step's own cost, without the neighbours' preemptions) */
+            double best = INFINITY;
+            if (!saved) saved = malloc(size);
+            ivc_get_state(c, saved, size);
+            for (r = 0; r < repeats; r++) {
+                double dt;
+                ivc_set_state(c, saved, size);
+                clock_gettime(CLOCK_MONOTONIC, &a);
+                ivc_step(c, t, q, dq, tau);
+                dt = since(CLOCK_MONOTONIC, &a);
+                if (dt < best) best = dt;
+            }
+            ivc_set_state(c, saved, size);
+            if (best > iso) iso = best;
+            isosum += best;
         }
+        clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ca);
         clock_gettime(CLOCK_MONOTONIC, &a);
         if (ivc_step(c, t, q, dq, tau) != IVC_OK) {
             fprintf(stderr, "t = %g: %s\n", t, ivc_message(c));
             return 1;
         }
-        clock_gettime(CLOCK_MONOTONIC, &b);
-        us[k] = (b.tv_sec - a.tv_sec) * 1e6 + (b.tv_nsec - a.tv_nsec) * 1e-3;
+        us[k] = since(CLOCK_MONOTONIC, &a);
+        cpu[k] = since(CLOCK_THREAD_CPUTIME_ID, &ca);
+        if (us[k] > us[kmax]) kmax = k;
     }
-    qsort(us, (size_t)steps, sizeof(double), cmp);
-    printf("%.3f %.3f %.3f %lu %.17g\n", us[steps / 2], us[(long)(0.99 * (steps - 1))],
-           us[steps - 1], (unsigned long)ivc_window_bytes(c), tau[0]);
+    {
+        double tmax = kmax * h, mean_iso = period > 0 ? isosum / period : 0.0;
+        qsort(us, (size_t)steps, sizeof(double), cmp);
+        qsort(cpu, (size_t)steps, sizeof(double), cmp);
+        printf("%.3f %.3f %.3f %lu %.17g %.3f %.3f %.4f %.3f %.3f\n", us[steps / 2],
+               us[(long)(0.99 * (steps - 1))], us[steps - 1], (unsigned long)ivc_window_bytes(c),
+               tau[0], iso, mean_iso, tmax, cpu[(long)(0.99 * (steps - 1))], cpu[steps - 1]);
+    }
     ivc_free(c);
     free(us);
+    free(cpu);
+    free(saved);
     return 0;
 }
 """
@@ -100,6 +142,17 @@ def arm_parameters(name, law, h=1e-3, mix_every=None):
     return model, param_vector(SampledController(model, law, **design))
 
 
+def _index(model, name):
+    """The offset of parameter `name` in the flat vector (ivdrem_controller.h's layout)."""
+    from ivdrem.controller.codegen import param_layout
+    off = 0
+    for pname, size, _ in param_layout(model):
+        if pname == name:
+            return off
+        off += size
+    raise KeyError(name)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", default="two-link,panda,ur5,iiwa,xarm7")
@@ -109,6 +162,11 @@ def main(argv=None):
     ap.add_argument("--mix-every", type=int, default=None, dest="mix_every",
                     help="the URDF arms' mixing (17) every m samples (multi-rate; default: "
                          "the controller's)")
+    ap.add_argument("--isolate-at", type=float, default=None, dest="isolate_at",
+                    help="time (s) of the mixing period whose steps are also timed in "
+                         "isolation (default: the middle of the run)")
+    ap.add_argument("--repeats", type=int, default=10,
+                    help="repeats of each isolated step, the fastest kept (default %(default)s)")
     args = ap.parse_args(argv)
 
     from ivdrem.controller.codegen import generate_controller_sources
@@ -119,8 +177,10 @@ def main(argv=None):
     except OSError:  # pragma: no cover
         load = float("nan")
     print(f"C controller step at h = 1 ms, {steps} steps per arm (1-min load {load:.2f})")
-    print(f"{'model':<9} {'law':<10} {'n':>2} {'nθ':>3} {'p50 µs':>8} {'p99 µs':>8} "
-          f"{'max µs':>8} {'target p50/max':>15} {'window MiB':>11}")
+    print(f"{'model':<9} {'law':<10} {'n':>2} {'nθ':>3} {'m':>3} {'p50 µs':>8} {'p99 µs':>8} "
+          f"{'max µs':>8} {'at s':>8} {'cpu p99':>8} {'cpu max':>8} {'iso max':>8} {'iso mean':>8} "
+          f"{'target p50/max':>15} "
+          f"{'window MiB':>11}")
     with tempfile.TemporaryDirectory(prefix="ivdrem_bench_ctl_") as tmp:
         for name in args.models.split(","):
             for law in args.laws.split(","):
@@ -135,14 +195,28 @@ def main(argv=None):
                                 str(d), str(d / "bench.c"), str(d / "ivdrem_controller.c"),
                                 str(d / "controller_model.c"), "-o", str(exe), "-lm"],
                                check=True)
-                out = subprocess.run([str(exe), str(steps)], capture_output=True, text=True,
-                                     check=True)
-                p50, p99, mx, wbytes, _ = out.stdout.split()
+                m = int(par[_index(model, "mix_every")])
+                k0 = int(round((args.t_end / 2 if args.isolate_at is None else args.isolate_at)
+                               / 1e-3)) // m * m
+                out = subprocess.run([str(exe), str(steps), str(k0), str(m), str(args.repeats)],
+                                     capture_output=True, text=True, check=True)
+                p50, p99, mx, wbytes, _, iso, iso_mean, at, cpu99, cpumax = out.stdout.split()
                 p50, p99, mx, mib = float(p50), float(p99), float(mx), int(wbytes) / 2 ** 20
                 tgt = TARGET_US.get(name, (None, None))
                 tgt_s = "/".join("-" if x is None else f"{x:g}" for x in tgt)
-                print(f"{name:<9} {law:<10} {model.n:>2} {model.ntheta:>3} {p50:8.2f} "
-                      f"{p99:8.2f} {mx:8.1f} {tgt_s:>15} {mib:11.3f}", flush=True)
+                print(f"{name:<9} {law:<10} {model.n:>2} {model.ntheta:>3} {m:>3} {p50:8.2f} "
+                      f"{p99:8.2f} {mx:8.1f} {float(at):8.3f} {float(cpu99):8.1f} {float(cpumax):8.1f} "
+                      f"{float(iso):8.1f} "
+                      f"{float(iso_mean):8.1f} {tgt_s:>15} {mib:11.3f}", flush=True)
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # pragma: no cover
+        load = float("nan")
+    print(f"m: the mixing every m samples (its work spread over them); p50/p99/max: wall "
+          f"time of a step; at s: time of the slowest; cpu p99/max: the thread's CPU time "
+          f"(without the time it was preempted); iso max / mean: the steps of one mixing period (t = "
+          f"{'t_end/2' if args.isolate_at is None else args.isolate_at}) timed alone, the "
+          f"fastest of {args.repeats} repeats from the same state (1-min load now {load:.2f})")
     print(f"window MiB: the block sums of (15a) (target <= {WINDOW_TARGET_MIB:g} MiB); "
           "targets: Panda p50 <= 100 µs and max <= 500 µs, 2-link 3.6-4.9 µs")
 

@@ -13,6 +13,15 @@ run side by side:
 
     .venv/bin/python benchmarks/bench_study.py
 
+With ``--robustness [T]``: instead, the MuJoCo robustness study (ivdrem.plants.study) of
+the paper's arm, 8 runs of T seconds (default 60: noise levels 0, 1 × payload 0, 0.5 kg
+× IV-DREM, composite learning), on a Dask LocalCluster of 1 and of 2 worker processes,
+one after the other, the cluster's start and the workers' imports included as a user
+sees them.  Printed per cluster: the wall time, the sum of the runs' CPU time (each
+worker's ``process_time``) and its efficiency, CPU / (wall x workers): 1 when the workers
+never wait, so a ratio 2-workers/1-worker above 0.5 with an efficiency near 1 is the
+machine (other processes holding the cores), not the study.
+
 The machine's load average is printed: wall times on a shared machine are upper bounds.
 """
 from __future__ import annotations
@@ -102,5 +111,66 @@ def main():
     print(f"load average after: {os.getloadavg()}")
 
 
+ROBUSTNESS = """
+[experiment]
+t_end = {t_end}
+laws = ["iv-drem", "composite-learning"]
+[model]
+name = "two-link"
+[robustness]
+noise_levels = [0.0, 1.0]
+payload_mass = [0.0, 0.5]
+payload_com = [0.3, 0.0, 0.0]
+omega_scale = [1.0]
+seeds = [0]
+mu_max = 60.0
+"""
+
+
+def robustness(t_end):
+    from ivdrem.plants.study import run_robustness
+    print(f"load average before: {os.getloadavg()}")
+    walls = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp, "robustness.toml")
+        path.write_text(ROBUSTNESS.format(t_end=float(t_end)))
+        for workers in (1, 2):
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="Port .* is already in use")
+                logging.getLogger("distributed").setLevel(logging.ERROR)
+                # workers = 1 through Dask too (a LocalCluster of one process): like for like
+                import ivdrem.plants.study as study
+                t0 = time.perf_counter()
+                df = _run_on_dask(study, path, Path(tmp, f"out{workers}"), workers)
+                wall = time.perf_counter() - t0
+            cpu = df["cpu_s"].sum()
+            walls[workers] = wall
+            print(f"{workers} worker(s): {len(df)} runs of {t_end:g} s in {wall:.1f} s "
+                  f"(all ok: {(df['status'] == 'ok').all()}); runs' CPU {cpu:.1f} s, run wall "
+                  f"{df['wall_s'].sum():.1f} s; efficiency CPU/(wall x workers) "
+                  f"{cpu / (wall * workers):.2f}; load now {os.getloadavg()[0]:.1f}", flush=True)
+    print(f"2 workers / 1 worker wall time: {walls[2] / walls[1]:.2f} (target <= 0.6)")
+    print(f"load average after: {os.getloadavg()}")
+
+
+def _run_on_dask(study, path, out, workers):
+    """run_robustness on a LocalCluster of ``workers`` processes (1 included)."""
+    from dask.distributed import Client, LocalCluster, as_completed
+    import pandas as pd
+    config, rob, _ = study.read_robustness(path)
+    runs = study.expand(config, rob)
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                      dashboard_address=None, silence_logs=logging.ERROR) as cluster, \
+            Client(cluster) as client:
+        futs = [client.submit(study.run_one, config, rob, r, pure=False) for r in runs]
+        rows = [f.result() for f in as_completed(futs)]
+    return pd.DataFrame(rows)
+
+
 if __name__ == "__main__":
-    main()
+    import sys
+    if "--robustness" in sys.argv:
+        i = sys.argv.index("--robustness")
+        robustness(float(sys.argv[i + 1]) if len(sys.argv) > i + 1 else 60.0)
+    else:
+        main()

@@ -10,9 +10,11 @@
   built and the compiler's first error; the whole command and output are in
   ``exc.command`` and ``exc.output`` (and a note on the exception, shown in a traceback).
 
-Used by the plant FMU (:func:`ivdrem.fmu.export.compile_binary`) and the tests of the
-models' C face; the C stepper and the controller's library and FMU still call the compiler
-their own way (to be moved here).
+Used by the plant FMU (:func:`ivdrem.fmu.export.compile_binary`), a URDF arm's C library
+(:mod:`ivdrem.models._c_engine`: the functions the engines call), the controller's library
+(:func:`ivdrem.controller.codegen.build_library`) and FMU
+(:func:`ivdrem.controller.fmu_export.export_controller_fmu`) and the tests of the models' C
+face; the C stepper still calls the compiler its own way (to be moved here).
 """
 from __future__ import annotations
 

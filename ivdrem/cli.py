@@ -144,6 +144,11 @@ def _cmd_examples(args):
 
 
 def _cmd_study(args):
+    from ._paths import user_path
+    from .plants.study import is_robustness_file
+    if is_robustness_file(user_path(args.study)):       # the MuJoCo robustness study
+        from .plants.cli import run_robustness_command
+        return run_robustness_command(args)
     from .experiments.study import run_study_command
     return run_study_command(args)
 
@@ -184,7 +189,7 @@ def build_parser():
     add_run_options(pp)
     pp.set_defaults(func=_cmd_paper)
 
-    sp = sub.add_parser("study", help="run a parameter study (grid / Monte Carlo) on a Dask cluster")
+    sp = sub.add_parser("study", help="run a parameter study (grid / Monte Carlo, or a MuJoCo robustness study) on a Dask cluster")
     from .experiments.study import add_study_arguments
     add_study_arguments(sp)
     sp.set_defaults(func=_cmd_study)

@@ -61,8 +61,9 @@ def _states(model, rng):
 
 
 def compare_all(model, lib, prefix=PREFIX, seed=1):
-    """Largest relative difference of every C-face function against model.functions."""
-    fn = model.functions
+    """Largest relative difference of every C-face function against the model's Python
+    functions (a URDF arm's numba path: its ``functions`` are the C library itself)."""
+    fn = getattr(model, "numba_functions", model.functions)
     n, nt = model.n, model.ntheta
     theta = np.asarray(model.theta_values, float)
     worst = {}

@@ -223,6 +223,51 @@ def test_multi_rate_mixing_holds_delta_between_mixing_samples():
     assert np.unique(np.array(singles)[400:]).size > 250
 
 
+def test_multi_rate_mixing_is_applied_one_period_after_its_sample():
+    """mix_every = m > 1: the mixing (17) of the averaged (Y, Psi) at t_k (k a multiple of
+    m) is held over [t_k+m, t_k+2m) (the C library spreads its work over the m samples
+    between); m = 1 applies it at once.  Checked against mixing_values on the recorded
+    (Y, Psi), per channel ("channel") and scalar ("eigen")."""
+    from ivdrem.blocks._kernels import MIXING_VARIANTS, mixing_values
+    m = get_model("planar-3")
+    nth = m.ntheta
+    for mixing in ("eigen", "channel"):
+        ctl = SampledController(m, "iv-drem", T=0.3, gamma=50.0, mixing=mixing, mix_every=4)
+        snaps, held = {}, {}
+        for k in range(600):
+            if k % 4 == 0:
+                snaps[k] = ctl.Yavg.copy()
+            ctl.step(*_measurements(ctl, k))
+            held[k] = (ctl.D_held.copy(), ctl.calY_held.copy())
+        D, calY, logD = np.zeros(nth), np.zeros(nth), np.zeros(nth)
+        for k in range(8, 600, 4):
+            mixing_values(MIXING_VARIANTS.index(mixing), snaps[k - 4][:nth],
+                          snaps[k - 4][nth:], ctl.f_rel, ctl.guard, D, calY, logD)
+            want = D if mixing == "channel" else np.full(nth, D[0])
+            for j in range(k, min(k + 4, 600)):
+                assert np.array_equal(held[j][0], want) and np.array_equal(held[j][1], calY)
+        assert np.all(held[599][0] != 0.0)
+
+
+def test_scale_free_mixings_default_gamma_by_the_auto_rule():
+    """gamma not given: 0.5 / max(Gamma) with the scale-free mixings (the rule of gamma
+    "auto" at Delta = 1; 50 at the default Gamma = 0.01), the law's registry value with the
+    paper's mixing (the 2-link's paper design unchanged) and for composite learning."""
+    from ivdrem.diagrams.gamma_auto import DEFAULT_RATE
+    from ivdrem.laws import get_law
+    ur5 = get_model("ur5")
+    assert SampledController(ur5, "iv-drem").gamma == 50.0                  # eigen (default)
+    assert SampledController(ur5, "drem", mixing="channel",
+                             Gamma=np.linspace(0.01, 0.04, ur5.ntheta)).gamma \
+        == DEFAULT_RATE / 0.04
+    assert SampledController(ur5, "iv-drem", gamma=7.0).gamma == 7.0         # given: kept
+    paper = get_law("iv-drem").defaults["gamma"]
+    assert SampledController(ur5, "iv-drem", mixing="paper").gamma == paper
+    assert SampledController(law="iv-drem").gamma == paper                   # the 2-link
+    assert SampledController(ur5, "composite-learning").gamma == \
+        get_law("composite-learning").defaults["gamma"]
+
+
 # ----------------------------------------------------------------------- refusals
 def test_refusals_name_the_number_and_the_option():
     from ivdrem.controller.codegen import param_layout, param_vector
@@ -282,6 +327,26 @@ def test_c_library_equals_python_reference_on_real_arms(name):
         assert worst <= 1e-10, (law, worst)
         assert np.abs(th - c.theta_hat).max() <= 1e-10 * max(1.0, np.abs(th).max()), law
         assert np.abs(th - kw.get("theta_hat0", 0.0)).max() > 1e-6     # the estimate moved
+
+
+@pytest.mark.parametrize("name, law", [("panda", "iv-drem"), ("ur5", "drem")])
+def test_c_library_equals_python_reference_over_10_s(name, law):
+    """10 s (10,000 samples) of benchmarks/check_c_equals_python.py, one law per arm (that
+    script runs every law on both arms): the real arm's options, T = 2 s, the mixing every
+    20 samples (one period late, the C library's job sliced over the period); C = Python to
+    1e-10 relative on tau and theta_hat at every sample."""
+    import importlib.util
+    from pathlib import Path
+    spec = importlib.util.spec_from_file_location(
+        "check_c_equals_python",
+        Path(__file__).parents[1] / "benchmarks" / "check_c_equals_python.py")
+    check = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(check)
+    r = check.compare(name, law, t_end=10.0)
+    assert r["steps"] == 10000
+    assert r["tau"] <= 1e-10 and r["theta_hat"] <= 1e-10, r
+    assert r["moved"] > 1e-3 and r["Delta_c"] != 0.0            # the estimate and Delta moved
+    assert abs(r["Delta_py"] - r["Delta_c"]) <= 1e-9 * abs(r["Delta_py"])
 
 
 def test_inertia_scaled_loop_converges_at_first_order_in_h_on_the_ur5():

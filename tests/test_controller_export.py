@@ -3,6 +3,8 @@ refusals (one line, exit 2), the hosts reading h from the FMU, and the stability
 of the sampled loop (ivdrem.controller.stability) against actual runs."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,8 @@ pytest.importorskip("fmpy")
 from ivdrem.controller.loop import FmuPlant, sampled_loop  # noqa: E402
 from ivdrem.controller.stability import UNSTABLE_GROWTH, sampled_stability  # noqa: E402
 from ivdrem.fmu.cli import main_fmu  # noqa: E402
+from ivdrem.controller.codegen import param_vector  # noqa: E402
+from ivdrem.controller.sampled import SampledController  # noqa: E402
 from ivdrem.models import get_model, two_link  # noqa: E402
 
 NO_DISTURBANCE = {k: [0.0] * 7 for k in ("amplitude", "omega", "phase", "offset")}
@@ -287,3 +291,75 @@ def test_an_unnamed_urdf_arm_around_pybullet():
     r = harness.run(urdf, 1.0, mix_every=20, every=250)
     assert r["model"] == "ur3" and r["growth"] < 1.0 and r["diverged"] is None
     assert max(e for _, e, _ in r["rows"]) < 0.5
+
+
+# ----------------------------------------------------------------------- small gaps
+def test_fmu_plant_in_its_error_state_closes_without_raising(tmp_path):
+    """A failed step leaves the plant FMU in its error state, where fmi2Terminate is not
+    allowed: close() still frees it and removes its files, raising nothing."""
+    from fmpy.fmi1 import FMICallException
+    from ivdrem.controller.loop import FmuPlant
+    from ivdrem.fmu import export_fmu
+    plant = FmuPlant(export_fmu(two_link(), tmp_path / "Plant.fmu"), (0.0, 0.3), (0.0, 0.0))
+    with pytest.raises(FMICallException):
+        plant.step(0.0, 1e-3, [float("nan"), 0.0], [0.0, 0.0])
+    with pytest.raises(FMICallException):          # the FMU is in its error state
+        plant.fmu.terminate()
+    plant.close()
+    assert not Path(plant._dir).exists()
+
+
+_UNNAMED_URDF = """<?xml version="1.0"?>
+<robot name="unnamed_two_link">
+  <link name="base"/>
+  <link name="l1"><inertial><origin xyz="0.1 0 0"/><mass value="1.2"/>
+    <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.02" iyz="0" izz="0.02"/></inertial></link>
+  <link name="l2"><inertial><origin xyz="0.08 0 0"/><mass value="0.8"/>
+    <inertia ixx="0.005" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial></link>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>
+    <axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
+    <origin xyz="0.25 0 0"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
+</robot>
+"""
+
+
+def test_cosim_controller_fmu_of_a_urdf_file_arm(tmp_path):
+    """``ivdrem cosim --controller-fmu`` on the controller FMU of an arm known only by its
+    URDF file (no model of that name): the FMU carries the arm's description
+    (fmu_export.MODEL_RESOURCE), the command rebuilds the same model (same key) and runs."""
+    import zipfile
+    from ivdrem.controller.fmu_export import MODEL_RESOURCE, export_controller_fmu
+    from ivdrem.controller.fmu_loop import _fmu_parameters
+    from ivdrem.fmu.cli import main_cosim
+    from ivdrem.models.urdf import from_urdf
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text(_UNNAMED_URDF)
+    model = from_urdf(urdf, cache=False)
+    with pytest.raises(Exception):
+        get_model(model.name)                       # not a named arm
+    ctl = export_controller_fmu(model, tmp_path / "C.fmu", law="none", h=1e-3, K=5.0)
+    assert MODEL_RESOURCE in zipfile.ZipFile(ctl).namelist()
+    back, law, par = _fmu_parameters(ctl)
+    assert (back.key, back.name, law, par.size) == (model.key, model.name, "none",
+                                                   param_vector(SampledController(
+                                                       model, "none")).size)
+    urdf.unlink()                                   # the FMU alone is enough
+    assert main_cosim(["--controller-fmu", str(ctl), "--t-end", "0.05", "--quiet"]) == 0
+
+
+def test_controller_design_mixes_a_real_arm_every_mix_every_samples():
+    """The export's design: the URDF arms' scale-free mixing every MIX_EVERY samples (the
+    step within the deadline), the paper's 2-link experiment single-rate (its design bit for
+    bit as before)."""
+    from ivdrem.controller.fmu_export import MIX_EVERY, controller_design
+    from ivdrem.experiments.config import load_config
+    ur5 = controller_design(load_config(None, {"model.name": "ur5"}), "iv-drem", h=1e-3)
+    assert ur5["mix_every"] == MIX_EVERY == 20
+    assert SampledController(get_model("ur5"), "iv-drem",
+                             **{**ur5, "gamma": 50.0}).mix_every == 20
+    assert controller_design(load_config(None, {"model.name": "ur5"}), "none").get(
+        "mix_every", 1) == 1
+    paper = controller_design(load_config(None), "iv-drem", h=1e-3)
+    assert paper.get("mix_every", 1) == 1

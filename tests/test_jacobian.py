@@ -690,7 +690,12 @@ def _expand(dst, f, src, length):
     out = []
     for d, g, s, m in zip(dst, f, src, length):
         for k in range(m):
-            out.append((d + k, g + k, -1) if s < 0 else (d + k, g, s + k))
+            if s == -1:                         # factors alone
+                out.append((d + k, g + k, -1))
+            elif s < -1:                        # a factor and a source each
+                out.append((d + k, g + k, -2 - s + k))
+            else:                               # one factor, consecutive sources
+                out.append((d + k, g, s + k))
     return out
 
 
@@ -703,7 +708,26 @@ def test_chain_runs_hold_the_same_multiply_adds_in_the_same_order():
            (8, 6, 20), (9, 7, 21)]                   # the factor changes: two runs
     a = np.array(ins, dtype=np.int64)
     dst, f, src, length = _runs(a[:, 0], a[:, 1], a[:, 2])
-    assert list(length) == [3, 1, 3, 1, 1, 1]
+    assert list(length) == [3, 1, 3, 1, 2]
+    assert list(src) == [10, 14, -1, -1, -2 - 20]   # the last two: a factor and source each
+    assert _expand(dst, f, src, length) == ins
+
+
+def test_single_multiply_adds_consecutive_in_every_index_make_one_run():
+    """A row read through single-entry rows (the mixing's derivatives with respect to the
+    averaged Psi): destination, factor and source all consecutive, one run; a break in any
+    of the three, or a term that a run of one factor already holds, ends it."""
+    from ivdrem.sim.jacobian import _runs
+    ins = [(0, 3, 50), (1, 4, 51), (2, 5, 52), (3, 6, 53),     # one elementwise run
+           (4, 7, 60),                                         # the source jumps
+           (5, 9, 61),                                         # the factor jumps
+           (7, 10, 62),                                        # the destination jumps
+           (8, 11, 70), (9, 11, 71),                           # one factor: its own kind
+           (10, 12, 72), (11, 13, -1)]                         # an alone term ends it
+    a = np.array(ins, dtype=np.int64)
+    dst, f, src, length = _runs(a[:, 0], a[:, 1], a[:, 2])
+    assert list(length) == [4, 1, 1, 1, 2, 1, 1]
+    assert list(src) == [-2 - 50, 60, 61, 62, 70, 72, -1]
     assert _expand(dst, f, src, length) == ins
 
 
@@ -720,13 +744,109 @@ def test_chain_as_runs_reproduces_the_sums_of_single_multiply_adds():
     F = rng.standard_normal(prog.n_jb + prog.gains.size)
     S1, S2 = np.zeros(prog.n_slots), np.zeros(prog.n_slots)
     for d, g, s, m in zip(prog.run_dst, prog.run_f, prog.run_src, prog.run_len):
-        if s < 0:
+        if s == -1:
             S1[d:d + m] += F[g:g + m]
+        elif s < -1:
+            S1[d:d + m] += F[g:g + m] * S1[-2 - s:-2 - s + m]
         else:
             S1[d:d + m] += F[g] * S1[s:s + m]
     for d, g, s in _expand(prog.run_dst, prog.run_f, prog.run_src, prog.run_len):
         S2[d] += F[g] if s < 0 else F[g] * S2[s]
     assert np.array_equal(S1, S2) and np.count_nonzero(S1) > 0
+
+
+def _chain(prog, F):
+    """The chain's slots S from the factors F, run by run as jac_chain runs them."""
+    S = np.zeros(prog.n_slots)
+    for d, g, s, m in zip(prog.run_dst, prog.run_f, prog.run_src, prog.run_len):
+        if s == -1:
+            S[d:d + m] += F[g:g + m]
+        elif s < -1:
+            S[d:d + m] += F[g:g + m] * S[-2 - s:-2 - s + m]
+        elif F[g] != 0.0:
+            S[d:d + m] += F[g] * S[s:s + m]
+    return S
+
+
+@pytest.mark.parametrize("Gamma", ["diagonal", "full"])
+def test_factors_the_parameters_make_zero_are_left_out_and_change_no_value(Gamma,
+                                                                          monkeypatch):
+    """A diagonal Gamma makes the adaptation law's off-diagonal entries exactly zero: the
+    program leaves their multiply-adds out, and df/dx is the same bit for bit as the
+    program that keeps them (those factors zero there too) over random factors; the
+    pattern of df/dx, and so the LU's, is the same.  A full Gamma: nothing of the law is
+    left out (the control law's diagonal K still is)."""
+    from ivdrem.sim import jacobian
+    from ivdrem.sim.plan import DiagramPlan
+    rng = np.random.default_rng(5)
+    if Gamma == "full":
+        A = rng.standard_normal((6, 6))
+        G = 0.01 * (A @ A.T + 6 * np.eye(6))
+    else:
+        G = np.diag(rng.uniform(0.5, 2.0, 6))
+    plan = DiagramPlan.from_diagram(_planar3_loop(mixing="eigen", gamma=50.0, Gamma=G))
+    monkeypatch.setattr(jacobian, "_program_path", lambda key: None)
+    jacobian._PROGRAMS.clear()
+    left_out = jacobian.JacobianProgram(plan)
+    zeros = jacobian._parameter_zeros(plan, left_out.patterns)
+    jacobian._PROGRAMS.clear()
+    with monkeypatch.context() as m:
+        m.setattr(jacobian, "_parameter_zeros", lambda *a, **k: {})
+        kept = jacobian.JacobianProgram(plan)
+    jacobian._PROGRAMS.clear()
+    (law,) = [b.index for b in plan.blocks if b.sys.name == "adaptation_law"]
+    (ctl,) = [b.index for b in plan.blocks if b.sys.name == "control_law"]
+    # the control law's diagonal K (the default): d tau_i / d r_j = K_ij, j != i; with a
+    # diagonal Gamma, each row i of the law: d/dtheta_c_j = Gamma_ij and d/dPi^T[k, j] =
+    # Gamma_ij r_k, for j != i
+    assert zeros[ctl].sum() == 3 * 2
+    if Gamma == "full":
+        assert set(zeros) == {ctl}
+    else:
+        assert set(zeros) == {law, ctl} and zeros[law].sum() == 6 * 5 * (1 + 3)
+    assert left_out.n_ins < kept.n_ins
+    assert np.array_equal(left_out.pattern, kept.pattern)
+    assert np.array_equal(left_out.j_slot, kept.j_slot)
+    assert np.array_equal(left_out.e_slot, kept.e_slot)
+    F = rng.standard_normal(kept.n_jb + kept.gains.size)
+    F[kept.n_jb:] = kept.gains
+    # the left-out factors' slots, zero here as in a run with these parameters
+    for kb, b in enumerate(kept.fd_blocks):
+        if b.index not in zeros:
+            continue
+        c0, c1 = kept.gc_ptr[kept.g_ptr[kb]], kept.gc_ptr[kept.g_ptr[kb + 1]]
+        for cc in range(c0, c1):
+            for e in range(kept.e_ptr[cc], kept.e_ptr[cc + 1]):
+                if zeros[b.index][kept.e_row[e], kept.col[cc]]:
+                    F[kept.e_slot[e]] = 0.0
+    S1, S2 = _chain(left_out, F), _chain(kept, F)
+    assert np.array_equal(S1[left_out.j_slot], S2[kept.j_slot])
+    assert np.count_nonzero(S1[left_out.j_slot]) > 0
+
+
+def test_a_jacobian_kernels_entries_are_read_row_by_row_into_consecutive_factors():
+    """A block with its own Jacobian kernel is read from its buffer in the buffer's order,
+    one entry per column entry of the program, into consecutive slots: the mixing's rows
+    (its derivatives with respect to the averaged Psi, each read through a single-entry
+    row) become elementwise runs, a handful instead of one per entry."""
+    from ivdrem.sim.jacobian import JacobianProgram
+    from ivdrem.sim.plan import DiagramPlan
+    plan = DiagramPlan.from_diagram(_planar3_loop(mixing="eigen", gamma=50.0))
+    prog = JacobianProgram(plan)
+    for kb, b in enumerate(prog.fd_blocks):
+        c0, c1 = prog.gc_ptr[prog.g_ptr[kb]], prog.gc_ptr[prog.g_ptr[kb + 1]]
+        rows = np.concatenate([prog.e_row[prog.e_ptr[c]:prog.e_ptr[c + 1]]
+                               for c in range(c0, c1)])
+        slots = np.concatenate([prog.e_slot[prog.e_ptr[c]:prog.e_ptr[c + 1]]
+                                for c in range(c0, c1)])
+        if b.spec.jacobian is not None:
+            ncol = b.sys.nstates + b.sys.ninputs
+            flat = rows * ncol + prog.col[c0:c1]
+            assert np.all(np.diff(flat) > 0) and np.all(np.diff(slots) == 1)
+    assert (prog.run_src < -1).sum() > 0
+    nth = 6
+    # the mixing's 1 + nθ + 1 rows over nθ² Psi entries: far fewer runs than entries
+    assert (prog.run_len[prog.run_src < -1] >= nth * nth).sum() >= nth
 
 
 def test_the_jacobian_sits_in_the_lu_pattern_and_comes_back_dense():
@@ -803,7 +923,8 @@ def test_a_jacobian_program_is_built_once_per_structure_and_equals_a_fresh_one()
     assert p2.run_dst is p1.run_dst                    # the second is the cached one
     assert p2.plan is plan2 and all(b in plan2.blocks for b in p2.fd_blocks)
     fresh = object.__new__(jacobian.JacobianProgram)
-    fresh._build(plan2, jacobian._local_patterns(plan2, 0))
+    patterns = jacobian._local_patterns(plan2, 0)
+    fresh._build(plan2, patterns, jacobian._parameter_zeros(plan2, patterns))
     for name, v in vars(fresh).items():
         if isinstance(v, np.ndarray):
             assert np.array_equal(v, getattr(p2, name)), name

@@ -91,3 +91,134 @@ def test_a_bad_robustness_table_is_refused(tmp_path, capsys):
                  str(tmp_path / "o"), "--quiet"])
     err = capsys.readouterr().err
     assert code == 2 and "unknown [robustness] keys ['noise_level']" in err
+
+
+_STUDY = ('[experiment]\nt_end = 0.2\nlaws = ["iv-drem", "composite-learning"]\n'
+          '[model]\nname = "two-link"\n[robustness]\nnoise_levels = [0.0, 1.0]\n'
+          'payload_mass = [0.0]\nomega_scale = [1.37]\nseeds = [0]\nmu_max = 60.0\n'
+          'gamma = 2e10\n')
+
+
+def test_ivdrem_study_runs_a_robustness_file_and_writes_its_report(tmp_path, capsys):
+    """`ivdrem study FILE` with a [robustness] table: the MuJoCo study, its table, and the
+    report (figure, conclusions per noise level) rebuilt equal from results.csv."""
+    import pandas as pd
+
+    from ivdrem.plants.study import conclusions, rebuild_report
+    study = tmp_path / "s.toml"
+    study.write_text(_STUDY, encoding="utf-8")
+    out = tmp_path / "out"
+    code = main(["study", str(study), "--out", str(out), "--workers", "1", "--quiet"])
+    printed = capsys.readouterr().out
+    assert code == 0, printed
+    df = pd.read_csv(out / "results.csv")
+    assert len(df) == 4 and (df["status"] == "ok").all()
+    html = (out / "robustness.html").read_text(encoding="utf-8")
+    assert "two-link in MuJoCo" in html and "<svg" in html and "Conclusions" in html
+    lines = conclusions(df)
+    assert len(lines) == 2 and all("iv-drem" in x and "composite-learning" in x for x in lines)
+    assert lines[0] in printed and lines[0] in html.replace("&#x27;", "'")
+    # the ratio in the conclusion is the run's own
+    row = df[(df.noise_level == 0) & (df.law == "iv-drem")].iloc[0]
+    assert f"{row['theta_error_ratio']:.3g}" in lines[0]
+    (out / "robustness.html").unlink()
+    rebuild_report(out)
+    assert (out / "robustness.html").read_text(encoding="utf-8").count("<li>") == 2
+
+
+def test_the_studys_gamma_reaches_only_the_laws_with_the_mixing():
+    """A number for γ is IV-DREM's and DREM's γ of (21): composite learning keeps its own γ
+    of (35) (which multiplies Ψ_b itself; 53.2 there diverges the Panda in 0.4 s); a
+    table gives one per law."""
+    from ivdrem.plants.study import _law_gamma
+    assert _law_gamma(53.2, "iv-drem") == 53.2 and _law_gamma(53.2, "drem") == 53.2
+    assert _law_gamma(53.2, "composite-learning") is None and _law_gamma(None, "iv-drem") is None
+    g = {"iv-drem": 53.2, "composite-learning": 2.0}
+    assert _law_gamma(g, "composite-learning") == 2.0 and _law_gamma(g, "none") is None
+
+
+@pytest.mark.parametrize("extra, word", [(["--resume"], "--resume is not available"),
+                                         (["--scheduler", "tcp://x:1"], "--scheduler")])
+def test_ivdrem_study_refuses_what_a_robustness_study_does_not_do(tmp_path, capsys, extra,
+                                                                  word):
+    study = tmp_path / "s.toml"
+    study.write_text(_STUDY, encoding="utf-8")
+    code = main(["study", str(study), "--out", str(tmp_path / "o"), "--quiet", *extra])
+    err = capsys.readouterr().err
+    assert code == 2 and word in err and not (tmp_path / "o").exists()
+
+
+def test_a_bad_gamma_is_refused(tmp_path, capsys):
+    study = tmp_path / "s.toml"
+    study.write_text(_STUDY.replace("gamma = 2e10", 'gamma = "big"'), encoding="utf-8")
+    code = main(["study", str(study), "--out", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "[robustness] gamma must be a number" in err
+
+
+def test_report_plant_mujoco_gives_the_reports_figures_and_conclusions(tmp_path, capsys):
+    """`ivdrem report --plant mujoco`: the paper experiment with the arm in MuJoCo, the
+    report (saying so) and C1-C3; its runs are closed_loop's, number for number."""
+    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.metrics import signal
+    from ivdrem.plants.cli import mujoco_paper_run
+    from ivdrem.plants.mujoco import closed_loop, controller_kwargs, load
+    out = tmp_path / "rep"
+    code = main(["report", "--plant", "mujoco", "--t-end", "0.5", "--out", str(out), "--quiet"])
+    printed = capsys.readouterr().out
+    assert code == 0, printed
+    assert "C1" in printed and "C2" in printed and "C3" in printed
+    html = (out / "ivdrem-mujoco.html").read_text(encoding="utf-8")
+    assert "MuJoCo" in html and "<svg" in html
+    assert (out / "ivdrem-mujoco.pdf").read_bytes().startswith(b"%PDF")
+    config = load_config(None, {"experiment.t_end": 0.5})
+    run = mujoco_paper_run(config)
+    kw, start = controller_kwargs(config, "iv-drem")
+    direct = closed_loop(load("two-link"), 0.5, "iv-drem", every=10, mu_max=135.0, **start,
+                         **kw)
+    assert np.array_equal(signal(run.runs["iv-drem"].response, "theta_hat"),
+                          signal(direct, "theta_hat"))
+
+
+def test_report_plant_mujoco_refuses_a_law_without_a_sampled_form(tmp_path, capsys):
+    code = main(["report", "--plant", "mujoco", "--t-end", "0.5", "--laws", "iv-drem",
+                 "not-a-law", "--out", str(tmp_path / "r"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "not-a-law" in err and "Traceback" not in err
+
+
+def test_the_studys_conclusions_average_over_scales_and_name_the_diverged():
+    """summary_table: the mean over disturbance scales and seeds per law, noise level and
+    payload, with counts; conclusions: each law's numbers, the factor between IV-DREM and
+    the best other law, and a law whose runs all failed said to have diverged."""
+    import pandas as pd
+
+    from ivdrem.plants.study import conclusions, summary_table
+    nan = float("nan")
+    df = pd.DataFrame([
+        dict(law="iv-drem", noise_level=0.0, payload_mass=0.0, omega_scale=1.0, seed=0,
+             status="ok", theta_error_ratio=0.01, tracking_rms_last=1e-3,
+             tau_d_error_rms_last=0.2),
+        dict(law="iv-drem", noise_level=0.0, payload_mass=0.0, omega_scale=1.37, seed=0,
+             status="ok", theta_error_ratio=0.03, tracking_rms_last=3e-3,
+             tau_d_error_rms_last=0.4),
+        dict(law="none", noise_level=0.0, payload_mass=0.0, omega_scale=1.0, seed=0,
+             status="ok", theta_error_ratio=0.8, tracking_rms_last=2e-3,
+             tau_d_error_rms_last=1.0),
+        dict(law="none", noise_level=0.0, payload_mass=0.0, omega_scale=1.37, seed=0,
+             status="failed", theta_error_ratio=nan, tracking_rms_last=nan,
+             tau_d_error_rms_last=nan),
+        dict(law="iv-drem", noise_level=10.0, payload_mass=0.0, omega_scale=1.0, seed=0,
+             status="failed", theta_error_ratio=nan, tracking_rms_last=nan,
+             tau_d_error_rms_last=nan),
+        dict(law="none", noise_level=10.0, payload_mass=0.0, omega_scale=1.0, seed=0,
+             status="ok", theta_error_ratio=0.9, tracking_rms_last=5e-3,
+             tau_d_error_rms_last=2.0)])
+    tab = summary_table(df).set_index(["noise_level", "law"])
+    assert tab.loc[(0.0, "iv-drem"), "theta_error_ratio"] == pytest.approx(0.02)
+    assert tab.loc[(0.0, "none"), ["ok", "failed"]].tolist() == [1, 1]
+    lines = conclusions(df)
+    assert len(lines) == 2
+    assert "iv-drem ‖θ̃(end)‖/‖θ̃(0)‖ = 0.02" in lines[0] and "0.8" in lines[0]
+    assert "40 times smaller than none's" in lines[0] and "(1 run(s) failed)" in lines[0]
+    assert "iv-drem diverged in every run" in lines[1] and "times" not in lines[1]

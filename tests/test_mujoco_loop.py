@@ -153,3 +153,65 @@ def test_the_panda_in_mujoco_equals_its_own_dynamics_in_the_loop():
         r = closed_loop(plant, 0.3, **run, every=300, **kw)
         errs.append(np.abs(signal(r, "q")[:, -1] - ref["q"][-1]).max())
     assert errs[0] < 1e-3 and 2.5 < errs[0] / errs[1] < 5.5, errs
+
+
+class _PythonController:
+    """The Python reference of the sampled controller behind the loop's generic path
+    (``step(t, q, dq) -> tau``), to check the C fast path against."""
+
+    def __init__(self, **gains):
+        from ivdrem.controller.sampled import SampledController
+        self.ref = SampledController(None, "iv-drem", **gains)
+        self.h, self.n, self.delay = self.ref.h, self.ref.n, self.ref.delay
+
+    def step(self, t, q, dq):
+        return self.ref.step(t, np.array(q), np.array(dq))
+
+    @property
+    def theta_hat(self):
+        return self.ref.theta_hat.copy()
+
+    @property
+    def tau_d_hat(self):
+        return self.ref.tau_d_hat.copy()
+
+
+@pytest.mark.parametrize("delay", [0, 1])
+def test_the_loops_c_path_equals_a_generic_controllers_path(two_link, delay):
+    """The loop calls the C library in place (q, q̇ read from MuJoCo's data, the torque in
+    preallocated buffers); a controller reached through step() (the Python reference,
+    equal to the C library to rounding) gives the same run to rounding, with and without
+    the robot's sensors and limits."""
+    for imp in (None, REALISTIC, Imperfections(tau_limit=5.0, tau_rate_limit=1000.0)):
+        a = _run(two_link, 0.5, every=1, delay=delay, imperfections=imp)
+        b = closed_loop(two_link, 0.5, controller=_PythonController(mu_max=135.0, delay=delay),
+                        every=1, imperfections=imp)
+        for name in ("q", "tau", "theta_hat", "tau_d_hat", "q_m", "dq_m", "tau_d"):
+            x, y = signal(a, name), signal(b, name)
+            assert np.allclose(x, y, rtol=1e-9, atol=1e-9), (name, imp, np.abs(x - y).max())
+
+
+def test_the_loops_faster_controller_build_gives_the_same_numbers_bit_for_bit(two_link):
+    """The loop's controller library (CONTROLLER_FLAGS, -O3) against the library's default
+    -O2 build: the same run, bit for bit (C99 allows no FMA contraction)."""
+    from ivdrem.controller.clib import CController
+    from ivdrem.plants.mujoco import CONTROLLER_FLAGS
+    assert CONTROLLER_FLAGS != ("-O2",)
+    a = _run(two_link, 1.0, every=1, imperfections=REALISTIC)
+    ctl = CController(None, "iv-drem", flags=("-O2",), mu_max=135.0)
+    b = closed_loop(two_link, 1.0, controller=ctl, every=1, imperfections=REALISTIC)
+    for name in ("q", "tau", "theta_hat", "tau_d_hat"):
+        assert np.array_equal(signal(a, name), signal(b, name)), name
+
+
+def test_the_tracking_signals_are_the_papers(two_link):
+    """e = q_d − q, r = ė + αe (by finite differences of the recorded e), μ = μ0 t + μ1
+    saturated at μ_max: the signals the report's figures and C1-C3 read."""
+    r = _run(two_link, 0.5, every=1, mu_max=15.2)
+    t = np.asarray(r.time)
+    e = signal(r, "e")
+    assert np.array_equal(e, signal(r, "q_d") - signal(r, "q"))
+    de = (e[:, 2:] - e[:, :-2]) / (t[2:] - t[:-2])
+    rr = signal(r, "r")[:, 1:-1]
+    assert np.abs(rr - (de + 1.0 * e[:, 1:-1])).max() < 2e-2 * np.abs(rr).max()
+    assert np.allclose(signal(r, "mu"), np.minimum(t + 15.0, 15.2))

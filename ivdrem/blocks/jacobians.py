@@ -47,6 +47,53 @@ def control_law_jacobian(t, x, u, jac, K, delta_mu, ntheta):
         jac[i, f0 + i] = -1.0
 
 
+def inertia_scaled_control_law_jacobian(t, x, u, jac, K, delta_mu, ntheta, theta_nominal):
+    # inputs   u = [q (n), r (n), mu, Pi^T (n*nθ), theta_hat (nθ), u_f (n)]
+    # output   tau = M̂(q) w + Pi^T theta_hat - u_f, w = (K + delta_mu mu) r,
+    #          M̂(q) w = Phi_M^T(q, w) theta_nominal             (eq. 9 inertia-scaled, Property 1)
+    # d tau/dq = dPhi_M^T(q, w)/dq theta_nominal; d tau/dw = M̂(q) (Phi_M is linear in w)
+    n = K.shape[0]
+    c_r = n
+    c_mu = 2 * n
+    p0 = c_mu + 1
+    t0 = p0 + n * ntheta
+    f0 = t0 + ntheta
+    q = u[0:n]
+    r = u[c_r:c_r + n]
+    mu = u[c_mu]
+    w = np.empty(n)
+    for i in range(n):
+        s = delta_mu * mu * r[i]
+        for j in range(n):
+            s += K[i, j] * r[j]
+        w[i] = s
+    dPM = np.empty((n, ntheta, 2 * n))      # d/(q, w)
+    model.Phi_M_jac(q, w, dPM)
+    Mh = np.zeros((n, n))
+    for i in range(n):
+        for c in range(n):
+            sq = 0.0
+            sw = 0.0
+            for j in range(ntheta):
+                sq += dPM[i, j, c] * theta_nominal[j]
+                sw += dPM[i, j, n + c] * theta_nominal[j]
+            jac[i, c] = sq
+            Mh[i, c] = sw
+    for i in range(n):
+        smu = 0.0
+        for c in range(n):
+            smu += Mh[i, c] * r[c]
+            s = delta_mu * mu * Mh[i, c]
+            for k in range(n):
+                s += Mh[i, k] * K[k, c]
+            jac[i, c_r + c] = s
+        jac[i, c_mu] = delta_mu * smu
+        for j in range(ntheta):
+            jac[i, p0 + i * ntheta + j] = u[t0 + j]
+            jac[i, t0 + j] = u[p0 + i * ntheta + j]
+        jac[i, f0 + i] = -1.0
+
+
 def adaptation_law_jacobian(t, x, u, jac, Gamma):
     # states   x = theta_hat (nθ);  inputs u = [Pi^T (n*nθ), r (n), theta_c (nθ)]
     # output   y = theta_hat;  dtheta_hat = Gamma (Pi r + theta_c)                   (eq. 11)

@@ -64,11 +64,11 @@ class CControllerError(RuntimeError):
 class CController:
     """The C library of the sampled controller (same arguments as SampledController)."""
 
-    def __init__(self, model=None, law="iv-drem", **kwargs):
+    def __init__(self, model=None, law="iv-drem", *, flags=("-O2",), **kwargs):
         ref = SampledController(model, law, **kwargs)       # validation, defaults
         self.model, self.law, self.n, self.ntheta = ref.model, law, ref.n, ref.ntheta
         self.h, self.delay = ref.h, ref.delay
-        self.lib = load_library(self.model)
+        self.lib = load_library(self.model, flags=tuple(flags))   # the C compiler's flags
         self.par = param_vector(ref)
         self.index = {}
         off = 0

@@ -19,14 +19,13 @@ from __future__ import annotations
 
 import hashlib
 import os
-import shutil
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import sympy as sp
 
+from .._cc import compile_shared
 from ..blocks.mixing import START_RAMP_REL
 from ..models._c_printer import c_double as _c_double
 from .sampled import REFERENCE_HARMONICS
@@ -87,7 +86,8 @@ def param_layout(model):
         ("design", 1, "0 paper: feedback (K + delta_mu mu) r of (9); 1 inertia-scaled: "
                       "M(q, theta_nominal)(K + delta_mu mu) r, K in 1/s"),
         ("mixing", 1, "mixing (17): 0 paper, 1 eigen, 2 channel (docs/mixing.md)"),
-        ("mix_every", 1, "the mixing (17) every m samples, held between (multi-rate)"),
+        ("mix_every", 1, "the mixing (17) every m samples (multi-rate, m > 1: "
+                          "held from one period later, its work spread over the period)"),
         ("f_rel", 1, "eigen mixing: f0 = f_rel ||Psi||_F"),
         ("guard", 1, "channel mixing: guard of the (i, i) cofactor"),
         ("gravity", 1, "0: the law's tau is commanded; 1 robot: tau - G(q, theta_nominal) "
@@ -284,16 +284,10 @@ IVC_INTERNAL extern const double IVC_PAR_DEFAULTS[IVC_NPAR];
             "ivdrem_controller.c": CORE_SOURCE.read_text()}
 
 
-def _compiler(cc=None):
-    cc = cc or os.environ.get("CC") or "cc"
-    if shutil.which(cc) is None:
-        raise RuntimeError(f"C compiler {cc!r} not found (set CC or pass cc=...)")
-    return cc
-
-
 def build_library(model, directory, *, defaults=None, cc=None, flags=("-O2",)):
     """Compile the sources into a shared library in ``directory``; returns its path
-    (cached by the hash of the sources and flags)."""
+    (cached by the hash of the sources and flags).  The compiler, its checks and its errors
+    are ivdrem's one rule (:mod:`ivdrem._cc`: CompilerNotFound, CompilerError)."""
     files = generate_controller_sources(model, defaults)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -311,12 +305,8 @@ def build_library(model, directory, *, defaults=None, cc=None, flags=("-O2",)):
         for name, text in files.items():
             (tmp / name).write_text(text)
         out = tmp / lib.name
-        cmd = [_compiler(cc), "-shared", "-fPIC", "-std=c99", *flags, "-Wall", "-Wextra",
-               "-I", str(tmp), str(tmp / "ivdrem_controller.c"), str(tmp / "controller_model.c"),
-               "-o", str(out), "-lm"]
-        res = subprocess.run(cmd, capture_output=True, text=True)
-        if res.returncode != 0:
-            raise RuntimeError(f"compiling the controller failed ({' '.join(cmd)}):\n"
-                               f"{res.stderr}")
+        compile_shared([tmp / "ivdrem_controller.c", tmp / "controller_model.c"], out,
+                       what=f"the controller library of model {model.name!r}", cc=cc,
+                       include_dirs=[tmp], opt=tuple(flags))
         os.replace(out, lib)
     return lib

@@ -21,10 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import html
-import os
 import re
-import shutil
-import subprocess
 import sys
 import tempfile
 import uuid
@@ -34,6 +31,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from .._atomic import zip_tree_atomic
+from .._cc import compile_shared, compiler
 from .._paths import check_replaceable
 from ..fmu.export import _platform, fmi2_header_dir, is_ivdrem_fmu
 from .codegen import (LAW_CODES, _version, generate_controller_sources, param_layout,
@@ -250,6 +248,22 @@ def _identifier(model, law):
     return "ivdrem_controller_" + re.sub(r"[^0-9A-Za-z_]", "_", f"{law}_{model.name}")
 
 
+#: the arm a controller FMU was made for, where a name does not find it (a URDF file's arm):
+#: the model's own description (ivdrem.models.urdf.RigidBodyModel's chain), read back by
+#: ivdrem.controller.fmu_loop (``ivdrem cosim --controller-fmu``)
+MODEL_RESOURCE = "resources/ivdrem_model.json"
+
+
+def model_description_json(model):
+    """The JSON text of MODEL_RESOURCE for a URDF arm (its name and chain, everything its
+    code is generated from), None for the symbolic models (found by name)."""
+    import json
+    from ..models.urdf import RigidBodyModel
+    if not isinstance(model, RigidBodyModel):
+        return None
+    return json.dumps({"name": model.name, "chain": model._chain})
+
+
 def generate_controller_fmu_sources(model, law="iv-drem", *, fmi_version=2, **gains) -> dict:
     """{relative path: text} of the controller FMU but its binary.  ``gains`` are the
     arguments of :class:`~ivdrem.controller.sampled.SampledController` (start values);
@@ -285,6 +299,9 @@ def generate_controller_fmu_sources(model, law="iv-drem", *, fmi_version=2, **ga
     files.update({f"sources/{k}": v for k, v in lib.items()})
     if fmi_version == 3:
         files["sources/buildDescription.xml"] = _build_description3(ident)
+    description = model_description_json(model)
+    if description is not None:
+        files[MODEL_RESOURCE] = description
     for h in (_FMI2_HEADERS if fmi_version == 2 else _FMI3_HEADERS):
         files[f"sources/{h}"] = (fmi2_header_dir() / h).read_text()   # fmpy's c-code folder
     return files
@@ -323,9 +340,7 @@ def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=Fals
     check_replaceable(path, "FMU file", overwrite=overwrite, ours=is_ivdrem_fmu)
     files = generate_controller_fmu_sources(model, law, fmi_version=fmi_version, **gains)
     ident = re.search(r'modelIdentifier="([^"]+)"', files["modelDescription.xml"]).group(1)
-    cc = cc or os.environ.get("CC") or "cc"
-    if shutil.which(cc) is None:
-        raise RuntimeError(f"C compiler {cc!r} not found (set CC or pass cc=...)")
+    cc = compiler(cc)                  # refused here, before any work, if not found
     with tempfile.TemporaryDirectory(prefix="ivdrem_cfmu_") as tmp:
         root = Path(tmp)
         for rel, text in files.items():
@@ -339,15 +354,9 @@ def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=Fals
         bdir = root / "binaries" / plat
         bdir.mkdir(parents=True)
         src = root / "sources"
-        cmd = [cc, "-shared", "-fPIC", "-O2", "-std=c99", "-fvisibility=hidden", "-Wall",
-               "-Wextra", "-I", str(src)]
-        if sys.platform.startswith("linux"):
-            cmd += ["-Wl,--no-undefined"]
-        cmd += [str(src / f) for f in _SOURCES[fmi_version]] + ["-o", str(bdir / (ident + ext)), "-lm"]
-        res = subprocess.run(cmd, capture_output=True, text=True)
-        if res.returncode != 0:
-            raise RuntimeError(f"compiling the controller FMU failed ({' '.join(cmd)}):\n"
-                               f"{res.stderr}")
+        compile_shared([src / f for f in _SOURCES[fmi_version]], bdir / (ident + ext),
+                       what=f"the controller FMU {path.name}", cc=cc, include_dirs=[src],
+                       hidden=True)
         zip_tree_atomic(root, path)
     return path
 
@@ -357,11 +366,19 @@ def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=Fals
 HOST_KEYS = ("q0", "dq0", "theta", "disturbance")
 
 
+#: the multi-rate default of the scale-free mixings (the URDF arms' "eigen"): the mixing of
+#: (Y, Psi)(t_k) every 20 samples, held from t_k+20 (measured on the Panda over 300 s: a
+#: step of 90 µs median at load 22-27, the worst step of a mixing period 360 µs alone;
+#: 575 µs median with the mixing at every sample; docs/controller.md)
+MIX_EVERY = 20
+
+
 def controller_design(config, law, *, h=None, mu_max=None):
     """The arguments of :class:`~ivdrem.controller.sampled.SampledController` for the
     experiment of ``config`` (:func:`ivdrem.experiments.config.load_config`) and ``law``:
     the gains, the reference, the window T, the mixing, γ as configured ("auto" left for
-    :func:`resolve_gamma`), ``h`` and ``mu_max`` when given.  An option of the experiment
+    :func:`resolve_gamma`), ``h`` and ``mu_max`` when given; the scale-free mixings (the
+    URDF arms' default) every :data:`MIX_EVERY` samples.  An option of the experiment
     the sampled controller does not have is refused in one line (ValueError)."""
     import inspect
     from ..experiments.config import closed_loop_kwargs
@@ -388,14 +405,19 @@ def controller_design(config, law, *, h=None, mu_max=None):
     if mu_max is not None:
         out["mu_max"] = float(mu_max)
     from ..experiments.config import model_from_config
-    from .sampled import default_design, inertia_scaled_gains
+    from .sampled import default_design, default_mixing, inertia_scaled_gains
     model = model_from_config(config)
+    if out.get("mixing", default_mixing(model)) != "paper" and law in ("iv-drem", "drem"):
+        # the scale-free mixing of a real arm's tens of parameters is a Jacobi SVD: spread
+        # over MIX_EVERY samples (docs/controller.md, "Real arms: reference, mixing,
+        # multi-rate"), the step stays within the robot's deadline
+        out.setdefault("mix_every", MIX_EVERY)
     if out.get("design", default_design(model)) == "inertia-scaled" and "K" in out:
         # the configuration's K is the continuous loop's joint gain (N m s); the sampled
         # inertia-scaled feedback M̂(q)(K + δ_μ μ) r takes K in 1/s (docs/controller.md,
-        # "Sampled designs"): K_i / M_ii(q0), capped for the step h
-        K = np.diag(np.asarray(out["K"], dtype=float)) if np.ndim(out["K"]) == 2 \
-            else np.asarray(out["K"], dtype=float)
+        # "Sampled designs"): K_i / M_ii(q0), capped for the step h (from the configured
+        # K: closed_loop_kwargs has already divided it for a configured design)
+        K = np.asarray(config["controller"]["K"], dtype=float)
         sig = inspect.signature(SampledController.__init__).parameters
         out["K"] = np.diag(inertia_scaled_gains(
             model, K, np.asarray(config["initial"]["q0"], dtype=float),

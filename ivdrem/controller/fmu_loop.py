@@ -264,6 +264,22 @@ def run_libcosim(ex, ip, ic, vr_p, vr_c, n, nth, steps, h, every, disturbance, *
     return {k: np.array(v) for k, v in rec.items()}
 
 
+def _fmu_model(path, name, get_model):
+    """The arm of a controller FMU: the description it carries (a URDF arm,
+    fmu_export.MODEL_RESOURCE), else the model of that name."""
+    import json
+    import zipfile
+    from .fmu_export import MODEL_RESOURCE
+    with zipfile.ZipFile(path) as zf:
+        text = (zf.read(MODEL_RESOURCE).decode() if MODEL_RESOURCE in zf.namelist()
+                else None)
+    if text is None:
+        return get_model(name)
+    from ..models.urdf import RigidBodyModel
+    d = json.loads(text)
+    return RigidBodyModel(d["name"], d["chain"])
+
+
 def _fmu_parameters(path):
     """(model name, law, flat parameter vector) of an ivdrem controller FMU."""
     from fmpy import read_model_description
@@ -277,7 +293,7 @@ def _fmu_parameters(path):
     law, name = m.groups()
     if law not in LAW_CODES:
         raise ValueError(f"{path}: unknown law {law!r}")
-    model = get_model(name)
+    model = _fmu_model(path, name, get_model)
     start = {v.name: v.start for v in md.modelVariables if v.causality == "parameter"}
     par = []
     for pname, size, _ in param_layout(model):

@@ -16,6 +16,13 @@
 
 #define NQT (IVC_NQ * IVC_NTHETA)
 #define NM (IVC_NTHETA + IVC_NTHETA * IVC_NTHETA)
+/* sweeps a multi-rate mixing is budgeted for (measured on the Panda, the mixing every 20
+ * samples over 60 s: 20 at t <= 0.1 s while the window starts, 9-18 until t = 1.7 s, 4-8
+ * after): a longer job ends at the sample where it is applied */
+#define IVC_MIX_SWEEPS 20
+
+/* the phases of the mixing job (mix_begin, mix_work) */
+enum { MIX_ROWS = 0, MIX_SWEEP = 1, MIX_FINISH = 2, MIX_RESULT = 3, MIX_DONE = 4 };
 
 /* the whole state but the window's ring of block sums: plain doubles, copied as bytes */
 typedef struct {
@@ -24,9 +31,14 @@ typedef struct {
     double zf[IVC_NQ], xi[NQT], eta[NQT], X_xi[NQT], X_eta[NQT], zeta[NQT], Yavg[NM];
     double tau_prev[IVC_NQ], tau[IVC_NQ], tau_d_hat[IVC_NQ], Delta;
     double held[NM], lambda_min_held;           /* composite learning: (Y_b, Psi_b)(t_e) */
-    double D_held[IVC_NTHETA], calY_held[IVC_NTHETA]; /* mixing (17) of the last mixing sample */
+    double D_held[IVC_NTHETA], calY_held[IVC_NTHETA]; /* the mixing (17) in use */
     double qd[IVC_NQ], dqd[IVC_NQ];             /* the reference at the last sample */
-    double Vwarm[IVC_NTHETA * IVC_NTHETA], has_warm; /* the last mixing's rotations */
+    /* the mixing job (mix_begin, mix_work): its input (Y, Psi), U, V (after a job: the next
+     * warm start), sig, result, and where it stands */
+    double mix_in[NM], mix_U[IVC_NTHETA * IVC_NTHETA], mix_V[IVC_NTHETA * IVC_NTHETA];
+    double mix_sig[IVC_NTHETA], mix_D[IVC_NTHETA], mix_calY[IVC_NTHETA];
+    double mix_phase, mix_j, mix_k, mix_sweep, mix_rotated, mix_warm, mix_nrm, mix_s, mix_suv;
+    double has_warm;
     /* window (15a): partial block, running sum, shadow sum, previous sample */
     double P[NM], S[NM], shadow[NM], g_prev[NM];
     double pos, i, nshadow, has_prev;
@@ -38,13 +50,17 @@ struct ivc_controller {
     int design, mixing, mix_every, gravity, ref_kind;
     long nb;                                    /* blocks in the ring */
     double h, T;
+    double mix_units;                           /* the mixing job's budget per sample */
     ivc_state s;
     double *ring;                               /* nb x NM block sums */
     char msg[256];
 };
 
+/* the message of a refusal: one line, at most 255 characters */
+static void say(char *msg, const char *fmt, double a, double b) { snprintf(msg, 256, fmt, a, b); }
+
 static void fail(ivc_controller *c, const char *fmt, double a, double b) {
-    if (c) snprintf(c->msg, sizeof c->msg, fmt, a, b);
+    if (c) say(c->msg, fmt, a, b);
 }
 
 const char *ivc_message(const ivc_controller *c) { return c ? c->msg : "no controller"; }
@@ -58,65 +74,65 @@ void ivc_default_params(double *par) { memcpy(par, IVC_PAR_DEFAULTS, sizeof IVC_
 /* a whole number in 0..last */
 static int is_code(double v, int last) { return v >= 0 && v <= last && floor(v) == v; }
 
-static int check_params(ivc_controller *c, const double *par) {
+static int check_params(char *msg, const double *par) {
     int i;
     for (i = 0; i < IVC_NPAR; i++)
-        if (isnan(par[i])) { fail(c, "parameter %g is NaN", (double)i, 0); return IVC_ERR_ARG; }
+        if (isnan(par[i])) { say(msg, "parameter %g is NaN", (double)i, 0); return IVC_ERR_ARG; }
     if (!(par[IVC_P_H] > 0 && isfinite(par[IVC_P_H])))
-        { fail(c, "h = %g must be > 0 and finite%s", par[IVC_P_H], 0); return IVC_ERR_ARG; }
+        { say(msg, "h = %g must be > 0 and finite%s", par[IVC_P_H], 0); return IVC_ERR_ARG; }
     if (!(par[IVC_P_DELTA_MU] > 0 && par[IVC_P_DELTA_MU] < 1))
-        { fail(c, "delta_mu = %g must lie in (0, 1)%.0s", par[IVC_P_DELTA_MU], 0); return IVC_ERR_ARG; }
+        { say(msg, "delta_mu = %g must lie in (0, 1)%.0s", par[IVC_P_DELTA_MU], 0); return IVC_ERR_ARG; }
     if (!(par[IVC_P_MU0] >= 0 && par[IVC_P_MU1] > 0 && par[IVC_P_MU_MAX] >= par[IVC_P_MU1]))
-        { fail(c, "need mu0 >= 0 and mu_max >= mu1 > 0 (mu1 = %g, mu_max = %g)",
+        { say(msg, "need mu0 >= 0 and mu_max >= mu1 > 0 (mu1 = %g, mu_max = %g)",
                par[IVC_P_MU1], par[IVC_P_MU_MAX]); return IVC_ERR_ARG; }
     for (i = 0; i < IVC_NTHETA; i++)
         if (!(par[IVC_P_GAMMA_DIAG + i] > 0 && isfinite(par[IVC_P_GAMMA_DIAG + i])))
-            { fail(c, "Gamma[%g] = %g must be > 0", (double)i, par[IVC_P_GAMMA_DIAG + i]); return IVC_ERR_ARG; }
+            { say(msg, "Gamma[%g] = %g must be > 0", (double)i, par[IVC_P_GAMMA_DIAG + i]); return IVC_ERR_ARG; }
     if (!(par[IVC_P_L] > 0 && par[IVC_P_T] > 0 && par[IVC_P_F0] > 0 && par[IVC_P_P] >= 1
           && par[IVC_P_GAMMA] > 0 && par[IVC_P_SIGMA] > 0 && par[IVC_P_EPSILON] > 0
           && par[IVC_P_F_REL] > 0 && par[IVC_P_GUARD] > 0))
-        { fail(c, "l, T, F0, gamma, sigma, epsilon, f_rel, guard must be > 0 and p >= 1 (p = %g, T = %g)",
+        { say(msg, "l, T, F0, gamma, sigma, epsilon, f_rel, guard must be > 0 and p >= 1 (p = %g, T = %g)",
                par[IVC_P_P], par[IVC_P_T]); return IVC_ERR_ARG; }
     for (i = 0; i < IVC_NQ; i++) {
         if (!(par[IVC_P_TAU_MAX + i] > 0))
-            { fail(c, "tau_max[%g] = %g must be > 0 (inf: no limit)", (double)i, par[IVC_P_TAU_MAX + i]); return IVC_ERR_ARG; }
+            { say(msg, "tau_max[%g] = %g must be > 0 (inf: no limit)", (double)i, par[IVC_P_TAU_MAX + i]); return IVC_ERR_ARG; }
         if (!(par[IVC_P_TAU_RATE_MAX + i] > 0))
-            { fail(c, "tau_rate_max[%g] = %g must be > 0 (inf: no limit)", (double)i, par[IVC_P_TAU_RATE_MAX + i]); return IVC_ERR_ARG; }
+            { say(msg, "tau_rate_max[%g] = %g must be > 0 (inf: no limit)", (double)i, par[IVC_P_TAU_RATE_MAX + i]); return IVC_ERR_ARG; }
     }
     if (!is_code(par[IVC_P_LAW], IVC_LAW_NONE))
-        { fail(c, "law = %g is not a law code 0..%g", par[IVC_P_LAW], IVC_LAW_NONE); return IVC_ERR_ARG; }
+        { say(msg, "law = %g is not a law code 0..%g", par[IVC_P_LAW], IVC_LAW_NONE); return IVC_ERR_ARG; }
     if (!is_code(par[IVC_P_DELAY], 1))
-        { fail(c, "delay = %g must be 0 or 1%.0s", par[IVC_P_DELAY], 0); return IVC_ERR_ARG; }
+        { say(msg, "delay = %g must be 0 or 1%.0s", par[IVC_P_DELAY], 0); return IVC_ERR_ARG; }
     if (!is_code(par[IVC_P_DESIGN], IVC_DESIGN_INERTIA_SCALED))
-        { fail(c, "design = %g is not a design code (0 paper, 1 inertia-scaled)%.0s", par[IVC_P_DESIGN], 0); return IVC_ERR_ARG; }
+        { say(msg, "design = %g is not a design code (0 paper, 1 inertia-scaled)%.0s", par[IVC_P_DESIGN], 0); return IVC_ERR_ARG; }
     if (!is_code(par[IVC_P_GRAVITY], IVC_GRAVITY_ROBOT))
-        { fail(c, "gravity = %g is not a gravity code (0 controller, 1 robot)%.0s", par[IVC_P_GRAVITY], 0); return IVC_ERR_ARG; }
+        { say(msg, "gravity = %g is not a gravity code (0 controller, 1 robot)%.0s", par[IVC_P_GRAVITY], 0); return IVC_ERR_ARG; }
     if (!is_code(par[IVC_P_MIXING], IVC_MIXING_CHANNEL))
-        { fail(c, "mixing = %g is not a mixing code (0 paper, 1 eigen, 2 channel)%.0s", par[IVC_P_MIXING], 0); return IVC_ERR_ARG; }
+        { say(msg, "mixing = %g is not a mixing code (0 paper, 1 eigen, 2 channel)%.0s", par[IVC_P_MIXING], 0); return IVC_ERR_ARG; }
     if (!(par[IVC_P_MIX_EVERY] >= 1 && par[IVC_P_MIX_EVERY] <= 1e6 && floor(par[IVC_P_MIX_EVERY]) == par[IVC_P_MIX_EVERY]))
-        { fail(c, "mix_every = %g must be a whole number >= 1%.0s", par[IVC_P_MIX_EVERY], 0); return IVC_ERR_ARG; }
+        { say(msg, "mix_every = %g must be a whole number >= 1%.0s", par[IVC_P_MIX_EVERY], 0); return IVC_ERR_ARG; }
     if (!is_code(par[IVC_P_REF_KIND], 1) || (par[IVC_P_REF_KIND] == 1 && !(par[IVC_P_FR_OMEGA_F] > 0 && isfinite(par[IVC_P_FR_OMEGA_F]))))
-        { fail(c, "ref_kind = %g must be 0 (sinusoid) or 1 (Fourier, with fr_omega_f = %g > 0)",
+        { say(msg, "ref_kind = %g must be 0 (sinusoid) or 1 (Fourier, with fr_omega_f = %g > 0)",
                par[IVC_P_REF_KIND], par[IVC_P_FR_OMEGA_F]); return IVC_ERR_ARG; }
     {   /* the window (15a): T a whole number of samples h, divisible by block */
         int law = (int)par[IVC_P_LAW];
         double h = par[IVC_P_H], T = par[IVC_P_T], N = floor(T / h + 0.5), block = par[IVC_P_BLOCK];
         if (!(block >= 1 && floor(block) == block))
-            { fail(c, "block = %g must be a whole number >= 1%.0s", block, 0); return IVC_ERR_ARG; }
+            { say(msg, "block = %g must be a whole number >= 1%.0s", block, 0); return IVC_ERR_ARG; }
         if ((law == IVC_LAW_IV_DREM || law == IVC_LAW_DREM || law == IVC_LAW_COMPOSITE)
             && (fabs(N * h - T) > 1e-9 * T || fmod(N, block) != 0 || N / block > 1e8))
-            { fail(c, "the window T / h = %.9g must be a whole number of samples divisible by "
+            { say(msg, "the window T / h = %.9g must be a whole number of samples divisible by "
                    "block = %g (choose T a multiple of h block)", T / h, block); return IVC_ERR_ARG; }
     }
     return IVC_OK;
 }
 
 int ivc_check_params(const double *par, char *msg, size_t len) {
-    ivc_controller tmp;
+    char buf[256];
     int st;
-    tmp.msg[0] = 0;
-    st = check_params(&tmp, par);
-    if (msg && len) snprintf(msg, len, "%s", tmp.msg);
+    buf[0] = 0;
+    st = check_params(buf, par);
+    if (msg && len) snprintf(msg, len, "%s", buf);
     return st;
 }
 
@@ -125,6 +141,7 @@ int ivc_reset(ivc_controller *c) {
     if (!c) return IVC_ERR_STATE;
     memset(&c->s, 0, sizeof c->s);
     for (i = 0; i < IVC_NTHETA; i++) c->s.theta_hat[i] = c->par[IVC_P_THETA_HAT0 + i];
+    c->s.mix_phase = MIX_DONE;                  /* nothing to finish; its result: 0 */
     if (c->ring) memset(c->ring, 0, (size_t)c->nb * NM * sizeof(double));
     c->msg[0] = 0;
     return IVC_OK;
@@ -157,6 +174,13 @@ ivc_controller *ivc_init(const double *par, char *msg, size_t len) {
     c->mix_every = (int)par[IVC_P_MIX_EVERY];
     c->gravity = (int)par[IVC_P_GRAVITY];
     c->ref_kind = (int)par[IVC_P_REF_KIND];
+    {   /* the budget per sample of the multi-rate mixing: a job of IVC_MIX_SWEEPS rotating
+         * sweeps (11 units a pair), with its rows (n^2), finish (2n) and result (n^2),
+         * spread over the mix_every samples of a mixing period */
+        double nt = IVC_NTHETA, pairs = 0.5 * nt * (nt - 1);
+        c->mix_units = ceil((IVC_MIX_SWEEPS * 11.0 * pairs + 2.0 * nt * nt + 2.0 * nt)
+                            / c->mix_every);
+    }
     c->h = h;
     c->T = T;
     c->nb = (law == IVC_LAW_IV_DREM || law == IVC_LAW_DREM || law == IVC_LAW_COMPOSITE)
@@ -198,7 +222,7 @@ int ivc_set_param(ivc_controller *c, int index, double value) {
     }
     memcpy(par, c->par, sizeof par);
     par[index] = value;
-    if (check_params(c, par) != IVC_OK) return IVC_ERR_ARG;
+    if (check_params(c->msg, par) != IVC_OK) return IVC_ERR_ARG;
     c->par[index] = value;
     return IVC_OK;
 }
@@ -280,81 +304,30 @@ static double det_lu(double *A, int n) {
     return d;
 }
 
-/* One-sided Jacobi SVD of the n x n matrix A (row major): A V = U diag(sig), V a product
- * of rotations (det V = +1), U orthogonal (columns of zero singular values completed by
- * Gram-Schmidt).  Returns det(U) as +-1.  V0 (or NULL: the identity) starts V from the
- * rotations of a previous, nearby A (the window moves little between two mixings: one or
- * two sweeps instead of ten); a pair is rotated while |a_j . a_k| > tol |a_j| |a_k|. */
-static double svd_jacobi(const double *A, int n, double *U, double *sig, double *V,
-                         const double *V0, double tol) {
-    int i, j, k, sweep;
-    double W[IVC_NTHETA * IVC_NTHETA];
-    if (V0) {                  /* warm start: the rotations of the last mixing, U = A V0 */
-        for (i = 0; i < n; i++)
-            for (j = 0; j < n; j++) {
-                double acc = 0;
-                for (k = 0; k < n; k++) acc += A[i * n + k] * V0[k * n + j];
-                U[i * n + j] = acc;
-            }
-        memcpy(V, V0, sizeof(double) * n * n);
-    } else {
-        for (i = 0; i < n * n; i++) { U[i] = A[i]; V[i] = 0.0; }
-        for (i = 0; i < n; i++) V[i * n + i] = 1.0;
-    }
-    for (sweep = 0; sweep < 80; sweep++) {
-        int rotated = 0;
-        for (j = 0; j < n - 1; j++)
-            for (k = j + 1; k < n; k++) {
-                double a = 0, b = 0, g = 0, zeta, t, cs, sn;
-                for (i = 0; i < n; i++) {
-                    a += U[i * n + j] * U[i * n + j];
-                    b += U[i * n + k] * U[i * n + k];
-                    g += U[i * n + j] * U[i * n + k];
-                }
-                if (g == 0.0 || fabs(g) <= tol * sqrt(a * b)) continue;
-                rotated = 1;
-                zeta = (b - a) / (2.0 * g);
-                t = (zeta >= 0 ? 1.0 : -1.0) / (fabs(zeta) + sqrt(1.0 + zeta * zeta));
-                cs = 1.0 / sqrt(1.0 + t * t);
-                sn = cs * t;
-                for (i = 0; i < n; i++) {
-                    double uj = U[i * n + j], uk = U[i * n + k];
-                    U[i * n + j] = cs * uj - sn * uk;
-                    U[i * n + k] = sn * uj + cs * uk;
-                    uj = V[i * n + j]; uk = V[i * n + k];
-                    V[i * n + j] = cs * uj - sn * uk;
-                    V[i * n + k] = sn * uj + cs * uk;
-                }
-            }
-        if (!rotated) break;
-    }
-    for (j = 0; j < n; j++) {
-        double s = 0;
-        for (i = 0; i < n; i++) s += U[i * n + j] * U[i * n + j];
-        sig[j] = sqrt(s);
-        if (sig[j] > 0) for (i = 0; i < n; i++) U[i * n + j] /= sig[j];
-    }
-    /* complete the columns of zero singular values to an orthonormal basis */
-    for (j = 0; j < n; j++) {
-        int e;
-        if (sig[j] > 0) continue;
-        for (e = 0; e < n; e++) {
-            double nrm = 0;
-            for (i = 0; i < n; i++) U[i * n + j] = (i == e);
-            for (k = 0; k < n; k++) {
-                double d = 0;
-                if (k == j || (sig[k] == 0 && k > j)) continue;
-                for (i = 0; i < n; i++) d += U[i * n + k] * U[i * n + j];
-                for (i = 0; i < n; i++) U[i * n + j] -= d * U[i * n + k];
-            }
-            for (i = 0; i < n; i++) nrm += U[i * n + j] * U[i * n + j];
-            nrm = sqrt(nrm);
-            if (nrm > 0.5) { for (i = 0; i < n; i++) U[i * n + j] /= nrm; break; }
-        }
-    }
-    memcpy(W, U, sizeof(double) * n * n);
-    return det_lu(W, n) < 0 ? -1.0 : 1.0;
-}
+/* ------------------------------------------------------------------ the mixing (17) as a job
+ * The mixing step (17) in the variants of ivdrem.blocks._kernels.mixing_values
+ * (docs/mixing.md), from a one-sided Jacobi SVD of P = Psi / s, s = 1 + ||Psi||_F:
+ *   paper   (E4)  Delta = det P, calY = adj(P) Y / s;
+ *   eigen         Delta = sign(det P) prod r_j, r_j = sigma_j / (sigma_j + f),
+ *                 f = f_rel ||Psi||_F / s, calY = adj(P) Y / (s prod (sigma_j + f));
+ *   channel       m the smallest singular value, C = adj(P) / prod_{j != m} sigma_j,
+ *                 c_i = sqrt(C_ii^2 + guard^2 ||C_i,:||^2), Delta_i = s s_UV sigma_m / c_i,
+ *                 calY_i = (C Y)_i / c_i.
+ * Delta has one entry (paper, eigen) or IVC_NTHETA (channel).
+ *
+ * One-sided Jacobi SVD: P V = U diag(sig), V a product of rotations (det V = +1), U
+ * orthogonal (columns of zero singular values completed by Gram-Schmidt), s_UV = det(U).
+ * "paper" starts from V = I with tolerance 1e-16; "eigen" and "channel" from the rotations
+ * of the previous mixing (the window moves little between two mixings: a few sweeps instead
+ * of ten or twenty) with LAPACK's tolerance sqrt(n) eps; a pair (j, k) is rotated while
+ * |u_j . u_k| > tol |u_j| |u_k|.
+ *
+ * The work is a resumable job (mix_begin, then mix_work with a budget) so that the
+ * multi-rate controller spreads one mixing over the mix_every samples of a mixing period
+ * (docs/controller.md, "Real arms: reference, mixing, multi-rate").  The budget counts
+ * units of n multiply-adds; the job's arithmetic, and so its result, does not depend on
+ * how it is sliced.  Phases: rows of U = P V0, Jacobi pairs, the singular values and
+ * det U, the variant's result. */
 
 /* s_UV V diag(coef) U^T Y / div: the adjugate-weighted regression of (17) */
 static void adjugate_times(const double *U, const double *V, const double *coef, double suv,
@@ -380,53 +353,58 @@ static void products_without(const double *x, double *out) {
     for (i = IVC_NTHETA - 1; i >= 0; i--) { out[i] *= suf; suf *= x[i]; }
 }
 
-/* The mixing step (17) in the variants of ivdrem.blocks._kernels.mixing_values
- * (docs/mixing.md), from a one-sided Jacobi SVD of P = Psi / s, s = 1 + ||Psi||_F:
- *   paper   (E4)  Delta = det P, calY = adj(P) Y / s;
- *   eigen         Delta = sign(det P) prod r_j, r_j = sigma_j / (sigma_j + f),
- *                 f = f_rel ||Psi||_F / s, calY = adj(P) Y / (s prod (sigma_j + f));
- *   channel       m the smallest singular value, C = adj(P) / prod_{j != m} sigma_j,
- *                 c_i = sqrt(C_ii^2 + guard^2 ||C_i,:||^2), Delta_i = s s_UV sigma_m / c_i,
- *                 calY_i = (C Y)_i / c_i.
- * Delta has one entry (paper, eigen) or IVC_NTHETA (channel). */
-static void mixing(int code, const double *Y, const double *Psi, double f_rel, double guard,
-                   double *Delta, double *calY, double *Vwarm, double *has_warm) {
+/* start a mixing of (Y, Psi) = yp (copied: the job's input is that of this sample) */
+static void mix_begin(ivc_controller *c, const double *yp) {
     enum { n = IVC_NTHETA };
-    double P[n * n], U[n * n], V[n * n], sig[n], coef[n], r[n], big = 0, ss = 0, nrm, s, suv, d;
-    int i, j, k, m;
+    ivc_state *s = &c->s;
+    const double *Psi = yp + n;
+    double big = 0, ss = 0;
+    int i, k;
+    memcpy(s->mix_in, yp, sizeof s->mix_in);
     for (k = 0; k < n * n; k++) if (fabs(Psi[k]) > big) big = fabs(Psi[k]);
     if (big > 0) for (k = 0; k < n * n; k++) { double q = Psi[k] / big; ss += q * q; }
-    nrm = big * sqrt(ss);
-    s = 1.0 + nrm;
-    if (code == 1 && nrm == 0.0) {
-        Delta[0] = 0.0;
-        for (i = 0; i < n; i++) calY[i] = 0.0;
+    s->mix_nrm = big * sqrt(ss);
+    s->mix_s = 1.0 + s->mix_nrm;
+    s->mix_j = 0; s->mix_k = 1; s->mix_sweep = 0; s->mix_rotated = 0;
+    if (c->mixing == IVC_MIXING_EIGEN && s->mix_nrm == 0.0) {
+        s->mix_D[0] = 0.0;
+        for (i = 0; i < n; i++) s->mix_calY[i] = 0.0;
+        s->mix_phase = MIX_DONE;
         return;
     }
-    for (k = 0; k < n * n; k++) P[k] = Psi[k] / s;
-    if (code == 0) suv = svd_jacobi(P, n, U, sig, V, NULL, 1e-16);     /* det V = +1 */
-    else {      /* the scale-free variants: warm started, LAPACK's tolerance sqrt(n) eps */
-        suv = svd_jacobi(P, n, U, sig, V, *has_warm != 0 ? Vwarm : NULL, sqrt((double)n) * 2.220446049250313e-16);
-        memcpy(Vwarm, V, sizeof V);
-        *has_warm = 1;
+    s->mix_warm = c->mixing != IVC_MIXING_PAPER && s->has_warm != 0;
+    if (!s->mix_warm) {                /* V = I; U = P, row by row in the MIX_ROWS phase */
+        for (i = 0; i < n * n; i++) s->mix_V[i] = 0.0;
+        for (i = 0; i < n; i++) s->mix_V[i * n + i] = 1.0;
     }
-    if (code == 0) {
+    s->mix_phase = MIX_ROWS;
+}
+
+/* the variant's result from U, sig, V and s_UV (the lower half of the mixing) */
+static void mix_result(ivc_controller *c) {
+    enum { n = IVC_NTHETA };
+    ivc_state *s = &c->s;
+    const double *U = s->mix_U, *V = s->mix_V, *sig = s->mix_sig, *Y = s->mix_in;
+    double coef[n], r[n], d, suv = s->mix_suv, sc = s->mix_s;
+    double *Delta = s->mix_D, *calY = s->mix_calY;
+    int i, j, k, m;
+    if (c->mixing == IVC_MIXING_PAPER) {
         products_without(sig, coef);
         d = suv;
         for (k = 0; k < n; k++) d *= sig[k];
         Delta[0] = d;
-        adjugate_times(U, V, coef, suv, Y, s, calY);
-    } else if (code == 1) {
-        double f = f_rel * nrm / s;
+        adjugate_times(U, V, coef, suv, Y, sc, calY);
+    } else if (c->mixing == IVC_MIXING_EIGEN) {
+        double f = c->par[IVC_P_F_REL] * s->mix_nrm / sc;
         for (k = 0; k < n; k++) r[k] = sig[k] / (sig[k] + f);
         products_without(r, coef);
         for (k = 0; k < n; k++) coef[k] /= sig[k] + f;   /* pi_k / prod_j (sigma_j + f) */
         d = suv;
         for (k = 0; k < n; k++) d *= r[k];
         Delta[0] = d;
-        adjugate_times(U, V, coef, suv, Y, s, calY);
+        adjugate_times(U, V, coef, suv, Y, sc, calY);
     } else {
-        double C[n * n], c;
+        double C[n * n], cc, guard = c->par[IVC_P_GUARD];
         m = 0;
         for (k = 1; k < n; k++) if (sig[k] < sig[m]) m = k;
         for (k = 0; k < n; k++) coef[k] = k == m ? 1.0 : sig[m] / sig[k];
@@ -443,10 +421,125 @@ static void mixing(int code, const double *Y, const double *Psi, double f_rel, d
         for (i = 0; i < n; i++) {
             double r2 = 0, acc = 0;
             for (j = 0; j < n; j++) { r2 += C[i * n + j] * C[i * n + j]; acc += C[i * n + j] * Y[j]; }
-            c = sqrt(C[i * n + i] * C[i * n + i] + guard * guard * r2);
-            if (c > 0.0) { calY[i] = acc / c; Delta[i] = s * suv * sig[m] / c; }
+            cc = sqrt(C[i * n + i] * C[i * n + i] + guard * guard * r2);
+            if (cc > 0.0) { calY[i] = acc / cc; Delta[i] = sc * suv * sig[m] / cc; }
             else { calY[i] = 0.0; Delta[i] = 0.0; }
         }
+    }
+}
+
+/* Advance the job by about `budget` units of n multiply-adds (budget < 0: to the end);
+ * returns the units spent. */
+static double mix_work(ivc_controller *c, double budget) {
+    enum { n = IVC_NTHETA };
+    ivc_state *s = &c->s;
+    double *U = s->mix_U, *V = s->mix_V, *sig = s->mix_sig, spent = 0;
+    const double *Psi = s->mix_in + n;
+    double tol = c->mixing == IVC_MIXING_PAPER ? 1e-16 : sqrt((double)n) * 2.220446049250313e-16;
+    int i, j, k;
+    while (s->mix_phase != MIX_DONE && (budget < 0 || spent < budget)) {
+        if (s->mix_phase == MIX_ROWS) {          /* row i of U = P V0 (warm) or of P */
+            i = (int)s->mix_j;
+            if (s->mix_warm) {
+                for (j = 0; j < n; j++) {
+                    double acc = 0;
+                    for (k = 0; k < n; k++) acc += (Psi[i * n + k] / s->mix_s) * V[k * n + j];
+                    U[i * n + j] = acc;
+                }
+                spent += n;
+            } else {
+                for (j = 0; j < n; j++) U[i * n + j] = Psi[i * n + j] / s->mix_s;
+                spent += 1;
+            }
+            if (++s->mix_j == n) {
+                s->mix_j = 0; s->mix_k = 1;
+                s->mix_phase = n > 1 ? MIX_SWEEP : MIX_FINISH;
+            }
+        } else if (s->mix_phase == MIX_SWEEP) {   /* one pair (j, k) of the cyclic sweep */
+            double a = 0, b = 0, g = 0, zeta, t, cs, sn;
+            j = (int)s->mix_j;
+            k = (int)s->mix_k;
+            for (i = 0; i < n; i++) {
+                a += U[i * n + j] * U[i * n + j];
+                b += U[i * n + k] * U[i * n + k];
+                g += U[i * n + j] * U[i * n + k];
+            }
+            spent += 3;
+            if (!(g == 0.0 || fabs(g) <= tol * sqrt(a * b))) {
+                s->mix_rotated = 1;
+                zeta = (b - a) / (2.0 * g);
+                t = (zeta >= 0 ? 1.0 : -1.0) / (fabs(zeta) + sqrt(1.0 + zeta * zeta));
+                cs = 1.0 / sqrt(1.0 + t * t);
+                sn = cs * t;
+                for (i = 0; i < n; i++) {
+                    double uj = U[i * n + j], uk = U[i * n + k];
+                    U[i * n + j] = cs * uj - sn * uk;
+                    U[i * n + k] = sn * uj + cs * uk;
+                    uj = V[i * n + j]; uk = V[i * n + k];
+                    V[i * n + j] = cs * uj - sn * uk;
+                    V[i * n + k] = sn * uj + cs * uk;
+                }
+                spent += 8;
+            }
+            if (++s->mix_k == n) {                /* next pair; a sweep ends at (n-2, n-1) */
+                if (++s->mix_j == n - 1) {
+                    s->mix_sweep += 1;
+                    if (!s->mix_rotated || s->mix_sweep == 80) {
+                        s->mix_phase = MIX_FINISH;
+                        if (c->mixing != IVC_MIXING_PAPER) s->has_warm = 1;  /* V: the next warm start */
+                    }
+                    s->mix_rotated = 0;
+                    s->mix_j = 0;
+                }
+                s->mix_k = s->mix_j + 1;
+            }
+        } else if (s->mix_phase == MIX_FINISH) {  /* sig, U's columns normalised, det U */
+            double W[n * n];
+            for (j = 0; j < n; j++) {
+                double sq = 0;
+                for (i = 0; i < n; i++) sq += U[i * n + j] * U[i * n + j];
+                sig[j] = sqrt(sq);
+                if (sig[j] > 0) for (i = 0; i < n; i++) U[i * n + j] /= sig[j];
+            }
+            /* complete the columns of zero singular values to an orthonormal basis */
+            for (j = 0; j < n; j++) {
+                int e;
+                if (sig[j] > 0) continue;
+                for (e = 0; e < n; e++) {
+                    double nrm = 0;
+                    for (i = 0; i < n; i++) U[i * n + j] = (i == e);
+                    for (k = 0; k < n; k++) {
+                        double d = 0;
+                        if (k == j || (sig[k] == 0 && k > j)) continue;
+                        for (i = 0; i < n; i++) d += U[i * n + k] * U[i * n + j];
+                        for (i = 0; i < n; i++) U[i * n + j] -= d * U[i * n + k];
+                    }
+                    for (i = 0; i < n; i++) nrm += U[i * n + j] * U[i * n + j];
+                    nrm = sqrt(nrm);
+                    if (nrm > 0.5) { for (i = 0; i < n; i++) U[i * n + j] /= nrm; break; }
+                }
+            }
+            memcpy(W, U, sizeof W);
+            s->mix_suv = det_lu(W, n) < 0 ? -1.0 : 1.0;    /* det V = +1 */
+            spent += 2 * n;
+            s->mix_phase = MIX_RESULT;
+        } else {                                  /* MIX_RESULT */
+            mix_result(c);
+            spent += (double)n * n;
+            s->mix_phase = MIX_DONE;
+        }
+    }
+    return spent;
+}
+
+
+/* the finished mixing held from now on (Delta per channel for "channel", else one value) */
+static void mix_apply(ivc_controller *c) {
+    ivc_state *s = &c->s;
+    int i;
+    for (i = 0; i < IVC_NTHETA; i++) {
+        s->D_held[i] = c->mixing == IVC_MIXING_CHANNEL ? s->mix_D[i] : s->mix_D[0];
+        s->calY_held[i] = s->mix_calY[i];
     }
 }
 
@@ -617,11 +710,14 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
         }
     } else if (c->law == IVC_LAW_IV_DREM || c->law == IVC_LAW_DREM) {
         double gw, t_on = 0.0, t_ramp = 0.0, Dmin;
-        if (fmod(s->k, (double)c->mix_every) == 0.0) {                    /* multi-rate */
-            double D[nth];
-            mixing(c->mixing, s->Yavg, s->Yavg + nth, par[IVC_P_F_REL], par[IVC_P_GUARD],
-                   D, s->calY_held, s->Vwarm, &s->has_warm);             /* (17), E4 */
-            for (i = 0; i < nth; i++) s->D_held[i] = c->mixing == IVC_MIXING_CHANNEL ? D[i] : D[0];
+        if (c->mix_every == 1) {                                         /* (17), E4 */
+            mix_begin(c, s->Yavg);
+            mix_work(c, -1.0);
+            mix_apply(c);
+        } else if (fmod(s->k, (double)c->mix_every) == 0.0) {            /* multi-rate */
+            mix_work(c, -1.0);        /* a job longer than its budget ends here (early on) */
+            mix_apply(c);             /* the mixing of (Y, Psi)(t_k - m h) */
+            mix_begin(c, s->Yavg);    /* ... and that of (Y, Psi)(t_k), applied at t_k + m h */
         }
         if (c->mixing != IVC_MIXING_PAPER) { t_on = c->T; t_ramp = IVC_START_RAMP_REL * c->T; }
         gw = par[IVC_P_GAMMA] * start_weight(tk, t_on, t_ramp);
@@ -769,6 +865,9 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
         s->tau_prev[i] = acting[i]; s->tau[i] = tau[i]; tau_out[i] = tau[i];
         s->qd[i] = qd[i]; s->dqd[i] = dqd[i];
     }
+    /* the multi-rate mixing's slice of this sample (after the outputs: it serves t_k+m) */
+    if (c->mix_every > 1 && (c->law == IVC_LAW_IV_DREM || c->law == IVC_LAW_DREM))
+        mix_work(c, c->mix_units);
     s->k += 1;
     return IVC_OK;
 }

@@ -67,8 +67,15 @@ class FmuPlant:
         self.fmu.doStep(currentCommunicationPoint=t, communicationStepSize=h)
 
     def close(self):
+        """Terminate and free the FMU, remove its unzipped files.  An FMU in its error state
+        (after a failed step) may refuse fmi2Terminate (FMI 2.0: not allowed there); it is
+        freed all the same, and the step's own error is the one that is reported."""
+        from fmpy.fmi1 import FMICallException
         try:
-            self.fmu.terminate()
+            try:
+                self.fmu.terminate()
+            except FMICallException:
+                pass
             self.fmu.freeInstance()
         finally:
             shutil.rmtree(self._dir, ignore_errors=True)

@@ -48,8 +48,10 @@ import math
 import numpy as np
 
 from ..blocks._kernels import MIXING_VARIANTS, mixing_values, start_weight
+from ..blocks.control_law import DESIGNS, inertia_scaled_gain
 from ..blocks.mixing import DEFAULT_F_REL, DEFAULT_GUARD, start_of_term
 from ..blocks.sources import fourier_series
+from ..diagrams.gamma_auto import DEFAULT_RATE as GAMMA_RATE
 from ..laws import get_law
 from .discrete import averaging_factor, mu_integral, mu_saturated
 from .window import BlockWindow
@@ -58,8 +60,8 @@ __all__ = ["SampledController", "SAMPLED_LAWS", "PAPER_TRAJECTORY", "phi1", "DES
            "GRAVITY_OPTIONS", "REFERENCE_HARMONICS", "default_design", "default_mixing",
            "inertia_scaled_gains", "gain_budget", "GAIN_FLOOR", "GRADIENT_GAIN"]
 
-#: sampled designs of the feedback of (9) (docs/controller.md, "Sampled designs")
-DESIGNS = ("paper", "inertia-scaled")
+# DESIGNS: the designs of the feedback of (9), one enumeration with the continuous
+# control-law block (ivdrem.blocks.control_law; docs/controller.md, "Sampled designs")
 #: who compensates gravity: the controller's law alone, or the robot ("robot": tau - g_hat)
 GRAVITY_OPTIONS = ("controller", "robot")
 #: harmonics per joint of a Fourier reference (the C library's fixed size; the real-arm
@@ -148,16 +150,13 @@ def inertia_scaled_gains(model, K, q0, h, *, delta_mu=0.8, mu_max=135.0, delay=1
     θ̂ = θ (docs/controller.md, "Sampled designs").  ``delay``: 1 for the controller FMU
     (its torque is applied one sample late), 0 for a host that applies τ_k at once.  The
     cap wins over the floor; a cap <= 0 is refused naming h and μ_max."""
-    th = np.asarray(model.theta_values if theta is None else theta, dtype=float)
-    M = np.empty((model.n, model.n))
-    model.functions.M(np.asarray(q0, dtype=float), th, M)
     budget = gain_budget(delay) if budget is None else float(budget)
     cap = budget / h - (1.0 + delta_mu) * mu_max
     if not cap > 0:
         raise ValueError(f"h (1 + delta_mu) mu_max = {h * (1 + delta_mu) * mu_max:.3g} leaves "
                          f"no room for K below the per-step budget {budget:g} (delay "
                          f"{int(delay)}): lower mu_max or h")
-    return np.minimum(np.maximum(np.asarray(K, dtype=float) / np.diag(M), floor), cap)
+    return np.minimum(np.maximum(inertia_scaled_gain(model, K, q0, theta), floor), cap)
 
 
 def _limit(name, value, n):
@@ -210,8 +209,12 @@ class SampledController:
     * ``mixing``: "paper", "eigen" or "channel" (docs/mixing.md; default
       :func:`default_mixing`), with ``f_rel`` ("eigen") and ``guard`` ("channel"); the
       scale-free variants switch the composite term on at t = T (ramp 0.1 T), as the
-      continuous loop does; ``mix_every``: the mixing (17) every m samples, held between
-      (multi-rate; the filters, the window and theta_hat's update run at every sample);
+      continuous loop does, and take ``gamma`` = 0.5 / max(Gamma) unless given (the rule
+      of gamma "auto" with Delta = 1: 50 at Gamma = 0.01; the paper's mixing keeps the
+      law's registry value); ``mix_every``: the mixing (17) every m samples (multi-rate; the
+      filters, the window and theta_hat's update run at every sample): with m > 1 the
+      mixing of (Y, Psi)(t_k), k a multiple of m, is held over [t_k + m h, t_k + 2 m h)
+      (one period late: the C library spreads its work over the m samples between);
     * ``trajectory``: the paper's sinusoid (amplitude, omega, phase, offset) or a Fourier
       reference {"kind": "fourier", "omega_f", "a", "b", "offset"} of at most
       REFERENCE_HARMONICS harmonics (ivdrem.experiments.arm.design_trajectory);
@@ -309,6 +312,12 @@ class SampledController:
         self.T, self.p, self.F0 = _positive("T", T), float(p), _positive("F0", F0)
         if self.p < 1:
             raise ValueError(f"p must be >= 1, got {p!r}")
+        if given["gamma"] is None and self.averaged and self.mixing != "paper":
+            # the scale-free mixings keep Delta near 1 (docs/mixing.md), where the rule of
+            # gamma "auto" (ivdrem.diagrams.gamma_auto) gives rate / (lambda_max(Gamma)
+            # mean Delta^2) = rate / max(Gamma); the registry's 1e10 is the paper's
+            # mixing's, whose Delta is tiny
+            gamma = GAMMA_RATE / float(np.max(self.Gamma))
         self.gamma = _positive("gamma", gamma)
         self.sigma = _positive("sigma", sigma)
         ts = model.theta_values if theta_star is None else theta_star
@@ -383,8 +392,10 @@ class SampledController:
         self.tau = np.zeros(n)           # the command tau_k (what the robot receives)
         self.tau_d_hat = np.zeros(n)
         self.Delta = 0.0
-        self.D_held = np.zeros(nth)       # mixing (17) of the last mixing sample (multi-rate)
+        self.D_held = np.zeros(nth)       # the mixing (17) in use
         self.calY_held = np.zeros(nth)
+        self.D_next = np.zeros(nth)       # multi-rate: the mixing applied at the next period
+        self.calY_next = np.zeros(nth)
         self.q_d = np.zeros(n)            # the reference at the last sample
         self.dq_d = np.zeros(n)
         self.held = np.zeros(self.m)      # composite learning: (Y_b, Psi_b) at t_e
@@ -395,7 +406,7 @@ class SampledController:
     _STATE = ("k", "Phi_f", "Phi_Mf", "u_f", "theta_hat", "zf", "xi", "eta", "X_xi", "X_eta",
               "zeta", "Yavg",
               "tau_prev", "tau", "tau_d_hat", "Delta", "held", "lambda_min_held", "D_held",
-              "calY_held", "q_d", "dq_d")
+              "calY_held", "D_next", "calY_next", "q_d", "dq_d")
     _WINDOW = ("ring", "pos", "P", "i", "S", "shadow", "nshadow", "g_prev")
 
     def state(self):
@@ -478,15 +489,20 @@ class SampledController:
             Psi_h = self.held[nth:].reshape(nth, nth)
             theta_c = self.gamma * (self.held[:nth] - Psi_h @ th)                  # (35)
         elif self.uses_window:
-            if self.k % self.mix_every == 0:                                    # multi-rate
+            if self.k % self.mix_every == 0:
+                # multi-rate (m > 1): the mixing of (Y, Psi)(t_k - m h) is held from t_k on,
+                # the one of (Y, Psi)(t_k) from t_k + m h (the C library spreads its work
+                # over the m samples between); single-rate: the mixing of t_k at t_k
+                if self.mix_every > 1:
+                    self.D_held[:] = self.D_next
+                    self.calY_held[:] = self.calY_next
                 mixing_values(self.mix_code, self.Yavg[:self.ntheta], self.Yavg[self.ntheta:],
                               self.f_rel, self.guard, self._Delta, self._calY,
                               self._logD)                                       # (17), E4
-                if self.mix_code == 2:                                          # per channel
-                    self.D_held[:] = self._Delta
-                else:
-                    self.D_held[:] = self._Delta[0]
-                self.calY_held[:] = self._calY
+                D_out, calY_out = ((self.D_held, self.calY_held) if self.mix_every == 1
+                                   else (self.D_next, self.calY_next))
+                D_out[:] = self._Delta if self.mix_code == 2 else self._Delta[0]  # per channel
+                calY_out[:] = self._calY
             D = self.D_held if self.mix_code == 2 else self.D_held[0]
             self.Delta = float(np.min(D)) if self.mix_code == 2 else D
             gw = self.gamma * start_weight(tk, self.t_on, self.t_ramp)

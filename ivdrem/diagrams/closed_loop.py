@@ -62,7 +62,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
                 F0=None, gamma=None, mixing=None, epsilon=None, sigma=None, theta_star=None,
                 theta_hat0=None, q0=None, dq0=None, theta=None, trajectory=None,
                 disturbance=None, replace=None, external_plant=False, law_params=None,
-                calibration=None):
+                calibration=None, design=None, theta_nominal=None):
     """The paper's closed loop with composite term `law`, as one InterconnectedSystem.
 
     Parameters are the paper's experiment by default (K = 2); the law's own gains (T, p, F0,
@@ -95,6 +95,13 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
     With ``external_plant=True`` the plant block is left out: the diagram has inputs q, dq
     (measured by an external plant, e.g. an FMU) and the same outputs less q, dq (tau and
     tau_d are what the plant receives).
+
+    ``design`` is the feedback of (9): "paper" (the default, (K + δ_μ μ) r) or
+    "inertia-scaled" (M̂(q)(K + δ_μ μ) r, M̂ the model's inertia at ``theta_nominal``,
+    default its theta_values; K in 1/s): the sampled controller's design
+    (:class:`~ivdrem.controller.sampled.SampledController`) in continuous time
+    (docs/controller.md, "The inertia-scaled design in continuous time").  With K left at
+    None on a real arm, the experiment's joint gains become K_i / M̂_ii(q0).
     """
     spec = law_registry.get_law(law)
     if model is None:
@@ -102,9 +109,17 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
         model = two_link()
     n, nth = model.n, model.ntheta
     paper_arm = model.name == "two-link" and n == 2
+    design = "paper" if design is None else design
+    if design not in block_library.DESIGNS:
+        raise ValueError(f"design = {design!r} is not a design of (9); choose one of "
+                         + ", ".join(map(repr, block_library.DESIGNS)))
+    joint_gains = K is None and not paper_arm     # the experiment's, in N m s
     if not paper_arm:   # the real-arm experiment, as a configuration naming this model gets it
         trajectory, disturbance, q0, dq0, K, T = _arm_experiment(
             model, spec, theta, trajectory, disturbance, q0, dq0, K, T)
+        if design == "inertia-scaled" and joint_gains:   # before γ = "auto" passes K on
+            K = np.diag(block_library.inertia_scaled_gain(model, np.diag(K), q0,
+                                                          theta_nominal))
     # every arm but the paper's: the mixing and gain rule that work at its size
     gamma, mixing = law_registry.arm_gain_rule(spec, model, gamma, mixing)
     if mixing is not None and "mixing" not in spec.defaults:
@@ -125,7 +140,8 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
                     epsilon=epsilon, sigma=sigma, theta_star=theta_star,
                     theta_hat0=theta_hat0, q0=q0, dq0=dq0, theta=theta,
                     trajectory=trajectory, disturbance=disturbance, replace=replace,
-                    external_plant=external_plant, law_params=law_params)
+                    external_plant=external_plant, law_params=law_params,
+                    design=design, theta_nominal=theta_nominal)
         choice = calibrate_gamma(law, model, args, **(calibration or {}))
         diagram = closed_loop(law, model, gamma=choice["gamma"], **args)
         diagram.gamma_choice = choice
@@ -154,7 +170,8 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
         block_library.mu_schedule(mu0, mu1),
         block_library.tracking_error(n, alpha),
         block_library.torque_observer(model, variant=observer_variant),
-        block_library.control_law(n, nth, K=K, delta_mu=delta_mu),
+        block_library.control_law(n, nth, K=K, delta_mu=delta_mu, design=design, model=model,
+                                  theta_nominal=theta_nominal),
         block_library.adaptation_law(n, nth, Gamma=Gamma, theta_hat0=theta_hat0),
     ]
     outputs = ["q", "dq", "q_d", "e", "r", "tau", "tau_d", "tau_d_hat", "theta_hat", "mu",

@@ -6,9 +6,12 @@ dθ̃/dt = −ΓΠᵀr − γΔ²Γθ̃ − γΔΓ𝒲.  The size of Δ = det(Ψ
 its trajectory and nθ (a determinant of an nθ×nθ matrix of small entries): about 8e-5
 for the paper's arm and 2.5e-9 for a 3-link arm, so one fixed γ cannot suit every robot.
 
-Rule (documented in docs/diagnostics.md): run the loop over a calibration horizon
-``t_cal`` (default 2T: one window to fill the sliding window (15a), one to measure) with
-the composite term off (γ tiny), take the mean of Δ² over [T, t_cal] and choose
+Rule (documented in docs/diagnostics.md and docs/mixing.md): take the mean of Δ² over
+[T, t_cal] (default t_cal = 2T: one window to fill the sliding window (15a), one to
+measure), either estimated along the reference without simulating the loop
+(:func:`reference_mean_delta2`; the default for the scale-free mixings) or measured by a
+calibration run of the loop over [0, t_cal] with the composite term off (γ tiny; the
+default for the paper's mixing), and choose
 
     γ = κ / (λ_max(Γ) · mean Δ²),       κ = 0.5 s⁻¹ (``rate``),
 
@@ -28,12 +31,15 @@ import numpy as np
 
 __all__ = ["calibrate_gamma", "gamma_from_delta", "GainRuleError", "DEFAULT_RATE",
            "GAMMA_MAX", "DELTA2_MIN", "reference_mean_delta2", "check_reference_delta",
-           "ESTIMATE_MARGIN"]
+           "ESTIMATE_MARGIN", "REFERENCE_MIXINGS"]
 
 #: target contraction rate κ = γ Δ² λ_max(Γ) of the composite term, 1/s
 DEFAULT_RATE = 0.5
 #: γ of the calibration run: the composite term is off
 _GAMMA_OFF = 1e-300
+#: mixings whose γ "auto" comes from the reference estimate by default, without a
+#: calibration run (scale-free: Δ near 1, measured within 0.02 decades of the run's)
+REFERENCE_MIXINGS = ("eigen", "channel")
 #: largest γ the rule hands out: γΔ(𝒴 − Δθ̂) must stay a finite double (docs/mixing.md)
 GAMMA_MAX = 1e300
 #: smallest mean Δ² the rule scales by: below it Δ² is subnormal (fewer than 53 bits), so
@@ -95,8 +101,7 @@ def gamma_from_delta(t, delta, T, Gamma, *, rate=DEFAULT_RATE, ntheta=None,
     if np.count_nonzero(sel) < 2:
         raise ValueError("gamma='auto': calibration run too short to measure Δ")
     lam = _lambda_max(Gamma, ntheta)
-    where = f"mixing {variant!r}" + (f" on model {model_name!r}" if model_name else "")
-    gammas, means, logs = [], [], []
+    means, logs = [], []
     for k in range(d.shape[0]):
         d2 = d[k, sel] ** 2
         mean_d2 = float(np.trapezoid(d2, t[sel]) / (t[sel][-1] - t[sel][0]))
@@ -104,16 +109,30 @@ def gamma_from_delta(t, delta, T, Gamma, *, rate=DEFAULT_RATE, ntheta=None,
             log_mean = _log10_mean_square(t[sel], logd[k, sel])
         else:
             log_mean = math.log10(mean_d2) if mean_d2 > 0 else -math.inf
+        means.append(mean_d2)
+        logs.append(log_mean)
+    return _gain_rule(means, logs, lam, rate=rate, variant=variant, model_name=model_name,
+                      window=[float(t[sel][0]), float(t[sel][-1])], measured="calibration run")
+
+
+def _gain_rule(means, logs, lam, *, rate, variant, model_name, window, measured):
+    """γ_i = rate / (lam · mean Δ_i²) of the mean Δ_i² (`means`, and their log10 `logs`,
+    finite where the mean underflows), with the rule's refusals; the choice as a dict.
+    `measured` names where the means come from, in an error."""
+    where = f"mixing {variant!r}" + (f" on model {model_name!r}" if model_name else "")
+    per_channel = len(means) > 1
+    gammas = []
+    for k, (mean_d2, log_mean) in enumerate(zip(means, logs)):
+        chan = f"Δ_{k + 1}" if per_channel else "Δ"
         if not np.isfinite(mean_d2) or (mean_d2 <= 0.0 and log_mean == -math.inf) \
                 or log_mean < -600.0:
             raise ValueError(
-                f"gamma='auto' ({where}): Δ{'_%d' % (k + 1) if d.shape[0] > 1 else ''} is zero "
-                "over the calibration run (the regressor of (17) is not excited by this "
-                "trajectory); choose another trajectory or a numeric gamma")
-        chan = f"Δ_{k + 1}" if d.shape[0] > 1 else "Δ"
+                f"gamma='auto' ({where}): {chan} is zero over the {measured} (the regressor "
+                "of (17) is not excited by this trajectory); choose another trajectory or a "
+                "numeric gamma")
         if mean_d2 < DELTA2_MIN:
             raise GainRuleError(
-                f"gamma='auto' refused for {where}: mean {chan}² over the calibration run is "
+                f"gamma='auto' refused for {where}: mean {chan}² over the {measured} is "
                 f"1e{log_mean:.1f}, below the smallest double ({DELTA2_MIN:.3g}), so the "
                 f"composite term (21) cannot be formed; {_remedy(variant)}")
         log_gamma = math.log10(rate) - math.log10(lam) - log_mean
@@ -122,17 +141,13 @@ def gamma_from_delta(t, delta, T, Gamma, *, rate=DEFAULT_RATE, ntheta=None,
                 f"gamma='auto' refused for {where}: the rule would give γ = 1e{log_gamma:.1f}"
                 f" (mean {chan}² = 1e{log_mean:.1f}), above {GAMMA_MAX:.0e}; {_remedy(variant)}")
         gammas.append(rate / (lam * mean_d2))
-        means.append(mean_d2)
-        logs.append(log_mean)
-    per_channel = d.shape[0] > 1
     out = {"gamma": [float(g) for g in gammas] if per_channel else float(gammas[0]),
            "rule": (f"gamma_i = {rate:g} / (lambda_max(Gamma) * mean Delta_i^2)" if per_channel
                     else f"gamma = {rate:g} / (lambda_max(Gamma) * mean Delta^2)"),
            "rate": float(rate),
            "mean_Delta2": [float(m) for m in means] if per_channel else float(means[0]),
            "log10_mean_Delta2": [float(v) for v in logs] if per_channel else float(logs[0]),
-           "lambda_max_Gamma": lam, "variant": variant,
-           "window": [float(t[sel][0]), float(t[sel][-1])]}
+           "lambda_max_Gamma": lam, "variant": variant, "window": window}
     return out
 
 
@@ -215,7 +230,7 @@ def reference_mean_delta2(model, trajectory, *, T, p, F0, l, variant, t_cal=None
     return [_log10_mean_square(tc[sel], logs[i]) for i in range(k_out)]
 
 
-def check_reference_delta(law, model, args, *, variant, margin=ESTIMATE_MARGIN):
+def check_reference_delta(law, model, args, *, variant, margin=ESTIMATE_MARGIN, t_cal=None):
     """Refuse, before any simulation, a mixing whose Δ² the reference estimate
     (:func:`reference_mean_delta2`) puts more than `margin` decades below the smallest
     double; returns the estimate (log10 mean Δ_i², a list) otherwise."""
@@ -229,7 +244,7 @@ def check_reference_delta(law, model, args, *, variant, margin=ESTIMATE_MARGIN):
         trajectory = PAPER_TRAJECTORY
     est = reference_mean_delta2(model, trajectory, T=float(par["T"]), p=float(par["p"]),
                                 F0=float(par["F0"]), l=float(args.get("l") or 50.0),
-                                variant=variant)
+                                variant=variant, t_cal=t_cal)
     worst = min(est)
     if worst < math.log10(DELTA2_MIN) - margin:
         where = f"mixing {variant!r}" + (f" on model {getattr(model, 'name', '?')!r}")
@@ -243,11 +258,21 @@ def check_reference_delta(law, model, args, *, variant, margin=ESTIMATE_MARGIN):
 
 def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1,
                     engine="compiled", method="dp45", rtol=None, atol=None, h=1e-3,
-                    h_max=0.01, dt_out=0.01):
-    """Run the closed loop of ``law`` over ``t_cal`` (default 2T) and return the γ of the
-    rule above, with the numbers it came from.
+                    h_max=0.01, dt_out=0.01, source=None):
+    """The γ of the rule above for ``law`` on ``model``, with the numbers it came from;
+    mean Δ² over [T, t_cal] (default 2T) from ``source``:
 
-    The calibration runs with the composite term off.  Δ depends on the motion (φ is
+    * ``"reference"``: the estimate along the reference (:func:`reference_mean_delta2`), no
+      loop built or simulated (seconds at nθ = 43);
+    * ``"run"``: a calibration run of the closed loop over [0, t_cal] (kept on disk).
+
+    The default is ``"reference"`` for the scale-free mixings (REFERENCE_MIXINGS: "eigen",
+    "channel"), whose estimate is within 0.02 decades of the calibration run's mean Δ² on
+    planar-3 … 6, the UR5 and the Panda (γ within 5 %; docs/mixing.md), and ``"run"`` for
+    the paper's mixing (17), whose Δ is a product of nθ singular values and moves by up to
+    1.6 decades between φ = ζ and the loop's φ.
+
+    The calibration run is with the composite term off.  Δ depends on the motion (φ is
     built from the measured q), and the motion on θ̂, so the Δ of the real run can differ:
     on the 3-link arm of examples/planar3.toml RMS Δ over [T, 2T] was 3.3e-10 with the
     term off and 4.9e-8 with it on, which makes that run stiff early on.  ``passes=2``
@@ -265,7 +290,20 @@ def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1
     if passes not in (1, 2):
         raise ValueError(f"gamma='auto': passes must be 1 or 2, got {passes!r}")
     variant = args.get("mixing") or "paper"
-    estimate = check_reference_delta(law, model, args, variant=variant)
+    if source is None:
+        source = "reference" if variant in REFERENCE_MIXINGS else "run"
+    if source not in ("reference", "run"):
+        raise ValueError(f"gamma='auto': source must be 'reference' or 'run', got {source!r}")
+    estimate = check_reference_delta(law, model, args, variant=variant,
+                                     t_cal=t_cal if source == "reference" else None)
+    if source == "reference":
+        out = _gain_rule([10.0 ** v for v in estimate], list(estimate),
+                         _lambda_max(args.get("Gamma", 0.01), model.ntheta), rate=rate,
+                         variant=variant, model_name=getattr(model, "name", None),
+                         window=[T, t_cal], measured="reference estimate")
+        out.update(source="reference", t_cal=t_cal, passes=[],
+                   reference_log10_mean_Delta2=estimate if len(estimate) > 1 else estimate[0])
+        return out
     # the calibration needs the motion: the whole loop with ivdrem's own plant of the model,
     # also for a controller built for an external plant (an FMU of the same model)
     diagram = closed_loop(law, model, gamma=1.0, **{**args, "external_plant": False})
@@ -289,6 +327,7 @@ def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1
         history.append({"gamma_run": gamma if isinstance(gamma, float) else list(gamma),
                         "mean_Delta2": out["mean_Delta2"], "gamma": out["gamma"]})
         gamma = out["gamma"]
+    out["source"] = "run"
     out["t_cal"] = t_cal
     out["passes"] = history
     out["reference_log10_mean_Delta2"] = estimate if len(estimate) > 1 else estimate[0]

@@ -24,6 +24,7 @@ import numpy as np
 
 from .._config_keys import POSITIVE, Key, in_range, magnitude
 from ..laws import LAWS as _LAW_REGISTRY, get_law, law_names
+from ..blocks.control_law import DESIGNS, inertia_scaled_gain
 
 try:  # Python >= 3.11
     import tomllib
@@ -141,6 +142,11 @@ OPTIONAL: dict[str, dict[str, Key]] = {
         # Python files (relative to the configuration file) or module names that register
         # the user's own laws (ivdrem.laws.register_law); imported before the laws are read
         "plugins": Key("names"),
+    },
+    "controller": {
+        # the feedback of (9): "paper" or "inertia-scaled" (docs/controller.md); K stays the
+        # joint gain (N m s), the inertia-scaled loop's K_i / M̂_ii(q0)
+        "design": Key("str", choices=DESIGNS),
     },
     "model": {
         "urdf": Key("str"),            # a path, relative to the configuration file
@@ -835,7 +841,8 @@ _TRAJ_KEYS = ("amplitude", "omega", "phase", "offset")
 def closed_loop_kwargs(config: Mapping, law: str) -> dict:
     """Keyword arguments of ``ivdrem.diagrams.closed_loop(law, model, **kwargs)``.
 
-    Common keys: alpha, K (n×n), delta_mu, Gamma (nθ×nθ), mu0, mu1, observer_variant,
+    Common keys: alpha, K (n×n; with ``design = "inertia-scaled"`` the joint gains over
+    M̂_ii(q0), in 1/s), design (when configured), delta_mu, Gamma (nθ×nθ), mu0, mu1, observer_variant,
     l, theta_hat0, q0, dq0, theta, trajectory, disturbance.  Law-specific keys: those the
     law's registry entry names (``Law.config``: "iv-drem" and "drem" read T, p, F0, gamma,
     mixing of [iv_drem]; "composite-learning" T, gamma, epsilon of [composite_learning];
@@ -885,6 +892,11 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
         trajectory=_trajectory(c["trajectory"], len(c["initial"]["q0"])),
         disturbance={k: np.asarray(c["disturbance"][k], dtype=float) for k in _TRAJ_KEYS},
     )
+    if "design" in ctl:
+        kw["design"] = ctl["design"]
+        if ctl["design"] == "inertia-scaled":     # K in 1/s: the joint gain over M̂_ii(q0)
+            kw["K"] = np.diag(inertia_scaled_gain(model_from_config(c), ctl["K"], kw["q0"],
+                                                  theta))
     return kw
 
 

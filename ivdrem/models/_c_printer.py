@@ -4,10 +4,14 @@ of the recursive Newton-Euler algorithm and the Cholesky, printed for a URDF mod
 The printer knows the small subset the kernels are written in, and refuses anything else
 (:class:`CPrintError` naming the function and line):
 
-* a kernel's parameters are annotated with strings: ``"int"``, ``"real"``, ``"bool"`` for
-  scalars, ``"real[N,6]"`` / ``"const real[N,3,3]"`` / ``"int[N]"`` for arrays whose shape
-  is fixed at generation (``N``, ``NS`` ... are the macros of the C face); its return
-  annotation is ``"int"`` or ``"real"`` or absent (void);
+* a kernel's parameters are annotated with strings: ``"int"``, ``"real"``, ``"float"``,
+  ``"cplx"``, ``"bool"`` for scalars, ``"real[N,6]"`` / ``"const float[N,3,3]"`` /
+  ``"int[N]"`` for arrays whose shape is fixed at generation (``N``, ``NS`` ... are the
+  macros of the C face); its return annotation is ``"int"``, ``"real"``, ``"float"`` or
+  absent (void).  ``real`` is the type the kernel computes in (``double``, or ``double
+  complex`` when printed for the complex step: ``print_kernels(..., real="double complex")``),
+  ``float`` always ``double`` (the chain's constants, a modulus), ``cplx`` always
+  ``double complex``;
 * statements: assignments to a name or an indexed array element (``+=`` and friends),
   ``for`` over ``range`` (a constant step), ``while``, ``if``/``elif``/``else``, ``break``,
   ``return``, calls of other kernels, ``x = y.shape[d]`` (a size: the macro),
@@ -16,10 +20,11 @@ The printer knows the small subset the kernels are written in, and refuses anyth
 * expressions: numbers, names, ``a[i, j]`` (flattened row major), ``a[i]`` of a 2- or
   3-dimensional array as an argument (a pointer to that row), arithmetic, comparisons,
   ``and``/``or``/``not``, ``x if c else y``, ``np.cos``, ``np.sin``, ``np.sqrt``,
-  ``np.tanh``, ``abs``, ``np.inf``.
+  ``np.tanh``, ``abs``, ``np.inf``, ``1j``, ``z.imag``; ``np.empty(shape, dtype=a.dtype)``
+  an array of ``a``'s element type (``float`` without ``dtype``).
 
-Locals are declared at the top of the function: an int if every value assigned to it is
-an int, else a double.  Module-level names the kernels read (``PIVOT_RTOL``) are printed
+Locals are declared at the top of the function, of the widest type assigned to them
+(int < float < real < cplx).  Module-level names the kernels read (``PIVOT_RTOL``) are printed
 as their values.
 """
 from __future__ import annotations
@@ -36,6 +41,14 @@ class CPrintError(ValueError):
 
 
 _MATH = {"cos": "cos", "sin": "sin", "sqrt": "sqrt", "tanh": "tanh", "abs": "fabs"}
+#: the same functions of a complex argument (<complex.h>)
+_CMATH = {"cos": "ccos", "sin": "csin", "sqrt": "csqrt", "tanh": "ctanh", "abs": "cabs"}
+#: the kinds of a value, narrowest first (the C type of each: _Printer.ctype)
+_KINDS = ("int", "float", "real", "cplx")
+
+
+def _join(*kinds):
+    return _KINDS[max(_KINDS.index(k) for k in kinds)]
 _OPS = {ast.Add: "+", ast.Sub: "-", ast.Mult: "*", ast.Div: "/", ast.Mod: "%"}
 _CMP = {ast.Lt: "<", ast.LtE: "<=", ast.Gt: ">", ast.GtE: ">=", ast.Eq: "==",
         ast.NotEq: "!="}
@@ -71,7 +84,9 @@ class _Function:
         src = textwrap.dedent(inspect.getsource(fn))
         self.tree = ast.parse(src).body[0]
         self.arrays = {}        # name -> shape (tuple of C expressions)
-        self.scalars = {}       # name -> "int" | "double"
+        self.elems = {}         # array name -> kind of its elements
+        self.dtypes = {}        # local name of ``a.dtype`` -> the array a
+        self.scalars = {}       # name -> kind ("int" | "float" | "real" | "cplx")
         self.params = []
         self.sizes = {}         # local size alias -> C expression
         self.ret = None
@@ -82,16 +97,20 @@ class _Function:
             ann[a.arg] = a.annotation.value
             base, shape, const = _parse_type(ann[a.arg])
             shape = None if shape is None else tuple(printer.dim(d) for d in shape)
-            ctype = {"int": "int", "real": "double", "bool": "int"}[base]
+            kind = "int" if base == "bool" else base
+            if kind not in _KINDS:
+                self.fail(self.tree, f"parameter {a.arg!r} has unknown type {base!r}")
+            ctype = printer.ctype(kind)
             if shape is None:
-                self.scalars[a.arg] = ctype
+                self.scalars[a.arg] = kind
                 self.params.append(f"{ctype} {a.arg}")
             else:
                 self.arrays[a.arg] = shape
+                self.elems[a.arg] = kind
                 self.params.append(f"{'const ' if const else ''}{ctype} *{a.arg}")
         r = self.tree.returns
         if r is not None:
-            self.ret = {"int": "int", "real": "double"}[r.value]
+            self.ret = printer.ctype(r.value)
         self._collect_locals()
 
     def fail(self, node, msg):
@@ -101,6 +120,7 @@ class _Function:
     # ---------------------------------------------------------------- locals and types
     def _collect_locals(self):
         assigned = {}
+        allocs = []
         for node in ast.walk(self.tree):
             if isinstance(node, ast.Assign):
                 if len(node.targets) != 1:
@@ -110,7 +130,9 @@ class _Function:
                     v = node.value
                     if self._is_alloc(v):
                         self.arrays[t.id] = self._alloc_shape(v)
+                        allocs.append((t.id, v))
                     elif (isinstance(v, ast.Attribute) and v.attr == "dtype"):
+                        self.dtypes[t.id] = v.value.id
                         continue
                     elif (isinstance(v, ast.Subscript) and isinstance(v.value, ast.Attribute)
                           and v.value.attr == "shape"):
@@ -127,15 +149,26 @@ class _Function:
                 self.scalars[node.target.id] = "int"
             elif isinstance(node, ast.AugAssign) and isinstance(node.target, ast.Name):
                 assigned.setdefault(node.target.id, []).append(node.value)
+        for name, v in allocs:          # element type: dtype=a.dtype (or an alias), else float
+            kw = {k.arg: k.value for k in v.keywords}
+            dt = kw.get("dtype")
+            src = None
+            if isinstance(dt, ast.Attribute) and dt.attr == "dtype":
+                src = dt.value.id
+            elif isinstance(dt, ast.Name):
+                src = self.dtypes.get(dt.id)
+            elif dt is not None:
+                self.fail(v, f"dtype {ast.unparse(dt)} (write dtype=a.dtype)")
+            self.elems[name] = self.elems.get(src, "float") if src else "float"
         for name in assigned:
             if name not in self.scalars:
                 self.scalars[name] = "int"
-        for _ in range(4):              # settle: a name is int while all its values are
+        for _ in range(4):              # settle: a name is as wide as the widest of its values
             for name, values in assigned.items():
                 if name in self.params_names():
                     continue
-                if any(self.type_of(v) == "double" for v in values):
-                    self.scalars[name] = "double"
+                self.scalars[name] = _join(self.scalars[name],
+                                           *(self.type_of(v) for v in values))
         self.locals = [n for n in self.scalars if n not in self.params_names()]
 
     def params_names(self):
@@ -162,27 +195,43 @@ class _Function:
         self.fail(e, f"an array size must be a literal or a size: {ast.unparse(e)}")
 
     def type_of(self, e):
+        """The kind of an expression: "int", "float", "real" or "cplx"."""
         if isinstance(e, ast.Constant):
-            return "int" if isinstance(e.value, (bool, int)) else "double"
+            if isinstance(e.value, (bool, int)):
+                return "int"
+            return "cplx" if isinstance(e.value, complex) else "float"
         if isinstance(e, ast.Name):
-            return self.scalars.get(e.id, "double")
+            if e.id in self.sizes:
+                return "int"
+            if e.id in self.scalars:
+                return self.scalars[e.id]
+            g = self.fn.__globals__.get(e.id)
+            return "int" if isinstance(g, int) and not isinstance(g, bool) else "float"
         if isinstance(e, ast.Subscript):
+            if isinstance(e.value, ast.Attribute) and e.value.attr == "shape":
+                return "int"
             base = e.value.id if isinstance(e.value, ast.Name) else None
-            ann = self.ann.get(base, "")
-            return "int" if _parse_type(ann)[0] == "int" and ann else "double"
+            return self.elems.get(base, "real")
+        if isinstance(e, ast.Attribute):
+            return "float"                      # np.inf, z.imag
         if isinstance(e, ast.BinOp):
-            if isinstance(e.op, ast.Div):
-                return "double"
-            return ("int" if self.type_of(e.left) == "int" == self.type_of(e.right)
-                    else "double")
+            k = _join(self.type_of(e.left), self.type_of(e.right))
+            return _join(k, "float") if isinstance(e.op, ast.Div) else k
         if isinstance(e, ast.UnaryOp):
             return "int" if isinstance(e.op, ast.Not) else self.type_of(e.operand)
         if isinstance(e, (ast.Compare, ast.BoolOp)):
             return "int"
         if isinstance(e, ast.IfExp):
-            return ("int" if self.type_of(e.body) == "int" == self.type_of(e.orelse)
-                    else "double")
-        return "double"
+            return _join(self.type_of(e.body), self.type_of(e.orelse))
+        if isinstance(e, ast.Call):
+            f = e.func
+            if isinstance(f, ast.Name) and f.id == "abs":
+                return "float"
+            if isinstance(f, ast.Attribute) and f.attr in _MATH:
+                return _join("float", *(self.type_of(a) for a in e.args))
+            if isinstance(f, ast.Name) and f.id in self.printer.returns:
+                return self.printer.returns[f.id] or "int"
+        return "real"
 
     # ---------------------------------------------------------------- expressions
     def expr(self, e):
@@ -193,6 +242,8 @@ class _Function:
                 return str(e.value)
             if isinstance(e.value, float):
                 return c_double(e.value)
+            if isinstance(e.value, complex) and e.value.real == 0.0:
+                return f"({c_double(e.value.imag)} * I)"
             self.fail(e, f"constant {e.value!r}")
         if isinstance(e, ast.Name):
             if e.id in self.sizes:
@@ -206,6 +257,8 @@ class _Function:
         if isinstance(e, ast.Attribute):
             if isinstance(e.value, ast.Name) and e.value.id == "np" and e.attr == "inf":
                 return "INFINITY"
+            if e.attr == "imag":
+                return f"cimag({self.expr(e.value)})"
             self.fail(e, f"attribute {ast.unparse(e)}")
         if isinstance(e, ast.Subscript):
             if isinstance(e.value, ast.Attribute) and e.value.attr == "shape":
@@ -238,7 +291,10 @@ class _Function:
             name = (f.attr if isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name)
                     and f.value.id == "np" else f.id if isinstance(f, ast.Name) else None)
             if name in _MATH and not (isinstance(f, ast.Name) and name != "abs"):
-                return f"{_MATH[name]}({', '.join(self.expr(a) for a in e.args)})"
+                wide = any(self.printer.ctype(self.type_of(a)) != "double" for a in e.args
+                           if self.type_of(a) != "int")
+                table = _CMATH if wide else _MATH
+                return f"{table[name]}({', '.join(self.expr(a) for a in e.args)})"
             if isinstance(f, ast.Name) and f.id in self.printer.names:
                 return f"{self.printer.c_name(f.id)}({', '.join(self.arg(a) for a in e.args)})"
             self.fail(e, f"call of {ast.unparse(f)}")
@@ -348,10 +404,11 @@ class _Function:
         out = []
         for name in self.locals:
             if name not in self.sizes and _uses(text, name):
-                out.append(f"    {self.scalars[name]} {name};")
+                out.append(f"    {self.printer.ctype(self.scalars[name])} {name};")
         for name, shape in self.arrays.items():
             if name not in self.params_names() and _uses(text, name):
-                out.append(f"    double {name}[{' * '.join(shape)}];")
+                out.append(f"    {self.printer.ctype(self.elems[name])} {name}"
+                           f"[{' * '.join(shape)}];")
         return out
 
     def c(self):
@@ -369,22 +426,39 @@ def _uses(text, name):
 
 
 class _Printer:
-    def __init__(self, kernels, prefix):
-        self.names = {fn.__name__ for fn in kernels}
+    def __init__(self, kernels, prefix, real="double", suffix="", also=()):
+        self.own = {fn.__name__ for fn in kernels}
+        self.names = self.own | set(also)
         self.prefix = prefix
+        self.real = real
+        self.suffix = suffix
+        # the return annotations (a string's text under ``from __future__ import annotations``)
+        ann = {fn.__name__: fn.__annotations__.get("return") for fn in kernels}
+        self.returns = {k: (v.strip("'\"") if isinstance(v, str) else None)
+                        for k, v in ann.items()}
+        self.returns.update({nm: None for nm in also})
 
     def dim(self, d):
         return d if d.isdigit() else f"{self.prefix.upper()}{d}"
 
+    def ctype(self, kind):
+        return {"int": "int", "float": "double", "real": self.real,
+                "cplx": "double complex"}[kind]
+
     def c_name(self, name):
+        if name in self.own:
+            return f"{self.prefix}{name.lstrip('_')}{self.suffix}"
         return f"{self.prefix}{name.lstrip('_')}"
 
 
-def print_kernels(kernels, prefix, printed=()):
-    """C99 text of the kernels (static functions named ``<prefix><name>``, in the given
-    order, which must be the order of dependency): prototypes first, then definitions;
-    `printed` are kernels printed elsewhere in the same file (callable by these)."""
-    pr = _Printer(tuple(kernels) + tuple(printed), prefix)
+def print_kernels(kernels, prefix, printed=(), *, real="double", suffix="", also=()):
+    """C99 text of the kernels (static functions named ``<prefix><name><suffix>``, in the
+    given order, which must be the order of dependency): prototypes first, then
+    definitions; `printed` are kernels printed elsewhere in the same file (callable by
+    these), `also` names of other functions printed there (``<prefix><name>``).  `real` is
+    the C type of ``real`` values: ``"double complex"`` prints the kernels for the complex
+    step (the includer needs ``<complex.h>``)."""
+    pr = _Printer(tuple(kernels) + tuple(printed), prefix, real=real, suffix=suffix, also=also)
     heads, bodies = [], []
     for fn in kernels:
         head, body = _Function(fn, pr).c()

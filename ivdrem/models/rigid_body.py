@@ -42,13 +42,14 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KERNELS", "C_KERNELS", "C_CHOLESKY", "SINGULAR_INERTIA_MESSAGE"]
+__all__ = ["KERNELS", "C_KERNELS", "C_CHOLESKY", "C_STD_KERNELS", "C_JAC_KERNELS",
+           "COMPLEX_STEP", "SINGULAR_INERTIA_MESSAGE"]
 
 from .base import PIVOT_RTOL, SINGULAR_INERTIA_MESSAGE
 
 
-def _rb_kinematics(q: "const real[N]", jtype: "const int[N]", axis: "const real[N,3]",
-                   Rp: "const real[N,3,3]", pp: "const real[N,3]", R: "real[N,3,3]",
+def _rb_kinematics(q: "const real[N]", jtype: "const int[N]", axis: "const float[N,3]",
+                   Rp: "const float[N,3,3]", pp: "const float[N,3]", R: "real[N,3,3]",
                    p: "real[N,3]"):
     # pose (R[j], p[j]) of body j in its parent's frame
     n = q.shape[0]
@@ -107,7 +108,7 @@ def _rb_cross_motion(a: "const real[6]", b: "const real[6]", out: "real[6]", sca
     out[5] += scale * (a[3] * b[4] - a[4] * b[3])
 
 
-def _rb_subspace(jtype: "const int[N]", axis: "const real[N,3]", j: "int", s: "real",
+def _rb_subspace(jtype: "const int[N]", axis: "const float[N,3]", j: "int", s: "real",
                  out: "real[6]"):
     # out = S_j s (the joint's motion for joint velocity s)
     for r in range(6):
@@ -118,7 +119,7 @@ def _rb_subspace(jtype: "const int[N]", axis: "const real[N,3]", j: "int", s: "r
 
 
 def _rb_forward(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int[N]",
-                jtype: "const int[N]", axis: "const real[N,3]", w: "const real[N]",
+                jtype: "const int[N]", axis: "const float[N,3]", w: "const real[N]",
                 acc: "const real[N]", a0: "const real[6]", tangent: "bool",
                 d: "const real[N]", V: "real[N,6]", A: "real[N,6]", dV: "real[N,6]",
                 dA: "real[N,6]"):
@@ -253,7 +254,7 @@ def _rb_body_regressor(V1: "const real[6]", V2: "const real[6]", A: "const real[
 
 
 def _rb_project(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int[N]",
-                jtype: "const int[N]", axis: "const real[N,3]", Pb: "const real[N,6,10]",
+                jtype: "const int[N]", axis: "const float[N,3]", Pb: "const real[N,6,10]",
                 tangent: "bool", d: "const real[N]", dPb: "const real[N,6,10]",
                 Y: "real[N,NSTD]", dY: "real[N,NSTD]"):
     # Y[i, 10 j + c] = S_i^T X*_{i<-j} Pb[j][:, c] over the ancestors i of j (and tangents)
@@ -327,7 +328,7 @@ def _rb_project(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int
             k = pk
 
 
-def _rb_scale(x: "const real[N]") -> "real":
+def _rb_scale(x: "const real[N]") -> "float":
     # largest modulus of x (a constant factor of the polar form, never differentiated)
     s = 0.0
     for i in range(x.shape[0]):
@@ -339,8 +340,8 @@ def _rb_scale(x: "const real[N]") -> "real":
 
 def _rb_bodies(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "const real[N]",
                grav: "real", tangent: "bool", d: "const real[N]", parent: "const int[N]",
-               jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
-               pp: "const real[N,3]", gvec: "const real[3]", R: "real[N,3,3]", p: "real[N,3]",
+               jtype: "const int[N]", axis: "const float[N,3]", Rp: "const float[N,3,3]",
+               pp: "const float[N,3]", gvec: "const float[3]", R: "real[N,3,3]", p: "real[N,3]",
                Pb: "real[N,6,10]", dPb: "real[N,6,10]"):
     # body regressors (and tangents along d) of C(q, x) y + M(q) acc + grav * G(q), and the
     # bodies' poses (R, p)
@@ -403,8 +404,8 @@ def _rb_bodies(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: 
 
 def _rb_links(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "const real[N]",
               grav: "real", tangent: "bool", d: "const real[N]", parent: "const int[N]",
-              jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
-              pp: "const real[N,3]", gvec: "const real[3]", Y: "real[N,NSTD]",
+              jtype: "const int[N]", axis: "const float[N,3]", Rp: "const float[N,3,3]",
+              pp: "const float[N,3]", gvec: "const float[3]", Y: "real[N,NSTD]",
               dY: "real[N,NSTD]"):
     # the link part Y[:, :10 n] of the regressor of C(q, x) y + M(q) acc + grav * G(q)
     n = q.shape[0]
@@ -417,7 +418,7 @@ def _rb_links(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "
 
 
 def _rb_backward(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int[N]",
-                 jtype: "const int[N]", axis: "const real[N,3]", f: "real[N,6]",
+                 jtype: "const int[N]", axis: "const float[N,3]", f: "real[N,6]",
                  tau: "real[N]"):
     # tau_j = the joint axis' component of the body force f_j, accumulating each f_j into
     # its parent's frame on the way to the base (children have higher index; f is changed)
@@ -443,8 +444,8 @@ def _rb_backward(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const in
 
 def _rb_rnea(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "const real[N]",
              grav: "real", pi: "const real[NSTD]", parent: "const int[N]",
-             jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
-             pp: "const real[N,3]", gvec: "const real[3]", tau: "real[N]"):
+             jtype: "const int[N]", axis: "const float[N,3]", Rp: "const float[N,3,3]",
+             pp: "const float[N,3]", gvec: "const float[3]", tau: "real[N]"):
     # tau = C(q, x) y + M(q) acc + grav G(q) of the links with standard parameters pi:
     # the body forces Phi_b pi_j, accumulated towards the base (children have higher index)
     n = q.shape[0]
@@ -463,8 +464,8 @@ def _rb_rnea(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "c
 
 
 def _rb_mass(q: "const real[N]", pi: "const real[NSTD]", parent: "const int[N]",
-             jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
-             pp: "const real[N,3]", out: "real[N,N]"):
+             jtype: "const int[N]", axis: "const float[N,3]", Rp: "const float[N,3,3]",
+             pp: "const float[N,3]", out: "real[N,N]"):
     # M(q) of the links with standard parameters pi, column k the torques of a unit
     # acceleration of joint k (no velocity, no gravity): only k's descendants accelerate
     n = q.shape[0]
@@ -567,8 +568,8 @@ def _rb_spd_solve(Mq, b):
 def _rb_std(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "const real[N]",
             grav: "real", fdq: "const real[N]", fric: "bool", arm: "bool", tangent: "bool",
             d: "const real[N]", parent: "const int[N]", jtype: "const int[N]",
-            axis: "const real[N,3]", Rp: "const real[N,3,3]", pp: "const real[N,3]",
-            gvec: "const real[3]", fv: "int", fc: "int", ia: "int", width: "real",
+            axis: "const float[N,3]", Rp: "const float[N,3,3]", pp: "const float[N,3]",
+            gvec: "const float[3]", fv: "int", fc: "int", ia: "int", width: "float",
             Y: "real[N,NSTD]", dY: "real[N,NSTD]"):
     # the standard regressor of C(q, x) y + M(q) acc + grav G(q) (+ F(fdq) if fric,
     # + armature acc if arm) and its tangent along d
@@ -588,6 +589,11 @@ def _rb_std(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "co
         if arm:
             if ia >= 0:
                 Y[i, ia + i] = acc[i]
+
+
+#: _rb_std of complex arrays: the complex step of _rb_Phi_dM_jac (numba compiles the same
+#: function for complex128; the C face prints the kernels it calls again in double complex)
+_rb_std_complex = _rb_std
 
 
 def _rb_select(Y: "const real[N,NSTD]", base: "const int[NTHETA]", out: "real[N,NTHETA]"):
@@ -610,9 +616,9 @@ def _rb_pi(theta: "const real[NTHETA]", base: "const int[NTHETA]", pi: "real[NST
 
 
 def _rb_Phi_M(q: "const real[N]", a: "const real[N]", parent: "const int[N]",
-              jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
-              pp: "const real[N,3]", gvec: "const real[3]", base: "const int[NTHETA]",
-              fv: "int", fc: "int", ia: "int", width: "real", Y: "real[N,NSTD]",
+              jtype: "const int[N]", axis: "const float[N,3]", Rp: "const float[N,3,3]",
+              pp: "const float[N,3]", gvec: "const float[3]", base: "const int[NTHETA]",
+              fv: "int", fc: "int", ia: "int", width: "float", Y: "real[N,NSTD]",
               out: "real[N,NTHETA]"):
     # Phi_M^T(q, a) = d(M a)/dtheta
     n = q.shape[0]
@@ -623,9 +629,9 @@ def _rb_Phi_M(q: "const real[N]", a: "const real[N]", parent: "const int[N]",
 
 
 def _rb_Phi_C(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
-              parent: "const int[N]", jtype: "const int[N]", axis: "const real[N,3]",
-              Rp: "const real[N,3,3]", pp: "const real[N,3]", gvec: "const real[3]",
-              base: "const int[NTHETA]", fv: "int", fc: "int", ia: "int", width: "real",
+              parent: "const int[N]", jtype: "const int[N]", axis: "const float[N,3]",
+              Rp: "const float[N,3,3]", pp: "const float[N,3]", gvec: "const float[3]",
+              base: "const int[NTHETA]", fv: "int", fc: "int", ia: "int", width: "float",
               Y: "real[N,NSTD]", out: "real[N,NTHETA]"):
     # Phi_C^T(q, dq, v) = d(C(q, dq) v)/dtheta
     n = q.shape[0]
@@ -636,9 +642,9 @@ def _rb_Phi_C(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
 
 
 def _rb_Phi_dM(q: "const real[N]", dq: "const real[N]", a: "const real[N]",
-               parent: "const int[N]", jtype: "const int[N]", axis: "const real[N,3]",
-               Rp: "const real[N,3,3]", pp: "const real[N,3]", gvec: "const real[3]",
-               base: "const int[NTHETA]", fv: "int", fc: "int", ia: "int", width: "real",
+               parent: "const int[N]", jtype: "const int[N]", axis: "const float[N,3]",
+               Rp: "const float[N,3,3]", pp: "const float[N,3]", gvec: "const float[3]",
+               base: "const int[NTHETA]", fv: "int", fc: "int", ia: "int", width: "float",
                Y: "real[N,NSTD]", dY: "real[N,NSTD]", out: "real[N,NTHETA]"):
     # Phi_dM^T(q, dq, a) = d(Mdot a)/dtheta: the forward-mode derivative along dq
     n = q.shape[0]
@@ -649,9 +655,9 @@ def _rb_Phi_dM(q: "const real[N]", dq: "const real[N]", a: "const real[N]",
 
 
 def _rb_Phi_G(q: "const real[N]", parent: "const int[N]", jtype: "const int[N]",
-              axis: "const real[N,3]", Rp: "const real[N,3,3]", pp: "const real[N,3]",
-              gvec: "const real[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
-              ia: "int", width: "real", Y: "real[N,NSTD]", out: "real[N,NTHETA]"):
+              axis: "const float[N,3]", Rp: "const float[N,3,3]", pp: "const float[N,3]",
+              gvec: "const float[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
+              ia: "int", width: "float", Y: "real[N,NSTD]", out: "real[N,NTHETA]"):
     # Phi_G^T(q) = dG/dtheta
     n = q.shape[0]
     z = np.zeros(n)
@@ -661,7 +667,7 @@ def _rb_Phi_G(q: "const real[N]", parent: "const int[N]", jtype: "const int[N]",
 
 
 def _rb_Phi_F(dq: "const real[N]", base: "const int[NTHETA]", fv: "int", fc: "int",
-              width: "real", Y: "real[N,NSTD]", out: "real[N,NTHETA]"):
+              width: "float", Y: "real[N,NSTD]", out: "real[N,NTHETA]"):
     # Phi_F^T(dq) = dF/dtheta
     n = dq.shape[0]
     ns = Y.shape[1]
@@ -676,9 +682,9 @@ def _rb_Phi_F(dq: "const real[N]", base: "const int[NTHETA]", fv: "int", fc: "in
 
 
 def _rb_Phi(q: "const real[N]", dq: "const real[N]", v: "const real[N]", dv: "const real[N]",
-            parent: "const int[N]", jtype: "const int[N]", axis: "const real[N,3]",
-            Rp: "const real[N,3,3]", pp: "const real[N,3]", gvec: "const real[3]",
-            base: "const int[NTHETA]", fv: "int", fc: "int", ia: "int", width: "real",
+            parent: "const int[N]", jtype: "const int[N]", axis: "const float[N,3]",
+            Rp: "const float[N,3,3]", pp: "const float[N,3]", gvec: "const float[3]",
+            base: "const int[NTHETA]", fv: "int", fc: "int", ia: "int", width: "float",
             Y: "real[N,NSTD]", out: "real[N,NTHETA]"):
     # Phi^T(q, dq, v, dv) = Phi_M^T(q, dv) + Phi_C^T(q, dq, v) + Phi_F^T(dq) + Phi_G^T(q)
     _rb_std(q, dq, v, dv, 1.0, dq, True, True, False, q, parent, jtype, axis, Rp, pp, gvec,
@@ -687,8 +693,8 @@ def _rb_Phi(q: "const real[N]", dq: "const real[N]", v: "const real[N]", dv: "co
 
 
 def _rb_M(q: "const real[N]", theta: "const real[NTHETA]", parent: "const int[N]",
-          jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
-          pp: "const real[N,3]", base: "const int[NTHETA]", ia: "int", pi: "real[NSTD]",
+          jtype: "const int[N]", axis: "const float[N,3]", Rp: "const float[N,3,3]",
+          pp: "const float[N,3]", base: "const int[NTHETA]", ia: "int", pi: "real[NSTD]",
           out: "real[N,N]"):
     # the inertia matrix M(q) (links, + armature)
     n = q.shape[0]
@@ -700,8 +706,8 @@ def _rb_M(q: "const real[N]", theta: "const real[NTHETA]", parent: "const int[N]
 
 
 def _rb_C(q: "const real[N]", dq: "const real[N]", theta: "const real[NTHETA]",
-          parent: "const int[N]", jtype: "const int[N]", axis: "const real[N,3]",
-          Rp: "const real[N,3,3]", pp: "const real[N,3]", gvec: "const real[3]",
+          parent: "const int[N]", jtype: "const int[N]", axis: "const float[N,3]",
+          Rp: "const float[N,3,3]", pp: "const float[N,3]", gvec: "const float[3]",
           base: "const int[NTHETA]", pi: "real[NSTD]", out: "real[N,N]"):
     # the Coriolis matrix C(q, dq) (Christoffel-consistent), column k = C(q, dq) e_k
     n = q.shape[0]
@@ -718,8 +724,8 @@ def _rb_C(q: "const real[N]", dq: "const real[N]", theta: "const real[NTHETA]",
 
 
 def _rb_G(q: "const real[N]", theta: "const real[NTHETA]", parent: "const int[N]",
-          jtype: "const int[N]", axis: "const real[N,3]", Rp: "const real[N,3,3]",
-          pp: "const real[N,3]", gvec: "const real[3]", base: "const int[NTHETA]",
+          jtype: "const int[N]", axis: "const float[N,3]", Rp: "const float[N,3,3]",
+          pp: "const float[N,3]", gvec: "const float[3]", base: "const int[NTHETA]",
           pi: "real[NSTD]", out: "real[N]"):
     # gravity G(q)
     n = q.shape[0]
@@ -729,7 +735,7 @@ def _rb_G(q: "const real[N]", theta: "const real[NTHETA]", parent: "const int[N]
 
 
 def _rb_F(dq: "const real[N]", theta: "const real[NTHETA]", base: "const int[NTHETA]",
-          fv: "int", fc: "int", width: "real", pi: "real[NSTD]", out: "real[N]"):
+          fv: "int", fc: "int", width: "float", pi: "real[NSTD]", out: "real[N]"):
     # friction F(dq)
     n = dq.shape[0]
     _rb_pi(theta, base, pi)
@@ -743,10 +749,10 @@ def _rb_F(dq: "const real[N]", theta: "const real[NTHETA]", base: "const int[NTH
 
 def _rb_forward_dynamics(q: "const real[N]", dq: "const real[N]", tau: "const real[N]",
                          theta: "const real[NTHETA]", parent: "const int[N]",
-                         jtype: "const int[N]", axis: "const real[N,3]",
-                         Rp: "const real[N,3,3]", pp: "const real[N,3]",
-                         gvec: "const real[3]", base: "const int[NTHETA]", fv: "int",
-                         fc: "int", ia: "int", width: "real", pi: "real[NSTD]",
+                         jtype: "const int[N]", axis: "const float[N,3]",
+                         Rp: "const float[N,3,3]", pp: "const float[N,3]",
+                         gvec: "const float[3]", base: "const int[NTHETA]", fv: "int",
+                         fc: "int", ia: "int", width: "float", pi: "real[NSTD]",
                          out: "real[N]") -> "int":
     # qdd solving M(q) qdd = tau - C(q, dq) dq - F(dq) - G(q); 0, or 1 when M(q) fails the
     # one rule of _rb_cholesky (out then undefined)
@@ -767,12 +773,203 @@ def _rb_forward_dynamics(q: "const real[N]", dq: "const real[N]", tau: "const re
     return 0
 
 
+# ------------------------------------------------------- the regressors' derivatives
+# out[i, b, arg * n + m] = d Phi[i, b] / d arg[m], the arguments in signature order (what
+# the blocks' Jacobians use: ivdrem.blocks.jacobians): exact forward-mode derivatives of
+# the recursion along the unit vectors e_m (tangent=True), and the regressors' linearity in
+# acc, x and y; d/dq of Phi_dM (a second derivative) by the complex step of the forward-mode
+# derivative, step COMPLEX_STEP.
+
+#: step of the complex-step derivative (Phi_dM_jac with respect to q): exact to rounding,
+#: no difference is taken
+COMPLEX_STEP = 1e-20
+
+
+def _rb_Phi_M_jac(q: "const real[N]", a: "const real[N]",
+                  parent: "const int[N]", jtype: "const int[N]",
+                  axis: "const float[N,3]", Rp: "const float[N,3,3]", pp: "const float[N,3]",
+                  gvec: "const float[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
+                  ia: "int", width: "float", Y: "real[N,NSTD]",
+                  dY: "real[N,NSTD]", out: "real[N,NTHETA,N2]"):
+    # d Phi_M / d(q, a)
+    n = q.shape[0]
+    nb = base.shape[0]
+    z = np.zeros(n)
+    e = np.zeros(n)
+    for m in range(n):
+        e[m] = 1.0
+        _rb_std(q, z, z, a, 0.0, z, False, True, True, e, parent, jtype, axis, Rp, pp, gvec,
+                fv, fc, ia, width, Y, dY)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, m] = dY[i, base[b]]
+        _rb_std(q, z, z, e, 0.0, z, False, True, False, q, parent, jtype, axis, Rp, pp, gvec,
+                fv, fc, ia, width, Y, Y)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, n + m] = Y[i, base[b]]
+        e[m] = 0.0
+
+
+def _rb_Phi_C_jac(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
+                  parent: "const int[N]", jtype: "const int[N]",
+                  axis: "const float[N,3]", Rp: "const float[N,3,3]", pp: "const float[N,3]",
+                  gvec: "const float[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
+                  ia: "int", width: "float",
+                  Y: "real[N,NSTD]", dY: "real[N,NSTD]", out: "real[N,NTHETA,N3]"):
+    # d Phi_C / d(q, dq, v)
+    n = q.shape[0]
+    nb = base.shape[0]
+    z = np.zeros(n)
+    e = np.zeros(n)
+    for m in range(n):
+        e[m] = 1.0
+        _rb_std(q, dq, v, z, 0.0, z, False, False, True, e, parent, jtype, axis, Rp, pp,
+                gvec, fv, fc, ia, width, Y, dY)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, m] = dY[i, base[b]]
+        _rb_std(q, e, v, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
+                gvec, fv, fc, ia, width, Y, Y)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, n + m] = Y[i, base[b]]
+        _rb_std(q, dq, e, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
+                gvec, fv, fc, ia, width, Y, Y)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, 2 * n + m] = Y[i, base[b]]
+        e[m] = 0.0
+
+
+def _rb_Phi_dM_jac(q: "const real[N]", dq: "const real[N]", a: "const real[N]",
+                   parent: "const int[N]", jtype: "const int[N]",
+                  axis: "const float[N,3]", Rp: "const float[N,3,3]", pp: "const float[N,3]",
+                  gvec: "const float[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
+                  ia: "int", width: "float",
+                   Y: "real[N,NSTD]", dY: "real[N,NSTD]", Yc: "cplx[N,NSTD]",
+                   dYc: "cplx[N,NSTD]", out: "real[N,NTHETA,N3]"):
+    # d Phi_dM / d(q, dq, a); d/dq by the complex step of the forward-mode derivative
+    n = q.shape[0]
+    nb = base.shape[0]
+    z = np.zeros(n)
+    e = np.zeros(n)
+    qc = np.empty(n, dtype=Yc.dtype)
+    dqc = np.empty(n, dtype=Yc.dtype)
+    ac = np.empty(n, dtype=Yc.dtype)
+    zc = np.zeros(n, dtype=Yc.dtype)
+    for i in range(n):
+        dqc[i] = dq[i]
+        ac[i] = a[i]
+    for m in range(n):
+        for i in range(n):
+            qc[i] = q[i]
+        qc[m] += COMPLEX_STEP * 1j
+        _rb_std_complex(qc, zc, zc, ac, 0.0, zc, False, False, True, dqc, parent, jtype, axis,
+                        Rp, pp, gvec, fv, fc, ia, width, Yc, dYc)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, m] = dYc[i, base[b]].imag / COMPLEX_STEP
+        e[m] = 1.0
+        _rb_std(q, z, z, a, 0.0, z, False, False, True, e, parent, jtype, axis, Rp, pp, gvec,
+                fv, fc, ia, width, Y, dY)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, n + m] = dY[i, base[b]]
+        _rb_std(q, z, z, e, 0.0, z, False, False, True, dq, parent, jtype, axis, Rp, pp, gvec,
+                fv, fc, ia, width, Y, dY)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, 2 * n + m] = dY[i, base[b]]
+        e[m] = 0.0
+
+
+def _rb_Phi_G_jac(q: "const real[N]", parent: "const int[N]", jtype: "const int[N]",
+                  axis: "const float[N,3]", Rp: "const float[N,3,3]", pp: "const float[N,3]",
+                  gvec: "const float[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
+                  ia: "int", width: "float", Y: "real[N,NSTD]", dY: "real[N,NSTD]",
+                  out: "real[N,NTHETA,N]"):
+    # d Phi_G / dq
+    n = q.shape[0]
+    nb = base.shape[0]
+    z = np.zeros(n)
+    e = np.zeros(n)
+    for m in range(n):
+        e[m] = 1.0
+        _rb_std(q, z, z, z, 1.0, z, False, False, True, e, parent, jtype, axis, Rp, pp, gvec,
+                fv, fc, ia, width, Y, dY)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, m] = dY[i, base[b]]
+        e[m] = 0.0
+
+
+def _rb_Phi_F_jac(dq: "const real[N]", base: "const int[NTHETA]", fv: "int", fc: "int",
+                  width: "float", Y: "real[N,NSTD]", out: "real[N,NTHETA,N]"):
+    # d Phi_F / d dq (diagonal: joint m's friction depends on dq_m only)
+    n = dq.shape[0]
+    ns = Y.shape[1]
+    nb = base.shape[0]
+    for m in range(n):
+        for i in range(n):
+            for k in range(ns):
+                Y[i, k] = 0.0
+        if fv >= 0:
+            Y[m, fv + m] = 1.0
+        if fc >= 0:
+            th = np.tanh(dq[m] / width)
+            Y[m, fc + m] = (1.0 - th * th) / width
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, m] = Y[i, base[b]]
+
+
+def _rb_Phi_jac(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
+                dv: "const real[N]", parent: "const int[N]", jtype: "const int[N]",
+                  axis: "const float[N,3]", Rp: "const float[N,3,3]", pp: "const float[N,3]",
+                  gvec: "const float[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
+                  ia: "int", width: "float", Y: "real[N,NSTD]", dY: "real[N,NSTD]",
+                out: "real[N,NTHETA,N4]"):
+    # d Phi / d(q, dq, v, dv)
+    n = q.shape[0]
+    nb = base.shape[0]
+    z = np.zeros(n)
+    e = np.zeros(n)
+    dF = np.empty((n, nb, n))
+    _rb_Phi_F_jac(dq, base, fv, fc, width, Y, dF)
+    for m in range(n):
+        e[m] = 1.0
+        _rb_std(q, dq, v, dv, 1.0, dq, True, True, True, e, parent, jtype, axis, Rp, pp, gvec,
+                fv, fc, ia, width, Y, dY)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, m] = dY[i, base[b]]
+        _rb_std(q, e, v, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
+                gvec, fv, fc, ia, width, Y, Y)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, n + m] = Y[i, base[b]] + dF[i, b, m]
+        _rb_std(q, dq, e, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
+                gvec, fv, fc, ia, width, Y, Y)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, 2 * n + m] = Y[i, base[b]]
+        _rb_std(q, z, z, e, 0.0, z, False, True, False, q, parent, jtype, axis, Rp, pp, gvec,
+                fv, fc, ia, width, Y, Y)
+        for i in range(n):
+            for b in range(nb):
+                out[i, b, 3 * n + m] = Y[i, base[b]]
+        e[m] = 0.0
+
+
 #: The kernels, in dependency order (their source goes into every rigid-body model's code).
 KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
            _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_backward,
            _rb_rnea, _rb_mass, _rb_cholesky, _rb_cholesky_solve, _rb_spd_solve,
            _rb_std, _rb_select, _rb_pi, _rb_Phi_M, _rb_Phi_C, _rb_Phi_dM, _rb_Phi_G,
-           _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics)
+           _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics,
+           _rb_Phi_M_jac, _rb_Phi_C_jac, _rb_Phi_dM_jac, _rb_Phi_G_jac, _rb_Phi_F_jac,
+           _rb_Phi_jac)
 
 #: The kernels of a model's C face (:mod:`ivdrem.models._c_printer`), in dependency order.
 C_KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
@@ -780,6 +977,13 @@ C_KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_fo
              _rb_backward, _rb_rnea, _rb_mass, _rb_cholesky, _rb_cholesky_solve,
              _rb_std, _rb_select, _rb_pi, _rb_Phi_M, _rb_Phi_C, _rb_Phi_dM, _rb_Phi_G,
              _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics)
+
+#: The kernels _rb_std calls (printed again in double complex for _rb_Phi_dM_jac's complex
+#: step), and the regressors' derivatives: the compiled engine's C library of a model.
+C_STD_KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
+                 _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_std)
+C_JAC_KERNELS = (_rb_Phi_M_jac, _rb_Phi_C_jac, _rb_Phi_dM_jac, _rb_Phi_G_jac, _rb_Phi_F_jac,
+                 _rb_Phi_jac)
 
 #: The Cholesky alone: the C face of every model (a symbolic one too) prints it.
 C_CHOLESKY = (_rb_cholesky, _rb_cholesky_solve)

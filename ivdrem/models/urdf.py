@@ -40,16 +40,13 @@ __all__ = ["from_urdf", "arm", "ARM_NAMES", "RigidBodyModel", "URDFError", "RANK
            "DEFAULT_FRICTION_WIDTH"]
 
 #: Version of the generated rigid-body code and of the cached build; part of the key.
-RIGID_BODY_CODEGEN_VERSION = "2"
+RIGID_BODY_CODEGEN_VERSION = "3"
 
 #: Relative rank tolerance of the pivoted QR: |R_kk| > RANK_RTOL |R_00| counts.
 RANK_RTOL = 1e-10
 
 #: Width w (rad/s, m/s) of the smooth Coulomb sign tanh(dq / w).
 DEFAULT_FRICTION_WIDTH = 0.01
-
-#: Step of the complex-step derivative (Phi_dM_jac with respect to q).
-_COMPLEX_STEP = 1e-20
 
 _LINK_PARAMS = ("m", "mx", "my", "mz", "Ixx", "Ixy", "Iyy", "Ixz", "Iyz", "Izz")
 _LINK_UNITS = ("kg", "kg.m", "kg.m", "kg.m", "kg.m2", "kg.m2", "kg.m2", "kg.m2", "kg.m2",
@@ -702,6 +699,19 @@ _GLUE = {
     "F": (("pi",), "dq, theta, {base}, {fv}, {fc}, {width}, pi"),
     "forward_dynamics": (("pi",), "q, dq, tau, theta, {chain}, {base}, {fric}, pi"),
 }
+#: the regressors' derivatives (rigid_body._rb_<name>_jac): out (n, ntheta, k n), the
+#: derivative by argument k's entry m in column k n + m; the Python source and the compiled
+#: engine's C library (``RigidBodyModel.engine_c_source``) call the same kernels
+_JAC_GLUE = {
+    "Phi_M_jac": (("Y", "dY"), "q, a, {chain}, {base}, {fric}, Y, dY", ("q", "a"), 2),
+    "Phi_C_jac": (("Y", "dY"), "q, dq, v, {chain}, {base}, {fric}, Y, dY", ("q", "dq", "v"), 3),
+    "Phi_dM_jac": (("Y", "dY", "Yc", "dYc"),
+                   "q, dq, a, {chain}, {base}, {fric}, Y, dY, Yc, dYc", ("q", "dq", "a"), 3),
+    "Phi_G_jac": (("Y", "dY"), "q, {chain}, {base}, {fric}, Y, dY", ("q",), 1),
+    "Phi_F_jac": (("Y",), "dq, {base}, {fv}, {fc}, {width}, Y", ("dq",), 1),
+    "Phi_jac": (("Y", "dY"), "q, dq, v, dv, {chain}, {base}, {fric}, Y, dY",
+                ("q", "dq", "v", "dv"), 4),
+}
 _GLUE_DOCS = {
     "Phi_M": "Phi_M^T(q, a) = d(M a)/dtheta; out ({n}, {nb})",
     "Phi_C": "Phi_C^T(q, dq, v) = d(C v)/dtheta; out ({n}, {nb})",
@@ -819,7 +829,6 @@ class RigidBodyModel(RobotModel):
     def _generate(self, P):
         c = self._chain
         n, ns, nb = self.n, self.nstandard, self.ntheta
-        fv, fc, ia = self._offsets()
         K = f"{P}_RB_"
         consts = [
             f"# chain of {self.name}: {', '.join(self.joint_names)}",
@@ -839,148 +848,28 @@ class RigidBodyModel(RobotModel):
         imports = (f"# kernels: ivdrem.models.rigid_body {_kernels_hash()}\n"
                    f"import ivdrem.models._rigid_body_jit as {kmod}")
         chain_args = f"{K}PARENT, {K}JTYPE, {K}AXIS, {K}RP, {K}PP, {K}GRAV"
-        r = f"{P}_rb_"
-        k = f"{kmod}._rb_"
-        W = repr(self.friction_width)
-        h = repr(_COMPLEX_STEP)
+        k_ = f"{kmod}._rb_"
         glue = []
         for name, (work, args) in _GLUE.items():
             doc = _GLUE_DOCS[name].format(n=n, nb=nb)
             alloc = "".join(f"    {w} = np.empty({({'pi': (ns,)}.get(w, (n, ns)))!r})\n"
                             for w in work)
-            call = f"{k}{name}({args.format(**self._glue_args(K, chain_args))}, out)"
+            call = f"{k_}{name}({args.format(**self._glue_args(K, chain_args))}, out)"
             if name == "forward_dynamics":
                 call = (f"if {call} != 0:\n"
                         f"        raise ValueError({SINGULAR_INERTIA_MESSAGE!r})")
             glue.append(f"def {P}{name}({', '.join(C_FUNCTION_ARGS[name][:-1])}, out):\n"
                         f'    """{doc}"""\n{alloc}    {call}\n    return None\n')
-        t = f'''
-def {r}std(q, x, y, acc, grav, fdq, fric, arm, tangent, d, Y, dY):
-    # the standard regressor ({n}, {ns}) of C(q, x) y + M(q) acc + grav G(q)
-    # (+ F(fdq) if fric, + armature acc if arm) and its tangent along d
-    {k}std(q, x, y, acc, grav, fdq, fric, arm, tangent, d, {chain_args}, {fv}, {fc}, {ia},
-           {W}, Y, dY)
-
-
-def {r}select3(Y, out, col):
-    out[:, :, col] = Y[:, {K}BASE]
-
-
-def {r}unit(m):
-    e = np.zeros({n})
-    e[m] = 1.0
-    return e
-
-
-''' + "\n\n".join(glue) + f'''
-
-def {P}Phi_M_jac(q, a, out):
-    """dPhi_M[i, j]/d(q, a)[c], c = arg * {n} + entry; out ({n}, {nb}, {2 * n})"""
-    Y = np.empty(({n}, {ns}))
-    dY = np.empty(({n}, {ns}))
-    z = np.zeros({n})
-    for m in range({n}):
-        e = {r}unit(m)
-        {r}std(q, z, z, a, 0.0, z, False, True, True, e, Y, dY)
-        {r}select3(dY, out, m)
-        {r}std(q, z, z, e, 0.0, z, False, True, False, q, Y, Y)
-        {r}select3(Y, out, {n} + m)
-    return None
-
-
-def {P}Phi_C_jac(q, dq, v, out):
-    """dPhi_C[i, j]/d(q, dq, v)[c], c = arg * {n} + entry; out ({n}, {nb}, {3 * n})"""
-    Y = np.empty(({n}, {ns}))
-    dY = np.empty(({n}, {ns}))
-    z = np.zeros({n})
-    for m in range({n}):
-        e = {r}unit(m)
-        {r}std(q, dq, v, z, 0.0, z, False, False, True, e, Y, dY)
-        {r}select3(dY, out, m)
-        {r}std(q, e, v, z, 0.0, z, False, False, False, q, Y, Y)
-        {r}select3(Y, out, {n} + m)
-        {r}std(q, dq, e, z, 0.0, z, False, False, False, q, Y, Y)
-        {r}select3(Y, out, {2 * n} + m)
-    return None
-
-
-def {P}Phi_dM_jac(q, dq, a, out):
-    """dPhi_dM[i, j]/d(q, dq, a)[c], c = arg * {n} + entry; out ({n}, {nb}, {3 * n})
-    (d/dq: complex step of the forward-mode derivative, step {h})"""
-    Y = np.empty(({n}, {ns}))
-    dY = np.empty(({n}, {ns}))
-    z = np.zeros({n})
-    Yc = np.empty(({n}, {ns}), dtype=np.complex128)
-    dYc = np.empty(({n}, {ns}), dtype=np.complex128)
-    zc = np.zeros({n}, dtype=np.complex128)
-    ac = a.astype(np.complex128)
-    dqc = dq.astype(np.complex128)
-    for m in range({n}):
-        qc = q.astype(np.complex128)
-        qc[m] += {h} * 1j
-        {r}std(qc, zc, zc, ac, 0.0, zc, False, False, True, dqc, Yc, dYc)
-        for i in range({n}):
-            for b in range({nb}):
-                out[i, b, m] = dYc[i, {K}BASE[b]].imag / {h}
-        e = {r}unit(m)
-        {r}std(q, z, z, a, 0.0, z, False, False, True, e, Y, dY)
-        {r}select3(dY, out, {n} + m)
-        {r}std(q, z, z, e, 0.0, z, False, False, True, dq, Y, dY)
-        {r}select3(dY, out, {2 * n} + m)
-    return None
-
-
-def {P}Phi_G_jac(q, out):
-    """dPhi_G[i, j]/dq[c]; out ({n}, {nb}, {n})"""
-    Y = np.empty(({n}, {ns}))
-    dY = np.empty(({n}, {ns}))
-    z = np.zeros({n})
-    for m in range({n}):
-        e = {r}unit(m)
-        {r}std(q, z, z, z, 1.0, z, False, False, True, e, Y, dY)
-        {r}select3(dY, out, m)
-    return None
-
-
-def {P}Phi_F_jac(dq, out):
-    """dPhi_F[i, j]/ddq[c]; out ({n}, {nb}, {n})"""
-    Y = np.zeros(({n}, {ns}))
-    for m in range({n}):
-        for i in range({n}):
-            for k in range({ns}):
-                Y[i, k] = 0.0
-        if {fv} >= 0:
-            Y[m, {fv} + m] = 1.0
-        if {fc} >= 0:
-            th = np.tanh(dq[m] / {W})
-            Y[m, {fc} + m] = (1.0 - th * th) / {W}
-        {r}select3(Y, out, m)
-    return None
-
-
-def {P}Phi_jac(q, dq, v, dv, out):
-    """dPhi[i, j]/d(q, dq, v, dv)[c], c = arg * {n} + entry; out ({n}, {nb}, {4 * n})"""
-    Y = np.empty(({n}, {ns}))
-    dY = np.empty(({n}, {ns}))
-    z = np.zeros({n})
-    dF = np.empty(({n}, {nb}, {n}))
-    {P}Phi_F_jac(dq, dF)
-    for m in range({n}):
-        e = {r}unit(m)
-        {r}std(q, dq, v, dv, 1.0, dq, True, True, True, e, Y, dY)
-        {r}select3(dY, out, m)
-        {r}std(q, e, v, z, 0.0, z, False, False, False, q, Y, Y)
-        {r}select3(Y, out, {n} + m)
-        for i in range({n}):
-            for b in range({nb}):
-                out[i, b, {n} + m] += dF[i, b, m]
-        {r}std(q, dq, e, z, 0.0, z, False, False, False, q, Y, Y)
-        {r}select3(Y, out, {2 * n} + m)
-        {r}std(q, z, z, e, 0.0, z, False, True, False, q, Y, Y)
-        {r}select3(Y, out, {3 * n} + m)
-    return None
-'''
-        return imports + "\n" + "\n".join(consts) + "\n\n" + t
+        for name, (work, args, vec, k) in _JAC_GLUE.items():
+            shapes = {"Yc": f"({n}, {ns}), dtype=np.complex128",
+                      "dYc": f"({n}, {ns}), dtype=np.complex128"}
+            alloc = "".join(f"    {w} = np.empty({shapes.get(w, repr((n, ns)))})\n" for w in work)
+            call = f"{k_}{name}({args.format(**self._glue_args(K, chain_args))}, out)"
+            glue.append(f"def {P}{name}({', '.join(vec)}, out):\n"
+                        f'    """d{name[:-4]}[i, j]/d({", ".join(vec)})[c], c = arg * {n} + entry;'
+                        f' out ({n}, {nb}, {k * n})"""\n{alloc}    {call}\n    return None\n')
+        t = "\n\n".join(glue)
+        return imports + "\n" + "\n".join(consts) + "\n\n\n" + t
 
     def _offsets(self):
         """Columns of the viscous, Coulomb friction and armature parameters in the standard
@@ -1046,13 +935,67 @@ def {P}Phi_jac(q, dq, v, dv, out):
                     f"    return {prefix}forward_dynamics(q, dq, tau, theta, ddq);\n}}\n")
         return "\n" + consts + "\n\n" + kernels + "\n" + "\n".join(glue)
 
+    def engine_c_source(self, prefix: str) -> str:
+        """:meth:`c_source` and the regressors' derivatives ``<prefix>Phi_M_jac`` ...
+        (``_JAC_GLUE``: out (n, nθ, k n) row major, the derivative by argument k's entry m
+        in column k n + m; d/dq of Phi_dM by the complex step, ``<complex.h>``): the C
+        library the compiled engine and :attr:`functions` call
+        (:mod:`ivdrem.models._c_engine`), printed from the same kernels as :meth:`source`."""
+        from ._c_printer import print_kernels
+        from .rigid_body import C_CHOLESKY, C_JAC_KERNELS, C_KERNELS, C_STD_KERNELS
+        prefix = self._check_c_prefix(prefix)
+        P = prefix.upper()
+        K = f"{prefix}"
+        chain_args = ", ".join(f"{K}{a}" for a in ("PARENT", "JTYPE", "AXIS", "RP", "PP",
+                                                    "GRAV"))
+        ga = self._glue_args(K, chain_args)
+        complex_std = print_kernels(C_STD_KERNELS, prefix, real="double complex",
+                                    suffix="_complex")
+        jac = print_kernels(C_JAC_KERNELS, prefix,
+                            printed=[f for f in C_KERNELS if f not in C_CHOLESKY],
+                            also=("_rb_std_complex",))
+        glue = []
+        for name, (work, args, vec, k) in _JAC_GLUE.items():
+            decl = "".join(f"    {'double complex' if w.endswith('c') else 'double'} "
+                           f"{w}[{P}N * {P}NSTD];\n" for w in work)
+            sig = ", ".join([f"const double *{a}" for a in vec] + ["double *out"])
+            glue.append(f"{P}FN void {prefix}{name}({sig}) {{\n{decl}"
+                        f"    {prefix}rb_{name}({args.format(**ga)}, out);\n}}\n")
+        sizes = "".join(f"#define {P}N{k} ({k} * {P}N)\n" for k in (2, 3, 4))
+        return (self.c_source(prefix)
+                + "\n/* The regressors' derivatives (the compiled engine's Jacobians): the kernels"
+                  "\n * of _rb_std again in double complex for the complex step of Phi_dM_jac. */"
+                  "\n#include <complex.h>\n" + sizes + "\n" + complex_std + "\n" + jac + "\n"
+                + "\n".join(glue))
+
     @cached_property
     def functions(self):
-        """The generated functions as Python, calling the compiled rigid-body kernels
-        (``ivdrem.models._rigid_body_jit``): the reference engine's path, and what the
-        compiled engine's sparsity probe evaluates (all plain Python, one regressor costs
-        milliseconds: :attr:`python_functions`)."""
+        """The model's functions from Python: its C library through ctypes
+        (:mod:`ivdrem.models._c_engine`), or without a C compiler the generated functions
+        calling the numba-compiled rigid-body kernels (``ivdrem.models._rigid_body_jit``):
+        the reference engine's path, and what the compiled engine's sparsity probe
+        evaluates (all plain Python, one regressor costs milliseconds:
+        :attr:`python_functions`)."""
+        from . import _c_engine
+        lib = _c_engine.load(self)
+        if lib is not None:
+            return _c_engine.python_functions(self, lib)
         return self._namespace(jit=False)
+
+    @cached_property
+    def numba_functions(self):
+        """The generated functions calling the numba-compiled rigid-body kernels (the path
+        without a C compiler; the C library's reference in tests/test_c_engine.py)."""
+        return self._namespace(jit=False)
+
+    def engine_source(self) -> str:
+        """Python source of the compiled engine's model module: functions calling the
+        model's C library (:func:`ivdrem.models._c_engine.numba_source`), or without a C
+        compiler :meth:`source` (numba then compiles the rigid-body kernels)."""
+        from . import _c_engine
+        if _c_engine.load(self) is None:
+            return self.source("")
+        return _c_engine.numba_source(self)
 
     @cached_property
     def python_functions(self):

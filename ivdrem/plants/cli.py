@@ -1,6 +1,8 @@
 """``ivdrem cosim --plant mujoco``: the sampled controller closed around the arm in MuJoCo
 (docs/mujoco.md).  Prints and writes (``--json``) per law θ̃ (absolute and relative to
-θ̃(0)), the tracking error, τ̃_d and the per-sample costs."""
+θ̃(0)), the tracking error, τ̃_d and the per-sample costs.  Also the robustness study's
+command (``ivdrem study FILE`` with a [robustness] table) and ``ivdrem report --plant
+mujoco`` (:func:`mujoco_paper_run`: the report builder on MuJoCo runs)."""
 from __future__ import annotations
 
 import json
@@ -70,7 +72,8 @@ def add_arguments(p):
                    help="run on this model instead of the configuration's (e.g. two-link)")
     g.add_argument("--study", default=None, metavar="FILE.toml",
                    help="run a robustness study (configuration + [robustness], "
-                        "ivdrem.plants.study) instead of one run per law")
+                        "ivdrem.plants.study; the same as `ivdrem study FILE`, with --t-end "
+                        "and --model overriding the file's) instead of one run per law")
     g.add_argument("--workers", type=int, default=1,
                    help="--study: Dask worker processes (default 1: in this process)")
     g.add_argument("--out", default=None, metavar="DIR",
@@ -207,23 +210,120 @@ def main_cosim_mujoco(args) -> int:
 
 
 def _main_study(args) -> int:
+    return run_robustness_command(args, prog=f"{PROG} --study")
+
+
+def run_robustness_command(args, *, prog="ivdrem study") -> int:
+    """A robustness study (``ivdrem study FILE`` with a [robustness] table, or ``ivdrem
+    cosim --plant mujoco --study FILE``): prints the runs and writes the results and the
+    report; 0 when every run finished, 1 when one failed, 2 on bad input."""
     from .._paths import user_path
-    from .study import run_robustness
+    from .study import conclusions, run_robustness
+    for opt, what in (("scheduler", "--scheduler"), ("resume", "--resume")):
+        if getattr(args, opt, None):
+            print(f"{prog}: error: {what} is not available for a robustness study (a "
+                  "[robustness] table); run it again with --workers N", file=sys.stderr)
+            return 2
     path = user_path(args.study)
     out = user_path(args.out) if args.out else user_path(Path("studies") / path.stem)
-    if args.workers < 1:
-        print(f"{PROG}: error: --workers must be >= 1, got {args.workers}", file=sys.stderr)
+    import os
+    cores = os.cpu_count() or 1
+    workers = cores if args.workers is None else args.workers
+    if not 1 <= workers <= cores:
+        # as `ivdrem study`: one MuJoCo loop per process, more than one per core is no faster
+        print(f"{prog}: error: --workers must be between 1 and the {cores} cores of this "
+              f"machine, got {workers}", file=sys.stderr)
         return 2
     try:
-        df, wall = run_robustness(path, out, workers=args.workers, model=args.model,
-                                  t_end=args.t_end, progress=not args.quiet)
+        df, wall = run_robustness(path, out, workers=workers, model=getattr(args, "model", None),
+                                  t_end=getattr(args, "t_end", None),
+                                  progress=not getattr(args, "quiet", False),
+                                  report=not getattr(args, "no_report", False))
     except (ValueError, OSError, ImportError) as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     show = ["noise_level", "payload_mass", "omega_scale", "seed", "law", "theta_error_end",
             "theta_error_ratio", "tracking_rms_last", "tau_d_error_rms_last", "status"]
     import pandas as pd
     with pd.option_context("display.width", 200):
         print(df[[c for c in show if c in df]].to_string(index=False))
-    print(f"{len(df)} runs, {args.workers} worker(s), {wall:.1f} s; wrote {out}")
+    for line in conclusions(df):
+        print(line)
+    print(f"{len(df)} runs, {workers} worker(s), {wall:.1f} s; wrote {out}")
     return 0 if (df["status"] == "ok").all() else 1
+
+
+# ----------------------------------------------------------------------------- the report
+def mujoco_paper_run(config, *, mu_max=135.0, every=None, progress=False, log=None):
+    """The experiment of ``config`` (its model, laws, t_end, reference, disturbance, gains)
+    with MuJoCo as the plant: a :class:`~ivdrem.experiments.paper.PaperRun` whose law runs
+    are :func:`ivdrem.plants.mujoco.closed_loop` responses (recorded every 10 ms), for the
+    report builder (``ivdrem report --plant mujoco``).  ``run.engine`` names the plant."""
+    import mujoco
+    from ..experiments.config import model_from_config
+    from ..experiments.paper import LawRun, PaperRun
+    from .mujoco import closed_loop, controller_kwargs, load
+    model = model_from_config(config)
+    t_end = float(config["experiment"]["t_end"])
+    h = 1e-3
+    plant = load(model, h=h)
+    every = every or max(1, int(round(float(config["experiment"]["dt_out"]) / h)))
+    run = PaperRun(config=config, theta=np.asarray(plant.theta, float), model=model)
+    run.engine = (f"MuJoCo {mujoco.__version__} plant ({plant.integrator} integrator, step "
+                  f"{plant.mj.opt.timestep:g} s; ivdrem.plants.mujoco), the sampled C "
+                  f"controller at h = {h:g} s, μ saturated at {mu_max:g}")
+    for law in config["experiment"]["laws"]:
+        kw, start = controller_kwargs(config, law)
+        kw["mu_max"] = float(mu_max)
+        if kw.get("gamma") == "auto":
+            from ..controller.block import auto_gamma
+            kw["gamma"] = auto_gamma(model, law, kw)["gamma"]
+        t0 = time.perf_counter()
+        resp = closed_loop(plant, t_end, law, every=every, progress=progress, **start, **kw)
+        wall = time.perf_counter() - t0
+        stats = dict(method=f"MuJoCo {plant.integrator}", h=h, steps=resp.costs["samples"],
+                     wall_s=wall, engine="MuJoCo plant, sampled C controller",
+                     plant_us=resp.costs["plant_us"], controller_us=resp.costs["controller_us"])
+        run.runs[law] = LawRun(law=law, response=resp, stats=stats, gamma=kw.get("gamma"))
+        if log is not None:
+            log(f"{law:>20s}: {resp.costs['samples']} samples in MuJoCo, {wall:.1f} s")
+    return run
+
+
+def run_mujoco_report(args) -> int:
+    """``ivdrem report --plant mujoco``: the report's figures and C1-C3 for the experiment
+    of ``--config`` with the arm in MuJoCo, written as ``ivdrem-mujoco.html`` / ``.pdf`` in
+    ``--out``; 0 when written, 1 when a run or the write failed, 2 on bad input."""
+    from ..experiments.metrics import conclusions, format_conclusions
+    from ..reports.cli import config_from_args
+    from ..reports.report import write_report, report_paths
+    from .._paths import check_writable_dir, user_path
+    prog = "ivdrem report --plant mujoco"
+    try:
+        from .mujoco import _mujoco
+        _mujoco()
+        config = config_from_args(args)
+        out = check_writable_dir(user_path(args.out), "report directory")
+        report_paths(out, "ivdrem-mujoco", overwrite=getattr(args, "overwrite", False))
+        from ..controller.sampled import SAMPLED_LAWS
+        bad = [law for law in config["experiment"]["laws"] if law not in SAMPLED_LAWS]
+        if bad:
+            raise ValueError(f"law(s) {bad} have no sampled form; choose from "
+                             f"{', '.join(SAMPLED_LAWS)}")
+        run = mujoco_paper_run(config, progress=not getattr(args, "quiet", False), log=print)
+    except (FloatingPointError, RuntimeError) as exc:
+        print(f"{prog}: run failed: {exc}", file=sys.stderr)
+        return 1
+    except (ValueError, OSError, ImportError) as exc:      # ConfigError, ReportError too
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        html, pdf = write_report(run, out, basename="ivdrem-mujoco",
+                                 overwrite=getattr(args, "overwrite", False))
+    except OSError as exc:
+        print(f"{prog}: error: cannot write the report to {out}: {exc}", file=sys.stderr)
+        return 1
+    print(f"HTML report: {html}")
+    print(f"PDF report:  {pdf}")
+    print(format_conclusions(conclusions(run)))
+    return 0

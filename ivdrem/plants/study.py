@@ -15,23 +15,28 @@ A study file is an experiment configuration (as ``examples/paper.toml``) with a
     seeds = [0, 1]                          # the sensor noise's seed
     mu_max = 135.0
     gamma = 53.2                            # optional: γ of (21) instead of the config's
+                                            # (IV-DREM, DREM); or a table {law = γ}
     mix_every = 50                          # optional: mix (17) every N samples
 
 Every combination is run once per law of ``experiment.laws`` (one MuJoCo loop each,
 :func:`ivdrem.plants.mujoco.closed_loop`).  Written to the output folder:
 ``results.csv`` (one row per run: the varied values, θ̃ at the start and the end and their
 ratio, the tracking error and τ̃_d RMS over the last 20 %, costs, wall time, status),
-``robustness.png`` (the three against the noise level, one line per law and payload) and
+``runs.jsonl`` (the same rows as they finish), ``robustness.png`` (the three against the
+noise level, one line per law and payload), ``robustness.html`` (the figure, the
+conclusions per noise level and payload, the mean table, the failed runs) and
 ``study.toml`` (the file as given).  A run that fails is a row with its error; the others
 go on.
 
-    ivdrem cosim --plant mujoco --study examples/panda-robustness.toml [--workers 2]
-        [--out DIR] [--t-end T] [--model NAME]
+    ivdrem study examples/panda-robustness.toml [--workers 2] [--out DIR] [--no-report]
+    ivdrem cosim --plant mujoco --study FILE [--workers 2] [--out DIR] [--t-end T]
+        [--model NAME]          (the same, with the horizon and the arm overridden)
 """
 from __future__ import annotations
 
 import copy
 import itertools
+import json
 import math
 import sys
 import time
@@ -40,11 +45,23 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["read_robustness", "expand", "run_one", "run_robustness", "plot"]
+__all__ = ["read_robustness", "expand", "run_one", "run_robustness", "plot", "summary_table",
+           "conclusions", "write_report", "rebuild_report", "is_robustness_file"]
 
 #: keys of [robustness] and their defaults
 DEFAULTS = dict(noise_levels=[0.0, 1.0], payload_mass=[0.0], payload_com=[0.0, 0.0, 0.0],
                 omega_scale=[1.0], seeds=[0], mu_max=135.0, gamma=None, mix_every=None)
+
+
+def is_robustness_file(path) -> bool:
+    """Whether the TOML file at ``path`` is a robustness study (has a [robustness] table);
+    False for a file that cannot be read (the study command then says why)."""
+    from ..experiments.config import read_toml
+    try:
+        raw, _ = read_toml(Path(path), "study file")
+    except Exception:  # noqa: BLE001 - reported by the command that reads it
+        return False
+    return isinstance(raw, dict) and "robustness" in raw
 
 
 def read_robustness(path, *, model=None, t_end=None):
@@ -67,12 +84,34 @@ def read_robustness(path, *, model=None, t_end=None):
     if any(not (isinstance(x, (int, float)) and x >= 0) for x in rob["noise_levels"]):
         raise ValueError(f"[robustness] noise_levels must be numbers >= 0, got "
                          f"{rob['noise_levels']}")
+    g = rob["gamma"]
+    if not (g is None or isinstance(g, (int, float)) or (isinstance(g, dict) and all(
+            isinstance(v, (int, float)) and v > 0 for v in g.values()))) or (
+            isinstance(g, (int, float)) and not g > 0):
+        raise ValueError(f"[robustness] gamma must be a number > 0 (for the laws with the "
+                         f"mixing (21): {', '.join(_MIXING_LAWS)}) or a table of numbers by "
+                         f"law, got {g!r}")
     if model is not None:
         raw.setdefault("model", {})["name"] = model
     if t_end is not None:
         raw.setdefault("experiment", {})["t_end"] = float(t_end)
     config = load_config(None, overrides=raw)
     return config, rob, text
+
+
+#: the laws whose γ scales Δ² of the mixing (21); composite learning's γ of (35) multiplies
+#: Ψ_b itself, so a number given for the first must not reach it
+_MIXING_LAWS = ("iv-drem", "drem")
+
+
+def _law_gamma(gamma, law):
+    """γ for ``law`` from [robustness] gamma: a number (the laws with the mixing (21)
+    only) or a table by law; None: the configuration's."""
+    if isinstance(gamma, dict):
+        return None if gamma.get(law) is None else float(gamma[law])
+    if gamma is not None and law in _MIXING_LAWS:
+        return float(gamma)
+    return None
 
 
 def expand(config, rob):
@@ -91,14 +130,15 @@ def run_one(config, rob, run) -> dict:
     from .mujoco import Payload, closed_loop, controller_kwargs, load
     from .sensing import REALISTIC, Imperfections
     from ..experiments.config import model_from_config
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     row = dict(run, status="ok", error="")
     try:
         model = model_from_config(config)
         kw, start = controller_kwargs(config, run["law"])
         kw["mu_max"] = float(rob["mu_max"])
-        if rob["gamma"] is not None:              # instead of the configuration's
-            kw["gamma"] = float(rob["gamma"])
+        gamma = _law_gamma(rob["gamma"], run["law"])
+        if gamma is not None:                     # instead of the configuration's
+            kw["gamma"] = gamma
         if rob["mix_every"] is not None:
             kw["mix_every"] = int(rob["mix_every"])
         if kw.get("gamma") == "auto":
@@ -121,13 +161,16 @@ def run_one(config, rob, run) -> dict:
     except Exception as exc:  # noqa: BLE001 - a failed run is a result
         row.update(status="failed", error=f"{type(exc).__name__}: {exc}")
     row["wall_s"] = time.perf_counter() - t0
+    row["cpu_s"] = time.process_time() - cpu0     # the worker's CPU: wall_s less the waiting
     return row
 
 
-def run_robustness(path, out, *, workers=1, model=None, t_end=None, progress=True):
+def run_robustness(path, out, *, workers=1, model=None, t_end=None, progress=True,
+                   report=True):
     """Run the study file ``path`` into the folder ``out``; returns the results table
     (pandas) and the wall time.  ``workers`` > 1: a Dask LocalCluster of that many
-    single-threaded processes; 1: in this process."""
+    single-threaded processes; 1: in this process.  ``report``: write robustness.png and
+    robustness.html (:func:`write_report`)."""
     import pandas as pd
     from .._atomic import write_text_atomic
     config, rob, text = read_robustness(path, model=model, t_end=t_end)
@@ -137,29 +180,158 @@ def run_robustness(path, out, *, workers=1, model=None, t_end=None, progress=Tru
     write_text_atomic(out / "study.toml", text)
     t0 = time.perf_counter()
     rows = []
+    log = out / "runs.jsonl"          # each run as it finishes: a long study can be followed
+    log.write_text("")
+
+    def done(row):
+        rows.append(row)
+        with log.open("a") as fh:
+            fh.write(json.dumps(row) + "\n")
+        if progress:
+            print(f"  {len(rows)}/{len(runs)} runs ({row['law']}, noise {row['noise_level']:g}, "
+                  f"payload {row['payload_mass']:g} kg, ω x {row['omega_scale']:g}, seed "
+                  f"{row['seed']}: {row['status']}"
+                  + (f", ratio {row['theta_error_ratio']:.3g}" if row["status"] == "ok" else "")
+                  + f", {row['wall_s']:.0f} s)", file=sys.stderr, flush=True)
     if workers > 1:
         from dask.distributed import Client, LocalCluster, as_completed
         with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                           dashboard_address=None) as cluster, Client(cluster) as client:
-            futs = [client.submit(run_one, config, rob, r, pure=False) for r in runs]
+            # the longest runs first (the laws with the window (15a) cost the most per
+            # sample), so that no worker is left with a long run at the end
+            order = sorted(runs, key=lambda r: r["law"] not in _MIXING_LAWS + (
+                "composite-learning",))
+            futs = [client.submit(run_one, config, rob, r, pure=False) for r in order]
             for f in as_completed(futs):
-                rows.append(f.result())
-                if progress:
-                    print(f"  {len(rows)}/{len(runs)} runs", file=sys.stderr, flush=True)
+                done(f.result())
     else:
         for r in runs:
-            rows.append(run_one(config, rob, r))
-            if progress:
-                print(f"  {len(rows)}/{len(runs)} runs", file=sys.stderr, flush=True)
+            done(run_one(config, rob, r))
     wall = time.perf_counter() - t0
     key = ["noise_level", "payload_mass", "omega_scale", "seed", "law"]
     df = pd.DataFrame(rows).sort_values(key).reset_index(drop=True)
     write_text_atomic(out / "results.csv", df.to_csv(index=False))
-    plot(df, out / "robustness.png", model=config["model"].get("name", "?"))
+    df.attrs.update(wall_s=wall, workers=workers)
+    if report:
+        write_report(df, out, model=config["model"].get("name", "?"), study_text=text,
+                     wall_s=wall, workers=workers)
     return df, wall
 
 
-def plot(df, path, *, model="?"):
+def summary_table(df):
+    """Per law, noise level and payload: the mean over disturbance scales and seeds of
+    ‖θ̃(end)‖/‖θ̃(0)‖, the RMS tracking error and RMS τ̃_d over the last 20 %, with the
+    runs that finished and that failed."""
+    import pandas as pd
+    key = ["noise_level", "payload_mass", "law"]
+    ok = df[df["status"] == "ok"]
+    cols = ["theta_error_ratio", "tracking_rms_last", "tau_d_error_rms_last"]
+    mean = (ok.groupby(key)[cols].mean() if len(ok) else
+            pd.DataFrame(columns=cols, index=pd.MultiIndex.from_tuples([], names=key)))
+    counts = df.groupby(key)["status"].agg(ok=lambda s: int((s == "ok").sum()),
+                                           failed=lambda s: int((s != "ok").sum()))
+    return counts.join(mean).reset_index()
+
+
+def conclusions(df) -> list[str]:
+    """One sentence per noise level and payload: each law's ‖θ̃(end)‖/‖θ̃(0)‖ and RMS τ̃_d,
+    IV-DREM's against the best other law's, or which runs diverged."""
+    lines = []
+    tab = summary_table(df)
+    for (lv, pm), g in tab.groupby(["noise_level", "payload_mass"]):
+        where = (f"noise level {lv:g}" + (" (exact q, q̇)" if lv == 0 else "")
+                 + f", payload {pm:g} kg")
+        parts, ratio = [], {}
+        for _, row in g.iterrows():
+            if row["ok"] == 0:
+                parts.append(f"{row['law']} diverged in every run")
+                continue
+            ratio[row["law"]] = row["theta_error_ratio"]
+            parts.append(f"{row['law']} ‖θ̃(end)‖/‖θ̃(0)‖ = {row['theta_error_ratio']:.3g}, "
+                         f"RMS τ̃_d {row['tau_d_error_rms_last']:.3g} N·m"
+                         + (f" ({int(row['failed'])} run(s) failed)" if row["failed"] else ""))
+        others = {k: v for k, v in ratio.items() if k != "iv-drem"}
+        verdict = ""
+        if "iv-drem" in ratio and others:
+            best = min(others, key=others.get)
+            f = others[best] / ratio["iv-drem"]
+            verdict = (f": IV-DREM's ratio is {f:.3g} times smaller than {best}'s" if f >= 1
+                       else f": IV-DREM's ratio is {1 / f:.3g} times larger than {best}'s")
+        lines.append(f"{where}: " + "; ".join(parts) + verdict + ".")
+    return lines
+
+
+def write_report(df, out, *, model="?", study_text="", wall_s=None, workers=1):
+    """``out/robustness.png`` and ``out/robustness.html`` (self-contained: the figure as
+    inline SVG, the conclusions, the summary table, the failed runs, the study file), each
+    written atomically."""
+    import io
+    from html import escape
+    from .._atomic import write_text_atomic
+    from ..reports.content import Table, fmt
+    from ..reports.study_report import _CSS, _html_table
+    fig = plot(df, out / "robustness.png", model=model, keep=True)
+    buf = io.StringIO()
+    fig.savefig(buf, format="svg")
+    svg = buf.getvalue()
+    svg = svg[svg.index("<svg"):]
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+    tab = summary_table(df)
+    summary = Table("summary", "Mean over disturbance scales and seeds",
+                    ["noise level", "payload (kg)", "law", "runs ok", "failed",
+                     "‖θ̃(end)‖/‖θ̃(0)‖", "RMS ‖e‖ last 20 % (rad)",
+                     "RMS ‖τ̃_d‖ last 20 % (N·m)"],
+                    [[fmt(r["noise_level"]), fmt(r["payload_mass"]), r["law"], str(r["ok"]),
+                      str(r["failed"])] + [fmt(r[c]) if r["ok"] else "–" for c in
+                                           ("theta_error_ratio", "tracking_rms_last",
+                                            "tau_d_error_rms_last")]
+                     for _, r in tab.iterrows()], [1] * 8,
+                    note="noise level 1: 2^18 counts per revolution, velocity by a filtered "
+                         "difference at 200 Hz, one sample of measurement delay; x: the "
+                         "encoder's quantum x times larger; 0: exact q, q̇.")
+    bad = df[df["status"] != "ok"]
+    failed = Table("failed", "Runs that failed", ["law", "noise level", "payload (kg)",
+                                                    "ω scale", "seed", "error"],
+                   [[r["law"], fmt(r["noise_level"]), fmt(r["payload_mass"]),
+                     fmt(r["omega_scale"]), str(r["seed"]), str(r["error"])]
+                    for _, r in bad.iterrows()], [1] * 6)
+    title = f"ivdrem robustness study: {model} in MuJoCo"
+    meta = [("plant", f"{model} in MuJoCo (ivdrem.plants.mujoco), the sampled C controller"),
+            ("runs", f"{len(df)} ({int((df['status'] == 'ok').sum())} ok)"),
+            ("workers", str(workers))]
+    if wall_s is not None:
+        meta.append(("wall time", f"{wall_s:.1f} s"))
+    parts = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+             '<meta name="generator" content="ivdrem robustness study">',
+             f"<title>{escape(title)}</title>", f"<style>{_CSS}</style>", "</head><body>",
+             f"<h1>{escape(title)}</h1>", '<table class="meta">']
+    parts += [f"<tr><th>{escape(a)}</th><td>{escape(b)}</td></tr>" for a, b in meta]
+    parts += ["</table>", '<section id="sec-conclusions"><h2>Conclusions</h2><ul>']
+    parts += [f"<li>{escape(line)}</li>" for line in conclusions(df)]
+    parts += ["</ul></section>", f'<figure id="robustness">{svg}</figure>',
+              _html_table(summary), _html_table(failed),
+              f"<section><h2>Study file</h2><pre>{escape(study_text)}</pre></section>",
+              "</body></html>\n"]
+    write_text_atomic(out / "robustness.html", "\n".join(parts))
+
+
+def rebuild_report(out):
+    """The report of a finished study in ``out`` again, from its results.csv and
+    study.toml (nothing is simulated)."""
+    import pandas as pd
+    out = Path(out)
+    df = pd.read_csv(out / "results.csv", keep_default_na=False,
+                     na_values={c: [""] for c in ("theta_error_ratio", "tracking_rms_last",
+                                                  "tau_d_error_rms_last")})
+    text = (out / "study.toml").read_text(encoding="utf-8")
+    from ..experiments.config import read_toml
+    raw, _ = read_toml(out / "study.toml", "study file")
+    write_report(df, out, model=raw.get("model", {}).get("name", "two-link"), study_text=text)
+    return df
+
+
+def plot(df, path, *, model="?", keep=False):
     """‖θ̃(end)‖/‖θ̃(0)‖, RMS tracking error and RMS τ̃_d against the noise level, one line
     per law and payload (mean over seeds and disturbance scales; exact sensing drawn at
     the left edge, level 0)."""
@@ -184,8 +356,11 @@ def plot(df, path, *, model="?"):
         ax.set_xlabel("noise level (1: 2^18 counts/rev, filtered difference, 1 sample delay)")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=8)
+    if len(ok):
+        axes[0].legend(fontsize=8)
     fig.suptitle(f"{model} in MuJoCo: robustness to sensing (leftmost points: exact q, q̇)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    if keep:
+        return fig
     plt.close(fig)

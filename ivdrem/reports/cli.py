@@ -41,6 +41,10 @@ def add_report_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
                         help="compiled (default: the C stepper over numba-compiled block "
                         "kernels) or reference (the C stepper calling python-control)")
     add_run_options(parser)
+    parser.add_argument("--plant", choices=("ivdrem", "mujoco"), default="ivdrem",
+                        help="ivdrem (default: the experiment on ivdrem's own plant) or mujoco "
+                             "(the arm in MuJoCo around the sampled C controller, "
+                             "docs/mujoco.md; writes ivdrem-mujoco.html/.pdf)")
     parser.add_argument("--no-fmu-check", action="store_true", dest="no_fmu_check",
                         help="skip the plant-FMU co-simulation check (needs a C compiler)")
     parser.add_argument("--fmu-check-t-end", type=float, default=10.0, metavar="SECONDS",
@@ -158,6 +162,9 @@ def run_report_command(args) -> int:
     returns the exit status (2: refused before any work, 1: a run or the write failed)."""
     from .report import ReportError
 
+    if getattr(args, "plant", "ivdrem") == "mujoco":
+        from ..plants.cli import run_mujoco_report
+        return run_mujoco_report(args)
     args.overwrite = getattr(args, "overwrite", False)
     args.allow_long = getattr(args, "allow_long", False)
     try:

@@ -40,7 +40,13 @@ touches structural nonzeros: the chain is a list of multiply-adds over slots of 
 array, each row's slots consecutive in column order so that the multiply-adds merge into
 runs over consecutive slots (a vectorised loop each; the UR5 loop's 2.08 million in 128,721
 runs), run by ``jac_chain`` in ``stepper.c``, which stores df/dx at its positions in the
-Newton matrix's filled LU pattern (``tables.jacobian_positions``).
+Newton matrix's filled LU pattern (``tables.jacobian_positions``).  A block's own Jacobian
+kernel is read row by row into consecutive factors, so that a row read through rows of a
+single entry (the mixing's derivatives with respect to the averaged Psi) is one run of
+factors and sources taken one each; and the factors this run's parameter values make
+exactly zero (an off-diagonal entry of a diagonal Gamma or K, :func:`_parameter_zeros`)
+are left out of the chain, while the pattern keeps their entries.  Neither changes a sum
+or its order: df/dx is the same bit for bit.
 """
 from __future__ import annotations
 
@@ -333,6 +339,49 @@ def _local_patterns(plan, seed):
     return patterns
 
 
+def _parameter_zeros(plan, patterns, *, seed=0, n_points=3):
+    """{block index: boolean mask (ny + nx, nx + nu)} of the structural entries (of the
+    local pattern, probed with random parameter values) that this run's own parameter
+    values make exactly zero at every state: an off-diagonal entry of a diagonal Gamma in
+    the adaptation law (on the Panda's loop 61,166 of the chain's 211,246 runs, 3.56 million
+    multiply-adds by an exact zero).  Only blocks with a Jacobian kernel of their own and a
+    parameter array holding an exact zero are looked at (an entry can be zero for the run's
+    values only through a parameter; nothing is left out of a block that has none), at
+    `n_points` random states and inputs, as the pattern's probe; the kernel is called once
+    per point.  The chain leaves their multiply-adds out (JacobianProgram); the pattern of
+    df/dx, and so the LU's, keeps them, so the run's values are the same bit for bit (the
+    chain skipped a zero factor before as well)."""
+    zeros = {}
+    for b in plan.blocks:
+        pat = patterns.get(b.index)
+        spec = b.spec
+        if pat is None or getattr(spec, "jacobian", None) is None or not pat.any():
+            continue
+        args = kernel_args(spec, plan.block_params(b))
+        if not any(np.ndim(a) > 0 and np.asarray(a).dtype.kind == "f"
+                   and (np.asarray(a) == 0.0).any() for a in args):
+            continue
+        nx, nu, ny = b.sys.nstates, b.sys.ninputs, b.sys.noutputs
+        jac = bind_model(spec.jacobian, spec.model)
+        rng = np.random.default_rng(seed + b.index)
+        zero = pat.copy()
+        try:
+            with np.errstate(all="ignore"):
+                for k in range(n_points):
+                    sign = 1.0 if k % 3 != 2 else rng.choice([-1.0, 1.0], size=nx + nu)
+                    v = sign * rng.uniform(0.5, 1.5, size=nx + nu)
+                    J = np.zeros((ny + nx, nx + nu))
+                    jac(0.7315, v[:nx].copy(), v[nx:].copy(), J, *args)
+                    if not np.all(np.isfinite(J)):
+                        raise ArithmeticError("not finite")
+                    zero &= J == 0.0
+        except (ValueError, ArithmeticError):
+            continue                # a kernel refusing a random point: nothing left out
+        if zero.any():
+            zeros[b.index] = zero
+    return zeros
+
+
 #: Jacobian programs of this process by the structure they are built from: every simulate()
 #: of a diagram (the calibration of gamma = "auto", then the run, then the report's) needs
 #: the same one, and building it took 3-5 s on the real arms (millions of multiply-adds
@@ -341,16 +390,22 @@ _PROGRAMS: OrderedDict = OrderedDict()
 _PROGRAMS_MAX = 8
 
 
-def _program_key(plan, patterns):
+def _program_key(plan, patterns, zeros=None):
     """A digest of everything a JacobianProgram reads of `plan`: the blocks' kinds, places
-    and sizes, direct inputs and whether they call the robot model, their local patterns,
-    the connection map with its gains and the evaluation order."""
+    and sizes, direct inputs, whether they call the robot model or have a Jacobian kernel,
+    their local patterns and the entries the run's parameters make zero
+    (:func:`_parameter_zeros`), the connection map with its gains and the evaluation
+    order."""
     h = hashlib.sha256()
+    for i, z in sorted((zeros or {}).items()):
+        h.update(repr(("zeros", i, z.shape)).encode())
+        h.update(np.packbits(z).tobytes())
     for b in plan.blocks:
         direct = (tuple(int(i) for i in b.direct_inputs) if b.spec.kind == "ode" else ())
         h.update(repr((b.index, b.spec.kind, b.x.start, b.sys.nstates, b.u.start,
                        b.sys.ninputs, b.y.start, b.sys.noutputs, direct,
-                       b.spec.model is not None)).encode())
+                       b.spec.model is not None,
+                       getattr(b.spec, "jacobian", None) is not None)).encode())
         pat = patterns.get(b.index)
         if pat is not None:
             h.update(repr(pat.shape).encode())
@@ -421,9 +476,13 @@ def _slots_by_row(rows, n_slots):
 
 def _runs(dst, f, src):
     """The multiply-adds S[dst] += F[f] * S[src] (F[f] alone where src < 0), in program
-    order, merged into runs of consecutive destinations: of consecutive sources under one
-    factor, or of consecutive factors added alone.  Merging keeps the order in which every
-    slot receives its terms, so the chain's sums are the same bit for bit."""
+    order, merged into runs of consecutive destinations of three kinds: consecutive sources
+    under one factor (run_src >= 0, their first), consecutive factors added alone (run_src =
+    -1), or consecutive factors times consecutive sources, one each (run_src = -2 - their
+    first source: a block's row read through single-entry rows, such as the mixing's
+    derivatives with respect to the averaged Psi, one run instead of one per entry).
+    Merging keeps the order in which every slot receives its terms, so the chain's sums are
+    the same bit for bit."""
     if dst.size == 0:
         z = np.zeros(0, dtype=np.int64)
         return z, z, z, z
@@ -434,7 +493,17 @@ def _runs(dst, f, src):
                                (f[1:] == f[:-1]) & (src[1:] == src[:-1] + 1))
     start = np.flatnonzero(~cont)
     length = np.diff(np.append(start, dst.size))
-    return dst[start], f[start], src[start], length.astype(np.int64)
+    d, g, s = dst[start], f[start], src[start]
+    # single multiply-adds next to each other in all three indices: elementwise runs
+    single = (length == 1) & (s >= 0)
+    each = np.zeros(d.size, dtype=bool)
+    each[1:] = (single[1:] & single[:-1] & (d[1:] == d[:-1] + 1) & (g[1:] == g[:-1] + 1)
+                & (s[1:] == s[:-1] + 1))
+    first = np.flatnonzero(~each)
+    merged = np.diff(np.append(first, d.size))
+    s = np.where(merged > 1, -2 - s[first], s[first])
+    length = np.add.reduceat(length, first) if first.size else length
+    return d[first], g[first], s, length.astype(np.int64)
 
 
 def _entries_by_row(entries):
@@ -458,7 +527,9 @@ class JacobianProgram:
       n_jb: number of local-Jacobian values
       run_dst, run_f, run_src, run_len: the chain's multiply-adds as runs, F = [JB, gains]:
           S[dst + k] += F[f] * S[src + k] for k < len (src >= 0), S[dst + k] += F[f + k]
-          (src = -1); n_ins the multiply-adds they hold; gains (float64)
+          (src = -1), S[dst + k] += F[f + k] * S[-2 - src + k] (src <= -2); n_ins the
+          multiply-adds they hold (those of the factors _parameter_zeros finds left out);
+          gains (float64)
       n_slots, j_row, j_col, j_slot: the entry (j_row, j_col) of df/dx is slot j_slot of
           the chain (tables.jacobian_positions places it in the LU pattern's order)
       pattern: boolean n x n structural pattern of df/dx
@@ -468,7 +539,8 @@ class JacobianProgram:
 
     def __init__(self, plan, *, seed=0):
         patterns = _local_patterns(plan, seed)
-        key = _program_key(plan, patterns)
+        zeros = _parameter_zeros(plan, patterns, seed=seed)
+        key = _program_key(plan, patterns, zeros)
         hit = _PROGRAMS.get(key)
         if hit is not None:             # the same structure: the same program, bit for bit
             _PROGRAMS.move_to_end(key)
@@ -478,7 +550,7 @@ class JacobianProgram:
             return
         path = _program_path(key)
         if not self._read(path, plan, patterns):
-            self._build(plan, patterns)
+            self._build(plan, patterns, zeros)
             self._write(path)
         for v in self.__dict__.values():
             if isinstance(v, np.ndarray):
@@ -535,7 +607,7 @@ class JacobianProgram:
         except OSError:
             pass
 
-    def _build(self, plan, patterns):
+    def _build(self, plan, patterns, zeros=None):
         self.plan = plan
         n = plan.x0.size
         self.n = n
@@ -546,6 +618,7 @@ class JacobianProgram:
         fd = dict(blk=[], x0=[], nx=[], u0=[], nu=[], ny=[], y0=[], central=[])
         g_ptr, gc_ptr, cols, e_ptr, e_row, e_slot = [0], [0], [], [0], [], []
         g_kind = []         # per group: 0 output kernel, 1 update kernel
+        dropped = []        # the slots of entries the run's parameters make exactly zero
         self.fd_blocks = []
         self.patterns = patterns  # block index -> its local pattern (ny + nx, nx + nu)
         for b in plan.blocks:
@@ -559,14 +632,18 @@ class JacobianProgram:
                 continue
             # the output kernel and the update kernel are differenced apart, each with its
             # own column groups (a column that only moves outputs costs no update call)
-            entries = []
+            groups = []             # (kernel, [(column, [rows])]) in the order differenced
             for kind, lo, hi in ((0, 0, ny), (1, ny, ny + nx)):
                 rows_of_col = {c: set((lo + np.flatnonzero(pat[lo:hi, c])).tolist())
                                for c in range(nx + nu) if pat[lo:hi, c].any()}
                 for grp in _color(rows_of_col):
-                    for c in grp:
+                    groups.append((kind, [(c, sorted(rows_of_col[c])) for c in grp]))
+            if getattr(spec, "jacobian", None) is None:
+                entries = []
+                for kind, grp in groups:
+                    for c, rows in grp:
                         cols.append(c)
-                        for r in sorted(rows_of_col[c]):
+                        for r in rows:
                             e_row.append(r)
                             e_slot.append(jb)
                             entries.append((r, c, jb))
@@ -574,6 +651,27 @@ class JacobianProgram:
                         e_ptr.append(len(e_row))
                     gc_ptr.append(len(cols))
                     g_kind.append(kind)
+            else:
+                # a block with its own Jacobian kernel is not differenced: its entries are
+                # read from the kernel's buffer row by row (the buffer's order) into slots
+                # numbered in that order, so that the factors of one row are consecutive
+                # in F (the chain's elementwise runs, _runs); the chain still takes them
+                # in the order above, so every sum keeps its order
+                order = [(r, c) for _, grp in groups for c, rows in grp for r in rows]
+                by_row = sorted(order)
+                slot = {rc: jb + k for k, rc in enumerate(by_row)}
+                entries = [(r, c, slot[(r, c)]) for r, c in order]
+                zero = (zeros or {}).get(b.index)
+                if zero is not None:
+                    dropped.extend(slot[(r, c)] for r, c in order if zero[r, c])
+                for r, c in by_row:
+                    cols.append(c)
+                    e_row.append(r)
+                    e_slot.append(slot[(r, c)])
+                    e_ptr.append(len(e_row))
+                jb += len(order)
+                gc_ptr.append(len(cols))
+                g_kind.append(0)
             g_ptr.append(len(gc_ptr) - 1)
             local[b.index] = entries
             self.fd_blocks.append(b)
@@ -671,6 +769,9 @@ class JacobianProgram:
         rows = {id(r): r for r in (*yrow, *urow.values(), *jrows.values())}
         renumber = _slots_by_row(rows.values(), self.n_slots)
         ins = np.asarray(ins, dtype=np.int64).reshape(-1, 3)
+        # a factor that is exactly zero for this run's parameters adds nothing: its
+        # multiply-adds are left out (the entries of df/dx they reach stay in the pattern)
+        ins = ins[~np.isin(ins[:, 1], np.asarray(dropped, dtype=np.int64))]
         self.n_ins = int(ins.shape[0])
         self.run_dst, self.run_f, self.run_src, self.run_len = _runs(
             renumber[ins[:, 0]], ins[:, 1], np.where(ins[:, 2] >= 0, renumber[ins[:, 2]], -1))

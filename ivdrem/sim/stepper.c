@@ -502,8 +502,9 @@ static int push_history(Ctx *c, double t) {
 
 /* ------------------------------------------------------------ sparse kernels */
 /* the chain rule's multiply-adds, run by run (ivdrem/sim/jacobian.py, _runs): a run of
- * consecutive destinations takes one factor times consecutive sources, or consecutive
- * factors alone (src < 0); the runs never overlap their sources */
+ * consecutive destinations takes one factor times consecutive sources (src >= 0),
+ * consecutive factors alone (src = -1), or consecutive factors times consecutive sources,
+ * one each (src = -2 - the first source); the runs never overlap their sources */
 static void jac_chain(const double *F, double *S, i64 nS, jvec dst, jvec fidx, jvec src,
                       jvec len, jvec j_pos, jvec j_slot, double *J) {
     for (i64 i = 0; i < nS; i++) S[i] = 0.0;
@@ -512,7 +513,14 @@ static void jac_chain(const double *F, double *S, i64 nS, jvec dst, jvec fidx, j
         i64 m = len.p[r];
         if (src.p[r] < 0) {
             const double *restrict g = F + fidx.p[r];
-            for (i64 k = 0; k < m; k++) d[k] += g[k];
+            if (src.p[r] == -1) {
+                for (i64 k = 0; k < m; k++) d[k] += g[k];
+            } else {
+                /* a factor that is 0 adds +-0 to a sum that starts at +0 and so is never
+                 * -0: the same values as skipping it, as the runs of one factor do */
+                const double *restrict s = S + (-2 - (i64)src.p[r]);
+                for (i64 k = 0; k < m; k++) d[k] += g[k] * s[k];
+            }
         } else {
             /* a factor that is 0 now (an off-diagonal entry of a diagonal Gamma: 1.7 of the
              * UR5 loop's 2.08 million multiply-adds) adds nothing: skipped */

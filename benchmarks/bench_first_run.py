@@ -1,0 +1,169 @@
+#!/usr/bin/env python
+"""A new user's first Panda run, before and after, side by side (docs/performance.md, "First
+run"), and γ "auto" from the reference estimate against the calibration run.
+
+Rows (``--rows``): ``ivdrem paper --config examples/panda.toml --t-end 1 --laws iv-drem`` as a
+new user types it, once with an empty compile cache (``IVDREM_CACHE_DIR`` a new directory:
+numba's machine code, the models' code, the C libraries, the calibrations all start empty)
+and once again warm; wall seconds and peak resident memory of the whole command
+(``/usr/bin/time -v``, children included), for this checkout and for ``--commit`` (default
+dca66b6, the code before this change) checked out into a temporary git worktree and run with
+this checkout's venv.  The two versions alternate.
+
+``--gamma``: per arm, γ "auto" of IV-DREM from the reference estimate (no loop simulated,
+the default for the "eigen" and "channel" mixings) and from the calibration run over [0, 2T]
+(the rule before this change, ``calibration={"source": "run"}``), with the seconds each took.
+
+Usage::
+
+    ./run python benchmarks/bench_first_run.py --rows              # first run and warm, before/after
+    ./run python benchmarks/bench_first_run.py --rows --t-end 300  # the 300 s run's memory
+    ./run python benchmarks/bench_first_run.py --gamma --arms two-link,planar-3,planar-4,planar-5,planar-6,ur5,panda
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+try:
+    import ivdrem  # noqa: F401
+except ImportError:
+    sys.path.insert(0, str(REPO))
+
+
+def _timed(cmd, cwd, env):
+    """(wall s, peak RSS MiB, exit status, output tail) of `cmd` under /usr/bin/time -v."""
+    t0 = time.perf_counter()
+    out = subprocess.run(["/usr/bin/time", "-v", *cmd], cwd=cwd, env=env, capture_output=True,
+                         text=True)
+    wall = time.perf_counter() - t0
+    m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", out.stderr)
+    rss = int(m.group(1)) / 1024 if m else float("nan")
+    return wall, rss, out.returncode, (out.stdout + out.stderr)[-1500:]
+
+
+def first_run_rows(tree, label, t_end, cache):
+    """The first run (empty cache) and the warm run of the Panda command in `tree`."""
+    env = dict(os.environ, IVDREM_CACHE_DIR=str(cache), PYTHONPATH=str(tree),
+               OPENBLAS_NUM_THREADS="1")
+    env.pop("NUMBA_CACHE_DIR", None)
+    cmd = [sys.executable, "-m", "ivdrem", "paper", "--config", "examples/panda.toml",
+           "--t-end", f"{t_end:g}", "--laws", "iv-drem", "--quiet"]
+    rows = []
+    for kind in ("first", "warm"):
+        wall, rss, rc, tail = _timed(cmd, tree, env)
+        if rc != 0:
+            raise RuntimeError(f"{label} {kind} run failed (exit {rc}):\n{tail}")
+        theta = re.search(r"theta_hat\(t_end\)[^\n]*", tail)
+        rows.append(dict(version=label, run=kind, wall_s=wall, peak_MiB=rss,
+                         theta=theta.group(0) if theta else None))
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def gamma_rows(arms):
+    """γ "auto" of IV-DREM per arm from the reference estimate and from the calibration run."""
+    import numpy as np
+    from ivdrem.diagrams.gamma_auto import calibrate_gamma
+    import importlib
+    cl = importlib.import_module("ivdrem.diagrams.closed_loop")
+    from ivdrem import laws
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from bench_arms import _experiment, resolve_model
+
+    rows = []
+    for spec in arms:
+        arm, _, variant = spec.partition(":")
+        model = resolve_model(arm)
+        variant = variant or ("eigen" if model.name != "two-link" else "paper")
+        exp = {} if model.name == "two-link" else _experiment(model)
+        law = laws.get_law("iv-drem")
+        args = _calibration_args(cl, law, model, variant, exp)
+        row = dict(arm=model.name, ntheta=model.ntheta, mixing=variant)
+        for source in ("run", "reference"):
+            t0 = time.perf_counter()
+            out = calibrate_gamma("iv-drem", model, args, method="rodas5p", source=source)
+            row[f"gamma_{source}"] = out["gamma"]
+            row[f"s_{source}"] = time.perf_counter() - t0
+        g_run = np.atleast_1d(row["gamma_run"])
+        g_ref = np.atleast_1d(row["gamma_reference"])
+        row["max_rel_diff"] = float(np.max(np.abs(g_ref / g_run - 1.0)))
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return rows
+
+
+def _calibration_args(cl, law, model, variant, exp):
+    """The arguments closed_loop hands calibrate_gamma for `model` (its experiment designed
+    as closed_loop designs it)."""
+    kw = dict(trajectory=exp.get("trajectory"), disturbance=exp.get("disturbance"),
+              q0=exp.get("q0"), dq0=exp.get("dq0"), K=None, T=exp.get("T"))
+    if model.name != "two-link":
+        traj, dist, q0, dq0, K, T = cl._arm_experiment(model, law, None, kw["trajectory"],
+                                                       kw["disturbance"], kw["q0"], kw["dq0"],
+                                                       None, kw["T"])
+        kw.update(trajectory=traj, disturbance=dist, q0=q0, dq0=dq0, K=K, T=T)
+    else:
+        kw.update(trajectory=cl.PAPER_TRAJECTORY, disturbance=cl.PAPER_DISTURBANCE,
+                  q0=[0.0, 0.3 * 3.141592653589793], K=2.0)
+    return dict(alpha=1.0, K=kw["K"], delta_mu=0.8, Gamma=0.01, mu0=1.0, mu1=15.0,
+                observer_variant="corrected", l=50.0, T=kw["T"], p=None, F0=None,
+                mixing=variant, epsilon=None, sigma=None, theta_star=None, theta_hat0=None,
+                q0=kw["q0"], dq0=kw["dq0"], theta=None, trajectory=kw["trajectory"],
+                disturbance=kw["disturbance"], replace=None, external_plant=False,
+                law_params=None)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rows", action="store_true", help="first run and warm run, before/after")
+    ap.add_argument("--commit", default="dca66b6")
+    ap.add_argument("--t-end", type=float, default=1.0)
+    ap.add_argument("--gamma", action="store_true", help="γ auto: reference estimate vs run")
+    ap.add_argument("--arms", default="two-link,planar-3,planar-4,planar-5,planar-6,ur5,panda")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+    out = {"uptime": os.getloadavg()}
+    if a.gamma:
+        out["gamma"] = gamma_rows([x for x in a.arms.split(",") if x])
+    if a.rows:
+        tmp = Path(tempfile.mkdtemp(prefix="ivdrem-first-run-"))
+        before = tmp / "before"
+        subprocess.run(["git", "worktree", "add", "--detach", str(before), a.commit], cwd=REPO,
+                       check=True, capture_output=True)
+        try:
+            rows = []
+            for tree, label in ((before, f"before ({a.commit})"), (REPO, "after")):
+                rows += first_run_rows(tree, label, a.t_end, tmp / f"cache-{tree.name}")
+            out["rows"] = rows
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
+                           capture_output=True)
+            shutil.rmtree(tmp, ignore_errors=True)
+        print(f"\n{'version':<22} {'run':<6} {'wall s':>8} {'peak MiB':>9}")
+        for r in out["rows"]:
+            print(f"{r['version']:<22} {r['run']:<6} {r['wall_s']:>8.1f} {r['peak_MiB']:>9.0f}")
+    if a.gamma:
+        print(f"\n{'arm':<10} {'nθ':>3} {'mixing':<7} {'γ run (today)':>14} {'γ reference':>12} "
+              f"{'max rel diff':>12} {'run s':>7} {'ref s':>6}")
+        for r in out["gamma"]:
+            g = lambda v: f"{v:.4g}" if not isinstance(v, list) else f"{min(v):.3g}..{max(v):.3g}"
+            print(f"{r['arm']:<10} {r['ntheta']:>3} {r['mixing']:<7} {g(r['gamma_run']):>14} "
+                  f"{g(r['gamma_reference']):>12} {r['max_rel_diff']:>12.2%} "
+                  f"{r['s_run']:>7.1f} {r['s_reference']:>6.1f}")
+    out["uptime_end"] = os.getloadavg()
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
