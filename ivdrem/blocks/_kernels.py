@@ -581,8 +581,9 @@ def mixing_values(code, Y, Psi, f_rel, guard, Delta, calY, logD):
     n = Y.shape[0]
     nrm = _frobenius(Psi)
     s = 1.0 + nrm
-    # P, then the LU route's scratch (P^-1 and one vector): one allocation per call
-    work = np.empty((2 * n + 1, n))
+    # P, then (the paper's variant) the LU route's scratch, P^-1 and one vector: one
+    # allocation per call, and the other variants' as before
+    work = np.empty((2 * n + 1, n)) if code == 0 else np.empty((n, n))
     P = work[:n]
     for i in range(n):
         for j in range(n):
