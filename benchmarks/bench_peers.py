@@ -43,9 +43,15 @@ import time
 import warnings
 from pathlib import Path
 
-import numpy as np
-from numba import njit
-from scipy.integrate import solve_ivp
+# one BLAS thread, as ivdrem's stepper runs on one: OpenBLAS's spinning worker threads made
+# scipy Radau's LU calls 10-20x slower on this 2-core machine under a load of 5-20 (set
+# before numpy loads OpenBLAS; a caller's own setting is kept)
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+from numba import njit  # noqa: E402
+from scipy.integrate import solve_ivp  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 try:

@@ -408,3 +408,93 @@ def test_lu_helpers_against_numpy():
     d, logd, rc = lu_inverse(A, LU, piv, inv)
     assert d == 0.0 and logd == pytest.approx(np.linalg.slogdet(A)[1] / np.log(10.0),
                                               rel=1e-12)
+
+
+def test_lu_inverse_columns_are_lu_solve_bit_for_bit():
+    """lu_inverse_into solves the identity's columns side by side: each column is the
+    value lu_solve gives for that column alone, bit for bit (the same operations in the
+    same order), so the route test of the mixing reads the same 1/cond_1 as before."""
+    from ivdrem.blocks._kernels import lu_factor, lu_inverse_into, lu_solve
+    rng = np.random.default_rng(7)
+    for n in (1, 2, 5, 9, 20):
+        for cond in (1.0, 1e4, 1e9):
+            A = _conditioned(n, cond, rng) if n > 1 else rng.standard_normal((1, 1))
+            LU, piv = A.copy(), np.empty(n, np.int64)
+            assert lu_factor(LU, piv)
+            X = np.full((n, n), np.nan)
+            lu_inverse_into(LU, piv, X)
+            for j in range(n):
+                e = np.zeros(n)
+                e[j] = 1.0
+                lu_solve(LU, piv, e)
+                assert np.array_equal(X[:, j], e), (n, cond, j)
+
+
+@pytest.mark.parametrize("n", [2, 5, 20, 43])
+@pytest.mark.parametrize("cond", [1e0, 1e3, 1e8, 1e12])
+def test_rcond_lower_bound_is_below_the_exact_value(n, cond):
+    """lu_rcond_lower_bound (comparison matrices of the LU factors, O(n^2)) never exceeds
+    1/cond_1 computed in mpmath from the matrix itself; at the paper's sizes (n <= 5) it
+    stays within a factor 1e3 of it, so the mixing's LU route skips the exact n solves
+    wherever 1/cond_1 is well above LU_MIN_RCOND (at n = 20 and 43 the bound of L's
+    comparison matrix grows like 2^n and the exact test decides); an exactly singular
+    factor gives 0."""
+    from ivdrem.blocks._kernels import lu_factor, lu_rcond_lower_bound
+    rng = np.random.default_rng(int(n * 17 + np.log10(cond)))
+    A = _conditioned(n, cond, rng)
+    LU, piv = A.copy(), np.empty(n, np.int64)
+    assert lu_factor(LU, piv)
+    lb = lu_rcond_lower_bound(LU, np.abs(A).sum(axis=0).max(), np.empty(n))
+    with mp.workdps(60):
+        M = mp.matrix(A.tolist())
+        exact = float(1 / (mp.mnorm(M, 1) * mp.mnorm(M ** -1, 1)))
+    assert 0.0 < lb <= exact
+    if n <= 5:
+        assert exact / lb <= 1e3, f"bound {lb:.3e} against {exact:.3e}"
+    Z = np.ones((3, 3))
+    LU, piv = Z.copy(), np.empty(3, np.int64)
+    lu_factor(LU, piv)                       # a zero pivot: factored in part
+    LU[2, 2] = 0.0
+    assert lu_rcond_lower_bound(LU, 3.0, np.empty(3)) == 0.0
+
+
+def test_paper_route_unchanged_by_the_cheap_bound():
+    """The LU route decided by the O(n^2) bound first is the route the exact 1/cond_1
+    decides: matrices on both sides of LU_MIN_RCOND (and near it) give Delta, calY and
+    log10|Delta| bit for bit equal to the route taken from the exact test alone."""
+    from ivdrem.blocks._kernels import (LU_MIN_RCOND, lu_factor, lu_rcond, lu_det,
+                                        lu_solve, _frobenius, _norm1)
+    rng = np.random.default_rng(3)
+    routes = set()
+    for n in (3, 5, 12):
+        for cond in (1e1, 1e6, 3e8, 1e9, 3e9, 1e12):
+            Psi = _conditioned(n, cond, rng) * rng.uniform(0.1, 10.0)
+            Y = rng.standard_normal(n)
+            D, calY, L = run_values("paper", Y, Psi)
+            # the route from the exact test alone, and its values computed here
+            s = 1.0 + _frobenius(Psi.ravel())
+            P = Psi / s
+            LU, piv = P.copy(), np.empty(n, np.int64)
+            lu_ok = bool(lu_factor(LU, piv)) and lu_rcond(
+                LU, piv, _norm1(P), np.empty((n, n))) >= LU_MIN_RCOND
+            routes.add(lu_ok)
+            if lu_ok:
+                d, logd = lu_det(LU, piv)
+                x = Y.copy()
+                lu_solve(LU, piv, x)
+                ref = d * x / s
+            else:                        # the signed SVD's det and adjugate
+                C = np.empty((n, n))
+                d = det_adj(P, C)
+                ref = np.array([sum_in_order(C[i], Y) for i in range(n)]) / s
+            assert D[0] == d, (n, cond, lu_ok)
+            assert np.array_equal(calY, ref), (n, cond, lu_ok)
+    assert routes == {True, False}           # both sides of the threshold were met
+
+
+def sum_in_order(a, b):
+    """sum_j a_j b_j accumulated left to right (the kernels' order)."""
+    acc = 0.0
+    for u, v in zip(a, b):
+        acc += float(u) * float(v)
+    return acc

@@ -130,7 +130,12 @@ static inline void copy_into(double *dst, i64 d0, const double *src, i64 s0, i64
     for (i64 i = 0; i < n; i++) dst[d0 + i] = src[s0 + i];
 }
 
-static inline i64 hist_index(const i64 *meta, i64 i) { return (meta[0] + i) % meta[2]; }
+/* the ring position of the history's point i (0 <= i < count <= capacity, start <
+ * capacity: one subtraction, not a division; the lookup's binary search takes a dozen) */
+static inline i64 hist_index(const i64 *meta, i64 i) {
+    i64 k = meta[0] + i;
+    return k >= meta[2] ? k - meta[2] : k;
+}
 
 static double quad_slope(double ta, double va, double tb, double vb, double tc, double vc) {
     return (va * (2.0 * ta - tb - tc) / ((ta - tb) * (ta - tc))
