@@ -170,6 +170,9 @@ def test_gamma_auto_is_calibrated_once_per_law_before_any_run(tmp_path, monkeypa
         return real_run(*a, **k)
     monkeypatch.setattr(gamma_auto, "calibrate_gamma", counting)
     monkeypatch.setattr(paper, "run_paper", run_paper)
+    # the calibration run (the paper's mixing's route): planar-3's "eigen" would take the
+    # reference estimate, which simulates nothing (tests/test_gamma_reference.py)
+    monkeypatch.setattr(gamma_auto, "REFERENCE_MIXINGS", ())
     _fresh_calibrations(monkeypatch, tmp_path)
     events = _record_simulations(monkeypatch)
     out = tmp_path / "o.json"
@@ -199,6 +202,7 @@ def test_a_gain_its_calibration_refuses_stops_the_command_before_any_run(tmp_pat
             raise gamma_auto.GainRuleError("gamma = 'auto' refused for the test (drem)")
         return real(t, delta, *a, **k)
     monkeypatch.setattr(gamma_auto, "gamma_from_delta", refuse_drem)
+    monkeypatch.setattr(gamma_auto, "REFERENCE_MIXINGS", ())     # the calibration run's route
     events = _record_simulations(monkeypatch)
     from pathlib import Path
     cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"

@@ -179,7 +179,9 @@ def test_both_engines_agree_on_the_inertia_scaled_loop():
 
 def test_configuration_selects_the_design_with_the_sampled_controllers_gains():
     """[controller] design = "inertia-scaled": the continuous loop's K is the configured
-    joint gain over M̂_ii(q0), the sampled controller's K before its cap for the step h."""
+    joint gain over M̂_ii(q0), the sampled controller's K that gain within its delay rule
+    (floor GAIN_FLOOR, cap h (K + (1 + δ_μ) μ_max) <= 0.5 for the FMU's one-sample delay)."""
+    from ivdrem.controller.sampled import GAIN_FLOOR, gain_budget
     from ivdrem.controller.fmu_export import controller_design
     from ivdrem.experiments.config import closed_loop_kwargs, load_config
     m = get_model("ur5")
@@ -193,8 +195,10 @@ def test_configuration_selects_the_design_with_the_sampled_controllers_gains():
     want = np.asarray(config["controller"]["K"], float) / np.diag(M)
     np.testing.assert_allclose(np.diag(kw["K"]), want, rtol=1e-13)
     sampled = controller_design(config, "iv-drem", h=1e-3)
-    cap = 0.5 / 1e-3 - DELTA_MU * sampled.get("mu_max", 135.0)
-    np.testing.assert_allclose(np.diag(sampled["K"]), np.minimum(want, cap), rtol=1e-13)
+    cap = gain_budget(1) / 1e-3 - (1.0 + DELTA_MU) * sampled.get("mu_max", 135.0)
+    np.testing.assert_allclose(np.diag(sampled["K"]), np.minimum(np.maximum(want, GAIN_FLOOR),
+                                                                 cap), rtol=1e-13)
+    assert cap == pytest.approx(257.0) and np.all(np.diag(sampled["K"]) >= GAIN_FLOOR)
 
 
 # ----------------------------------------------------------------------- sampled → continuous

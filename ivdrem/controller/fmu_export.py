@@ -405,7 +405,7 @@ def controller_design(config, law, *, h=None, mu_max=None):
     if mu_max is not None:
         out["mu_max"] = float(mu_max)
     from ..experiments.config import model_from_config
-    from .sampled import default_design, default_mixing, inertia_scaled_gains
+    from .sampled import GRADIENT_GAIN, default_design, default_mixing, inertia_scaled_gains
     model = model_from_config(config)
     if out.get("mixing", default_mixing(model)) != "paper" and law in ("iv-drem", "drem"):
         # the scale-free mixing of a real arm's tens of parameters is a Jacobi SVD: spread
@@ -425,6 +425,12 @@ def controller_design(config, law, *, h=None, mu_max=None):
             delta_mu=out.get("delta_mu", sig["delta_mu"].default),
             mu_max=out.get("mu_max", sig["mu_max"].default),
             theta=np.asarray(config["model"]["theta"], dtype=float)))
+        if "Gamma" in out:
+            # the sampled design's Γ of (11): the gradient term alone moves θ̂ until the
+            # window is full, and where it moves M(q, θ̂) the observer's injection of (8)
+            # outgrows the per-step budget with the host's one-sample delay ("Sampled
+            # designs"); γ = "auto" follows it (resolve_gamma: the composite rate Γ γ Δ² kept)
+            out["Gamma"] = GRADIENT_GAIN * np.eye(model.ntheta)
     return out
 
 
@@ -465,14 +471,17 @@ def check_generated(model):
 
 def resolve_gamma(model, law, design, config):
     """γ = "auto" resolved to a number by the continuous loop's rule
-    (:func:`ivdrem.diagrams.gamma_auto.calibrate_gamma` on the configuration's closed loop,
-    the same γ `ivdrem paper` takes, cached with it): returns (design with γ a number, the
+    (:func:`ivdrem.diagrams.gamma_auto.calibrate_gamma` on the configuration's closed loop
+    with the design's Γ, the same γ `ivdrem paper` takes when Γ is the configuration's,
+    cached with it): returns (design with γ a number, the
     calibration's record or None)."""
     if design.get("gamma") != "auto":
         return design, None
     from ..diagrams.gamma_auto import calibrate_gamma
     from ..experiments.config import closed_loop_kwargs
     args = {k: v for k, v in closed_loop_kwargs(config, law).items() if k != "gamma"}
+    if "Gamma" in design:           # the sampled design's own Γ (controller_design)
+        args["Gamma"] = np.asarray(design["Gamma"], dtype=float)
     choice = calibrate_gamma(law, model, args)
     return {**design, "gamma": float(choice["gamma"])}, choice
 

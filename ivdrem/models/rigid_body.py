@@ -979,9 +979,11 @@ C_KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_fo
              _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics)
 
 #: The kernels _rb_std calls (printed again in double complex for _rb_Phi_dM_jac's complex
-#: step), and the regressors' derivatives: the compiled engine's C library of a model.
+#: step): part of the compiled engine's C library of a model.
 C_STD_KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
                  _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_std)
+#: The regressors' derivatives in q and q̇: the rest of the compiled engine's C library of a
+#: model (:mod:`ivdrem.models._c_engine`).
 C_JAC_KERNELS = (_rb_Phi_M_jac, _rb_Phi_C_jac, _rb_Phi_dM_jac, _rb_Phi_G_jac, _rb_Phi_F_jac,
                  _rb_Phi_jac)
 

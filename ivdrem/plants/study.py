@@ -26,7 +26,7 @@ ratio, the tracking error and τ̃_d RMS over the last 20 %, costs, wall time, s
 noise level, one line per law and payload), ``robustness.html`` (the figure, the
 conclusions per noise level and payload, the mean table, the failed runs) and
 ``study.toml`` (the file as given).  A run that fails is a row with its error; the others
-go on.
+go on. From the command line::
 
     ivdrem study examples/panda-robustness.toml [--workers 2] [--out DIR] [--no-report]
     ivdrem cosim --plant mujoco --study FILE [--workers 2] [--out DIR] [--t-end T]
