@@ -7,7 +7,10 @@ advanced over [t_k, t_k + h] with the sampled inputs held (zero-order hold):
 * reference q_d(t) = A sin(w t + phi) + c generated inside (the paper's sinusoid);
 * e = q_d - q, r = de + alpha e, v = dq_d + alpha e, dv = ddq_d + alpha de;
 * Pi^T (8), the control law (9) tau = (K + delta_mu mu) r + Pi^T theta_hat - u_f, saturated
-  at +-tau_max, and tau_d_hat (Section 4; docs/conventions.md);
+  at +-tau_max, and tau_d_hat (Section 4; docs/conventions.md); with ``injection =
+  "nominal"`` the observer's injection mu (Phi_M^T(q, r) - Phi_Mf^T) theta is taken at
+  theta_nominal and Pi^T is Pi_X^T = Phi^T - Phi_f^T (docs/controller.md, "The observer on
+  the nominal inertia");
 * the observer (7) (Phi_f, Phi_Mf with erratum E1, u_f), the regression filters (13) and the
   instrument (14) by their exact update (:func:`ivdrem.controller.discrete.filter_step`);
   xi and eta of (13) filter functions of q, dq, which move between samples: they take

@@ -16,18 +16,21 @@ algorithm changes the prediction with it:
   n-vector of :meth:`SampledController.state` (the observer's u_f of (7), the filtered
   torque z_f of (13) ...) and every n × nθ filter (Φ_f, Φ_Mf of (7), ξ, η of (13), ζ of
   (14)) seen through θ̂ (its coordinate S θ̂: the torque (9) reads these filters only as
-  Πᵀθ̂, and each is affine in itself, so S θ̂ is a state of its own);
+  Πᵀθ̂, and each is affine in itself, so S θ̂ is a state of its own), Φ_Mf through
+  θ_nominal under the injection "nominal" (the torque reads Φ_Mf θ_nominal then);
+  ``gravity = "robot"``: the plant adds G(q) itself, as the robot does;
 * frozen: θ̂ (the adaptation (11) moves it at the rate Γ, far slower than a sample), the window (15a), the averaging (15b) and the mixing (17)
   (they reach the torque through θ̂ only, so the map is computed with the law's composite
   term left out: the controller of law "none" with the same gains);
 * operating points, two kinds: (a) states of the closed loop itself, simulated over the
   gradient phase (:func:`closed_loop_prefix`: until the window (15a) is full the composite
   term of (21) is 0, and θ̂ moves by the gradient term Γ Π r of (11) alone), each with the
-  run's own θ̂: the map depends on θ̂ through the observer's injection μ Φ_Mᵀ(q, r) θ̂ =
-  μ M(q, θ̂) r of (8), a velocity feedback whose per-step gain h μ ν(θ̂) (ν the largest
-  generalised eigenvalue of M(q, θ̂) against M(q)) is what made the iiwa and the xArm7
-  diverge with the FMU's one-sample delay while the reference points said 0.999
-  (docs/controller.md, "Sampled designs"); (b) the arm on the reference, q = q_d(t),
+  run's own θ̂: with the injection "estimate" the map depends on θ̂ through the observer's
+  injection μ Φ_Mᵀ(q, r) θ̂ = μ M(q, θ̂) r of (8), a velocity feedback whose per-step gain
+  h μ ν(θ̂) (ν the largest generalised eigenvalue of M(q, θ̂) against M(q)) is what made
+  the iiwa and the xArm7 diverge with the FMU's one-sample delay while the reference
+  points said 0.999, and the xArm7 again past T (docs/controller.md, "Sampled designs");
+  (b) the arm on the reference, q = q_d(t),
   q̇ = q̇_d(t), holding the torque the reference needs (the inverse dynamics with the true
   θ, less the disturbance, so the plant's q̈ = q̈_d), at :data:`POINTS` times spread over
   the horizon (μ(t) of (7)-(9) grows with t) with θ̂₀ and θ.  Every filter of the
