@@ -53,7 +53,8 @@ def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c",
     try:
         rec = sampled_loop(ctl, plant, t_end, disturbance=dist, every=int(round(0.1 / h)))
     except (FloatingPointError, ValueError, RuntimeError) as exc:
-        return dict(arm=name, h=h, design=design, injection=injection, diverged=f"{type(exc).__name__}: {exc}"[:300],
+        return dict(arm=name, h=h, design=design, injection=injection,
+                    diverged=f"{type(exc).__name__}: {exc}"[:300],
                     wall=time.perf_counter() - t0)
     wall = time.perf_counter() - t0
     ref = SampledController(m, "none", trajectory=traj, h=h)

@@ -213,7 +213,8 @@ def generate_controller_sources(model, defaults=None) -> dict:
  *   block, law, delay, corrected, design, mixing, mix_every, gravity, ref_kind: give those
  *   to ivc_init).
  * The command tau_k: the law's (9) (design 1: its feedback scaled by M(q, theta_nominal);
- *   injection 1: the observer's injection of (8) at theta_nominal), minus G(q, theta_nominal) with gravity 1 (the robot adds its own), clipped at +-tau_max,
+ *   injection 1: the observer's injection of (8) at theta_nominal), minus
+ *   G(q, theta_nominal) with gravity 1 (the robot adds its own), clipped at +-tau_max,
  *   within h tau_rate_max of tau_k-1, 0 at k = 0 with first_zero (docs/controller.md).
  * ivc_reset(c): back to t = 0.  ivc_window_bytes(c): memory of the window.
  */
