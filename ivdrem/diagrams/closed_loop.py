@@ -62,7 +62,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
                 F0=None, gamma=None, mixing=None, epsilon=None, sigma=None, theta_star=None,
                 theta_hat0=None, q0=None, dq0=None, theta=None, trajectory=None,
                 disturbance=None, replace=None, external_plant=False, law_params=None,
-                calibration=None, design=None, theta_nominal=None):
+                calibration=None, design=None, theta_nominal=None, injection=None):
     """The paper's closed loop with composite term `law`, as one InterconnectedSystem.
 
     Parameters are the paper's experiment by default (K = 2); the law's own gains (T, p, F0,
@@ -101,7 +101,10 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
     default its theta_values; K in 1/s): the sampled controller's design
     (:class:`~ivdrem.controller.sampled.SampledController`) in continuous time
     (docs/controller.md, "The inertia-scaled design in continuous time").  With K left at
-    None on a real arm, the experiment's joint gains become K_i / M̂_ii(q0).
+    None on a real arm, the experiment's joint gains become K_i / M̂_ii(q0).  ``injection``:
+    the observer's injection of (8) at θ̂ ("estimate", the paper's design's) or at
+    ``theta_nominal`` ("nominal", the inertia-scaled design's default; docs/controller.md,
+    "The observer on the nominal inertia").
     """
     spec = law_registry.get_law(law)
     if model is None:
@@ -113,6 +116,8 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
     if design not in block_library.DESIGNS:
         raise ValueError(f"design = {design!r} is not a design of (9); choose one of "
                          + ", ".join(map(repr, block_library.DESIGNS)))
+    from ..blocks.control_law import default_injection
+    injection = default_injection(design) if injection is None else injection
     joint_gains = K is None and not paper_arm     # the experiment's, in N m s
     if not paper_arm:   # the real-arm experiment, as a configuration naming this model gets it
         trajectory, disturbance, q0, dq0, K, T = _arm_experiment(
@@ -141,7 +146,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
                     theta_hat0=theta_hat0, q0=q0, dq0=dq0, theta=theta,
                     trajectory=trajectory, disturbance=disturbance, replace=replace,
                     external_plant=external_plant, law_params=law_params,
-                    design=design, theta_nominal=theta_nominal)
+                    design=design, theta_nominal=theta_nominal, injection=injection)
         choice = calibrate_gamma(law, model, args, **(calibration or {}))
         diagram = closed_loop(law, model, gamma=choice["gamma"], **args)
         diagram.gamma_choice = choice
@@ -169,9 +174,10 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
         source(disturbance, block_library.disturbance),
         block_library.mu_schedule(mu0, mu1),
         block_library.tracking_error(n, alpha),
-        block_library.torque_observer(model, variant=observer_variant),
+        block_library.torque_observer(model, variant=observer_variant, injection=injection,
+                                      theta_nominal=theta_nominal),
         block_library.control_law(n, nth, K=K, delta_mu=delta_mu, design=design, model=model,
-                                  theta_nominal=theta_nominal),
+                                  theta_nominal=theta_nominal, injection=injection),
         block_library.adaptation_law(n, nth, Gamma=Gamma, theta_hat0=theta_hat0),
     ]
     outputs = ["q", "dq", "q_d", "e", "r", "tau", "tau_d", "tau_d_hat", "theta_hat", "mu",
