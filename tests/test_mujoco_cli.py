@@ -33,6 +33,7 @@ def test_cosim_mujoco_takes_the_robots_imperfections(tmp_path, capsys):
     out = tmp_path / "mj.json"
     code = main(["cosim", "--plant", "mujoco", "--t-end", "0.2", "--laws", "none",
                  "--realistic", "--noise-level", "4", "--tau-rate-limit", "1000",
+                 "--encoder-noise", "0.5", "--seed", "3",
                  "--payload-mass", "0.5", "--payload-com", "0.3", "0", "0", "--json", str(out),
                  "--quiet"])
     text = capsys.readouterr().out
@@ -42,6 +43,8 @@ def test_cosim_mujoco_takes_the_robots_imperfections(tmp_path, capsys):
     assert imp["encoder_counts"] == pytest.approx(2.0 ** 18 / 4)
     assert imp["velocity"] == "difference" and imp["measurement_delay"] == 1
     assert imp["tau_rate_limit"] == [1000.0]
+    assert imp["encoder_noise"] == 0.5 and imp["seed"] == 3
+    assert "encoder noise σ = 0.5 counts" in text
     assert data["runs"][0]["theta_end"][3] == pytest.approx(0.4 + 0.5 * 0.3)   # θ4 + m_p d
     assert "payload 0.5 kg" in text
 
@@ -52,6 +55,7 @@ def test_cosim_mujoco_takes_the_robots_imperfections(tmp_path, capsys):
     (["--integrator", "rk45"], "invalid choice"),
     (["--payload-mass", "-1"], "payload mass"),
     (["--encoder-counts", "0"], "encoder_counts"),
+    (["--encoder-noise", "1"], "needs encoder_counts"),
     (["--comm-step", "0"], "comm-step"),
 ])
 def test_cosim_mujoco_refuses_bad_input(argv, word, capsys):
@@ -124,6 +128,31 @@ def test_ivdrem_study_runs_a_robustness_file_and_writes_its_report(tmp_path, cap
     (out / "robustness.html").unlink()
     rebuild_report(out)
     assert (out / "robustness.html").read_text(encoding="utf-8").count("<li>") == 2
+
+
+def test_seeds_vary_the_runs_that_draw_noise_and_only_those(tmp_path):
+    """[robustness] encoder_noise (σ in counts) at the levels > 0 makes the seed matter:
+    those levels run once per seed, with different numbers; level 0 (exact) and a study
+    without encoder noise run the first seed only."""
+    from ivdrem.plants.study import expand, read_robustness, run_one
+    study = tmp_path / "s.toml"
+    text = ('[experiment]\nt_end = 0.3\nlaws = ["iv-drem"]\n[model]\nname = "two-link"\n'
+            '[robustness]\nnoise_levels = [0.0, 10.0]\nseeds = [4, 7]\nmu_max = 60.0\n')
+    study.write_text(text + "encoder_noise = 1.0\n", encoding="utf-8")
+    config, rob, _ = read_robustness(study)
+    runs = expand(config, rob)
+    assert [(r["noise_level"], r["seed"]) for r in runs] == [(0.0, 4), (10.0, 4), (10.0, 7)]
+    rows = [run_one(config, rob, r) for r in runs[1:]]
+    assert all(r["status"] == "ok" for r in rows), rows
+    assert rows[0]["tracking_rms_last"] != rows[1]["tracking_rms_last"]
+    again = run_one(config, rob, runs[1])
+    assert again["tracking_rms_last"] == rows[0]["tracking_rms_last"]      # seeded
+    study.write_text(text, encoding="utf-8")
+    config, rob, _ = read_robustness(study)
+    assert [(r["noise_level"], r["seed"]) for r in expand(config, rob)] == [(0.0, 4), (10.0, 4)]
+    study.write_text(text + "encoder_noise = -1\n", encoding="utf-8")
+    with pytest.raises(ValueError, match="encoder_noise must be"):
+        read_robustness(study)
 
 
 def test_the_studys_gamma_reaches_only_the_laws_with_the_mixing():

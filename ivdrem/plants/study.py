@@ -12,7 +12,11 @@ A study file is an experiment configuration (as ``examples/paper.toml``) with a
     payload_com = [0.0, 0.0, 0.05]          # m, in the last link's frame
     omega_scale = [1.0, 1.37]               # the disturbance's frequencies times this: the
                                             # window T was chosen from the unscaled ones
-    seeds = [0, 1]                          # the sensor noise's seed
+    encoder_noise = 1.0                     # optional: white noise on the angles before
+                                            # the encoder, σ in counts (of the level's
+                                            # encoder), at every level > 0
+    seeds = [0, 1]                          # the sensor noise's seed: runs without noise
+                                            # (level 0, or encoder_noise = 0) take the first
     mu_max = 135.0
     gamma = 53.2                            # optional: γ of (21) instead of the config's
                                             # (IV-DREM, DREM); or a table {law = γ}
@@ -45,12 +49,13 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["read_robustness", "expand", "run_one", "run_robustness", "plot", "summary_table",
+__all__ = ["read_robustness", "sensing", "expand", "run_one", "run_robustness", "plot", "summary_table",
            "conclusions", "write_report", "rebuild_report", "is_robustness_file"]
 
 #: keys of [robustness] and their defaults
 DEFAULTS = dict(noise_levels=[0.0, 1.0], payload_mass=[0.0], payload_com=[0.0, 0.0, 0.0],
-                omega_scale=[1.0], seeds=[0], mu_max=135.0, gamma=None, mix_every=None)
+                omega_scale=[1.0], seeds=[0], encoder_noise=0.0, mu_max=135.0, gamma=None,
+                mix_every=None)
 
 
 def is_robustness_file(path) -> bool:
@@ -84,6 +89,10 @@ def read_robustness(path, *, model=None, t_end=None):
     if any(not (isinstance(x, (int, float)) and x >= 0) for x in rob["noise_levels"]):
         raise ValueError(f"[robustness] noise_levels must be numbers >= 0, got "
                          f"{rob['noise_levels']}")
+    e = rob["encoder_noise"]
+    if not (isinstance(e, (int, float)) and math.isfinite(e) and e >= 0):
+        raise ValueError(f"[robustness] encoder_noise must be a standard deviation >= 0 in "
+                         f"counts, got {e!r}")
     g = rob["gamma"]
     if not (g is None or isinstance(g, (int, float)) or (isinstance(g, dict) and all(
             isinstance(v, (int, float)) and v > 0 for v in g.values()))) or (
@@ -114,21 +123,35 @@ def _law_gamma(gamma, law):
     return None
 
 
+def sensing(rob, level, seed):
+    """The robot's sensing at a noise level (:class:`~ivdrem.plants.sensing.Imperfections`):
+    0 exact; x > 0 ``REALISTIC`` with its encoder's quantum x times larger and the study's
+    encoder noise (σ in counts of that encoder)."""
+    from .sensing import REALISTIC, Imperfections
+    if level == 0:
+        return Imperfections(seed=int(seed))
+    return replace(REALISTIC.scaled(level), seed=int(seed),
+                   encoder_noise=float(rob["encoder_noise"]))
+
+
 def expand(config, rob):
-    """The runs: dicts of (law, noise_level, payload_mass, omega_scale, seed)."""
+    """The runs: dicts of (law, noise_level, payload_mass, omega_scale, seed); a noise
+    level whose sensing draws no noise runs with the first seed only (the others would
+    repeat it)."""
     laws = list(config["experiment"]["laws"])
+    first = rob["seeds"][0]
     return [dict(law=law, noise_level=float(lv), payload_mass=float(pm), omega_scale=float(om),
                  seed=int(sd))
             for lv, pm, om, sd, law in itertools.product(
                 rob["noise_levels"], rob["payload_mass"], rob["omega_scale"], rob["seeds"],
-                laws)]
+                laws)
+            if sd == first or sensing(rob, lv, sd).random]
 
 
 def run_one(config, rob, run) -> dict:
     """One MuJoCo loop of the study (on a worker); never raises: a failed run is a row."""
     from .cli import summarize
     from .mujoco import Payload, closed_loop, controller_kwargs, load
-    from .sensing import REALISTIC, Imperfections
     from ..experiments.config import model_from_config
     t0, cpu0 = time.perf_counter(), time.process_time()
     row = dict(run, status="ok", error="")
@@ -149,9 +172,7 @@ def run_one(config, rob, run) -> dict:
         payload = None if run["payload_mass"] == 0 else Payload(
             run["payload_mass"], tuple(rob["payload_com"]))
         plant = load(model, payload=payload, states=20)
-        level = run["noise_level"]
-        imp = (Imperfections(seed=run["seed"]) if level == 0 else
-               replace(REALISTIC.scaled(level), seed=run["seed"]))
+        imp = sensing(rob, run["noise_level"], run["seed"])
         t_end = float(config["experiment"]["t_end"])
         resp = closed_loop(plant, t_end, run["law"], imperfections=imp, q0=start["q0"],
                            dq0=start["dq0"], disturbance=dist, every=100, progress=False,
@@ -288,7 +309,8 @@ def write_report(df, out, *, model="?", study_text="", wall_s=None, workers=1):
                                             "tau_d_error_rms_last")]
                      for _, r in tab.iterrows()], [1] * 8,
                     note="noise level 1: 2^18 counts per revolution, velocity by a filtered "
-                         "difference at 200 Hz, one sample of measurement delay; x: the "
+                         "difference at 200 Hz, one sample of measurement delay (and the "
+                         "study's encoder noise in counts, if any: the study file); x: the "
                          "encoder's quantum x times larger; 0: exact q, q̇.")
     bad = df[df["status"] != "ok"]
     failed = Table("failed", "Runs that failed", ["law", "noise level", "payload (kg)",
