@@ -27,8 +27,9 @@ Every combination is run once per law of ``experiment.laws`` (one MuJoCo loop ea
 ``results.csv`` (one row per run: the varied values, θ̃ at the start and the end and their
 ratio, the tracking error and τ̃_d RMS over the last 20 %, costs, wall time, status),
 ``runs.jsonl`` (the same rows as they finish), ``robustness.png`` (the three against the
-noise level, one line per law and payload), ``robustness.html`` (the figure, the
-conclusions per noise level and payload, the mean table, the failed runs) and
+noise level, one line per law, payload and disturbance scale), ``robustness.html`` (the
+figure, the conclusions per noise level, payload and disturbance scale, the table of means
+over the seeds, the failed runs) and
 ``study.toml`` (the file as given).  A run that fails is a row with its error; the others
 go on. From the command line::
 
@@ -239,12 +240,17 @@ def run_robustness(path, out, *, workers=1, model=None, t_end=None, progress=Tru
     return df, wall
 
 
+#: what a row of the summary is the mean over the seeds of
+SUMMARY_KEY = ["noise_level", "payload_mass", "omega_scale", "law"]
+
+
 def summary_table(df):
-    """Per law, noise level and payload: the mean over disturbance scales and seeds of
+    """Per law, noise level, payload and disturbance scale: the mean over the seeds of
     ‖θ̃(end)‖/‖θ̃(0)‖, the RMS tracking error and RMS τ̃_d over the last 20 %, with the
-    runs that finished and that failed."""
+    runs that finished and that failed.  Disturbance scales stay apart: a law that
+    diverges at one scale is not averaged with its runs at another."""
     import pandas as pd
-    key = ["noise_level", "payload_mass", "law"]
+    key = SUMMARY_KEY
     ok = df[df["status"] == "ok"]
     cols = ["theta_error_ratio", "tracking_rms_last", "tau_d_error_rms_last"]
     mean = (ok.groupby(key)[cols].mean() if len(ok) else
@@ -255,13 +261,14 @@ def summary_table(df):
 
 
 def conclusions(df) -> list[str]:
-    """One sentence per noise level and payload: each law's ‖θ̃(end)‖/‖θ̃(0)‖ and RMS τ̃_d,
-    IV-DREM's against the best other law's, or which runs diverged."""
+    """One sentence per noise level, payload and disturbance scale: each law's
+    ‖θ̃(end)‖/‖θ̃(0)‖ and RMS τ̃_d (mean over the seeds), IV-DREM's against the best other
+    law's, or which runs diverged."""
     lines = []
     tab = summary_table(df)
-    for (lv, pm), g in tab.groupby(["noise_level", "payload_mass"]):
+    for (lv, pm, om), g in tab.groupby(["noise_level", "payload_mass", "omega_scale"]):
         where = (f"noise level {lv:g}" + (" (exact q, q̇)" if lv == 0 else "")
-                 + f", payload {pm:g} kg")
+                 + f", payload {pm:g} kg, disturbance frequencies x {om:g}")
         parts, ratio = [], {}
         for _, row in g.iterrows():
             if row["ok"] == 0:
@@ -299,15 +306,15 @@ def write_report(df, out, *, model="?", study_text="", wall_s=None, workers=1):
     import matplotlib.pyplot as plt
     plt.close(fig)
     tab = summary_table(df)
-    summary = Table("summary", "Mean over disturbance scales and seeds",
-                    ["noise level", "payload (kg)", "law", "runs ok", "failed",
+    summary = Table("summary", "Mean over the seeds",
+                    ["noise level", "payload (kg)", "ω scale", "law", "runs ok", "failed",
                      "‖θ̃(end)‖/‖θ̃(0)‖", "RMS ‖e‖ last 20 % (rad)",
                      "RMS ‖τ̃_d‖ last 20 % (N·m)"],
-                    [[fmt(r["noise_level"]), fmt(r["payload_mass"]), r["law"], str(r["ok"]),
-                      str(r["failed"])] + [fmt(r[c]) if r["ok"] else "–" for c in
-                                           ("theta_error_ratio", "tracking_rms_last",
-                                            "tau_d_error_rms_last")]
-                     for _, r in tab.iterrows()], [1] * 8,
+                    [[fmt(r["noise_level"]), fmt(r["payload_mass"]), fmt(r["omega_scale"]),
+                      r["law"], str(r["ok"]), str(r["failed"])]
+                     + [fmt(r[c]) if r["ok"] else "–" for c in
+                        ("theta_error_ratio", "tracking_rms_last", "tau_d_error_rms_last")]
+                     for _, r in tab.iterrows()], [1] * 9,
                     note="noise level 1: 2^18 counts per revolution, velocity by a filtered "
                          "difference at 200 Hz, one sample of measurement delay (and the "
                          "study's encoder noise in counts, if any: the study file); x: the "
@@ -355,7 +362,7 @@ def rebuild_report(out):
 
 def plot(df, path, *, model="?", keep=False):
     """‖θ̃(end)‖/‖θ̃(0)‖, RMS tracking error and RMS τ̃_d against the noise level, one line
-    per law and payload (mean over seeds and disturbance scales; exact sensing drawn at
+    per law, payload and disturbance scale (mean over the seeds; exact sensing drawn at
     the left edge, level 0)."""
     import matplotlib
     matplotlib.use("Agg")
@@ -369,10 +376,12 @@ def plot(df, path, *, model="?", keep=False):
     xpos = {lv: (lv if lv > 0 else (min([x for x in levels if x > 0], default=1.0) / 10))
             for lv in levels}
     for ax, (col, label) in zip(axes, cols):
-        for (law, pm), g in ok.groupby(["law", "payload_mass"]):
+        for (law, pm, om), g in ok.groupby(["law", "payload_mass", "omega_scale"]):
             m = g.groupby("noise_level")[col].mean()
-            ax.plot([xpos[x] for x in m.index], m.values, "o-",
-                    label=f"{law}" + (f", payload {pm:g} kg" if pm else ""))
+            ax.plot([xpos[x] for x in m.index], m.values,
+                    "o-" if law == "iv-drem" else "s--",
+                    label=f"{law}" + (f", payload {pm:g} kg" if pm else "")
+                    + (f", ω x {om:g}" if om != 1 else ""))
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("noise level (1: 2^18 counts/rev, filtered difference, 1 sample delay)")
