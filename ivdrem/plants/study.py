@@ -384,12 +384,14 @@ def plot(df, path, *, model="?", keep=False):
                     + (f", ω x {om:g}" if om != 1 else ""))
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("noise level (1: 2^18 counts/rev, filtered difference, 1 sample delay)")
+        ax.set_xlabel("noise level")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
     if len(ok):
         axes[0].legend(fontsize=8)
-    fig.suptitle(f"{model} in MuJoCo: robustness to sensing (leftmost points: exact q, q̇)")
+    fig.suptitle(f"{model} in MuJoCo: robustness to sensing (noise level 1: 2^18 counts/rev, "
+                 "filtered difference, 1 sample delay; x: quantum x times; leftmost points: "
+                 "exact q, q̇)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     if keep:
