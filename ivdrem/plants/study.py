@@ -216,9 +216,16 @@ def run_robustness(path, out, *, workers=1, model=None, t_end=None, progress=Tru
                   + (f", ratio {row['theta_error_ratio']:.3g}" if row["status"] == "ok" else "")
                   + f", {row['wall_s']:.0f} s)", file=sys.stderr, flush=True)
     if workers > 1:
+        import logging
+        import warnings
         from dask.distributed import Client, LocalCluster, as_completed
-        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                          dashboard_address=None) as cluster, Client(cluster) as client:
+        with warnings.catch_warnings():
+            # the scheduler's HTTP server (no dashboard) moves to a free port when another
+            # cluster holds 8787, and says so: nothing for the user to do
+            warnings.filterwarnings("ignore", message="Port .* is already in use")
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.ERROR)
+        with cluster, Client(cluster) as client:
             # the longest runs first (the laws with the window (15a) cost the most per
             # sample), so that no worker is left with a long run at the end
             order = sorted(runs, key=lambda r: r["law"] not in _MIXING_LAWS + (
