@@ -249,6 +249,125 @@ def test_multi_rate_mixing_is_applied_one_period_after_its_sample():
         assert np.all(held[599][0] != 0.0)
 
 
+def _composite_run(model, steps, **kw):
+    """Composite learning's Python reference over `steps` samples of the measured motion,
+    with every window output y = (Y_b, Psi_b) its max-hold sees and the hold after each step."""
+    ctl = SampledController(model, "composite-learning", gamma=50.0, **kw)
+    seen, held = {}, []
+    orig = ctl._max_hold_sample
+
+    def probe(y):
+        seen[ctl.k] = y.copy()
+        orig(y)
+    ctl._max_hold_sample = probe
+    for k in range(steps):
+        ctl.step(*_measurements(ctl, k))
+        held.append((ctl.lambda_min_held, ctl.held.copy()))
+    return ctl, seen, held
+
+
+def test_multi_rate_max_hold_decides_one_period_after_its_sample():
+    """Composite learning with mix_every = m > 1: the max-hold of (35) samples the window at
+    t_k, k a multiple of m, and decides at t_k+m (the C library spreads lambda_min over the
+    m samples between); m = 1 decides at once.  Checked against LAPACK's eigvalsh on the
+    recorded window outputs: the hold changes only at multiples of m, to the window of m
+    samples before, when its lambda_min beat the running maximum and epsilon."""
+    model = get_model("planar-3")
+    nth = model.ntheta
+
+    def lam(y):
+        P = y[nth:].reshape(nth, nth)
+        return np.linalg.eigvalsh(0.5 * (P + P.T))[0]
+    for m in (1, 4):
+        ctl, seen, held = _composite_run(model, 800, T=0.2, mix_every=m)
+        best, changes = 0.0, 0
+        for k in range(800):
+            if k % m == 0 and k >= (m if m > 1 else 0):
+                y = seen[k - m if m > 1 else k]
+                if lam(y) > best and lam(y) > ctl.epsilon:
+                    best = lam(y)
+                    assert held[k][0] == best and np.array_equal(held[k][1], y)
+            changes += k > 0 and held[k][0] != held[k - 1][0]
+            assert held[k][0] == best, k
+        assert changes > (100 if m == 1 else 30)
+
+
+@pytest.mark.parametrize("mix_every", [1, 20])
+def test_c_library_composite_learning_max_hold_equals_python_reference(mix_every):
+    """Composite learning on the UR5 (nθ = 36), T = 0.5 s, 1500 steps: C (lambda_min of the
+    hold by Householder tridiagonalization and bisection, a job sliced over the m samples)
+    equals the Python reference (LAPACK) to 1e-10 on tau and theta_hat, and the hold took
+    new windows along the way (lambda_min beat epsilon), at m = 1 and m = 20."""
+    from ivdrem.controller.clib import CController
+    m = get_model("ur5")
+    kw = dict(T=0.5, gamma=50.0, trajectory=_experiment(m)[0], gravity="robot",
+              mix_every=mix_every)
+    py, c = SampledController(m, "composite-learning", **kw), CController(m, "composite-learning", **kw)
+    worst, changes, last = 0.0, 0, 0.0
+    for k in range(1500):
+        t, q, dq = _measurements(py, k)
+        a, b = py.step(t, q, dq), c.step(t, q, dq)
+        worst = max(worst, np.abs(a - b).max() / max(1.0, np.abs(a).max()))
+        changes += py.lambda_min_held != last
+        last = py.lambda_min_held
+    assert worst <= 1e-10
+    th = py.theta_hat
+    assert np.abs(th - c.theta_hat).max() <= 1e-10 * max(1.0, np.abs(th).max())
+    assert changes >= (100 if mix_every == 1 else 8)
+
+
+def test_c_max_hold_lambda_min_job_equals_lapack(tmp_path):
+    """The C library's lambda_min of the symmetric part (Householder tridiagonalization and
+    Sturm bisection, ivdrem_controller.c) against LAPACK's eigvalsh, n = 43 (the Panda's
+    nθ): general, graded positive definite (eigenvalues 1e-10 .. 1e4), rank-deficient and
+    phi^T phi-like matrices within 1e-14 ||S||; the job sliced in small budgets gives the
+    same bits as at once, and its work never exceeds the budget the period is given."""
+    import ctypes
+    from ivdrem._cc import compile_shared
+    from ivdrem.controller.codegen import generate_controller_sources
+    panda = get_model("panda")
+    for fn, text in generate_controller_sources(panda).items():
+        (tmp_path / fn).write_text(text)
+    (tmp_path / "lam_driver.c").write_text(
+        '#include "ivdrem_controller.c"\n'
+        "/* lambda_min of y's Psi part at once and in slices of `budget` units */\n"
+        "double lam_once_and_sliced(const double *y, double budget, double *sliced, double *units,\n"
+        "                           double *total) {\n"
+        "    static ivc_controller c;\n"
+        "    double once;\n"
+        "    lam_begin(&c, y); lam_work(&c, -1.0); once = c.s.lam_value;\n"
+        "    lam_begin(&c, y); *units = 0;\n"
+        "    while (c.s.lam_phase != LAM_DONE) *units += lam_work(&c, budget);\n"
+        "    *sliced = c.s.lam_value; *total = lam_job_units();\n"
+        "    return once;\n"
+        "}\n")
+    lib_path = tmp_path / "lam.so"
+    compile_shared([tmp_path / "lam_driver.c", tmp_path / "controller_model.c"], lib_path,
+                   what="the lambda_min test driver", include_dirs=[tmp_path],
+                   extra_flags=())
+    lib = ctypes.CDLL(str(lib_path))
+    dp = ctypes.POINTER(ctypes.c_double)
+    lib.lam_once_and_sliced.restype = ctypes.c_double
+    lib.lam_once_and_sliced.argtypes = [dp, ctypes.c_double, dp, dp, dp]
+    n = panda.ntheta
+    rng = np.random.default_rng(7)
+    Q = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    X = rng.standard_normal((n, 30)) * 1e5
+    Z = rng.standard_normal((200, n)) * np.logspace(-3, 2, n)
+    mats = [rng.standard_normal((n, n)), Q @ np.diag(np.logspace(-10, 4, n)) @ Q.T,
+            X @ X.T, Z.T @ Z + 1e-3 * rng.standard_normal((n, n)), np.zeros((n, n)),
+            1e-200 * rng.standard_normal((n, n)), 1e200 * rng.standard_normal((n, n))]
+    for A in mats:
+        y = np.concatenate([np.zeros(n), A.reshape(-1)])
+        sliced, units, total = ctypes.c_double(), ctypes.c_double(), ctypes.c_double()
+        once = lib.lam_once_and_sliced(y.ctypes.data_as(dp), 37.0, ctypes.byref(sliced),
+                                       ctypes.byref(units), ctypes.byref(total))
+        ev = np.linalg.eigvalsh(0.5 * (A + A.T))
+        assert abs(once - ev[0]) <= 1e-14 * np.abs(ev).max() + 1e-300, (once, ev[0])
+        assert once == sliced.value
+        assert units.value <= total.value
+
+
 def test_scale_free_mixings_default_gamma_by_the_auto_rule():
     """gamma not given: 0.5 / max(Gamma) with the scale-free mixings (the rule of gamma
     "auto" at Delta = 1; 50 at the default Gamma = 0.01), the law's registry value with the

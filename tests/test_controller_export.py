@@ -350,9 +350,9 @@ def test_cosim_controller_fmu_of_a_urdf_file_arm(tmp_path):
 
 
 def test_controller_design_mixes_a_real_arm_every_mix_every_samples():
-    """The export's design: the URDF arms' scale-free mixing every MIX_EVERY samples (the
-    step within the deadline), the paper's 2-link experiment single-rate (its design bit for
-    bit as before)."""
+    """The export's design: the URDF arms' scale-free mixing (and composite learning's
+    max-hold) every MIX_EVERY samples (the step within the deadline), the paper's 2-link
+    experiment single-rate (its design bit for bit as before)."""
     from ivdrem.controller.fmu_export import MIX_EVERY, controller_design
     from ivdrem.experiments.config import load_config
     ur5 = controller_design(load_config(None, {"model.name": "ur5"}), "iv-drem", h=1e-3)
@@ -361,5 +361,7 @@ def test_controller_design_mixes_a_real_arm_every_mix_every_samples():
                              **{**ur5, "gamma": 50.0}).mix_every == 20
     assert controller_design(load_config(None, {"model.name": "ur5"}), "none").get(
         "mix_every", 1) == 1
+    assert controller_design(load_config(None, {"model.name": "ur5"}),
+                             "composite-learning")["mix_every"] == MIX_EVERY  # its max-hold
     paper = controller_design(load_config(None), "iv-drem", h=1e-3)
     assert paper.get("mix_every", 1) == 1

@@ -87,8 +87,9 @@ def param_layout(model):
         ("design", 1, "0 paper: feedback (K + delta_mu mu) r of (9); 1 inertia-scaled: "
                       "M(q, theta_nominal)(K + delta_mu mu) r, K in 1/s"),
         ("mixing", 1, "mixing (17): 0 paper, 1 eigen, 2 channel (docs/mixing.md)"),
-        ("mix_every", 1, "the mixing (17) every m samples (multi-rate, m > 1: "
-                          "held from one period later, its work spread over the period)"),
+        ("mix_every", 1, "the mixing (17), or composite learning's max-hold of (35), every m "
+                          "samples (multi-rate, m > 1: held or decided one period later, its "
+                          "work spread over the period)"),
         ("f_rel", 1, "eigen mixing: f0 = f_rel ||Psi||_F"),
         ("guard", 1, "channel mixing: guard of the (i, i) cofactor"),
         ("gravity", 1, "0: the law's tau is commanded; 1 robot: tau - G(q, theta_nominal) "

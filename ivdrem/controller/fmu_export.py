@@ -407,10 +407,12 @@ def controller_design(config, law, *, h=None, mu_max=None):
     from ..experiments.config import model_from_config
     from .sampled import GRADIENT_GAIN, default_design, default_mixing, inertia_scaled_gains
     model = model_from_config(config)
-    if out.get("mixing", default_mixing(model)) != "paper" and law in ("iv-drem", "drem"):
-        # the scale-free mixing of a real arm's tens of parameters is a Jacobi SVD: spread
-        # over MIX_EVERY samples (docs/controller.md, "Real arms: reference, mixing,
-        # multi-rate"), the step stays within the robot's deadline
+    if (out.get("mixing", default_mixing(model)) != "paper"
+            and law in ("iv-drem", "drem", "composite-learning")):
+        # the scale-free mixing of a real arm's tens of parameters is a Jacobi SVD, composite
+        # learning's max-hold a lambda_min of Psi_b: each spread over MIX_EVERY samples
+        # (docs/controller.md, "Real arms: reference, mixing, multi-rate"), the step stays
+        # within the robot's deadline
         out.setdefault("mix_every", MIX_EVERY)
     if out.get("design", default_design(model)) == "inertia-scaled" and "K" in out:
         # the configuration's K is the continuous loop's joint gain (N m s); the sampled

@@ -30,7 +30,8 @@ advanced over [t_k, t_k + h] with the sampled inputs held (zero-order hold):
   (vartheta_c = gamma (Y_b(t_e) - Psi_b(t_e) theta_hat), a matrix gain) takes the explicit
   step (a = 0); its max-hold samples lambda_min of the symmetric part of Psi_b at every t_k
   and holds (Y_b, Psi_b) when it beats both the running maximum and epsilon (as the
-  continuous max-hold block does on its 1 ms grid).
+  continuous max-hold block does on its 1 ms grid); with mix_every = m > 1 it samples at
+  t_k, k a multiple of m, and decides at t_k + m h.
 
 ``mu(t) = min(mu0 t + mu1, mu_max)`` (docs/controller.md, "Saturating mu").
 
@@ -218,6 +219,8 @@ class SampledController:
       filters, the window and theta_hat's update run at every sample): with m > 1 the
       mixing of (Y, Psi)(t_k), k a multiple of m, is held over [t_k + m h, t_k + 2 m h)
       (one period late: the C library spreads its work over the m samples between);
+      composite learning: its max-hold samples lambda_min(Psi_b(t_k)) every m samples and
+      decides at t_k + m h;
     * ``trajectory``: the paper's sinusoid (amplitude, omega, phase, offset) or a Fourier
       reference {"kind": "fourier", "omega_f", "a", "b", "offset"} of at most
       REFERENCE_HARMONICS harmonics (ivdrem.experiments.arm.design_trajectory);
@@ -415,12 +418,15 @@ class SampledController:
         self.dq_d = np.zeros(n)
         self.held = np.zeros(self.m)      # composite learning: (Y_b, Psi_b) at t_e
         self.lambda_min_held = 0.0
+        self.held_next = np.zeros(self.m)  # multi-rate: the candidate decided next period
+        self.lambda_min_next = 0.0
         self.window = (BlockWindow(self.m, self.T, self.h, block=self.block)
                        if self.uses_window else None)
 
     _STATE = ("k", "Phi_f", "Phi_Mf", "u_f", "theta_hat", "zf", "xi", "eta", "X_xi", "X_eta",
               "zeta", "Yavg",
-              "tau_prev", "tau", "tau_d_hat", "Delta", "held", "lambda_min_held", "D_held",
+              "tau_prev", "tau", "tau_d_hat", "Delta", "held", "lambda_min_held", "held_next",
+              "lambda_min_next", "D_held",
               "calY_held", "D_next", "calY_next", "q_d", "dq_d")
     _WINDOW = ("ring", "pos", "P", "i", "S", "shadow", "nshadow", "g_prev")
 
@@ -469,6 +475,30 @@ class SampledController:
 
     def mu(self, t):
         return mu_saturated(t, self.mu0, self.mu1, self.mu_max)[0]
+
+    def _max_hold_sample(self, y):
+        """Composite learning's max-hold of (35) at t_k, the window's output y = (Y_b, Psi_b):
+        (Y_b, Psi_b) is held when lambda_min of the symmetric part of Psi_b beats the running
+        maximum and epsilon.  With mix_every = m > 1 the candidate of t_k (k a multiple of m)
+        is decided at t_k + m h (the C library spreads its lambda_min over the m samples
+        between, docs/controller.md, "Real arms: reference, mixing, multi-rate")."""
+        m = self.mix_every
+        if self.k % m:
+            return
+        if m > 1 and self.k > 0:            # the candidate of t_k - m h
+            self._hold(self.lambda_min_next, self.held_next)
+        nth = self.ntheta
+        Pb = y[nth:].reshape(nth, nth)
+        lam = np.linalg.eigvalsh(0.5 * (Pb + Pb.T))[0]
+        if m == 1:
+            self._hold(lam, y)
+        else:
+            self.lambda_min_next, self.held_next = lam, y.copy()
+
+    def _hold(self, lam, y):
+        if lam > self.lambda_min_held and lam > self.epsilon:
+            self.lambda_min_held = lam
+            self.held = y.copy()
 
     def step(self, t, q, dq):
         """tau_k for the sample (t_k, q_k, dq_k), t_k = k h (k counts the calls)."""
@@ -586,12 +616,7 @@ class SampledController:
             g = np.concatenate([inst.T @ self.zf, (inst.T @ phi).reshape(-1)])   # (15a)
             y = self.window.push(g)
             if not self.averaged:           # composite learning: max-hold of (Y_b, Psi_b)
-                nth = self.ntheta
-                Pb = y[nth:].reshape(nth, nth)
-                lam = np.linalg.eigvalsh(0.5 * (Pb + Pb.T))[0]
-                if lam > self.lambda_min_held and lam > self.epsilon:
-                    self.lambda_min_held = lam
-                    self.held = y.copy()
+                self._max_hold_sample(y)
         # ---- advance every state over [t_k, t_k + h], inputs held
         I = mu_integral(tk, h, self.mu0, self.mu1, self.mu_max)
         d1 = math.exp(-I)
