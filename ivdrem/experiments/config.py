@@ -24,7 +24,7 @@ import numpy as np
 
 from .._config_keys import POSITIVE, Key, in_range, magnitude
 from ..laws import LAWS as _LAW_REGISTRY, get_law, law_names
-from ..blocks.control_law import DESIGNS, inertia_scaled_gain
+from ..blocks.control_law import DESIGNS, INJECTIONS, inertia_scaled_gain
 
 try:  # Python >= 3.11
     import tomllib
@@ -147,6 +147,9 @@ OPTIONAL: dict[str, dict[str, Key]] = {
         # the feedback of (9): "paper" or "inertia-scaled" (docs/controller.md); K stays the
         # joint gain (N m s), the inertia-scaled loop's K_i / M̂_ii(q0)
         "design": Key("str", choices=DESIGNS),
+        # the observer's injection of (8) at theta_hat ("estimate", the paper's) or at the
+        # model's nominal parameters ("nominal", the inertia-scaled design's default)
+        "injection": Key("str", choices=INJECTIONS),
     },
     "model": {
         "urdf": Key("str"),            # a path, relative to the configuration file
@@ -892,6 +895,8 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
         trajectory=_trajectory(c["trajectory"], len(c["initial"]["q0"])),
         disturbance={k: np.asarray(c["disturbance"][k], dtype=float) for k in _TRAJ_KEYS},
     )
+    if "injection" in ctl:
+        kw["injection"] = ctl["injection"]
     if "design" in ctl:
         kw["design"] = ctl["design"]
         if ctl["design"] == "inertia-scaled":     # K in 1/s: the joint gain over M̂_ii(q0)
