@@ -1,6 +1,6 @@
 #!/usr/bin/env python
-"""Where a command's peak memory and CPU go, phase by phase (docs/performance.md, "The
-first run on a real arm": the warm Panda run's table).
+"""Where a command's peak memory and CPU go, phase by phase (docs/performance.md, "Where a
+warm run's memory and time go": the warm Panda run's table).
 
 Runs ``ivdrem paper ...`` (default: ``--config examples/panda.toml --t-end 1 --laws
 iv-drem``) in a child process per version, with a sampling thread beside the command: every
@@ -105,10 +105,10 @@ t0 = time.process_time()
 real_stdout = os.fdopen(os.dup(1), "w")
 os.dup2(os.open(os.devnull, os.O_WRONLY), 1)      # the command's own output: discarded
 
-def report(status=None):
+def report():
     stop.set(); th.join()
     import resource
-    out = dict(status=status, cpu=time.process_time() - t0,
+    out = dict(cpu=time.process_time() - t0,
                peak=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
                phases=stats)
     real_stdout.write("BENCH_MEMORY " + json.dumps(out) + "\n")
@@ -134,7 +134,7 @@ def run_once(tree, args):
 
 
 def table(label, res):
-    print(f"\n{label}: exit status {res['status']}, CPU {res['cpu']:.1f} s, "
+    print(f"\n{label}: CPU {res['cpu']:.1f} s (every thread), "
           f"peak resident {res['peak']:.0f} MiB")
     print("| phase | CPU s | peak resident MiB | resident growth MiB |")
     print("| --- | --- | --- | --- |")
@@ -147,7 +147,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--commit", default=None,
                     help="also run REV (a temporary git worktree), alternating")
-    ap.add_argument("--reps", type=int, default=1)
+    ap.add_argument("--reps", type=int, default=1, help="repetitions of each version")
     ap.add_argument("command", nargs="*", help="ivdrem paper's arguments after --")
     a = ap.parse_args()
     args = ["paper"] + (a.command or ["--config", "examples/panda.toml", "--t-end", "1",
