@@ -6,8 +6,10 @@ import control as ct
 
 from .. import blocks as block_library
 from .. import laws as law_registry
+from ..sim._control import sparse_maps
 from ..sim.guards import check_interconnect_size
-from ..sim.plan import check_signal_sizes, signal_sizes
+from ..sim.plan import check_signal_sizes, rows_with_entries, signal_sizes
+from .wiring import NOT_PLAIN, wire_by_name
 
 __all__ = ["closed_loop", "LAWS", "assemble", "check_connected"]
 
@@ -28,10 +30,11 @@ PAPER_DISTURBANCE = dict(amplitude=[7.5, 1.5], omega=[0.5 * np.pi, 0.05 * np.pi]
                          phase=[0.0, 0.0], offset=[0.0, 0.0])
 
 
-def check_connected(diagram):
-    """Raise if any subsystem input is left unconnected (python-control would feed 0)."""
-    rows = np.flatnonzero(~np.any(diagram.connect_map != 0, axis=1)
-                          & ~np.any(diagram.input_map != 0, axis=1))
+def check_connected(diagram, maps=None):
+    """Raise if any subsystem input is left unconnected (python-control would feed 0).
+    `maps`: the diagram's sparse maps (ivdrem.sim._control.sparse_maps) if at hand."""
+    C, M, _ = sparse_maps(diagram) if maps is None else maps
+    rows = np.flatnonzero(~(rows_with_entries(C) | rows_with_entries(M)))
     if rows.size:
         labels = []
         for sys in diagram.syslist:
@@ -42,18 +45,27 @@ def check_connected(diagram):
 
 
 def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
-    """ct.interconnect of `blocks` (connected by signal name) with a connectivity check."""
+    """ct.interconnect of `blocks` (connected by signal name) with a connectivity check.
+
+    Without `connections` the blocks are wired by name here (ivdrem.diagrams.wiring: the
+    same diagram, its maps kept sparse); explicit `connections` go to ct.interconnect."""
     names = [b.name for b in blocks]
     dup = {n for n in names if names.count(n) > 1}
     if dup:
         raise ValueError(f"duplicate block names in diagram: {sorted(dup)}")
-    kw = {} if connections is None else {"connections": connections}
-    # python-control's dense maps, priced before it allocates them (ivdrem.sim.guards)
-    check_interconnect_size(blocks, n_ext_inputs=len(list(inputs)), what=f"diagram {name!r}")
-    diagram = ct.interconnect(blocks, inputs=list(inputs), outputs=outputs, name=name,
-                              check_unused=False, **kw)
-    check_connected(diagram)
-    check_signal_sizes(diagram)      # a 3-vector tau_d into a 2-joint plant: an error
+    inputs = list(inputs)
+    # python-control's constructor still asks for its dense maps (as zeros: nothing
+    # writes them on the sparse route), priced before it does (ivdrem.sim.guards)
+    check_interconnect_size(blocks, n_ext_inputs=len(inputs), what=f"diagram {name!r}")
+    diagram = wire_by_name(blocks, inputs, outputs, name=name) if connections is None \
+        else NOT_PLAIN
+    if diagram is NOT_PLAIN:
+        kw = {} if connections is None else {"connections": connections}
+        diagram = ct.interconnect(blocks, inputs=inputs, outputs=outputs, name=name,
+                                  check_unused=False, **kw)
+    maps = sparse_maps(diagram)
+    check_connected(diagram, maps)
+    check_signal_sizes(diagram, maps)  # a 3-vector tau_d into a 2-joint plant: an error
     return diagram
 
 
