@@ -17,13 +17,14 @@
 #define NQT (IVC_NQ * IVC_NTHETA)
 #define NM (IVC_NTHETA + IVC_NTHETA * IVC_NTHETA)
 /* The multi-rate mixing's budget: a sample spends at most IVC_MIX_BUDGET units (n
- * multiply-adds each; 6000 units take about 0.1 ms on this machine) on the job, and a job
- * does as many sweeps as mix_every * IVC_MIX_BUDGET hold (11 at m = 20, 30 at m = 50), at
- * least IVC_MIX_SWEEPS (then a sample spends more: m < 14) and at most 80.  A job that reaches
- * its cap ends there, converged or not, its rotations the next job's warm start.  Measured on
- * the Panda (bench_controller.py's motion, T = 40 s, the mixing every 20 samples, 60 s): 4-5
- * sweeps (the last one finding nothing to rotate) after t = 36 s, at most 7 after t = 1.9 s,
- * up to 20 while the window starts (t <= 0.12 s, the composite term still off). */
+ * multiply-adds each; 6000 units took 0.1-0.2 ms on the Panda at load 8-15) on the job,
+ * and a job does as many sweeps as mix_every * IVC_MIX_BUDGET hold (11 at m = 20, 29 at
+ * m = 50), at least IVC_MIX_SWEEPS (then a sample spends more: m < 14) and at most 80.  A
+ * job that reaches its cap ends there, converged or not, its rotations the next job's warm
+ * start.  Measured on the Panda (bench_controller.py's motion, T = 40 s, the mixing every
+ * 20 samples, 60 s): 4-5 sweeps (the last one finding nothing to rotate) after t = 36 s,
+ * at most 7 after t = 1.9 s, up to 20 while the window starts (t <= 0.12 s, the composite
+ * term still off). */
 #define IVC_MIX_BUDGET 6000.0
 #define IVC_MIX_SWEEPS 8
 static double mix_job_units(int sweeps);
