@@ -18,8 +18,8 @@
 #define NM (IVC_NTHETA + IVC_NTHETA * IVC_NTHETA)
 /* The multi-rate mixing's budget: a sample spends at most IVC_MIX_BUDGET units (n
  * multiply-adds each; 6000 units took 0.1-0.2 ms on the Panda at load 8-15) on the job,
- * and a job does as many sweeps as mix_every * IVC_MIX_BUDGET hold (11 at m = 20, 29 at
- * m = 50), at least IVC_MIX_SWEEPS (then a sample spends more: m < 14) and at most 80.  A
+ * and a job does as many sweeps as mix_every * IVC_MIX_BUDGET hold (ntheta = 43: 11 at m = 20,
+ * 29 at m = 50), at least IVC_MIX_SWEEPS (then a sample spends more: m < 14) and at most 80.  A
  * job that reaches its cap ends there, converged or not, its rotations the next job's warm
  * start.  Measured on the Panda (bench_controller.py's motion, T = 40 s, the mixing every
  * 20 samples, 60 s): 4-5 sweeps (the last one finding nothing to rotate) after t = 36 s,
@@ -657,7 +657,7 @@ static void reference(const ivc_controller *c, double t, double *qd, double *dqd
  * dstebz/dlaebz): backward stable, lambda_min to about eps ||S||, the accuracy of LAPACK's
  * dsyevd that the Python reference calls (numpy.linalg.eigvalsh); 4/3 n^3 flops and no
  * iteration but the bisection's, where the cyclic Jacobi rotations it replaces took 6-10
- * sweeps of 3 n^3 (8.7 ms per sample on the Panda, nθ = 43).  S is scaled by a power of two
+ * sweeps of 3 n^3 (8.7 ms per sample on the Panda, ntheta = 43).  S is scaled by a power of two
  * (exact) so that max |S_ij| lies in [0.5, 1).
  *
  * A resumable job as the mixing's (lam_begin, then lam_work with a budget in units of n
