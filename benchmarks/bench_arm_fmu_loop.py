@@ -17,6 +17,7 @@ Usage::
     ./run python benchmarks/bench_arm_fmu_loop.py [--arms panda,ur5,iiwa,xarm7] [--t-end 300]
                                                   [--h 0.001] [--gamma 500] [--Gamma 0.001]
                                                   [--mix-every 10]
+                                                  [--injection estimate|nominal]
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ import numpy as np
 
 
 def run_arm(name, t_end, h=1e-3, gamma=None, mix_every=None, every=1000, law="iv-drem",
-            Gamma=None):
+            Gamma=None, injection=None):
     from ivdrem.controller.fmu_export import (controller_design, export_controller_fmu,
                                               predict, resolve_gamma)
     from ivdrem.controller.fmu_loop import fmpy_closed_loop
@@ -44,11 +45,14 @@ def run_arm(name, t_end, h=1e-3, gamma=None, mix_every=None, every=1000, law="iv
         design["gamma"] = float(gamma)
     if mix_every is not None:
         design["mix_every"] = int(mix_every)
+    if injection is not None:
+        design["injection"] = injection
     design, _ = resolve_gamma(model, law, design, config)
     st = predict(model, law, design, config)
     kw = closed_loop_kwargs(config, law)
     theta = np.asarray(kw["theta"], dtype=float)
     out = dict(arm=name, n=model.n, ntheta=model.ntheta, h=h, growth=st.growth,
+               injection=st.injection,
                gamma=design["gamma"], stable=st.stable, reason=st.reason(),
                K=np.round(np.diag(design["K"]), 1).tolist())
     with tempfile.TemporaryDirectory(prefix="ivdrem_arm_loop_") as tmp:
@@ -85,6 +89,9 @@ def main(argv=None):
                          "with gamma 0.5 / Γ unless --gamma is given)")
     ap.add_argument("--mix-every", type=int, default=None, dest="mix_every",
                     help="the mixing (17) every m samples (default: the controller's)")
+    ap.add_argument("--injection", default=None, choices=("estimate", "nominal"),
+                    help="the observer's injection of (8) at theta_hat or theta_nominal "
+                         "(default: the design's, 'nominal' for 'inertia-scaled')")
     args = ap.parse_args(argv)
     if args.Gamma is None:
         from ivdrem.controller.sampled import GRADIENT_GAIN
@@ -97,8 +104,9 @@ def main(argv=None):
           flush=True)
     for arm in args.arms.split(","):
         r = run_arm(arm, args.t_end, h=args.h, gamma=args.gamma, mix_every=args.mix_every,
-                    Gamma=args.Gamma)
-        print(f"        K = {r['K']} 1/s; {r['reason']}", flush=True)
+                    Gamma=args.Gamma, injection=args.injection)
+        print(f"        K = {r['K']} 1/s, injection {r['injection']}; {r['reason']}",
+              flush=True)
         div = "no" if r["diverged"] is None else "YES"
         ratio = f"{r['theta_ratio']:9.4f}" if "theta_ratio" in r else "        -"
         err = f"{r['theta_err_end']:9.4f}" if "theta_err_end" in r else "        -"

@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 
 
 def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c", mu_max=135.0,
-        K=None, delay=1, substeps=1, Gamma=0.01):
+        K=None, delay=1, substeps=1, Gamma=0.01, injection=None):
     from ivdrem.controller.clib import CController
     from ivdrem.controller.loop import ModelPlant, sampled_loop
     from ivdrem.controller.sampled import SampledController, inertia_scaled_gains
@@ -45,14 +45,16 @@ def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c",
             K = inertia_scaled_gains(m, K, q0, h, mu_max=mu_max, delay=delay)
     cls = CController if backend == "c" else SampledController
     ctl = cls(m, law, h=h, K=K, T=T, trajectory=traj, design=design, gamma=gamma,
-              mixing="eigen", mix_every=mix_every, mu_max=mu_max, delay=delay, Gamma=Gamma)
+              mixing="eigen", mix_every=mix_every, mu_max=mu_max, delay=delay, Gamma=Gamma,
+              injection=injection)
     plant = ModelPlant(m, q0, dq0, substeps=substeps)
     th = np.asarray(m.theta_values)
     t0 = time.perf_counter()
     try:
         rec = sampled_loop(ctl, plant, t_end, disturbance=dist, every=int(round(0.1 / h)))
     except (FloatingPointError, ValueError, RuntimeError) as exc:
-        return dict(arm=name, h=h, design=design, diverged=f"{type(exc).__name__}: {exc}"[:300],
+        return dict(arm=name, h=h, design=design, injection=injection,
+                    diverged=f"{type(exc).__name__}: {exc}"[:300],
                     wall=time.perf_counter() - t0)
     wall = time.perf_counter() - t0
     ref = SampledController(m, "none", trajectory=traj, h=h)
@@ -60,7 +62,8 @@ def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c",
     qd = np.array([ref.reference(tk)[0] for tk in t])
     last = t >= t[-1] - 10.0
     e0, e1 = np.linalg.norm(th - rec["theta_hat"][0]), np.linalg.norm(th - rec["theta_hat"][-1])
-    return dict(arm=name, h=h, delay=delay, design=design, K=np.round(K, 1).tolist(), T=T,
+    return dict(arm=name, h=h, delay=delay, design=design, injection=ctl.injection,
+                K=np.round(K, 1).tolist(), T=T,
                 theta0=e0, theta_end=e1, ratio=e1 / e0,
                 e_last=float(np.abs(rec["q"][last] - qd[last]).max()),
                 tau_max=float(np.abs(rec["tau"]).max()), wall=wall,
@@ -88,6 +91,9 @@ def main(argv=None):
                     help="RK4 sub-steps of the plant per sample (plant FMU at 1 ms: 1)")
     ap.add_argument("--Gamma", type=float, default=None,
                     help="Γ of (11) (scalar; default the design's GRADIENT_GAIN, 1e-3)")
+    ap.add_argument("--injection", default=None, choices=("estimate", "nominal"),
+                    help="the observer's injection of (8) at theta_hat or theta_nominal "
+                         "(default: the design's, 'nominal' for 'inertia-scaled')")
     a = ap.parse_args(argv)
     from ivdrem.controller.sampled import GRADIENT_GAIN
     a.Gamma = GRADIENT_GAIN if a.Gamma is None else a.Gamma
@@ -96,7 +102,7 @@ def main(argv=None):
     for name in a.arms.split(","):
         r = run(name, h=a.h, t_end=a.t_end, design=a.design, gamma=a.gamma,
                 mix_every=a.mix_every, backend=a.backend, mu_max=a.mu_max, K=a.K,
-                delay=a.delay, substeps=a.substeps, Gamma=a.Gamma)
+                delay=a.delay, substeps=a.substeps, Gamma=a.Gamma, injection=a.injection)
         print(r, flush=True)
     print(f"load {os.getloadavg()}", flush=True)
     return 0

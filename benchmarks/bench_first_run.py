@@ -41,14 +41,17 @@ except ImportError:
 
 
 def _timed(cmd, cwd, env):
-    """(wall s, peak RSS MiB, exit status, output tail) of `cmd` under /usr/bin/time -v."""
+    """(wall s, peak RSS MiB, exit status, output tail, CPU s) of `cmd` under
+    /usr/bin/time -v (CPU: user + system, children included)."""
     t0 = time.perf_counter()
     out = subprocess.run(["/usr/bin/time", "-v", *cmd], cwd=cwd, env=env, capture_output=True,
                          text=True)
     wall = time.perf_counter() - t0
     m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", out.stderr)
     rss = int(m.group(1)) / 1024 if m else float("nan")
-    return wall, rss, out.returncode, (out.stdout + out.stderr)[-1500:]
+    cpu = sum(float(x) for x in re.findall(r"(?:User|System) time \(seconds\): ([\d.]+)",
+                                           out.stderr))
+    return wall, rss, out.returncode, (out.stdout + out.stderr)[-1500:], cpu
 
 
 def first_run_rows(tree, label, t_end, cache):
@@ -60,11 +63,11 @@ def first_run_rows(tree, label, t_end, cache):
            "--t-end", f"{t_end:g}", "--laws", "iv-drem", "--quiet"]
     rows = []
     for kind in ("first", "warm"):
-        wall, rss, rc, tail = _timed(cmd, tree, env)
+        wall, rss, rc, tail, cpu = _timed(cmd, tree, env)
         if rc != 0:
             raise RuntimeError(f"{label} {kind} run failed (exit {rc}):\n{tail}")
-        theta = re.search(r"theta_hat\(t_end\)[^\n]*", tail)
-        rows.append(dict(version=label, run=kind, wall_s=wall, peak_MiB=rss,
+        theta = re.search(r"theta_err\|\(t_end\)[^\n]*", tail)
+        rows.append(dict(version=label, run=kind, wall_s=wall, cpu_s=cpu, peak_MiB=rss,
                          theta=theta.group(0) if theta else None))
         print(json.dumps(rows[-1]), flush=True)
     return rows
@@ -149,9 +152,10 @@ def main(argv=None):
             subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
                            capture_output=True)
             shutil.rmtree(tmp, ignore_errors=True)
-        print(f"\n{'version':<22} {'run':<6} {'wall s':>8} {'peak MiB':>9}")
+        print(f"\n{'version':<22} {'run':<6} {'wall s':>8} {'CPU s':>7} {'peak MiB':>9}")
         for r in out["rows"]:
-            print(f"{r['version']:<22} {r['run']:<6} {r['wall_s']:>8.1f} {r['peak_MiB']:>9.0f}")
+            print(f"{r['version']:<22} {r['run']:<6} {r['wall_s']:>8.1f} {r['cpu_s']:>7.1f} "
+                  f"{r['peak_MiB']:>9.0f}")
     if a.gamma:
         print(f"\n{'arm':<10} {'nθ':>3} {'mixing':<7} {'γ run (today)':>14} {'γ reference':>12} "
               f"{'max rel diff':>12} {'run s':>7} {'ref s':>6}")

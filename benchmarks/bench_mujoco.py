@@ -15,13 +15,15 @@ For each arm (the paper's 2-link and the Panda by default), in one run, alternat
 
 Each figure is the CPU time of the thread per sample (``time.thread_time``), best of
 ``--reps``: on a shared machine the wall time includes the time the process waited for a
-core (printed too, with the load average). URDF arms: the eigen mixing every
-``--mix-every`` samples.  The issue's target: a MuJoCo step plus a controller step, from
+core (printed too, with the load average). URDF arms: the eigen mixing (and composite
+learning's max-hold) every ``--mix-every`` samples; ``--law`` the controller's law
+(default IV-DREM).  The issue's target: a MuJoCo step plus a controller step, from
 Python, <= 150 µs for the Panda.
 
 Usage::
 
     ./run python benchmarks/bench_mujoco.py [--arms two-link,panda] [--t-end 3] [--reps 3]
+        [--law composite-learning]
 """
 from __future__ import annotations
 
@@ -37,7 +39,7 @@ def _best(fn, reps):
     return min((fn() for _ in range(reps)), key=lambda x: x[0])
 
 
-def bench(name, t_end, reps, mix_every):
+def bench(name, t_end, reps, mix_every, law="iv-drem"):
     import mujoco
     from ivdrem.controller.clib import CController
     from ivdrem.controller.loop import disturbance_at
@@ -61,8 +63,8 @@ def bench(name, t_end, reps, mix_every):
             mujoco.mj_step(m, d)
         return ((time.thread_time() - c0) / N * 1e6, (time.perf_counter() - w0) / N * 1e6)
 
-    ctl_before = CController(plant.model, "iv-drem", **gains)            # -O2
-    ctl_after = CController(plant.model, "iv-drem", flags=CONTROLLER_FLAGS, **gains)
+    ctl_before = CController(plant.model, law, **gains)                  # -O2
+    ctl_after = CController(plant.model, law, flags=CONTROLLER_FLAGS, **gains)
 
     def before():
         """The earlier loop's per-sample work (its recording every 100 samples left out)."""
@@ -79,8 +81,8 @@ def bench(name, t_end, reps, mix_every):
         return ((time.thread_time() - c0) / N * 1e6, (time.perf_counter() - w0) / N * 1e6)
 
     def after():
-        r = closed_loop(plant, t_end, controller=ctl_after, q0=np.zeros(n), disturbance=dist,
-                        every=100, progress=False)
+        r = closed_loop(plant, t_end, law, controller=ctl_after, q0=np.zeros(n),
+                        disturbance=dist, every=100, progress=False)
         ctl_after.reset()
         return r.costs["loop_cpu_us"], r.costs["loop_us"]
 
@@ -101,12 +103,15 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--mix-every", type=int, default=50, dest="mix_every",
                     help="URDF arms: mix (17) every N samples (default %(default)s)")
+    ap.add_argument("--law", default="iv-drem",
+                    help="the controller's law (default %(default)s)")
     args = ap.parse_args(argv)
-    print(f"load average at start: {os.getloadavg()[0]:.1f} (1 min), {os.cpu_count()} cores")
+    print(f"load average at start: {os.getloadavg()[0]:.1f} (1 min), {os.cpu_count()} cores; "
+          f"law {args.law}")
     print(f"{'arm':<10} {'n':>2} {'mj_step':>8} {'before':>8} {'after':>8} {'after/before':>12}"
           f"   (CPU µs per sample, best of {args.reps}; wall µs in brackets)")
     for name in args.arms.split(","):
-        r = bench(name.strip(), args.t_end, args.reps, args.mix_every)
+        r = bench(name.strip(), args.t_end, args.reps, args.mix_every, args.law)
         print(f"{r['arm']:<10} {r['n']:>2} {r['mj_step'][0]:8.1f} {r['before'][0]:8.1f} "
               f"{r['after'][0]:8.1f} {r['after'][0] / r['before'][0]:12.2f}   "
               f"[{r['mj_step'][1]:.0f}, {r['before'][1]:.0f}, {r['after'][1]:.0f}]",

@@ -62,7 +62,8 @@ def _cmd_paper(args):
     from .diagrams.gamma_auto import GainRuleError
     try:
         run = run_paper(config, progress=want_progress(not args.quiet), engine=args.engine,
-                        allow_long=args.allow_long, log=say)
+                        allow_long=args.allow_long, log=say,
+                        return_states=False)     # nothing below reads the states
     except GainRuleError as e:       # refused by the calibration, before that law's run
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2

@@ -30,7 +30,8 @@ from control.timeresp import TimeResponseData, TimeResponseList
 
 from .sim.errors import StiffnessWarning
 from .sim.foreign import PythonBlockNotice
-from .sim._control import (PrivateDiagram, evaluate_output, process_kwargs as _process_kwargs,
+from .sim._control import (PrivateDiagram, evaluate_output, sparse_maps,
+                           process_kwargs as _process_kwargs,
                            process_param as _process_param, timeresp_aliases as _timeresp_aliases)
 from .sim.simulator import simulate, interpolate_inputs, _input_table
 
@@ -117,8 +118,8 @@ def _flat_maps(system):
     parts = [_flat_maps(s) for s in system.syslist]
     leaves = [leaf for part in parts for leaf in part[0]]
     Cb, Mb, OYb, OUb = (block_diag(*[part[k] for part in parts]) for k in range(1, 5))
-    Cd, Md = np.asarray(system.connect_map, float), np.asarray(system.input_map, float)
-    Od = np.asarray(system.output_map, float)
+    # a nested diagram's own maps, dense for the algebra below (diagrams a user nests)
+    Cd, Md, Od = (m.toarray() for m in sparse_maps(system))
     nys = Cd.shape[1]
     Ody, Odu = Od[:, :nys], Od[:, nys:]          # subsystem outputs, subsystem inputs
     # the subsystems' outputs in the leaves' signals: y_sub = P Y + Q u_sub
@@ -158,11 +159,12 @@ def _merged_params(system):
 def flatten(system):
     """`system` as a one-level ``InterconnectedSystem`` of its leaf systems (a plain
     system: a diagram of one block; a TransferFunction: its state-space form), with the
-    same inputs, outputs and state order.  The system given is not changed."""
-    leaves, C, M, OY, OU = _flat_maps(system)
+    same inputs, outputs and state order.  The system given is not changed (a one-level
+    diagram of plain blocks is returned as it is, its maps unread)."""
     if not isinstance(system, ct.InterconnectedSystem) or \
             any(isinstance(s, ct.InterconnectedSystem) for s in system.syslist) or \
             any(isinstance(s, ct.TransferFunction) for s in system.syslist):
+        leaves, C, M, OY, OU = _flat_maps(system)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")     # no connections given: none are "unused"
             flat = ct.InterconnectedSystem(

@@ -5,6 +5,8 @@ functions by symbol); the regressors' derivatives of the C library against finit
 differences of its regressors; without a compiler the numba path, unchanged."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -142,4 +144,28 @@ def test_without_a_c_compiler_the_numba_path(monkeypatch, tmp_path):
     assert _c_engine.load(model) is None
     assert model.engine_source() == model.source("")
     assert "_rbk._rb_Phi(" in model.engine_source()
+    assert not _c_engine.library_path(model.key).exists()
+
+
+def test_a_compiler_that_fails_falls_back_to_the_numba_path(monkeypatch, tmp_path):
+    """A compiler that is there but fails (a broken installation): load() warns once,
+    quoting its first error, and says None; the engine's module is the numba source."""
+    import os
+    from ivdrem.models import arm, _c_engine
+    broken = tmp_path / "broken-cc"
+    broken.write_text("#!/bin/sh\necho 'model.c:1:1: error: broken installation' >&2\nexit 1\n")
+    os.chmod(broken, 0o755)
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", str(broken))
+    monkeypatch.setattr(_c_engine, "_FAILED", {})
+    try:
+        model = arm("ur5")
+    except ImportError as exc:
+        pytest.skip(str(exc))
+    with pytest.warns(RuntimeWarning, match="error: broken installation.*numba kernels"):
+        assert _c_engine.load(model) is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                  # once: no second build, no warning
+        assert _c_engine.load(model) is None
+        assert model.engine_source() == model.source("")
     assert not _c_engine.library_path(model.key).exists()

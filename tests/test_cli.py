@@ -269,6 +269,7 @@ def test_a_delta_below_the_doubles_is_refused_by_the_preflight(tmp_path, monkeyp
     def never(*a, **k):
         raise AssertionError("simulated")
     monkeypatch.setattr(gamma_auto, "reference_mean_delta2", lambda *a, **k: [-400.0])
+    monkeypatch.setattr(gamma_auto, "_estimate_path", lambda *a: None)   # none kept: computed
     monkeypatch.setattr(gamma_auto, "calibrate_gamma", never)
     monkeypatch.setattr(paper, "run_paper", never)
     from pathlib import Path

@@ -164,6 +164,7 @@ def test_overrides_nested_and_dotted(tmp_path):
         ("[controller]\ndelta_mu = 1.0\n", "'controller.delta_mu' must be in (0, 1)"),
         ("[controller]\ndelta_mu = 0\n", "'controller.delta_mu' must be in (0, 1)"),
         ("[controller]\nobserver_variant = 'literally'\n", "'controller.observer_variant'"),
+        ("[controller]\ninjection = 'theta'\n", "'controller.injection'"),
         ("[filters]\nl = -50\n", "'filters.l' must be > 0"),
         ("[iv_drem]\nT = 0\n", "'iv_drem.T' must be > 0"),
         ("[iv_drem]\np = 0.5\n", "'iv_drem.p' must be >= 1"),
@@ -377,3 +378,17 @@ def test_a_plugin_that_raises_is_named(tmp_path):
     cfg = write(tmp_path, '[experiment]\nplugins = ["broken.py"]\n')
     with pytest.raises(ConfigError, match=r"importing '.*broken\.py' failed: RuntimeError: my bug"):
         load_config(cfg)
+
+
+def test_the_injection_key_reaches_the_loop_and_the_sampled_controller(tmp_path):
+    """[controller] injection: the continuous loop's argument and the exported controller's
+    option; absent, neither is set (each design's default then: docs/controller.md)."""
+    from ivdrem.controller.fmu_export import controller_design
+    from ivdrem.experiments.config import closed_loop_kwargs
+    base = "[controller]\ndesign = 'inertia-scaled'\n"
+    plain = load_config(write(tmp_path, base))
+    assert "injection" not in closed_loop_kwargs(plain, "iv-drem")
+    assert "injection" not in controller_design(plain, "iv-drem")
+    cfg = load_config(write(tmp_path, base + "injection = 'estimate'\n"))
+    assert closed_loop_kwargs(cfg, "iv-drem")["injection"] == "estimate"
+    assert controller_design(cfg, "iv-drem")["injection"] == "estimate"

@@ -552,18 +552,25 @@ def _planar3_loop(law="iv-drem", **kw):
 
 
 @pytest.mark.parametrize("case", ["iv-drem", "composite-learning", "planar3-iv-drem",
-                                  "planar3-composite-learning", "literal-observer"])
+                                  "planar3-composite-learning", "literal-observer",
+                                  "inertia-scaled"])
 def test_block_jacobian_kernels_match_their_own_differences(case):
     """Every block that supplies an analytic Jacobian (ivdrem/blocks/jacobians.py) against
     central differences of its own update/output kernels, at random states and inputs,
     including a singular Psi (rank nθ - 1) for the mixing step (17) and Psi = 0 (its
     value at t0).  The robot-model blocks (plant, torque observer in both variants,
-    regression filter, instrument) use the regressors' generated derivatives."""
+    regression filter, instrument) use the regressors' generated derivatives; the
+    inertia-scaled design's observer and law with the injection at θ_nominal too."""
     if case.startswith("planar3"):
         loop = _planar3_loop(case[len("planar3-"):])
     elif case == "literal-observer":
         from ivdrem.diagrams import closed_loop
         loop = closed_loop("iv-drem", observer_variant="literal")
+    elif case == "inertia-scaled":
+        from ivdrem.diagrams import closed_loop
+        loop = closed_loop("iv-drem", design="inertia-scaled", K=3.0)
+        obs = next(b for b in loop.syslist if b.name == "torque_observer")
+        assert [p for p, _ in obs.ivdrem.outputs][-1] == "chi"      # the nominal injection
     else:
         loop = paper_loop(case)
     rng = np.random.default_rng(42)

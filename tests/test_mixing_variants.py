@@ -399,6 +399,7 @@ def test_a_delta_below_the_doubles_is_refused_before_the_calibration(monkeypatch
     import ivdrem.sim as sim_module
     model = planar_arm(3)
     monkeypatch.setattr(ga, "reference_mean_delta2", lambda *a, **k: [-400.0])
+    monkeypatch.setattr(ga, "_estimate_path", lambda *a: None)   # none kept: computed
     def no_simulation(*a, **k):
         raise AssertionError("the calibration ran")
     monkeypatch.setattr(sim_module, "simulate", no_simulation)

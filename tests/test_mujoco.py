@@ -9,7 +9,8 @@ import pytest
 pytest.importorskip("mujoco")
 
 from ivdrem.models import ARM_NAMES  # noqa: E402
-from ivdrem.plants.mujoco import MujocoError, Payload, check_model, load  # noqa: E402
+from ivdrem.plants.mujoco import (MujocoError, Payload, check_model,  # noqa: E402
+                                  closed_loop, load)
 
 
 def test_the_papers_two_link_as_mjcf_equals_the_papers_formulas():
@@ -165,6 +166,43 @@ def test_a_diverging_plant_stops_saying_where():
     with pytest.raises(FloatingPointError, match="diverged near t = "):
         for _ in range(100):
             p.step(np.array([1e300, -1e300]))
+
+
+class _Runaway:
+    """A controller asking for 1e300 N·m: the plant diverges in its first step."""
+    h, n = 1e-3, 2
+    theta_hat, tau_d_hat = np.zeros(5), np.zeros(2)
+
+    def step(self, t, q, dq):
+        return np.array([1e300, -1e300])
+
+
+def test_a_diverging_plant_leaves_nothing_in_the_working_directory(tmp_path, monkeypatch):
+    """MuJoCo's default warning handler prints the warning and appends it to
+    MUJOCO_LOG.TXT in the working directory: the plant keeps it instead, quotes it in the
+    error, and leaves a handler of the user's in place (called too)."""
+    import mujoco
+    monkeypatch.chdir(tmp_path)
+    p = load("two-link", integrator="euler", states=0)
+    assert mujoco.get_mju_user_warning() is None
+    with pytest.raises(FloatingPointError, match="MuJoCo: Nan, Inf or huge value in QACC"):
+        closed_loop(p, 0.01, controller=_Runaway(), q0=[0.0, 1.0])
+    assert mujoco.get_mju_user_warning() is None           # MuJoCo's default again
+    with pytest.raises(FloatingPointError, match="MuJoCo: Nan, Inf or huge value"):
+        p.reset([0.0, 1.0])
+        for _ in range(3):
+            p.step(np.array([1e300, -1e300]))
+    theirs = []
+    mujoco.set_mju_user_warning(theirs.append)
+    try:
+        p.reset([0.0, 1.0])
+        with pytest.raises(FloatingPointError, match="diverged near t = "):
+            closed_loop(p, 0.01, controller=_Runaway(), q0=[0.0, 1.0])
+        assert mujoco.get_mju_user_warning() == theirs.append
+        assert theirs and "unstable" in theirs[0]
+    finally:
+        mujoco.set_mju_user_warning(None)
+    assert len(p.warnings) == 3 and list(tmp_path.iterdir()) == []
 
 
 def test_a_payload_on_a_urdf_arm_sits_on_the_last_joints_link():

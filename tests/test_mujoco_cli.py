@@ -3,6 +3,7 @@ options, bad input refused before anything runs."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -33,6 +34,7 @@ def test_cosim_mujoco_takes_the_robots_imperfections(tmp_path, capsys):
     out = tmp_path / "mj.json"
     code = main(["cosim", "--plant", "mujoco", "--t-end", "0.2", "--laws", "none",
                  "--realistic", "--noise-level", "4", "--tau-rate-limit", "1000",
+                 "--encoder-noise", "0.5", "--seed", "3",
                  "--payload-mass", "0.5", "--payload-com", "0.3", "0", "0", "--json", str(out),
                  "--quiet"])
     text = capsys.readouterr().out
@@ -42,6 +44,8 @@ def test_cosim_mujoco_takes_the_robots_imperfections(tmp_path, capsys):
     assert imp["encoder_counts"] == pytest.approx(2.0 ** 18 / 4)
     assert imp["velocity"] == "difference" and imp["measurement_delay"] == 1
     assert imp["tau_rate_limit"] == [1000.0]
+    assert imp["encoder_noise"] == 0.5 and imp["seed"] == 3
+    assert "encoder noise σ = 0.5 counts" in text
     assert data["runs"][0]["theta_end"][3] == pytest.approx(0.4 + 0.5 * 0.3)   # θ4 + m_p d
     assert "payload 0.5 kg" in text
 
@@ -52,6 +56,7 @@ def test_cosim_mujoco_takes_the_robots_imperfections(tmp_path, capsys):
     (["--integrator", "rk45"], "invalid choice"),
     (["--payload-mass", "-1"], "payload mass"),
     (["--encoder-counts", "0"], "encoder_counts"),
+    (["--encoder-noise", "1"], "needs encoder_counts"),
     (["--comm-step", "0"], "comm-step"),
 ])
 def test_cosim_mujoco_refuses_bad_input(argv, word, capsys):
@@ -126,6 +131,31 @@ def test_ivdrem_study_runs_a_robustness_file_and_writes_its_report(tmp_path, cap
     assert (out / "robustness.html").read_text(encoding="utf-8").count("<li>") == 2
 
 
+def test_seeds_vary_the_runs_that_draw_noise_and_only_those(tmp_path):
+    """[robustness] encoder_noise (σ in counts) at the levels > 0 makes the seed matter:
+    those levels run once per seed, with different numbers; level 0 (exact) and a study
+    without encoder noise run the first seed only."""
+    from ivdrem.plants.study import expand, read_robustness, run_one
+    study = tmp_path / "s.toml"
+    text = ('[experiment]\nt_end = 0.3\nlaws = ["iv-drem"]\n[model]\nname = "two-link"\n'
+            '[robustness]\nnoise_levels = [0.0, 10.0]\nseeds = [4, 7]\nmu_max = 60.0\n')
+    study.write_text(text + "encoder_noise = 1.0\n", encoding="utf-8")
+    config, rob, _ = read_robustness(study)
+    runs = expand(config, rob)
+    assert [(r["noise_level"], r["seed"]) for r in runs] == [(0.0, 4), (10.0, 4), (10.0, 7)]
+    rows = [run_one(config, rob, r) for r in runs[1:]]
+    assert all(r["status"] == "ok" for r in rows), rows
+    assert rows[0]["tracking_rms_last"] != rows[1]["tracking_rms_last"]
+    again = run_one(config, rob, runs[1])
+    assert again["tracking_rms_last"] == rows[0]["tracking_rms_last"]      # seeded
+    study.write_text(text, encoding="utf-8")
+    config, rob, _ = read_robustness(study)
+    assert [(r["noise_level"], r["seed"]) for r in expand(config, rob)] == [(0.0, 4), (10.0, 4)]
+    study.write_text(text + "encoder_noise = -1\n", encoding="utf-8")
+    with pytest.raises(ValueError, match="encoder_noise must be"):
+        read_robustness(study)
+
+
 def test_the_studys_gamma_reaches_only_the_laws_with_the_mixing():
     """A number for γ is IV-DREM's and DREM's γ of (21): composite learning keeps its own γ
     of (35) (which multiplies Ψ_b itself; 53.2 there diverges the Panda in 0.4 s); a
@@ -187,38 +217,34 @@ def test_report_plant_mujoco_refuses_a_law_without_a_sampled_form(tmp_path, caps
     assert code == 2 and "not-a-law" in err and "Traceback" not in err
 
 
-def test_the_studys_conclusions_average_over_scales_and_name_the_diverged():
-    """summary_table: the mean over disturbance scales and seeds per law, noise level and
-    payload, with counts; conclusions: each law's numbers, the factor between IV-DREM and
-    the best other law, and a law whose runs all failed said to have diverged."""
+def test_the_studys_conclusions_average_over_seeds_and_name_the_diverged():
+    """summary_table: the mean over the seeds per law, noise level, payload and disturbance
+    scale (scales kept apart: a law diverging at one is not averaged with another), with
+    counts; conclusions: each law's numbers, the factor between IV-DREM and the best other
+    law, and a law whose runs all failed said to have diverged."""
     import pandas as pd
 
     from ivdrem.plants.study import conclusions, summary_table
     nan = float("nan")
+
+    def row(law, level, om, seed, ratio=nan, e=nan, d=nan):
+        return dict(law=law, noise_level=level, payload_mass=0.0, omega_scale=om, seed=seed,
+                    status="failed" if math.isnan(ratio) else "ok", theta_error_ratio=ratio,
+                    tracking_rms_last=e, tau_d_error_rms_last=d)
     df = pd.DataFrame([
-        dict(law="iv-drem", noise_level=0.0, payload_mass=0.0, omega_scale=1.0, seed=0,
-             status="ok", theta_error_ratio=0.01, tracking_rms_last=1e-3,
-             tau_d_error_rms_last=0.2),
-        dict(law="iv-drem", noise_level=0.0, payload_mass=0.0, omega_scale=1.37, seed=0,
-             status="ok", theta_error_ratio=0.03, tracking_rms_last=3e-3,
-             tau_d_error_rms_last=0.4),
-        dict(law="none", noise_level=0.0, payload_mass=0.0, omega_scale=1.0, seed=0,
-             status="ok", theta_error_ratio=0.8, tracking_rms_last=2e-3,
-             tau_d_error_rms_last=1.0),
-        dict(law="none", noise_level=0.0, payload_mass=0.0, omega_scale=1.37, seed=0,
-             status="failed", theta_error_ratio=nan, tracking_rms_last=nan,
-             tau_d_error_rms_last=nan),
-        dict(law="iv-drem", noise_level=10.0, payload_mass=0.0, omega_scale=1.0, seed=0,
-             status="failed", theta_error_ratio=nan, tracking_rms_last=nan,
-             tau_d_error_rms_last=nan),
-        dict(law="none", noise_level=10.0, payload_mass=0.0, omega_scale=1.0, seed=0,
-             status="ok", theta_error_ratio=0.9, tracking_rms_last=5e-3,
-             tau_d_error_rms_last=2.0)])
-    tab = summary_table(df).set_index(["noise_level", "law"])
-    assert tab.loc[(0.0, "iv-drem"), "theta_error_ratio"] == pytest.approx(0.02)
-    assert tab.loc[(0.0, "none"), ["ok", "failed"]].tolist() == [1, 1]
+        row("iv-drem", 1.0, 1.0, 0, 0.01, 1e-3, 0.2), row("iv-drem", 1.0, 1.0, 1, 0.03, 3e-3, 0.4),
+        row("iv-drem", 1.0, 1.0, 2),
+        row("none", 1.0, 1.0, 0, 0.8, 2e-3, 1.0), row("none", 1.0, 1.0, 1, 0.8, 2e-3, 1.0),
+        row("iv-drem", 1.0, 1.37, 0), row("none", 1.0, 1.37, 0, 0.9, 2e-3, 1.0),
+        row("iv-drem", 10.0, 1.0, 0), row("none", 10.0, 1.0, 0, 0.9, 5e-3, 2.0)])
+    tab = summary_table(df).set_index(["noise_level", "omega_scale", "law"])
+    assert tab.loc[(1.0, 1.0, "iv-drem"), "theta_error_ratio"] == pytest.approx(0.02)
+    assert tab.loc[(1.0, 1.0, "iv-drem"), ["ok", "failed"]].tolist() == [2, 1]
+    assert tab.loc[(1.0, 1.37, "iv-drem"), ["ok", "failed"]].tolist() == [0, 1]
     lines = conclusions(df)
-    assert len(lines) == 2
+    assert len(lines) == 3
+    assert "disturbance frequencies x 1:" in lines[0] and "x 1.37" in lines[1]
     assert "iv-drem ‖θ̃(end)‖/‖θ̃(0)‖ = 0.02" in lines[0] and "0.8" in lines[0]
     assert "40 times smaller than none's" in lines[0] and "(1 run(s) failed)" in lines[0]
-    assert "iv-drem diverged in every run" in lines[1] and "times" not in lines[1]
+    for line in lines[1:]:
+        assert "iv-drem diverged in every run" in line and "times" not in line

@@ -159,9 +159,9 @@ class _PythonController:
     """The Python reference of the sampled controller behind the loop's generic path
     (``step(t, q, dq) -> tau``), to check the C fast path against."""
 
-    def __init__(self, **gains):
+    def __init__(self, model=None, law="iv-drem", **gains):
         from ivdrem.controller.sampled import SampledController
-        self.ref = SampledController(None, "iv-drem", **gains)
+        self.ref = SampledController(model, law, **gains)
         self.h, self.n, self.delay = self.ref.h, self.ref.n, self.ref.delay
 
     def step(self, t, q, dq):
@@ -189,6 +189,32 @@ def test_the_loops_c_path_equals_a_generic_controllers_path(two_link, delay):
         for name in ("q", "tau", "theta_hat", "tau_d_hat", "q_m", "dq_m", "tau_d"):
             x, y = signal(a, name), signal(b, name)
             assert np.allclose(x, y, rtol=1e-9, atol=1e-9), (name, imp, np.abs(x - y).max())
+
+
+def test_composite_learning_on_the_panda_in_mujoco_is_its_python_reference():
+    """Composite learning (35) on the Panda in MuJoCo with the robustness study's gains
+    (examples/panda-robustness.toml: the configuration's T = 40 s, γ = 1, Γ = 0.01) and a
+    seeded noisy robot: the C library in the loop's fast path and the Python reference
+    through step() give the same run to rounding over 0.3 s."""
+    from dataclasses import replace
+
+    from ivdrem.experiments.config import load_config, model_from_config
+    from ivdrem.plants.mujoco import controller_kwargs
+    config = load_config("examples/panda.toml")
+    model = model_from_config(config)
+    kw, run = controller_kwargs(config, "composite-learning")
+    kw.update(mu_max=135.0, mix_every=50)
+    assert kw["gamma"] == 1.0 and kw["T"] == 40.0
+    plant = load(model, states=0)
+    imp = replace(REALISTIC, encoder_noise=1.0, seed=3)
+    a = closed_loop(plant, 0.3, "composite-learning", imperfections=imp, every=10, **run, **kw)
+    b = closed_loop(plant, 0.3, "composite-learning", every=10, imperfections=imp,
+                    controller=_PythonController(model, "composite-learning", **kw), **run)
+    th = signal(a, "theta_hat")
+    assert np.abs(th[:, -1] - th[:, 0]).max() > 1e-4                   # it learns
+    for name in ("q", "tau", "theta_hat", "tau_d_hat", "q_m", "dq_m"):
+        x, y = signal(a, name), signal(b, name)
+        assert np.allclose(x, y, rtol=1e-9, atol=1e-9), (name, np.abs(x - y).max())
 
 
 def test_the_loops_faster_controller_build_gives_the_same_numbers_bit_for_bit(two_link):

@@ -76,6 +76,37 @@ def test_velocity_noise_has_the_given_sigma_and_follows_the_seed():
     assert abs(outs[0].mean()) < 5 * sigma / math.sqrt(outs[0].size)
 
 
+def test_encoder_noise_is_rounded_by_the_encoder_and_follows_the_seed():
+    """White noise of σ counts before the encoder: the measured angles stay multiples of
+    the count; their error is the noise plus the rounding (dithered, uniform): variance
+    σ² + 1/12 counts²; σ = 0 is the plain encoder, bit for bit."""
+    counts, sigma = 2.0 ** 12, 1.0
+    quantum = 2 * math.pi / counts
+    t, q, dq = _trajectory(N=20000)
+    outs = []
+    for seed in (5, 5, 6):
+        spec = Imperfections(encoder_counts=counts, encoder_noise=sigma, seed=seed)
+        assert spec.random and "encoder noise σ = 1 counts" in spec.active
+        r = spec.start(3, H, q[0], dq[0])
+        outs.append(np.array([r.measure(q[k], dq[k])[0] for k in range(len(t))]))
+    steps = outs[0] / quantum
+    assert np.abs(steps - np.round(steps)).max() < 1e-9
+    assert np.array_equal(outs[0], outs[1]) and not np.array_equal(outs[0], outs[2])
+    err = (outs[0] - q) / quantum
+    assert abs(err.std() / math.sqrt(sigma ** 2 + 1 / 12) - 1) < 0.02
+    assert abs(err.mean()) < 5 * err.std() / math.sqrt(err.size)
+    plain = Imperfections(encoder_counts=counts).start(3, H, q[0], dq[0])
+    zero = Imperfections(encoder_counts=counts, encoder_noise=0.0, seed=5).start(
+        3, H, q[0], dq[0])
+    assert not Imperfections(encoder_counts=counts).random
+    for k in range(100):
+        assert np.array_equal(plain.measure(q[k], dq[k])[0], zero.measure(q[k], dq[k])[0])
+    # a noise level scales the count and so the noise in radians; σ in counts stays
+    big = Imperfections(encoder_counts=counts, encoder_noise=sigma).scaled(10.0)
+    assert big.encoder_noise == sigma
+    assert big.start(3, H, q[0], dq[0]).jitter == pytest.approx(10 * sigma * quantum)
+
+
 def test_one_sample_delay_gives_the_previous_measurement():
     t, q, dq = _trajectory(N=50)
     r = Imperfections(measurement_delay=1).start(3, H, q[0], dq[0])
@@ -121,7 +152,8 @@ def test_scaled_noise_level_and_realistic_defaults():
     (dict(encoder_counts=0), "encoder_counts"), (dict(encoder_counts=float("nan")), "encoder"),
     (dict(velocity="kalman"), "velocity"), (dict(velocity_cutoff=-1), "velocity_cutoff"),
     (dict(velocity_noise=-0.1), "velocity_noise"), (dict(measurement_delay=2), "delay"),
-    (dict(seed=1.5), "seed")])
+    (dict(seed=1.5), "seed"), (dict(encoder_noise=-1.0), "encoder_noise"),
+    (dict(encoder_noise=1.0), "needs encoder_counts")])
 def test_bad_options_are_refused_by_name(kw, word):
     with pytest.raises(ValueError, match=word):
         Imperfections(**kw)

@@ -107,20 +107,22 @@ def test_delay_halves_the_two_link_boundary():
         assert ok is stable, (K, delay)
 
 
-def _predict(name, K, prefix, Gamma=0.01):
-    m, traj, _, dist, T, _, _ = _experiment(name)
+def _predict(name, K, prefix, Gamma=0.01, *, T=None, t_end=300.0, points=2, **kw):
+    m, traj, _, dist, T0, _, _ = _experiment(name)
     return sampled_stability(
-        m, "iv-drem", t_end=300.0, points=2, prefix=prefix, suggest=False,
-        disturbance=lambda t: disturbance_at(t, dist), h=1e-3, K=K, T=T, trajectory=traj,
-        delay=1, Gamma=Gamma, gamma=0.5 / Gamma, mixing="eigen", mix_every=10)
+        m, "iv-drem", t_end=t_end, points=points, prefix=prefix, suggest=False,
+        disturbance=lambda t: disturbance_at(t, dist), h=1e-3, K=K, T=T0 if T is None else T,
+        trajectory=traj, delay=1, Gamma=Gamma, gamma=0.5 / Gamma, mixing="eigen",
+        mix_every=10, **kw)
 
 
 def test_xarm7_last_sessions_gains_predicted_unstable_new_rule_stable():
     """The xArm7 with last session's gains and the FMU's delay diverged at 1.9 s around
-    its plant FMU; the prediction now runs the loop itself and says so, in one line; with
-    the rule's gains the same prediction holds over the same 3 s."""
+    its plant FMU (the observer's injection at θ̂, as then); the prediction runs the loop
+    itself and says so, in one line; with the rule's gains the same prediction holds over
+    the same 3 s."""
     m, _, q0, _, _, Kj, M = _experiment("xarm7")
-    old = _predict("xarm7", _last_session_gains(Kj, M, 1e-3), 3.0)
+    old = _predict("xarm7", _last_session_gains(Kj, M, 1e-3), 3.0, injection="estimate")
     assert not old.stable and old.diverged is not None and old.diverged < 2.5
     line = old.reason()
     assert "\n" not in line and "diverged at t = 1." in line and "delay 1" in line
@@ -150,3 +152,63 @@ def test_short_delay_one_run_stays_on_the_reference(name, t_end):
     qd = np.array([ref.reference(t)[0] for t in rec["t"]])
     assert np.all(np.isfinite(rec["theta_hat"]))
     assert np.abs(rec["q"] - qd).max() < 0.75
+
+
+def test_xarm7_past_the_window_injection_at_theta_hat_flagged_at_nominal_holds():
+    """The xArm7 diverged 2.79 s past T = 40 s once the composite term (21) drove θ̂ to
+    where M(q, θ̂) is indefinite, with the observer's injection of (8) at θ̂; with a window
+    of T = 10 s it does so at 11.2 s.  The prediction's default prefix (1.25 T: the loop
+    itself, the composite term from T on) flags that design in one line naming the
+    injection, and passes the injection at θ_nominal (the design's default), whose loop
+    holds over the same 12.5 s (docs/controller.md, "The observer on the nominal
+    inertia")."""
+    from ivdrem.controller.stability import PREFIX_PAST_T
+    m, _, q0, _, _, Kj, _ = _experiment("xarm7")
+    K = inertia_scaled_gains(m, Kj, q0, 1e-3)
+    assert PREFIX_PAST_T * 10.0 > 11.5
+    old = _predict("xarm7", K, None, GRADIENT_GAIN, T=10.0, t_end=12.5, points=1,
+                   injection="estimate")
+    assert not old.stable and old.diverged is not None and 10.5 < old.diverged < 12.5, \
+        old.reason()
+    line = old.reason()
+    assert "\n" not in line and "injection = 'nominal'" in line and "diverged at t = 11." in line
+    new = _predict("xarm7", K, None, GRADIENT_GAIN, T=10.0, t_end=12.5, points=1)
+    assert SampledController(m, "none", K=K).injection == "nominal"
+    assert new.stable and new.diverged is None, new.reason()
+    assert max(t for t, _, _ in new.points) >= 12.4       # the run went past T
+    assert new.growth < 1.0, new.reason()
+
+
+def test_prediction_with_the_robots_gravity_is_the_loop_without_it():
+    """gravity = "robot": the controller commands τ − ĝ(q) and the robot adds G(q) itself,
+    so the prediction's plant adds it too (the run over the prefix and the linearised
+    step): the loop is the one without the option up to ĝ(q_k) held over a sample where
+    the robot's G(q(t)) moves (measured: q within 2.6e-4 rad over 1 s), and so is its
+    growth per step.  Without the robot's G(q) in the plant the arm falls (the UR5's
+    shoulder holds 59 N m): q leaves the other run by far more."""
+    from ivdrem.controller.stability import closed_loop_prefix
+    m, traj, q0, dist, _, Kj, _ = _experiment("ur5")
+    K = inertia_scaled_gains(m, Kj, q0, 1e-3)
+    gains = dict(h=1e-3, K=K, trajectory=traj, delay=1, Gamma=GRADIENT_GAIN, T=0.01)
+    runs = {}
+    for gravity in ("controller", "robot"):
+        pts, div = closed_loop_prefix(m, "none", m.theta_values, 1.0, checkpoints=2,
+                                      gravity=gravity, **gains)
+        assert div is None
+        runs[gravity] = pts
+        st = sampled_stability(m, "none", t_end=2.0, points=2, prefix=1.0, prefix_points=2,
+                               suggest=False, gravity=gravity, **gains)
+        runs[gravity + " growth"] = [g for _, _, g in st.points]
+    for a, b in zip(runs["controller"], runs["robot"]):
+        assert a[0] == b[0] and np.abs(a[1] - b[1]).max() < 1e-3
+    np.testing.assert_allclose(runs["robot growth"], runs["controller growth"], atol=1e-5)
+    # the check can fail: the command τ − ĝ(q) around a plant that does not add G(q)
+    from ivdrem.controller.clib import CController
+    qd0, dqd0, _ = SampledController(m, "none", trajectory=traj).reference(0.0)
+    try:
+        rec = sampled_loop(CController(m, "none", gravity="robot", **gains),
+                           ModelPlant(m, qd0, dqd0, substeps=1), 1.0, every=1000)
+        fell = np.abs(rec["q"][-1] - runs["robot"][-1][1]).max()
+    except (FloatingPointError, ValueError, RuntimeError):
+        fell = np.inf
+    assert fell > 1e-2

@@ -36,7 +36,7 @@ def _random_inputs(model, rng):
     return dict(q=rng.uniform(-1.0, 1.0, n), r=rng.standard_normal(n),
                 mu=np.array([rng.uniform(15.0, 135.0)]),
                 Pi=rng.standard_normal(n * nth), theta_hat=rng.standard_normal(nth),
-                u_f=rng.standard_normal(n))
+                u_f=rng.standard_normal(n), chi=rng.standard_normal(n))
 
 
 def _flat_inputs(spec, ins):
@@ -54,8 +54,9 @@ def _output(block, t, u):
 # ----------------------------------------------------------------------- the block
 @pytest.mark.parametrize("name", ["two-link", "ur5"])
 def test_torque_is_the_models_inertia_times_the_papers_feedback(name):
-    """tau = M(q, theta_nominal)(K + δ_μ μ) r + Πᵀθ̂ − u_f with M from the model's own
-    inertia function (not the regressor Φ_M the block uses), a full SPD K."""
+    """tau = M(q, theta_nominal)(K + δ_μ μ) r + Πᵀθ̂ + χ − u_f with M from the model's own
+    inertia function (not the regressor Φ_M the block uses), a full SPD K (χ: the
+    observer's injection at theta_nominal, the design's default)."""
     m = two_link() if name == "two-link" else get_model(name)
     rng = np.random.default_rng(7)
     A = rng.standard_normal((m.n, m.n))
@@ -67,7 +68,7 @@ def test_torque_is_the_models_inertia_times_the_papers_feedback(name):
         m.functions.M(ins["q"], m.theta_values, M)
         Pi = ins["Pi"].reshape(m.n, m.ntheta)
         want = (M @ ((K + DELTA_MU * ins["mu"][0] * np.eye(m.n)) @ ins["r"])
-                + Pi @ ins["theta_hat"] - ins["u_f"])
+                + Pi @ ins["theta_hat"] + ins["chi"] - ins["u_f"])
         got = _output(blk, 0.3, _flat_inputs(blk.ivdrem, ins))
         assert np.abs(got - want).max() <= 1e-11 * np.abs(want).max(), (got, want)
 
@@ -134,8 +135,9 @@ def test_one_enumeration_of_the_designs_and_clear_refusals():
 
 
 def test_sampled_torque_equals_the_blocks_on_the_same_signals():
-    """SampledController's first torque (all filters at zero, so Πᵀ = μ Φ_Mᵀ(q, r) + Φᵀ)
-    equals the continuous block's on the same q, r, μ, Π: one law, two implementations."""
+    """SampledController's first torque (all filters at zero, so the observer's Π_Xᵀ = Φᵀ
+    and its injection χ = μ Φ_Mᵀ(q, r) θ_nominal) equals the continuous block's on the same
+    q, r, μ, Π_X, χ: one law, two implementations."""
     from ivdrem.controller.sampled import SampledController
     m = get_model("ur5")
     rng = np.random.default_rng(5)
@@ -152,8 +154,8 @@ def test_sampled_torque_equals_the_blocks_on_the_same_signals():
     m.functions.Phi_M(q, r, PM)
     m.functions.Phi(q, dq, v, dv, P)
     blk = _block(m, K)
-    ins = dict(q=q, r=r, mu=np.array([mu]), Pi=(mu * PM + P).ravel(), theta_hat=th0,
-               u_f=np.zeros(m.n))
+    ins = dict(q=q, r=r, mu=np.array([mu]), Pi=P.ravel(), theta_hat=th0,
+               u_f=np.zeros(m.n), chi=mu * PM @ m.theta_values)
     want = _output(blk, 0.0, _flat_inputs(blk.ivdrem, ins))
     assert np.abs(tau - want).max() <= 1e-10 * np.abs(want).max()
 
@@ -222,10 +224,10 @@ def _first_order(law, t_end, **gains):
 
 
 def test_sampled_loop_approaches_the_continuous_loop_at_first_order_in_h():
-    """Adaptation (11) with the observer's Π (8) and the inertia-scaled feedback, 0.5 s:
-    max |θ̂_h − θ̂_c| and max |e_h − e_c| over the output times halve with h (measured:
-    θ̂ 1.08e-4, 5.24e-5, 2.58e-5; e 1.65e-3, 8.23e-4, 4.10e-4; orders 1.05, 1.02 and 1.007,
-    1.003)."""
+    """Adaptation (11) with the observer's Π_X and the inertia-scaled feedback (the
+    injection at θ_nominal), 0.5 s: max |θ̂_h − θ̂_c| and max |e_h − e_c| over the output
+    times halve with h (measured: θ̂ 5.36e-5, 2.68e-5, 1.34e-5; e 1.25e-3, 6.26e-4,
+    3.13e-4; orders 1.000, 1.000 and 1.003, 1.001)."""
     res = _first_order("none", 0.5)
     for key, (d, orders) in res.items():
         assert np.all((orders > 0.8) & (orders < 1.2)), (key, d, orders)
@@ -235,11 +237,10 @@ def test_sampled_loop_approaches_the_continuous_loop_at_first_order_in_h():
 @pytest.mark.slow
 def test_iv_drem_sampled_loop_approaches_the_continuous_loop_at_first_order_in_h():
     """The same with IV-DREM over 1 s ("eigen" mixing, a window T = 0.2 s of (15a), the
-    composite term (21) on from T; Δ ≈ 1.6e-10 there, so γ = 1e21 makes the composite term
-    move θ̂ 30 times more than (11) alone): the window's sums over the samples and the
-    mixing (17) keep the first order (measured: θ̂ 3.33e-3, 1.78e-3, 9.30e-4, orders 0.90,
-    0.94; e 1.77e-3, 8.91e-4, 4.47e-4, orders 0.99, 1.00; the compile of the UR5's windowed
-    loop dominates the time)."""
+    composite term (21) on from T; Δ ≈ 9e-11 there, so γ = 1e21): the window's sums over
+    the samples and the mixing (17) keep the first order (measured: θ̂ 1.22e-3, 6.47e-4,
+    3.35e-4, orders 0.92, 0.95; e 1.54e-3, 7.74e-4, 3.89e-4, orders 0.99, 0.99; the
+    compile of the UR5's windowed loop dominates the time)."""
     res = _first_order("iv-drem", 1.0, T=0.2, gamma=1e21, mixing="eigen")
     for key, (d, orders) in res.items():
         assert np.all((orders > 0.8) & (orders < 1.2)), (key, d, orders)

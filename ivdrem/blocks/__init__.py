@@ -9,7 +9,7 @@ from .plant import plant
 from .sources import trajectory, disturbance, mu_schedule
 from .tracking_error import tracking_error
 from .torque_observer import torque_observer
-from .control_law import control_law, DESIGNS, inertia_scaled_gain
+from .control_law import control_law, DESIGNS, INJECTIONS, inertia_scaled_gain
 from .adaptation_law import adaptation_law
 from .regression_filter import regression_filter
 from .instrument import instrument
@@ -22,7 +22,7 @@ from .composite_terms import (drem_term, drem_channel_term, term_start, composit
                               zero_term)
 
 __all__ = ["BlockSpec", "make_block", "ParameterError", "plant", "trajectory", "disturbance",
-           "mu_schedule", "tracking_error", "torque_observer", "control_law", "DESIGNS", "inertia_scaled_gain", "adaptation_law",
+           "mu_schedule", "tracking_error", "torque_observer", "control_law", "DESIGNS", "INJECTIONS", "inertia_scaled_gain", "adaptation_law",
            "regression_filter", "instrument", "extension", "sliding_window", "transport_delay",
            "windowed_integral", "averaging", "mixing", "max_hold", "drem_term", "drem_channel_term", "term_start",
            "composite_learning_term", "sigma_modification_term", "zero_term"]

@@ -16,11 +16,26 @@ from .jacobians import control_law_jacobian, inertia_scaled_control_law_jacobian
 from ._core import BlockSpec, make_block, ParameterError
 from . import _validate as checks
 
-__all__ = ["control_law", "DESIGNS", "inertia_scaled_gain"]
+__all__ = ["control_law", "DESIGNS", "INJECTIONS", "default_injection", "inertia_scaled_gain"]
 
 #: designs of the feedback of (9): the one enumeration the continuous block, the sampled
 #: controller and the configuration read (docs/controller.md, "Sampled designs")
 DESIGNS = ("paper", "inertia-scaled")
+
+#: the parameters the observer's injection mu (Phi_M^T(q, r) - Phi_Mf^T) theta of (7)-(8) is
+#: evaluated at: "estimate" (theta_hat, the paper's: the loop's inertia below the observer's
+#: bandwidth is then M(q, theta_hat), indefinite where theta_hat is far from theta) or
+#: "nominal" (theta_nominal: a momentum observer on the nominal model M(q, theta_nominal),
+#: positive definite; the adaptation (11) then reads Pi_X^T = Phi^T - Phi_f^T, the regressor
+#: of theta_tilde that is left in (10)); docs/controller.md, "The observer on the nominal
+#: inertia"
+INJECTIONS = ("estimate", "nominal")
+
+
+def default_injection(design):
+    """"estimate" for the paper's design (bit for bit the paper's (8)-(9)), "nominal" for
+    the inertia-scaled design (the URDF arms' default)."""
+    return "nominal" if design == "inertia-scaled" else "estimate"
 
 
 def inertia_scaled_gain(model, K, q0, theta_nominal=None):
@@ -48,7 +63,8 @@ def control_law_output(t, x, u, y, K, delta_mu, ntheta):
         y.tau[i] = s
 
 
-def inertia_scaled_control_law_output(t, x, u, y, K, delta_mu, ntheta, theta_nominal):
+def inertia_scaled_control_law_output(t, x, u, y, K, delta_mu, ntheta, theta_nominal,
+                                      nominal):
     # inputs   u.q (n), u.r (n), u.mu[0], u.Pi (Pi^T, n*nθ row-major), u.theta_hat (nθ),
     #          u.u_f (n)
     # outputs  y.tau = M̂(q)(K + delta_mu mu) r + Pi^T theta_hat - u_f  (eq. 9, inertia-scaled)
@@ -73,8 +89,33 @@ def inertia_scaled_control_law_output(t, x, u, y, K, delta_mu, ntheta, theta_nom
         y.tau[i] = s
 
 
+def nominal_injection_control_law_output(t, x, u, y, K, delta_mu, ntheta, theta_nominal,
+                                         nominal):
+    # inputs   u.q (n), u.r (n), u.mu[0], u.Pi (Pi_X^T = Phi^T - Phi_f^T, n*nθ row-major),
+    #          u.theta_hat (nθ), u.u_f (n), u.chi (n)
+    # outputs  y.tau = M̂(q)(K + delta_mu mu) r + Pi_X^T theta_hat + chi - u_f
+    #          (eq. 9 inertia-scaled, the observer's injection chi at theta_nominal)
+    # params   as inertia_scaled_control_law_output
+    n = K.shape[0]
+    r = u.r
+    Pi = u.Pi.reshape((n, ntheta))
+    w = np.empty(n)
+    for i in range(n):
+        s = delta_mu * u.mu[0] * r[i]
+        for j in range(n):
+            s += K[i, j] * r[j]
+        w[i] = s
+    PM = np.empty((n, ntheta))
+    model.Phi_M(u.q, w, PM)
+    for i in range(n):
+        s = u.chi[i] - u.u_f[i]
+        for j in range(ntheta):
+            s += PM[i, j] * theta_nominal[j] + Pi[i, j] * u.theta_hat[j]
+        y.tau[i] = s
+
+
 def control_law(n, ntheta, K=2.0, delta_mu=0.8, *, design="paper", model=None,
-                theta_nominal=None, name="control_law"):
+                theta_nominal=None, injection=None, name="control_law"):
     """tau = (K + delta_mu mu(t)) r + Pi^T theta_hat - u_f   (eq. 9), or with the feedback
     scaled by the nominal inertia (``design="inertia-scaled"``).
 
@@ -88,12 +129,21 @@ def control_law(n, ntheta, K=2.0, delta_mu=0.8, *, design="paper", model=None,
     ======  ==========================================================
 
     ``model`` (the robot model whose M̂(q) scales the feedback) is needed by
-    "inertia-scaled" only.
+    "inertia-scaled" only.  ``injection`` (default :func:`default_injection` of the design):
+    "nominal" (inertia-scaled only) adds the input chi[n] (the torque observer's injection
+    at theta_nominal, its Pi then Pi_X^T = Phi^T - Phi_f^T): tau = M̂(q)(K + delta_mu mu) r
+    + Pi^T theta_hat + chi - u_f.
     """
     if design not in DESIGNS:
         raise ParameterError(f"block '{name}': design = {design!r} is not a design of (9); "
                              f"choose one of {', '.join(map(repr, DESIGNS))}")
     scaled = design == "inertia-scaled"
+    injection = default_injection(design) if injection is None else injection
+    if injection not in INJECTIONS or (injection == "nominal" and not scaled):
+        raise ParameterError(f"block '{name}': injection = {injection!r} is not an option of "
+                             f"design {design!r}; choose 'estimate'"
+                             + (" or 'nominal'" if scaled else ""))
+    nominal = injection == "nominal"
 
     def validate(p):
         p = dict(p)
@@ -121,12 +171,14 @@ def control_law(n, ntheta, K=2.0, delta_mu=0.8, *, design="paper", model=None,
         if theta_nominal is None:
             raise ParameterError(f"block '{name}': design 'inertia-scaled' needs the nominal "
                                  f"parameters theta_nominal (model {model.name!r} has none)")
-    spec = BlockSpec(name=name, inputs=[("q", n)] + common,
+    spec = BlockSpec(name=name, inputs=[("q", n)] + common + ([("chi", n)] if nominal else []),
                      outputs=[("tau", n)], states=[], x0=np.zeros(0),
-                     param_names=("K", "delta_mu", "ntheta", "theta_nominal"),
-                     output=inertia_scaled_control_law_output,
-                     direct=("q", "r", "mu", "Pi", "theta_hat", "u_f"), validate=validate,
+                     param_names=("K", "delta_mu", "ntheta", "theta_nominal", "nominal"),
+                     output=(nominal_injection_control_law_output if nominal
+                             else inertia_scaled_control_law_output),
+                     direct=("q", "r", "mu", "Pi", "theta_hat", "u_f")
+                     + (("chi",) if nominal else ()), validate=validate,
                      model=model, named_ports=True,
                      jacobian=inertia_scaled_control_law_jacobian,
-                     constants={"ntheta": ntheta})
+                     constants={"ntheta": ntheta, "nominal": 1.0 if nominal else 0.0})
     return make_block(spec, {"K": K, "delta_mu": delta_mu, "theta_nominal": theta_nominal})

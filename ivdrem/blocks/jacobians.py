@@ -47,9 +47,11 @@ def control_law_jacobian(t, x, u, jac, K, delta_mu, ntheta):
         jac[i, f0 + i] = -1.0
 
 
-def inertia_scaled_control_law_jacobian(t, x, u, jac, K, delta_mu, ntheta, theta_nominal):
-    # inputs   u = [q (n), r (n), mu, Pi^T (n*nθ), theta_hat (nθ), u_f (n)]
-    # output   tau = M̂(q) w + Pi^T theta_hat - u_f, w = (K + delta_mu mu) r,
+def inertia_scaled_control_law_jacobian(t, x, u, jac, K, delta_mu, ntheta, theta_nominal,
+                                        nominal):
+    # inputs   u = [q (n), r (n), mu, Pi^T (n*nθ), theta_hat (nθ), u_f (n)]; nominal = 1:
+    #          and chi (n) (the observer's injection at theta_nominal, added to tau)
+    # output   tau = M̂(q) w + Pi^T theta_hat - u_f (+ chi), w = (K + delta_mu mu) r,
     #          M̂(q) w = Phi_M^T(q, w) theta_nominal             (eq. 9 inertia-scaled, Property 1)
     # d tau/dq = dPhi_M^T(q, w)/dq theta_nominal; d tau/dw = M̂(q) (Phi_M is linear in w)
     n = K.shape[0]
@@ -92,6 +94,8 @@ def inertia_scaled_control_law_jacobian(t, x, u, jac, K, delta_mu, ntheta, theta
             jac[i, p0 + i * ntheta + j] = u[t0 + j]
             jac[i, t0 + j] = u[p0 + i * ntheta + j]
         jac[i, f0 + i] = -1.0
+        if nominal != 0.0:
+            jac[i, f0 + n + i] = 1.0
 
 
 def adaptation_law_jacobian(t, x, u, jac, Gamma):
@@ -205,12 +209,16 @@ def plant_jacobian(t, x, u, jac, theta):
             jac[3 * n + i, 3 * n + m] = B[i, 2 * n + m]
 
 
-def torque_observer_jacobian(t, x, u, jac, n, ntheta, literal_e1):
+def torque_observer_jacobian(t, x, u, jac, n, ntheta, literal_e1, nominal, theta_nominal):
     # states   x = [Phi_f (m), Phi_Mf (m), u_f (n)], m = n nθ (n x nθ row-major)
     # inputs   u = [q, dq, r, v, dv (n each), mu, dmu, tau (n), theta_hat (nθ)]
     # outputs  y = [Pi (m), u_f (n), tau_d_hat (n)]; rows of dx start at m + 2n
     #   Pi^T = mu (Phi_M^T(q,r) - Phi_Mf^T) + Phi^T(q,dq,v,dv) - Phi_f^T            (8)
     #   tau_d_hat = -(mu (Phi_M^T(q,r) - Phi_Mf^T) - Phi_f^T) theta_hat + u_f
+    # nominal = 1 (the injection at theta_nominal): y = [Pi (m), u_f, tau_d_hat, chi (n)],
+    # rows of dx start at m + 3n
+    #   Pi^T = Phi^T(q,dq,v,dv) - Phi_f^T;  chi = mu (Phi_M^T(q,r) - Phi_Mf^T) theta_nominal
+    #   tau_d_hat = -(chi - Phi_f^T theta_hat) + u_f
     #   dPhi_f = mu (Phi^T - Phi_C^T(q,dq,r) + Phi_dM^T(q,dq,r) - Phi_f)             (7)
     #   dPhi_Mf = g (Phi_M^T(q,r) - Phi_Mf), g = mu + (1 - literal_e1) dmu/mu        (7)
     #   du_f = mu (-tau - u_f)                                                       (7)
@@ -246,21 +254,34 @@ def torque_observer_jacobian(t, x, u, jac, n, ntheta, literal_e1):
     g = mu + (1.0 - literal_e1) * dmu / mu
     dg_dmu = 1.0 - (1.0 - literal_e1) * dmu / (mu * mu)
     dg_ddmu = (1.0 - literal_e1) / mu
-    rd = m + 2 * n                           # first row of the state derivatives
+    nom = nominal != 0.0
+    rd = m + 3 * n if nom else m + 2 * n     # first row of the state derivatives
     ytd = m + n                              # first row of tau_d_hat
+    ych = m + 2 * n                          # first row of chi (nominal)
     for i in range(n):
         for j in range(ntheta):
             k = i * ntheta + j
             e = PM[i, j] - x[m + k]
             # Pi^T
             jac[k, k] = -1.0
-            jac[k, m + k] = -mu
-            jac[k, cmu] = e
-            # tau_d_hat_i = -sum_j (mu e_ij - Phi_f_ij) theta_hat_j + u_f_i
-            jac[ytd + i, k] = th[j]
-            jac[ytd + i, m + k] = mu * th[j]
-            jac[ytd + i, cth + j] = -(mu * e - x[k])
-            jac[ytd + i, cmu] -= e * th[j]
+            if nom:
+                # the injection at theta_nominal: chi_i = mu sum_j e_ij tn_j,
+                # tau_d_hat_i = -chi_i + sum_j Phi_f_ij theta_hat_j + u_f_i
+                tn = theta_nominal[j]
+                jac[ych + i, m + k] = -mu * tn
+                jac[ych + i, cmu] += e * tn
+                jac[ytd + i, k] = th[j]
+                jac[ytd + i, m + k] = mu * tn
+                jac[ytd + i, cth + j] = x[k]
+                jac[ytd + i, cmu] -= e * tn
+            else:
+                jac[k, m + k] = -mu
+                jac[k, cmu] = e
+                # tau_d_hat_i = -sum_j (mu e_ij - Phi_f_ij) theta_hat_j + u_f_i
+                jac[ytd + i, k] = th[j]
+                jac[ytd + i, m + k] = mu * th[j]
+                jac[ytd + i, cth + j] = -(mu * e - x[k])
+                jac[ytd + i, cmu] -= e * th[j]
             # dPhi_f, dPhi_Mf
             jac[rd + k, k] = -mu
             jac[rd + k, cmu] = P[i, j] - PC[i, j] + PD[i, j] - x[k]
@@ -270,13 +291,21 @@ def torque_observer_jacobian(t, x, u, jac, n, ntheta, literal_e1):
             for c in range(n):
                 pq = dPM[i, j, c]              # dPhi_M/dq_c
                 pr = dPM[i, j, n + c]          # dPhi_M/dr_c
-                jac[k, nx + c] = mu * pq + dP[i, j, c]
                 jac[k, nx + n + c] = dP[i, j, n + c]
-                jac[k, nx + 2 * n + c] = mu * pr
                 jac[k, nx + 3 * n + c] = dP[i, j, 2 * n + c]
                 jac[k, nx + 4 * n + c] = dP[i, j, 3 * n + c]
-                jac[ytd + i, nx + c] -= mu * pq * th[j]
-                jac[ytd + i, nx + 2 * n + c] -= mu * pr * th[j]
+                if nom:
+                    jac[k, nx + c] = dP[i, j, c]
+                    tn = theta_nominal[j]
+                    jac[ych + i, nx + c] += mu * pq * tn
+                    jac[ych + i, nx + 2 * n + c] += mu * pr * tn
+                    jac[ytd + i, nx + c] -= mu * pq * tn
+                    jac[ytd + i, nx + 2 * n + c] -= mu * pr * tn
+                else:
+                    jac[k, nx + c] = mu * pq + dP[i, j, c]
+                    jac[k, nx + 2 * n + c] = mu * pr
+                    jac[ytd + i, nx + c] -= mu * pq * th[j]
+                    jac[ytd + i, nx + 2 * n + c] -= mu * pr * th[j]
                 jac[rd + k, nx + c] = mu * (dP[i, j, c] - dPC[i, j, c] + dPD[i, j, c])
                 jac[rd + k, nx + n + c] = mu * (dP[i, j, n + c] - dPC[i, j, n + c]
                                                 + dPD[i, j, n + c])

@@ -67,7 +67,7 @@ class CController:
     def __init__(self, model=None, law="iv-drem", *, flags=("-O2",), **kwargs):
         ref = SampledController(model, law, **kwargs)       # validation, defaults
         self.model, self.law, self.n, self.ntheta = ref.model, law, ref.n, ref.ntheta
-        self.h, self.delay = ref.h, ref.delay
+        self.h, self.delay, self.injection = ref.h, ref.delay, ref.injection
         self.lib = load_library(self.model, flags=tuple(flags))   # the C compiler's flags
         self.par = param_vector(ref)
         self.index = {}
@@ -90,6 +90,7 @@ class CController:
     def from_params(cls, model, law, par):
         """The controller of a flat parameter vector (ivdrem_controller.h's layout), e.g.
         the start values of a controller FMU."""
+        from ..blocks.control_law import INJECTIONS
         from .codegen import DESIGN_CODES, GRAVITY_CODES, LAW_CODES, MIXING_CODES
         idx, off = {}, 0
         for name, size, _ in param_layout(model):
@@ -121,7 +122,8 @@ class CController:
                    design=name(DESIGN_CODES, "design"), mixing=name(MIXING_CODES, "mixing"),
                    mix_every=int(s("mix_every")), f_rel=s("f_rel"), guard=s("guard"),
                    gravity=name(GRAVITY_CODES, "gravity"), theta_nominal=g("theta_nominal"),
-                   tau_rate_max=g("tau_rate_max"), first_zero=bool(s("first_zero")))
+                   tau_rate_max=g("tau_rate_max"), first_zero=bool(s("first_zero")),
+                   injection=INJECTIONS[int(s("injection"))])
 
     def __del__(self):
         c = getattr(self, "_c", None)

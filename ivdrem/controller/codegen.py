@@ -26,6 +26,7 @@ import numpy as np
 import sympy as sp
 
 from .._cc import compile_shared
+from ..blocks.control_law import INJECTIONS
 from ..blocks.mixing import START_RAMP_REL
 from ..models._c_printer import c_double as _c_double
 from .sampled import REFERENCE_HARMONICS
@@ -104,6 +105,9 @@ def param_layout(model):
          "Fourier reference: a (n x H, row major): q_d,i = c_i + sum_l (a_il sin(l w t) - "
          "b_il cos(l w t))/(l w)"),
         ("fr_b", n * REFERENCE_HARMONICS, "Fourier reference: b (n x H, row major)"),
+        ("injection", 1, "the observer's injection mu (Phi_M^T(q, r) - Phi_Mf^T) theta of (8) "
+                         "at 0 theta_hat (the paper's), 1 theta_nominal (adaptation (11) "
+                         "with Phi^T - Phi_f^T)"),
     ]
 
 
@@ -123,7 +127,8 @@ def param_vector(ctrl):
             "gravity": GRAVITY_CODES[ctrl.gravity], "theta_nominal": ctrl.theta_nominal,
             "tau_rate_max": ctrl.tau_rate_max, "first_zero": 1.0 if ctrl.first_zero else 0.0,
             "ref_kind": 1.0 if ctrl.fourier else 0.0, "fr_omega_f": ctrl.fr_wf,
-            "fr_a": ctrl.fr_a.reshape(-1), "fr_b": ctrl.fr_b.reshape(-1)}
+            "fr_a": ctrl.fr_a.reshape(-1), "fr_b": ctrl.fr_b.reshape(-1),
+            "injection": INJECTIONS.index(ctrl.injection)}
     out = []
     for name, size, _ in param_layout(ctrl.model):
         v = np.atleast_1d(np.asarray(vals[name], dtype=float)).reshape(-1)
@@ -208,8 +213,9 @@ def generate_controller_sources(model, defaults=None) -> dict:
  * ivc_set_param(c, IVC_P_x, value): change a gain between steps (not the structural h, T,
  *   block, law, delay, corrected, design, mixing, mix_every, gravity, ref_kind: give those
  *   to ivc_init).
- * The command tau_k: the law's (9) (design 1: its feedback scaled by M(q, theta_nominal)),
- *   minus G(q, theta_nominal) with gravity 1 (the robot adds its own), clipped at +-tau_max,
+ * The command tau_k: the law's (9) (design 1: its feedback scaled by M(q, theta_nominal);
+ *   injection 1: the observer's injection of (8) at theta_nominal), minus
+ *   G(q, theta_nominal) with gravity 1 (the robot adds its own), clipped at +-tau_max,
  *   within h tau_rate_max of tau_k-1, 0 at k = 0 with first_zero (docs/controller.md).
  * ivc_reset(c): back to t = 0.  ivc_window_bytes(c): memory of the window.
  */

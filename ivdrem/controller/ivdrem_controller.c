@@ -128,6 +128,8 @@ static int check_params(char *msg, const double *par) {
         { say(msg, "delay = %g must be 0 or 1%.0s", par[IVC_P_DELAY], 0); return IVC_ERR_ARG; }
     if (!is_code(par[IVC_P_DESIGN], IVC_DESIGN_INERTIA_SCALED))
         { say(msg, "design = %g is not a design code (0 paper, 1 inertia-scaled)%.0s", par[IVC_P_DESIGN], 0); return IVC_ERR_ARG; }
+    if (!is_code(par[IVC_P_INJECTION], 1))
+        { say(msg, "injection = %g must be 0 (theta_hat) or 1 (theta_nominal)%.0s", par[IVC_P_INJECTION], 0); return IVC_ERR_ARG; }
     if (!is_code(par[IVC_P_GRAVITY], IVC_GRAVITY_ROBOT))
         { say(msg, "gravity = %g is not a gravity code (0 controller, 1 robot)%.0s", par[IVC_P_GRAVITY], 0); return IVC_ERR_ARG; }
     if (!is_code(par[IVC_P_MIXING], IVC_MIXING_CHANNEL))
@@ -841,14 +843,15 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
     const double *par;
     ivc_state *s;
     double qd[n], dqd[n], ddqd[n], e[n], de[n], r[n], v[n], dv[n], tau[n], applied[n];
-    double x[n], fb[n], g_hat[n], acting[n], tdh[n];
+    double x[n], fb[n], g_hat[n], acting[n], tdh[n], chi[n];
     double A[NQT], B[NQT], C[NQT], PM[NQT], E[NQT], Pi[NQT], obs[NQT], phi[NQT];
     double F1[NQT], F2[NQT], F3[NQT], F4[NQT];
     double theta_c[nth], b[nth], g[NM], y[NM], a[nth];
     double h, tk, mu, alpha, l, I, d1, d2, dl;
-    int i, j, k;
+    int i, j, k, nominal;
     if (!c) return IVC_ERR_STATE;
     par = c->par;
+    nominal = par[IVC_P_INJECTION] != 0;
     s = &c->s;
     h = c->h;
     tk = s->k * h;
@@ -877,9 +880,25 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
     ivc_Phi_C(q, dq, r, B);
     ivc_Phi_dM(q, dq, r, C);
     ivc_Phi_M(q, r, PM);
-    for (k = 0; k < NQT; k++) {
-        obs[k] = mu * (PM[k] - s->Phi_Mf[k]) - s->Phi_f[k];     /* Pi^T - Phi^T   (8) */
-        Pi[k] = obs[k] + A[k];
+    if (!nominal) {
+        for (k = 0; k < NQT; k++) {
+            obs[k] = mu * (PM[k] - s->Phi_Mf[k]) - s->Phi_f[k];     /* Pi^T - Phi^T   (8) */
+            Pi[k] = obs[k] + A[k];
+        }
+    } else {
+        /* the injection at theta_nominal (a momentum observer on M(q, theta_nominal)):
+         * chi = mu (Phi_M^T(q, r) - Phi_Mf^T) theta_nominal, obs = -Phi_f^T, and the
+         * adaptation (11) reads Pi_X^T = Phi^T - Phi_f^T (docs/controller.md) */
+        for (i = 0; i < n; i++) {
+            double acc = 0;
+            for (j = 0; j < nth; j++)
+                acc += (mu * (PM[i * nth + j] - s->Phi_Mf[i * nth + j])) * par[IVC_P_THETA_NOMINAL + j];
+            chi[i] = acc;
+        }
+        for (k = 0; k < NQT; k++) {
+            obs[k] = -s->Phi_f[k];
+            Pi[k] = A[k] - s->Phi_f[k];
+        }
     }
     /* composite term vartheta_c(theta_hat) = b_c - a theta_hat */
     for (i = 0; i < nth; i++) a[i] = 0.0;
@@ -949,6 +968,7 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
     for (i = 0; i < n; i++) {                                            /* (9) */
         double pt = 0, ot = 0, tmax = par[IVC_P_TAU_MAX + i];
         for (j = 0; j < nth; j++) { pt += Pi[i * nth + j] * s->theta_hat[j]; ot += obs[i * nth + j] * s->theta_hat[j]; }
+        if (nominal) { pt = pt + chi[i]; ot = chi[i] + ot; }
         tau[i] = (fb[i] + pt) - s->u_f[i];
         if (c->gravity == IVC_GRAVITY_ROBOT) tau[i] = tau[i] - g_hat[i];
         if (tau[i] > tmax) tau[i] = tmax;                                /* the command's limits */

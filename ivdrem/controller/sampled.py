@@ -7,7 +7,10 @@ advanced over [t_k, t_k + h] with the sampled inputs held (zero-order hold):
 * reference q_d(t) = A sin(w t + phi) + c generated inside (the paper's sinusoid);
 * e = q_d - q, r = de + alpha e, v = dq_d + alpha e, dv = ddq_d + alpha de;
 * Pi^T (8), the control law (9) tau = (K + delta_mu mu) r + Pi^T theta_hat - u_f, saturated
-  at +-tau_max, and tau_d_hat (Section 4; docs/conventions.md);
+  at +-tau_max, and tau_d_hat (Section 4; docs/conventions.md); with ``injection =
+  "nominal"`` the observer's injection mu (Phi_M^T(q, r) - Phi_Mf^T) theta is taken at
+  theta_nominal and Pi^T is Pi_X^T = Phi^T - Phi_f^T (docs/controller.md, "The observer on
+  the nominal inertia");
 * the observer (7) (Phi_f, Phi_Mf with erratum E1, u_f), the regression filters (13) and the
   instrument (14) by their exact update (:func:`ivdrem.controller.discrete.filter_step`);
   xi and eta of (13) filter functions of q, dq, which move between samples: they take
@@ -49,7 +52,7 @@ import math
 import numpy as np
 
 from ..blocks._kernels import MIXING_VARIANTS, mixing_values, start_weight
-from ..blocks.control_law import DESIGNS, inertia_scaled_gain
+from ..blocks.control_law import DESIGNS, INJECTIONS, default_injection, inertia_scaled_gain
 from ..blocks.mixing import DEFAULT_F_REL, DEFAULT_GUARD, start_of_term
 from ..blocks.sources import fourier_series
 from ..diagrams.gamma_auto import DEFAULT_RATE as GAMMA_RATE
@@ -225,7 +228,12 @@ class SampledController:
       is commanded, g_hat = G(q, theta_nominal)); ``theta_nominal``: default the model's
       theta_values (the URDF's);
     * ``tau_max``, ``tau_rate_max``: per-joint limits of the command (N m, N m/s; a number
-      or n numbers; inf: none); ``first_zero``: the command of t = 0 is 0.
+      or n numbers; inf: none); ``first_zero``: the command of t = 0 is 0;
+    * ``injection``: the parameters of the observer's injection mu (Phi_M^T(q, r) -
+      Phi_Mf^T) theta in (8)-(9): "estimate" (theta_hat, the paper's) or "nominal"
+      (theta_nominal, the adaptation then reads Pi_X^T = Phi^T - Phi_f^T); default
+      :func:`ivdrem.blocks.control_law.default_injection` of the design ("nominal" for
+      "inertia-scaled"; docs/controller.md, "The observer on the nominal inertia").
     """
 
     def __init__(self, model=None, law="iv-drem", *, h=1e-3, alpha=1.0, K=2.0,
@@ -234,7 +242,7 @@ class SampledController:
                  sigma=None, theta_star=None, epsilon=None, theta_hat0=None, trajectory=None,
                  tau_max=math.inf, delay=0, block=10, design=None, mixing=None, mix_every=1,
                  f_rel=DEFAULT_F_REL, guard=DEFAULT_GUARD, gravity="controller",
-                 theta_nominal=None, tau_rate_max=math.inf, first_zero=False):
+                 theta_nominal=None, tau_rate_max=math.inf, first_zero=False, injection=None):
         if model is None:
             from ..models import two_link
             model = two_link()
@@ -291,6 +299,11 @@ class SampledController:
                              f"(the law's torque is commanded) or 'robot' (the robot adds its "
                              f"own gravity model: tau - g_hat(q) is commanded)")
         self.gravity = gravity
+        self.injection = default_injection(self.design) if injection is None else injection
+        if self.injection not in INJECTIONS:
+            raise ValueError(f"injection = {injection!r} is not an option; choose 'estimate' "
+                             f"(the observer's injection of (8) at theta_hat, the paper's) or "
+                             f"'nominal' (at theta_nominal)")
         self.mixing = default_mixing(model) if mixing is None else mixing
         if self.mixing not in MIXING_VARIANTS:
             raise ValueError(f"mixing = {mixing!r} is not a variant; choose one of "
@@ -302,8 +315,10 @@ class SampledController:
         self.f_rel = _positive("f_rel", f_rel)
         self.guard = _positive("guard", guard)
         tn = model.theta_values if theta_nominal is None else theta_nominal
-        if tn is None and (self.design != "paper" or gravity == "robot"):
-            raise ValueError(f"design {self.design!r} and gravity 'robot' need the nominal "
+        if tn is None and (self.design != "paper" or gravity == "robot"
+                           or self.injection == "nominal"):
+            raise ValueError(f"design {self.design!r}, gravity 'robot' and injection "
+                             f"'nominal' need the nominal "
                              f"parameters theta_nominal (model {model.name!r} has none)")
         self.theta_nominal = _vector("theta_nominal", tn if tn is not None else np.zeros(nth),
                                      nth)
@@ -509,9 +524,17 @@ class SampledController:
         fn.Phi_C(q, dq, r, B)
         fn.Phi_dM(q, dq, r, C)
         fn.Phi_M(q, r, PM)
-        obs = mu * (PM - self.Phi_Mf) - self.Phi_f            # Pi^T - Phi^T          (8)
-        Pi[:] = obs + A
         th = self.theta_hat
+        inj = mu * (PM - self.Phi_Mf)       # the observer's injection: chi = inj theta (7)
+        if self.injection == "estimate":
+            obs = inj - self.Phi_f                            # Pi^T - Phi^T          (8)
+            Pi[:] = obs + A
+        else:
+            # injection at theta_nominal: Pi_X^T = Phi^T - Phi_f^T is the regressor of
+            # theta_tilde left in (10) (adaptation (11)), inj theta_nominal the nominal
+            # momentum's injection (docs/controller.md, "The observer on the nominal inertia")
+            Pi[:] = A - self.Phi_f
+            chi = inj @ self.theta_nominal
         # composite term vartheta_c(theta_hat) = b_c - a theta_hat
         a = 0.0
         if self.law == "composite-learning":
@@ -543,7 +566,12 @@ class SampledController:
             a = self.sigma
         else:
             theta_c = np.zeros(self.ntheta)
-        tau = self.feedback(q, r, mu) + Pi @ th - self.u_f                      # (9)
+        if self.injection == "estimate":
+            tau = self.feedback(q, r, mu) + Pi @ th - self.u_f                  # (9)
+            f_hat = obs @ th                              # f_hat + u_f of (7) at theta_hat
+        else:
+            tau = self.feedback(q, r, mu) + (Pi @ th + chi) - self.u_f          # (9)
+            f_hat = chi - self.Phi_f @ th
         # the command: the robot's gravity taken out, the limits, the first command
         F4 = self._F[3]
         g_hat = None
@@ -560,7 +588,7 @@ class SampledController:
             tau = np.clip(tau, self.tau - step, self.tau + step)
         if not np.all(np.isfinite(tau)):
             raise FloatingPointError(f"non-finite torque at t = {tk}: the loop diverged")
-        self.tau_d_hat = -(obs @ th) + self.u_f                                 # Section 4
+        self.tau_d_hat = -f_hat + self.u_f                                      # Section 4
         # the torque acting on the arm (the robot adds g_hat), which the filters see
         acting = tau if g_hat is None else tau + g_hat
         applied = acting if self.delay == 0 else (

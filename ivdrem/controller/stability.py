@@ -16,18 +16,21 @@ algorithm changes the prediction with it:
   n-vector of :meth:`SampledController.state` (the observer's u_f of (7), the filtered
   torque z_f of (13) ...) and every n × nθ filter (Φ_f, Φ_Mf of (7), ξ, η of (13), ζ of
   (14)) seen through θ̂ (its coordinate S θ̂: the torque (9) reads these filters only as
-  Πᵀθ̂, and each is affine in itself, so S θ̂ is a state of its own);
+  Πᵀθ̂, and each is affine in itself, so S θ̂ is a state of its own), Φ_Mf through
+  θ_nominal under the injection "nominal" (the torque reads Φ_Mf θ_nominal then);
+  ``gravity = "robot"``: the plant adds G(q) itself, as the robot does;
 * frozen: θ̂ (the adaptation (11) moves it at the rate Γ, far slower than a sample), the window (15a), the averaging (15b) and the mixing (17)
   (they reach the torque through θ̂ only, so the map is computed with the law's composite
   term left out: the controller of law "none" with the same gains);
 * operating points, two kinds: (a) states of the closed loop itself, simulated over the
   gradient phase (:func:`closed_loop_prefix`: until the window (15a) is full the composite
   term of (21) is 0, and θ̂ moves by the gradient term Γ Π r of (11) alone), each with the
-  run's own θ̂: the map depends on θ̂ through the observer's injection μ Φ_Mᵀ(q, r) θ̂ =
-  μ M(q, θ̂) r of (8), a velocity feedback whose per-step gain h μ ν(θ̂) (ν the largest
-  generalised eigenvalue of M(q, θ̂) against M(q)) is what made the iiwa and the xArm7
-  diverge with the FMU's one-sample delay while the reference points said 0.999
-  (docs/controller.md, "Sampled designs"); (b) the arm on the reference, q = q_d(t),
+  run's own θ̂: with the injection "estimate" the map depends on θ̂ through the observer's
+  injection μ Φ_Mᵀ(q, r) θ̂ = μ M(q, θ̂) r of (8), a velocity feedback whose per-step gain
+  h μ ν(θ̂) (ν the largest generalised eigenvalue of M(q, θ̂) against M(q)) is what made
+  the iiwa and the xArm7 diverge with the FMU's one-sample delay while the reference
+  points said 0.999, and the xArm7 again past T (docs/controller.md, "Sampled designs");
+  (b) the arm on the reference, q = q_d(t),
   q̇ = q̇_d(t), holding the torque the reference needs (the inverse dynamics with the true
   θ, less the disturbance, so the plant's q̈ = q̈_d), at :data:`POINTS` times spread over
   the horizon (μ(t) of (7)-(9) grows with t) with θ̂₀ and θ.  Every filter of the
@@ -64,12 +67,14 @@ POINTS = 4
 #: States of the simulated closed loop (the prefix) the map is linearised at.
 PREFIX_POINTS = 8
 
-#: The default prefix of a windowed law, in windows T: the gradient phase.  A longer one
-#: (``prefix``, e.g. 1.25 T: a quarter window of the composite term, whose ramp is 0.1 T)
-#: runs the law itself from T on when the C library runs it (the Python reference's mixing
-#: is too slow for it: then T at most); it sees the xArm7 diverge at 42.8 s, and predicts
-#: the UR3 at 1.02 per step at 50 s, which no run has checked yet (docs/controller.md).
-PREFIX_PAST_T = 1.0
+#: The default prefix of a windowed law, in windows T: the gradient phase (until T) and a
+#: quarter window of the composite term (21) (its ramp is 0.1 T), which the law itself runs
+#: from T on when the C library runs it (the Python reference's mixing is too slow for it:
+#: then T at most).  It flags the xArm7 with the observer's injection at θ̂ (diverged at
+#: 42.79 s; predicted 1.08 per step at 42.6 s) and passes it with the injection at
+#: θ_nominal (0.9998, converges over 300 s) and example-robot-data's UR3 (0.9991;
+#: converged around PyBullet, benchmarks/bullet_harness.py); docs/controller.md.
+PREFIX_PAST_T = 1.25
 
 #: Relative finite-difference step of the linearisation.
 _EPS = 1e-7
@@ -83,16 +88,21 @@ class UnstableDesignError(ValueError):
         self.stability = stability
 
 
-def _rk4_plant(model, theta, q, dq, u, h, substep):
+def _rk4_plant(model, theta, q, dq, u, h, substep, gravity=False):
     """The plant FMU's step: ceil(h / substep) equal RK4 sub-steps of
-    M(q) q̈ + C(q, q̇) q̇ + F(q̇) + G(q) = u with u held."""
+    M(q) q̈ + C(q, q̇) q̇ + F(q̇) + G(q) = u with u held; ``gravity``: the robot adds its own
+    G(q) to u at every stage (gravity "robot", as :class:`~ivdrem.controller.loop.ModelPlant`)."""
     fd = model.jit_functions.forward_dynamics
+    G = model.jit_functions.G
     k = max(1, math.ceil(h / substep - 1e-9))
     s = h / k
     a = np.empty(model.n)
+    g = np.zeros(model.n)
 
     def f(q, dq):
-        fd(q, dq, u, theta, a)
+        if gravity:
+            G(q, theta, g)
+        fd(q, dq, u + g, theta, a)
         return a.copy()
     for _ in range(k):
         k1q, k1v = dq, f(q, dq)
@@ -105,18 +115,22 @@ def _rk4_plant(model, theta, q, dq, u, h, substep):
 
 
 def _coordinates(controller, state, theta_hat):
-    """[(key, kind)] of the controller's fast states: kind "vec" (an n-vector) or "proj"
-    (an n × nθ filter seen through θ̂); θ̂ itself and everything else are frozen."""
+    """[(key, direction)] of the controller's fast states: direction None for an n-vector,
+    or the nθ-vector p an n × nθ filter S is seen through (its coordinate S p): θ̂ for
+    every filter, except Φ_Mf of (7) under the injection "nominal", which the torque (9)
+    reads as Φ_Mf θ_nominal; θ̂ itself and everything else are frozen."""
     n, nth = controller.n, controller.ntheta
     out = []
-    proj = bool(np.any(theta_hat != 0))
+    nominal = getattr(controller, "injection", "estimate") == "nominal"
     for key, v in state.items():
         if key == "theta_hat" or not isinstance(v, np.ndarray):
             continue
         if v.shape == (n,):
-            out.append((key, "vec"))
-        elif v.shape == (n, nth) and proj:
-            out.append((key, "proj"))
+            out.append((key, None))
+        elif v.shape == (n, nth):
+            p = controller.theta_nominal if nominal and key == "Phi_Mf" else theta_hat
+            if np.any(p != 0):
+                out.append((key, np.asarray(p, dtype=float)))
     return out
 
 
@@ -134,9 +148,14 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
     k = int(round(t / h))
     t = k * h
     tau_d = np.zeros(n) if disturbance is None else np.asarray(disturbance(t), dtype=float)
+    robot_gravity = getattr(controller, "gravity", "controller") == "robot"
     if at is None:
         qd, dqd, ddqd = (np.asarray(x, dtype=float) for x in controller.reference(t))
         u0 = model.inverse_dynamics(qd, dqd, ddqd, theta) - tau_d
+        if robot_gravity:       # the command: the robot adds G(q) itself
+            Gq = np.empty(n)
+            model.jit_functions.G(qd, theta, Gq)
+            u0 = u0 - Gq
     else:
         qd, dqd, u0 = (np.asarray(x, dtype=float) for x in at)
     controller.reset()
@@ -145,12 +164,11 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
     base["theta_hat"] = theta_hat.copy()
     coords = _coordinates(controller, base, theta_hat)
     delay = getattr(controller, "delay", 0)
-    w = theta_hat / max(float(theta_hat @ theta_hat), 1e-300)
 
     def pack(q, dq, u, s):
         parts = [q, dq] + ([u] if delay else [])
-        for key, kind in coords:
-            parts.append(s[key] if kind == "vec" else s[key] @ theta_hat)
+        for key, p in coords:
+            parts.append(s[key] if p is None else s[key] @ p)
         return np.concatenate(parts)
 
     def unpack(x):
@@ -160,15 +178,16 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
         if delay:
             u, o = x[o:o + n], o + n
         s = {kk: (np.copy(v) if isinstance(v, np.ndarray) else v) for kk, v in base.items()}
-        for key, kind in coords:
+        for key, p in coords:
             seg = x[o:o + n]
             o += n
-            if kind == "vec":
+            if p is None:
                 s[key] = seg.copy()
-            else:           # move S so that S θ̂ = seg (the nearest S along θ̂)
-                s[key] = base[key] + np.outer(seg - base[key] @ theta_hat, w)
+            else:           # move S so that S p = seg (the nearest S along p)
+                s[key] = base[key] + np.outer(seg - base[key] @ p, p / float(p @ p))
         if delay:           # the controller's own record of the torque held (its filters'
-            s["tau_prev"] = u.copy()        # input, (7) and (13)) is the plant's
+            s["tau_prev"] = u.copy()        # input, (7) and (13)) is the plant's, and
+            s["tau"] = u.copy()             # so is its last command (gravity "robot")
         return q, dq, u, s
 
     def step(x):
@@ -176,11 +195,12 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
         controller.set_state(s)
         tau = controller.step(t, q, dq)
         applied = u if delay else tau
-        q1, dq1 = _rk4_plant(model, theta, q, dq, applied + tau_d, h, substep)
+        q1, dq1 = _rk4_plant(model, theta, q, dq, applied + tau_d, h, substep,
+                             robot_gravity)
         return pack(q1, dq1, tau, controller.state())
 
     if delay:               # the held torque is a state of its own (u above)
-        coords = [c for c in coords if c[0] != "tau_prev"]
+        coords = [c for c in coords if c[0] not in ("tau_prev", "tau")]
     x0 = pack(qd, dqd, u0, base)
     y0 = step(x0)
     J = np.empty((x0.size, x0.size))
@@ -227,7 +247,8 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     nsub = max(1, math.ceil(h / substep - 1e-9))
     q0, dq0, _ = (np.asarray(x, dtype=float) for x in SampledController(
         model, "none", **{**gains, "T": gains.get("block", 10) * h}).reference(0.0))
-    plant = ModelPlant(model, q0, dq0, theta=theta, substeps=nsub)
+    plant = ModelPlant(model, q0, dq0, theta=theta, substeps=nsub,
+                       gravity=gains.get("gravity", "controller") == "robot")
     N = int(round(t_end / h))
     marks = set(np.linspace(0, N, max(2, checkpoints) + 1, dtype=int)[1:].tolist())
     delay = ctl.delay
@@ -272,6 +293,7 @@ class SampledStability:
     threshold: float = UNSTABLE_GROWTH
     delay: int = 0
     diverged: float | None = None
+    injection: str = "estimate"
 
     @property
     def stable(self) -> bool:
@@ -286,7 +308,7 @@ class SampledStability:
         head = (f"the sampled loop ({self.law} on {self.model}, h = {self.h * 1e3:g} ms, "
                 f"delay {self.delay}) is "
                 f"predicted {'stable' if self.stable else 'unstable'}: an error grows by "
-                f"{g:.3g} per step (spectral radius of the linearised one-step map, "
+                f"{g:.4g} per step (spectral radius of the linearised one-step map, "
                 f"largest at t = {t:g} s with theta_hat = {which}")
         if self.stable:
             return head + f"; refused above {self.threshold:g})"
@@ -296,6 +318,10 @@ class SampledStability:
         else:
             text = head + ")"
         fix = []
+        if self.diverged is not None and self.injection == "estimate":
+            fix.append("injection = 'nominal' (the observer's injection of (8) at the "
+                       "nominal parameters: the loop's inertia M(q, theta_nominal) instead "
+                       "of M(q, theta_hat), docs/controller.md)")
         if self.stable_h is not None:
             fix.append(f"h = {self.stable_h * 1e3:g} ms (--h {self.stable_h:g}, predicted "
                        "stable)")
@@ -422,4 +448,5 @@ def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturba
                 break
     return SampledStability(model=model.name, law=law, h=h, growth=worst[2],
                             points=tuple(rows), worst=worst, stable_h=stable_h,
-                            delay=int(getattr(controller, "delay", 0)), diverged=diverged)
+                            delay=int(getattr(controller, "delay", 0)), diverged=diverged,
+                            injection=getattr(controller, "injection", "estimate"))

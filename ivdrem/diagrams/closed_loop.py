@@ -6,8 +6,10 @@ import control as ct
 
 from .. import blocks as block_library
 from .. import laws as law_registry
+from ..sim._control import sparse_maps
 from ..sim.guards import check_interconnect_size
-from ..sim.plan import check_signal_sizes, signal_sizes
+from ..sim.plan import check_signal_sizes, rows_with_entries, signal_sizes
+from .wiring import NOT_PLAIN, wire_by_name
 
 __all__ = ["closed_loop", "LAWS", "assemble", "check_connected"]
 
@@ -28,10 +30,11 @@ PAPER_DISTURBANCE = dict(amplitude=[7.5, 1.5], omega=[0.5 * np.pi, 0.05 * np.pi]
                          phase=[0.0, 0.0], offset=[0.0, 0.0])
 
 
-def check_connected(diagram):
-    """Raise if any subsystem input is left unconnected (python-control would feed 0)."""
-    rows = np.flatnonzero(~np.any(diagram.connect_map != 0, axis=1)
-                          & ~np.any(diagram.input_map != 0, axis=1))
+def check_connected(diagram, maps=None):
+    """Raise if any subsystem input is left unconnected (python-control would feed 0).
+    `maps`: the diagram's sparse maps (ivdrem.sim._control.sparse_maps) if at hand."""
+    C, M, _ = sparse_maps(diagram) if maps is None else maps
+    rows = np.flatnonzero(~(rows_with_entries(C) | rows_with_entries(M)))
     if rows.size:
         labels = []
         for sys in diagram.syslist:
@@ -42,18 +45,27 @@ def check_connected(diagram):
 
 
 def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
-    """ct.interconnect of `blocks` (connected by signal name) with a connectivity check."""
+    """ct.interconnect of `blocks` (connected by signal name) with a connectivity check.
+
+    Without `connections` the blocks are wired by name here (ivdrem.diagrams.wiring: the
+    same diagram, its maps kept sparse); explicit `connections` go to ct.interconnect."""
     names = [b.name for b in blocks]
     dup = {n for n in names if names.count(n) > 1}
     if dup:
         raise ValueError(f"duplicate block names in diagram: {sorted(dup)}")
-    kw = {} if connections is None else {"connections": connections}
-    # python-control's dense maps, priced before it allocates them (ivdrem.sim.guards)
-    check_interconnect_size(blocks, n_ext_inputs=len(list(inputs)), what=f"diagram {name!r}")
-    diagram = ct.interconnect(blocks, inputs=list(inputs), outputs=outputs, name=name,
-                              check_unused=False, **kw)
-    check_connected(diagram)
-    check_signal_sizes(diagram)      # a 3-vector tau_d into a 2-joint plant: an error
+    inputs = list(inputs)
+    # python-control's constructor still asks for its dense maps (as zeros: nothing
+    # writes them on the sparse route), priced before it does (ivdrem.sim.guards)
+    check_interconnect_size(blocks, n_ext_inputs=len(inputs), what=f"diagram {name!r}")
+    diagram = wire_by_name(blocks, inputs, outputs, name=name) if connections is None \
+        else NOT_PLAIN
+    if diagram is NOT_PLAIN:
+        kw = {} if connections is None else {"connections": connections}
+        diagram = ct.interconnect(blocks, inputs=inputs, outputs=outputs, name=name,
+                                  check_unused=False, **kw)
+    maps = sparse_maps(diagram)
+    check_connected(diagram, maps)
+    check_signal_sizes(diagram, maps)  # a 3-vector tau_d into a 2-joint plant: an error
     return diagram
 
 
@@ -62,7 +74,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
                 F0=None, gamma=None, mixing=None, epsilon=None, sigma=None, theta_star=None,
                 theta_hat0=None, q0=None, dq0=None, theta=None, trajectory=None,
                 disturbance=None, replace=None, external_plant=False, law_params=None,
-                calibration=None, design=None, theta_nominal=None):
+                calibration=None, design=None, theta_nominal=None, injection=None):
     """The paper's closed loop with composite term `law`, as one InterconnectedSystem.
 
     Parameters are the paper's experiment by default (K = 2); the law's own gains (T, p, F0,
@@ -101,7 +113,10 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
     default its theta_values; K in 1/s): the sampled controller's design
     (:class:`~ivdrem.controller.sampled.SampledController`) in continuous time
     (docs/controller.md, "The inertia-scaled design in continuous time").  With K left at
-    None on a real arm, the experiment's joint gains become K_i / M̂_ii(q0).
+    None on a real arm, the experiment's joint gains become K_i / M̂_ii(q0).  ``injection``:
+    the observer's injection of (8) at θ̂ ("estimate", the paper's design's) or at
+    ``theta_nominal`` ("nominal", the inertia-scaled design's default; docs/controller.md,
+    "The observer on the nominal inertia").
     """
     spec = law_registry.get_law(law)
     if model is None:
@@ -113,6 +128,8 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
     if design not in block_library.DESIGNS:
         raise ValueError(f"design = {design!r} is not a design of (9); choose one of "
                          + ", ".join(map(repr, block_library.DESIGNS)))
+    from ..blocks.control_law import default_injection
+    injection = default_injection(design) if injection is None else injection
     joint_gains = K is None and not paper_arm     # the experiment's, in N m s
     if not paper_arm:   # the real-arm experiment, as a configuration naming this model gets it
         trajectory, disturbance, q0, dq0, K, T = _arm_experiment(
@@ -141,7 +158,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
                     theta_hat0=theta_hat0, q0=q0, dq0=dq0, theta=theta,
                     trajectory=trajectory, disturbance=disturbance, replace=replace,
                     external_plant=external_plant, law_params=law_params,
-                    design=design, theta_nominal=theta_nominal)
+                    design=design, theta_nominal=theta_nominal, injection=injection)
         choice = calibrate_gamma(law, model, args, **(calibration or {}))
         diagram = closed_loop(law, model, gamma=choice["gamma"], **args)
         diagram.gamma_choice = choice
@@ -169,9 +186,10 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
         source(disturbance, block_library.disturbance),
         block_library.mu_schedule(mu0, mu1),
         block_library.tracking_error(n, alpha),
-        block_library.torque_observer(model, variant=observer_variant),
+        block_library.torque_observer(model, variant=observer_variant, injection=injection,
+                                      theta_nominal=theta_nominal),
         block_library.control_law(n, nth, K=K, delta_mu=delta_mu, design=design, model=model,
-                                  theta_nominal=theta_nominal),
+                                  theta_nominal=theta_nominal, injection=injection),
         block_library.adaptation_law(n, nth, Gamma=Gamma, theta_hat0=theta_hat0),
     ]
     outputs = ["q", "dq", "q_d", "e", "r", "tau", "tau_d", "tau_d_hat", "theta_hat", "mu",

@@ -242,9 +242,14 @@ def check_reference_delta(law, model, args, *, variant, margin=ESTIMATE_MARGIN, 
     if trajectory is None:
         from .closed_loop import PAPER_TRAJECTORY
         trajectory = PAPER_TRAJECTORY
-    est = reference_mean_delta2(model, trajectory, T=float(par["T"]), p=float(par["p"]),
-                                F0=float(par["F0"]), l=float(args.get("l") or 50.0),
-                                variant=variant, t_cal=t_cal)
+    numbers = dict(T=float(par["T"]), p=float(par["p"]), F0=float(par["F0"]),
+                   l=float(args.get("l") or 50.0), variant=variant,
+                   t_cal=None if t_cal is None else float(t_cal))
+    path = _estimate_path(model, trajectory, numbers)
+    est = _read_estimate(path)
+    if est is None:
+        est = [float(v) for v in reference_mean_delta2(model, trajectory, **numbers)]
+        _write_estimate(path, est)
     worst = min(est)
     if worst < math.log10(DELTA2_MIN) - margin:
         where = f"mixing {variant!r}" + (f" on model {getattr(model, 'name', '?')!r}")
@@ -254,6 +259,73 @@ def check_reference_delta(law, model, args, *, variant, margin=ESTIMATE_MARGIN, 
             f"1e{worst:.1f}, below the smallest double ({DELTA2_MIN:.3g}), so the composite "
             f"term (21) cannot be formed; {_remedy(variant)}")
     return est
+
+
+#: reference estimates made in this process, by their key (the preflight's check and the
+#: run's γ "auto" ask for the same one)
+_ESTIMATES: dict = {}
+
+
+def _trajectory_key(trajectory):
+    """What the estimate reads of the reference, as text: the sinusoid's parameters, or an
+    ivdrem source block's output kernel and the arguments it is called with; None for any
+    other block (its estimate is not kept)."""
+    if isinstance(trajectory, dict):
+        return json.dumps({k: np.asarray(v, float).tolist() for k, v in trajectory.items()},
+                          sort_keys=True)
+    spec = getattr(trajectory, "ivdrem", None)
+    if spec is None or spec.nstates != 0 or spec.ninputs != 0 or spec.output is None:
+        return None
+    from ..blocks._core import kernel_args
+    h = hashlib.sha256(f"{spec.output.__module__}.{spec.output.__qualname__}".encode())
+    for a in kernel_args(spec, trajectory.params):
+        a = np.asarray(a)
+        h.update(f"{a.dtype} {a.shape}".encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def _estimate_path(model, trajectory, numbers):
+    """Where the reference estimate of (`model`, `trajectory`, `numbers`) is kept across
+    processes (a repeat of a command, the run after its preflight), named by ivdrem's
+    source, the model's code, the reference and the numbers; None when one of them has no
+    stable name (the estimate is then computed each time)."""
+    from ..sim.cache import cache_dir, package_digest
+    key = getattr(model, "key", None)
+    key = key() if callable(key) else key
+    traj = _trajectory_key(trajectory)
+    digest = package_digest()
+    if not isinstance(key, str) or traj is None or digest is None:
+        return None
+    text = f"{digest} {key} {model.n} {model.ntheta} {traj} {json.dumps(numbers, sort_keys=True)}"
+    name = hashlib.sha256(text.encode()).hexdigest()[:40]
+    return cache_dir() / "estimates" / f"{name}.json"
+
+
+def _read_estimate(path):
+    if path is None:
+        return None
+    if path in _ESTIMATES:
+        return list(_ESTIMATES[path])
+    try:
+        out = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not (isinstance(out, list) and out and all(isinstance(v, float) for v in out)):
+        return None
+    _ESTIMATES[path] = out
+    return list(out)
+
+
+def _write_estimate(path, est):
+    if path is None:
+        return
+    _ESTIMATES[path] = [float(v) for v in est]
+    from .._atomic import write_text_atomic
+    try:
+        write_text_atomic(path, json.dumps(_ESTIMATES[path], allow_nan=True))
+    except (OSError, TypeError, ValueError):
+        pass
 
 
 def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1,

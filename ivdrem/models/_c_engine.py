@@ -17,13 +17,17 @@ and the regressors' derivatives) compile in a few seconds with the machine's C c
 
 Without a C compiler (:class:`ivdrem._cc.CompilerNotFound`) :func:`load` returns None and
 the model keeps its numba path (``RigidBodyModel.source``): the same numbers
-(tests/test_c_engine.py), compiled by numba on the first run instead.
+(tests/test_c_engine.py), compiled by numba on the first run instead.  A compiler that is
+there but fails to build the library (:class:`ivdrem._cc.CompilerError`: a broken
+installation, a missing header) does the same, once per process and library, with a
+warning that quotes the compiler's first error.
 """
 from __future__ import annotations
 
 import ctypes
 import os
 import tempfile
+import warnings
 
 import numpy as np
 
@@ -39,6 +43,7 @@ ENGINE_FUNCTIONS = {**{k: v for k, v in C_FUNCTION_ARGS.items() if k != "forward
                     "Phi_F_jac": ("dq", "out"), "Phi_jac": ("q", "dq", "v", "dv", "out")}
 
 _LOADED: dict = {}          # library path -> ctypes.CDLL (registered with LLVM too)
+_FAILED: dict = {}          # library path -> the CompilerError of this process's build
 
 
 def symbol_prefix(key: str) -> str:
@@ -67,31 +72,47 @@ def out_shapes(model) -> dict:
 
 def load(model, cc=None):
     """The model's C library (built into the compile cache if it is not there), loaded for
-    ctypes and registered with LLVM for numba; None when there is no C compiler (the model
-    then keeps its numba path).  A compiler that fails raises :class:`ivdrem._cc.CompilerError`."""
-    from .._cc import CompilerNotFound, compile_shared, compiler
-    from .._progress import preparing
+    ctypes and registered with LLVM for numba; None when there is no C compiler, or when
+    the compiler fails to build it (a RuntimeWarning with its first error, once): the
+    model then keeps its numba path."""
+    from .._cc import CompilerError, CompilerNotFound, compiler
     path = library_path(model.key)
     lib = _LOADED.get(str(path))
     if lib is not None:
         return lib
+    if str(path) in _FAILED:
+        return None
     if not path.is_file():
         try:
             cc = compiler(cc)
         except CompilerNotFound:
             return None
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with preparing(f"compiling the C functions of model {model.name} (n = {model.n}, "
-                       f"{model.ntheta} parameters)", cached_in=path.parent):
-            with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
-                src = os.path.join(tmp, "model.c")
-                with open(src, "w", encoding="utf-8") as f:
-                    f.write(model.engine_c_source(symbol_prefix(model.key)))
-                built = os.path.join(tmp, path.name)
-                compile_shared([src], built, what=f"the C functions of model {model.name}",
-                               cc=cc)
-                os.replace(built, path)         # atomic: two processes may build it at once
+        try:
+            _build(model, path, cc)
+        except CompilerError as exc:
+            _FAILED[str(path)] = exc
+            warnings.warn(f"{exc}; the functions of model {model.name} run from the numba "
+                          "kernels instead (the first run compiles them: minutes on a real "
+                          "arm)", RuntimeWarning, stacklevel=2)
+            return None
     return _register(path)
+
+
+def _build(model, path, cc):
+    """Compile the model's C library into `path` (atomically: two processes may build it
+    at once); a failed build raises :class:`ivdrem._cc.CompilerError`."""
+    from .._cc import compile_shared
+    from .._progress import preparing
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with preparing(f"compiling the C functions of model {model.name} (n = {model.n}, "
+                   f"{model.ntheta} parameters)", cached_in=path.parent):
+        with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
+            src = os.path.join(tmp, "model.c")
+            with open(src, "w", encoding="utf-8") as f:
+                f.write(model.engine_c_source(symbol_prefix(model.key)))
+            built = os.path.join(tmp, path.name)
+            compile_shared([src], built, what=f"the C functions of model {model.name}", cc=cc)
+            os.replace(built, path)
 
 
 def _register(path):

@@ -7,7 +7,8 @@ The printer knows the small subset the kernels are written in, and refuses anyth
 * a kernel's parameters are annotated with strings: ``"int"``, ``"real"``, ``"float"``,
   ``"cplx"``, ``"bool"`` for scalars, ``"real[N,6]"`` / ``"const float[N,3,3]"`` /
   ``"int[N]"`` for arrays whose shape is fixed at generation (``N``, ``NS`` ... are the
-  macros of the C face); its return annotation is ``"int"``, ``"real"``, ``"float"`` or
+  macros of the C face) or given by an ``"int"`` parameter of the kernel
+  (``"real[N,NTHETA,ncol]"``); its return annotation is ``"int"``, ``"real"``, ``"float"`` or
   absent (void).  ``real`` is the type the kernel computes in (``double``, or ``double
   complex`` when printed for the complex step: ``print_kernels(..., real="double complex")``),
   ``float`` always ``double`` (the chain's constants, a modulus), ``cplx`` always
@@ -91,12 +92,17 @@ class _Function:
         self.sizes = {}         # local size alias -> C expression
         self.ret = None
         ann = self.ann = {}
+        # an array dimension may be an int parameter of the kernel (a column count that
+        # differs between callers); the others are the C face's macros
+        int_params = {a.arg for a in self.tree.args.args
+                      if isinstance(a.annotation, ast.Constant) and a.annotation.value == "int"}
         for a in self.tree.args.args:
             if not (isinstance(a.annotation, ast.Constant) and isinstance(a.annotation.value, str)):
                 self.fail(self.tree, f"parameter {a.arg!r} has no type annotation (a string)")
             ann[a.arg] = a.annotation.value
             base, shape, const = _parse_type(ann[a.arg])
-            shape = None if shape is None else tuple(printer.dim(d) for d in shape)
+            shape = None if shape is None else tuple(d if d in int_params else printer.dim(d)
+                                                     for d in shape)
             kind = "int" if base == "bool" else base
             if kind not in _KINDS:
                 self.fail(self.tree, f"parameter {a.arg!r} has unknown type {base!r}")

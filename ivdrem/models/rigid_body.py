@@ -605,6 +605,16 @@ def _rb_select(Y: "const real[N,NSTD]", base: "const int[NTHETA]", out: "real[N,
             out[i, b] = Y[i, base[b]]
 
 
+def _rb_select_column(Y: "const real[N,NSTD]", base: "const int[NTHETA]", ncol: "int",
+                      col: "int", out: "real[N,NTHETA,ncol]"):
+    # column col of a regressor's derivative: the base columns of Y (as _rb_select)
+    n = Y.shape[0]
+    nb = base.shape[0]
+    for i in range(n):
+        for b in range(nb):
+            out[i, b, col] = Y[i, base[b]]
+
+
 def _rb_pi(theta: "const real[NTHETA]", base: "const int[NTHETA]", pi: "real[NSTD]"):
     # standard parameters with K pi = theta: the base ones in their columns, the others 0
     ns = pi.shape[0]
@@ -793,21 +803,17 @@ def _rb_Phi_M_jac(q: "const real[N]", a: "const real[N]",
                   dY: "real[N,NSTD]", out: "real[N,NTHETA,N2]"):
     # d Phi_M / d(q, a)
     n = q.shape[0]
-    nb = base.shape[0]
+    ncol = out.shape[2]
     z = np.zeros(n)
     e = np.zeros(n)
     for m in range(n):
         e[m] = 1.0
         _rb_std(q, z, z, a, 0.0, z, False, True, True, e, parent, jtype, axis, Rp, pp, gvec,
                 fv, fc, ia, width, Y, dY)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, m] = dY[i, base[b]]
+        _rb_select_column(dY, base, ncol, m, out)
         _rb_std(q, z, z, e, 0.0, z, False, True, False, q, parent, jtype, axis, Rp, pp, gvec,
                 fv, fc, ia, width, Y, Y)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, n + m] = Y[i, base[b]]
+        _rb_select_column(Y, base, ncol, n + m, out)
         e[m] = 0.0
 
 
@@ -819,26 +825,20 @@ def _rb_Phi_C_jac(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
                   Y: "real[N,NSTD]", dY: "real[N,NSTD]", out: "real[N,NTHETA,N3]"):
     # d Phi_C / d(q, dq, v)
     n = q.shape[0]
-    nb = base.shape[0]
+    ncol = out.shape[2]
     z = np.zeros(n)
     e = np.zeros(n)
     for m in range(n):
         e[m] = 1.0
         _rb_std(q, dq, v, z, 0.0, z, False, False, True, e, parent, jtype, axis, Rp, pp,
                 gvec, fv, fc, ia, width, Y, dY)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, m] = dY[i, base[b]]
+        _rb_select_column(dY, base, ncol, m, out)
         _rb_std(q, e, v, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
                 gvec, fv, fc, ia, width, Y, Y)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, n + m] = Y[i, base[b]]
+        _rb_select_column(Y, base, ncol, n + m, out)
         _rb_std(q, dq, e, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
                 gvec, fv, fc, ia, width, Y, Y)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, 2 * n + m] = Y[i, base[b]]
+        _rb_select_column(Y, base, ncol, 2 * n + m, out)
         e[m] = 0.0
 
 
@@ -851,6 +851,7 @@ def _rb_Phi_dM_jac(q: "const real[N]", dq: "const real[N]", a: "const real[N]",
                    dYc: "cplx[N,NSTD]", out: "real[N,NTHETA,N3]"):
     # d Phi_dM / d(q, dq, a); d/dq by the complex step of the forward-mode derivative
     n = q.shape[0]
+    ncol = out.shape[2]
     nb = base.shape[0]
     z = np.zeros(n)
     e = np.zeros(n)
@@ -873,14 +874,10 @@ def _rb_Phi_dM_jac(q: "const real[N]", dq: "const real[N]", a: "const real[N]",
         e[m] = 1.0
         _rb_std(q, z, z, a, 0.0, z, False, False, True, e, parent, jtype, axis, Rp, pp, gvec,
                 fv, fc, ia, width, Y, dY)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, n + m] = dY[i, base[b]]
+        _rb_select_column(dY, base, ncol, n + m, out)
         _rb_std(q, z, z, e, 0.0, z, False, False, True, dq, parent, jtype, axis, Rp, pp, gvec,
                 fv, fc, ia, width, Y, dY)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, 2 * n + m] = dY[i, base[b]]
+        _rb_select_column(dY, base, ncol, 2 * n + m, out)
         e[m] = 0.0
 
 
@@ -891,16 +888,14 @@ def _rb_Phi_G_jac(q: "const real[N]", parent: "const int[N]", jtype: "const int[
                   out: "real[N,NTHETA,N]"):
     # d Phi_G / dq
     n = q.shape[0]
-    nb = base.shape[0]
+    ncol = out.shape[2]
     z = np.zeros(n)
     e = np.zeros(n)
     for m in range(n):
         e[m] = 1.0
         _rb_std(q, z, z, z, 1.0, z, False, False, True, e, parent, jtype, axis, Rp, pp, gvec,
                 fv, fc, ia, width, Y, dY)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, m] = dY[i, base[b]]
+        _rb_select_column(dY, base, ncol, m, out)
         e[m] = 0.0
 
 
@@ -909,7 +904,7 @@ def _rb_Phi_F_jac(dq: "const real[N]", base: "const int[NTHETA]", fv: "int", fc:
     # d Phi_F / d dq (diagonal: joint m's friction depends on dq_m only)
     n = dq.shape[0]
     ns = Y.shape[1]
-    nb = base.shape[0]
+    ncol = out.shape[2]
     for m in range(n):
         for i in range(n):
             for k in range(ns):
@@ -919,9 +914,7 @@ def _rb_Phi_F_jac(dq: "const real[N]", base: "const int[NTHETA]", fv: "int", fc:
         if fc >= 0:
             th = np.tanh(dq[m] / width)
             Y[m, fc + m] = (1.0 - th * th) / width
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, m] = Y[i, base[b]]
+        _rb_select_column(Y, base, ncol, m, out)
 
 
 def _rb_Phi_jac(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
@@ -932,6 +925,7 @@ def _rb_Phi_jac(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
                 out: "real[N,NTHETA,N4]"):
     # d Phi / d(q, dq, v, dv)
     n = q.shape[0]
+    ncol = out.shape[2]
     nb = base.shape[0]
     z = np.zeros(n)
     e = np.zeros(n)
@@ -941,24 +935,19 @@ def _rb_Phi_jac(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
         e[m] = 1.0
         _rb_std(q, dq, v, dv, 1.0, dq, True, True, True, e, parent, jtype, axis, Rp, pp, gvec,
                 fv, fc, ia, width, Y, dY)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, m] = dY[i, base[b]]
+        _rb_select_column(dY, base, ncol, m, out)
         _rb_std(q, e, v, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
                 gvec, fv, fc, ia, width, Y, Y)
+        _rb_select_column(Y, base, ncol, n + m, out)
         for i in range(n):
             for b in range(nb):
-                out[i, b, n + m] = Y[i, base[b]] + dF[i, b, m]
+                out[i, b, n + m] += dF[i, b, m]
         _rb_std(q, dq, e, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
                 gvec, fv, fc, ia, width, Y, Y)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, 2 * n + m] = Y[i, base[b]]
+        _rb_select_column(Y, base, ncol, 2 * n + m, out)
         _rb_std(q, z, z, e, 0.0, z, False, True, False, q, parent, jtype, axis, Rp, pp, gvec,
                 fv, fc, ia, width, Y, Y)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, 3 * n + m] = Y[i, base[b]]
+        _rb_select_column(Y, base, ncol, 3 * n + m, out)
         e[m] = 0.0
 
 
@@ -966,8 +955,8 @@ def _rb_Phi_jac(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
 KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
            _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_backward,
            _rb_rnea, _rb_mass, _rb_cholesky, _rb_cholesky_solve, _rb_spd_solve,
-           _rb_std, _rb_select, _rb_pi, _rb_Phi_M, _rb_Phi_C, _rb_Phi_dM, _rb_Phi_G,
-           _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics,
+           _rb_std, _rb_select, _rb_select_column, _rb_pi, _rb_Phi_M, _rb_Phi_C,
+           _rb_Phi_dM, _rb_Phi_G, _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics,
            _rb_Phi_M_jac, _rb_Phi_C_jac, _rb_Phi_dM_jac, _rb_Phi_G_jac, _rb_Phi_F_jac,
            _rb_Phi_jac)
 
@@ -984,7 +973,8 @@ C_STD_KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _r
                  _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_std)
 #: The regressors' derivatives in q and q̇: the rest of the compiled engine's C library of a
 #: model (:mod:`ivdrem.models._c_engine`).
-C_JAC_KERNELS = (_rb_Phi_M_jac, _rb_Phi_C_jac, _rb_Phi_dM_jac, _rb_Phi_G_jac, _rb_Phi_F_jac,
+C_JAC_KERNELS = (_rb_select_column, _rb_Phi_M_jac, _rb_Phi_C_jac, _rb_Phi_dM_jac,
+                 _rb_Phi_G_jac, _rb_Phi_F_jac,
                  _rb_Phi_jac)
 
 #: The Cholesky alone: the C face of every model (a symbolic one too) prints it.

@@ -45,6 +45,9 @@ def add_arguments(p):
                    help="multiply the encoder's quantum and the velocity noise (default 1)")
     g.add_argument("--encoder-counts", type=float, default=None, dest="encoder_counts",
                    help="encoder counts per revolution (default: exact positions)")
+    g.add_argument("--encoder-noise", type=float, default=None, dest="encoder_noise",
+                   help="white noise on the angles before the encoder, sigma in counts "
+                        "(needs encoder counts; seeded by --seed)")
     g.add_argument("--velocity", default=None, choices=("exact", "difference", "noise"),
                    help="how q' is measured (default exact)")
     g.add_argument("--velocity-cutoff", type=float, default=None, dest="velocity_cutoff",
@@ -84,9 +87,9 @@ def imperfections_from_args(args):
     from dataclasses import replace
     from .sensing import REALISTIC, Imperfections
     base = REALISTIC if args.realistic else Imperfections()
-    given = {k: getattr(args, k) for k in ("encoder_counts", "velocity", "velocity_cutoff",
-                                           "velocity_noise", "measurement_delay",
-                                           "tau_limit", "tau_rate_limit")
+    given = {k: getattr(args, k) for k in ("encoder_counts", "encoder_noise", "velocity",
+                                           "velocity_cutoff", "velocity_noise",
+                                           "measurement_delay", "tau_limit", "tau_rate_limit")
              if getattr(args, k) is not None}
     imp = replace(base, seed=args.seed, **given)
     return imp.scaled(args.noise_level) if args.noise_level != 1.0 else imp

@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 import time
 import xml.etree.ElementTree as ET
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -228,7 +229,8 @@ class MujocoPlant:
 
     ``model`` is ivdrem's model of the arm, ``mj`` the MjModel, ``data`` its MjData,
     ``report`` what MuJoCo made of the arm, ``check`` the load check's numbers,
-    ``theta`` the true θ (``theta_at(t)``: with the payload once grasped)."""
+    ``theta`` the true θ (``theta_at(t)``: with the payload once grasped), ``warnings``
+    MuJoCo's warnings while the plant stepped (:meth:`warnings_kept`)."""
 
     def __init__(self, model, mj, report, *, h, substeps, integrator, payload):
         mujoco = _mujoco()
@@ -244,6 +246,32 @@ class MujocoPlant:
         self._payload_on = None
         self.check = None
         self._M = np.zeros((self.n, self.n))
+        self.warnings = []
+        self._previous_handler = None
+
+    @contextmanager
+    def warnings_kept(self):
+        """MuJoCo's warnings (an unstable simulation, a bad state) go to ``self.warnings``
+        while the block runs, instead of MuJoCo's default handler, which prints them and
+        appends them to MUJOCO_LOG.TXT in the working directory (the user's folder); a
+        handler the user installed (``mujoco.set_mju_user_warning``) still gets them, and
+        is put back afterwards.  A diverging plant's error quotes the last one."""
+        mujoco = self._mujoco
+        previous = mujoco.get_mju_user_warning()
+        if getattr(previous, "__self__", None) is self:     # already kept (nested)
+            yield
+            return
+        self._previous_handler = previous
+        mujoco.set_mju_user_warning(self._keep_warning)
+        try:
+            yield
+        finally:
+            mujoco.set_mju_user_warning(previous)
+
+    def _keep_warning(self, message):
+        self.warnings.append(str(message))
+        if self._previous_handler is not None:
+            self._previous_handler(message)
 
     # -- state ------------------------------------------------------------------
     def reset(self, q0, dq0=None):
@@ -271,11 +299,12 @@ class MujocoPlant:
         """Advance one sample h with the generalised force ``tau`` held (torque and
         disturbance), grasping the payload at its time."""
         self.data.qfrc_applied[:] = tau
-        self.advance()
+        with self.warnings_kept():
+            self.advance()
 
     def advance(self):
         """Advance one sample h with the generalised force already in ``data.qfrc_applied``
-        (the loop writes it there without a copy)."""
+        (the loop writes it there without a copy, inside :meth:`warnings_kept`)."""
         d = self.data
         if self._payload_on is False and d.time >= self.payload.at - 0.5 * self.h:
             self._set_payload(True)
@@ -286,11 +315,12 @@ class MujocoPlant:
         # resetting the data (time back to 0) and counting a warning: a diverged run would
         # go on from rest
         if not d.time > before:
+            said = f"; MuJoCo: {self.warnings[-1]}" if self.warnings else ""
             raise FloatingPointError(
                 f"the MuJoCo plant diverged near t = {before:g} s (a non-finite or too "
                 f"large state; integrator {self.integrator}, step "
-                f"{self.mj.opt.timestep:g} s): a smaller step (substeps) or an implicit "
-                "integrator may hold it")
+                f"{self.mj.opt.timestep:g} s{said}): a smaller step (substeps) or an "
+                "implicit integrator may hold it")
 
     def theta_at(self, t):
         """The true θ at t (in ivdrem's parameters): with the payload once grasped."""
@@ -669,60 +699,61 @@ def closed_loop(plant, t_end, law="iv-drem", *, controller=None, imperfections=N
     t_plant = t_ctl = 0.0
     clock = time.perf_counter
     r = 0
-    start, cpu_start = clock(), time.thread_time()
-    for k in range(N + 1):
-        t = k * h
-        if robot is None:
-            qm, dqm = qpos, qvel
-        else:
-            qm, dqm = robot.measure(qpos.copy(), qvel.copy())
-        keep = k == N or k % every == 0
-        if keep:
-            rec["theta_hat"][r] = controller.theta_hat
-        now = k & 1
-        c0 = clock()
-        if c_step is not None:
-            if robot is not None:
-                qin[:] = qm
-                dqin[:] = dqm
-            status = c_step(c_ptr, t, p_q, p_dq, p_tau[now])
-            if status != 0:                      # as CController.step says it
-                from ..controller.clib import CControllerError
-                raise CControllerError(f"ivc_step: {controller.lib.ivc_message(c_ptr).decode()}"
-                                       f" (status {status})")
-            tau = cmd[now]
-        else:
-            tau = cmd[now]
-            tau[:] = controller.step(t, qm, dqm)
-        t_ctl += clock() - c0
-        command = tau if delay == 0 else cmd[1 - now]      # delay 1: the previous torque
-        applied = command if robot is None else robot.actuate(command)
-        np.multiply(om, t, out=tau_d)                      # disturbance_at(t, disturbance)
-        np.add(tau_d, ph, out=tau_d)
-        np.sin(tau_d, out=tau_d)
-        np.multiply(amp, tau_d, out=tau_d)
-        np.add(tau_d, off, out=tau_d)
-        if keep:
-            times[r] = t
-            for name, v in (("q", qpos), ("dq", qvel), ("q_m", qm), ("dq_m", dqm),
-                            ("tau", applied), ("tau_d", tau_d),
-                            ("tau_d_hat", controller.tau_d_hat), ("theta", plant.theta_at(t))):
-                rec[name][r] = v
-            if reference is not None:
-                qd, dqd, _ = reference.reference(t)
-                rec["q_d"][r] = qd
-                rec["e"][r] = qd - qpos
-                rec["r"][r] = (dqd - qvel) + reference.alpha * (qd - qpos)   # r of (9)
-                rec["mu"][r] = reference.mu(t)
-            r += 1
-        if k == N:
-            break
-        c0 = clock()
-        np.add(applied, tau_d, out=force)
-        plant.advance()
-        t_plant += clock() - c0
-        if bar is not None and k % 1000 == 0:
-            bar.update(1000)
+    with plant.warnings_kept():           # not MUJOCO_LOG.TXT in the user's folder
+        start, cpu_start = clock(), time.thread_time()
+        for k in range(N + 1):
+            t = k * h
+            if robot is None:
+                qm, dqm = qpos, qvel
+            else:
+                qm, dqm = robot.measure(qpos.copy(), qvel.copy())
+            keep = k == N or k % every == 0
+            if keep:
+                rec["theta_hat"][r] = controller.theta_hat
+            now = k & 1
+            c0 = clock()
+            if c_step is not None:
+                if robot is not None:
+                    qin[:] = qm
+                    dqin[:] = dqm
+                status = c_step(c_ptr, t, p_q, p_dq, p_tau[now])
+                if status != 0:                      # as CController.step says it
+                    from ..controller.clib import CControllerError
+                    raise CControllerError(f"ivc_step: {controller.lib.ivc_message(c_ptr).decode()}"
+                                           f" (status {status})")
+                tau = cmd[now]
+            else:
+                tau = cmd[now]
+                tau[:] = controller.step(t, qm, dqm)
+            t_ctl += clock() - c0
+            command = tau if delay == 0 else cmd[1 - now]      # delay 1: the previous torque
+            applied = command if robot is None else robot.actuate(command)
+            np.multiply(om, t, out=tau_d)                      # disturbance_at(t, disturbance)
+            np.add(tau_d, ph, out=tau_d)
+            np.sin(tau_d, out=tau_d)
+            np.multiply(amp, tau_d, out=tau_d)
+            np.add(tau_d, off, out=tau_d)
+            if keep:
+                times[r] = t
+                for name, v in (("q", qpos), ("dq", qvel), ("q_m", qm), ("dq_m", dqm),
+                                ("tau", applied), ("tau_d", tau_d),
+                                ("tau_d_hat", controller.tau_d_hat), ("theta", plant.theta_at(t))):
+                    rec[name][r] = v
+                if reference is not None:
+                    qd, dqd, _ = reference.reference(t)
+                    rec["q_d"][r] = qd
+                    rec["e"][r] = qd - qpos
+                    rec["r"][r] = (dqd - qvel) + reference.alpha * (qd - qpos)   # r of (9)
+                    rec["mu"][r] = reference.mu(t)
+                r += 1
+            if k == N:
+                break
+            c0 = clock()
+            np.add(applied, tau_d, out=force)
+            plant.advance()
+            t_plant += clock() - c0
+            if bar is not None and k % 1000 == 0:
+                bar.update(1000)
     wall, cpu = clock() - start, time.thread_time() - cpu_start
     if bar is not None:
         bar.close()

@@ -11,6 +11,8 @@ seeded.  Typical figures (docs/mujoco.md):
 option                 what                                        typical
 =====================  ==========================================  =========================
 ``encoder_counts``     counts per revolution of the joint encoder  2^18 (Franka), 2^20 (UR)
+``encoder_noise``      white noise on the angle before the         up to 1 count (the last
+                       encoder rounds it, σ in counts              count's jitter)
 ``velocity``           "exact", "difference" (filtered difference  "difference", 100-500 Hz
                        of the measured positions) or "noise"       cut-off; σ 1e-3 rad/s
 ``measurement_delay``  samples between measuring and the torque    1 (one 1 ms cycle)
@@ -56,6 +58,10 @@ class Imperfections:
     encoder_counts : float or None
         Counts per revolution of every joint's encoder; the measured angle is the nearest
         multiple of 2π/encoder_counts (None: exact).
+    encoder_noise : float
+        Standard deviation, in counts, of a white noise added to the angle before the
+        encoder rounds it (the jitter of its last count; needs ``encoder_counts``).  Drawn
+        from the seeded generator, so the seed changes the run.
     velocity : "exact", "difference" or "noise"
         "difference": q̇ is the difference of consecutive measured angles over h, filtered
         by a first-order low-pass of cut-off ``velocity_cutoff`` Hz (exact discretisation,
@@ -72,6 +78,7 @@ class Imperfections:
     """
 
     encoder_counts: float | None = None
+    encoder_noise: float = 0.0
     velocity: str = "exact"
     velocity_cutoff: float = 200.0
     velocity_noise: float = 0.0
@@ -86,6 +93,12 @@ class Imperfections:
             if not (math.isfinite(c) and c > 0):
                 raise ValueError(f"encoder_counts must be a positive number of counts per "
                                  f"revolution, got {self.encoder_counts!r}")
+        if not (math.isfinite(float(self.encoder_noise)) and self.encoder_noise >= 0):
+            raise ValueError(f"encoder_noise must be a standard deviation >= 0 (counts), got "
+                             f"{self.encoder_noise!r}")
+        if self.encoder_noise > 0 and self.encoder_counts is None:
+            raise ValueError("encoder_noise is in counts of the encoder: it needs "
+                             "encoder_counts")
         if self.velocity not in VELOCITY_MODES:
             raise ValueError(f"velocity must be one of {', '.join(VELOCITY_MODES)}, got "
                              f"{self.velocity!r}")
@@ -107,6 +120,8 @@ class Imperfections:
         out = []
         if self.encoder_counts is not None:
             out.append(f"encoder {self.encoder_counts:g} counts/rev")
+        if self.encoder_noise > 0:
+            out.append(f"encoder noise σ = {self.encoder_noise:g} counts")
         if self.velocity == "difference":
             out.append(f"velocity by a filtered difference ({self.velocity_cutoff:g} Hz)")
         elif self.velocity == "noise" and self.velocity_noise > 0:
@@ -119,9 +134,15 @@ class Imperfections:
             out.append(f"torque rate limit {np.asarray(self.tau_rate_limit).tolist()} N·m/s")
         return out
 
+    @property
+    def random(self) -> bool:
+        """Whether the run draws noise (then its ``seed`` changes it)."""
+        return self.encoder_noise > 0 or (self.velocity == "noise" and self.velocity_noise > 0)
+
     def scaled(self, level: float) -> "Imperfections":
         """The same robot with its sensor noise ``level`` times larger: the encoder's
-        quantum (2π/counts) and the velocity noise σ times ``level``."""
+        quantum (2π/counts) and the velocity noise σ times ``level`` (the encoder noise,
+        in counts, grows with the count)."""
         level = float(level)
         if not (math.isfinite(level) and level > 0):
             raise ValueError(f"noise level must be a positive number, got {level!r}")
@@ -166,6 +187,8 @@ class Robot:
         self.tau_limit = _limit("tau_limit", spec.tau_limit, n)
         self.tau_rate_limit = _limit("tau_rate_limit", spec.tau_rate_limit, n)
         self.rng = np.random.default_rng(spec.seed)
+        self.jitter = None if spec.encoder_noise == 0 else \
+            float(spec.encoder_noise) * self.quantum           # σ in rad
         # the filtered difference: pole e^{-2π f_c h}, started at rest values
         self.pole = math.exp(-2.0 * math.pi * spec.velocity_cutoff * self.h)
         self.q_prev = self._quantize(np.array(q0, dtype=float))
@@ -181,6 +204,8 @@ class Robot:
     def measure(self, q, dq):
         """(q_m, dq_m) the controller receives at t_k from the plant's q(t_k), q̇(t_k)."""
         s = self.spec
+        if self.jitter is not None:
+            q = q + self.jitter * self.rng.standard_normal(self.n)
         qm = self._quantize(q)
         if s.velocity == "difference":
             raw = (qm - self.q_prev) / self.h

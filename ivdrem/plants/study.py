@@ -12,7 +12,11 @@ A study file is an experiment configuration (as ``examples/paper.toml``) with a
     payload_com = [0.0, 0.0, 0.05]          # m, in the last link's frame
     omega_scale = [1.0, 1.37]               # the disturbance's frequencies times this: the
                                             # window T was chosen from the unscaled ones
-    seeds = [0, 1]                          # the sensor noise's seed
+    encoder_noise = 1.0                     # optional: white noise on the angles before
+                                            # the encoder, σ in counts (of the level's
+                                            # encoder), at every level > 0
+    seeds = [0, 1]                          # the sensor noise's seed: runs without noise
+                                            # (level 0, or encoder_noise = 0) take the first
     mu_max = 135.0
     gamma = 53.2                            # optional: γ of (21) instead of the config's
                                             # (IV-DREM, DREM); or a table {law = γ}
@@ -23,8 +27,9 @@ Every combination is run once per law of ``experiment.laws`` (one MuJoCo loop ea
 ``results.csv`` (one row per run: the varied values, θ̃ at the start and the end and their
 ratio, the tracking error and τ̃_d RMS over the last 20 %, costs, wall time, status),
 ``runs.jsonl`` (the same rows as they finish), ``robustness.png`` (the three against the
-noise level, one line per law and payload), ``robustness.html`` (the figure, the
-conclusions per noise level and payload, the mean table, the failed runs) and
+noise level, one line per law, payload and disturbance scale), ``robustness.html`` (the
+figure, the conclusions per noise level, payload and disturbance scale, the table of means
+over the seeds, the failed runs) and
 ``study.toml`` (the file as given).  A run that fails is a row with its error; the others
 go on. From the command line::
 
@@ -45,12 +50,13 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["read_robustness", "expand", "run_one", "run_robustness", "plot", "summary_table",
+__all__ = ["read_robustness", "sensing", "expand", "run_one", "run_robustness", "plot", "summary_table",
            "conclusions", "write_report", "rebuild_report", "is_robustness_file"]
 
 #: keys of [robustness] and their defaults
 DEFAULTS = dict(noise_levels=[0.0, 1.0], payload_mass=[0.0], payload_com=[0.0, 0.0, 0.0],
-                omega_scale=[1.0], seeds=[0], mu_max=135.0, gamma=None, mix_every=None)
+                omega_scale=[1.0], seeds=[0], encoder_noise=0.0, mu_max=135.0, gamma=None,
+                mix_every=None)
 
 
 def is_robustness_file(path) -> bool:
@@ -84,6 +90,10 @@ def read_robustness(path, *, model=None, t_end=None):
     if any(not (isinstance(x, (int, float)) and x >= 0) for x in rob["noise_levels"]):
         raise ValueError(f"[robustness] noise_levels must be numbers >= 0, got "
                          f"{rob['noise_levels']}")
+    e = rob["encoder_noise"]
+    if not (isinstance(e, (int, float)) and math.isfinite(e) and e >= 0):
+        raise ValueError(f"[robustness] encoder_noise must be a standard deviation >= 0 in "
+                         f"counts, got {e!r}")
     g = rob["gamma"]
     if not (g is None or isinstance(g, (int, float)) or (isinstance(g, dict) and all(
             isinstance(v, (int, float)) and v > 0 for v in g.values()))) or (
@@ -114,21 +124,35 @@ def _law_gamma(gamma, law):
     return None
 
 
+def sensing(rob, level, seed):
+    """The robot's sensing at a noise level (:class:`~ivdrem.plants.sensing.Imperfections`):
+    0 exact; x > 0 ``REALISTIC`` with its encoder's quantum x times larger and the study's
+    encoder noise (σ in counts of that encoder)."""
+    from .sensing import REALISTIC, Imperfections
+    if level == 0:
+        return Imperfections(seed=int(seed))
+    return replace(REALISTIC.scaled(level), seed=int(seed),
+                   encoder_noise=float(rob["encoder_noise"]))
+
+
 def expand(config, rob):
-    """The runs: dicts of (law, noise_level, payload_mass, omega_scale, seed)."""
+    """The runs: dicts of (law, noise_level, payload_mass, omega_scale, seed); a noise
+    level whose sensing draws no noise runs with the first seed only (the others would
+    repeat it)."""
     laws = list(config["experiment"]["laws"])
+    first = rob["seeds"][0]
     return [dict(law=law, noise_level=float(lv), payload_mass=float(pm), omega_scale=float(om),
                  seed=int(sd))
             for lv, pm, om, sd, law in itertools.product(
                 rob["noise_levels"], rob["payload_mass"], rob["omega_scale"], rob["seeds"],
-                laws)]
+                laws)
+            if sd == first or sensing(rob, lv, sd).random]
 
 
 def run_one(config, rob, run) -> dict:
     """One MuJoCo loop of the study (on a worker); never raises: a failed run is a row."""
     from .cli import summarize
     from .mujoco import Payload, closed_loop, controller_kwargs, load
-    from .sensing import REALISTIC, Imperfections
     from ..experiments.config import model_from_config
     t0, cpu0 = time.perf_counter(), time.process_time()
     row = dict(run, status="ok", error="")
@@ -149,9 +173,7 @@ def run_one(config, rob, run) -> dict:
         payload = None if run["payload_mass"] == 0 else Payload(
             run["payload_mass"], tuple(rob["payload_com"]))
         plant = load(model, payload=payload, states=20)
-        level = run["noise_level"]
-        imp = (Imperfections(seed=run["seed"]) if level == 0 else
-               replace(REALISTIC.scaled(level), seed=run["seed"]))
+        imp = sensing(rob, run["noise_level"], run["seed"])
         t_end = float(config["experiment"]["t_end"])
         resp = closed_loop(plant, t_end, run["law"], imperfections=imp, q0=start["q0"],
                            dq0=start["dq0"], disturbance=dist, every=100, progress=False,
@@ -194,9 +216,16 @@ def run_robustness(path, out, *, workers=1, model=None, t_end=None, progress=Tru
                   + (f", ratio {row['theta_error_ratio']:.3g}" if row["status"] == "ok" else "")
                   + f", {row['wall_s']:.0f} s)", file=sys.stderr, flush=True)
     if workers > 1:
+        import logging
+        import warnings
         from dask.distributed import Client, LocalCluster, as_completed
-        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                          dashboard_address=None) as cluster, Client(cluster) as client:
+        with warnings.catch_warnings():
+            # the scheduler's HTTP server (no dashboard) moves to a free port when another
+            # cluster holds 8787, and says so: nothing for the user to do
+            warnings.filterwarnings("ignore", message="Port .* is already in use")
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.ERROR)
+        with cluster, Client(cluster) as client:
             # the longest runs first (the laws with the window (15a) cost the most per
             # sample), so that no worker is left with a long run at the end
             order = sorted(runs, key=lambda r: r["law"] not in _MIXING_LAWS + (
@@ -218,12 +247,17 @@ def run_robustness(path, out, *, workers=1, model=None, t_end=None, progress=Tru
     return df, wall
 
 
+#: what a row of the summary is the mean over the seeds of
+SUMMARY_KEY = ["noise_level", "payload_mass", "omega_scale", "law"]
+
+
 def summary_table(df):
-    """Per law, noise level and payload: the mean over disturbance scales and seeds of
+    """Per law, noise level, payload and disturbance scale: the mean over the seeds of
     ‖θ̃(end)‖/‖θ̃(0)‖, the RMS tracking error and RMS τ̃_d over the last 20 %, with the
-    runs that finished and that failed."""
+    runs that finished and that failed.  Disturbance scales stay apart: a law that
+    diverges at one scale is not averaged with its runs at another."""
     import pandas as pd
-    key = ["noise_level", "payload_mass", "law"]
+    key = SUMMARY_KEY
     ok = df[df["status"] == "ok"]
     cols = ["theta_error_ratio", "tracking_rms_last", "tau_d_error_rms_last"]
     mean = (ok.groupby(key)[cols].mean() if len(ok) else
@@ -234,13 +268,14 @@ def summary_table(df):
 
 
 def conclusions(df) -> list[str]:
-    """One sentence per noise level and payload: each law's ‖θ̃(end)‖/‖θ̃(0)‖ and RMS τ̃_d,
-    IV-DREM's against the best other law's, or which runs diverged."""
+    """One sentence per noise level, payload and disturbance scale: each law's
+    ‖θ̃(end)‖/‖θ̃(0)‖ and RMS τ̃_d (mean over the seeds), IV-DREM's against the best other
+    law's, or which runs diverged."""
     lines = []
     tab = summary_table(df)
-    for (lv, pm), g in tab.groupby(["noise_level", "payload_mass"]):
+    for (lv, pm, om), g in tab.groupby(["noise_level", "payload_mass", "omega_scale"]):
         where = (f"noise level {lv:g}" + (" (exact q, q̇)" if lv == 0 else "")
-                 + f", payload {pm:g} kg")
+                 + f", payload {pm:g} kg, disturbance frequencies x {om:g}")
         parts, ratio = [], {}
         for _, row in g.iterrows():
             if row["ok"] == 0:
@@ -278,17 +313,18 @@ def write_report(df, out, *, model="?", study_text="", wall_s=None, workers=1):
     import matplotlib.pyplot as plt
     plt.close(fig)
     tab = summary_table(df)
-    summary = Table("summary", "Mean over disturbance scales and seeds",
-                    ["noise level", "payload (kg)", "law", "runs ok", "failed",
+    summary = Table("summary", "Mean over the seeds",
+                    ["noise level", "payload (kg)", "ω scale", "law", "runs ok", "failed",
                      "‖θ̃(end)‖/‖θ̃(0)‖", "RMS ‖e‖ last 20 % (rad)",
                      "RMS ‖τ̃_d‖ last 20 % (N·m)"],
-                    [[fmt(r["noise_level"]), fmt(r["payload_mass"]), r["law"], str(r["ok"]),
-                      str(r["failed"])] + [fmt(r[c]) if r["ok"] else "–" for c in
-                                           ("theta_error_ratio", "tracking_rms_last",
-                                            "tau_d_error_rms_last")]
-                     for _, r in tab.iterrows()], [1] * 8,
+                    [[fmt(r["noise_level"]), fmt(r["payload_mass"]), fmt(r["omega_scale"]),
+                      r["law"], str(r["ok"]), str(r["failed"])]
+                     + [fmt(r[c]) if r["ok"] else "–" for c in
+                        ("theta_error_ratio", "tracking_rms_last", "tau_d_error_rms_last")]
+                     for _, r in tab.iterrows()], [1] * 9,
                     note="noise level 1: 2^18 counts per revolution, velocity by a filtered "
-                         "difference at 200 Hz, one sample of measurement delay; x: the "
+                         "difference at 200 Hz, one sample of measurement delay (and the "
+                         "study's encoder noise in counts, if any: the study file); x: the "
                          "encoder's quantum x times larger; 0: exact q, q̇.")
     bad = df[df["status"] != "ok"]
     failed = Table("failed", "Runs that failed", ["law", "noise level", "payload (kg)",
@@ -333,7 +369,7 @@ def rebuild_report(out):
 
 def plot(df, path, *, model="?", keep=False):
     """‖θ̃(end)‖/‖θ̃(0)‖, RMS tracking error and RMS τ̃_d against the noise level, one line
-    per law and payload (mean over seeds and disturbance scales; exact sensing drawn at
+    per law, payload and disturbance scale (mean over the seeds; exact sensing drawn at
     the left edge, level 0)."""
     import matplotlib
     matplotlib.use("Agg")
@@ -347,18 +383,22 @@ def plot(df, path, *, model="?", keep=False):
     xpos = {lv: (lv if lv > 0 else (min([x for x in levels if x > 0], default=1.0) / 10))
             for lv in levels}
     for ax, (col, label) in zip(axes, cols):
-        for (law, pm), g in ok.groupby(["law", "payload_mass"]):
+        for (law, pm, om), g in ok.groupby(["law", "payload_mass", "omega_scale"]):
             m = g.groupby("noise_level")[col].mean()
-            ax.plot([xpos[x] for x in m.index], m.values, "o-",
-                    label=f"{law}" + (f", payload {pm:g} kg" if pm else ""))
+            ax.plot([xpos[x] for x in m.index], m.values,
+                    "o-" if law == "iv-drem" else "s--",
+                    label=f"{law}" + (f", payload {pm:g} kg" if pm else "")
+                    + (f", ω x {om:g}" if om != 1 else ""))
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("noise level (1: 2^18 counts/rev, filtered difference, 1 sample delay)")
+        ax.set_xlabel("noise level")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
     if len(ok):
         axes[0].legend(fontsize=8)
-    fig.suptitle(f"{model} in MuJoCo: robustness to sensing (leftmost points: exact q, q̇)")
+    fig.suptitle(f"{model} in MuJoCo: robustness to sensing (noise level 1: 2^18 counts/rev, "
+                 "filtered difference, 1 sample delay; x: quantum x times; leftmost points: "
+                 "exact q, q̇)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     if keep:

@@ -9,6 +9,10 @@ supported by rerunning that test.
 The parameters of a run are set on a private copy of the diagram (and of each of its
 blocks), never on the caller's system: ``_update_params`` writes each block's current
 parameters into the block.
+
+:class:`SparseInterconnect` is python-control's InterconnectedSystem with its three maps
+kept sparse (a real arm's loop: 12,937 block inputs x 12,487 block outputs, 1.2 GiB dense
+for 12,937 entries); :func:`sparse_maps` reads the maps of any InterconnectedSystem sparse.
 """
 from __future__ import annotations
 
@@ -16,6 +20,7 @@ import copy
 
 import numpy as np
 import control as ct
+from scipy import sparse
 
 # python-control's keyword handling, so that the drop-in (ivdrem.pycontrol) refuses and
 # renames arguments with python-control's own messages
@@ -28,6 +33,92 @@ SUPPORTED_CONTROL = ("0.10.1", "0.10.2")
 #: the names of python-control's per-block evaluation frames, for finding the block that
 #: raised in a traceback
 BLOCK_FRAMES = ("_rhs", "_out")
+
+
+#: the maps of python-control's InterconnectedSystem, in the order :func:`sparse_maps` returns
+MAP_NAMES = ("connect_map", "input_map", "output_map")
+
+
+def _map_property(name):
+    """A map attribute of :class:`SparseInterconnect`: reading it gives python-control's
+    dense array, built from the sparse one on first read and kept from then on (the
+    caller may write into it, as into python-control's own); writing it (python-control's
+    ``set_connect_map`` and its siblings) keeps what is written."""
+    key = "_" + name
+
+    def read(self):
+        value = self.__dict__[key]
+        if sparse.issparse(value):
+            value = value.toarray()
+            self.__dict__[key] = value
+        return value
+
+    def write(self, value):
+        if self.__dict__.get("_constructing", False):
+            # python-control's constructor: its all-zero dense map (np.zeros: pages the
+            # OS maps only when written, and nothing writes them), dropped at once
+            return
+        self.__dict__[key] = value
+
+    return property(read, write, doc=f"python-control's ``{name}`` (dense on first read)")
+
+
+class SparseInterconnect(ct.InterconnectedSystem):
+    """python-control's InterconnectedSystem of `syslist` whose connect_map, input_map and
+    output_map are given as scipy.sparse arrays and kept so (:func:`sparse_maps` reads
+    them); its inputs, outputs, states, parameters and evaluation are python-control's.
+
+    Reading ``connect_map`` (or another map) gives the dense array python-control would
+    hold, built then; ivdrem's simulator never reads them so.  `connection_type` is what
+    ``ct.interconnect`` records ("implicit": connected by signal name).
+    """
+
+    connect_map = _map_property("connect_map")
+    input_map = _map_property("input_map")
+    output_map = _map_property("output_map")
+
+    def __init__(self, syslist, connect_map, input_map, output_map, *, inputs, outputs,
+                 name=None, params=None, connection_type="implicit", **kwargs):
+        self.__dict__["_constructing"] = True
+        try:
+            # no connections, inputs or outputs given: python-control's maps stay zero
+            super().__init__(syslist, connections=None, inplist=None, outlist=None,
+                             inputs=list(inputs), outputs=list(outputs), name=name,
+                             params=params, connection_type=connection_type, **kwargs)
+        finally:
+            self.__dict__["_constructing"] = False
+        nu = sum(s.ninputs for s in self.syslist)
+        ny = sum(s.noutputs for s in self.syslist)
+        for key, value, shape in (("connect_map", connect_map, (nu, ny)),
+                                  ("input_map", input_map, (nu, self.ninputs)),
+                                  ("output_map", output_map, (self.noutputs, ny + nu))):
+            value = sparse.csr_array(value, dtype=float)
+            if value.shape != shape:
+                raise ValueError(f"{key} has shape {value.shape}, the blocks need {shape}")
+            self.__dict__["_" + key] = value
+
+
+def sparse_maps(diagram):
+    """(connect_map, input_map, output_map) of an InterconnectedSystem as scipy.sparse CSR
+    arrays (float64, column indices sorted in each row, no stored zeros): a
+    :class:`SparseInterconnect`'s own, or python-control's dense maps converted.  The
+    entries are the maps' own values; reading them row by row visits them in the order
+    ``np.nonzero`` of the dense map gives."""
+    out = []
+    for name in MAP_NAMES:
+        value = diagram.__dict__.get("_" + name) \
+            if isinstance(diagram, SparseInterconnect) else None
+        if value is None:
+            value = getattr(diagram, name)
+        if sparse.issparse(value):
+            value = sparse.csr_array(value, dtype=float, copy=True)
+        else:
+            value = sparse.csr_array(np.asarray(value, dtype=float))
+        value.eliminate_zeros()
+        value.sum_duplicates()
+        value.sort_indices()
+        out.append(value)
+    return tuple(out)
 
 
 class PrivateDiagram:
@@ -65,8 +156,7 @@ class PrivateDiagram:
     def signals(self, plan, t, x, ue):
         """(dx/dt, block outputs, block inputs) block by block in the plan's order:
         python-control's own fixed-point sweep does not settle on a NaN."""
-        d = self.diagram
-        C, M = np.asarray(d.connect_map), np.asarray(d.input_map)
+        C, M, _ = plan.maps
         ys, dx = np.zeros(C.shape[1]), np.zeros(x.size)
         for k in plan.order:
             b, sys = plan.blocks[k], self.blocks[k]

@@ -129,7 +129,6 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     kernel `role`; `wrapper_nx[j]` the state count of wrapper j's block; `prog` the
     JacobianProgram and `slu` its symbolic LU.
     """
-    d = plan.diagram
     ny_total = sum(b.sys.noutputs for b in plan.blocks)
     nu_total = sum(b.sys.ninputs for b in plan.blocks)
     blocks = np.full((len(plan.blocks), _diagram.N_BLOCK_COLUMNS), -1, dtype=np.int64)
@@ -175,29 +174,28 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
     history_order = _needed_blocks(plan, prog, inputs=delay_inputs)
     # recording the diagram outputs: the same for the entries the output map reads (block
     # outputs, and block inputs, which are filled from their sources)
-    Om = np.asarray(d.output_map)
-    read = sorted({int(j) for j in np.flatnonzero(Om.any(axis=0))}) if Om.size else []
+    _, Cin, Om = plan.maps          # sparse (CSR): each row's entries in column order
+    read = np.unique(Om.indices).tolist()
     rec_inputs = [j - ny_total for j in read if j >= ny_total]
     record_order = _needed_blocks(plan, prog, outputs=[j for j in read if j < ny_total],
                                   inputs=rec_inputs)
     # the connection map (and input map) as sparse rows: sources >= 0 are block outputs,
     # -1 - j is diagram input j
-    Cin = np.asarray(d.input_map)
     in_ptr, in_src, in_gain = [0], [], []
     for k in range(nu_total):
         for j, g in plan.conn[k]:
             in_src.append(j)
             in_gain.append(g)
-        if Cin.size:
-            for j in np.flatnonzero(Cin[k]):
-                in_src.append(-1 - int(j))
-                in_gain.append(float(Cin[k, j]))
+        for p in range(Cin.indptr[k], Cin.indptr[k + 1]):
+            in_src.append(-1 - int(Cin.indices[p]))
+            in_gain.append(float(Cin.data[p]))
         in_ptr.append(len(in_src))
     rec_ptr, rec_src, rec_gain = [0], [], []
     for r in range(Om.shape[0]):
-        for j in np.flatnonzero(Om[r]):
-            rec_src.append(int(j) if j < ny_total else -1 - int(j - ny_total))
-            rec_gain.append(float(Om[r, j]))
+        for p in range(Om.indptr[r], Om.indptr[r + 1]):
+            j = int(Om.indices[p])
+            rec_src.append(j if j < ny_total else -1 - (j - ny_total))
+            rec_gain.append(float(Om.data[p]))
         rec_ptr.append(len(rec_src))
     # the Jacobian's FD program, one row per differenced block
     fd = []
