@@ -17,6 +17,7 @@ Usage::
 
     ./run python benchmarks/bench_controller.py [--models two-link,panda,ur5,iiwa,xarm7]
                                                 [--laws iv-drem] [--t-end 300] [--mix-every M]
+                                                [--phases]
 """
 from __future__ import annotations
 
@@ -116,6 +117,68 @@ int main(int argc, char **argv) {
 }
 """
 
+#: --phases: the pieces of one step, each the fastest of `repeats` runs from the same state
+#: (ivc_state copied back), at the sample given: the step without its job's work, the job's
+#: start, one slice of its per-sample budget, the whole job (units of n multiply-adds, ns per
+#: unit); the mixing (17) for IV-DREM and DREM, the max-hold's lambda_min for composite
+#: learning.  It includes the library's own source to reach its static functions.
+PHASES_DRIVER = r"""
+#include "ivdrem_controller.c"
+#include <time.h>
+static double now(void) { struct timespec a; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &a); return a.tv_sec * 1e6 + a.tv_nsec * 1e-3; }
+static void motion(ivc_controller *c, long k, double h, double *q, double *dq) {
+    double qd[IVC_NQ], dqd[IVC_NQ], t = k * h;
+    int i;
+    for (i = 0; i < IVC_NQ; i++) qd[i] = dqd[i] = 0.0;
+    if (k > 0) ivc_reference(c, qd, dqd);
+    for (i = 0; i < IVC_NQ; i++) { q[i] = qd[i] + 0.01 * sin(3.0 * t + i); dq[i] = dqd[i] + 0.03 * cos(3.0 * t + i); }
+}
+/* argv: the sample at which to measure, repeats */
+int main(int argc, char **argv) {
+    long k0 = atol(argv[1]), k;
+    int repeats = atoi(argv[2]), r, mixes, lam;
+    double par[IVC_NPAR], q[IVC_NQ], dq[IVC_NQ], tau[IVC_NQ], h, t0, t1;
+    double base = 1e99, begin = 1e99, slice = 1e99, job = 1e99, units = 0, per = 0, sweeps = 0;
+    static ivc_state saved;
+    char msg[256];
+    ivc_controller *c;
+    (void)argc;
+    ivc_default_params(par);
+    h = par[IVC_P_H];
+    c = ivc_init(par, msg, sizeof msg);
+    if (!c) { fprintf(stderr, "%s\n", msg); return 1; }
+    if (k0 % c->mix_every == 0) k0 += 1;        /* a sample inside a period */
+    for (k = 0; k < k0; k++) { motion(c, k, h, q, dq); ivc_step(c, k * h, q, dq, tau); }
+    saved = c->s;
+    mixes = c->law == IVC_LAW_IV_DREM || c->law == IVC_LAW_DREM;
+    lam = c->law == IVC_LAW_COMPOSITE;
+    motion(c, k0, h, q, dq);
+    for (r = 0; r < repeats; r++) {
+        double u = 0;
+        c->s = saved; c->s.mix_phase = MIX_DONE; c->s.lam_phase = LAM_DONE;
+        t0 = now(); ivc_step(c, k0 * h, q, dq, tau); t1 = now();
+        if (t1 - t0 < base) base = t1 - t0;
+        if (!mixes && !lam) continue;
+        c->s = saved;
+        t0 = now(); if (mixes) mix_begin(c, c->s.Yavg); else lam_begin(c, c->s.lam_in); t1 = now();
+        if (t1 - t0 < begin) begin = t1 - t0;
+        t0 = now(); if (mixes) mix_work(c, c->mix_units); else lam_work(c, c->lam_units); t1 = now();
+        if (t1 - t0 < slice) slice = t1 - t0;
+        c->s = saved;
+        t0 = now();
+        if (mixes) { mix_begin(c, c->s.Yavg); u = mix_work(c, -1.0); }
+        else { lam_begin(c, c->s.lam_in); u = lam_work(c, -1.0); }
+        t1 = now();
+        if (t1 - t0 < job) { job = t1 - t0; units = u; sweeps = c->s.mix_sweep; }
+    }
+    per = mixes ? c->mix_units : (lam ? c->lam_units : 0);
+    printf("%.2f %.2f %.2f %.0f %.2f %.0f %.3f %g\n", base, begin, slice, per, job, units,
+           units > 0 ? 1e3 * job / units : 0.0, sweeps);
+    ivc_free(c);
+    return 0;
+}
+"""
+
 #: targets in µs per step: (median, max)
 TARGET_US = {"two-link": (4.9, None), "panda": (100.0, 500.0)}
 WINDOW_TARGET_MIB = 64.0
@@ -167,6 +230,8 @@ def main(argv=None):
                          "isolation (default: the middle of the run)")
     ap.add_argument("--repeats", type=int, default=10,
                     help="repeats of each isolated step, the fastest kept (default %(default)s)")
+    ap.add_argument("--phases", action="store_true",
+                    help="also time the pieces of one step at the isolated period (PHASES_DRIVER)")
     args = ap.parse_args(argv)
 
     from ivdrem.controller.codegen import generate_controller_sources
@@ -208,6 +273,21 @@ def main(argv=None):
                       f"{p99:8.2f} {mx:8.1f} {float(at):8.3f} {float(cpu99):8.1f} {float(cpumax):8.1f} "
                       f"{float(iso):8.1f} "
                       f"{float(iso_mean):8.1f} {tgt_s:>15} {mib:11.3f}", flush=True)
+                if args.phases:
+                    (d / "phases.c").write_text(PHASES_DRIVER)
+                    pexe = d / "phases"
+                    subprocess.run(["cc", "-O2", "-std=c99", "-D_POSIX_C_SOURCE=199309L", "-I",
+                                    str(d), str(d / "phases.c"), str(d / "controller_model.c"),
+                                    "-o", str(pexe), "-lm"], check=True)
+                    out = subprocess.run([str(pexe), str(k0), str(max(args.repeats, 10))],
+                                         capture_output=True, text=True, check=True)
+                    base, begin, slc, per, job, units, ns, sweeps = map(float, out.stdout.split())
+                    job_name = {"composite-learning": "lambda_min"}.get(law, "mixing")
+                    print(f"    phases: step without job work {base:.1f} µs; {job_name} job: "
+                          f"start {begin:.1f} µs, a slice ({per:.0f} units) {slc:.1f} µs, whole "
+                          f"{job:.1f} µs for {units:.0f} units ({ns:.1f} ns/unit"
+                          + (f", {sweeps:g} sweeps" if job_name == "mixing" else "") + ")",
+                          flush=True)
     try:
         load = os.getloadavg()[0]
     except OSError:  # pragma: no cover

@@ -368,6 +368,91 @@ def test_c_max_hold_lambda_min_job_equals_lapack(tmp_path):
         assert units.value <= total.value
 
 
+_SLICED_JOB_DRIVER = r"""
+#include "ivdrem_controller.c"
+/* `steps` samples of a smooth motion with the mixing every m samples and window T: at each
+ * mixing sample the new job is also run at once on a copy of the state; when the period ends
+ * the job run in slices must have finished and match it bit for bit.  Returns the number of
+ * jobs compared, or -1 - k at the first sample k where not; *capped: jobs that ended at the
+ * sweep cap; *sweeps: the cap. */
+long sliced_equals_at_once(long steps, double m, double T, double mixing, long *capped,
+                           double *sweeps) {
+    static ivc_state once;
+    double par[IVC_NPAR], q[IVC_NQ], dq[IVC_NQ], tau[IVC_NQ], qd[IVC_NQ], dqd[IVC_NQ];
+    char msg[256];
+    long k, jobs = 0;
+    int i, have = 0;
+    ivc_controller *c;
+    ivc_default_params(par);
+    par[IVC_P_MIX_EVERY] = m; par[IVC_P_T] = T; par[IVC_P_MIXING] = mixing;
+    c = ivc_init(par, msg, sizeof msg);
+    if (!c) return -1;
+    *capped = 0;
+    *sweeps = c->mix_sweeps;
+    for (k = 0; k < steps; k++) {
+        double t = k * c->h;
+        for (i = 0; i < IVC_NQ; i++) qd[i] = dqd[i] = 0.0;
+        if (k > 0) ivc_reference(c, qd, dqd);
+        for (i = 0; i < IVC_NQ; i++) {
+            q[i] = qd[i] + 0.05 * sin(3.0 * t + i) + 0.02;
+            dq[i] = dqd[i] + 0.15 * cos(3.0 * t + i);
+        }
+        if (k % (long)m == 0 && have) {          /* the period's job must be done, as at once */
+            if (c->s.mix_phase != MIX_DONE
+                || memcmp(c->s.mix_D, once.mix_D, sizeof once.mix_D)
+                || memcmp(c->s.mix_calY, once.mix_calY, sizeof once.mix_calY)
+                || memcmp(c->s.mix_V, once.mix_V, sizeof once.mix_V)) { ivc_free(c); return -1 - k; }
+            jobs++;
+            *capped += once.mix_sweep == c->mix_sweeps;
+        }
+        if (ivc_step(c, t, q, dq, tau) != IVC_OK) { ivc_free(c); return -1 - k; }
+        if (k % (long)m == 0) {                  /* the job begun now, run at once */
+            ivc_state keep = c->s;
+            mix_work(c, -1.0);
+            once = c->s;
+            c->s = keep;
+            have = 1;
+        }
+    }
+    ivc_free(c);
+    return jobs;
+}
+"""
+
+
+def test_c_mixing_job_sliced_over_the_period_equals_the_job_at_once(tmp_path):
+    """The C library's multi-rate mixing on the UR5 (nθ = 36), T = 0.5 s, "eigen" and
+    "channel", every 20 and 7 samples, 1500 samples: every job run in its per-sample slices
+    has finished when its period ends (no sample finishes a long job at once) and its result
+    (Δ, 𝒴 and the rotations V, the next warm start) equals the same job run at once, bit for
+    bit; the sweep cap is reached by some jobs while the window starts."""
+    import ctypes
+    from ivdrem._cc import compile_shared
+    from ivdrem.controller.codegen import generate_controller_sources
+    ur5 = get_model("ur5")
+    for fn, text in generate_controller_sources(ur5).items():
+        (tmp_path / fn).write_text(text)
+    (tmp_path / "job_driver.c").write_text(_SLICED_JOB_DRIVER)
+    lib_path = tmp_path / "job.so"
+    compile_shared([tmp_path / "job_driver.c", tmp_path / "controller_model.c"], lib_path,
+                   what="the mixing job's test driver", include_dirs=[tmp_path])
+    lib = ctypes.CDLL(str(lib_path))
+    lib.sliced_equals_at_once.restype = ctypes.c_long
+    lib.sliced_equals_at_once.argtypes = [ctypes.c_long, ctypes.c_double, ctypes.c_double,
+                                          ctypes.c_double, ctypes.POINTER(ctypes.c_long),
+                                          ctypes.POINTER(ctypes.c_double)]
+    capped_total = 0
+    for m, mixing in ((20, 1.0), (7, 2.0)):
+        capped, sweeps = ctypes.c_long(), ctypes.c_double()
+        jobs = lib.sliced_equals_at_once(1500, m, 0.5, mixing, ctypes.byref(capped),
+                                         ctypes.byref(sweeps))
+        assert jobs == 1500 // m - (1500 % m == 0), (m, mixing, jobs)
+        # the cap: as many sweeps (11 units a pair, 630 pairs) as m x IVC_MIX_BUDGET hold
+        assert sweeps.value == (16 if m == 20 else 8)
+        capped_total += capped.value
+    assert capped_total > 0
+
+
 def test_scale_free_mixings_default_gamma_by_the_auto_rule():
     """gamma not given: 0.5 / max(Gamma) with the scale-free mixings (the rule of gamma
     "auto" at Delta = 1; 50 at the default Gamma = 0.01), the law's registry value with the

@@ -127,6 +127,28 @@ def test_refuses_h_not_dividing_the_window(tmp_path, capsys):
     assert len(lines) == 1 and "--h 0.0007" in lines[0] and "T = 20 s" in lines[0]
 
 
+def test_export_takes_mix_every(tmp_path, capsys):
+    """--mix-every M becomes the FMU's mix_every (the 2-link arm, its paper mixing every 5
+    samples) and is printed; a value that is not a whole number from 1 to the window's
+    samples (T / h = 20,000 here), or given to a law without a window, is refused in one line
+    naming it, before anything is written."""
+    from fmpy import read_model_description
+    code, out, err = _cli(capsys, "--mix-every", "5", "-o", str(tmp_path / "C.fmu"))
+    assert code == 0, err
+    assert "mix_every = 5" in out
+    md = read_model_description(str(tmp_path / "C.fmu"))
+    assert float(next(v for v in md.modelVariables if v.name == "mix_every").start) == 5
+    for bad, words in (("0", "from 1 to the window's 20000 samples"), ("2.5", "whole number"),
+                       ("abc", "whole number"), ("20001", "20000 samples")):
+        code, out, err = _cli(capsys, "--mix-every", bad, "-o", str(tmp_path / "B.fmu"))
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and f"--mix-every {bad}" in lines[0], err
+        assert words in lines[0] and not (tmp_path / "B.fmu").exists()
+    code, out, err = _cli(capsys, "--law", "none", "--mix-every", "5", "-o",
+                          str(tmp_path / "B.fmu"))
+    assert code == 2 and "laws with a window" in err and not (tmp_path / "B.fmu").exists()
+
+
 def test_refuses_unstable_design(tmp_path, capsys):
     cfg = tmp_path / "stiff.toml"
     cfg.write_text("[controller]\nK = [600.0, 600.0]\n")

@@ -20,6 +20,7 @@ Variables (value reference = position; n = DoF, nθ = parameters)::
 from __future__ import annotations
 
 import hashlib
+import math
 import html
 import re
 import sys
@@ -459,6 +460,27 @@ def check_window(design, law):
                          f"with T / h a multiple of {block}, e.g. --h {good:g}")
 
 
+def check_mix_every(value, design, law):
+    """``--mix-every M``: a whole number from 1 to the window's samples T / h, for a law
+    with a window (its mixing (17) or max-hold every M samples); returns M, or refuses in one
+    line naming the value and the bound."""
+    if law not in ("iv-drem", "drem", "composite-learning"):
+        raise ValueError(f"--mix-every {value} applies to the laws with a window (iv-drem, "
+                         f"drem, composite-learning), not to {law}")
+    try:
+        m = float(value)
+    except (TypeError, ValueError):
+        m = math.nan
+    h = float(design.get("h", 1e-3))
+    T = design.get("T")
+    T = 20.0 if T is None else float(T)
+    N = int(round(T / h))
+    if not (math.isfinite(m) and m == int(m) and 1 <= m <= N):
+        raise ValueError(f"--mix-every {value} must be a whole number from 1 to the window's "
+                         f"{N} samples (T = {T:g} s, h = {h:g} s)")
+    return int(m)
+
+
 def check_generated(model):
     """The controller's C code for ``model`` can be generated: one line naming the model and
     the reason if not (before any long work)."""
@@ -550,10 +572,14 @@ def main_export_controller(args) -> int:
         check_replaceable(path, "FMU file", overwrite=args.overwrite, ours=is_ivdrem_fmu)
         paper_arm = args.config is None and (args.model is None or re.fullmatch(
             r"two[-_]link|2-link|planar[-_]\d+", str(args.model).strip().lower()))
+        mix_every = getattr(args, "mix_every", None)
         if paper_arm:
             model = get_model(args.model or "two-link")
             design = dict(mu_max=mu_max, h=h)
             check_window(dict(design, **_law_window(args.law)), args.law)
+            if mix_every is not None:
+                design["mix_every"] = check_mix_every(
+                    mix_every, dict(design, **_law_window(args.law)), args.law)
             check_generated(model)
             config = None
         else:
@@ -563,6 +589,8 @@ def main_export_controller(args) -> int:
             model = model_from_config(config)
             design = controller_design(config, args.law, h=h, mu_max=mu_max)
             check_window(design, args.law)
+            if mix_every is not None:
+                design["mix_every"] = check_mix_every(mix_every, design, args.law)
             check_generated(model)
             design, choice = resolve_gamma(model, args.law, design, config)
             if choice is not None:
@@ -581,7 +609,8 @@ def main_export_controller(args) -> int:
         return 2
     print(f"wrote {path} (controller, law {args.law}, model {model.name}, n = {model.n}, "
           f"ntheta = {model.ntheta}, h = {design.get('h', h) * 1e3:g} ms, "
-          f"mu_max = {design.get('mu_max', mu_max):g}{extra})")
+          f"mu_max = {design.get('mu_max', mu_max):g}, mix_every = "
+          f"{design.get('mix_every', 1)}{extra})")
     return 0
 
 

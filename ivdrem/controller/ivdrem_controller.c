@@ -16,10 +16,18 @@
 
 #define NQT (IVC_NQ * IVC_NTHETA)
 #define NM (IVC_NTHETA + IVC_NTHETA * IVC_NTHETA)
-/* sweeps a multi-rate mixing is budgeted for (measured on the Panda, the mixing every 20
- * samples over 60 s: 20 at t <= 0.1 s while the window starts, 9-18 until t = 1.7 s, 4-8
- * after): a longer job ends at the sample where it is applied */
-#define IVC_MIX_SWEEPS 20
+/* The multi-rate mixing's budget: a sample spends at most IVC_MIX_BUDGET units (n
+ * multiply-adds each; 6000 units took 0.1-0.2 ms on the Panda at load 8-15) on the job,
+ * and a job does as many sweeps as mix_every * IVC_MIX_BUDGET hold (ntheta = 43: 11 at m = 20,
+ * 29 at m = 50), at least IVC_MIX_SWEEPS (then a sample spends more: m < 14) and at most 80.  A
+ * job that reaches its cap ends there, converged or not, its rotations the next job's warm
+ * start.  Measured on the Panda (bench_controller.py's motion, T = 40 s, the mixing every
+ * 20 samples, 60 s): 4-5 sweeps (the last one finding nothing to rotate) after t = 36 s,
+ * at most 7 after t = 1.9 s, up to 20 while the window starts (t <= 0.12 s, the composite
+ * term still off). */
+#define IVC_MIX_BUDGET 6000.0
+#define IVC_MIX_SWEEPS 8
+static double mix_job_units(int sweeps);
 
 /* the phases of the max-hold's lambda_min job (lam_begin, lam_work) and the most bisection
  * steps it takes (about 54 reach eps ||S||) */
@@ -28,7 +36,8 @@ enum { LAM_HOUSE = 0, LAM_BISECT = 1, LAM_DONE = 2 };
 static double lam_job_units(void);
 
 /* the phases of the mixing job (mix_begin, mix_work) */
-enum { MIX_ROWS = 0, MIX_SWEEP = 1, MIX_FINISH = 2, MIX_RESULT = 3, MIX_DONE = 4 };
+enum { MIX_ROWS = 0, MIX_SWEEP = 1, MIX_FINISH = 2, MIX_COMPLETE = 3, MIX_DET = 4, MIX_RESULT = 5,
+       MIX_DONE = 6 };
 
 /* the whole state but the window's ring of block sums: plain doubles, copied as bytes */
 typedef struct {
@@ -42,8 +51,10 @@ typedef struct {
     /* the mixing job (mix_begin, mix_work): its input (Y, Psi), U, V (after a job: the next
      * warm start), sig, result, and where it stands */
     double mix_in[NM], mix_U[IVC_NTHETA * IVC_NTHETA], mix_V[IVC_NTHETA * IVC_NTHETA];
-    double mix_sig[IVC_NTHETA], mix_D[IVC_NTHETA], mix_calY[IVC_NTHETA];
+    double mix_sig[IVC_NTHETA], mix_D[IVC_NTHETA], mix_calY[IVC_NTHETA], mix_coef[IVC_NTHETA];
+    double mix_W[IVC_NTHETA * IVC_NTHETA];      /* P = Psi / s, then det U's elimination */
     double mix_phase, mix_j, mix_k, mix_sweep, mix_rotated, mix_warm, mix_nrm, mix_s, mix_suv;
+    double mix_det, mix_m;
     double has_warm;
     /* the max-hold's lambda_min job (lam_begin, lam_work): its input (Y_b, Psi_b), the
      * symmetric part being reduced, the tridiagonal (d, e), where it stands, its value */
@@ -61,6 +72,7 @@ struct ivc_controller {
     long nb;                                    /* blocks in the ring */
     double h, T;
     double mix_units;                           /* the mixing job's budget per sample */
+    int mix_sweeps;                             /* ... and its most sweeps (mix_every > 1) */
     double lam_units;                           /* the max-hold job's budget per sample */
     ivc_state s;
     double *ring;                               /* nb x NM block sums */
@@ -188,12 +200,11 @@ ivc_controller *ivc_init(const double *par, char *msg, size_t len) {
     c->mix_every = (int)par[IVC_P_MIX_EVERY];
     c->gravity = (int)par[IVC_P_GRAVITY];
     c->ref_kind = (int)par[IVC_P_REF_KIND];
-    {   /* the budget per sample of the multi-rate mixing: a job of IVC_MIX_SWEEPS rotating
-         * sweeps (11 units a pair), with its rows (n^2), finish (2n) and result (n^2),
-         * spread over the mix_every samples of a mixing period */
-        double nt = IVC_NTHETA, pairs = 0.5 * nt * (nt - 1);
-        c->mix_units = ceil((IVC_MIX_SWEEPS * 11.0 * pairs + 2.0 * nt * nt + 2.0 * nt)
-                            / c->mix_every);
+    {   /* the multi-rate mixing: its sweeps, and its whole work spread over the period */
+        int sw = IVC_MIX_SWEEPS;
+        while (sw < 80 && mix_job_units(sw + 1) <= c->mix_every * IVC_MIX_BUDGET) sw++;
+        c->mix_sweeps = sw;
+        c->mix_units = ceil(mix_job_units(sw) / c->mix_every);
     }
     /* the max-hold's job: its fixed work spread over the mix_every samples of a period */
     c->lam_units = ceil(lam_job_units() / c->mix_every);
@@ -299,27 +310,6 @@ static double mu_integral(const double *par, double t, double h) {
 
 static double phi1(double z) { return z == 0.0 ? 1.0 : expm1(z) / z; }
 
-/* determinant of a small matrix by LU with partial pivoting (A is overwritten) */
-static double det_lu(double *A, int n) {
-    double d = 1.0;
-    int i, j, k, p;
-    for (k = 0; k < n; k++) {
-        p = k;
-        for (i = k + 1; i < n; i++) if (fabs(A[i * n + k]) > fabs(A[p * n + k])) p = i;
-        if (A[p * n + k] == 0.0) return 0.0;
-        if (p != k) {
-            for (j = 0; j < n; j++) { double t = A[k * n + j]; A[k * n + j] = A[p * n + j]; A[p * n + j] = t; }
-            d = -d;
-        }
-        d *= A[k * n + k];
-        for (i = k + 1; i < n; i++) {
-            double f = A[i * n + k] / A[k * n + k];
-            for (j = k + 1; j < n; j++) A[i * n + j] -= f * A[k * n + j];
-        }
-    }
-    return d;
-}
-
 /* ------------------------------------------------------------------ the mixing (17) as a job
  * The mixing step (17) in the variants of ivdrem.blocks._kernels.mixing_values
  * (docs/mixing.md), from a one-sided Jacobi SVD of P = Psi / s, s = 1 + ||Psi||_F:
@@ -342,23 +332,27 @@ static double det_lu(double *A, int n) {
  * multi-rate controller spreads one mixing over the mix_every samples of a mixing period
  * (docs/controller.md, "Real arms: reference, mixing, multi-rate").  The budget counts
  * units of n multiply-adds; the job's arithmetic, and so its result, does not depend on
- * how it is sliced.  Phases: rows of U = P V0, Jacobi pairs, the singular values and
- * det U, the variant's result. */
+ * how it is sliced, and no piece of it is larger than n^2 multiply-adds (one column of
+ * U = P V0, one Jacobi pair, one column's completion, one step of det U's elimination, one
+ * row of the result).  U and V are stored column by column (U[j n + i] = U_ij): a rotation
+ * and the dot products of a pair run over two contiguous columns.  Phases: the columns of
+ * U = P V0, Jacobi pairs, the singular values, the completion of U, det U, the variant's
+ * result, row by row.  With mix_every > 1 a job ends after mix_sweeps sweeps (IVC_MIX_BUDGET),
+ * converged or not (the next job starts from its rotations), so that its whole work fits
+ * the period's budget: no sample finishes a long job at once. */
 
-/* s_UV V diag(coef) U^T Y / div: the adjugate-weighted regression of (17) */
-static void adjugate_times(const double *U, const double *V, const double *coef, double suv,
-                           const double *Y, double div, double *out) {
+/* s_UV (V diag(coef) U^T)_i. Y / div: row i of the adjugate-weighted regression of (17) */
+static double adjugate_row_times(const double *U, const double *V, const double *coef,
+                                 double suv, const double *Y, double div, int i) {
     enum { n = IVC_NTHETA };
-    int i, j, k;
-    for (i = 0; i < n; i++) {
-        double acc = 0;
-        for (j = 0; j < n; j++) {
-            double cij = 0;                      /* adj(P)_ij = s_UV sum_k V_ik pi_k U_jk */
-            for (k = 0; k < n; k++) cij += V[i * n + k] * coef[k] * U[j * n + k];
-            acc += suv * cij * Y[j];
-        }
-        out[i] = acc / div;
+    int j, k;
+    double acc = 0;
+    for (j = 0; j < n; j++) {
+        double cij = 0;                          /* adj(P)_ij = s_UV sum_k V_ik pi_k U_jk */
+        for (k = 0; k < n; k++) cij += V[k * n + i] * coef[k] * U[k * n + j];
+        acc += suv * cij * Y[j];
     }
+    return acc / div;
 }
 
 /* prod_{j != i} x_j, by prefix and suffix products (no division) */
@@ -367,6 +361,17 @@ static void products_without(const double *x, double *out) {
     double pre = 1.0, suf = 1.0;
     for (i = 0; i < IVC_NTHETA; i++) { out[i] = pre; pre *= x[i]; }
     for (i = IVC_NTHETA - 1; i >= 0; i--) { out[i] *= suf; suf *= x[i]; }
+}
+
+/* the whole work (units) of a multi-rate mixing job of at most `sweeps` sweeps: the
+ * columns of U (warm: n units each), the sweeps (3 units a pair, 8 more when it rotates),
+ * the singular values (n), det U (sum of (n - k)^2 / n), the result (n a row), and n more
+ * for the completion of U's columns (none but while Psi is singular) */
+static double mix_job_units(int sweeps) {
+    double nt = IVC_NTHETA, pairs = 0.5 * nt * (nt - 1), det = 0;
+    int k;
+    for (k = 0; k < IVC_NTHETA; k++) det += (nt - k) * (nt - k) / nt;
+    return nt * nt + sweeps * 11.0 * pairs + nt + det + nt * nt + nt;
 }
 
 /* start a mixing of (Y, Psi) = yp (copied: the job's input is that of this sample) */
@@ -388,39 +393,37 @@ static void mix_begin(ivc_controller *c, const double *yp) {
         s->mix_phase = MIX_DONE;
         return;
     }
+    for (k = 0; k < n * n; k++) s->mix_W[k] = Psi[k] / s->mix_s;   /* P, row major */
     s->mix_warm = c->mixing != IVC_MIXING_PAPER && s->has_warm != 0;
-    if (!s->mix_warm) {                /* V = I; U = P, row by row in the MIX_ROWS phase */
+    if (!s->mix_warm) {                /* V = I; U = P, column by column in MIX_ROWS */
         for (i = 0; i < n * n; i++) s->mix_V[i] = 0.0;
         for (i = 0; i < n; i++) s->mix_V[i * n + i] = 1.0;
     }
     s->mix_phase = MIX_ROWS;
 }
 
-/* the variant's result from U, sig, V and s_UV (the lower half of the mixing) */
-static void mix_result(ivc_controller *c) {
+/* the variant's coefficients pi_k of adj(P) = s_UV V diag(pi) U^T, and Delta (paper, eigen) or
+ * the index of the smallest singular value (channel): the result's set-up, O(n) */
+static void mix_result_setup(ivc_controller *c) {
     enum { n = IVC_NTHETA };
     ivc_state *s = &c->s;
-    const double *U = s->mix_U, *V = s->mix_V, *sig = s->mix_sig, *Y = s->mix_in;
-    double coef[n], r[n], d, suv = s->mix_suv, sc = s->mix_s;
-    double *Delta = s->mix_D, *calY = s->mix_calY;
-    int i, j, k, m;
+    const double *sig = s->mix_sig;
+    double *coef = s->mix_coef, r[n], d, suv = s->mix_suv;
+    int j, k, m;
     if (c->mixing == IVC_MIXING_PAPER) {
         products_without(sig, coef);
         d = suv;
         for (k = 0; k < n; k++) d *= sig[k];
-        Delta[0] = d;
-        adjugate_times(U, V, coef, suv, Y, sc, calY);
+        s->mix_D[0] = d;
     } else if (c->mixing == IVC_MIXING_EIGEN) {
-        double f = c->par[IVC_P_F_REL] * s->mix_nrm / sc;
+        double f = c->par[IVC_P_F_REL] * s->mix_nrm / s->mix_s;
         for (k = 0; k < n; k++) r[k] = sig[k] / (sig[k] + f);
         products_without(r, coef);
         for (k = 0; k < n; k++) coef[k] /= sig[k] + f;   /* pi_k / prod_j (sigma_j + f) */
         d = suv;
         for (k = 0; k < n; k++) d *= r[k];
-        Delta[0] = d;
-        adjugate_times(U, V, coef, suv, Y, sc, calY);
+        s->mix_D[0] = d;
     } else {
-        double C[n * n], cc, guard = c->par[IVC_P_GUARD];
         m = 0;
         for (k = 1; k < n; k++) if (sig[k] < sig[m]) m = k;
         for (k = 0; k < n; k++) coef[k] = k == m ? 1.0 : sig[m] / sig[k];
@@ -428,19 +431,30 @@ static void mix_result(ivc_controller *c) {
             for (j = 0; j < n; j++) coef[j] = 0.0;
             break;
         }
-        for (i = 0; i < n; i++)
-            for (j = 0; j < n; j++) {
-                double cij = 0;
-                for (k = 0; k < n; k++) cij += V[i * n + k] * coef[k] * U[j * n + k];
-                C[i * n + j] = suv * cij;
-            }
-        for (i = 0; i < n; i++) {
-            double r2 = 0, acc = 0;
-            for (j = 0; j < n; j++) { r2 += C[i * n + j] * C[i * n + j]; acc += C[i * n + j] * Y[j]; }
-            cc = sqrt(C[i * n + i] * C[i * n + i] + guard * guard * r2);
-            if (cc > 0.0) { calY[i] = acc / cc; Delta[i] = sc * suv * sig[m] / cc; }
-            else { calY[i] = 0.0; Delta[i] = 0.0; }
+        s->mix_m = m;
+    }
+}
+
+/* row i of the variant's result (calY_i; channel: Delta_i too), n^2 multiply-adds */
+static void mix_result_row(ivc_controller *c, int i) {
+    enum { n = IVC_NTHETA };
+    ivc_state *s = &c->s;
+    const double *U = s->mix_U, *V = s->mix_V, *coef = s->mix_coef, *Y = s->mix_in;
+    double suv = s->mix_suv, sc = s->mix_s;
+    if (c->mixing != IVC_MIXING_CHANNEL) {
+        s->mix_calY[i] = adjugate_row_times(U, V, coef, suv, Y, sc, i);
+    } else {
+        double guard = c->par[IVC_P_GUARD], Ci[n], r2 = 0, acc = 0, cc;
+        int j, k;
+        for (j = 0; j < n; j++) {
+            double cij = 0;
+            for (k = 0; k < n; k++) cij += V[k * n + i] * coef[k] * U[k * n + j];
+            Ci[j] = suv * cij;
         }
+        for (j = 0; j < n; j++) { r2 += Ci[j] * Ci[j]; acc += Ci[j] * Y[j]; }
+        cc = sqrt(Ci[i] * Ci[i] + guard * guard * r2);
+        if (cc > 0.0) { s->mix_calY[i] = acc / cc; s->mix_D[i] = sc * suv * s->mix_sig[(int)s->mix_m] / cc; }
+        else { s->mix_calY[i] = 0.0; s->mix_D[i] = 0.0; }
     }
 }
 
@@ -450,21 +464,23 @@ static double mix_work(ivc_controller *c, double budget) {
     enum { n = IVC_NTHETA };
     ivc_state *s = &c->s;
     double *U = s->mix_U, *V = s->mix_V, *sig = s->mix_sig, spent = 0;
-    const double *Psi = s->mix_in + n;
+    const double *P = s->mix_W;                 /* Psi / s until det U needs the room */
     double tol = c->mixing == IVC_MIXING_PAPER ? 1e-16 : sqrt((double)n) * 2.220446049250313e-16;
-    int i, j, k;
+    int i, j, k, max_sweeps = c->mix_every > 1 ? c->mix_sweeps : 80;
     while (s->mix_phase != MIX_DONE && (budget < 0 || spent < budget)) {
-        if (s->mix_phase == MIX_ROWS) {          /* row i of U = P V0 (warm) or of P */
-            i = (int)s->mix_j;
+        if (s->mix_phase == MIX_ROWS) {          /* column j of U = P V0 (warm) or of P */
+            double *Uj = U + (int)s->mix_j * n;
+            j = (int)s->mix_j;
             if (s->mix_warm) {
-                for (j = 0; j < n; j++) {
+                const double *Vj = V + j * n;
+                for (i = 0; i < n; i++) {
                     double acc = 0;
-                    for (k = 0; k < n; k++) acc += (Psi[i * n + k] / s->mix_s) * V[k * n + j];
-                    U[i * n + j] = acc;
+                    for (k = 0; k < n; k++) acc += P[i * n + k] * Vj[k];
+                    Uj[i] = acc;
                 }
                 spent += n;
             } else {
-                for (j = 0; j < n; j++) U[i * n + j] = Psi[i * n + j] / s->mix_s;
+                for (i = 0; i < n; i++) Uj[i] = P[i * n + j];
                 spent += 1;
             }
             if (++s->mix_j == n) {
@@ -472,13 +488,14 @@ static double mix_work(ivc_controller *c, double budget) {
                 s->mix_phase = n > 1 ? MIX_SWEEP : MIX_FINISH;
             }
         } else if (s->mix_phase == MIX_SWEEP) {   /* one pair (j, k) of the cyclic sweep */
-            double a = 0, b = 0, g = 0, zeta, t, cs, sn;
+            double a = 0, b = 0, g = 0, zeta, t, cs, sn, *Uj, *Uk, *Vj, *Vk;
             j = (int)s->mix_j;
             k = (int)s->mix_k;
+            Uj = U + j * n; Uk = U + k * n; Vj = V + j * n; Vk = V + k * n;
             for (i = 0; i < n; i++) {
-                a += U[i * n + j] * U[i * n + j];
-                b += U[i * n + k] * U[i * n + k];
-                g += U[i * n + j] * U[i * n + k];
+                a += Uj[i] * Uj[i];
+                b += Uk[i] * Uk[i];
+                g += Uj[i] * Uk[i];
             }
             spent += 3;
             if (!(g == 0.0 || fabs(g) <= tol * sqrt(a * b))) {
@@ -488,19 +505,21 @@ static double mix_work(ivc_controller *c, double budget) {
                 cs = 1.0 / sqrt(1.0 + t * t);
                 sn = cs * t;
                 for (i = 0; i < n; i++) {
-                    double uj = U[i * n + j], uk = U[i * n + k];
-                    U[i * n + j] = cs * uj - sn * uk;
-                    U[i * n + k] = sn * uj + cs * uk;
-                    uj = V[i * n + j]; uk = V[i * n + k];
-                    V[i * n + j] = cs * uj - sn * uk;
-                    V[i * n + k] = sn * uj + cs * uk;
+                    double uj = Uj[i], uk = Uk[i];
+                    Uj[i] = cs * uj - sn * uk;
+                    Uk[i] = sn * uj + cs * uk;
+                }
+                for (i = 0; i < n; i++) {
+                    double vj = Vj[i], vk = Vk[i];
+                    Vj[i] = cs * vj - sn * vk;
+                    Vk[i] = sn * vj + cs * vk;
                 }
                 spent += 8;
             }
             if (++s->mix_k == n) {                /* next pair; a sweep ends at (n-2, n-1) */
                 if (++s->mix_j == n - 1) {
                     s->mix_sweep += 1;
-                    if (!s->mix_rotated || s->mix_sweep == 80) {
+                    if (!s->mix_rotated || s->mix_sweep == max_sweeps) {
                         s->mix_phase = MIX_FINISH;
                         if (c->mixing != IVC_MIXING_PAPER) s->has_warm = 1;  /* V: the next warm start */
                     }
@@ -509,40 +528,74 @@ static double mix_work(ivc_controller *c, double budget) {
                 }
                 s->mix_k = s->mix_j + 1;
             }
-        } else if (s->mix_phase == MIX_FINISH) {  /* sig, U's columns normalised, det U */
-            double W[n * n];
+        } else if (s->mix_phase == MIX_FINISH) {  /* sig, U's columns normalised */
             for (j = 0; j < n; j++) {
-                double sq = 0;
-                for (i = 0; i < n; i++) sq += U[i * n + j] * U[i * n + j];
+                double sq = 0, *Uj = U + j * n;
+                for (i = 0; i < n; i++) sq += Uj[i] * Uj[i];
                 sig[j] = sqrt(sq);
-                if (sig[j] > 0) for (i = 0; i < n; i++) U[i * n + j] /= sig[j];
+                if (sig[j] > 0) for (i = 0; i < n; i++) Uj[i] /= sig[j];
             }
-            /* complete the columns of zero singular values to an orthonormal basis */
-            for (j = 0; j < n; j++) {
+            spent += n;
+            s->mix_j = 0;
+            s->mix_phase = MIX_COMPLETE;
+        } else if (s->mix_phase == MIX_COMPLETE) {
+            /* column j of a zero singular value: completed to an orthonormal basis by
+             * Gram-Schmidt from the unit vectors */
+            double *Uj = U + (int)s->mix_j * n;
+            j = (int)s->mix_j;
+            if (!(sig[j] > 0)) {
                 int e;
-                if (sig[j] > 0) continue;
                 for (e = 0; e < n; e++) {
                     double nrm = 0;
-                    for (i = 0; i < n; i++) U[i * n + j] = (i == e);
+                    for (i = 0; i < n; i++) Uj[i] = (i == e);
                     for (k = 0; k < n; k++) {
-                        double d = 0;
+                        double d = 0, *Uk = U + k * n;
                         if (k == j || (sig[k] == 0 && k > j)) continue;
-                        for (i = 0; i < n; i++) d += U[i * n + k] * U[i * n + j];
-                        for (i = 0; i < n; i++) U[i * n + j] -= d * U[i * n + k];
+                        for (i = 0; i < n; i++) d += Uk[i] * Uj[i];
+                        for (i = 0; i < n; i++) Uj[i] -= d * Uk[i];
+                        spent += 2;
                     }
-                    for (i = 0; i < n; i++) nrm += U[i * n + j] * U[i * n + j];
+                    for (i = 0; i < n; i++) nrm += Uj[i] * Uj[i];
                     nrm = sqrt(nrm);
-                    if (nrm > 0.5) { for (i = 0; i < n; i++) U[i * n + j] /= nrm; break; }
+                    if (nrm > 0.5) { for (i = 0; i < n; i++) Uj[i] /= nrm; break; }
                 }
             }
-            memcpy(W, U, sizeof W);
-            s->mix_suv = det_lu(W, n) < 0 ? -1.0 : 1.0;    /* det V = +1 */
-            spent += 2 * n;
-            s->mix_phase = MIX_RESULT;
-        } else {                                  /* MIX_RESULT */
-            mix_result(c);
-            spent += (double)n * n;
-            s->mix_phase = MIX_DONE;
+            spent += 1;
+            if (++s->mix_j == n) {                /* det U by LU, from U row by row */
+                for (i = 0; i < n; i++) for (k = 0; k < n; k++) s->mix_W[i * n + k] = U[k * n + i];
+                s->mix_det = 1.0;
+                s->mix_j = 0;
+                s->mix_phase = MIX_DET;
+            }
+        } else if (s->mix_phase == MIX_DET) {     /* step k of det_lu's elimination */
+            double *A = s->mix_W;
+            int p;
+            k = (int)s->mix_j;
+            p = k;
+            for (i = k + 1; i < n; i++) if (fabs(A[i * n + k]) > fabs(A[p * n + k])) p = i;
+            if (A[p * n + k] == 0.0) { s->mix_det = 0.0; k = n - 1; }
+            else {
+                if (p != k) {
+                    for (j = 0; j < n; j++) { double t = A[k * n + j]; A[k * n + j] = A[p * n + j]; A[p * n + j] = t; }
+                    s->mix_det = -s->mix_det;
+                }
+                s->mix_det *= A[k * n + k];
+                for (i = k + 1; i < n; i++) {
+                    double f = A[i * n + k] / A[k * n + k];
+                    for (j = k + 1; j < n; j++) A[i * n + j] -= f * A[k * n + j];
+                }
+            }
+            spent += (double)(n - k) * (n - k) / n;
+            if (++s->mix_j >= n) {
+                s->mix_suv = s->mix_det < 0 ? -1.0 : 1.0;    /* det V = +1 */
+                mix_result_setup(c);
+                s->mix_j = 0;
+                s->mix_phase = MIX_RESULT;
+            }
+        } else {                                  /* MIX_RESULT: row i */
+            mix_result_row(c, (int)s->mix_j);
+            spent += n;
+            if (++s->mix_j == n) s->mix_phase = MIX_DONE;
         }
     }
     return spent;
@@ -606,7 +659,7 @@ static void reference(const ivc_controller *c, double t, double *qd, double *dqd
  * dstebz/dlaebz): backward stable, lambda_min to about eps ||S||, the accuracy of LAPACK's
  * dsyevd that the Python reference calls (numpy.linalg.eigvalsh); 4/3 n^3 flops and no
  * iteration but the bisection's, where the cyclic Jacobi rotations it replaces took 6-10
- * sweeps of 3 n^3 (8.7 ms per sample on the Panda, nθ = 43).  S is scaled by a power of two
+ * sweeps of 3 n^3 (8.7 ms per sample on the Panda, ntheta = 43).  S is scaled by a power of two
  * (exact) so that max |S_ij| lies in [0.5, 1).
  *
  * A resumable job as the mixing's (lam_begin, then lam_work with a budget in units of n

@@ -49,6 +49,11 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--h", type=float, default=None, dest="h", metavar="H",
                    help="--controller: sample period in s (default 0.001); must divide the "
                         "window T")
+    e.add_argument("--mix-every", default=None, dest="mix_every", metavar="M",
+                   help="--controller: the mixing (17), or composite learning's max-hold, "
+                        "every M samples, its work spread over them (a whole number from 1 "
+                        "to the window's samples; default: 20 for a URDF arm, 1 for the "
+                        "paper's arms)")
     e.add_argument("--despite-prediction", action="store_true", dest="despite_prediction",
                    help="--controller: export even a sampled loop predicted unstable (by "
                         "default refused before anything is built)")
