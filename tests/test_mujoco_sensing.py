@@ -166,3 +166,15 @@ def test_bad_limits_are_refused_when_the_run_starts():
         Imperfections(tau_rate_limit=[1.0, 2.0]).start(3, H, np.zeros(3), np.zeros(3))
     with pytest.raises(ValueError, match="noise level"):
         REALISTIC.scaled(0)
+
+
+@pytest.mark.parametrize("kwargs, fragment", [
+    (dict(encoder_counts=2 ** 18, encoder_noise=-0.5), "encoder_noise must be"),
+    (dict(encoder_counts=2 ** 18, encoder_noise=math.nan), "encoder_noise must be"),
+    (dict(encoder_noise=1.0), "it needs encoder_counts"),
+])
+def test_bad_encoder_noise_is_refused_naming_it(kwargs, fragment):
+    """Encoder noise is σ in counts of the encoder: negative, NaN or without an encoder's
+    counts is refused at construction, naming the option."""
+    with pytest.raises(ValueError, match=fragment):
+        Imperfections(**kwargs)
