@@ -250,7 +250,7 @@ def step_row(spec, variant="eigen", t_at=None, steps=40, method="rodas5p", rtol=
     Times are this thread's CPU time (time.thread_time), best of 5, so that a loaded
     machine's waiting is not counted; the same computation each time."""
     from ivdrem.diagrams import closed_loop
-    from ivdrem.sim import _template
+    from ivdrem.sim import _stepper_codes
     from ivdrem.sim._diagram import LU_WORK_ROWS
     from ivdrem.sim.simulator import Simulator
     model = resolve_model(spec)
@@ -283,11 +283,11 @@ def step_row(spec, variant="eigen", t_at=None, steps=40, method="rodas5p", rtol=
         return 1e3 * min(out)
 
     J, tmp, dx = np.zeros(int(tb.lu_rowptr[-1])), np.zeros(nx), np.zeros(nx)
-    rhs = best(lambda: mod.diagram_eval(W, P, _template.RHS, t, x, dx), 20)
+    rhs = best(lambda: mod.diagram_eval(W, P, _stepper_codes.RHS, t, x, dx), 20)
     jac = best(lambda: mod.diagram_jacobian(W, P, t, x, J, tmp), 5)
     piv = np.zeros(nx, dtype=np.int64)
     LU = np.zeros(int(tb.lu_rowptr[-1]) + LU_WORK_ROWS * nx)
-    c = 1.0 / (0.2 * max(sim.tf[_template.F_H], 1e-6))
+    c = 1.0 / (0.2 * max(sim.tf[_stepper_codes.F_H], 1e-6))
     fac = best(lambda: mod.slu_factor(J, nx, c, LU, piv, tb.lu_perm, tb.lu_rowptr,
                                       tb.lu_colidx, tb.lu_diagp, tb.lu_panel_rows,
                                       tb.lu_panel_kptr, tb.lu_panel_k), 5)

@@ -312,11 +312,11 @@ def main(argv=None):
 
 
 def _cache_fault_line(exc) -> str | None:
-    """One line for a cache fault that reached the top (ivdrem.sim.cache.CacheFault, or a
+    """One line for a cache fault that reached the top (ivdrem.compile_cache.CacheFault, or a
     disk that filled up while writing anything), naming the file and the remedy; None for
     any other error."""
     import errno
-    from .sim.cache import CacheFault, cache_dir
+    from .compile_cache import CacheFault, cache_dir
     if isinstance(exc, CacheFault):
         return str(exc)
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):

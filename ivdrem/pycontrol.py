@@ -24,13 +24,12 @@ import sys as _sys
 import warnings
 
 import numpy as np
-from scipy.linalg import block_diag
 import control as ct
 from control.timeresp import TimeResponseData, TimeResponseList
 
 from .sim.errors import StiffnessWarning
 from .sim.foreign import PythonBlockNotice
-from .sim._control import (PrivateDiagram, evaluate_output, sparse_maps,
+from .sim._control import (PrivateDiagram, evaluate_output, flatten,
                            process_kwargs as _process_kwargs,
                            process_param as _process_param, timeresp_aliases as _timeresp_aliases)
 from .sim.simulator import simulate, interpolate_inputs, _input_table
@@ -90,92 +89,6 @@ def _solver_settings(options):
         # the simulator's largest relative tolerance means the same
         settings["rtol"] = _LOOSEST_RTOL
     return SOLVE_IVP_METHODS[name], settings
-
-
-# --------------------------------------------------------------------------- systems
-def _leaf(system):
-    """A system the simulator takes as a block: a TransferFunction becomes its state-space
-    form (python-control's own conversion, names kept)."""
-    if isinstance(system, ct.TransferFunction):
-        return ct.ss(system, name=system.name, inputs=system.input_labels,
-                     outputs=system.output_labels)
-    if not isinstance(system, ct.NonlinearIOSystem):
-        raise TypeError(f"System of type {type(system)} not valid: ivdrem simulates "
-                        "python-control input/output systems")
-    return system
-
-
-def _flat_maps(system):
-    """(leaves, C, M, OY, OU) of `system` over its leaf systems' stacked inputs U and
-    outputs Y: U = C Y + M u, y = OY Y + OU U (u, y: the system's own inputs and outputs;
-    python-control's output map reads subsystem outputs and subsystem inputs).  A nested
-    InterconnectedSystem is expanded; an output map that reads a nested subsystem's input
-    passes it through, which is solved for as python-control's static sweep would."""
-    if not isinstance(system, ct.InterconnectedSystem):
-        leaf = _leaf(system)
-        p, q = leaf.ninputs, leaf.noutputs
-        return [leaf], np.zeros((p, q)), np.eye(p), np.eye(q), np.zeros((q, p))
-    parts = [_flat_maps(s) for s in system.syslist]
-    leaves = [leaf for part in parts for leaf in part[0]]
-    Cb, Mb, OYb, OUb = (block_diag(*[part[k] for part in parts]) for k in range(1, 5))
-    # a nested diagram's own maps, dense for the algebra below (diagrams a user nests)
-    Cd, Md, Od = (m.toarray() for m in sparse_maps(system))
-    nys = Cd.shape[1]
-    Ody, Odu = Od[:, :nys], Od[:, nys:]          # subsystem outputs, subsystem inputs
-    # the subsystems' outputs in the leaves' signals: y_sub = P Y + Q u_sub
-    P, Q = OYb + OUb @ Cb, OUb @ Mb
-    # the subsystems' inputs: u_sub = Cd y_sub + Md u, solved for u_sub
-    try:
-        A = np.linalg.inv(np.eye(Cd.shape[0]) - Cd @ Q)
-    except np.linalg.LinAlgError:
-        raise ValueError(f"system '{system.name}' has an algebraic loop through the inputs "
-                         "its subsystems pass straight to their outputs") from None
-    C = Cb + Mb @ A @ Cd @ P
-    M = Mb @ A @ Md
-    OY, OU = Ody @ OYb, Ody @ OUb
-    if np.any(Odu):
-        # an output reading a subsystem input: u_sub = Mb^+ (U - Cb Y), exact when every
-        # subsystem input reaches a leaf input (Mb of full column rank)
-        if np.linalg.matrix_rank(Mb) < Mb.shape[1]:
-            raise ValueError(f"system '{system.name}' reads a subsystem input that no leaf "
-                             "system receives: it cannot be flattened")
-        Mp = np.linalg.pinv(Mb)
-        OY, OU = OY - Odu @ Mp @ Cb, OU + Odu @ Mp
-    return leaves, C, M, OY, OU
-
-
-def _merged_params(system):
-    """The parameters of every interconnection level, the outer ones overriding (the order
-    of python-control's ``InterconnectedSystem._update_params``)."""
-    if not isinstance(system, ct.InterconnectedSystem):
-        return {}
-    merged = {}
-    for s in system.syslist:
-        merged.update(_merged_params(s))
-    merged.update(system.params)
-    return merged
-
-
-def flatten(system):
-    """`system` as a one-level ``InterconnectedSystem`` of its leaf systems (a plain
-    system: a diagram of one block; a TransferFunction: its state-space form), with the
-    same inputs, outputs and state order.  The system given is not changed (a one-level
-    diagram of plain blocks is returned as it is, its maps unread)."""
-    if not isinstance(system, ct.InterconnectedSystem) or \
-            any(isinstance(s, ct.InterconnectedSystem) for s in system.syslist) or \
-            any(isinstance(s, ct.TransferFunction) for s in system.syslist):
-        leaves, C, M, OY, OU = _flat_maps(system)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")     # no connections given: none are "unused"
-            flat = ct.InterconnectedSystem(
-                leaves, inputs=list(system.input_labels),
-                outputs=list(system.output_labels), params=_merged_params(system),
-                name=system.name)
-        flat.set_connect_map(C)
-        flat.set_input_map(M)
-        flat.set_output_map(np.hstack([OY, OU]))
-        return flat
-    return system
 
 
 # --------------------------------------------------------------------------- the call

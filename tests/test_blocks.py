@@ -997,7 +997,7 @@ def test_named_port_kernels_whole_diagram_rhs_against_the_paper(engine):
     by name, equals the paper's equations written out by hand (_hand_rhs) at random states
     (measured: 4e-16 relative, both engines)."""
     from ivdrem.diagrams import closed_loop
-    from ivdrem.sim._template import RHS
+    from ivdrem.sim._stepper_codes import RHS
     from ivdrem.sim.simulator import Simulator
     d = closed_loop("iv-drem")
     sim = Simulator(d, engine=engine)

@@ -1,4 +1,4 @@
-"""The compile cache's lock (``ivdrem.sim.cache.compile_lock``): a generated module imported
+"""The compile cache's lock (``ivdrem.compile_cache.compile_lock``): a generated module imported
 by two processes at once is compiled by one of them and loaded by the other."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import textwrap
 
 import pytest
 
-from ivdrem.sim.cache import compile_lock, import_generated
+from ivdrem.compile_cache import compile_lock, import_generated
 
 pytest.importorskip("fcntl")
 
@@ -29,7 +29,7 @@ _SOURCE = textwrap.dedent('''
 _CHILD = textwrap.dedent('''
     import sys, time
     from pathlib import Path
-    from ivdrem.sim.cache import import_generated
+    from ivdrem.compile_cache import import_generated
     while time.time() < float(sys.argv[2]):   # both children start importing together
         time.sleep(0.001)
     mod = import_generated(Path(sys.argv[1]), "ivdrem_locktest_" + sys.argv[3],
@@ -61,7 +61,7 @@ def test_two_processes_importing_one_module_at_once_compile_it_once(tmp_path):
 
 def test_the_lock_is_exclusive_between_processes_and_released_on_exit(tmp_path):
     path = tmp_path / "ivdrem_kernel_x.py"
-    code = ("import sys, fcntl, os; from pathlib import Path; from ivdrem.sim.cache import "
+    code = ("import sys, fcntl, os; from pathlib import Path; from ivdrem.compile_cache import "
             "compile_lock\nfd = os.open(Path(sys.argv[1]).with_name('.ivdrem_kernel_x.lock'), "
             "os.O_RDWR)\ntry:\n    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)\n    print('free')\n"
             "except BlockingIOError:\n    print('held')\n")
@@ -75,7 +75,7 @@ def test_the_lock_is_exclusive_between_processes_and_released_on_exit(tmp_path):
 
 
 def test_a_cache_that_cannot_hold_the_lock_file_imports_without_a_lock(tmp_path, monkeypatch):
-    import ivdrem.sim.cache as cache
+    import ivdrem.compile_cache as cache
     real_open = os.open
 
     def refuse_lock_files(path, *a, **k):
@@ -91,7 +91,7 @@ def test_a_cache_that_cannot_hold_the_lock_file_imports_without_a_lock(tmp_path,
 def test_a_users_module_imported_by_path_gets_no_lock_file_beside_it(tmp_path):
     """import_path also imports a configuration's plugin files (experiment.plugins): a
     user's directory must not receive a lock file."""
-    from ivdrem.sim.cache import import_path
+    from ivdrem.compile_cache import import_path
     user = tmp_path / "my_laws.py"
     user.write_text("VALUE = 7\n")
     assert import_path("ivdrem_locktest_user", user).VALUE == 7

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ivdrem.diagrams import closed_loop
-from ivdrem.sim import _cstepper, _diagram, _template, compiled
+from ivdrem.sim import _cstepper, _diagram, _stepper_codes, compiled
 from ivdrem.sim.simulator import WORKSPACE_LAYOUT, Simulator
 from ivdrem.sim.tables import INT_FIELDS
 
@@ -31,7 +31,7 @@ def test_every_enumeration_of_stepper_c_comes_from_the_generated_header():
     assert used - c_names <= defined, sorted(used - c_names - defined)
     # values: the header's are the Python modules' (spot checks of each source)
     vals = dict(re.findall(r"#define (\w+) (-?\d+)", header))
-    assert int(vals["RODAS5P"]) == _template.RODAS5P and int(vals["S_FRESH"]) == _template.S_FRESH
+    assert int(vals["RODAS5P"]) == _stepper_codes.RODAS5P and int(vals["S_FRESH"]) == _stepper_codes.S_FRESH
     fields = [f for f, _, _ in WORKSPACE_LAYOUT]
     assert int(vals["FIELD_LAPACK_INTS"]) == fields.index("lapack_ints")
     assert int(vals["T_SLOPE_FLAGS"]) == INT_FIELDS.index("slope_flags")
@@ -40,7 +40,7 @@ def test_every_enumeration_of_stepper_c_comes_from_the_generated_header():
     # coefficients exactly (repr round-trips)
     m = re.search(r"RODAS5P_C\[64\] = \{([^}]*)\}", header)
     assert np.array_equal(np.array([float(v) for v in m.group(1).split(",")]),
-                          _template.RODAS5P_C.reshape(-1))
+                          _stepper_codes.RODAS5P_C.reshape(-1))
 
 
 def test_a_failure_raised_in_c_is_a_clear_error():
@@ -56,9 +56,9 @@ def test_a_failure_raised_in_c_is_a_clear_error():
     # arrays C would read raw are checked: dtype, contiguity, writeability
     bad = W._replace(ys=W.ys.astype(np.float32))
     with pytest.raises(TypeError, match="workspace field ys"):
-        sim.engine.module.diagram_eval(bad, sim.engine.P, _template.RHS, sim.t, sim.x, out)
+        sim.engine.module.diagram_eval(bad, sim.engine.P, _stepper_codes.RHS, sim.t, sim.x, out)
     with pytest.raises(TypeError, match="out"):
-        sim.engine.module.diagram_eval(W, sim.engine.P, _template.RHS, sim.t, sim.x, out[::2])
+        sim.engine.module.diagram_eval(W, sim.engine.P, _stepper_codes.RHS, sim.t, sim.x, out[::2])
     # and the state is untouched by those refusals: the run goes on as before
     before = sim.x.copy()
     sim.advance(0.02)
@@ -111,7 +111,7 @@ def test_a_damaged_library_in_the_cache_is_built_again(tmp_path):
     no_panels = (np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64),
                  np.zeros(0, dtype=np.int64))
     assert st.slu_factor(values, 2, 10.0, LU, piv, perm, rowptr, colidx, diagp,
-                         *no_panels) == _template.OK
+                         *no_panels) == _stepper_codes.OK
     b = np.array([1.0, -2.0])
     x = b.copy()
     st.slu_solve(LU, 2, perm, rowptr, colidx, diagp, x)

@@ -15,7 +15,7 @@ import pytest
 from ivdrem.blocks import BlockSpec, make_block
 from ivdrem.diagrams import assemble
 from ivdrem.sim.simulator import Simulator
-from ivdrem.sim._template import SINGULAR
+from ivdrem.sim._stepper_codes import SINGULAR
 
 from conftest import paper_loop
 

@@ -82,7 +82,7 @@ def test_other_options_are_another_card(cache):
 
 
 def test_a_changed_ivdrem_source_never_reads_an_old_card(cache, monkeypatch):
-    import ivdrem.sim.cache as sim_cache
+    import ivdrem.compile_cache as sim_cache
     get_model("two-link")
     assert isinstance(get_model("two-link"), CardModel)
     monkeypatch.setattr(sim_cache, "package_digest", lambda: "another ivdrem")

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from ivdrem.diagrams import closed_loop
-from ivdrem.sim import _template
+from ivdrem.sim import _stepper_codes
 from ivdrem.sim.simulator import Simulator
 
 
@@ -41,7 +41,7 @@ def test_a_run_leaves_every_count_as_it_was(law, method, t_end, engine):
     assert {id(a) for a in arrays} - history <= kept    # all but a grown history compared
     d = sim.stats - stats0
     if law == "composite-learning":       # the paths the run was meant to cover
-        assert d[_template.S_PROBES] > 0 and d[_template.S_EXPLICIT] > 0
+        assert d[_stepper_codes.S_PROBES] > 0 and d[_stepper_codes.S_EXPLICIT] > 0
         assert np.isfinite(sim.W.hold_time).all()
 
 

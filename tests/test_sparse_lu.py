@@ -13,7 +13,7 @@ from scipy import sparse
 from scipy.sparse import linalg as sparse_linalg
 
 from ivdrem.sim import sparse_lu
-from ivdrem.sim._template import SINGULAR
+from ivdrem.sim._stepper_codes import SINGULAR
 
 
 # ------------------------------------------------------------------ the reference

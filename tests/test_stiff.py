@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import ivdrem.sim as sim
-from ivdrem.sim import _template as tpl
+from ivdrem.sim import _stepper_codes as tpl
 from ivdrem.sim.tables import pack, with_fill_runs
 from ivdrem.sim import (METHODS, METHOD_TABLE, SimulationError, StiffnessWarning, simulate)
 

@@ -504,7 +504,7 @@ def test_a_garbled_numba_index_is_a_cache_miss_with_one_line(tmp_path):
     code = textwrap.dedent("""
         import sys
         sys.path.insert(0, sys.argv[1])
-        from ivdrem.sim.cache import guard_numba_index
+        from ivdrem.compile_cache import guard_numba_index
         guard_numba_index()
         import garbled_mod
         print(garbled_mod.f(1))
@@ -528,7 +528,7 @@ def test_a_full_disk_while_building_the_stepper_is_one_line_and_leaves_nothing(t
     of litter."""
     import errno
     from ivdrem.sim import _cstepper
-    from ivdrem.sim.cache import CacheFault
+    from ivdrem.compile_cache import CacheFault
     real = Path.write_text
 
     def full(self, *a, **k):

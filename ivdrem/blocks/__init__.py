@@ -26,15 +26,3 @@ __all__ = ["BlockSpec", "make_block", "ParameterError", "plant", "trajectory", "
            "regression_filter", "instrument", "extension", "sliding_window", "transport_delay",
            "windowed_integral", "averaging", "mixing", "max_hold", "drem_term", "drem_channel_term", "term_start",
            "composite_learning_term", "sigma_modification_term", "zero_term"]
-
-# The FMU plant lives in ivdrem.fmu (it needs fmpy); ivdrem.blocks.fmu_plant is that
-# function, imported on first use so that importing the block library does not load fmpy.
-__all__ += ["fmu_plant"]
-
-
-def __getattr__(name):
-    if name == "fmu_plant":
-        from ..fmu.plant import fmu_plant
-        globals()["fmu_plant"] = fmu_plant
-        return fmu_plant
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -290,7 +290,7 @@ def _estimate_path(model, trajectory, numbers):
     processes (a repeat of a command, the run after its preflight), named by ivdrem's
     source, the model's code, the reference and the numbers; None when one of them has no
     stable name (the estimate is then computed each time)."""
-    from ..sim.cache import cache_dir, package_digest
+    from ..compile_cache import cache_dir, package_digest
     key = getattr(model, "key", None)
     key = key() if callable(key) else key
     traj = _trajectory_key(trajectory)
@@ -412,7 +412,7 @@ def _calibration_path(diagram, settings):
     repeated run, the report after the run, a study point that does not change the loop),
     named by the run digest of its plan (ivdrem's source, kernels, model, parameter values,
     initial state) and the settings; None for a loop with blocks ivdrem did not write."""
-    from ..sim.cache import cache_dir
+    from ..compile_cache import cache_dir
     from ..sim.jacobian import run_digest
     from ..sim.plan import DiagramPlan
     digest = run_digest(DiagramPlan.from_diagram(diagram, params={"gamma": _GAMMA_OFF}))

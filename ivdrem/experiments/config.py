@@ -391,7 +391,7 @@ def load_plugins(cfg: Mapping, where: str = "configuration") -> None:
         raise ConfigError(f"config key 'experiment.plugins' ({where}) must be a list of Python "
                           f"files or module names, got {items!r}")
     import importlib
-    from ..sim.cache import import_path
+    from ..compile_cache import import_path
     for item in items:
         if item in _LOADED_PLUGINS:
             continue

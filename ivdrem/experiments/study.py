@@ -24,7 +24,7 @@ into the code), so each worker process builds (or loads from the on-disk cache,
 keeps it in memory.  A local worker imports the engine as it starts (``WORKER_PRELOAD``).
 Runs are submitted with the laws interleaved; on an empty cache the laws' shared kernels
 are compiled once in all, by whichever worker comes first, the others waiting for it
-(``ivdrem.sim.cache.compile_lock``).  A warm-up task per law (``warm_up_laws=True``) was
+(``ivdrem.compile_cache.compile_lock``).  A warm-up task per law (``warm_up_laws=True``) was
 measured not to pay: see docs/studies.md.
 """
 from __future__ import annotations

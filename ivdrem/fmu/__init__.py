@@ -10,8 +10,7 @@ __all__ = ["export_fmu", "generate_sources", "DEFAULT_SUBSTEP", "fmu_plant", "Fm
 
 
 def __getattr__(name):
-    # imported on first use: the plant block imports the block library, which imports
-    # this package lazily too (no import cycle, and fmpy loads only when needed)
+    # imported on first use, so that fmpy loads only when needed
     if name == "fmu_plant":
         from .plant import fmu_plant as value
     elif name in ("FmuInstance", "FmuError"):

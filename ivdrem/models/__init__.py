@@ -9,7 +9,7 @@ a cached model never imports it.
 """
 from .base import RobotModel
 from .card import CardModel
-from .registry import MODEL_NAMES, TWO_LINK_THETA, get_model, model_names
+from .registry import MODEL_NAMES, get_model, model_names
 from .urdf import (ARM_NAMES, DEFAULT_FRICTION_WIDTH, RANK_RTOL, RigidBodyModel, URDFError,
                    arm, from_urdf)
 
@@ -20,7 +20,8 @@ __all__ = ["RobotModel", "EulerLagrangeModel", "RigidBodyModel", "CardModel",
 
 #: names defined by the sympy modules, and where
 _SYMBOLIC = {"EulerLagrangeModel": "euler_lagrange", "CODEGEN_VERSION": "euler_lagrange",
-             "two_link": "robots", "planar_arm": "robots", "planar_physical_theta": "robots"}
+             "two_link": "robots", "planar_arm": "robots", "planar_physical_theta": "robots",
+             "TWO_LINK_THETA": "robots"}
 
 
 def __getattr__(name):

@@ -55,7 +55,7 @@ def library_path(key: str):
     """Where the library of the model of key `key` is kept (named by the key and ivdrem's
     version, like the models' generated source)."""
     from .. import __version__
-    from ..sim.cache import cache_dir
+    from ..compile_cache import cache_dir
     return cache_dir() / "models" / f"{key[:32]}-{__version__}-engine.so"
 
 

@@ -19,19 +19,17 @@ from functools import cached_property
 
 import numpy as np
 
+# the one Cholesky's rule and message, defined with it (re-exported: every model's face)
+from .rigid_body import PIVOT_RTOL, SINGULAR_INERTIA_MESSAGE
+
 __all__ = ["RobotModel", "REGRESSOR_ARGS", "FUNCTION_NAMES", "SINGULAR_INERTIA_MESSAGE",
            "C_FUNCTION_ARGS", "PIVOT_RTOL"]
 
-#: The message of the error raised where M(q) is not positive definite.
-SINGULAR_INERTIA_MESSAGE = "inertia matrix M(q) is not positive definite (singular inertia)"
 
 #: The regressors and their vector arguments, in signature order.
 REGRESSOR_ARGS = {"Phi_M": ("q", "a"), "Phi_C": ("q", "dq", "v"), "Phi_dM": ("q", "dq", "a"),
                   "Phi_G": ("q",), "Phi_F": ("dq",), "Phi": ("q", "dq", "v", "dv")}
 
-#: The rule for "M(q) is positive definite", the same in every language (docs/models.md):
-#: every pivot d_j of its Cholesky factorisation is finite and d_j > PIVOT_RTOL * max_i M_ii.
-PIVOT_RTOL = 1e-13
 
 #: The functions of every model's C face (``c_source``) and their pointer arguments, in
 #: signature order (the last one is written); ``forward_dynamics`` returns an int.
@@ -126,7 +124,7 @@ class RobotModel:
         from .. import __version__
         from .._atomic import write_text_atomic
         from .._progress import preparing
-        from ..sim.cache import cache_dir
+        from ..compile_cache import cache_dir
         header = f"ivdrem model source: key {self.key} ivdrem {__version__} prefix {prefix!r}"
         header = f"# {header}\n" if kind == "py" else f"/* {header} */\n"
         path = cache_dir() / "models" / f"{self.key[:32]}-{__version__}-{prefix or '_'}.{kind}"

@@ -14,7 +14,7 @@ and ``jit_functions`` come from the cached source under its key.  Anything symbo
 on first use, checks that its key is the card's, and is read from it.
 
 A card is named by the recipe (the name and options given to ``get_model``) and the digest
-of ivdrem's source (``ivdrem.sim.cache.package_digest``), so a changed model definition or a
+of ivdrem's source (``ivdrem.compile_cache.package_digest``), so a changed model definition or a
 new ivdrem never reads an old card; the card also repeats its recipe, checked on reading.
 It is written atomically (two processes writing it at once both succeed); a damaged or
 unreadable card is built again.
@@ -43,7 +43,7 @@ def _recipe_text(name, options) -> str:
 
 
 def _card_path(recipe: str):
-    from ..sim.cache import cache_dir, package_digest
+    from ..compile_cache import cache_dir, package_digest
     digest = hashlib.sha256(f"{recipe}\n{package_digest()}".encode()).hexdigest()
     return cache_dir() / "models" / "cards" / f"{digest[:32]}.json"
 

@@ -11,10 +11,7 @@ import re
 from .base import RobotModel
 from .urdf import ARM_NAMES
 
-__all__ = ["get_model", "model_names", "MODEL_NAMES", "TWO_LINK_THETA"]
-
-#: The paper's parameter values (Section 4).
-TWO_LINK_THETA = (1.3, 0.28, 0.32, 0.4, 1.4)
+__all__ = ["get_model", "model_names", "MODEL_NAMES"]
 
 #: Names accepted by :func:`get_model` (the URDF arms need the ``arms`` extra).
 MODEL_NAMES = ("two-link", "planar-N (N >= 1, e.g. planar-3)", *ARM_NAMES)

@@ -43,9 +43,14 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["KERNELS", "C_KERNELS", "C_CHOLESKY", "C_STD_KERNELS", "C_JAC_KERNELS",
-           "COMPLEX_STEP", "SINGULAR_INERTIA_MESSAGE"]
+           "COMPLEX_STEP", "SINGULAR_INERTIA_MESSAGE", "PIVOT_RTOL"]
 
-from .base import PIVOT_RTOL, SINGULAR_INERTIA_MESSAGE
+#: The message of the error raised where M(q) is not positive definite.
+SINGULAR_INERTIA_MESSAGE = "inertia matrix M(q) is not positive definite (singular inertia)"
+
+#: The rule for "M(q) is positive definite", the same in every language (docs/models.md):
+#: every pivot d_j of its Cholesky factorisation is finite and d_j > PIVOT_RTOL * max_i M_ii.
+PIVOT_RTOL = 1e-13
 
 
 def _rb_kinematics(q: "const real[N]", jtype: "const int[N]", axis: "const float[N,3]",

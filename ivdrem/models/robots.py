@@ -6,10 +6,11 @@ import numpy as np
 import sympy as sp
 
 from .euler_lagrange import EulerLagrangeModel
-from .registry import MODEL_NAMES, TWO_LINK_THETA, get_model, model_names
 
-__all__ = ["two_link", "planar_arm", "get_model", "model_names", "MODEL_NAMES",
-           "TWO_LINK_THETA"]
+__all__ = ["two_link", "planar_arm", "planar_physical_theta", "TWO_LINK_THETA"]
+
+#: The paper's parameter values (Section 4).
+TWO_LINK_THETA = (1.3, 0.28, 0.32, 0.4, 1.4)
 
 
 def two_link(theta=None, g=9.81):

@@ -590,7 +590,7 @@ def _build(path, joints, gravity, friction, friction_width, armature, base):
 
 
 def _cache_file(text, options):
-    from ..sim.compiled import cache_dir
+    from ..compile_cache import cache_dir
     try:    # the installed version, without importing Pinocchio (a cached load needs none)
         pin_version = importlib.metadata.version("pin")
     except importlib.metadata.PackageNotFoundError:
@@ -1010,7 +1010,7 @@ class RigidBodyModel(RobotModel):
         """The generated functions compiled by numba, from the module the compiled engine
         uses (written to ivdrem's cache directory, machine code cached by numba)."""
         import types
-        from ..sim.compiled import model_module
+        from ._jit_module import model_module
         mod = model_module(self)
         return types.SimpleNamespace(**{f: getattr(mod, f) for f in FUNCTION_NAMES})
 

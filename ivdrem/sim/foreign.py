@@ -24,7 +24,7 @@ import control as ct
 
 from .. import __version__
 from ..blocks._core import BlockSpec
-from .cache import GENERATED_HEADER, cache_dir, import_generated, source_hash
+from ..compile_cache import GENERATED_HEADER, cache_dir, import_generated, source_hash
 
 __all__ = ["declare_feedthrough", "direct_inputs", "probe_feedthrough", "adapt_block",
            "ForeignSpec", "PythonBlockNotice", "FEEDTHROUGH_ATTRIBUTE"]

@@ -258,7 +258,7 @@ def estimate_cost(t_end, *, noutputs, nstates=0, method=DEFAULT_METHOD, h=1e-3, 
     if step is None:
         steps, src = 0.0, f"{name} invalid"
     elif info.fixed_step:
-        # the loop's own count: steps at t0 + k h until t_end - 1e-9 h (_template.step_loop)
+        # the loop's own count: steps at t0 + k h until t_end - 1e-9 h (_stepper_codes.step_loop)
         steps = float(max(math.ceil(t_end / step - 1e-9), 1))
         src = f"t_end / h = {t_end:g} / {step:g} rounded up: fixed-step {info.name}"
     else:

@@ -59,8 +59,8 @@ import numpy as np
 
 from .._atomic import write_file_atomic
 from ..blocks._core import bind_model, kernel_args
-from .cache import PACKAGE_ROOT as _PACKAGE_ROOT, cache_dir
-from .cache import package_digest as _package_digest
+from ..compile_cache import PACKAGE_ROOT as _PACKAGE_ROOT, cache_dir
+from ..compile_cache import package_digest as _package_digest
 from .foreign import ForeignSpec
 
 __all__ = ["block_pattern", "JacobianProgram", "DeclarationError"]

@@ -72,7 +72,7 @@ REFERENCE_METHOD = "rk4"
 #: default (rtol, atol) per user method
 DEFAULT_TOLERANCES = {name: (m.rtol, m.atol) for name, m in METHOD_TABLE.items()}
 
-# the dispatch ids, named for the stepping code (_template.py; stepper.c gets them from
+# the dispatch ids, named for the stepping code (_stepper_codes.py; stepper.c gets them from
 # the generated header)
 #: Dispatch id of fixed-step RK4.
 RK4 = _ALL["rk4"].id

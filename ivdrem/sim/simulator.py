@@ -17,8 +17,8 @@ import numpy as np
 import control as ct
 
 from .plan import DiagramPlan, check_params
-from ._control import PrivateDiagram
-from . import _diagram, _template as tpl
+from ._control import PrivateDiagram, flatten
+from . import _diagram, _stepper_codes as tpl
 from .methods import (METHOD_TABLE, METHODS, DEFAULT_METHOD, STIFF_METHOD,  # noqa: F401
                       DEFAULT_TOLERANCES, MethodInfo, method_info)  # (re-exported)
 from .tables import hold_nmat, pack as pack_tables, scratch_size
@@ -947,7 +947,6 @@ def _as_diagram(system):
     if isinstance(system, (ct.NonlinearIOSystem, ct.TransferFunction)) \
             and not ct.isdtime(system, strict=True) \
             and None not in (system.ninputs, system.nstates, system.noutputs):
-        from ..pycontrol import flatten
         return flatten(system)
     why = ("a discrete-time system" if isinstance(system, ct.InputOutputSystem)
            and ct.isdtime(system, strict=True) else

@@ -39,7 +39,7 @@ from scipy.sparse import linalg as sparse_linalg
 
 from .._atomic import write_file_atomic
 from ._diagram import LU_PANEL
-from .cache import cache_dir, package_digest
+from ..compile_cache import cache_dir, package_digest
 
 __all__ = ["symbolic_lu", "SymbolicLU", "panels", "refine_by_groups", "elimination_cost"]
 

@@ -1,19 +1,19 @@
 """A child process compiling half the kernel wrappers numba's cache does not hold while the
-parent compiles the other half (ivdrem/sim/_warm_stepper.py, compiled._load_kernels)."""
+parent compiles the other half (ivdrem/sim/_compile_child.py, compiled._load_kernels)."""
 import signal
 import sys
 
 import numpy as np
 import pytest
 
-from ivdrem.sim import _warm_stepper, simulate
+from ivdrem.sim import _compile_child, simulate
 from ivdrem.sim import compiled
-from ivdrem.sim.cache import cache_dir
+from ivdrem.compile_cache import cache_dir
 
 
 def test_the_child_refuses_any_other_job():
     with pytest.raises(SystemExit, match="--modules"):
-        _warm_stepper._job([])
+        _compile_child._job([])
 
 
 # ---- half the uncached kernel wrappers compiled in a child (ivdrem/sim/compiled._load)
@@ -39,7 +39,7 @@ def _pretend_uncached(monkeypatch):
     """Every generated function counts as not in numba's cache, and the child starts
     without a head start and takes any share: a small diagram then gets a child for some
     of its wrappers."""
-    monkeypatch.setattr(_warm_stepper, "function_cached", lambda path, qualname: False)
+    monkeypatch.setattr(_compile_child, "function_cached", lambda path, qualname: False)
     monkeypatch.setattr(compiled, "_CHILD_START_S", 0.0)
     monkeypatch.setattr(compiled, "_CHILD_MIN_S", 0.0)
     monkeypatch.delenv("IVDREM_STEPPER_CHILD", raising=False)
@@ -50,22 +50,22 @@ def _pretend_uncached(monkeypatch):
 def _spy(monkeypatch):
     """[[Warmup, its process, what wait answered]] of the children _load starts."""
     seen = []
-    start, wait = _warm_stepper.start_modules, _warm_stepper.Warmup.wait
+    start, wait = _compile_child.start_modules, _compile_child.Warmup.wait
 
     def spy_start(names):
         w = start(names)
         seen.append([w, w.proc, None])
         return w
 
-    def spy_wait(self, limit=_warm_stepper.WAIT_LIMIT_S):
+    def spy_wait(self, limit=_compile_child.WAIT_LIMIT_S):
         ok = wait(self, limit)
         for s in seen:
             if s[0] is self:
                 s[2] = ok
         return ok
 
-    monkeypatch.setattr(_warm_stepper, "start_modules", spy_start)
-    monkeypatch.setattr(_warm_stepper.Warmup, "wait", spy_wait)
+    monkeypatch.setattr(_compile_child, "start_modules", spy_start)
+    monkeypatch.setattr(_compile_child.Warmup, "wait", spy_wait)
     return seen
 
 
@@ -81,13 +81,13 @@ def test_a_cfuncs_cache_is_found_without_importing_it():
                 compiled.generate_source(DiagramPlan.from_diagram(loop, None, None)).wrappers]
     assert len(wrappers) == 3
     for mod in wrappers:
-        assert _warm_stepper.index_exists(mod.wrapper._cache)
-        assert _warm_stepper.function_cached(mod.__file__, "wrapper")
+        assert _compile_child.index_exists(mod.wrapper._cache)
+        assert _compile_child.function_cached(mod.__file__, "wrapper")
     # a source file numba never compiled is not cached
     fresh = cache_dir() / "ivdrem_test_never_compiled.py"
     fresh.write_text("def wrapper(t):\n    return t\n")
     try:
-        assert not _warm_stepper.function_cached(fresh, "wrapper")
+        assert not _compile_child.function_cached(fresh, "wrapper")
     finally:
         fresh.unlink()
 
@@ -95,7 +95,7 @@ def test_a_cfuncs_cache_is_found_without_importing_it():
 def test_the_split_is_balanced_and_covers_every_uncached_wrapper_once(monkeypatch):
     from ivdrem.diagrams import closed_loop
     from ivdrem.sim.plan import DiagramPlan
-    monkeypatch.setattr(_warm_stepper, "function_cached", lambda path, qualname: False)
+    monkeypatch.setattr(_compile_child, "function_cached", lambda path, qualname: False)
     plan = DiagramPlan.from_diagram(closed_loop(law="iv-drem"), None, None)
     deps = compiled.generate_source(plan).deps
     cdir = cache_dir()
@@ -183,11 +183,11 @@ def test_no_split_child_from_a_child_or_when_switched_off(monkeypatch):
                 "IVDREM_STEPPER_PREFETCH=0"):
         name, value = env.split("=")
         monkeypatch.setenv(name, value)
-        assert not _warm_stepper.enabled()
-        assert _warm_stepper.start_modules(["ivdrem_anything"]).proc is None
+        assert not _compile_child.enabled()
+        assert _compile_child.start_modules(["ivdrem_anything"]).proc is None
         monkeypatch.delenv(name)
-    assert _warm_stepper.enabled()
-    assert _warm_stepper.start_modules([]).proc is None            # nothing to do
+    assert _compile_child.enabled()
+    assert _compile_child.start_modules([]).proc is None            # nothing to do
 
 
 def test_no_child_for_a_small_share(monkeypatch):
@@ -195,6 +195,6 @@ def test_no_child_for_a_small_share(monkeypatch):
     _pretend_uncached(monkeypatch)
     monkeypatch.setattr(compiled, "_CHILD_START_S", 0.75)
     monkeypatch.setattr(compiled, "_CHILD_MIN_S", 1.0)
-    monkeypatch.setattr(_warm_stepper, "start_modules", lambda names: 1 / 0)
+    monkeypatch.setattr(_compile_child, "start_modules", lambda names: 1 / 0)
     loop, k = _lags(6, "small_share")
     _check(loop, k)

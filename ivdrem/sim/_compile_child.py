@@ -17,7 +17,7 @@ import sys
 import types
 from pathlib import Path
 
-from .cache import cache_dir, compile_lock, import_path
+from ..compile_cache import cache_dir, compile_lock, import_path
 
 _CHILD_ENV = "IVDREM_STEPPER_CHILD"
 _SWITCH_ENVS = ("IVDREM_COMPILE_CHILD", "IVDREM_STEPPER_PREFETCH")
@@ -96,7 +96,7 @@ sys.path.insert(0, root)
 for pkg in ("ivdrem.sim", "ivdrem.blocks"):
     sys.modules[pkg] = types.ModuleType(pkg)
     sys.modules[pkg].__path__ = [os.path.join(root, *pkg.split("."))]
-from ivdrem.sim._warm_stepper import _job
+from ivdrem.sim._compile_child import _job
 sys.exit(_job(sys.argv[1:]))
 """
 

@@ -1,7 +1,8 @@
 """The compile cache: where generated modules (robot models, block kernels, their
 C-callable wrappers) and the C stepper's shared library live, and how a
-generated module is written and imported.  A leaf of ``sim``: the compiled engine, the
-foreign-block adapter and the warm-up child all use it without importing each other.
+generated module is written and imported.  A leaf below the models and the simulator: the
+models' generated code, the compiled engine, the foreign-block adapter and the compile
+child all use it without importing each other (docs/developers.md, "Layout").
 
 A generated module is named by the hash of its source, written atomically (a concurrent
 process never reads half a file) and imported from the cache directory; numba keeps its
@@ -19,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
-from .._atomic import write_text_atomic
-from .._cache_home import cache_dir   # noqa: F401 - one definition, read before numba loads
+from . import __version__
+from ._atomic import write_text_atomic
+from ._cache_home import cache_dir   # noqa: F401 - one definition, read before numba loads
 
 __all__ = ["cache_dir", "package_digest", "source_hash", "write_generated",
            "import_generated", "import_path", "compile_lock", "GENERATED_HEADER",
@@ -31,7 +32,7 @@ __all__ = ["cache_dir", "package_digest", "source_hash", "write_generated",
 HELPER_FILES = ("blocks/_kernels.py", "sim/_native.py")
 
 
-def helpers_digest(root=Path(__file__).resolve().parents[1], files=HELPER_FILES):
+def helpers_digest(root=Path(__file__).resolve().parent, files=HELPER_FILES):
     """Digest of the helpers' sources.  numba's cache notices a change in the file of a
     cached function only, not in a function of another file it calls and compiles in: the
     digest in every generated module's text (hence its name) makes such a change a new
@@ -162,7 +163,7 @@ def compile_lock(path):
 
 
 #: the installed ivdrem package, whose sources key everything kept across processes
-PACKAGE_ROOT = Path(__file__).resolve().parent.parent
+PACKAGE_ROOT = Path(__file__).resolve().parent
 
 
 @lru_cache(maxsize=1)
