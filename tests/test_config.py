@@ -258,7 +258,6 @@ def test_another_robot_needs_only_what_differs():
 def test_laws_all_expands_to_every_registered_law():
     c = load_config(overrides={"experiment.laws": "all"})
     assert c["experiment"]["laws"] == list(LAWS)
-    assert set(LAWS) == {"iv-drem", "composite-learning", "drem", "sigma-modification", "none"}
     with pytest.raises(ConfigError, match="or 'all'"):
         load_config(overrides={"experiment.laws": ["al"]})
 
