@@ -187,7 +187,7 @@ WINDOW_TARGET_MIB = 64.0
 def arm_parameters(name, law, h=1e-3, mix_every=None):
     """The flat parameter vector of the controller of ``law`` for the experiment of the
     model ``name`` (the paper's for the 2-link arm, the real-arm experiment otherwise)."""
-    from ivdrem.controller.codegen import param_vector
+    from ivdrem.controller.parameters import param_vector
     from ivdrem.controller.fmu_export import controller_design
     from ivdrem.controller.sampled import SampledController
     from ivdrem.experiments.config import load_config, model_from_config
@@ -207,7 +207,7 @@ def arm_parameters(name, law, h=1e-3, mix_every=None):
 
 def _index(model, name):
     """The offset of parameter `name` in the flat vector (ivdrem_controller.h's layout)."""
-    from ivdrem.controller.codegen import param_layout
+    from ivdrem.controller.parameters import param_layout
     off = 0
     for pname, size, _ in param_layout(model):
         if pname == name:

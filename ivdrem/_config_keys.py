@@ -22,7 +22,8 @@ class Key:
     requirement its text for the message; choices: the strings a "str" key accepts.
     A law's key may also give default: the configuration's default on the paper's arm where
     it differs from the law's ``defaults`` (closed_loop's), and follow(model): its default
-    on any other model.
+    on any other model; unit and doc: the gain's unit and what it is (the sampled
+    controller's parameter table and its FMU's variables read them).
     """
     kind: str
     length: str | None = None
@@ -31,6 +32,8 @@ class Key:
     choices: tuple[str, ...] | None = None
     default: Any = None
     follow: Callable[[Any], Any] | None = None
+    unit: str = ""
+    doc: str = ""
 
 
 POSITIVE = dict(check=lambda x: x > 0, requirement="> 0")

@@ -14,13 +14,21 @@ place:
   file sets the law's gains in ``[section]`` and a built-in law is configured like a
   user's;
 * ``color`` and ``label``: the law's colour and legend label in every figure;
-* ``equation``, ``description``: what the report and the docs say about it.
+* ``equation``, ``description``: what the report and the docs say about it;
+* ``sampled_code``: the law's code in the sampled controller's C library where it has a
+  sampled form (``ivdrem/controller/ivdrem_controller.c``; the header's ``IVC_LAW_<NAME>``
+  macros are generated from these codes), None where it has none.
+
+A gain's declaration (:class:`Key`) gives its type, range, configuration default, unit and
+doc; the configuration's sections, the sampled controller's list of laws and law codes are
+read from here (:func:`sampled_laws`, :func:`law_codes`).
 
 :func:`register_law` adds a user's law; ``closed_loop``, the configuration and the
 figures then know it (see docs/custom-law.md and examples/custom_law.py).
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -32,6 +40,7 @@ from .blocks._kernels import MIXING_VARIANTS as _VARIANTS
 from .blocks.mixing import start_of_term
 
 __all__ = ["Law", "LawContext", "LAWS", "register_law", "get_law", "law_names",
+           "sampled_laws", "law_codes", "sampled_gain_defaults", "gain_declaration",
            "mixed_regression_blocks", "MIXING_VARIANTS", "default_mixing", "is_paper_arm",
            "Key", "in_range", "magnitude"]
 
@@ -76,6 +85,20 @@ class Law:
     uses_delta: bool = False               # has the mixed regression (17): Delta, calY
     instrument: str | None = None          # recorded instrument signal (zeta or phi)
     linestyle: str = "-"                   # with the colour: five laws told apart in grey too
+    # the law's code in the sampled controller (its C library's parameter ``law``); None: no
+    # sampled form.  A sampled form is C code of ivdrem_controller.c: built-in laws only
+    sampled_code: int | None = None
+
+    @property
+    def windowed(self) -> bool:
+        """The law keeps a sliding window T of (15a) (the sampled controller's block sums)."""
+        return "T" in self.defaults
+
+    @property
+    def max_hold(self) -> bool:
+        """A window without the mixing step (17): composite learning's max-hold of
+        λ_min(Ψ_b) (35), in place of the averaging (15b)."""
+        return self.windowed and not self.uses_delta
 
 
 #: the registry, in report order
@@ -90,6 +113,14 @@ def register_law(law: Law, *, replace: bool = False) -> Law:
         raise ValueError("a law needs a non-empty string name")
     if law.name in LAWS and not replace:
         raise ValueError(f"law {law.name!r} is already registered (pass replace=True)")
+    if law.sampled_code is not None:
+        taken = {o.sampled_code: o.name for o in LAWS.values() if o.name != law.name}
+        if not isinstance(law.sampled_code, int) or law.sampled_code < 0 \
+                or law.sampled_code in taken:
+            raise ValueError(f"law {law.name!r}: sampled_code {law.sampled_code!r} must be a "
+                             "whole number >= 0 that no other law has"
+                             + (f" ({taken[law.sampled_code]!r} has it)"
+                                if law.sampled_code in taken else ""))
     if law.keys is not None:
         if not law.section:
             raise ValueError(f"law {law.name!r} declares keys but no section to hold them")
@@ -115,6 +146,47 @@ def get_law(name: str) -> Law:
 def law_names() -> tuple[str, ...]:
     """Names of the registered laws, in registration order (the built-in five first)."""
     return tuple(LAWS)
+
+
+def sampled_laws() -> tuple[str, ...]:
+    """Names of the laws with a sampled form (the sampled controller, its C library and
+    FMU), in the order of their codes."""
+    return tuple(sorted((n for n, law in LAWS.items() if law.sampled_code is not None),
+                        key=lambda n: LAWS[n].sampled_code))
+
+
+def law_codes() -> dict[str, int]:
+    """{law name: code} of the laws with a sampled form (the C library's ``law``
+    parameter and its ``IVC_LAW_<NAME>`` macros: name upper-cased, ``-`` as ``_``)."""
+    return {n: LAWS[n].sampled_code for n in sampled_laws()}
+
+
+def gain_declaration(name: str) -> tuple[str, str]:
+    """(unit, doc) of gain `name` as the laws with a sampled form declare it (:class:`Key`):
+    their docs joined in code order where laws declare it differently (γ of (21) or (35));
+    a ValueError where no such law declares it."""
+    keys = [LAWS[n].keys[name] for n in sampled_laws() if name in (LAWS[n].keys or {})]
+    if not keys:
+        raise ValueError(f"no law with a sampled form declares the gain {name!r}")
+    units = {k.unit for k in keys}
+    if len(units) > 1:
+        raise ValueError(f"the laws declare gain {name!r} in different units {sorted(units)}")
+    docs = list(dict.fromkeys(k.doc for k in keys if k.doc))
+    if len(docs) > 1:            # "gain gamma of (21)", "gain gamma of (35)": "... (21) or (35)"
+        head = os.path.commonprefix(docs)
+        head = head[:head.rfind(" ") + 1]
+        return keys[0].unit, head + " or ".join(d[len(head):] for d in docs)
+    return keys[0].unit, "".join(docs)
+
+
+def sampled_gain_defaults() -> dict:
+    """Every gain of a law with a sampled form, at the first such law's default (in code
+    order): the sampled controller's parameter vector holds them all, whichever law runs."""
+    out = {}
+    for name in sampled_laws():
+        for k, v in LAWS[name].defaults.items():
+            out.setdefault(k, v)
+    return out
 
 
 # --------------------------------------------------------------------------- built-in laws
@@ -192,33 +264,41 @@ _IV_DREM_DEFAULTS = dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, mixing="paper")
 #: the first step
 GAIN_MAX = 1e12
 #: a sliding window T of (15a) or of composite learning's integrals: h_max follows T/2
-_WINDOW = Key("float", **in_range(2e-6, 1e6, "h_max follows T/2, at least 1e-06 s"))
+_WINDOW = Key("float", **in_range(2e-6, 1e6, "h_max follows T/2, at least 1e-06 s"),
+               unit="s", doc="window length T of (15a) (s)")
 
 #: the configuration keys of [iv_drem] with their ranges; on any arm but the paper's the
 #: mixing and γ follow the model, as in closed_loop
 _IV_DREM_KEYS = {
     "T": _WINDOW,
-    "p": Key("float", check=lambda x: 1 <= x <= 1e3, requirement=">= 1 and <= 1000"),
-    "F0": Key("float", **in_range(0, GAIN_MAX, open_lo=True)),
+    "p": Key("float", check=lambda x: 1 <= x <= 1e3, requirement=">= 1 and <= 1000",
+             doc="averaging F(t) = t^p + F0 (15b)"),
+    "F0": Key("float", **in_range(0, GAIN_MAX, open_lo=True),
+              doc="averaging F0 > 0 (erratum E3)"),
     # the paper's mixing on a large arm needs gamma of order 1/mean(Delta^2) (UR5: 9e119,
     # docs/mixing.md), so only the bound of gamma = "auto" applies
     "gamma": Key("float_or_auto", check=lambda x: 0 < x < 1e300,
                  requirement="> 0 and below 1e300 (the bound of gamma = 'auto')",
-                 follow=lambda m: "auto"),
-    "mixing": Key("str", choices=_VARIANTS, follow=lambda m: default_mixing(m)),
+                 follow=lambda m: "auto", doc="gain gamma of the composite term (21)"),
+    "mixing": Key("str", choices=_VARIANTS, follow=lambda m: default_mixing(m),
+                  doc="mixing (17): paper, eigen or channel (docs/mixing.md)"),
 }
 #: [composite_learning]: window T, γ of (35) and the max-hold's threshold ε
 _COMPOSITE_LEARNING_KEYS = {
     "T": _WINDOW,
-    "gamma": Key("float", **in_range(0, GAIN_MAX, open_lo=True)),
-    "epsilon": Key("float", **in_range(0, 1e6, open_lo=True)),
+    "gamma": Key("float", **in_range(0, GAIN_MAX, open_lo=True),
+                 doc="gain gamma of the composite term (35)"),
+    "epsilon": Key("float", **in_range(0, 1e6, open_lo=True),
+                   doc="composite learning: threshold of lambda_min"),
 }
 #: [sigma_modification]: σ and θ* of ϑ_c = σ(θ* − θ̂) (erratum E5); the configuration's θ*
 #: is a guess for the paper's arm (zeros on any other), closed_loop's the model's own θ
 _SIGMA_MODIFICATION_KEYS = {
-    "sigma": Key("float", **in_range(0, 1e6, "sigma = 0 is the law 'none'", open_lo=True)),
+    "sigma": Key("float", **in_range(0, 1e6, "sigma = 0 is the law 'none'", open_lo=True),
+                 doc="sigma-modification gain (erratum E5)"),
     "theta_star": Key("vec", "ntheta", **magnitude(1e6, "as model.theta"),
-                      default=(1.0, 0.2, 0.3, 0.3, 1.0), follow=lambda m: [0.0] * m.ntheta),
+                      default=(1.0, 0.2, 0.3, 0.3, 1.0), follow=lambda m: [0.0] * m.ntheta,
+                      doc="sigma-modification prior theta*"),
 }
 
 
@@ -232,23 +312,25 @@ for _law in (
     Law("iv-drem", _build_iv_drem, "IV-DREM, (11)+(21)", "#0072B2", "eqs. (11) + (21)",
         "proposed: instrumental-variables DREM, ζ from the reference trajectory (14)",
         section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS), config=_IV_DREM_CONFIG,
-        keys=_IV_DREM_KEYS, uses_delta=True, instrument="zeta"),
+        keys=_IV_DREM_KEYS, uses_delta=True, instrument="zeta", sampled_code=0),
     Law("composite-learning", _build_composite_learning, "composite learning, (35)", "#E69F00",
         "eq. (35)", "baseline of Pan & Yu: max-held window integrals of φ",
         section="composite_learning", defaults=dict(T=20.0, gamma=1.0, epsilon=1e-9),
         config=_keys("composite_learning", _COMPOSITE_LEARNING_KEYS),
-        keys=_COMPOSITE_LEARNING_KEYS),
+        keys=_COMPOSITE_LEARNING_KEYS, sampled_code=1),
     Law("drem", _build_drem, "DREM without IV", "#009E73", "eqs. (11) + (21), ζ := φ",
         "DREM with the measured regressor φ in place of the instrument",
         section="iv_drem", defaults=dict(_IV_DREM_DEFAULTS), config=_IV_DREM_CONFIG,
-        keys=_IV_DREM_KEYS, uses_delta=True, instrument="phi", linestyle="--"),
+        keys=_IV_DREM_KEYS, uses_delta=True, instrument="phi", linestyle="--",
+        sampled_code=2),
     Law("sigma-modification", _build_sigma, "σ-modification", "#D55E00",
         "ϑ_c = σ(θ* − θ̂) (erratum E5)", "leakage toward a prior guess θ*",
         section="sigma_modification", defaults=dict(sigma=0.1, theta_star=None),
         config=_keys("sigma_modification", _SIGMA_MODIFICATION_KEYS),
-        keys=_SIGMA_MODIFICATION_KEYS, linestyle="-."),
+        keys=_SIGMA_MODIFICATION_KEYS, linestyle="-.", sampled_code=3),
     Law("none", _build_none, "no composite term", "#000000", "ϑ_c = 0",
-        "plain disturbance-rejection adaptive control", config={}, linestyle=":"),
+        "plain disturbance-rejection adaptive control", config={}, linestyle=":",
+        sampled_code=4),
 ):
     register_law(_law)
 del _law

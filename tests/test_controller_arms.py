@@ -474,7 +474,7 @@ def test_scale_free_mixings_default_gamma_by_the_auto_rule():
 
 # ----------------------------------------------------------------------- refusals
 def test_refusals_name_the_number_and_the_option():
-    from ivdrem.controller.codegen import param_layout, param_vector
+    from ivdrem.controller.parameters import param_layout, param_vector
     from ivdrem.controller.clib import load_library
     import ctypes
     for bad, match in ((dict(T=0.0105), r"T / h = 10\.5"), (dict(design="fast"), "design"),

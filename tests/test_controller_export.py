@@ -13,7 +13,7 @@ pytest.importorskip("fmpy")
 from ivdrem.controller.loop import FmuPlant, sampled_loop  # noqa: E402
 from ivdrem.controller.stability import UNSTABLE_GROWTH, sampled_stability  # noqa: E402
 from ivdrem.fmu.cli import main_fmu  # noqa: E402
-from ivdrem.controller.codegen import param_vector  # noqa: E402
+from ivdrem.controller.parameters import param_vector  # noqa: E402
 from ivdrem.controller.sampled import SampledController  # noqa: E402
 from ivdrem.models import get_model, two_link  # noqa: E402
 

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .codegen import build_library, param_layout, param_vector
+from .codegen import build_library
+from .parameters import controller_arguments, param_layout, param_vector
 from .sampled import SampledController
 
 __all__ = ["CController", "load_library", "cache_dir"]
@@ -23,8 +24,8 @@ _c_double_p = ctypes.POINTER(ctypes.c_double)
 
 def cache_dir() -> Path:
     """``controller/`` in ivdrem's compile cache (``$IVDREM_CACHE_DIR``, default
-    ``~/.cache/ivdrem``, as ivdrem.sim.compiled)."""
-    from ..sim.compiled import cache_dir as ivdrem_cache
+    ``~/.cache/ivdrem``, :mod:`ivdrem.compile_cache`)."""
+    from ..compile_cache import cache_dir as ivdrem_cache
     return ivdrem_cache() / "controller"
 
 
@@ -89,41 +90,8 @@ class CController:
     @classmethod
     def from_params(cls, model, law, par):
         """The controller of a flat parameter vector (ivdrem_controller.h's layout), e.g.
-        the start values of a controller FMU."""
-        from ..blocks.control_law import INJECTIONS
-        from .codegen import DESIGN_CODES, GRAVITY_CODES, LAW_CODES, MIXING_CODES
-        idx, off = {}, 0
-        for name, size, _ in param_layout(model):
-            idx[name] = slice(off, off + size)
-            off += size
-        par = np.asarray(par, dtype=float)
-        if par.size != off or LAW_CODES[law] != par[idx["law"]][0]:
-            raise ValueError(f"parameter vector of {par.size} entries (expected {off}) or "
-                             f"law code does not match {law!r}")
-        g = lambda k: par[idx[k]]  # noqa: E731
-        s = lambda k: float(par[idx[k]][0])  # noqa: E731
-        name = lambda codes, k: {v: n for n, v in codes.items()}[int(s(k))]  # noqa: E731
-        n = model.n
-        if s("ref_kind"):
-            trajectory = dict(kind="fourier", omega_f=s("fr_omega_f"),
-                              a=g("fr_a").reshape(n, -1), b=g("fr_b").reshape(n, -1),
-                              offset=g("tr_offset"))
-        else:
-            trajectory = dict(amplitude=g("tr_amplitude"), omega=g("tr_omega"),
-                              phase=g("tr_phase"), offset=g("tr_offset"))
-        return cls(model, law, h=s("h"), alpha=s("alpha"),
-                   K=g("K").reshape(model.n, model.n), delta_mu=s("delta_mu"),
-                   Gamma=g("Gamma_diag"), mu0=s("mu0"), mu1=s("mu1"), mu_max=s("mu_max"),
-                   observer_variant="corrected" if s("corrected") else "literal",
-                   l=s("l"), T=s("T"), p=s("p"), F0=s("F0"), gamma=s("gamma"),
-                   sigma=s("sigma"), epsilon=s("epsilon"), theta_star=g("theta_star"),
-                   theta_hat0=g("theta_hat0"), tau_max=g("tau_max"), delay=int(s("delay")),
-                   block=int(s("block")), trajectory=trajectory,
-                   design=name(DESIGN_CODES, "design"), mixing=name(MIXING_CODES, "mixing"),
-                   mix_every=int(s("mix_every")), f_rel=s("f_rel"), guard=s("guard"),
-                   gravity=name(GRAVITY_CODES, "gravity"), theta_nominal=g("theta_nominal"),
-                   tau_rate_max=g("tau_rate_max"), first_zero=bool(s("first_zero")),
-                   injection=INJECTIONS[int(s("injection"))])
+        the start values of a controller FMU (:mod:`ivdrem.controller.parameters`)."""
+        return cls(model, law, **controller_arguments(model, law, par))
 
     def __del__(self):
         c = getattr(self, "_c", None)

@@ -26,115 +26,23 @@ import numpy as np
 import sympy as sp
 
 from .._cc import compile_shared
-from ..blocks.control_law import INJECTIONS
 from ..blocks.mixing import START_RAMP_REL
+from ..laws import law_codes
 from ..models._c_printer import c_double as _c_double
+from .parameters import (DESIGN_CODES, GRAVITY_CODES, MIXING_CODES, STRUCTURAL, param_layout,
+                         param_vector)
 from .sampled import REFERENCE_HARMONICS
 
-__all__ = ["param_layout", "generate_controller_sources", "build_library", "LAW_CODES",
-           "CORE_SOURCE", "DESIGN_CODES", "GRAVITY_CODES", "MIXING_CODES", "STRUCTURAL"]
+__all__ = ["generate_controller_sources", "build_library", "CORE_SOURCE", "law_macro"]
 
 _HERE = Path(__file__).resolve().parent
 #: The hand-written C core of the controller library, shared by every model and law.
 CORE_SOURCE = _HERE / "ivdrem_controller.c"
 
-#: law name -> code of the parameter ``law``
-LAW_CODES = {"iv-drem": 0, "composite-learning": 1, "drem": 2, "sigma-modification": 3,
-             "none": 4}
-
-#: parameters that fix the memory or the meaning of the state (set before ivc_init)
-STRUCTURAL = ("h", "T", "block", "law", "delay", "corrected", "design", "mixing", "mix_every",
-              "gravity", "ref_kind")
-
-#: design name -> code of the parameter ``design`` (docs/controller.md, "Sampled designs")
-DESIGN_CODES = {"paper": 0, "inertia-scaled": 1}
-#: gravity option -> code of the parameter ``gravity`` ("robot": the robot adds ĝ(q) itself)
-GRAVITY_CODES = {"controller": 0, "robot": 1}
-#: mixing variant -> code of the parameter ``mixing`` (ivdrem.blocks._kernels.MIXING_VARIANTS)
-MIXING_CODES = {"paper": 0, "eigen": 1, "channel": 2}
-
-
-def param_layout(model):
-    """[(name, size, description)] of the flat parameter vector, in order."""
-    n, nth = model.n, model.ntheta
-    return [
-        ("h", 1, "sample period (s)"),
-        ("alpha", 1, "tracking error filter alpha: r = de + alpha e"),
-        ("K", n * n, "feedback gain K (n x n, row major), control law (9)"),
-        ("delta_mu", 1, "delta_mu in (0, 1), control law (9)"),
-        ("Gamma_diag", nth, "adaptation gain Gamma (diagonal), (11)"),
-        ("mu0", 1, "mu(t) = min(mu0 t + mu1, mu_max)"),
-        ("mu1", 1, "mu(0) > 0"),
-        ("mu_max", 1, "saturation of mu (docs/controller.md)"),
-        ("l", 1, "filter gain l of (13), (14)"),
-        ("T", 1, "window length T of (15a) (s)"),
-        ("p", 1, "averaging F(t) = t^p + F0 (15b)"),
-        ("F0", 1, "averaging F0 > 0 (erratum E3)"),
-        ("gamma", 1, "gain gamma of the composite term (21) or (35)"),
-        ("sigma", 1, "sigma-modification gain (erratum E5)"),
-        ("epsilon", 1, "composite learning: threshold of lambda_min"),
-        ("theta_star", nth, "sigma-modification prior theta*"),
-        ("theta_hat0", nth, "initial estimate theta_hat(0)"),
-        ("tau_max", n, "torque limit |tau_i| <= tau_max_i of the command (N m; inf: none)"),
-        ("delay", 1, "0: tau_k applied over [t_k, t_k+1]; 1: over [t_k+1, t_k+2]"),
-        ("block", 1, "samples per block sum of the window"),
-        ("law", 1, "0 iv-drem, 1 composite-learning, 2 drem, 3 sigma-modification, 4 none"),
-        ("corrected", 1, "1: observer gain mu + dmu/mu for Phi_Mf (erratum E1); 0: mu"),
-        ("tr_amplitude", n, "reference q_d = A sin(w t + phi) + c: A"),
-        ("tr_omega", n, "reference: w (rad/s)"),
-        ("tr_phase", n, "reference: phi"),
-        ("tr_offset", n, "reference: c (also the Fourier reference's offset)"),
-        ("design", 1, "0 paper: feedback (K + delta_mu mu) r of (9); 1 inertia-scaled: "
-                      "M(q, theta_nominal)(K + delta_mu mu) r, K in 1/s"),
-        ("mixing", 1, "mixing (17): 0 paper, 1 eigen, 2 channel (docs/mixing.md)"),
-        ("mix_every", 1, "the mixing (17), or composite learning's max-hold of (35), every m "
-                          "samples (multi-rate, m > 1: held or decided one period later, its "
-                          "work spread over the period)"),
-        ("f_rel", 1, "eigen mixing: f0 = f_rel ||Psi||_F"),
-        ("guard", 1, "channel mixing: guard of the (i, i) cofactor"),
-        ("gravity", 1, "0: the law's tau is commanded; 1 robot: tau - G(q, theta_nominal) "
-                       "(the robot adds its own gravity)"),
-        ("theta_nominal", nth, "nominal parameters (the URDF's): inertia-scaled design, "
-                               "gravity robot"),
-        ("tau_rate_max", n, "rate limit |tau_k,i - tau_k-1,i| <= h tau_rate_max_i (N m/s; "
-                            "inf: none)"),
-        ("first_zero", 1, "1: the first command tau_0 is 0"),
-        ("ref_kind", 1, "reference: 0 the sinusoid tr_*, 1 the Fourier series fr_*"),
-        ("fr_omega_f", 1, "Fourier reference: base frequency omega_f (rad/s)"),
-        ("fr_a", n * REFERENCE_HARMONICS,
-         "Fourier reference: a (n x H, row major): q_d,i = c_i + sum_l (a_il sin(l w t) - "
-         "b_il cos(l w t))/(l w)"),
-        ("fr_b", n * REFERENCE_HARMONICS, "Fourier reference: b (n x H, row major)"),
-        ("injection", 1, "the observer's injection mu (Phi_M^T(q, r) - Phi_Mf^T) theta of (8) "
-                         "at 0 theta_hat (the paper's), 1 theta_nominal (adaptation (11) "
-                         "with Phi^T - Phi_f^T)"),
-    ]
-
-
-def param_vector(ctrl):
-    """The flat parameter vector of a :class:`~ivdrem.controller.sampled.SampledController`."""
-    vals = {"h": ctrl.h, "alpha": ctrl.alpha, "K": ctrl.K.reshape(-1),
-            "delta_mu": ctrl.delta_mu, "Gamma_diag": ctrl.Gamma, "mu0": ctrl.mu0,
-            "mu1": ctrl.mu1, "mu_max": ctrl.mu_max, "l": ctrl.l, "T": ctrl.T, "p": ctrl.p,
-            "F0": ctrl.F0, "gamma": ctrl.gamma, "sigma": ctrl.sigma,
-            "epsilon": ctrl.epsilon, "theta_star": ctrl.theta_star,
-            "theta_hat0": ctrl.theta_hat0, "tau_max": ctrl.tau_max, "delay": ctrl.delay,
-            "block": ctrl.block, "law": LAW_CODES[ctrl.law],
-            "corrected": 1.0 if ctrl.corrected else 0.0, "tr_amplitude": ctrl.tr_A,
-            "tr_omega": ctrl.tr_w, "tr_phase": ctrl.tr_phi, "tr_offset": ctrl.tr_c,
-            "design": DESIGN_CODES[ctrl.design], "mixing": MIXING_CODES[ctrl.mixing],
-            "mix_every": ctrl.mix_every, "f_rel": ctrl.f_rel, "guard": ctrl.guard,
-            "gravity": GRAVITY_CODES[ctrl.gravity], "theta_nominal": ctrl.theta_nominal,
-            "tau_rate_max": ctrl.tau_rate_max, "first_zero": 1.0 if ctrl.first_zero else 0.0,
-            "ref_kind": 1.0 if ctrl.fourier else 0.0, "fr_omega_f": ctrl.fr_wf,
-            "fr_a": ctrl.fr_a.reshape(-1), "fr_b": ctrl.fr_b.reshape(-1),
-            "injection": INJECTIONS.index(ctrl.injection)}
-    out = []
-    for name, size, _ in param_layout(ctrl.model):
-        v = np.atleast_1d(np.asarray(vals[name], dtype=float)).reshape(-1)
-        assert v.size == size, name
-        out.extend(v.tolist())
-    return np.array(out)
+def law_macro(law):
+    """The C library's macro of a law's code: ``IVC_LAW_`` and the name upper-cased, ``-``
+    as ``_`` (``iv-drem``: ``IVC_LAW_IV_DREM``)."""
+    return "IVC_LAW_" + law.upper().replace("-", "_")
 
 
 def _regressor_code(model):
@@ -176,8 +84,11 @@ def generate_controller_sources(model, defaults=None) -> dict:
     protos = "\n".join(
         f"IVC_INTERNAL void ivc_{name}(" + ", ".join(f"const double *{a}" for a in args)
         + ", double *out);" for name, _, args in specs)
-    laws = "\n".join(f"#define IVC_LAW_{k}  {v}" for k, v in
-                     (("IV_DREM", 0), ("COMPOSITE", 1), ("DREM", 2), ("SIGMA", 3), ("NONE", 4)))
+    # the laws with a sampled form, from the law registry (ivdrem.laws): one source of the codes
+    codes_of_laws = law_codes()
+    laws = "\n".join([f"#define {law_macro(k)}  {v}" for k, v in codes_of_laws.items()]
+                      + [f"#define IVC_LAW_LAST  {max(codes_of_laws.values())}"])
+    structural = " || ".join(f"(i) == IVC_P_{name.upper()}" for name in STRUCTURAL)
     codes = "\n".join(
         [f"#define IVC_DESIGN_{k.upper().replace('-', '_')}  {v}" for k, v in DESIGN_CODES.items()]
         + [f"#define IVC_GRAVITY_{k.upper()}  {v}" for k, v in GRAVITY_CODES.items()]
@@ -232,6 +143,9 @@ def generate_controller_sources(model, defaults=None) -> dict:
 
 /* parameter vector layout: par[IVC_P_NAME + i] */
 {chr(10).join(idx)}
+
+/* the parameters that fix the memory or the meaning of the state (set before ivc_init) */
+#define IVC_IS_STRUCTURAL(i) ({structural})
 
 /* law codes (par[IVC_P_LAW]) */
 {laws}

@@ -35,11 +35,12 @@ from .._atomic import zip_tree_atomic
 from .._cc import compile_shared, compiler
 from .._paths import check_replaceable
 from ..fmu.export import _platform, fmi2_header_dir, is_ivdrem_fmu
-from .codegen import (LAW_CODES, _version, generate_controller_sources, param_layout,
-                      param_vector)
+from ..laws import get_law, sampled_laws
+from .codegen import _version, generate_controller_sources
+from .parameters import PARAMETERS, param_layout, param_vector
 from .sampled import SampledController
 
-__all__ = ["export_controller_fmu", "generate_controller_fmu_sources", "TUNABLE"]
+__all__ = ["export_controller_fmu", "generate_controller_fmu_sources"]
 
 _HERE = Path(__file__).resolve().parent
 _FMI2_HEADERS = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
@@ -53,10 +54,6 @@ _FMI3_HEADERS = ("fmi3Functions.h", "fmi3FunctionTypes.h", "fmi3PlatformTypes.h"
 #: (value references, one table for both) are the same
 _SOURCES = {2: SOURCE_FILES, 3: ("fmi3_controller.c",) + SOURCE_FILES[1:]}
 
-#: parameters a host may change between steps
-TUNABLE = ("alpha", "K", "delta_mu", "Gamma_diag", "mu0", "mu1", "mu_max", "l", "p", "F0",
-           "gamma", "sigma", "epsilon", "theta_star", "tau_max")
-_HIDDEN = ("delay",)
 
 
 def _fmt(x):
@@ -100,16 +97,19 @@ def _variables(model, par):
 
 
 def _parameters(model, par):
+    """The FMU's parameters: one variable per entry of the parameter table
+    (:data:`ivdrem.controller.parameters.PARAMETERS`), its start value from ``par``."""
     V = []
     off = 0
-    for name, size, descr in param_layout(model):
+    for p, (name, size, descr) in zip(PARAMETERS, param_layout(model)):
+        unit = p.declared()[0]
         for i in range(size):
             nm = name if size == 1 else f"{name}[{i}]"
             v = dict(name=nm, causality="parameter", initial="exact", start=par[off + i],
-                     variability="tunable" if name in TUNABLE else "fixed",
-                     description=descr, hidden=name in _HIDDEN)
-            if name in ("h", "T"):
-                v["unit"] = "s"
+                     variability="tunable" if p.tunable else "fixed",
+                     description=descr, hidden=p.hidden)
+            if unit:
+                v["unit"] = unit
             V.append(v)
         off += size
     return V
@@ -333,9 +333,9 @@ def export_controller_fmu(model, path, *, law="iv-drem", cc=None, overwrite=Fals
     if path.is_dir():
         raise ValueError(f"the FMU path {path} is a directory; give a file name, e.g. "
                          f"{path / 'Controller.fmu'}")
-    if law not in LAW_CODES:
+    if law not in sampled_laws():
         raise ValueError(f"law {law!r} has no sampled controller; choose one of "
-                         f"{', '.join(LAW_CODES)}")
+                         f"{', '.join(sampled_laws())}")
     if fmi_version not in (2, 3):
         raise ValueError(f"fmi_version must be 2 or 3, got {fmi_version!r}")
     check_replaceable(path, "FMU file", overwrite=overwrite, ours=is_ivdrem_fmu)
@@ -409,7 +409,7 @@ def controller_design(config, law, *, h=None, mu_max=None):
     from .sampled import GRADIENT_GAIN, default_design, default_mixing, inertia_scaled_gains
     model = model_from_config(config)
     if (out.get("mixing", default_mixing(model)) != "paper"
-            and law in ("iv-drem", "drem", "composite-learning")):
+            and get_law(law).windowed):
         # the scale-free mixing of a real arm's tens of parameters is a Jacobi SVD, composite
         # learning's max-hold a lambda_min of Psi_b: each spread over MIX_EVERY samples
         # (docs/controller.md, "Real arms: reference, mixing, multi-rate"), the step stays
@@ -439,8 +439,7 @@ def controller_design(config, law, *, h=None, mu_max=None):
 
 def check_window(design, law):
     """h must divide the window T of (15a) into whole blocks: one line naming both if not."""
-    from ..laws import get_law  # noqa: F401  (the law's name is checked by the caller)
-    if law not in ("iv-drem", "drem", "composite-learning"):
+    if not get_law(law).windowed:       # the law's name is checked by the caller
         return
     h = float(design.get("h", 1e-3))
     T = design.get("T")
@@ -464,9 +463,10 @@ def check_mix_every(value, design, law):
     """``--mix-every M``: a whole number from 1 to the window's samples T / h, for a law
     with a window (its mixing (17) or max-hold every M samples); returns M, or refuses in one
     line naming the value and the bound."""
-    if law not in ("iv-drem", "drem", "composite-learning"):
-        raise ValueError(f"--mix-every {value} applies to the laws with a window (iv-drem, "
-                         f"drem, composite-learning), not to {law}")
+    if not get_law(law).windowed:
+        windowed = ", ".join(n for n in sampled_laws() if get_law(n).windowed)
+        raise ValueError(f"--mix-every {value} applies to the laws with a window ({windowed}), "
+                         f"not to {law}")
     try:
         m = float(value)
     except (TypeError, ValueError):
@@ -565,9 +565,9 @@ def main_export_controller(args) -> int:
         if args.no_compile or args.q0 is not None or args.dq0 is not None:
             raise ValueError("--no-compile, --q0 and --dq0 are options of the plant FMU, not "
                              "of --controller")
-        if args.law not in LAW_CODES:
+        if args.law not in sampled_laws():
             raise ValueError(f"law {args.law!r} has no sampled controller; choose one of "
-                             f"{', '.join(LAW_CODES)}")
+                             f"{', '.join(sampled_laws())}")
         path = user_path(args.output)
         check_replaceable(path, "FMU file", overwrite=args.overwrite, ours=is_ivdrem_fmu)
         paper_arm = args.config is None and (args.model is None or re.fullmatch(
@@ -616,6 +616,5 @@ def main_export_controller(args) -> int:
 
 def _law_window(law):
     """The law's default window T (its registry entry), for the h check of the paper path."""
-    from ..laws import get_law
     T = get_law(law).defaults.get("T")
     return {} if T is None else {"T": T}

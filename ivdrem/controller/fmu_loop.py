@@ -284,14 +284,15 @@ def _fmu_parameters(path):
     """(model name, law, flat parameter vector) of an ivdrem controller FMU."""
     from fmpy import read_model_description
     from ..models import get_model
-    from .codegen import LAW_CODES, param_layout
+    from ..laws import sampled_laws
+    from .parameters import param_layout
     md = read_model_description(str(path))
     m = re.fullmatch(r"ivdrem controller (\S+) (\S+)", md.modelName or "")
     if not m or not (md.generationTool or "").startswith("ivdrem "):
         raise ValueError(f"{path} is not a controller FMU exported by ivdrem "
                          "(ivdrem fmu export --controller)")
     law, name = m.groups()
-    if law not in LAW_CODES:
+    if law not in sampled_laws():
         raise ValueError(f"{path}: unknown law {law!r}")
     model = _fmu_model(path, name, get_model)
     start = {v.name: v.start for v in md.modelVariables if v.causality == "parameter"}

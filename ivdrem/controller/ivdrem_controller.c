@@ -122,8 +122,8 @@ static int check_params(char *msg, const double *par) {
         if (!(par[IVC_P_TAU_RATE_MAX + i] > 0))
             { say(msg, "tau_rate_max[%g] = %g must be > 0 (inf: no limit)", (double)i, par[IVC_P_TAU_RATE_MAX + i]); return IVC_ERR_ARG; }
     }
-    if (!is_code(par[IVC_P_LAW], IVC_LAW_NONE))
-        { say(msg, "law = %g is not a law code 0..%g", par[IVC_P_LAW], IVC_LAW_NONE); return IVC_ERR_ARG; }
+    if (!is_code(par[IVC_P_LAW], IVC_LAW_LAST))
+        { say(msg, "law = %g is not a law code 0..%g", par[IVC_P_LAW], IVC_LAW_LAST); return IVC_ERR_ARG; }
     if (!is_code(par[IVC_P_DELAY], 1))
         { say(msg, "delay = %g must be 0 or 1%.0s", par[IVC_P_DELAY], 0); return IVC_ERR_ARG; }
     if (!is_code(par[IVC_P_DESIGN], IVC_DESIGN_INERTIA_SCALED))
@@ -144,7 +144,7 @@ static int check_params(char *msg, const double *par) {
         double h = par[IVC_P_H], T = par[IVC_P_T], N = floor(T / h + 0.5), block = par[IVC_P_BLOCK];
         if (!(block >= 1 && floor(block) == block))
             { say(msg, "block = %g must be a whole number >= 1%.0s", block, 0); return IVC_ERR_ARG; }
-        if ((law == IVC_LAW_IV_DREM || law == IVC_LAW_DREM || law == IVC_LAW_COMPOSITE)
+        if ((law == IVC_LAW_IV_DREM || law == IVC_LAW_DREM || law == IVC_LAW_COMPOSITE_LEARNING)
             && (fabs(N * h - T) > 1e-9 * T || fmod(N, block) != 0 || N / block > 1e8))
             { say(msg, "the window T / h = %.9g must be a whole number of samples divisible by "
                    "block = %g (choose T a multiple of h block)", T / h, block); return IVC_ERR_ARG; }
@@ -210,7 +210,7 @@ ivc_controller *ivc_init(const double *par, char *msg, size_t len) {
     c->lam_units = ceil(lam_job_units() / c->mix_every);
     c->h = h;
     c->T = T;
-    c->nb = (law == IVC_LAW_IV_DREM || law == IVC_LAW_DREM || law == IVC_LAW_COMPOSITE)
+    c->nb = (law == IVC_LAW_IV_DREM || law == IVC_LAW_DREM || law == IVC_LAW_COMPOSITE_LEARNING)
             ? (long)(N / block) : 0;
     if (c->nb) {
         c->ring = (double *)calloc((size_t)c->nb * NM, sizeof(double));
@@ -230,13 +230,9 @@ void ivc_free(ivc_controller *c) {
     free(c);
 }
 
-/* the parameters that fix the memory or the meaning of the state (codegen.STRUCTURAL) */
-static int is_structural(int index) {
-    return index == IVC_P_H || index == IVC_P_T || index == IVC_P_BLOCK || index == IVC_P_LAW
-        || index == IVC_P_DELAY || index == IVC_P_CORRECTED || index == IVC_P_DESIGN
-        || index == IVC_P_MIXING || index == IVC_P_MIX_EVERY || index == IVC_P_GRAVITY
-        || index == IVC_P_REF_KIND;
-}
+/* the parameters that fix the memory or the meaning of the state: the header's
+ * IVC_IS_STRUCTURAL, generated from ivdrem.controller.parameters (STRUCTURAL) */
+static int is_structural(int index) { return IVC_IS_STRUCTURAL(index); }
 
 int ivc_set_param(ivc_controller *c, int index, double value) {
     double par[IVC_NPAR];
@@ -902,7 +898,7 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
     }
     /* composite term vartheta_c(theta_hat) = b_c - a theta_hat */
     for (i = 0; i < nth; i++) a[i] = 0.0;
-    if (c->law == IVC_LAW_COMPOSITE) {
+    if (c->law == IVC_LAW_COMPOSITE_LEARNING) {
         for (i = 0; i < nth; i++) {
             double acc = 0;
             for (j = 0; j < nth; j++) acc += s->held[nth + i * nth + j] * s->theta_hat[j];
@@ -929,7 +925,7 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
             a[i] = gw * Dl * Dl;
         }
         s->Delta = Dmin;
-    } else if (c->law == IVC_LAW_SIGMA) {
+    } else if (c->law == IVC_LAW_SIGMA_MODIFICATION) {
         for (i = 0; i < nth; i++) {
             theta_c[i] = par[IVC_P_SIGMA] * (par[IVC_P_THETA_STAR + i] - s->theta_hat[i]);  /* E5 */
             a[i] = par[IVC_P_SIGMA];
@@ -1026,7 +1022,7 @@ int ivc_step(ivc_controller *c, double t, const double *q, const double *dq, dou
             }
         }
         window_push(c, g, y);
-        if (c->law == IVC_LAW_COMPOSITE) {                               /* max-hold */
+        if (c->law == IVC_LAW_COMPOSITE_LEARNING) {                      /* max-hold */
             if (c->mix_every == 1) {             /* lambda_min of t_k decides at t_k */
                 lam_begin(c, y);
                 lam_work(c, -1.0);

@@ -56,7 +56,7 @@ from ..blocks.control_law import DESIGNS, INJECTIONS, default_injection, inertia
 from ..blocks.mixing import DEFAULT_F_REL, DEFAULT_GUARD, start_of_term
 from ..blocks.sources import fourier_series
 from ..diagrams.gamma_auto import DEFAULT_RATE as GAMMA_RATE
-from ..laws import get_law
+from ..laws import get_law, sampled_gain_defaults, sampled_laws
 from .discrete import averaging_factor, mu_integral, mu_saturated
 from .window import BlockWindow
 
@@ -88,8 +88,9 @@ def default_mixing(model):
     """"paper" for the symbolic arms, "eigen" for the URDF arms (docs/mixing.md)."""
     return "eigen" if _is_urdf_arm(model) else "paper"
 
-#: the laws the sampled controller implements (names of ivdrem.laws)
-SAMPLED_LAWS = ("iv-drem", "composite-learning", "drem", "sigma-modification", "none")
+#: the laws the sampled controller implements: those the registry gives a sampled form
+#: (ivdrem.laws.sampled_laws, in the order of their C codes)
+SAMPLED_LAWS = sampled_laws()
 
 #: the paper's reference trajectory (Section 4), as ivdrem.diagrams.closed_loop uses it
 PAPER_TRAJECTORY = dict(amplitude=[0.4 * np.pi, 0.3 * np.pi], omega=[2.0, 0.3],
@@ -246,18 +247,21 @@ class SampledController:
         if model is None:
             from ..models import two_link
             model = two_link()
-        if law not in SAMPLED_LAWS:
+        if law not in sampled_laws():
             raise ValueError(f"law {law!r} has no sampled form; choose one of "
-                             f"{', '.join(SAMPLED_LAWS)}")
+                             f"{', '.join(sampled_laws())}")
         if observer_variant not in ("corrected", "literal"):
             raise ValueError(f"observer_variant must be 'corrected' or 'literal', "
                              f"got {observer_variant!r}")
         if delay not in (0, 1):
             raise ValueError(f"delay must be 0 or 1 (samples), got {delay!r}")
-        # the law's own gains default to its entry of the registry ivdrem.laws
+        # the law's own gains default to its entry of the registry ivdrem.laws; the
+        # parameter vector holds every sampled law's gains, the others at their registry
+        # defaults (ivdrem.laws.sampled_gain_defaults)
+        spec = get_law(law)
         given = dict(T=T, p=p, F0=F0, gamma=gamma, sigma=sigma, epsilon=epsilon)
-        d = dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, sigma=0.1, epsilon=1e-9)
-        d.update({k: v for k, v in get_law(law).defaults.items() if k in d})
+        d = {k: v for k, v in sampled_gain_defaults().items() if k in given}
+        d.update({k: v for k, v in spec.defaults.items() if k in d})
         d.update({k: v for k, v in given.items() if v is not None})
         T, p, F0, gamma, sigma, epsilon = (d[k] for k in ("T", "p", "F0", "gamma", "sigma",
                                                            "epsilon"))
@@ -323,10 +327,10 @@ class SampledController:
         self.theta_nominal = _vector("theta_nominal", tn if tn is not None else np.zeros(nth),
                                      nth)
         self.delay = int(delay)
-        self.uses_window = law in ("iv-drem", "drem", "composite-learning")
-        self.averaged = law != "composite-learning"
+        self.uses_window = spec.windowed
+        self.averaged = not spec.max_hold
         self.epsilon = _positive("epsilon", epsilon)
-        self.instrument = law == "iv-drem"
+        self.instrument = spec.instrument == "zeta"
         self.T, self.p, self.F0 = _positive("T", T), float(p), _positive("F0", F0)
         if self.p < 1:
             raise ValueError(f"p must be >= 1, got {p!r}")
@@ -537,7 +541,7 @@ class SampledController:
             chi = inj @ self.theta_nominal
         # composite term vartheta_c(theta_hat) = b_c - a theta_hat
         a = 0.0
-        if self.law == "composite-learning":
+        if not self.averaged:             # the max-hold of composite learning
             nth = self.ntheta
             Psi_h = self.held[nth:].reshape(nth, nth)
             theta_c = self.gamma * (self.held[:nth] - Psi_h @ th)                  # (35)

@@ -53,6 +53,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..laws import get_law
+
 __all__ = ["SampledStability", "sampled_stability", "loop_growth", "closed_loop_prefix",
            "UNSTABLE_GROWTH", "POINTS", "PREFIX_POINTS", "PREFIX_PAST_T", "UnstableDesignError"]
 
@@ -399,7 +401,7 @@ def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturba
     # law "none" does; from T on it drives θ̂ to the window's estimate, which on a light
     # wrist can be far from θ where M is small (the xArm7: docs/controller.md)
     Tw = float(T if T else 20.0)
-    windowed = law in ("iv-drem", "drem", "composite-learning")
+    windowed = get_law(law).windowed
     with_c = backend == "c" and _c_library(model, law, gains)
     horizon = min(float(t_end), PREFIX_PAST_T * Tw if prefix is None else float(prefix))
     if windowed and not with_c:

@@ -1,4 +1,5 @@
-"""Compile in a second process while this one compiles: half the kernel wrappers.
+"""The compile child: a second process that compiles half the kernel wrappers while this
+one compiles the others.
 
 numba compiles under one process-wide lock, so a thread cannot overlap the first compiled
 run's kernels and wrappers; a child process can.  The child imports, and so compiles into
