@@ -115,11 +115,11 @@ def _package(module):
     return parts[1] if len(parts) > 1 else ""
 
 
-def back_up_imports():
-    """[(importer, imported)] running against LAYERS: to a later layer, or across one layer
-    (sim and laws) between different packages."""
+def back_up_imports(graph=None):
+    """[(importer, imported)] of `graph` (default: the package's) running against LAYERS: to a
+    later layer, or across one layer (sim and laws) between different packages."""
     out = []
-    for m, deps in import_graph().items():
+    for m, deps in (import_graph() if graph is None else graph).items():
         for d in deps:
             lm, ld = layer(m), layer(d)
             if ld > lm or (ld == lm and lm != LAYERS.index("base")
@@ -183,6 +183,18 @@ def test_circles_are_found():
     """The circle search finds a circle of three and one of two (a check that can fail)."""
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"e"}, "e": {"d", "a"}, "f": set()}
     assert circles(graph) == [["a", "b", "c"], ["d", "e"]]
+
+
+def test_back_up_imports_are_found():
+    """The layer rule flags an import of a later layer and one across a layer (a check that
+    can fail), and lets a command-line face import anything."""
+    graph = {"ivdrem.models.base": {"ivdrem.sim.compiled", "ivdrem._atomic"},
+             "ivdrem.sim.plan": {"ivdrem.laws", "ivdrem.blocks._core", "ivdrem.sim.errors"},
+             "ivdrem.reports.cli": {"ivdrem.plants.cli", "ivdrem.cli"},
+             "ivdrem.fmu.plant": {"ivdrem.controller.codegen"}}
+    assert back_up_imports(graph) == [("ivdrem.fmu.plant", "ivdrem.controller.codegen"),
+                                      ("ivdrem.models.base", "ivdrem.sim.compiled"),
+                                      ("ivdrem.sim.plan", "ivdrem.laws")]
 
 
 def test_no_import_runs_back_up_the_layers():
