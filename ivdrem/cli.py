@@ -43,7 +43,9 @@ def _cmd_paper(args):
             json_path = check_replaceable(user_path(args.json), "JSON file",
                                           overwrite=args.overwrite, ours=_is_paper_json)
         check_cache_dir(args.engine)
-        walls = check_runs(config, engine=args.engine, allow_long=args.allow_long)
+        from .experiments.experiment import Experiment
+        experiment = Experiment.from_config(config, engine=args.engine)   # resolved once
+        walls = check_runs(experiment, allow_long=args.allow_long)
     except (ConfigError, PreflightError, OutputLocationError, ValueError, ImportError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
@@ -61,7 +63,7 @@ def _cmd_paper(args):
     from .sim import SimulationError
     from .diagrams.gamma_auto import GainRuleError
     try:
-        run = run_paper(config, progress=want_progress(not args.quiet), engine=args.engine,
+        run = run_paper(experiment, progress=want_progress(not args.quiet),
                         allow_long=args.allow_long, log=say,
                         return_states=False)     # nothing below reads the states
     except GainRuleError as e:       # refused by the calibration, before that law's run

@@ -137,8 +137,8 @@ def _fresh_calibrations(monkeypatch, where):
 
 def _record_simulations(monkeypatch):
     """Every simulation as (kind, law): "calibration" (a run of the loop with its γ
-    overridden, ivdrem.diagrams.gamma_auto) or "run" (a law's run, ivdrem.experiments.paper)."""
-    import ivdrem.experiments.paper as paper
+    overridden, ivdrem.diagrams.gamma_auto) or "run" (a law's run, an Experiment's)."""
+    import ivdrem.experiments.experiment as experiment
     import ivdrem.sim as sim
     events = []
 
@@ -148,7 +148,7 @@ def _record_simulations(monkeypatch):
             return real(diagram, *a, **k)
         return simulate
     monkeypatch.setattr(sim, "simulate", wrap(sim.simulate, "calibration"))
-    monkeypatch.setattr(paper, "simulate", wrap(paper.simulate, "run"))
+    monkeypatch.setattr(experiment, "simulate", wrap(experiment.simulate, "run"))
     return events
 
 

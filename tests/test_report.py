@@ -574,7 +574,7 @@ def test_fmu_check_takes_the_runs_gamma_auto_instead_of_calibrating_again(monkey
     monkeypatch.setattr(cosim_mod, "compare_to_python", compare)
     monkeypatch.setattr(paper_mod, "law_diagram", law_diagram)
     config = load_config(Path(__file__).parents[1] / "examples" / "planar3.toml")
-    assert closed_loop_kwargs(config, "iv-drem")["gamma"] == "auto"
+    assert closed_loop_kwargs(config, "iv-drem")["gains"]["gamma"] == "auto"
     rcli.fmu_check(config, 1.0, gamma=50.2)
     assert seen == [50.2] and built == []              # the run's γ, no calibration
     rcli.fmu_check(config, 1.0)

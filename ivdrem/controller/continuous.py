@@ -44,11 +44,12 @@ def saturated_mu_schedule(mu0=1.0, mu1=15.0, mu_max=135.0, *, name="mu_schedule"
 
 def continuous_closed_loop(law="iv-drem", model=None, *, mu0=1.0, mu1=15.0, mu_max=135.0,
                            **kwargs):
-    """ivdrem.diagrams.closed_loop with mu saturated at mu_max."""
-    from ..diagrams import closed_loop
-    return closed_loop(law, model, mu0=mu0, mu1=mu1,
-                       replace={"mu_schedule": saturated_mu_schedule(mu0, mu1, mu_max)},
-                       **kwargs)
+    """ivdrem.diagrams.closed_loop with mu saturated at mu_max (γ "auto" chosen first,
+    ivdrem.diagrams.calibrated_loop)."""
+    from ..diagrams import calibrated_loop
+    return calibrated_loop(law, model, mu0=mu0, mu1=mu1,
+                           replace={"mu_schedule": saturated_mu_schedule(mu0, mu1, mu_max)},
+                           **kwargs)
 
 
 def sampled_against_continuous(model, law="iv-drem", *, hs=(4e-3, 2e-3, 1e-3), t_end=0.5,
@@ -82,7 +83,7 @@ def sampled_against_continuous(model, law="iv-drem", *, hs=(4e-3, 2e-3, 1e-3), t
            else np.asarray(theta_hat0, dtype=float))
     given = dict(T=T, gamma=gamma, mixing=mixing)
     gains = dict(K=np.asarray(K, dtype=float), theta_hat0=th0,
-                 **{k: v for k, v in given.items() if v is not None})
+                 gains={k: v for k, v in given.items() if v is not None})
     loop = continuous_closed_loop(law, model, mu_max=mu_max, design="inertia-scaled", **gains)
     dt_out = t_end / n_out
     r = simulate(loop, t_end, rtol=rtol, atol=atol, h_max=min(0.01, dt_out),

@@ -384,6 +384,7 @@ def controller_design(config, law, *, h=None, mu_max=None):
     import inspect
     from ..experiments.config import closed_loop_kwargs
     kw = closed_loop_kwargs(config, law)
+    kw.update(kw.pop("gains"))     # the sampled controller takes the law's gains by name
     accepted = set(inspect.signature(SampledController.__init__).parameters) - {"self", "model",
                                                                                 "law"}
     out = {}

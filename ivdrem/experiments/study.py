@@ -76,15 +76,17 @@ def run_one(config: Mapping, law: str) -> dict:
     inertia, a compile error): the record has ``status = "failed"`` and the message.
     """
     from . import metrics
-    from .config import model_from_config
-    from .paper import PaperRun, run_law
+    from .experiment import Experiment
+    from .paper import PaperRun
 
     t0 = time.perf_counter()
     rec: dict[str, Any] = {"law": law, "status": "ok", "error": "", "pid": os.getpid(),
                            "host": socket.gethostname()}
     try:
-        model = model_from_config(config)
-        lr = run_law(config, law, model=model, progress=False)
+        experiment = Experiment.from_config(config, laws=[law])   # resolved once
+        model = experiment.model
+        lr = experiment.run(law, progress=False)
+        experiment.release(law)
         task_s = time.perf_counter() - t0
         theta = np.asarray(config["model"]["theta"], dtype=float)
         s = metrics.summary(lr, theta)
@@ -397,8 +399,8 @@ def check_study_cost(runs: list[RunSpec]) -> None:
     (output memory, step count: a worker would refuse it after the cluster started, or
     fill its memory), naming the run.  One pricing diagram per model structure and law:
     the cost depends on the diagram's size, not on its parameter values."""
-    from .._preflight import check_law_cost, pricing_diagram
-    from .config import model_from_config
+    from .._preflight import check_law_cost
+    from .experiment import Experiment
     diagrams = {}
     for run in runs:
         model_key = json.dumps({k: v for k, v in run.config["model"].items() if k != "theta"},
@@ -406,8 +408,7 @@ def check_study_cost(runs: list[RunSpec]) -> None:
         key = (run.law, model_key, json.dumps(run.config.get("iv_drem", {}).get("mixing")))
         try:
             if key not in diagrams:
-                diagrams[key] = pricing_diagram(run.config, run.law,
-                                                model_from_config(run.config))
+                diagrams[key] = Experiment.from_config(run.config, laws=[run.law]).loop(run.law)
             check_law_cost(run.config, run.law, diagrams[key], what=run.label)
         except ValueError as exc:    # CostLimitError, a bound of h_max / dt_out
             # the guard's remedy "--allow-long" is an option of paper and report, not of

@@ -177,12 +177,14 @@ def main_cosim(argv=None) -> int:
         for h, what in zip(steps, ("--comm-step H", "H/2", "H/4")):
             _steps(args.t_end, h, what)
         from ivdrem._preflight import check_cache_dir
-        from ivdrem.diagrams import closed_loop
-        from ivdrem.experiments.config import closed_loop_kwargs, load_config, model_from_config
+        from ivdrem.experiments.config import load_config
+        from ivdrem.experiments.experiment import Experiment
         check_cache_dir(args.engine)
         config = load_config(None if args.config is None else user_path(args.config))
-        model = model_from_config(config)
-        loop_kw = closed_loop_kwargs(config, args.law)
+        experiment = Experiment.from_config(config, engine=args.engine, laws=[args.law])
+        model = experiment.model
+        setup = experiment.law(args.law)
+        loop_kw = setup.arguments()
         if not args.despite_prediction:
             # the explicit coupling at H, linearized at t = 0 (docs/fmu.md, "Co-simulation
             # check"): a run predicted to diverge is refused before any build or export
@@ -199,15 +201,17 @@ def main_cosim(argv=None) -> int:
             _check_interface(fmu_path, read_description(fmu_path, "co-simulation"), model)
         from ivdrem.sim.guards import check_diagram_cost
         from ivdrem.sim.methods import REFERENCE_METHOD
-        reference = closed_loop(args.law, model, **loop_kw)
-        if getattr(reference, "gamma_choice", None) is not None:
-            loop_kw["gamma"] = reference.gamma_choice["gamma"]   # one γ "auto" for every run
+        reference = experiment.loop(args.law)     # a γ "auto" at a placeholder: priced
+        if setup.auto:
+            experiment.choose_gamma(args.law)
+            loop_kw = setup.arguments()           # one γ "auto" for every run
         # the all-Python reference: RK4 at the finest H, sampled there
         check_diagram_cost(reference, args.t_end, engine=args.engine,
                            method=REFERENCE_METHOD, h=min(steps), dt_out=min(steps),
                            return_states=False, allow_long=args.allow_long,
                            what="the reference run")
         del reference      # compare_to_python builds each loop when it runs, one at a time
+        experiment.release(args.law)
     except (ValueError, OSError, ImportError) as exc:   # OSError: missing FMU, cache
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2

@@ -196,7 +196,8 @@ def _initial_state(model, config):
     n = model.n
     q0 = config.get("q0")
     if q0 is None:
-        q0 = [0.0, 0.3 * np.pi] if (model.name == "two-link" and n == 2) else np.zeros(n)
+        from .._default_config import paper_experiment
+        q0 = paper_experiment()["q0"] if (model.name == "two-link" and n == 2) else np.zeros(n)
     dq0 = config.get("dq0")
     dq0 = np.zeros(n) if dq0 is None else dq0
     out = []
@@ -516,14 +517,11 @@ def coupling_stability(model, comm_step, t_end, **config) -> CouplingStability:
     (then Πᵀθ̂ adds a filtered velocity gain μ M(q, θ̂0) the map leaves out) or user blocks
     (``replace``).
     """
-    import inspect
-
     from ivdrem.blocks import _validate as checks
-    from ivdrem.diagrams import closed_loop
+    from ivdrem.diagrams.closed_loop import LOOP_ARGUMENTS as defaults
 
     H = float(comm_step)
     _steps(t_end, H)
-    defaults = {k: p.default for k, p in inspect.signature(closed_loop).parameters.items()}
 
     def given(key):
         v = config.get(key)

@@ -58,30 +58,32 @@ class FmuCheckNotRun(Exception):
     the numbers, and what to do instead."""
 
 
-def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False, allow_long=False,
+def fmu_check(experiment, t_end=10.0, *, engine=None, progress=False, allow_long=False,
               gamma=None):
     """Export the plant FMU, co-simulate the IV-DREM controller against it at three
     communication steps, and return (rows for the report table, comparison).
 
-    First, before exporting or building anything, the explicit coupling at the coarsest
-    step is predicted from the model and the configuration
+    `experiment`: the report's :class:`~ivdrem.experiments.experiment.Experiment` (or a
+    configuration).  First, before exporting or building anything, the explicit coupling
+    at the coarsest step is predicted from the model and the configuration
     (:func:`ivdrem._preflight.fmu_check_prediction`); if it diverges, :class:`FmuCheckNotRun`
     is raised with the reason.  Then :func:`~ivdrem.fmu.cosim.compare_to_python`, which
     co-simulates at the coarsest step before it builds the all-Python loop.
 
-    With ``iv_drem.gamma = "auto"`` the check uses `gamma`, the γ the report's IV-DREM run
-    chose; without it, the one the rule gives with the run's own solver
-    (experiments.paper.law_diagram).  Calibrating again inside the co-simulation took
-    DP45 at 10 ms steps over 2T, a stiff loop on a real arm (the Panda: minutes)."""
+    With ``iv_drem.gamma = "auto"`` the check uses `gamma` if given, else the experiment's
+    choice (made once, by the report's IV-DREM run or here).  Calibrating again inside the
+    co-simulation took DP45 at 10 ms steps over 2T, a stiff loop on a real arm (the Panda:
+    minutes)."""
     import tempfile
     from pathlib import Path
 
-    from .._preflight import FMU_CHECK_COMM_STEPS, fmu_check_prediction
-    from ..experiments.config import closed_loop_kwargs, model_from_config
+    from .._preflight import FMU_CHECK_COMM_STEPS, experiment_of, fmu_check_prediction
     from ..fmu import export_fmu
     from ..fmu.cosim import compare_to_python
 
-    predicted = fmu_check_prediction(config, t_end)
+    experiment = experiment_of(experiment, engine)
+    engine = experiment.engine if engine is None else engine
+    predicted = fmu_check_prediction(experiment, t_end)
     if predicted.diverges:
         raise FmuCheckNotRun(
             f"predicted to diverge: {predicted.reason()}.  The check co-simulates at H = "
@@ -89,14 +91,13 @@ def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False, allow_lo
             + f" ms; to check the plant FMU on this arm use `ivdrem cosim --config FILE.toml "
             f"--comm-step H --t-end {float(t_end):g}` with H below "
             f"{predicted.limit_end * 1e3:.2g} ms, or leave the check out with --no-fmu-check")
-    model = model_from_config(config)
-    kw = closed_loop_kwargs(config, "iv-drem")
-    if kw.get("gamma") == "auto":
-        if gamma is None:
-            from ..experiments.paper import law_diagram
-            gamma = law_diagram(config, "iv-drem", model=model,
-                                engine=engine).gamma_choice["gamma"]
-        kw["gamma"] = gamma
+    model = experiment.model
+    setup = experiment.law("iv-drem")
+    if setup.auto and gamma is None:
+        experiment.choose_gamma("iv-drem")
+    kw = setup.arguments()
+    if setup.auto and gamma is not None:
+        kw["gains"]["gamma"] = gamma
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "Plant.fmu"
         export_fmu(model, path, q0=kw["q0"], dq0=kw["dq0"])
@@ -126,7 +127,9 @@ def config_from_args(args) -> dict:
 
 
 def _preflight(args):
-    """Everything checked before the first simulation step: (config, html, pdf paths)."""
+    """Everything checked before the first simulation step: (experiment, html, pdf
+    paths)."""
+    from ..experiments.experiment import Experiment
     from .report import report_paths
 
     config = config_from_args(args)
@@ -135,9 +138,10 @@ def _preflight(args):
     out = check_writable_dir(user_path(args.out), "report directory")
     html_path, pdf_path = report_paths(out, overwrite=args.overwrite)
     check_cache_dir(args.engine)
-    check_runs(config, engine=args.engine, allow_long=args.allow_long,
+    experiment = Experiment.from_config(config, engine=args.engine)     # resolved once
+    check_runs(experiment, allow_long=args.allow_long,
                fmu_check_t_end=None if args.no_fmu_check else args.fmu_check_t_end)
-    return config, html_path, pdf_path
+    return experiment, html_path, pdf_path
 
 
 def _write_or_keep(run, out, check, overwrite):
@@ -168,12 +172,12 @@ def run_report_command(args) -> int:
     args.overwrite = getattr(args, "overwrite", False)
     args.allow_long = getattr(args, "allow_long", False)
     try:
-        config, html_path, pdf_path = _preflight(args)
+        experiment, html_path, pdf_path = _preflight(args)
     except (ConfigError, PreflightError, ReportError, OutputLocationError, ValueError,
             ImportError) as exc:
         print(f"ivdrem report: error: {exc}", file=sys.stderr)
         return 2
-    note = horizon_note(config)
+    note = horizon_note(experiment.config)
     if note:
         print(f"ivdrem report: {note}", file=sys.stderr)
 
@@ -184,7 +188,7 @@ def run_report_command(args) -> int:
     progress = want_progress(not args.quiet)
     extra = {"allow_long": True} if args.allow_long else {}
     try:
-        run = run_paper(config, progress=progress, engine=args.engine, log=print, **extra)
+        run = run_paper(experiment, progress=progress, log=print, **extra)
     except SimulationError as exc:
         print(f"ivdrem report: simulation failed: {exc}", file=sys.stderr)
         return 1
@@ -197,7 +201,7 @@ def run_report_command(args) -> int:
     if not args.no_fmu_check:
         try:
             ivdrem_run = run.runs.get("iv-drem")
-            check, cmp = fmu_check(config, args.fmu_check_t_end, engine=args.engine,
+            check, cmp = fmu_check(experiment, args.fmu_check_t_end,
                                    progress=progress,
                                    gamma=getattr(ivdrem_run, "gamma", None), **extra)
             print(cmp.table())
