@@ -481,8 +481,8 @@ def test_method_override_reaches_the_config(monkeypatch):
     import ivdrem.experiments.paper as paper
     seen = {}
 
-    def fake(config, **kw):
-        seen["method"] = config["solver"]["method"]
+    def fake(experiment, **kw):       # the command's Experiment of its configuration
+        seen["method"] = experiment.config["solver"]["method"]
         raise SystemExit(0)
     monkeypatch.setattr(paper, "run_paper", fake)
     with pytest.raises(SystemExit):
