@@ -59,7 +59,7 @@ def test_progress_is_silent_when_not_a_terminal(tmp_path):
 
 def test_method_option_brings_its_tolerances(tmp_path):
     """--method dp45 runs DP45 at its own default tolerances, unless the file sets them."""
-    from ivdrem._preflight import method_overrides
+    from ivdrem.cli.preflight import method_overrides
     from ivdrem.sim.simulator import DEFAULT_TOLERANCES
     assert method_overrides(None) == {}
     o = method_overrides("dp45")
@@ -220,7 +220,7 @@ def test_the_preflight_prices_and_simulates_nothing(monkeypatch):
     import ivdrem.diagrams.gamma_auto as gamma_auto
     import ivdrem.sim as sim
     from pathlib import Path
-    from ivdrem._preflight import check_runs
+    from ivdrem.cli.preflight import check_runs
     from ivdrem.experiments.config import load_config
 
     def never(*a, **k):
@@ -247,7 +247,7 @@ def test_the_preflight_does_not_price_an_fmu_check_predicted_to_diverge():
     going to run: with K = 2000 on the 2-link arm its 1 ms coupling is predicted to diverge
     (ivdrem.fmu.cosim.coupling_stability), so a horizon whose reference would be refused
     does not stop the report."""
-    from ivdrem._preflight import check_runs, fmu_check_prediction
+    from ivdrem.cli.preflight import check_runs, fmu_check_prediction
     from ivdrem.experiments.config import load_config
     from ivdrem.sim.guards import CostLimitError
     config = load_config(None, {"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"]})

@@ -346,7 +346,7 @@ def test_a_configuration_names_the_module_that_registers_its_laws(tmp_path):
     """experiment.plugins: a Python file (relative to the configuration file) that
     registers a law; the configuration then takes the law and its own table."""
     import shutil
-    from ivdrem._preflight import check_runs
+    from ivdrem.cli.preflight import check_runs
     from ivdrem.laws import LAWS
     shutil.copy(Path(__file__).resolve().parents[1] / "examples" / "custom_law.py",
                 tmp_path / "my_laws.py")

@@ -61,7 +61,7 @@ def test_ivdrem_paper_resolves_each_law_once_and_builds_its_loop_once(tmp_path):
 
 
 def test_the_preflight_prices_the_loop_the_run_simulates():
-    from ivdrem._preflight import check_runs
+    from ivdrem.cli.preflight import check_runs
     experiment = Experiment.from_config(load_config(overrides={"experiment.t_end": 0.1,
                                                                "experiment.laws": ["iv-drem"]}))
     check_runs(experiment)

@@ -19,7 +19,7 @@ from ivdrem.experiments.config import load_config
 from ivdrem.experiments.metrics import conclusions, key_numbers
 from ivdrem.reports import ReportError, write_report
 from ivdrem.reports import figures as report_figures
-from ivdrem.reports.cli import add_report_arguments, run_report_command
+from ivdrem.cli.report import add_report_arguments, run_report_command
 from ivdrem.reports.synthetic import synthetic_paper_run
 
 N_FIGURES = 7  # Figures 1-4 of the paper, θ̂ vs θ, τ, λ_min/μ
@@ -375,7 +375,7 @@ def test_cli_arguments_defaults():
 @pytest.fixture
 def fake_fmu_check(monkeypatch):
     """The FMU co-simulation check (exercised for real in test_cosim.py), faked."""
-    import ivdrem.reports.cli as rcli
+    import ivdrem.cli.report as rcli
 
     class _Cmp:
         def table(self):
@@ -547,7 +547,7 @@ def test_fmu_check_takes_the_runs_gamma_auto_instead_of_calibrating_again(monkey
     import ivdrem.experiments.paper as paper_mod
     import ivdrem.fmu as fmu_mod
     import ivdrem.fmu.cosim as cosim_mod
-    import ivdrem.reports.cli as rcli
+    import ivdrem.cli.report as rcli
     from pathlib import Path
 
     from ivdrem.experiments.config import closed_loop_kwargs, load_config

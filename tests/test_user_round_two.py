@@ -575,7 +575,7 @@ def test_tight_tolerances_are_priced_from_measured_step_counts():
     silent for minutes); measured here: 16 186, 103 658 steps for 10, 30 s (IV-DREM)."""
     from ivdrem.sim.guards import (CostLimitError, PAPER_LOOP_STEPS_BY_RTOL, paper_loop_steps,
                                    tolerance_factor)
-    from ivdrem._preflight import check_runs, long_run_note
+    from ivdrem.cli.preflight import check_runs, long_run_note
     from ivdrem.experiments.config import load_config
     assert tolerance_factor(2e-4, 300.0) == (1.0, None)
     assert tolerance_factor(1e-3, 300.0)[0] == 1.0

@@ -153,6 +153,18 @@ class Experiment:
             setup.diagram = build_resolved(get_law(law), self.model, gains, **setup.loop)
         return setup.diagram
 
+    def check_cost(self, law: str, diagram=None, *, allow_long=False, what=None):
+        """Refuse `law`'s run on `diagram` (default its :meth:`loop`) if its output memory or
+        step bound is above the limits of :mod:`ivdrem.sim.guards` (ValueError /
+        CostLimitError naming `what`, default "the <law> run")."""
+        from ..sim.guards import check_diagram_cost
+        solver = self.law(law).solver
+        return check_diagram_cost(self.loop(law) if diagram is None else diagram, self.t_end,
+                                  engine=self.engine, dt_out=self.dt_out,
+                                  method=solver["method"], h=solver["h"],
+                                  h_max=solver["h_max"], allow_long=allow_long,
+                                  what=what or f"the {law} run")
+
     def run_params(self, law: str) -> dict | None:
         """The parameters a run of :meth:`loop` is simulated with: γ of a γ "auto" (chosen
         first, :meth:`choose_gamma`), else None."""

@@ -399,17 +399,19 @@ def check_study_cost(runs: list[RunSpec]) -> None:
     (output memory, step count: a worker would refuse it after the cluster started, or
     fill its memory), naming the run.  One pricing diagram per model structure and law:
     the cost depends on the diagram's size, not on its parameter values."""
-    from .._preflight import check_law_cost
     from .experiment import Experiment
-    diagrams = {}
+    priced = {}
     for run in runs:
         model_key = json.dumps({k: v for k, v in run.config["model"].items() if k != "theta"},
                                sort_keys=True)
         key = (run.law, model_key, json.dumps(run.config.get("iv_drem", {}).get("mixing")))
         try:
-            if key not in diagrams:
-                diagrams[key] = Experiment.from_config(run.config, laws=[run.law]).loop(run.law)
-            check_law_cost(run.config, run.law, diagrams[key], what=run.label)
+            experiment = Experiment.from_config(run.config, laws=[run.law])
+            if key not in priced:
+                priced[key] = experiment.loop(run.law)
+                experiment.release(run.law)
+            # this run's horizon and solver on the loop of its structure
+            experiment.check_cost(run.law, priced[key], what=run.label)
         except ValueError as exc:    # CostLimitError, a bound of h_max / dt_out
             # the guard's remedy "--allow-long" is an option of paper and report, not of
             # a study: name the remedy that exists
@@ -487,8 +489,12 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     try:   # before a cluster starts: the output directory, the C compiler, then what each
         # run will cost
         check_writable_dir(out, "study directory (--out)")
-        from .._preflight import check_c_compiler
-        check_c_compiler()
+        from ..sim import _cstepper
+        from ..sim.compiled import C_COMPILER_HINT
+        try:    # both engines step in C (ivdrem/sim/stepper.c)
+            _cstepper._compiler()
+        except _cstepper.CStepperUnavailable as exc:
+            raise StudyError(f"{exc}; {C_COMPILER_HINT}") from None
     except (OutputLocationError, ValueError) as exc:
         raise StudyError(str(exc)) from None
     check_study_cost([wanted[h] for h in todo])
@@ -631,73 +637,3 @@ def _interleave(todo: list[RunSpec]) -> list[RunSpec]:
             if i < len(v):
                 out.append(v[i])
     return out
-
-
-# --------------------------------------------------------------------------- command line
-def add_study_arguments(parser):
-    """Options of ``ivdrem study``."""
-    parser.add_argument("study", metavar="FILE.toml",
-                        help="study file: a configuration plus [study.grid] / [study.random] "
-                             "(see examples/study-window.toml, docs/studies.md)")
-    parser.add_argument("--out", metavar="DIR", default=None,
-                        help="output directory (default: studies/<name of FILE>)")
-    parser.add_argument("--workers", metavar="N", type=int, default=None,
-                        help="worker processes of the local Dask cluster (default: one per core)")
-    parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                        help="submit to a running Dask scheduler, e.g. tcp://HOST:8786, whose "
-                             "workers have ivdrem installed")
-    parser.add_argument("--resume", action="store_true",
-                        help="continue a study in DIR: skip the runs already finished there")
-    parser.add_argument("--no-report", action="store_true", dest="no_report",
-                        help="write the tables only, not study.html / study.pdf")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar, no notes on long preparation")
-    return parser
-
-
-def run_study_command(args) -> int:
-    """``ivdrem study``: 0 when every run has a record, 1 when runs were lost, 2 for bad input."""
-    # Paths on the command line are the caller's (see ivdrem._paths), as for every command.
-    study = user_path(args.study)
-    out = user_path(args.out if args.out is not None else Path("studies") / study.stem)
-    try:
-        df = run_study(study, out, workers=args.workers, scheduler=args.scheduler,
-                       resume=args.resume, progress=False if args.quiet else None,
-                       report=not args.no_report)
-    except StudyError as exc:
-        print(f"ivdrem study: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt as exc:      # Ctrl-C, or SIGTERM (ivdrem.cli.Terminated)
-        from ..cli import EXIT_INTERRUPTED
-        done = len(RunStore(Path(out)).load())
-        how = getattr(exc, "label", "Ctrl-C")
-        print(f"\nivdrem study: interrupted ({how}); {done} finished run(s) are saved in "
-              f"{out}/runs; continue with --resume", file=sys.stderr)
-        return 128 + exc.signum if hasattr(exc, "signum") else EXIT_INTERRUPTED
-    print(summary_text(df, out))
-    return 1 if df.attrs.get("lost") else 0
-
-
-def summary_text(df, out) -> str:
-    """A few lines for the terminal: counts, medians per law, verdicts, files."""
-    lines = []
-    n_ok = int((df["status"] == "ok").sum()) if not df.empty else 0
-    n_bad = len(df) - n_ok
-    wall = df.attrs.get("wall_s")
-    lines.append(f"{len(df)} runs: {n_ok} ok, {n_bad} failed"
-                 + (f"; {wall:.1f} s in this session" if wall is not None else ""))
-    if n_ok:
-        ok = df[df["status"] == "ok"]
-        for law, sub in ok.groupby("law", sort=False):
-            lines.append(f"{law:>20s}: median |theta_err|(t_end) = {sub['theta_err_norm'].median():.4g} "
-                         f"(min {sub['theta_err_norm'].min():.4g}, max {sub['theta_err_norm'].max():.4g}), "
-                         f"median RMS tau_d err last 20% = {sub['tau_d_err_rms_last20'].median():.4g} N m")
-        pts = df.drop_duplicates("point")
-        for c in ("C1", "C2", "C3"):
-            v = pts[c].dropna()
-            if len(v):
-                lines.append(f"{c}: PASS at {int(v.sum())} of {len(v)} points")
-    for h, msg in (df.attrs.get("lost") or {}).items():
-        lines.append(f"lost run {h}: {msg} (run again with --resume)")
-    lines.append(f"wrote {out}/results.parquet, results.csv, curves.parquet"
-                 + ("" if not (Path(out) / "study.html").exists() else ", study.html, study.pdf"))
-    return "\n".join(lines)

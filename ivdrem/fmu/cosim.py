@@ -55,7 +55,7 @@ term cancels), the position enters through ``r = e' + alpha e``;
 ``_one_step_map``) and predicts, from the model and the configuration only, the growth per
 step of the linearized coupling at t = 0.  At least :data:`DIVERGING_GROWTH` = 1.5 (and a
 million-fold growth within the horizon) is taken as a divergence: the report's FMU check is
-then not run (``ivdrem.reports.cli.fmu_check``).  On the Panda (examples/panda.toml) at
+then not run (``ivdrem.cli.report.fmu_check``).  On the Panda (examples/panda.toml) at
 ``H = 1 ms``: ``lambda_max = 2994 /s`` (the wrist, smallest eigenvalue of M(q0) 0.0047),
 growth 1.98 per step, against an observed e-folding rate of 776 /s (a factor 2.2 per step)
 in the co-simulation, which diverges at t = 21 ms.  On the 2-link arm with a larger K:

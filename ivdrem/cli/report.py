@@ -12,7 +12,7 @@ import argparse
 import sys
 
 from .._paths import OutputLocationError, check_writable_dir, user_path
-from .._preflight import (PreflightError, add_run_options, check_cache_dir, check_fmu_check_t_end,
+from .preflight import (PreflightError, add_run_options, check_cache_dir, check_fmu_check_t_end,
                           check_runs, horizon_note, method_overrides, timing_text)
 from .._progress import want_progress
 from ..experiments.config import LAWS, ConfigError, load_config
@@ -66,7 +66,7 @@ def fmu_check(experiment, t_end=10.0, *, engine=None, progress=False, allow_long
     `experiment`: the report's :class:`~ivdrem.experiments.experiment.Experiment` (or a
     configuration).  First, before exporting or building anything, the explicit coupling
     at the coarsest step is predicted from the model and the configuration
-    (:func:`ivdrem._preflight.fmu_check_prediction`); if it diverges, :class:`FmuCheckNotRun`
+    (:func:`ivdrem.cli.preflight.fmu_check_prediction`); if it diverges, :class:`FmuCheckNotRun`
     is raised with the reason.  Then :func:`~ivdrem.fmu.cosim.compare_to_python`, which
     co-simulates at the coarsest step before it builds the all-Python loop.
 
@@ -77,7 +77,7 @@ def fmu_check(experiment, t_end=10.0, *, engine=None, progress=False, allow_long
     import tempfile
     from pathlib import Path
 
-    from .._preflight import FMU_CHECK_COMM_STEPS, experiment_of, fmu_check_prediction
+    from .preflight import FMU_CHECK_COMM_STEPS, experiment_of, fmu_check_prediction
     from ..fmu import export_fmu
     from ..fmu.cosim import compare_to_python
 
@@ -130,7 +130,7 @@ def _preflight(args):
     """Everything checked before the first simulation step: (experiment, html, pdf
     paths)."""
     from ..experiments.experiment import Experiment
-    from .report import report_paths
+    from ..reports.report import report_paths
 
     config = config_from_args(args)
     if not args.no_fmu_check:
@@ -150,7 +150,7 @@ def _write_or_keep(run, out, check, overwrite):
     import tempfile
 
     from .._atomic import os_error_behind
-    from .report import write_report
+    from ..reports.report import write_report
     try:
         return (*write_report(run, out, fmu_check=check, overwrite=overwrite), None)
     except Exception as exc:
@@ -164,10 +164,10 @@ def _write_or_keep(run, out, check, overwrite):
 def run_report_command(args) -> int:
     """Check every option and output location, run the experiment, write the report;
     returns the exit status (2: refused before any work, 1: a run or the write failed)."""
-    from .report import ReportError
+    from ..reports.report import ReportError
 
     if getattr(args, "plant", "ivdrem") == "mujoco":
-        from ..plants.cli import run_mujoco_report
+        from .plants import run_mujoco_report
         return run_mujoco_report(args)
     args.overwrite = getattr(args, "overwrite", False)
     args.allow_long = getattr(args, "allow_long", False)
@@ -222,12 +222,12 @@ def run_report_command(args) -> int:
     return 1 if failed is not None else 0
 
 
-def main(argv=None) -> int:  # pragma: no cover - convenience for `python -m ivdrem.reports.cli`
+def main(argv=None) -> int:  # pragma: no cover - convenience for `python -m ivdrem.cli.report`
     parser = add_report_arguments(argparse.ArgumentParser(prog="ivdrem report"))
     try:
         return run_report_command(parser.parse_args(argv))
     except KeyboardInterrupt:
-        from ..cli import interrupted
+        from . import interrupted
         return interrupted("ivdrem report")
 
 

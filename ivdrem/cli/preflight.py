@@ -14,10 +14,10 @@ from __future__ import annotations
 import argparse
 import math
 
-from ._paths import check_writable_dir
+from .._paths import check_writable_dir
 
 __all__ = ["PreflightError", "add_run_options", "solver_methods", "check_method",
-           "check_runs", "check_inertia", "check_law_cost", "pricing_diagram",
+           "check_runs", "check_inertia", "pricing_diagram",
            "experiment_of", "check_fmu_check_t_end", "fmu_check_prediction",
            "check_cache_dir", "horizon_note",
            "timing_text", "CONCLUSIONS_HORIZON", "FMU_CHECK_COMM_STEPS"]
@@ -57,7 +57,7 @@ def _config_method() -> str:
 
 def solver_methods() -> tuple:
     """The simulator's method names (the method registry, ivdrem.sim.methods)."""
-    from .sim.methods import METHODS
+    from ..sim.methods import METHODS
     return tuple(METHODS)
 
 
@@ -77,11 +77,11 @@ def method_overrides(name, config_path=None) -> dict:
     (Rodas5P runs at rtol 2e-4, DP45 needs 1e-6) unless the user's file sets them."""
     if check_method(name) is None:
         return {}
-    from .sim.methods import method_info
+    from ..sim.methods import method_info
     user = {}
     if config_path is not None:
         try:   # a broken file is reported by load_config, with its own message
-            from .experiments.config import read_toml
+            from ..experiments.config import read_toml
             user = read_toml(config_path)[0].get("solver", {})   # never a FIFO or a device
         except Exception:
             user = {}
@@ -96,7 +96,7 @@ def method_overrides(name, config_path=None) -> dict:
 def experiment_of(experiment, engine=None):
     """`experiment` itself (an :class:`ivdrem.experiments.experiment.Experiment`), or the
     Experiment of a configuration (its model built, its laws resolved once)."""
-    from .experiments.experiment import Experiment
+    from ..experiments.experiment import Experiment
     if isinstance(experiment, Experiment):
         return experiment
     return Experiment.from_config(experiment, engine=engine or "compiled")
@@ -113,12 +113,12 @@ def check_runs(experiment, *, engine=None, allow_long=False, fmu_check_t_end=Non
     (``Experiment.loop``, built once; a γ "auto" is a parameter of it, chosen by the
     calibration before the run); then a γ "auto" whose mixing the reference estimate puts
     below the doubles is refused (``Experiment.check_gamma_auto``)."""
-    from .sim.guards import (check_diagram_cost, check_run_time, oscillation_steps,
+    from ..sim.guards import (check_diagram_cost, check_run_time, oscillation_steps,
                              paper_loop_steps, run_seconds)
-    from .sim.methods import REFERENCE_METHOD, method_info
+    from ..sim.methods import REFERENCE_METHOD, method_info
 
     experiment = experiment_of(experiment, engine)
-    engine = experiment.engine if engine is None else engine
+    engine = experiment.engine
     config, model = experiment.config, experiment.model
     check_inertia(config, model)
     exp = config["experiment"]
@@ -126,7 +126,7 @@ def check_runs(experiment, *, engine=None, allow_long=False, fmu_check_t_end=Non
     for law in experiment.laws:
         solver = experiment.law(law).solver
         d = experiment.loop(law)
-        check_law_cost(experiment, law, d, engine=engine, allow_long=allow_long)
+        experiment.check_cost(law, d, allow_long=allow_long)
         if law == "iv-drem" and fmu_check_t_end is not None:
             fmu_loop = d                   # the FMU check's loop, priced below
         # the paper's 2-link loop: the measured step count and time per step
@@ -219,25 +219,6 @@ def pricing_diagram(experiment, law):
     return experiment_of(experiment).loop(law)
 
 
-def check_law_cost(experiment, law, diagram, *, engine=None, allow_long=False, what=None):
-    """Refuse `law`'s run of `experiment` (an Experiment, or a configuration) on `diagram`
-    if its output memory or step bound is above the limits of :mod:`ivdrem.sim.guards`
-    (ValueError / CostLimitError)."""
-    from .experiments.experiment import Experiment
-    from .sim.guards import check_diagram_cost
-    if isinstance(experiment, Experiment):
-        config, solver = experiment.config, experiment.law(law).solver
-        engine = experiment.engine if engine is None else engine
-    else:
-        from .experiments.config import solver_kwargs
-        config, solver = experiment, solver_kwargs(experiment, law)
-    exp = config["experiment"]
-    return check_diagram_cost(diagram, float(exp["t_end"]), engine=engine or "compiled",
-                              dt_out=float(exp["dt_out"]), method=solver["method"],
-                              h=solver["h"], h_max=solver["h_max"], allow_long=allow_long,
-                              what=what or f"the {law} run")
-
-
 def _is_paper_robot(config) -> bool:
     """True if the configuration's plant is the paper's 2-link arm (the loop the cost
     table of ivdrem.sim.guards was measured on)."""
@@ -250,7 +231,7 @@ def fmu_check_prediction(experiment, t_end):
     from the model and the experiment (an Experiment, or a configuration) alone
     (:func:`ivdrem.fmu.cosim.coupling_stability`: ``.diverges``, ``.reason()``); a check
     predicted to diverge is not run, nor priced."""
-    from .fmu.cosim import coupling_stability
+    from ..fmu.cosim import coupling_stability
     experiment = experiment_of(experiment)
     return coupling_stability(experiment.model, max(FMU_CHECK_COMM_STEPS), float(t_end),
                               **experiment.law("iv-drem").loop)
@@ -277,15 +258,15 @@ def check_cache_dir(engine) -> None:
     check_c_compiler()          # both engines step in C (ivdrem/sim/stepper.c)
     if engine != "compiled":
         return
-    from .sim.compiled import cache_dir
+    from ..sim.compiled import cache_dir
     check_writable_dir(cache_dir(), "compile cache directory (IVDREM_CACHE_DIR)")
 
 
 def check_c_compiler() -> None:
     """$CC (or cc) must run (``--version``) before any work: CC=/bin/false or a missing
     compiler is one line naming it and what to install, not a traceback at the first run."""
-    from .sim import _cstepper
-    from .sim.compiled import C_COMPILER_HINT
+    from ..sim import _cstepper
+    from ..sim.compiled import C_COMPILER_HINT
     try:
         _cstepper._compiler()
     except _cstepper.CStepperUnavailable as e:
