@@ -363,7 +363,8 @@ def test_before_t_on_the_loop_is_the_plain_adaptive_law():
     model = two_link()
     kw = dict(method="dp45", rtol=1e-10, atol=1e-12, progress=False, return_states=False,
               dt_out=0.1)
-    ivd = simulate(closed_loop("iv-drem", model, gains=dict(mixing="eigen", gamma=30.0)), 24.0, **kw)
+    ivd = simulate(closed_loop("iv-drem", model, gains=dict(mixing="eigen", gamma=30.0)), 24.0,
+                   **kw)
     none = simulate(closed_loop("none", model), 24.0, **kw)
     a, b = signal(ivd, "theta_hat"), signal(none, "theta_hat")
     before = ivd.time <= 20.0

@@ -240,7 +240,8 @@ def test_the_size_estimate_counts_what_interconnect_allocates():
     from ivdrem.sim.guards import interconnect_bytes, loop_states
     from ivdrem.models import two_link, planar_arm
     for model in (two_link(), planar_arm(3)):
-        d = closed_loop("iv-drem", model, gains=dict(gamma=1.0, mixing="paper")) if model.n == 3 else \
+        d = closed_loop("iv-drem", model, gains=dict(gamma=1.0, mixing="paper")) \
+            if model.n == 3 else \
             closed_loop("iv-drem", model)
         nin = sum(s.ninputs for s in d.syslist)
         nout = sum(s.noutputs for s in d.syslist)

@@ -12,8 +12,8 @@ from ..sim.guards import check_interconnect_size
 from ..sim.plan import check_signal_sizes, rows_with_entries, signal_sizes
 from .wiring import NOT_PLAIN, wire_by_name
 
-__all__ = ["closed_loop", "resolve_loop", "build_resolved", "law_gains", "LOOP_ARGUMENTS", "LAWS",
-           "assemble", "check_connected"]
+__all__ = ["closed_loop", "resolve_loop", "build_resolved", "check_gains", "LOOP_ARGUMENTS",
+           "LAWS", "assemble", "check_connected"]
 
 #: ``LAWS``: names of the registered composite terms vartheta_c (``ivdrem.laws``), read
 #: from the registry on every access: "iv-drem" (proposed, eq. 21), "composite-learning"
@@ -70,7 +70,7 @@ def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
     return diagram
 
 
-def law_gains(spec, gains) -> dict:
+def check_gains(spec, gains) -> dict:
     """A copy of `gains` (None: none) checked against the gains `spec` declares (its
     registry entry's ``defaults``): an unknown name is refused naming the law's gains."""
     gains = {} if gains is None else dict(gains)
@@ -84,7 +84,7 @@ def law_gains(spec, gains) -> dict:
 
 def resolve_loop(law="iv-drem", model=None, *, gains=None, **loop):
     """(law's Law, model, gains, loop) as :func:`closed_loop` builds them: the model (default
-    the paper's 2-link arm), the law's `gains` checked (:func:`law_gains`), and on any arm but
+    the paper's 2-link arm), the law's `gains` checked (:func:`check_gains`), and on any arm but
     the paper's the real-arm experiment designed for what `loop` and `gains` leave at None
     (docs/experiment.md) and the arm's rule for γ and the mixing
     (:func:`ivdrem.laws.arm_gain_rule`).  γ may come out "auto": a number is chosen from it
@@ -98,7 +98,7 @@ def resolve_loop(law="iv-drem", model=None, *, gains=None, **loop):
                         f"{', '.join(map(repr, unknown))}"
                         + (f"; a law's gains go in gains={{...}} ({', '.join(hint)})"
                            if hint else ""))
-    gains = law_gains(spec, gains)
+    gains = check_gains(spec, gains)
     if model is None:
         from ..models import two_link
         model = two_link()

@@ -29,8 +29,8 @@ import math
 
 import numpy as np
 
-__all__ = ["calibrate_gamma", "calibrated_loop", "gamma_from_delta", "GainRuleError", "DEFAULT_RATE",
-           "GAMMA_MAX", "DELTA2_MIN", "reference_mean_delta2", "check_reference_delta",
+__all__ = ["calibrate_gamma", "calibrated_loop", "gamma_from_delta", "GainRuleError",
+           "DEFAULT_RATE", "GAMMA_MAX", "DELTA2_MIN", "reference_mean_delta2", "check_reference_delta",
            "ESTIMATE_MARGIN", "REFERENCE_MIXINGS"]
 
 #: target contraction rate κ = γ Δ² λ_max(Γ) of the composite term, 1/s

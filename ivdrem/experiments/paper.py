@@ -6,7 +6,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .._progress import want_progress
-from ..diagrams import closed_loop
 from .config import model_from_config
 
 __all__ = ["LawRun", "PaperRun", "run_paper", "run_law"]
@@ -29,22 +28,6 @@ class PaperRun:
     theta: np.ndarray
     model: object
     runs: dict = field(default_factory=dict)
-
-
-def law_diagram(config, law, *, model=None, engine="compiled"):
-    """The closed loop of `law` from `config`, as its run simulates it, with a γ "auto"
-    chosen first (:class:`~ivdrem.experiments.experiment.Experiment`; its calibration is
-    kept on disk, so a repeat reads it) and built in as a number; the choice is in
-    ``diagram.gamma_choice``."""
-    from .experiment import Experiment
-    experiment = Experiment(config, model_from_config(config) if model is None else model,
-                            engine=engine)
-    setup = experiment.law(law)
-    choice = experiment.choose_gamma(law)
-    diagram = closed_loop(law, experiment.model, **setup.arguments())
-    if choice is not None:
-        diagram.gamma_choice = choice
-    return diagram
 
 
 def run_law(config, law, *, model=None, progress=True, engine="compiled", log=None,
