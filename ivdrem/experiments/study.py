@@ -44,7 +44,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from .._atomic import write_text_atomic, new_tempfile, fsync_file, os_error_behind
-from .._paths import OutputLocationError, check_writable_dir, user_path
+from .._paths import OutputLocationError, check_writable_dir
 from .._progress import want_progress
 from .study_spec import RunSpec, StudyError, StudySpec, expand_study, read_study
 
