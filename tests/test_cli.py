@@ -337,3 +337,36 @@ def test_python_m_ivdrem_is_the_console_script(tmp_path):
     p = subprocess.run([sys.executable, "-m", "ivdrem", "paper", "--t-end", "-1"],
                        capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert p.returncode == 2 and "--t-end" in p.stderr
+
+
+def test_every_command_line_face_is_in_the_cli_package():
+    """argparse is used in ivdrem/cli/ only (every command, its options and the
+    preflight), and no module outside it imports it: the library below is usable without
+    the command line (ivdrem/__main__.py only starts it)."""
+    import ast
+    from pathlib import Path
+
+    import ivdrem
+    root = Path(ivdrem.__file__).parent
+    checked = 0
+    for path in sorted(root.rglob("*.py")):
+        rel = path.relative_to(root)
+        if rel.parts[0] == "cli" or rel.name == "__main__.py":
+            continue
+        text = path.read_text(encoding="utf-8")
+        assert "argparse" not in text, rel
+        package = ["ivdrem", *rel.parts[:-1]]
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ImportFrom):
+                base = package[:len(package) - node.level + 1] if node.level else []
+                names = [".".join(base + ([node.module] if node.module else []))]
+                if not node.module:
+                    names = [f"{names[0]}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                assert not (name == "ivdrem.cli" or name.startswith("ivdrem.cli.")), (rel, name)
+        checked += 1
+    assert checked > 50
