@@ -124,7 +124,9 @@ def test_closed_loop_mixing_argument():
             if s.name == "mixing"][0].ivdrem.info["variant"] == "paper"
     with pytest.raises(ValueError, match=r"unknown mixing 'det'.*'paper', 'eigen', 'channel'"):
         closed_loop("iv-drem", gains=dict(mixing="det"))
-    with pytest.raises(ValueError, match="has no mixing step"):
+    # composite learning has no mixing step (17): not one of its gains
+    with pytest.raises(ValueError, match=r"'composite-learning' has no gain\(s\) 'mixing'; "
+                                         r"its gains .*: T, gamma, epsilon"):
         closed_loop("composite-learning", gains=dict(mixing="eigen"))
 
 

@@ -129,9 +129,6 @@ def resolve_loop(law="iv-drem", model=None, *, gains=None, **loop):
     for name, value in (("gamma", gamma), ("mixing", mixing)):
         if value is not None:
             gains[name] = value
-    if mixing is not None and "mixing" not in spec.defaults:
-        raise ValueError(f"law {law!r} has no mixing step (17); mixing={mixing!r} applies to "
-                         "laws with the mixed regression (iv-drem, drem)")
     if mixing is not None and mixing not in law_registry.MIXING_VARIANTS:
         raise ValueError(f"unknown mixing {mixing!r}; choose one of "
                          + ", ".join(repr(v) for v in law_registry.MIXING_VARIANTS)
