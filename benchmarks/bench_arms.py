@@ -95,7 +95,15 @@ def _experiment(model):
     from ivdrem.experiments.config import closed_loop_kwargs, load_config
     kw = closed_loop_kwargs(load_config(overrides={"model.name": model.name}), "iv-drem")
     # T: the window the real-arm design gives (a common period of reference and disturbance)
-    return {k: kw[k] for k in ("trajectory", "disturbance", "q0", "dq0", "T")}
+    return {**{k: kw[k] for k in ("trajectory", "disturbance", "q0", "dq0")},
+            "T": kw["gains"]["T"]}
+
+
+def _window(exp):
+    """The window T of an experiment of :func:`_experiment` (a gain of the law), taken out
+    of it: {"T": T}, or nothing for the planar arms' (the law's own T)."""
+    T = exp.pop("T", None)
+    return {} if T is None else {"T": T}
 
 
 # ----------------------------------------------------------------- reference Ψ and Δ
@@ -209,7 +217,7 @@ def run_one(spec, variant, t_end, method="rodas5p", rtol=2e-4, atol=2e-6, h_max=
     docs/mixing.md, calibrated with the same solver): the row of the table."""
     import resource
     import warnings
-    from ivdrem.diagrams import closed_loop
+    from ivdrem.diagrams import calibrated_loop
     from ivdrem.diagrams.gamma_auto import GainRuleError
     from ivdrem.experiments.metrics import signal
     from ivdrem.sim import simulate
@@ -219,9 +227,11 @@ def run_one(spec, variant, t_end, method="rodas5p", rtol=2e-4, atol=2e-6, h_max=
     solver = dict(method=method, rtol=rtol, atol=atol, h_max=h_max)
     row = dict(arm=model.name, variant=variant, ntheta=nth, t_end=t_end)
     try:
-        d = closed_loop("iv-drem", model, mixing=variant, gamma="auto",
-                        theta_hat0=np.zeros(nth), K=2.0 * np.eye(n), **_experiment(model),
-                        calibration=solver)
+        exp = _experiment(model)
+        window = _window(exp)
+        d = calibrated_loop("iv-drem", model, gains=dict(mixing=variant, gamma="auto", **window),
+                            theta_hat0=np.zeros(nth), K=2.0 * np.eye(n), **exp,
+                            calibration=solver)
     except GainRuleError as e:
         row.update(refused=str(e))
         return row
@@ -249,7 +259,7 @@ def step_row(spec, variant="eigen", t_at=None, steps=40, method="rodas5p", rtol=
     with the right-hand side it evaluates first, the factorisation of c I - J, a solve).
     Times are this thread's CPU time (time.thread_time), best of 5, so that a loaded
     machine's waiting is not counted; the same computation each time."""
-    from ivdrem.diagrams import closed_loop
+    from ivdrem.diagrams import calibrated_loop
     from ivdrem.sim import _stepper_codes
     from ivdrem.sim._diagram import LU_WORK_ROWS
     from ivdrem.sim.simulator import Simulator
@@ -257,10 +267,11 @@ def step_row(spec, variant="eigen", t_at=None, steps=40, method="rodas5p", rtol=
     n, nth = model.n, model.ntheta
     solver = dict(method=method, rtol=rtol, atol=atol, h_max=h_max)
     exp = _experiment(model)
-    d = closed_loop("iv-drem", model, mixing=variant, gamma=gamma, theta_hat0=np.zeros(nth),
-                    K=2.0 * np.eye(n), **exp,
-                    calibration=solver if isinstance(gamma, str) else None)
-    T = float(exp.get("T") or 20.0)
+    window = _window(exp)
+    d = calibrated_loop("iv-drem", model, gains=dict(mixing=variant, gamma=gamma, **window),
+                        theta_hat0=np.zeros(nth), K=2.0 * np.eye(n), **exp,
+                        calibration=solver if isinstance(gamma, str) else None)
+    T = float(window.get("T") or 20.0)
     t_at = T + 5.0 if t_at is None else float(t_at)
     sim = Simulator(d, **solver)
     sim.advance(t_at)

@@ -116,14 +116,15 @@ def _calibration_args(cl, law, model, variant, exp):
                                                        None, kw["T"])
         kw.update(trajectory=traj, disturbance=dist, q0=q0, dq0=dq0, K=K, T=T)
     else:
-        kw.update(trajectory=cl.PAPER_TRAJECTORY, disturbance=cl.PAPER_DISTURBANCE,
-                  q0=[0.0, 0.3 * 3.141592653589793], K=2.0)
+        from ivdrem._default_config import paper_experiment
+        paper = paper_experiment()
+        kw.update(trajectory=paper["trajectory"], disturbance=paper["disturbance"],
+                  q0=paper["q0"], K=2.0)
     return dict(alpha=1.0, K=kw["K"], delta_mu=0.8, Gamma=0.01, mu0=1.0, mu1=15.0,
                 observer_variant="corrected", l=50.0, T=kw["T"], p=None, F0=None,
                 mixing=variant, epsilon=None, sigma=None, theta_star=None, theta_hat0=None,
                 q0=kw["q0"], dq0=kw["dq0"], theta=None, trajectory=kw["trajectory"],
-                disturbance=kw["disturbance"], replace=None, external_plant=False,
-                law_params=None)
+                disturbance=kw["disturbance"], replace=None, external_plant=False)
 
 
 def main(argv=None):

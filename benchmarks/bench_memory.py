@@ -39,9 +39,8 @@ REPO = Path(__file__).resolve().parents[1]
 PHASES = [
     (("experiments/config.py", "load_config"), "configuration"),
     (("experiments/config.py", "model_from_config"), "model"),
-    (("_preflight.py", "pricing_diagram"), "preflight: the loop priced"),
-    (("_preflight.py", "check_gamma_auto"), "preflight: γ auto estimate"),
-    (("experiments/paper.py", "law_diagram"), "the run's loop"),
+    (("experiments/experiment.py", "loop"), "the loop (priced, then run)"),
+    (("experiments/experiment.py", "check_gamma_auto"), "preflight: γ auto estimate"),
     (("diagrams/gamma_auto.py", "calibrate_gamma"), "γ auto"),
     (("control/nlsys.py", "interconnect"), "python-control interconnect"),
     (("diagrams/closed_loop.py", "assemble"), "wiring by name"),

@@ -77,7 +77,7 @@ class Law:
     section: str | None = None             # configuration table of the gains
     defaults: dict = field(default_factory=dict)
     # {closed_loop keyword: configuration key "section.key"} that the law's run reads; None:
-    # a user's law, whose gains are its section's keys (its defaults) passed as law_params
+    # a user's law, whose gains are its section's keys (its defaults) passed in gains={...}
     config: dict | None = None
     # {key: Key} of `section`: a gain's type, range and default in the configuration; a
     # numeric default not declared here is checked as a number or a vector only

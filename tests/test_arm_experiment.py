@@ -326,7 +326,7 @@ def test_a_real_urdf_file_relative_to_the_config(tmp_path):
 
 
 def test_fmu_export_model_help_names_every_model():
-    from ivdrem.fmu.cli import _parser
+    from ivdrem.cli.fmu import _parser
     action = next(a for a in _parser()._subparsers._group_actions[0].choices["export"]._actions
                   if "--model" in a.option_strings)
     for name in models.model_names():

@@ -471,7 +471,7 @@ def test_short_horizon_note(monkeypatch, capsys, tmp_path):
 
 
 def test_timing_text_splits_compile_and_simulation():
-    from ivdrem._preflight import timing_text
+    from ivdrem.cli.preflight import timing_text
     assert timing_text({"compile_s": 38.6, "sim_s": 0.08, "wall_s": 38.7}) == \
         "compile 38.60 s + simulation 0.08 s"
     assert timing_text({"wall_s": 1.5}) == "1.50 s"
@@ -481,8 +481,8 @@ def test_method_override_reaches_the_config(monkeypatch):
     import ivdrem.experiments.paper as paper
     seen = {}
 
-    def fake(config, **kw):
-        seen["method"] = config["solver"]["method"]
+    def fake(experiment, **kw):       # the command's Experiment of its configuration
+        seen["method"] = experiment.config["solver"]["method"]
         raise SystemExit(0)
     monkeypatch.setattr(paper, "run_paper", fake)
     with pytest.raises(SystemExit):
@@ -574,7 +574,7 @@ def test_run_time_guard_from_the_measured_cost_of_the_paper_loop():
     with the estimate from measured step counts and times per step (about 19 + 22 min),
     not the lower bound t_end / h_max (tens of steps); the paper's default runs on the
     compiled engine, one law on the reference engine and --allow-long are accepted."""
-    from ivdrem._preflight import check_runs
+    from ivdrem.cli.preflight import check_runs
     from ivdrem.experiments.config import load_config
     from ivdrem.sim.guards import CostLimitError
     config = load_config(None)

@@ -59,7 +59,7 @@ def test_progress_is_silent_when_not_a_terminal(tmp_path):
 
 def test_method_option_brings_its_tolerances(tmp_path):
     """--method dp45 runs DP45 at its own default tolerances, unless the file sets them."""
-    from ivdrem._preflight import method_overrides
+    from ivdrem.cli.preflight import method_overrides
     from ivdrem.sim.simulator import DEFAULT_TOLERANCES
     assert method_overrides(None) == {}
     o = method_overrides("dp45")
@@ -137,8 +137,8 @@ def _fresh_calibrations(monkeypatch, where):
 
 def _record_simulations(monkeypatch):
     """Every simulation as (kind, law): "calibration" (a run of the loop with its γ
-    overridden, ivdrem.diagrams.gamma_auto) or "run" (a law's run, ivdrem.experiments.paper)."""
-    import ivdrem.experiments.paper as paper
+    overridden, ivdrem.diagrams.gamma_auto) or "run" (a law's run, an Experiment's)."""
+    import ivdrem.experiments.experiment as experiment
     import ivdrem.sim as sim
     events = []
 
@@ -148,7 +148,7 @@ def _record_simulations(monkeypatch):
             return real(diagram, *a, **k)
         return simulate
     monkeypatch.setattr(sim, "simulate", wrap(sim.simulate, "calibration"))
-    monkeypatch.setattr(paper, "simulate", wrap(paper.simulate, "run"))
+    monkeypatch.setattr(experiment, "simulate", wrap(experiment.simulate, "run"))
     return events
 
 
@@ -220,7 +220,7 @@ def test_the_preflight_prices_and_simulates_nothing(monkeypatch):
     import ivdrem.diagrams.gamma_auto as gamma_auto
     import ivdrem.sim as sim
     from pathlib import Path
-    from ivdrem._preflight import check_runs
+    from ivdrem.cli.preflight import check_runs
     from ivdrem.experiments.config import load_config
 
     def never(*a, **k):
@@ -247,7 +247,7 @@ def test_the_preflight_does_not_price_an_fmu_check_predicted_to_diverge():
     going to run: with K = 2000 on the 2-link arm its 1 ms coupling is predicted to diverge
     (ivdrem.fmu.cosim.coupling_stability), so a horizon whose reference would be refused
     does not stop the report."""
-    from ivdrem._preflight import check_runs, fmu_check_prediction
+    from ivdrem.cli.preflight import check_runs, fmu_check_prediction
     from ivdrem.experiments.config import load_config
     from ivdrem.sim.guards import CostLimitError
     config = load_config(None, {"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"]})
@@ -337,3 +337,36 @@ def test_python_m_ivdrem_is_the_console_script(tmp_path):
     p = subprocess.run([sys.executable, "-m", "ivdrem", "paper", "--t-end", "-1"],
                        capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert p.returncode == 2 and "--t-end" in p.stderr
+
+
+def test_every_command_line_face_is_in_the_cli_package():
+    """argparse is used in ivdrem/cli/ only (every command, its options and the
+    preflight), and no module outside it imports it: the library below is usable without
+    the command line (ivdrem/__main__.py only starts it)."""
+    import ast
+    from pathlib import Path
+
+    import ivdrem
+    root = Path(ivdrem.__file__).parent
+    checked = 0
+    for path in sorted(root.rglob("*.py")):
+        rel = path.relative_to(root)
+        if rel.parts[0] == "cli" or rel.name == "__main__.py":
+            continue
+        text = path.read_text(encoding="utf-8")
+        assert "argparse" not in text, rel
+        package = ["ivdrem", *rel.parts[:-1]]
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ImportFrom):
+                base = package[:len(package) - node.level + 1] if node.level else []
+                names = [".".join(base + ([node.module] if node.module else []))]
+                if not node.module:
+                    names = [f"{names[0]}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                assert not (name == "ivdrem.cli" or name.startswith("ivdrem.cli.")), (rel, name)
+        checked += 1
+    assert checked > 50

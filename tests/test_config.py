@@ -11,6 +11,7 @@ from ivdrem.experiments.config import (
     LAWS,
     ConfigError,
     closed_loop_kwargs,
+    law_gains,
     default_config,
     dump_toml,
     load_config,
@@ -245,7 +246,7 @@ def test_another_robot_needs_only_what_differs():
     assert c["controller"]["K"] == [3.0] * 3                      # set by the user: kept
     assert c["sigma_modification"]["theta_star"] == [0.0] * 6
     assert c["iv_drem"]["gamma"] == "auto"
-    assert closed_loop_kwargs(c, "iv-drem")["gamma"] == "auto"
+    assert closed_loop_kwargs(c, "iv-drem")["gains"]["gamma"] == "auto"
     # the paper's arm keeps the paper's numbers
     d = load_config()
     assert d["iv_drem"]["gamma"] == 1e10 and d["controller"]["K"] == [2.0, 2.0]
@@ -263,28 +264,34 @@ def test_laws_all_expands_to_every_registered_law():
 
 
 def test_closed_loop_kwargs_per_law():
+    """The loop's keywords are the same for every law; the law's gains come in one dict,
+    ``gains``, by the names its registry entry declares."""
     c = load_config()
     common = {"alpha", "K", "delta_mu", "Gamma", "mu0", "mu1", "observer_variant", "l",
-              "theta_hat0", "q0", "dq0", "theta", "trajectory", "disturbance"}
+              "theta_hat0", "q0", "dq0", "theta", "trajectory", "disturbance", "gains"}
     expect = {
-        "iv-drem": common | {"T", "p", "F0", "gamma", "mixing"},
-        "drem": common | {"T", "p", "F0", "gamma", "mixing"},
-        "composite-learning": common | {"T", "gamma", "epsilon"},
-        "sigma-modification": common | {"sigma", "theta_star"},    # no window: no T
-        "none": common,
+        "iv-drem": {"T", "p", "F0", "gamma", "mixing"},
+        "drem": {"T", "p", "F0", "gamma", "mixing"},
+        "composite-learning": {"T", "gamma", "epsilon"},
+        "sigma-modification": {"sigma", "theta_star"},    # no window: no T
+        "none": set(),
     }
     assert set(expect) == set(LAWS)
-    for law, keys in expect.items():
+    for law, gains in expect.items():
         kw = closed_loop_kwargs(c, law)
-        assert set(kw) == keys, law
-        # each law-specific keyword is read from the configuration key the registry names
+        assert set(kw) == common and set(kw["gains"]) == gains, law
+        again = law_gains(c, law)
+        assert set(again) == gains
+        for name in gains:
+            np.testing.assert_array_equal(kw["gains"][name], again[name])
+        # each gain is read from the configuration key the registry names
         for name, key in get_law(law).config.items():
             section, k = key.split(".")
-            np.testing.assert_array_equal(kw[name], c[section][k])
+            np.testing.assert_array_equal(kw["gains"][name], c[section][k])
     iv = closed_loop_kwargs(c, "iv-drem")
-    cl = closed_loop_kwargs(c, "composite-learning")
-    assert iv["gamma"] == 1e10 and cl["gamma"] == 1.0 and cl["epsilon"] == 1e-9
-    assert iv["T"] == 20.0 and iv["p"] == 2.0 and iv["F0"] == 1.0
+    cl = closed_loop_kwargs(c, "composite-learning")["gains"]
+    assert iv["gains"]["gamma"] == 1e10 and cl["gamma"] == 1.0 and cl["epsilon"] == 1e-9
+    assert (iv["gains"]["T"], iv["gains"]["p"], iv["gains"]["F0"]) == (20.0, 2.0, 1.0)
     np.testing.assert_array_equal(iv["K"], 2.0 * np.eye(2))
     np.testing.assert_array_equal(iv["Gamma"], 0.01 * np.eye(5))
     np.testing.assert_array_equal(iv["theta"], [1.3, 0.28, 0.32, 0.4, 1.4])
@@ -292,7 +299,7 @@ def test_closed_loop_kwargs_per_law():
     assert set(iv["trajectory"]) == {"amplitude", "omega", "phase", "offset"}
     assert isinstance(iv["trajectory"]["omega"], np.ndarray)
     np.testing.assert_allclose(iv["disturbance"]["omega"], [0.5 * PI, 0.05 * PI])
-    sm = closed_loop_kwargs(c, "sigma-modification")
+    sm = closed_loop_kwargs(c, "sigma-modification")["gains"]
     assert sm["sigma"] == 0.1
     np.testing.assert_array_equal(sm["theta_star"], [1.0, 0.2, 0.3, 0.3, 1.0])
     with pytest.raises(ConfigError, match="did you mean 'iv-drem'"):
@@ -338,7 +345,7 @@ def test_a_configuration_names_the_module_that_registers_its_laws(tmp_path):
     """experiment.plugins: a Python file (relative to the configuration file) that
     registers a law; the configuration then takes the law and its own table."""
     import shutil
-    from ivdrem._preflight import check_runs
+    from ivdrem.cli.preflight import check_runs
     from ivdrem.laws import LAWS
     shutil.copy(Path(__file__).resolve().parents[1] / "examples" / "custom_law.py",
                 tmp_path / "my_laws.py")
@@ -351,7 +358,7 @@ def test_a_configuration_names_the_module_that_registers_its_laws(tmp_path):
         assert "normalised-iv-drem" in LAWS
         assert c["experiment"]["plugins"] == [str(tmp_path / "my_laws.py")]
         kw = closed_loop_kwargs(c, "normalised-iv-drem")
-        assert kw.get("law_params", kw).get("nu") == 2.5
+        assert kw["gains"]["nu"] == 2.5
         check_runs(c)                                 # the preflight prices its loop
         # a worker validating the (absolute) configuration imports it the same way
         from ivdrem.experiments.config import validate_config

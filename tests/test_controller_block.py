@@ -96,11 +96,11 @@ def test_gamma_auto_is_the_continuous_loops_rule():
     """gamma = "auto" hands the sampled controller the γ that ivdrem's continuous loop
     with the same gains chooses (ivdrem.diagrams.gamma_auto's rule), and the rule's Δ²
     is the loop's (γ = κ / (λ_max(Γ) mean Δ²))."""
-    from ivdrem.diagrams import closed_loop
+    from ivdrem.diagrams import calibrated_loop
     kw = dict(T=0.5, Gamma=0.02, mu_max=135.0)
     b = controller_block(gamma="auto", **kw)
     choice = b.gamma_choice
-    ref = closed_loop("iv-drem", gamma="auto", T=0.5, Gamma=0.02).gamma_choice
+    ref = calibrated_loop("iv-drem", gains=dict(gamma="auto", T=0.5), Gamma=0.02).gamma_choice
     assert choice["gamma"] == ref["gamma"] > 0
     assert b.controller.par[b.controller.index["gamma"]] == choice["gamma"]
     assert choice["gamma"] == pytest.approx(choice["rate"] / (0.02 * choice["mean_Delta2"]),

@@ -12,7 +12,7 @@ pytest.importorskip("fmpy")
 
 from ivdrem.controller.loop import FmuPlant, sampled_loop  # noqa: E402
 from ivdrem.controller.stability import UNSTABLE_GROWTH, sampled_stability  # noqa: E402
-from ivdrem.fmu.cli import main_fmu  # noqa: E402
+from ivdrem.cli.fmu import main_fmu  # noqa: E402
 from ivdrem.controller.parameters import param_vector  # noqa: E402
 from ivdrem.controller.sampled import SampledController  # noqa: E402
 from ivdrem.models import get_model, two_link  # noqa: E402
@@ -354,7 +354,7 @@ def test_cosim_controller_fmu_of_a_urdf_file_arm(tmp_path):
     import zipfile
     from ivdrem.controller.fmu_export import MODEL_RESOURCE, export_controller_fmu
     from ivdrem.controller.fmu_loop import _fmu_parameters
-    from ivdrem.fmu.cli import main_cosim
+    from ivdrem.cli.fmu import main_cosim
     from ivdrem.models.urdf import from_urdf
     urdf = tmp_path / "arm.urdf"
     urdf.write_text(_UNNAMED_URDF)

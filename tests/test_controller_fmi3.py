@@ -104,7 +104,7 @@ def test_fmi3_bad_calls_give_fmi3Error_and_a_message(fmus):
 
 def test_cli_exports_the_fmi3_controller(tmp_path, capsys):
     from fmpy import read_model_description
-    from ivdrem.fmu.cli import main_fmu as main
+    from ivdrem.cli.fmu import main_fmu as main
     out = tmp_path / "C3.fmu"
     assert main(["export", "--controller", "--fmi-version", "3", "-o", str(out)]) == 0
     assert read_model_description(str(out)).fmiVersion == "3.0"

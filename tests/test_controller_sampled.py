@@ -270,7 +270,7 @@ def test_fmu_loop_in_fmpy_equals_the_python_reference(controller_fmu, plant_fmu)
 
 def test_cli_exports_the_controller_fmu(tmp_path, capsys):
     from fmpy.validation import validate_fmu
-    from ivdrem.fmu.cli import main_fmu
+    from ivdrem.cli.fmu import main_fmu
     out = tmp_path / "Controller.fmu"
     assert main_fmu(["export", "--controller", "--law", "none", "-o", str(out)]) == 0
     assert validate_fmu(str(out)) == []
@@ -286,7 +286,7 @@ def test_cli_exports_the_controller_fmu(tmp_path, capsys):
 
 
 def test_cli_cosim_controller_fmu(controller_fmu, plant_fmu, tmp_path, capsys):
-    from ivdrem.fmu.cli import main_cosim
+    from ivdrem.cli.fmu import main_cosim
     assert main_cosim(["--controller-fmu", str(controller_fmu), "--fmu", str(plant_fmu),
                        "--t-end", "2"]) == 0
     out = capsys.readouterr().out

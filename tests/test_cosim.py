@@ -25,7 +25,7 @@ import pytest
 pytest.importorskip("fmpy")
 
 from ivdrem.fmu import export_fmu  # noqa: E402
-from ivdrem.fmu.cli import main_cosim  # noqa: E402
+from ivdrem.cli.fmu import main_cosim  # noqa: E402
 from ivdrem.fmu.cosim import CosimComparison, compare_to_python, cosimulate  # noqa: E402
 from ivdrem.models import two_link  # noqa: E402
 
@@ -314,10 +314,10 @@ def test_prediction_needs_the_horizon_and_its_assumptions():
 
 
 def test_report_check_on_the_paper_arm_is_run():
-    """The report's FMU check (ivdrem.reports.cli.fmu_check) on the paper's configuration:
+    """The report's FMU check (ivdrem.cli.report.fmu_check) on the paper's configuration:
     not predicted to diverge, so run, and first order."""
     from ivdrem.experiments.config import load_config
-    from ivdrem.reports.cli import fmu_check
+    from ivdrem.cli.report import fmu_check
     rows, cmp = fmu_check(load_config(None), 1.0, progress=False)
     assert cmp.ok and rows["verdict"]["max |co-sim − Python|"].startswith("OK")
     assert len(rows) == 1 + 3 * 3

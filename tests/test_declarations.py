@@ -24,7 +24,9 @@ def _library_blocks():
     traj = dict(amplitude=[0.3] * n, omega=[1.0, 0.5, 0.3], phase=[0.0] * n,
                 offset=[0.1] * n)
     dist = dict(amplitude=[1.0] * n, omega=[0.5] * n, phase=[0.0] * n, offset=[0.0] * n)
-    for sys in closed_loop("iv-drem", m3, trajectory=traj, disturbance=dist).syslist:
+    # γ a number: "auto" (the 3-link arm's rule) would choose one first, same blocks
+    for sys in closed_loop("iv-drem", m3, gains={"gamma": 1.0}, trajectory=traj,
+                           disturbance=dist).syslist:
         blocks.setdefault(f"3link:{sys.name}", sys)
     return blocks
 

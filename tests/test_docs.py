@@ -108,7 +108,7 @@ def _shell_commands(text):
 def _parse_ivdrem(words):
     """Parse an ivdrem command line with ivdrem's own parsers; SystemExit on an error."""
     from ivdrem import cli
-    from ivdrem.fmu import cli as fmu_cli
+    from ivdrem.cli import fmu as fmu_cli
     if words[0] == "fmu":
         fmu_cli._parser().parse_args(words[1:])
     elif words[0] == "cosim":

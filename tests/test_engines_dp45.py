@@ -9,7 +9,7 @@ from ivdrem.sim import simulate
 
 @pytest.mark.parametrize("law", ["iv-drem", "composite-learning"])
 def test_dp45_reference_equals_compiled_with_delay_active(law):
-    d = closed_loop(law, T=0.5)
+    d = closed_loop(law, gains=dict(T=0.5))
     kw = dict(method="dp45", rtol=1e-6, atol=1e-8, dt_out=0.05, progress=False)
     rc = simulate(d, 1.5, engine="compiled", **kw)
     rr = simulate(d, 1.5, engine="reference", **kw)

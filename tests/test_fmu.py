@@ -28,7 +28,7 @@ from fmpy.validation import validate_fmu  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 from ivdrem.fmu import export_fmu  # noqa: E402
-from ivdrem.fmu.cli import main_fmu  # noqa: E402
+from ivdrem.cli.fmu import main_fmu  # noqa: E402
 from ivdrem.models import get_model, planar_arm, two_link  # noqa: E402
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler (cc)")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ivdrem.diagrams import closed_loop
+from ivdrem.diagrams import calibrated_loop, closed_loop
 from ivdrem.sim import jacobian
 
 CAL = {"t_cal": 4.0}
@@ -30,9 +30,9 @@ def cache(tmp_path, monkeypatch):
 
 def test_a_repeated_calibration_reads_the_kept_one(cache):
     tmp, runs = cache
-    first = closed_loop("iv-drem", gamma="auto", calibration=CAL).gamma_choice
+    first = calibrated_loop("iv-drem", gains=dict(gamma="auto"), calibration=CAL).gamma_choice
     assert len(runs) == 1 and len(list((tmp / "calibrations").glob("*.json"))) == 1
-    again = closed_loop("iv-drem", gamma="auto", calibration=CAL).gamma_choice
+    again = calibrated_loop("iv-drem", gains=dict(gamma="auto"), calibration=CAL).gamma_choice
     assert len(runs) == 1                                # read, not run again
     assert again == first and type(again["gamma"]) is float
 
@@ -40,7 +40,7 @@ def test_a_repeated_calibration_reads_the_kept_one(cache):
 @pytest.mark.parametrize("change", ["parameter", "settings", "source", "initial state"])
 def test_what_the_calibration_depends_on_is_calibrated_again(cache, change, monkeypatch):
     tmp, runs = cache
-    first = closed_loop("iv-drem", gamma="auto", calibration=CAL).gamma_choice
+    first = calibrated_loop("iv-drem", gains=dict(gamma="auto"), calibration=CAL).gamma_choice
     kw, cal = {}, dict(CAL)
     if change == "parameter":
         kw["Gamma"] = 0.02 * np.eye(5)
@@ -50,7 +50,7 @@ def test_what_the_calibration_depends_on_is_calibrated_again(cache, change, monk
         monkeypatch.setattr(jacobian, "_package_digest", lambda: "another ivdrem")
     else:
         kw["q0"] = [0.1, 0.3 * np.pi]
-    other = closed_loop("iv-drem", gamma="auto", calibration=cal, **kw).gamma_choice
+    other = calibrated_loop("iv-drem", gains=dict(gamma="auto"), calibration=cal, **kw).gamma_choice
     assert len(runs) == 2
     if change == "parameter":   # Γ scales the rule's γ and moves θ̂ (the motion, so Δ)
         assert other["gamma"] != first["gamma"]
@@ -58,10 +58,10 @@ def test_what_the_calibration_depends_on_is_calibrated_again(cache, change, monk
 
 def test_a_damaged_calibration_file_is_calibrated_again(cache):
     tmp, runs = cache
-    first = closed_loop("iv-drem", gamma="auto", calibration=CAL).gamma_choice
+    first = calibrated_loop("iv-drem", gains=dict(gamma="auto"), calibration=CAL).gamma_choice
     (f,) = (tmp / "calibrations").glob("*.json")
     f.write_text("{not json")
-    again = closed_loop("iv-drem", gamma="auto", calibration=CAL).gamma_choice
+    again = calibrated_loop("iv-drem", gains=dict(gamma="auto"), calibration=CAL).gamma_choice
     assert len(runs) == 2 and again == first
 
 

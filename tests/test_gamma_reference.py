@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from ivdrem.diagrams import closed_loop
+from ivdrem.diagrams import calibrated_loop
 from ivdrem.models import planar_arm
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,7 +39,7 @@ def no_simulation(monkeypatch, tmp_path):
 def test_eigen_gamma_auto_simulates_nothing_and_follows_the_rule(no_simulation):
     from ivdrem.diagrams.gamma_auto import DEFAULT_RATE, reference_mean_delta2
     kw = _planar3()
-    d = closed_loop("iv-drem", planar_arm(3), **kw)          # "eigen", γ "auto" by default
+    d = calibrated_loop("iv-drem", planar_arm(3), **kw)          # "eigen", γ "auto" by default
     ch = d.gamma_choice
     assert ch["variant"] == "eigen" and ch["source"] == "reference" and ch["passes"] == []
     T = ch["window"][0]
@@ -53,7 +53,7 @@ def test_eigen_gamma_auto_simulates_nothing_and_follows_the_rule(no_simulation):
 
 
 def test_channel_gamma_auto_is_one_gamma_per_parameter_from_the_estimate(no_simulation):
-    d = closed_loop("iv-drem", planar_arm(3), mixing="channel", **_planar3())
+    d = calibrated_loop("iv-drem", planar_arm(3), gains=dict(mixing="channel"), **_planar3())
     ch = d.gamma_choice
     assert ch["source"] == "reference" and len(ch["gamma"]) == planar_arm(3).ntheta
     for g, lm in zip(ch["gamma"], ch["log10_mean_Delta2"]):
@@ -65,16 +65,17 @@ def test_the_estimate_is_within_ten_percent_of_the_calibration_run():
     compile cache once run) and the γ of the estimate, "eigen" on planar-3 (measured
     0.026 %; every benchmark arm in docs/mixing.md)."""
     kw = _planar3()
-    run = closed_loop("iv-drem", planar_arm(3), calibration={"source": "run",
-                                                             "method": "rodas5p"}, **kw)
-    ref = closed_loop("iv-drem", planar_arm(3), **kw)
+    run = calibrated_loop("iv-drem", planar_arm(3), calibration={"source": "run",
+                                                                 "method": "rodas5p"}, **kw)
+    ref = calibrated_loop("iv-drem", planar_arm(3), **kw)
     assert run.gamma_choice["source"] == "run" and len(run.gamma_choice["passes"]) == 1
     assert ref.gamma_choice["gamma"] == pytest.approx(run.gamma_choice["gamma"], rel=0.1)
 
 
 def test_the_paper_mixing_keeps_its_calibration_run_and_bad_sources_are_refused():
     from ivdrem.diagrams.gamma_auto import calibrate_gamma
-    ch = closed_loop("iv-drem", gamma="auto", calibration={"t_cal": 4.0}).gamma_choice
+    ch = calibrated_loop("iv-drem", gains=dict(gamma="auto"),
+                         calibration={"t_cal": 4.0}).gamma_choice
     assert ch["variant"] == "paper" and ch["source"] == "run" and len(ch["passes"]) == 1
     with pytest.raises(ValueError, match="source must be 'reference' or 'run', got 'guess'"):
         calibrate_gamma("iv-drem", planar_arm(3), dict(mixing="eigen", **_planar3()),

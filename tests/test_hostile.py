@@ -273,7 +273,7 @@ def test_a_fast_disturbance_is_priced_from_its_periods(tmp_path, capsys, runs_re
     """ω = 5e3 rad/s: at least one step per period (2.4e5 steps over 300 s) prices the
     reference engine's run at hours, refused before any run naming ω; the compiled
     engine's estimate stays under the limit and the run is reached."""
-    from ivdrem._preflight import check_runs, fastest_omega
+    from ivdrem.cli.preflight import check_runs, fastest_omega
     from ivdrem.sim.guards import CostLimitError, oscillation_steps
     (steps, _), _ = oscillation_steps(5000.0, 300.0)
     assert steps == pytest.approx(5000.0 * 300.0 / (2 * math.pi))

@@ -547,8 +547,10 @@ def _planar3_loop(law="iv-drem", **kw):
                 offset=0 * ones)
     # the paper's mixing (17) and γ (every arm but the paper's defaults to "eigen", "auto")
     pinned = dict(mixing="paper", gamma=1e10) if law == "iv-drem" else {}
+    gains = {**pinned, **{k: v for k, v in kw.items() if k in ("mixing", "gamma")}}
+    loop = {k: v for k, v in kw.items() if k not in gains}
     return closed_loop(law, model=planar_arm(3), trajectory=traj, disturbance=dist,
-                       **{**pinned, **kw})
+                       gains=gains, **loop)
 
 
 @pytest.mark.parametrize("case", ["iv-drem", "composite-learning", "planar3-iv-drem",
@@ -648,7 +650,7 @@ def test_compiled_probe_gives_the_python_probes_pattern(monkeypatch, arm, mixing
     from ivdrem.sim.plan import DiagramPlan
     from ivdrem.blocks._core import kernel_args
     if arm == "two-link":
-        loop = closed_loop("iv-drem", mixing=mixing, gamma=1.0)
+        loop = closed_loop("iv-drem", gains=dict(mixing=mixing, gamma=1.0))
     else:
         ones = np.ones(3)
         traj = dict(amplitude=0.5 * ones, omega=[1.0, 0.7, 0.4], phase=0 * ones,
@@ -656,7 +658,7 @@ def test_compiled_probe_gives_the_python_probes_pattern(monkeypatch, arm, mixing
         dist = dict(amplitude=[2.0, 1.0, 0.5], omega=[0.5, 0.3, 0.2], phase=0 * ones,
                     offset=0 * ones)
         loop = closed_loop("iv-drem", model=planar_arm(3), trajectory=traj,
-                           disturbance=dist, mixing=mixing, gamma=1.0)
+                           disturbance=dist, gains=dict(mixing=mixing, gamma=1.0))
     plan = DiagramPlan.from_diagram(loop)
     _check_kernels(plan)
     names = {"window_integrator", "averaging", "mixing"}

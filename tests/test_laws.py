@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from ivdrem import laws as registry
-from ivdrem.diagrams import closed_loop
+from ivdrem.diagrams import calibrated_loop, closed_loop
 from ivdrem.experiments import diagnostics
 from ivdrem.experiments.metrics import signal, signal_names
 from ivdrem.models import two_link
@@ -99,7 +99,8 @@ def test_lyapunov_bound_of_the_proof_holds_on_a_closed_loop(runs):
 
 
 def test_gamma_auto_follows_the_documented_rule():
-    d = closed_loop("iv-drem", MODEL, gamma="auto", calibration={"t_cal": 25.0, "passes": 2})
+    d = calibrated_loop("iv-drem", MODEL, gains=dict(gamma="auto"),
+                        calibration={"t_cal": 25.0, "passes": 2})
     ch = d.gamma_choice
     assert ch["t_cal"] == 25.0 and ch["window"][0] == pytest.approx(20.0)
     assert ch["gamma"] * ch["lambda_max_Gamma"] * ch["mean_Delta2"] == pytest.approx(0.5, rel=1e-12)
@@ -113,7 +114,7 @@ def test_gamma_auto_follows_the_documented_rule():
     # the paper's arm: the rule lands near the paper's 1e10
     assert 1e9 < ch["gamma"] < 1e11
     with pytest.raises(ValueError, match="needs the mixed regression"):
-        closed_loop("composite-learning", MODEL, gamma="auto")
+        closed_loop("composite-learning", MODEL, gains=dict(gamma="auto"))
 
 
 def test_a_registered_law_is_known_to_the_diagram_config_and_figures():
@@ -134,7 +135,7 @@ def test_a_registered_law_is_known_to_the_diagram_config_and_figures():
         assert term.params["sigma"] == 0.05
         cfg = load_config(overrides={"experiment.laws": ["iv-drem", "leak-to-zero"]})
         assert cfg["experiment"]["laws"] == ["iv-drem", "leak-to-zero"]
-        assert closed_loop_kwargs(cfg, "leak-to-zero")["law_params"] == {"sigma": 0.05}
+        assert closed_loop_kwargs(cfg, "leak-to-zero")["gains"] == {"sigma": 0.05}
         assert law_color("leak-to-zero") == "#123456" and law_label("leak-to-zero") == "leak to 0"
     finally:
         registry.LAWS.pop("leak-to-zero")
@@ -164,7 +165,7 @@ def test_a_registered_law_brings_its_own_configuration_table(tmp_path):
         f = tmp_path / "c.toml"
         f.write_text('[experiment]\nlaws = ["leak-to-guess"]\n[leak_to_guess]\nsigma = 0.2\n')
         cfg = load_config(f)
-        kw = closed_loop_kwargs(cfg, "leak-to-guess")["law_params"]
+        kw = closed_loop_kwargs(cfg, "leak-to-guess")["gains"]
         assert kw["sigma"] == 0.2
         np.testing.assert_array_equal(kw["theta_star"], [1.0, 0.0, 0.0, 0.0, 1.0])
         with pytest.raises(ConfigError, match=r"'leak_to_guess.sigmaa' is not known.*'leak_to_guess.sigma'"):
@@ -232,7 +233,7 @@ def test_a_user_law_declares_its_keys_like_a_built_in_law(tmp_path):
         assert cfg["leak_checked"] == {"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0],
                                        "rate": 2.0}     # not declared: a number, unchecked
         assert load_config(overrides={"leak_checked.rate": -1e9})["leak_checked"]["rate"] == -1e9
-        assert closed_loop_kwargs(cfg, "leak-checked")["law_params"]["sigma"] == 0.05
+        assert closed_loop_kwargs(cfg, "leak-checked")["gains"]["sigma"] == 0.05
         for name, bad, words in (
                 ("leak_checked.sigma", 2.0, "must be > 0 and <= 1 (a leak), got 2.0"),
                 ("leak_checked.sigma", 0.0, "must be > 0 and <= 1 (a leak), got 0.0"),

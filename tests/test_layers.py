@@ -28,28 +28,12 @@ LAYERS = ("base", "models", "blocks", "sim / laws", "pycontrol", "diagrams", "ex
 #: edges inside files another change rewrites (the configuration resolved once, outside the
 #: diagrams; every command-line face in one package): known, each with its reason, listed
 #: exactly so that any other edge fails; each is an xfail below, which passes once its
-#: edge is gone.  The first six run back up the layers, the last three close a circle.
+#: edge is gone.  Both run back up the layers.
 KNOWN = {
     ("ivdrem.diagrams.closed_loop", "ivdrem.experiments.arm"):
         "the real-arm reference is designed inside closed_loop",
-    ("ivdrem.diagrams.gamma_auto", "ivdrem.experiments.metrics"):
-        "gamma 'auto' is calibrated inside the diagrams",
-    ("ivdrem.experiments.paper", "ivdrem._preflight"):
-        "the paper run prices itself with the command line's preflight",
-    ("ivdrem.experiments.study", "ivdrem._preflight"):
-        "a study prices itself with the command line's preflight",
     ("ivdrem.experiments.study", "ivdrem.reports.study_report"):
         "a study writes its own report",
-    ("ivdrem.experiments.study", "ivdrem.cli"):
-        "a study reads the command line's exit code",
-    ("ivdrem.plants.study", "ivdrem.plants.cli"):
-        "the MuJoCo study prints with the robot command's summary",
-    ("ivdrem.diagrams.closed_loop", "ivdrem.diagrams.gamma_auto"):
-        "gamma 'auto' is resolved inside closed_loop (gamma_auto builds closed loops)",
-    ("ivdrem.reports.cli", "ivdrem.cli"):
-        "the report command reads the main command's interrupt handling",
-    ("ivdrem.reports.cli", "ivdrem.plants.cli"):
-        "the report command runs the robot command's MuJoCo report",
 }
 
 

@@ -19,7 +19,7 @@ import pytest
 
 from ivdrem import laws as registry
 from ivdrem.blocks._core import flat_kernel
-from ivdrem.diagrams import closed_loop
+from ivdrem.diagrams import calibrated_loop, closed_loop
 from ivdrem.diagrams.gamma_auto import GainRuleError, gamma_from_delta, GAMMA_MAX
 from ivdrem.experiments.config import ConfigError, closed_loop_kwargs, load_config
 from ivdrem.experiments.metrics import signal
@@ -83,7 +83,7 @@ def test_closed_loop_without_disturbance_has_no_calW(variant):
     model = two_link()
     theta = np.asarray(model.theta_values, float)
     quiet = dict(amplitude=[0.0, 0.0], omega=[1.0, 1.0], phase=[0.0, 0.0], offset=[0.0, 0.0])
-    d = closed_loop("iv-drem", model, mixing=variant, gamma=1.0, disturbance=quiet)
+    d = closed_loop("iv-drem", model, gains=dict(mixing=variant, gamma=1.0), disturbance=quiet)
     r = simulate(d, 24.0, method="dp45", rtol=1e-10, atol=1e-12, progress=False,
                  return_states=False)
     D = np.atleast_2d(signal(r, "Delta"))
@@ -101,8 +101,8 @@ def test_mixing_key_in_the_configuration():
     assert c["iv_drem"]["mixing"] == "paper"                      # the paper's arm: eq. (17)
     for v in VARIANTS:
         c = load_config(overrides={"iv_drem.mixing": v})
-        assert closed_loop_kwargs(c, "iv-drem")["mixing"] == v
-        assert closed_loop_kwargs(c, "drem")["mixing"] == v
+        assert closed_loop_kwargs(c, "iv-drem")["gains"]["mixing"] == v
+        assert closed_loop_kwargs(c, "drem")["gains"]["mixing"] == v
     with pytest.raises(ConfigError, match=r"iv_drem.mixing.*'eigen'.*'channel'"):
         load_config(overrides={"iv_drem.mixing": "eigenvalue"})
     with pytest.raises(ConfigError, match="must be a string"):
@@ -115,7 +115,7 @@ def test_mixing_key_in_the_configuration():
 
 
 def test_closed_loop_mixing_argument():
-    d = closed_loop("iv-drem", mixing="channel", gamma=[1.0] * 5)
+    d = closed_loop("iv-drem", gains=dict(mixing="channel", gamma=[1.0] * 5))
     term = [s for s in d.syslist if s.name == "drem_term"][0]
     np.testing.assert_array_equal(term.params["gamma"], np.ones(5))
     mix = [s for s in d.syslist if s.name == "mixing"][0]
@@ -123,9 +123,11 @@ def test_closed_loop_mixing_argument():
     assert [s for s in closed_loop("iv-drem").syslist
             if s.name == "mixing"][0].ivdrem.info["variant"] == "paper"
     with pytest.raises(ValueError, match=r"unknown mixing 'det'.*'paper', 'eigen', 'channel'"):
-        closed_loop("iv-drem", mixing="det")
-    with pytest.raises(ValueError, match="has no mixing step"):
-        closed_loop("composite-learning", mixing="eigen")
+        closed_loop("iv-drem", gains=dict(mixing="det"))
+    # composite learning has no mixing step (17): not one of its gains
+    with pytest.raises(ValueError, match=r"'composite-learning' has no gain\(s\) 'mixing'; "
+                                         r"its gains .*: T, gamma, epsilon"):
+        closed_loop("composite-learning", gains=dict(mixing="eigen"))
 
 
 # ------------------------------------------------------------------------- the gain rule
@@ -196,7 +198,7 @@ def test_closed_loop_jacobian_of_every_variant(variant):
     arm, 21 s)."""
     from test_jacobian import assert_jacobian_close, central_fd, _loop_at_random_states
     gamma = [3e3, 1e2, 1e3, 1e2, 1e2] if variant == "channel" else (1e10 if variant == "paper" else 30.0)
-    loop = closed_loop("iv-drem", two_link(), mixing=variant, gamma=gamma)
+    loop = closed_loop("iv-drem", two_link(), gains=dict(mixing=variant, gamma=gamma))
     sim, (x,) = _loop_at_random_states(loop, [3], t_run=21.0)
     J = sim.engine.jacobian(sim.t, x, sim.W)
     assert_jacobian_close(J, central_fd(sim.engine, sim.t, x, sim.W), rtol=1e-5)
@@ -275,16 +277,16 @@ def test_diagnostics_figures_and_report_take_a_per_channel_delta():
 
 
 def test_a_controller_for_an_external_plant_is_calibrated_on_the_whole_loop():
-    """closed_loop(external_plant=True) on an arm other than the paper's: "eigen" and
+    """calibrated_loop(external_plant=True) on an arm other than the paper's: "eigen" and
     gamma = "auto", the calibration run with ivdrem's own plant of the model (the
     controller alone has no motion to measure Δ on); the same γ as the whole loop's."""
     exp = _bench_arms().planar_experiment(3)
     kw = dict(trajectory=exp["trajectory"], disturbance=exp["disturbance"], q0=exp["q0"])
-    ctrl = closed_loop("iv-drem", planar_arm(3), external_plant=True, **kw)
+    ctrl = calibrated_loop("iv-drem", planar_arm(3), external_plant=True, **kw)
     assert sorted(ctrl.input_labels) == sorted([f"q[{i}]" for i in range(3)]
                                                + [f"dq[{i}]" for i in range(3)])
     assert ctrl.gamma_choice["variant"] == "eigen"
-    whole = closed_loop("iv-drem", planar_arm(3), **kw)
+    whole = calibrated_loop("iv-drem", planar_arm(3), **kw)
     assert ctrl.gamma_choice["gamma"] == pytest.approx(whole.gamma_choice["gamma"], rel=1e-12)
 
 
@@ -363,7 +365,8 @@ def test_before_t_on_the_loop_is_the_plain_adaptive_law():
     model = two_link()
     kw = dict(method="dp45", rtol=1e-10, atol=1e-12, progress=False, return_states=False,
               dt_out=0.1)
-    ivd = simulate(closed_loop("iv-drem", model, mixing="eigen", gamma=30.0), 24.0, **kw)
+    ivd = simulate(closed_loop("iv-drem", model, gains=dict(mixing="eigen", gamma=30.0)), 24.0,
+                   **kw)
     none = simulate(closed_loop("none", model), 24.0, **kw)
     a, b = signal(ivd, "theta_hat"), signal(none, "theta_hat")
     before = ivd.time <= 20.0

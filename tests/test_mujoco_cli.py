@@ -191,7 +191,7 @@ def test_report_plant_mujoco_gives_the_reports_figures_and_conclusions(tmp_path,
     report (saying so) and C1-C3; its runs are closed_loop's, number for number."""
     from ivdrem.experiments.config import load_config
     from ivdrem.experiments.metrics import signal
-    from ivdrem.plants.cli import mujoco_paper_run
+    from ivdrem.plants.study import mujoco_paper_run
     from ivdrem.plants.mujoco import closed_loop, controller_kwargs, load
     out = tmp_path / "rep"
     code = main(["report", "--plant", "mujoco", "--t-end", "0.5", "--out", str(out), "--quiet"])

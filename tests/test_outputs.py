@@ -146,7 +146,7 @@ def test_a_report_on_a_full_disk_is_kept_elsewhere_even_through_zlib(tmp_path, m
     import zlib
     from ivdrem._atomic import os_error_behind
     import ivdrem.reports.report as report
-    from ivdrem.reports.cli import _write_or_keep
+    from ivdrem.cli.report import _write_or_keep
     calls = []
 
     def write_report(run, outdir, fmu_check=None, overwrite=False):

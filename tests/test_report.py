@@ -19,7 +19,7 @@ from ivdrem.experiments.config import load_config
 from ivdrem.experiments.metrics import conclusions, key_numbers
 from ivdrem.reports import ReportError, write_report
 from ivdrem.reports import figures as report_figures
-from ivdrem.reports.cli import add_report_arguments, run_report_command
+from ivdrem.cli.report import add_report_arguments, run_report_command
 from ivdrem.reports.synthetic import synthetic_paper_run
 
 N_FIGURES = 7  # Figures 1-4 of the paper, θ̂ vs θ, τ, λ_min/μ
@@ -349,13 +349,15 @@ def fake_paper(monkeypatch):
 
     import ivdrem.experiments.paper as real
 
-    def run_paper(config, *, laws=None, progress=True, engine="compiled", log=None):
-        calls.append({"config": config, "laws": laws, "progress": progress, "engine": engine})
-        return synthetic_paper_run(config, dt=0.05)
+    def run_paper(experiment, *, laws=None, progress=True, log=None, **kw):
+        # the command's Experiment (its configuration resolved once, with its engine)
+        calls.append({"config": experiment.config, "laws": laws, "progress": progress,
+                      "engine": experiment.engine})
+        return synthetic_paper_run(experiment.config, dt=0.05)
 
     mod = types.ModuleType("ivdrem.experiments.paper")
     mod.run_paper = run_paper
-    mod.law_diagram = real.law_diagram      # the FMU check's loop without a run's γ
+    mod.LawRun, mod.PaperRun = real.LawRun, real.PaperRun
     monkeypatch.setitem(sys.modules, "ivdrem.experiments.paper", mod)
     return calls
 
@@ -375,7 +377,7 @@ def test_cli_arguments_defaults():
 @pytest.fixture
 def fake_fmu_check(monkeypatch):
     """The FMU co-simulation check (exercised for real in test_cosim.py), faked."""
-    import ivdrem.reports.cli as rcli
+    import ivdrem.cli.report as rcli
 
     class _Cmp:
         def table(self):
@@ -543,11 +545,11 @@ def test_pdf_tables_have_no_lone_rows(tmp_path, text_only):
 def test_fmu_check_takes_the_runs_gamma_auto_instead_of_calibrating_again(monkeypatch):
     """With gamma = "auto" the co-simulation gets the γ the report's IV-DREM run chose
     (calibrating again there ran DP45 at 10 ms steps over 2T: minutes on a real arm), and
-    without a run the γ of the rule with the run's own solver."""
-    import ivdrem.experiments.paper as paper_mod
+    without a run the γ of the rule with the run's own solver (the Experiment's choice)."""
+    import ivdrem.diagrams.gamma_auto as gamma_auto
     import ivdrem.fmu as fmu_mod
     import ivdrem.fmu.cosim as cosim_mod
-    import ivdrem.reports.cli as rcli
+    import ivdrem.cli.report as rcli
     from pathlib import Path
 
     from ivdrem.experiments.config import closed_loop_kwargs, load_config
@@ -560,21 +562,19 @@ def test_fmu_check_takes_the_runs_gamma_auto_instead_of_calibrating_again(monkey
             return "OK"
 
     def compare(path, t_end, **kw):
-        seen.append(kw["gamma"])
+        seen.append(kw["gains"]["gamma"])
         return _Cmp()
 
-    class _Diagram:
-        gamma_choice = {"gamma": 77.0}
     built = []
 
-    def law_diagram(config, law, **kw):
-        built.append((law, config["solver"]["method"]))
-        return _Diagram()
+    def calibrate_gamma(law, model, args, **kw):
+        built.append((law, kw["method"]))
+        return {"gamma": 77.0}
     monkeypatch.setattr(fmu_mod, "export_fmu", lambda *a, **k: None)
     monkeypatch.setattr(cosim_mod, "compare_to_python", compare)
-    monkeypatch.setattr(paper_mod, "law_diagram", law_diagram)
+    monkeypatch.setattr(gamma_auto, "calibrate_gamma", calibrate_gamma)
     config = load_config(Path(__file__).parents[1] / "examples" / "planar3.toml")
-    assert closed_loop_kwargs(config, "iv-drem")["gamma"] == "auto"
+    assert closed_loop_kwargs(config, "iv-drem")["gains"]["gamma"] == "auto"
     rcli.fmu_check(config, 1.0, gamma=50.2)
     assert seen == [50.2] and built == []              # the run's γ, no calibration
     rcli.fmu_check(config, 1.0)

@@ -82,7 +82,7 @@ def test_fmu_derivatives_vs_aba(tmp_path, name, options):
 
 @pytest.mark.skipif(not _available("panda"), reason="arms extra")
 def test_cli_export_panda(tmp_path, capsys):
-    from ivdrem.fmu.cli import main_fmu
+    from ivdrem.cli.fmu import main_fmu
     out = tmp_path / "panda.fmu"
     assert main_fmu(["export", "--model", "panda", "-o", str(out)]) == 0
     assert "model panda, n = 7, ntheta = 43" in capsys.readouterr().out

@@ -107,7 +107,7 @@ def test_closed_loop_of_a_urdf_arm_is_the_configurations_loop():
     from ivdrem.experiments.config import closed_loop_kwargs, load_config
     from ivdrem.models import arm
     model = arm("ur5")
-    mine = closed_loop("iv-drem", model, gamma=1.0)
+    mine = closed_loop("iv-drem", model, gains=dict(gamma=1.0))
     cfg = load_config(overrides={"model.name": "ur5", "iv_drem.gamma": 1.0})
     theirs = closed_loop("iv-drem", model, **closed_loop_kwargs(cfg, "iv-drem"))
     assert [b.name for b in mine.syslist] == [b.name for b in theirs.syslist]
@@ -240,7 +240,8 @@ def test_the_size_estimate_counts_what_interconnect_allocates():
     from ivdrem.sim.guards import interconnect_bytes, loop_states
     from ivdrem.models import two_link, planar_arm
     for model in (two_link(), planar_arm(3)):
-        d = closed_loop("iv-drem", model, gamma=1.0, mixing="paper") if model.n == 3 else \
+        d = closed_loop("iv-drem", model, gains=dict(gamma=1.0, mixing="paper")) \
+            if model.n == 3 else \
             closed_loop("iv-drem", model)
         nin = sum(s.ninputs for s in d.syslist)
         nout = sum(s.noutputs for s in d.syslist)
@@ -575,7 +576,7 @@ def test_tight_tolerances_are_priced_from_measured_step_counts():
     silent for minutes); measured here: 16 186, 103 658 steps for 10, 30 s (IV-DREM)."""
     from ivdrem.sim.guards import (CostLimitError, PAPER_LOOP_STEPS_BY_RTOL, paper_loop_steps,
                                    tolerance_factor)
-    from ivdrem._preflight import check_runs, long_run_note
+    from ivdrem.cli.preflight import check_runs, long_run_note
     from ivdrem.experiments.config import load_config
     assert tolerance_factor(2e-4, 300.0) == (1.0, None)
     assert tolerance_factor(1e-3, 300.0)[0] == 1.0

@@ -32,7 +32,7 @@ def _python_control(d):
     ("iv-drem", {}),
     ("composite-learning", {}),
     ("iv-drem", {"external_plant": True}),          # diagram inputs q, dq
-    ("iv-drem", {"model": "planar-3", "gamma": 1.0, "mixing": "eigen"}),
+    ("iv-drem", {"model": "planar-3", "gains": {"gamma": 1.0, "mixing": "eigen"}}),
 ])
 def test_the_paper_loops_equal_python_controls_wiring(law, kw):
     kw = dict(kw)

@@ -44,11 +44,12 @@ def saturated_mu_schedule(mu0=1.0, mu1=15.0, mu_max=135.0, *, name="mu_schedule"
 
 def continuous_closed_loop(law="iv-drem", model=None, *, mu0=1.0, mu1=15.0, mu_max=135.0,
                            **kwargs):
-    """ivdrem.diagrams.closed_loop with mu saturated at mu_max."""
-    from ..diagrams import closed_loop
-    return closed_loop(law, model, mu0=mu0, mu1=mu1,
-                       replace={"mu_schedule": saturated_mu_schedule(mu0, mu1, mu_max)},
-                       **kwargs)
+    """ivdrem.diagrams.closed_loop with mu saturated at mu_max (γ "auto" chosen first,
+    ivdrem.diagrams.calibrated_loop)."""
+    from ..diagrams import calibrated_loop
+    return calibrated_loop(law, model, mu0=mu0, mu1=mu1,
+                           replace={"mu_schedule": saturated_mu_schedule(mu0, mu1, mu_max)},
+                           **kwargs)
 
 
 def sampled_against_continuous(model, law="iv-drem", *, hs=(4e-3, 2e-3, 1e-3), t_end=0.5,
@@ -80,10 +81,10 @@ def sampled_against_continuous(model, law="iv-drem", *, hs=(4e-3, 2e-3, 1e-3), t
     dist = arm.design_disturbance(model, traj)
     th0 = (np.zeros(model.ntheta) if theta_hat0 is None
            else np.asarray(theta_hat0, dtype=float))
-    given = dict(T=T, gamma=gamma, mixing=mixing)
-    gains = dict(K=np.asarray(K, dtype=float), theta_hat0=th0,
-                 **{k: v for k, v in given.items() if v is not None})
-    loop = continuous_closed_loop(law, model, mu_max=mu_max, design="inertia-scaled", **gains)
+    given = {k: v for k, v in dict(T=T, gamma=gamma, mixing=mixing).items() if v is not None}
+    gains = dict(K=np.asarray(K, dtype=float), theta_hat0=th0)
+    loop = continuous_closed_loop(law, model, mu_max=mu_max, design="inertia-scaled",
+                                  gains=given, **gains)
     dt_out = t_end / n_out
     r = simulate(loop, t_end, rtol=rtol, atol=atol, h_max=min(0.01, dt_out),
                  dt_out=dt_out, progress=False)
@@ -101,7 +102,7 @@ def sampled_against_continuous(model, law="iv-drem", *, hs=(4e-3, 2e-3, 1e-3), t
             raise ValueError(f"h = {h} must divide t_end / n_out = {dt_out}")
         t0 = time.perf_counter()
         ctl = cls(model, law, h=h, mu_max=mu_max, trajectory=traj, design="inertia-scaled",
-                  **gains)
+                  **gains, **given)
         plant = ModelPlant(model, q0, dq0, substeps=substeps)
         rec = sampled_loop(ctl, plant, t_end, disturbance=dist, every=every)
         out["wall"].append(time.perf_counter() - t0)

@@ -384,6 +384,7 @@ def controller_design(config, law, *, h=None, mu_max=None):
     import inspect
     from ..experiments.config import closed_loop_kwargs
     kw = closed_loop_kwargs(config, law)
+    kw.update(kw.pop("gains"))     # the sampled controller takes the law's gains by name
     accepted = set(inspect.signature(SampledController.__init__).parameters) - {"self", "model",
                                                                                 "law"}
     out = {}
@@ -546,7 +547,7 @@ def _model_override(name):
 
 
 def main_export_controller(args) -> int:
-    """``ivdrem fmu export --controller``: the parsed arguments of ivdrem.fmu.cli.
+    """``ivdrem fmu export --controller``: the parsed arguments of ivdrem.cli.fmu.
 
     Without ``--config`` and for the paper's arms (two-link, planar-N) the controller has
     SampledController's defaults (the paper's experiment); with ``--config``, or a URDF arm

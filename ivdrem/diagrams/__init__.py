@@ -1,5 +1,6 @@
 """Closed-loop diagrams assembled from the block library with ct.interconnect."""
 from .closed_loop import closed_loop, assemble, check_connected
+from .gamma_auto import calibrated_loop
 
 
 #: ``LAWS``: names of the registered laws (:func:`ivdrem.laws.law_names`), read from the
@@ -10,4 +11,4 @@ def __getattr__(name):
         return law_names()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
-__all__ = ["closed_loop", "assemble", "check_connected", "LAWS"]
+__all__ = ["closed_loop", "calibrated_loop", "assemble", "check_connected", "LAWS"]

@@ -6,28 +6,29 @@ import control as ct
 
 from .. import blocks as block_library
 from .. import laws as law_registry
+from .._default_config import paper_experiment
 from ..sim._control import sparse_maps
 from ..sim.guards import check_interconnect_size
 from ..sim.plan import check_signal_sizes, rows_with_entries, signal_sizes
 from .wiring import NOT_PLAIN, wire_by_name
 
-__all__ = ["closed_loop", "LAWS", "assemble", "check_connected"]
+__all__ = ["closed_loop", "resolve_loop", "build_resolved", "check_gains", "LOOP_ARGUMENTS",
+           "LAWS", "assemble", "check_connected"]
 
 #: ``LAWS``: names of the registered composite terms vartheta_c (``ivdrem.laws``), read
 #: from the registry on every access: "iv-drem" (proposed, eq. 21), "composite-learning"
 #: (eq. 35, Pan & Yu), "drem" (DREM with phi in place of the instrument),
 #: "sigma-modification" (erratum E5), "none" (plain disturbance-rejection adaptive
 #: control); plus any law added by ``register_law``.
+#: ``PAPER_TRAJECTORY``, ``PAPER_DISTURBANCE``: the paper's reference and disturbance
+#: (sinusoids' amplitude, omega, phase, offset) as the default configuration writes them
+#: (:func:`ivdrem._default_config.paper_experiment`).
 def __getattr__(name):
     if name == "LAWS":
         return law_registry.law_names()
+    if name in ("PAPER_TRAJECTORY", "PAPER_DISTURBANCE"):
+        return paper_experiment()[name.split("_", 1)[1].lower()]
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-PAPER_TRAJECTORY = dict(amplitude=[0.4 * np.pi, 0.3 * np.pi], omega=[2.0, 0.3],
-                        phase=[0.0, np.pi / 2], offset=[0.2 * np.pi, 0.3 * np.pi])
-PAPER_DISTURBANCE = dict(amplitude=[7.5, 1.5], omega=[0.5 * np.pi, 0.05 * np.pi],
-                         phase=[0.0, 0.0], offset=[0.0, 0.0])
 
 
 def check_connected(diagram, maps=None):
@@ -69,25 +70,111 @@ def assemble(blocks, outputs, name="closed_loop", connections=None, inputs=()):
     return diagram
 
 
-def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, Gamma=0.01,
-                mu0=1.0, mu1=15.0, observer_variant="corrected", l=50.0, T=None, p=None,
-                F0=None, gamma=None, mixing=None, epsilon=None, sigma=None, theta_star=None,
-                theta_hat0=None, q0=None, dq0=None, theta=None, trajectory=None,
-                disturbance=None, replace=None, external_plant=False, law_params=None,
-                calibration=None, design=None, theta_nominal=None, injection=None):
+def check_gains(spec, gains) -> dict:
+    """A copy of `gains` (None: none) checked against the gains `spec` declares (its
+    registry entry's ``defaults``): an unknown name is refused naming the law's gains."""
+    gains = {} if gains is None else dict(gains)
+    unknown = sorted(set(gains) - set(spec.defaults))
+    if unknown:
+        known = ", ".join(spec.defaults) or "none"
+        raise ValueError(f"law {spec.name!r} has no gain(s) {', '.join(map(repr, unknown))}; "
+                         f"its gains (ivdrem.laws, its entry's defaults): {known}")
+    return gains
+
+
+def resolve_loop(law="iv-drem", model=None, *, gains=None, **loop):
+    """(law's Law, model, gains, loop) as :func:`closed_loop` builds them: the model (default
+    the paper's 2-link arm), the law's `gains` checked (:func:`check_gains`), and on any arm but
+    the paper's the real-arm experiment designed for what `loop` and `gains` leave at None
+    (docs/experiment.md) and the arm's rule for γ and the mixing
+    (:func:`ivdrem.laws.arm_gain_rule`).  γ may come out "auto": a number is chosen from it
+    by :func:`ivdrem.diagrams.gamma_auto.calibrate_gamma` (an ``Experiment`` or
+    :func:`~ivdrem.diagrams.gamma_auto.calibrated_loop` do)."""
+    spec = law_registry.get_law(law)
+    unknown = sorted(set(loop) - set(LOOP_ARGUMENTS))
+    if unknown:
+        hint = [k for k in unknown if k in spec.defaults]
+        raise TypeError(f"closed_loop() got unexpected keyword argument(s) "
+                        f"{', '.join(map(repr, unknown))}"
+                        + (f"; a law's gains go in gains={{...}} ({', '.join(hint)})"
+                           if hint else ""))
+    gains = check_gains(spec, gains)
+    if model is None:
+        from ..models import two_link
+        model = two_link()
+    loop = {k: loop.get(k, v) for k, v in LOOP_ARGUMENTS.items()}
+    design = "paper" if loop["design"] is None else loop["design"]
+    if design not in block_library.DESIGNS:
+        raise ValueError(f"design = {design!r} is not a design of (9); choose one of "
+                         + ", ".join(map(repr, block_library.DESIGNS)))
+    from ..blocks.control_law import default_injection
+    loop["design"] = design
+    if loop["injection"] is None:
+        loop["injection"] = default_injection(design)
+    if not law_registry.is_paper_arm(model):
+        # the real-arm experiment, as a configuration naming this model gets it
+        joint_gains = loop["K"] is None            # the experiment's, in N m s
+        (loop["trajectory"], loop["disturbance"], loop["q0"], loop["dq0"], loop["K"],
+         T) = _arm_experiment(model, spec, loop["theta"], loop["trajectory"],
+                              loop["disturbance"], loop["q0"], loop["dq0"], loop["K"],
+                              gains.get("T"))
+        if T is not None and "T" in spec.defaults:
+            gains["T"] = T
+        if design == "inertia-scaled" and joint_gains:
+            loop["K"] = np.diag(block_library.inertia_scaled_gain(
+                model, np.diag(loop["K"]), loop["q0"], loop["theta_nominal"]))
+    # every arm but the paper's: the mixing and gain rule that work at its size
+    gamma, mixing = law_registry.arm_gain_rule(spec, model, gains.get("gamma"),
+                                               gains.get("mixing"))
+    for name, value in (("gamma", gamma), ("mixing", mixing)):
+        if value is not None:
+            gains[name] = value
+    if mixing is not None and mixing not in law_registry.MIXING_VARIANTS:
+        raise ValueError(f"unknown mixing {mixing!r}; choose one of "
+                         + ", ".join(repr(v) for v in law_registry.MIXING_VARIANTS)
+                         + " (docs/mixing.md)")
+    if isinstance(gamma, str):
+        if gamma != "auto":
+            raise ValueError(f"gamma must be a positive number or 'auto', got {gamma!r}")
+        if not spec.uses_delta:
+            raise ValueError(f"gamma='auto' needs the mixed regression (17); law {law!r} has none")
+    return spec, model, gains, loop
+
+
+#: closed_loop's own parameters (the loop's, not a law's) and their defaults: the paper's
+#: experiment on its 2-link arm (docs/experiment.md)
+LOOP_ARGUMENTS = dict(alpha=1.0, K=None, delta_mu=0.8, Gamma=0.01, mu0=1.0, mu1=15.0,
+                      observer_variant="corrected", l=50.0, theta_hat0=None, q0=None,
+                      dq0=None, theta=None, trajectory=None, disturbance=None, replace=None,
+                      external_plant=False, design=None, theta_nominal=None, injection=None)
+
+
+def closed_loop(law="iv-drem", model=None, *, gains=None, **loop):
     """The paper's closed loop with composite term `law`, as one InterconnectedSystem.
 
-    Parameters are the paper's experiment by default (K = 2); the law's own gains (T, p, F0,
-    gamma, epsilon, sigma, theta_star) default to its entry of the registry ``ivdrem.laws``.  `trajectory`
-    and `disturbance` are either dicts of sinusoid parameters (amplitude, omega, phase,
-    offset) or ready nlsys blocks with outputs (q_d, dq_d, ddq_d) and (tau_d).
+    ``gains``: the law's gains by name (those its registry entry ``ivdrem.laws`` declares:
+    T, p, F0, gamma, mixing for "iv-drem" and "drem"; T, gamma, epsilon for
+    "composite-learning"; sigma, theta_star for "sigma-modification"; a user law's own),
+    each left out taking the entry's default; a name the law does not declare is refused.
+    γ must be a number here: ``gamma = "auto"`` is chosen by a calibration
+    (:func:`ivdrem.diagrams.gamma_auto.calibrated_loop`, or an
+    :class:`ivdrem.experiments.Experiment`, which keeps the choice).
+
+    The loop's own parameters are keywords (:data:`LOOP_ARGUMENTS`): alpha, K, delta_mu,
+    Gamma, mu0, mu1, observer_variant, l, theta_hat0, q0, dq0, theta, trajectory,
+    disturbance, replace, external_plant, design, theta_nominal, injection.  They are the
+    paper's experiment by default (K = 2, the reference, disturbance and q(0) of the
+    default configuration, ``ivdrem/experiments/default.toml``).  `trajectory` and
+    `disturbance` are either dicts of sinusoid parameters (amplitude, omega, phase, offset)
+    or ready nlsys blocks with outputs (q_d, dq_d, ddq_d) and (tau_d).
 
     Any other model (a URDF arm, a planar arm) gets the real-arm experiment of
     docs/experiment.md, as a configuration naming that model does
     (:mod:`ivdrem.experiments.arm`): what is left at None of `trajectory` (the Fourier
     reference inside the joint limits), `disturbance` (scaled to the torque that reference
-    needs), `q0`, `dq0` (on the reference), `K` (per joint) and the window `T` (a common
-    period of reference and disturbance) is designed for the model.  `replace`
+    needs), `q0`, `dq0` (on the reference), `K` (per joint) and the window T of the gains
+    (a common period of reference and disturbance) is designed for the model; the mixing
+    and γ left out default to :func:`ivdrem.laws.default_mixing` and "auto".  `replace`
     maps block names to user blocks with the same signal names, e.g.
     ``replace={"disturbance": my_block}``.
 
@@ -96,13 +183,7 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
     lambda_min_held for "composite-learning".
 
     ``mixing`` (laws with the mixed regression (17)) is "paper" (eq. 17), "eigen" or
-    "channel" (docs/mixing.md).  For every model but the paper's 2-link arm, ``mixing`` and
-    ``gamma`` left at None default to :func:`ivdrem.laws.default_mixing` and "auto".
-
-    ``gamma="auto"`` (laws with the mixed regression (17)) picks γ of (21) from the loop's
-    own Δ in a short calibration run (``ivdrem.diagrams.gamma_auto``; ``calibration`` is a
-    dict of its options); the choice is ``diagram.gamma_choice``.  ``law_params`` passes
-    extra gains to a registered user law.
+    "channel" (docs/mixing.md).
 
     With ``external_plant=True`` the plant block is left out: the diagram has inputs q, dq
     (measured by an external plant, e.g. an FMU) and the same outputs less q, dq (tau and
@@ -118,56 +199,28 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
     ``theta_nominal`` ("nominal", the inertia-scaled design's default; docs/controller.md,
     "The observer on the nominal inertia").
     """
-    spec = law_registry.get_law(law)
-    if model is None:
-        from ..models import two_link
-        model = two_link()
-    n, nth = model.n, model.ntheta
-    paper_arm = model.name == "two-link" and n == 2
-    design = "paper" if design is None else design
-    if design not in block_library.DESIGNS:
-        raise ValueError(f"design = {design!r} is not a design of (9); choose one of "
-                         + ", ".join(map(repr, block_library.DESIGNS)))
-    from ..blocks.control_law import default_injection
-    injection = default_injection(design) if injection is None else injection
-    joint_gains = K is None and not paper_arm     # the experiment's, in N m s
-    if not paper_arm:   # the real-arm experiment, as a configuration naming this model gets it
-        trajectory, disturbance, q0, dq0, K, T = _arm_experiment(
-            model, spec, theta, trajectory, disturbance, q0, dq0, K, T)
-        if design == "inertia-scaled" and joint_gains:   # before γ = "auto" passes K on
-            K = np.diag(block_library.inertia_scaled_gain(model, np.diag(K), q0,
-                                                          theta_nominal))
-    # every arm but the paper's: the mixing and gain rule that work at its size
-    gamma, mixing = law_registry.arm_gain_rule(spec, model, gamma, mixing)
-    if mixing is not None and "mixing" not in spec.defaults:
-        raise ValueError(f"law {law!r} has no mixing step (17); mixing={mixing!r} applies to "
-                         "laws with the mixed regression (iv-drem, drem)")
-    if mixing is not None and mixing not in law_registry.MIXING_VARIANTS:
-        raise ValueError(f"unknown mixing {mixing!r}; choose one of "
-                         + ", ".join(repr(v) for v in law_registry.MIXING_VARIANTS)
-                         + " (docs/mixing.md)")
-    if isinstance(gamma, str):
-        if gamma != "auto":
-            raise ValueError(f"gamma must be a positive number or 'auto', got {gamma!r}")
-        if not spec.uses_delta:
-            raise ValueError(f"gamma='auto' needs the mixed regression (17); law {law!r} has none")
-        from .gamma_auto import calibrate_gamma
-        args = dict(alpha=alpha, K=K, delta_mu=delta_mu, Gamma=Gamma, mu0=mu0, mu1=mu1,
-                    observer_variant=observer_variant, l=l, T=T, p=p, F0=F0, mixing=mixing,
-                    epsilon=epsilon, sigma=sigma, theta_star=theta_star,
-                    theta_hat0=theta_hat0, q0=q0, dq0=dq0, theta=theta,
-                    trajectory=trajectory, disturbance=disturbance, replace=replace,
-                    external_plant=external_plant, law_params=law_params,
-                    design=design, theta_nominal=theta_nominal, injection=injection)
-        choice = calibrate_gamma(law, model, args, **(calibration or {}))
-        diagram = closed_loop(law, model, gamma=choice["gamma"], **args)
-        diagram.gamma_choice = choice
-        return diagram
+    spec, model, gains, loop = resolve_loop(law, model, gains=gains, **loop)
+    if gains.get("gamma") == "auto":
+        raise ValueError(
+            f"gamma = 'auto' of law {law!r} is chosen by a calibration run, not by "
+            "closed_loop: build the loop with ivdrem.diagrams.gamma_auto.calibrated_loop"
+            "(law, model, gains=..., ...) or an ivdrem.experiments.Experiment, or give "
+            "gains={'gamma': <a number>}")
+    return build_resolved(spec, model, gains, **loop)
 
-    if paper_arm:
-        trajectory = PAPER_TRAJECTORY if trajectory is None else trajectory
-        disturbance = PAPER_DISTURBANCE if disturbance is None else disturbance
-        q0 = [0.0, 0.3 * np.pi] if q0 is None else q0
+
+def build_resolved(spec, model, gains, *, alpha, K, delta_mu, Gamma, mu0, mu1, observer_variant, l,
+           theta_hat0, q0, dq0, theta, trajectory, disturbance, replace, external_plant,
+           design, theta_nominal, injection):
+    """The loop of :func:`closed_loop` from arguments :func:`resolve_loop` resolved
+    (`spec` the law's registry entry, γ a number), built without resolving them again."""
+    law = spec.name
+    n, nth = model.n, model.ntheta
+    if law_registry.is_paper_arm(model):
+        paper = paper_experiment()
+        trajectory = paper["trajectory"] if trajectory is None else trajectory
+        disturbance = paper["disturbance"] if disturbance is None else disturbance
+        q0 = paper["q0"] if q0 is None else q0
     K = 2.0 if K is None else K
 
     def source(spec, factory):
@@ -194,13 +247,8 @@ def closed_loop(law="iv-drem", model=None, *, alpha=1.0, K=None, delta_mu=0.8, G
     ]
     outputs = ["q", "dq", "q_d", "e", "r", "tau", "tau_d", "tau_d_hat", "theta_hat", "mu",
                "Pi", "v", "dv"]  # Pi, v, dv: the observer (7) with the true θ, offline
-    # the law's own gains: explicit arguments of closed_loop, then law_params, over the
-    # registry's defaults
-    given = dict(T=T, p=p, F0=F0, gamma=gamma, mixing=mixing, epsilon=epsilon, sigma=sigma,
-                 theta_star=theta_star)
-    given = {k: v for k, v in given.items() if k in spec.defaults}
-    given.update(law_params or {})
-    params = law_registry.resolve_params(spec, given)
+    # the law's own gains over its registry entry's defaults, and the loop's filter gain l
+    params = law_registry.resolve_params(spec, gains)
     params.setdefault("l", l)
     law_blocks, law_outputs = spec.build(law_registry.LawContext(model, n, nth, params))
     blocks += list(law_blocks)

@@ -29,8 +29,8 @@ import math
 
 import numpy as np
 
-__all__ = ["calibrate_gamma", "gamma_from_delta", "GainRuleError", "DEFAULT_RATE",
-           "GAMMA_MAX", "DELTA2_MIN", "reference_mean_delta2", "check_reference_delta",
+__all__ = ["calibrate_gamma", "calibrated_loop", "gamma_from_delta", "GainRuleError",
+           "DEFAULT_RATE", "GAMMA_MAX", "DELTA2_MIN", "reference_mean_delta2", "check_reference_delta",
            "ESTIMATE_MARGIN", "REFERENCE_MIXINGS"]
 
 #: target contraction rate κ = γ Δ² λ_max(Γ) of the composite term, 1/s
@@ -237,11 +237,12 @@ def check_reference_delta(law, model, args, *, variant, margin=ESTIMATE_MARGIN, 
     from .. import laws as law_registry
 
     spec = law_registry.get_law(law)
+    args = _flat(args)
     par = law_registry.resolve_params(spec, {k: args.get(k) for k in ("T", "p", "F0")})
     trajectory = args.get("trajectory")
     if trajectory is None:
-        from .closed_loop import PAPER_TRAJECTORY
-        trajectory = PAPER_TRAJECTORY
+        from .._default_config import paper_experiment
+        trajectory = paper_experiment()["trajectory"]     # the paper's arm
     numbers = dict(T=float(par["T"]), p=float(par["p"]), F0=float(par["F0"]),
                    l=float(args.get("l") or 50.0), variant=variant,
                    t_cal=None if t_cal is None else float(t_cal))
@@ -328,10 +329,61 @@ def _write_estimate(path, est):
         pass
 
 
+def _flat(args):
+    """The loop's arguments and the law's gains in one mapping by name (a ``gains`` entry,
+    as :func:`ivdrem.diagrams.closed_loop` takes them, merged in)."""
+    args = dict(args)
+    args.update(args.pop("gains", None) or {})
+    return args
+
+
+def _calibration_loop(law, model, args):
+    """The loop of the calibration run: `law`'s closed loop with γ a placeholder (the run
+    sets it to _GAMMA_OFF) and ivdrem's own plant of the model, also for a controller built
+    for an external plant (an FMU of the same model)."""
+    from ..laws import LAWS, get_law
+    from .closed_loop import closed_loop
+    declared = get_law(law).defaults
+    # a gain of another law (a sampled controller's epsilon given to iv-drem) does not
+    # apply here; None is the default
+    others = {k for spec in LAWS.values() for k in spec.defaults} - set(declared)
+    args = {k: v for k, v in args.items() if v is not None and k not in others}
+    gains = {k: v for k, v in args.items() if k in declared}
+    gains["gamma"] = 1.0
+    loop = {k: v for k, v in args.items() if k not in declared}
+    return closed_loop(law, model, gains=gains, **{**loop, "external_plant": False})
+
+
+def calibrated_loop(law="iv-drem", model=None, *, gains=None, calibration=None, **loop):
+    """:func:`ivdrem.diagrams.closed_loop` with a γ "auto" chosen first: the gains and the
+    loop resolved as closed_loop resolves them (the real-arm experiment designed, the arm's
+    gain rule applied), γ from :func:`calibrate_gamma` on them (``calibration``: its keyword
+    arguments), then the loop built with that number; the choice is
+    ``diagram.gamma_choice``.  A γ that is a number builds the plain closed_loop."""
+    from .closed_loop import build_resolved, resolve_loop
+    spec, model, gains, loop = resolve_loop(law, model, gains=gains, **loop)
+    choice = None
+    if gains.get("gamma") == "auto":
+        choice = calibrate_gamma(law, model, {**loop, **gains}, **(calibration or {}))
+        gains["gamma"] = choice["gamma"]
+    diagram = build_resolved(spec, model, gains, **loop)
+    if choice is not None:
+        diagram.gamma_choice = choice
+    return diagram
+
+
+def _scalar_output(resp, name):
+    """The scalar output `name` of a calibration run over time (by its label)."""
+    y = np.asarray(resp.outputs, dtype=float).reshape(-1, np.asarray(resp.time).size)
+    return y[list(resp.output_labels).index(name)].copy()
+
+
 def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1,
                     engine="compiled", method="dp45", rtol=None, atol=None, h=1e-3,
                     h_max=0.01, dt_out=0.01, source=None):
-    """The γ of the rule above for ``law`` on ``model``, with the numbers it came from;
+    """The γ of the rule above for ``law`` on ``model``, with the numbers it came from
+    (``args``: the loop's arguments and the law's gains, as :func:`calibrated_loop` resolves
+    them);
     mean Δ² over [T, t_cal] (default 2T) from ``source``:
 
     * ``"reference"``: the estimate along the reference (:func:`reference_mean_delta2`), no
@@ -353,8 +405,8 @@ def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1
     (‖θ̃(120 s)‖ = 2.91 against 0.295 with one pass), so one pass is the default.
     """
     from ..sim import simulate
-    from .closed_loop import closed_loop
 
+    args = _flat(args)
     T = float(args.get("T") or 20.0)
     t_cal = 2.0 * T if t_cal is None else float(t_cal)
     if not t_cal > 0:
@@ -378,7 +430,7 @@ def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1
         return out
     # the calibration needs the motion: the whole loop with ivdrem's own plant of the model,
     # also for a controller built for an external plant (an FMU of the same model)
-    diagram = closed_loop(law, model, gamma=1.0, **{**args, "external_plant": False})
+    diagram = _calibration_loop(law, model, args)
     settings = dict(law=law, t_cal=t_cal, rate=float(rate), passes=passes, engine=engine,
                     method=method, rtol=rtol, atol=atol, h=h, h_max=h_max, dt_out=dt_out,
                     T=T, Gamma=np.asarray(args.get("Gamma", 0.01), dtype=float).tolist(),
@@ -392,9 +444,9 @@ def calibrate_gamma(law, model, args, *, t_cal=None, rate=DEFAULT_RATE, passes=1
         resp = simulate(diagram, t_cal, engine=engine, method=method, rtol=rtol, atol=atol,
                         h=h, h_max=h_max, dt_out=dt_out, params={"gamma": gamma},
                         progress=False, return_states=False)
-        from ..experiments.metrics import signal
-        out = gamma_from_delta(resp.time, signal(resp, "Delta"), T, args.get("Gamma", 0.01),
-                               rate=rate, delta_log10=signal(resp, "Delta_log10"),
+        out = gamma_from_delta(resp.time, _scalar_output(resp, "Delta"), T,
+                               args.get("Gamma", 0.01), rate=rate,
+                               delta_log10=_scalar_output(resp, "Delta_log10"),
                                variant=variant, model_name=getattr(model, "name", None))
         history.append({"gamma_run": gamma if isinstance(gamma, float) else list(gamma),
                         "mean_Delta2": out["mean_Delta2"], "gamma": out["gamma"]})

@@ -5,8 +5,9 @@ The default configuration (the paper experiment) is the package data file
 file (and optional overrides) over it and validates the result *before* anything is
 simulated; every problem is reported as a :class:`ConfigError` naming the key.
 
-:func:`closed_loop_kwargs` maps a validated configuration to the keyword arguments of
-``ivdrem.diagrams.closed_loop(law, model, **kwargs)``, :func:`solver_kwargs` to those
+:func:`closed_loop_kwargs` maps a validated configuration to the arguments of
+``ivdrem.diagrams.closed_loop(law, model, **kwargs)`` (the loop's keywords and the law's
+``gains``, :func:`law_gains`), :func:`solver_kwargs` to those
 of the simulator.
 """
 from __future__ import annotations
@@ -41,6 +42,7 @@ __all__ = [
     "validate_config",
     "model_dims",
     "closed_loop_kwargs",
+    "law_gains",
     "solver_kwargs",
     "dump_toml",
     "schema",
@@ -849,20 +851,35 @@ def _validate_value(name: str, spec: Key, value: Any):
 _TRAJ_KEYS = ("amplitude", "omega", "phase", "offset")
 
 
-def closed_loop_kwargs(config: Mapping, law: str) -> dict:
-    """Keyword arguments of ``ivdrem.diagrams.closed_loop(law, model, **kwargs)``.
-
-    Common keys: alpha, K (n×n; with ``design = "inertia-scaled"`` the joint gains over
-    M̂_ii(q0), in 1/s), design (when configured), delta_mu, Gamma (nθ×nθ), mu0, mu1, observer_variant,
-    l, theta_hat0, q0, dq0, theta, trajectory, disturbance.  Law-specific keys: those the
-    law's registry entry names (``Law.config``: "iv-drem" and "drem" read T, p, F0, gamma,
-    mixing of [iv_drem]; "composite-learning" T, gamma, epsilon of [composite_learning];
-    "sigma-modification" sigma, theta_star; "none" nothing); a user's law gets its
-    section's gains as ``law_params``.
-    """
+def law_gains(config: Mapping, law: str) -> dict:
+    """The gains of `law` in `config`, by the names its registry entry declares
+    (``ivdrem.laws``): the configuration keys ``Law.config`` names ("iv-drem" and "drem":
+    T, p, F0, gamma, mixing of [iv_drem]; "composite-learning": T, gamma, epsilon of
+    [composite_learning]; "sigma-modification": sigma, theta_star; "none": nothing), or for
+    a user's law its defaults over-written by its own section.  ``closed_loop``'s
+    ``gains``."""
     names = law_names()
     if law not in names:
         raise ConfigError(f"law {law!r} is not known" + _suggest(law, names) + "; valid laws: " + ", ".join(names))
+    spec = get_law(law)
+    if spec.config is not None:      # the configuration keys the law's registry entry names
+        return {name: _argument(config[key.split(".")[0]][key.split(".")[1]])
+                for name, key in spec.config.items()}
+    # a user law (ivdrem.laws.register_law): its registry defaults, overridden by its own
+    # configuration table if it has one
+    table = config.get(spec.section, {}) if spec.section else {}
+    return {k: (_argument(table[k]) if k in table else v) for k, v in spec.defaults.items()}
+
+
+def closed_loop_kwargs(config: Mapping, law: str) -> dict:
+    """The arguments of ``ivdrem.diagrams.closed_loop(law, model, **kwargs)`` for `config`.
+
+    The loop's own keywords: alpha, K (n×n; with ``design = "inertia-scaled"`` the joint
+    gains over M̂_ii(q0), in 1/s), design and injection (when configured), delta_mu, Gamma
+    (nθ×nθ), mu0, mu1, observer_variant, l, theta_hat0, q0, dq0, theta, trajectory,
+    disturbance; and ``gains``, the law's (:func:`law_gains`).
+    """
+    gains = law_gains(config, law)
     c = config
     ctl = c["controller"]
     theta = np.asarray(c["model"]["theta"], dtype=float)
@@ -881,20 +898,8 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
         "mu1": float(ctl["mu1"]),
         "observer_variant": ctl["observer_variant"],
         "l": float(c["filters"]["l"]),
+        "gains": gains,
     }
-    spec = get_law(law)
-    if spec.config is not None:      # the configuration keys the law's registry entry names
-        for name, key in spec.config.items():
-            section, k = key.split(".")
-            kw[name] = _argument(c[section][k])
-    else:
-        # a user law (ivdrem.laws.register_law): its registry defaults, overridden by its
-        # own configuration table if it has one
-        table = c.get(spec.section, {}) if spec.section else {}
-        kw["law_params"] = {k: (np.asarray(table[k], dtype=float) if isinstance(table.get(k), list)
-                                else table.get(k, v)) for k, v in spec.defaults.items()}
-        if kw["law_params"].get("gamma") == "auto":   # a law sharing [iv_drem]: closed_loop's rule
-            kw["gamma"] = kw["law_params"].pop("gamma")
     kw.update(
         theta_hat0=np.asarray(c["initial"]["theta_hat0"], dtype=float),
         q0=np.asarray(c["initial"]["q0"], dtype=float),
@@ -944,7 +949,7 @@ def solver_kwargs(config: Mapping, law: str | None = None) -> dict:
     s = config["solver"]
     h_max = float(s["h_max"])
     if law is not None:
-        window = closed_loop_kwargs(config, law).get("T")
+        window = law_gains(config, law).get("T")
         if window is not None:
             h_max = min(h_max, float(window) / 2)
     return {

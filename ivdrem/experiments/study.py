@@ -44,7 +44,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from .._atomic import write_text_atomic, new_tempfile, fsync_file, os_error_behind
-from .._paths import OutputLocationError, check_writable_dir, user_path
+from .._paths import OutputLocationError, check_writable_dir
 from .._progress import want_progress
 from .study_spec import RunSpec, StudyError, StudySpec, expand_study, read_study
 
@@ -76,15 +76,17 @@ def run_one(config: Mapping, law: str) -> dict:
     inertia, a compile error): the record has ``status = "failed"`` and the message.
     """
     from . import metrics
-    from .config import model_from_config
-    from .paper import PaperRun, run_law
+    from .experiment import Experiment
+    from .paper import PaperRun
 
     t0 = time.perf_counter()
     rec: dict[str, Any] = {"law": law, "status": "ok", "error": "", "pid": os.getpid(),
                            "host": socket.gethostname()}
     try:
-        model = model_from_config(config)
-        lr = run_law(config, law, model=model, progress=False)
+        experiment = Experiment.from_config(config, laws=[law])   # resolved once
+        model = experiment.model
+        lr = experiment.run(law, progress=False)
+        experiment.release(law)
         task_s = time.perf_counter() - t0
         theta = np.asarray(config["model"]["theta"], dtype=float)
         s = metrics.summary(lr, theta)
@@ -397,18 +399,19 @@ def check_study_cost(runs: list[RunSpec]) -> None:
     (output memory, step count: a worker would refuse it after the cluster started, or
     fill its memory), naming the run.  One pricing diagram per model structure and law:
     the cost depends on the diagram's size, not on its parameter values."""
-    from .._preflight import check_law_cost, pricing_diagram
-    from .config import model_from_config
-    diagrams = {}
+    from .experiment import Experiment
+    priced = {}
     for run in runs:
         model_key = json.dumps({k: v for k, v in run.config["model"].items() if k != "theta"},
                                sort_keys=True)
         key = (run.law, model_key, json.dumps(run.config.get("iv_drem", {}).get("mixing")))
         try:
-            if key not in diagrams:
-                diagrams[key] = pricing_diagram(run.config, run.law,
-                                                model_from_config(run.config))
-            check_law_cost(run.config, run.law, diagrams[key], what=run.label)
+            experiment = Experiment.from_config(run.config, laws=[run.law])
+            if key not in priced:
+                priced[key] = experiment.loop(run.law)
+                experiment.release(run.law)
+            # this run's horizon and solver on the loop of its structure
+            experiment.check_cost(run.law, priced[key], what=run.label)
         except ValueError as exc:    # CostLimitError, a bound of h_max / dt_out
             # the guard's remedy "--allow-long" is an option of paper and report, not of
             # a study: name the remedy that exists
@@ -486,8 +489,12 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     try:   # before a cluster starts: the output directory, the C compiler, then what each
         # run will cost
         check_writable_dir(out, "study directory (--out)")
-        from .._preflight import check_c_compiler
-        check_c_compiler()
+        from ..sim import _cstepper
+        from ..sim.compiled import C_COMPILER_HINT
+        try:    # both engines step in C (ivdrem/sim/stepper.c)
+            _cstepper._compiler()
+        except _cstepper.CStepperUnavailable as exc:
+            raise StudyError(f"{exc}; {C_COMPILER_HINT}") from None
     except (OutputLocationError, ValueError) as exc:
         raise StudyError(str(exc)) from None
     check_study_cost([wanted[h] for h in todo])
@@ -630,73 +637,3 @@ def _interleave(todo: list[RunSpec]) -> list[RunSpec]:
             if i < len(v):
                 out.append(v[i])
     return out
-
-
-# --------------------------------------------------------------------------- command line
-def add_study_arguments(parser):
-    """Options of ``ivdrem study``."""
-    parser.add_argument("study", metavar="FILE.toml",
-                        help="study file: a configuration plus [study.grid] / [study.random] "
-                             "(see examples/study-window.toml, docs/studies.md)")
-    parser.add_argument("--out", metavar="DIR", default=None,
-                        help="output directory (default: studies/<name of FILE>)")
-    parser.add_argument("--workers", metavar="N", type=int, default=None,
-                        help="worker processes of the local Dask cluster (default: one per core)")
-    parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                        help="submit to a running Dask scheduler, e.g. tcp://HOST:8786, whose "
-                             "workers have ivdrem installed")
-    parser.add_argument("--resume", action="store_true",
-                        help="continue a study in DIR: skip the runs already finished there")
-    parser.add_argument("--no-report", action="store_true", dest="no_report",
-                        help="write the tables only, not study.html / study.pdf")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar, no notes on long preparation")
-    return parser
-
-
-def run_study_command(args) -> int:
-    """``ivdrem study``: 0 when every run has a record, 1 when runs were lost, 2 for bad input."""
-    # Paths on the command line are the caller's (see ivdrem._paths), as for every command.
-    study = user_path(args.study)
-    out = user_path(args.out if args.out is not None else Path("studies") / study.stem)
-    try:
-        df = run_study(study, out, workers=args.workers, scheduler=args.scheduler,
-                       resume=args.resume, progress=False if args.quiet else None,
-                       report=not args.no_report)
-    except StudyError as exc:
-        print(f"ivdrem study: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt as exc:      # Ctrl-C, or SIGTERM (ivdrem.cli.Terminated)
-        from ..cli import EXIT_INTERRUPTED
-        done = len(RunStore(Path(out)).load())
-        how = getattr(exc, "label", "Ctrl-C")
-        print(f"\nivdrem study: interrupted ({how}); {done} finished run(s) are saved in "
-              f"{out}/runs; continue with --resume", file=sys.stderr)
-        return 128 + exc.signum if hasattr(exc, "signum") else EXIT_INTERRUPTED
-    print(summary_text(df, out))
-    return 1 if df.attrs.get("lost") else 0
-
-
-def summary_text(df, out) -> str:
-    """A few lines for the terminal: counts, medians per law, verdicts, files."""
-    lines = []
-    n_ok = int((df["status"] == "ok").sum()) if not df.empty else 0
-    n_bad = len(df) - n_ok
-    wall = df.attrs.get("wall_s")
-    lines.append(f"{len(df)} runs: {n_ok} ok, {n_bad} failed"
-                 + (f"; {wall:.1f} s in this session" if wall is not None else ""))
-    if n_ok:
-        ok = df[df["status"] == "ok"]
-        for law, sub in ok.groupby("law", sort=False):
-            lines.append(f"{law:>20s}: median |theta_err|(t_end) = {sub['theta_err_norm'].median():.4g} "
-                         f"(min {sub['theta_err_norm'].min():.4g}, max {sub['theta_err_norm'].max():.4g}), "
-                         f"median RMS tau_d err last 20% = {sub['tau_d_err_rms_last20'].median():.4g} N m")
-        pts = df.drop_duplicates("point")
-        for c in ("C1", "C2", "C3"):
-            v = pts[c].dropna()
-            if len(v):
-                lines.append(f"{c}: PASS at {int(v.sum())} of {len(v)} points")
-    for h, msg in (df.attrs.get("lost") or {}).items():
-        lines.append(f"lost run {h}: {msg} (run again with --resume)")
-    lines.append(f"wrote {out}/results.parquet, results.csv, curves.parquet"
-                 + ("" if not (Path(out) / "study.html").exists() else ", study.html, study.pdf"))
-    return "\n".join(lines)

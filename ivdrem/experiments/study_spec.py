@@ -139,11 +139,13 @@ def config_hash(config: Mapping, law: str) -> str:
             return [plain(x) for x in v]
         return v
 
+    loop = closed_loop_kwargs(config, law)
+    loop.update(loop.pop("gains"))      # by name beside the loop's: hashes of earlier studies
     what = {
         "law": law,
         "model": config["model"],
         "experiment": {k: v for k, v in config["experiment"].items() if k != "laws"},
-        "closed_loop": plain(closed_loop_kwargs(config, law)),
+        "closed_loop": plain(loop),
         "solver": plain(solver_kwargs(config, law)),
     }
     text = json.dumps(what, sort_keys=True, separators=(",", ":"), allow_nan=False)

@@ -55,7 +55,7 @@ term cancels), the position enters through ``r = e' + alpha e``;
 ``_one_step_map``) and predicts, from the model and the configuration only, the growth per
 step of the linearized coupling at t = 0.  At least :data:`DIVERGING_GROWTH` = 1.5 (and a
 million-fold growth within the horizon) is taken as a divergence: the report's FMU check is
-then not run (``ivdrem.reports.cli.fmu_check``).  On the Panda (examples/panda.toml) at
+then not run (``ivdrem.cli.report.fmu_check``).  On the Panda (examples/panda.toml) at
 ``H = 1 ms``: ``lambda_max = 2994 /s`` (the wrist, smallest eigenvalue of M(q0) 0.0047),
 growth 1.98 per step, against an observed e-folding rate of 776 /s (a factor 2.2 per step)
 in the co-simulation, which diverges at t = 21 ms.  On the 2-link arm with a larger K:
@@ -196,7 +196,8 @@ def _initial_state(model, config):
     n = model.n
     q0 = config.get("q0")
     if q0 is None:
-        q0 = [0.0, 0.3 * np.pi] if (model.name == "two-link" and n == 2) else np.zeros(n)
+        from .._default_config import paper_experiment
+        q0 = paper_experiment()["q0"] if (model.name == "two-link" and n == 2) else np.zeros(n)
     dq0 = config.get("dq0")
     dq0 = np.zeros(n) if dq0 is None else dq0
     out = []
@@ -516,14 +517,11 @@ def coupling_stability(model, comm_step, t_end, **config) -> CouplingStability:
     (then Πᵀθ̂ adds a filtered velocity gain μ M(q, θ̂0) the map leaves out) or user blocks
     (``replace``).
     """
-    import inspect
-
     from ivdrem.blocks import _validate as checks
-    from ivdrem.diagrams import closed_loop
+    from ivdrem.diagrams.closed_loop import LOOP_ARGUMENTS as defaults
 
     H = float(comm_step)
     _steps(t_end, H)
-    defaults = {k: p.default for k, p in inspect.signature(closed_loop).parameters.items()}
 
     def given(key):
         v = config.get(key)

@@ -584,6 +584,7 @@ def controller_kwargs(config, law):
     or the Fourier series of docs/experiment.md)."""
     from ..experiments.config import closed_loop_kwargs
     kw = closed_loop_kwargs(config, law)
+    kw.update(kw.pop("gains"))     # the sampled controller takes the law's gains by name
     run = dict(q0=kw.pop("q0"), dq0=kw.pop("dq0"), disturbance=kw.pop("disturbance"))
     kw.pop("theta", None)
     tr = config["trajectory"]

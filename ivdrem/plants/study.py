@@ -151,7 +151,6 @@ def expand(config, rob):
 
 def run_one(config, rob, run) -> dict:
     """One MuJoCo loop of the study (on a worker); never raises: a failed run is a row."""
-    from .cli import summarize
     from .mujoco import Payload, closed_loop, controller_kwargs, load
     from ..experiments.config import model_from_config
     t0, cpu0 = time.perf_counter(), time.process_time()
@@ -404,3 +403,59 @@ def plot(df, path, *, model="?", keep=False):
     if keep:
         return fig
     plt.close(fig)
+
+
+# ----------------------------------------------------------------------------- results
+def summarize(resp, *, last_fraction=0.2) -> dict:
+    """θ̃ at the start and the end (absolute, relative), tracking error and τ̃_d (RMS over
+    the last ``last_fraction`` of the run, max |e| there), the costs."""
+    from ..experiments.metrics import norm, rms, signal, window
+    t = np.asarray(resp.time)
+    e_th = norm(signal(resp, "theta_hat") - signal(resp, "theta"))
+    e_q = signal(resp, "q_d") - signal(resp, "q")
+    e_d = signal(resp, "tau_d_hat") - signal(resp, "tau_d")
+    last = window(t, t[-1] * (1 - last_fraction))
+    return dict(
+        law=resp.law, t_end=float(t[-1]), theta_error_0=float(e_th[0]),
+        theta_error_end=float(e_th[-1]), theta_error_ratio=float(e_th[-1] / e_th[0]),
+        tracking_rms_last=rms(t[last], norm(e_q)[last]),
+        tracking_max_last=float(np.abs(e_q[:, last]).max()),
+        tau_d_error_rms_last=rms(t[last], norm(e_d)[last]),
+        theta_hat_end=signal(resp, "theta_hat")[:, -1].tolist(),
+        theta_end=signal(resp, "theta")[:, -1].tolist(), **resp.costs)
+
+
+def mujoco_paper_run(config, *, mu_max=135.0, every=None, progress=False, log=None):
+    """The experiment of ``config`` (its model, laws, t_end, reference, disturbance, gains)
+    with MuJoCo as the plant: a :class:`~ivdrem.experiments.paper.PaperRun` whose law runs
+    are :func:`ivdrem.plants.mujoco.closed_loop` responses (recorded every 10 ms), for the
+    report builder (``ivdrem report --plant mujoco``).  ``run.engine`` names the plant."""
+    import mujoco
+    from ..experiments.config import model_from_config
+    from ..experiments.paper import LawRun, PaperRun
+    from ..plants.mujoco import closed_loop, controller_kwargs, load
+    model = model_from_config(config)
+    t_end = float(config["experiment"]["t_end"])
+    h = 1e-3
+    plant = load(model, h=h)
+    every = every or max(1, int(round(float(config["experiment"]["dt_out"]) / h)))
+    run = PaperRun(config=config, theta=np.asarray(plant.theta, float), model=model)
+    run.engine = (f"MuJoCo {mujoco.__version__} plant ({plant.integrator} integrator, step "
+                  f"{plant.mj.opt.timestep:g} s; ivdrem.plants.mujoco), the sampled C "
+                  f"controller at h = {h:g} s, μ saturated at {mu_max:g}")
+    for law in config["experiment"]["laws"]:
+        kw, start = controller_kwargs(config, law)
+        kw["mu_max"] = float(mu_max)
+        if kw.get("gamma") == "auto":
+            from ..controller.block import auto_gamma
+            kw["gamma"] = auto_gamma(model, law, kw)["gamma"]
+        t0 = time.perf_counter()
+        resp = closed_loop(plant, t_end, law, every=every, progress=progress, **start, **kw)
+        wall = time.perf_counter() - t0
+        stats = dict(method=f"MuJoCo {plant.integrator}", h=h, steps=resp.costs["samples"],
+                     wall_s=wall, engine="MuJoCo plant, sampled C controller",
+                     plant_us=resp.costs["plant_us"], controller_us=resp.costs["controller_us"])
+        run.runs[law] = LawRun(law=law, response=resp, stats=stats, gamma=kw.get("gamma"))
+        if log is not None:
+            log(f"{law:>20s}: {resp.costs['samples']} samples in MuJoCo, {wall:.1f} s")
+    return run

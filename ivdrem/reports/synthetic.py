@@ -127,6 +127,7 @@ def synthetic_paper_run(config=None, *, t_end=None, dt=None, laws=None, cl_conve
 
     if config is None:
         config = load_config()
+    config = getattr(config, "config", config)     # an Experiment's configuration
     t_end = float(config["experiment"]["t_end"] if t_end is None else t_end)
     dt = float(config["experiment"]["dt_out"] if dt is None else dt)
     laws = list(config["experiment"]["laws"] if laws is None else laws)

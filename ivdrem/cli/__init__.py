@@ -1,4 +1,11 @@
-"""Command line: ``ivdrem paper | study | report | examples | fmu export | cosim``."""
+"""Command line: ``ivdrem paper | study | report | examples | fmu export | cosim``.
+
+Every command-line face of ivdrem is in this package, above the library it drives:
+``paper`` and ``examples`` here, :mod:`.report` (``ivdrem report``), :mod:`.study`
+(``ivdrem study``), :mod:`.fmu` (``ivdrem fmu export``, ``ivdrem cosim``), :mod:`.plants`
+(the MuJoCo plant: ``cosim --plant mujoco``, ``report --plant mujoco``, the robustness
+study) and :mod:`.preflight` (what the commands check before the first simulation step).
+"""
 from __future__ import annotations
 
 import argparse
@@ -12,11 +19,11 @@ __all__ = ["main"]
 
 
 def _cmd_paper(args):
-    from .experiments.config import ConfigError, load_config
-    from ._paths import STDOUT, OutputLocationError, check_replaceable, user_path
-    from ._preflight import (PreflightError, check_cache_dir, check_runs, method_overrides,
+    from ..experiments.config import ConfigError, load_config
+    from .._paths import STDOUT, OutputLocationError, check_replaceable, user_path
+    from .preflight import (PreflightError, check_cache_dir, check_runs, method_overrides,
                              horizon_note, long_run_note, timing_text)
-    from ._progress import want_progress
+    from .._progress import want_progress
     prog = "ivdrem paper"
     overrides = {}
     if args.t_end is not None:
@@ -43,7 +50,9 @@ def _cmd_paper(args):
             json_path = check_replaceable(user_path(args.json), "JSON file",
                                           overwrite=args.overwrite, ours=_is_paper_json)
         check_cache_dir(args.engine)
-        walls = check_runs(config, engine=args.engine, allow_long=args.allow_long)
+        from ..experiments.experiment import Experiment
+        experiment = Experiment.from_config(config, engine=args.engine)   # resolved once
+        walls = check_runs(experiment, allow_long=args.allow_long)
     except (ConfigError, PreflightError, OutputLocationError, ValueError, ImportError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
@@ -56,12 +65,12 @@ def _cmd_paper(args):
     # with --json - standard output carries the JSON alone: every line goes to stderr
     say = print if json_path != STDOUT else functools.partial(print, file=sys.stderr)
 
-    from .experiments.metrics import conclusions, format_conclusions, summary
-    from .experiments.paper import run_paper
-    from .sim import SimulationError
-    from .diagrams.gamma_auto import GainRuleError
+    from ..experiments.metrics import conclusions, format_conclusions, summary
+    from ..experiments.paper import run_paper
+    from ..sim import SimulationError
+    from ..diagrams.gamma_auto import GainRuleError
     try:
-        run = run_paper(config, progress=want_progress(not args.quiet), engine=args.engine,
+        run = run_paper(experiment, progress=want_progress(not args.quiet),
                         allow_long=args.allow_long, log=say,
                         return_states=False)     # nothing below reads the states
     except GainRuleError as e:       # refused by the calibration, before that law's run
@@ -81,9 +90,9 @@ def _cmd_paper(args):
     evaluated = [c for c in conclusions(run) if c["verdict"] is not None]
     if evaluated:
         say(format_conclusions(evaluated))
-    from .experiments.diagnostics import diagnose_run, format_diagnostics, to_json
+    from ..experiments.diagnostics import diagnose_run, format_diagnostics, to_json
     for law, d in diagnose_run(run).items():   # the assumptions of Theorem 2 on this run
-        from .experiments.diagnostics import learning_warnings
+        from ..experiments.diagnostics import learning_warnings
         say(format_diagnostics(d))
         out[law]["diagnostics"] = to_json(d)
         out[law]["warnings"] = learning_warnings(d)
@@ -100,7 +109,7 @@ def _cmd_paper(args):
         sys.stdout.write(json.dumps(out, indent=2) + "\n")
         sys.stdout.flush()
     elif json_path is not None:
-        from ._paths import write_text_or_keep
+        from .._paths import write_text_or_keep
         where, failed = write_text_or_keep(json_path, json.dumps(out, indent=2) + "\n")
         if failed is not None:
             print(f"{prog}: error: cannot write {json_path}: {failed}; "
@@ -112,7 +121,7 @@ def _cmd_paper(args):
 
 def _is_paper_json(path) -> bool:
     """Whether `path` holds what ``ivdrem paper --json`` writes (per law: its summary)."""
-    from ._paths import read_input_bytes
+    from .._paths import read_input_bytes
     try:     # bounded, and never a device or a FIFO (ivdrem._paths)
         data = json.loads(read_input_bytes(path, "JSON file").decode("utf-8"))
     except (OSError, ValueError):
@@ -124,8 +133,8 @@ def _is_paper_json(path) -> bool:
 
 def _cmd_examples(args):
     """``ivdrem examples [DIR]``: list the examples, or write them into DIR."""
-    from ._bundled import ExamplesError, describe_examples, write_examples
-    from ._paths import user_path
+    from .._bundled import ExamplesError, describe_examples, write_examples
+    from .._paths import user_path
     try:
         if args.dir is None:
             print(describe_examples())
@@ -145,25 +154,25 @@ def _cmd_examples(args):
 
 
 def _cmd_study(args):
-    from ._paths import user_path
-    from .plants.study import is_robustness_file
+    from .._paths import user_path
+    from ..plants.study import is_robustness_file
     if is_robustness_file(user_path(args.study)):       # the MuJoCo robustness study
-        from .plants.cli import run_robustness_command
+        from .plants import run_robustness_command
         return run_robustness_command(args)
-    from .experiments.study import run_study_command
+    from .study import run_study_command
     return run_study_command(args)
 
 
 def _cmd_report(args):
-    from .reports.cli import run_report_command
+    from .report import run_report_command
     return run_report_command(args)
 
 
 def build_parser():
-    from . import __version__
-    from ._preflight import add_run_options
-    from .laws import law_names
-    from .reports.cli import add_report_arguments
+    from .. import __version__
+    from .preflight import add_run_options
+    from ..laws import law_names
+    from .report import add_report_arguments
     p = argparse.ArgumentParser(prog="ivdrem", description=(
         "Composite adaptive disturbance rejection via IV-based DREM "
         "(Glushchenko & Lastochkin): paper experiment, report, plant FMU."))
@@ -191,7 +200,7 @@ def build_parser():
     pp.set_defaults(func=_cmd_paper)
 
     sp = sub.add_parser("study", help="run a parameter study (grid / Monte Carlo, or a MuJoCo robustness study) on a Dask cluster")
-    from .experiments.study import add_study_arguments
+    from .study import add_study_arguments
     add_study_arguments(sp)
     sp.set_defaults(func=_cmd_study)
 
@@ -296,7 +305,7 @@ def main(argv=None):
     input, 130 after Ctrl-C.  The console script ``ivdrem`` is :func:`run`, which calls
     this and exits without the interpreter's teardown.
     """
-    from ._threads import one_blas_thread
+    from .._threads import one_blas_thread
     try:
         with _sigterm_as_interrupt(), one_blas_thread():
             # ivdrem's own process: small LAPACK calls, one thread each
@@ -316,7 +325,7 @@ def _cache_fault_line(exc) -> str | None:
     disk that filled up while writing anything), naming the file and the remedy; None for
     any other error."""
     import errno
-    from .compile_cache import CacheFault, cache_dir
+    from ..compile_cache import CacheFault, cache_dir
     if isinstance(exc, CacheFault):
         return str(exc)
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
@@ -328,7 +337,7 @@ def _cache_fault_line(exc) -> str | None:
 
 
 def _main(argv=None):
-    from . import _progress
+    from .. import _progress
     was_quiet = _progress._quiet
     try:
         return _run_command(argv)
@@ -338,11 +347,11 @@ def _main(argv=None):
 
 def _run_command(argv):
     argv = sys.argv[1:] if argv is None else list(argv)
-    from ._progress import set_quiet
+    from .._progress import set_quiet
     # sub-commands owned by ivdrem.fmu parse their own arguments
     if argv and argv[0] in ("fmu", "cosim"):
         set_quiet("--quiet" in argv)   # no notes on long preparation either
-        from .fmu import cli as fcli
+        from . import fmu as fcli
         fn = fcli.main_fmu if argv[0] == "fmu" else getattr(fcli, "main_cosim", None)
         if fn is None:
             print("ivdrem cosim: not available in this version", file=sys.stderr)
@@ -373,7 +382,7 @@ def run():
     import gc
     gc.disable()
     try:
-        from . import laws  # noqa: F401 - python-control and its scipy, as every command
+        from .. import laws  # noqa: F401 - python-control and its scipy, as every command
     except KeyboardInterrupt as exc:
         gc.enable()
         sys.exit(interrupted("ivdrem", exc))

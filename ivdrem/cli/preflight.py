@@ -5,18 +5,20 @@ not the minutes of a run: the solver method, the cost of each law's run (output 
 a lower bound on the step count, :mod:`ivdrem.sim.guards`), a gamma = "auto" whose Δ the
 reference estimate puts below the doubles, the FMU check's horizon, and that the compile
 cache can be written.  The commands call these in order and print the error (exit status
-2) without having simulated anything: γ "auto" is calibrated by its law's run.
+2) without having simulated anything: γ "auto" is calibrated by its law's run.  They take
+the command's :class:`~ivdrem.experiments.experiment.Experiment`: the loops they price are
+the ones the runs then simulate.
 """
 from __future__ import annotations
 
 import argparse
 import math
 
-from ._paths import check_writable_dir
+from .._paths import check_writable_dir
 
-__all__ = ["PreflightError", "add_run_options", "solver_methods", "check_method",
-           "check_runs", "check_inertia", "check_law_cost", "pricing_diagram",
-           "check_gamma_auto", "gain_rule", "check_fmu_check_t_end", "fmu_check_prediction",
+__all__ = ["PreflightError", "config_from_args", "add_run_options", "solver_methods", "check_method",
+           "check_runs", "check_inertia", "pricing_diagram",
+           "experiment_of", "check_fmu_check_t_end", "fmu_check_prediction",
            "check_cache_dir", "horizon_note",
            "timing_text", "CONCLUSIONS_HORIZON", "FMU_CHECK_COMM_STEPS"]
 
@@ -55,7 +57,7 @@ def _config_method() -> str:
 
 def solver_methods() -> tuple:
     """The simulator's method names (the method registry, ivdrem.sim.methods)."""
-    from .sim.methods import METHODS
+    from ..sim.methods import METHODS
     return tuple(METHODS)
 
 
@@ -75,11 +77,11 @@ def method_overrides(name, config_path=None) -> dict:
     (Rodas5P runs at rtol 2e-4, DP45 needs 1e-6) unless the user's file sets them."""
     if check_method(name) is None:
         return {}
-    from .sim.methods import method_info
+    from ..sim.methods import method_info
     user = {}
     if config_path is not None:
         try:   # a broken file is reported by load_config, with its own message
-            from .experiments.config import read_toml
+            from ..experiments.config import read_toml
             user = read_toml(config_path)[0].get("solver", {})   # never a FIFO or a device
         except Exception:
             user = {}
@@ -91,29 +93,40 @@ def method_overrides(name, config_path=None) -> dict:
     return out
 
 
-def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=None):
-    """Price every law's run of `config` (and the FMU check's, if a horizon is given)
-    before any of them starts; raises ValueError (CostLimitError) with the numbers.
-    Returns [(law, estimated seconds)] of the runs whose time is estimated.
+def experiment_of(experiment, engine=None):
+    """`experiment` itself (an :class:`ivdrem.experiments.experiment.Experiment`), or the
+    Experiment of a configuration (its model built, its laws resolved once)."""
+    from ..experiments.experiment import Experiment
+    if isinstance(experiment, Experiment):
+        return experiment
+    return Experiment.from_config(experiment, engine=engine or "compiled")
 
-    It prices, it does not simulate: each law's loop is built with a placeholder for a γ
-    "auto" (:func:`pricing_diagram`) and dropped before the next; then a γ "auto" whose
-    mixing the reference estimate puts below the doubles is refused
-    (:func:`check_gamma_auto`).  Each run builds its own loop and calibrates γ "auto"
-    there, once (``experiments.paper.law_diagram``)."""
-    from .experiments.config import model_from_config, solver_kwargs
-    from .sim.guards import (check_diagram_cost, check_run_time, oscillation_steps,
+
+def check_runs(experiment, *, engine=None, allow_long=False, fmu_check_t_end=None):
+    """Price every law's run of `experiment` (an
+    :class:`~ivdrem.experiments.experiment.Experiment`, or a configuration) and the FMU
+    check's, if a horizon is given, before any of them starts; raises ValueError
+    (CostLimitError) with the numbers.  Returns [(law, estimated seconds)] of the runs whose
+    time is estimated.
+
+    It prices, it does not simulate: each law's loop is the one its run will simulate
+    (``Experiment.loop``, built once; a γ "auto" is a parameter of it, chosen by the
+    calibration before the run); then a γ "auto" whose mixing the reference estimate puts
+    below the doubles is refused (``Experiment.check_gamma_auto``)."""
+    from ..sim.guards import (check_diagram_cost, check_run_time, oscillation_steps,
                              paper_loop_steps, run_seconds)
-    from .sim.methods import REFERENCE_METHOD, method_info
+    from ..sim.methods import REFERENCE_METHOD, method_info
 
-    model = model_from_config(config)
+    experiment = experiment_of(experiment, engine)
+    engine = experiment.engine
+    config, model = experiment.config, experiment.model
     check_inertia(config, model)
     exp = config["experiment"]
     walls, sources, fmu_loop = [], [], None
-    for law in exp["laws"]:
-        solver = solver_kwargs(config, law)
-        d = pricing_diagram(config, law, model)
-        check_law_cost(config, law, d, engine=engine, allow_long=allow_long)
+    for law in experiment.laws:
+        solver = experiment.law(law).solver
+        d = experiment.loop(law)
+        experiment.check_cost(law, d, allow_long=allow_long)
         if law == "iv-drem" and fmu_check_t_end is not None:
             fmu_loop = d                   # the FMU check's loop, priced below
         # the paper's 2-link loop: the measured step count and time per step
@@ -141,14 +154,15 @@ def check_runs(config, *, engine="compiled", allow_long=False, fmu_check_t_end=N
                        + (f"; {tight[0].rsplit('; ', 1)[-1]}" if tight else ""),
                        engine=engine, allow_long=allow_long,
                        what=f"the {len(walls)} runs")
-    if fmu_check_t_end is not None and not fmu_check_prediction(config, fmu_check_t_end).diverges:
-        d = fmu_loop or pricing_diagram(config, "iv-drem", model)
+    if fmu_check_t_end is not None and \
+            not fmu_check_prediction(experiment, fmu_check_t_end).diverges:
+        d = fmu_loop or pricing_diagram(experiment, "iv-drem")
         h = min(FMU_CHECK_COMM_STEPS)   # its Python reference: fixed steps, the finest
         check_diagram_cost(d, float(fmu_check_t_end), engine=engine, method=REFERENCE_METHOD, h=h,
                            dt_out=h, return_states=False, allow_long=allow_long,
                            what=f"the FMU check (--fmu-check-t-end {float(fmu_check_t_end):g} s)")
-    for law in exp["laws"]:     # every run priced: the refusals of γ "auto" that need no run
-        check_gamma_auto(config, law, model)
+    for law in experiment.laws:     # every run priced: the refusals of γ "auto" that need no run
+        experiment.check_gamma_auto(law)
     return walls
 
 
@@ -165,31 +179,6 @@ def long_run_note(walls) -> str | None:
     parts = ", ".join(f"{law} {w / 60:.1f} min" for law, w in walls)
     return (f"note: the runs are estimated at about {total / 60:.0f} min ({parts}; measured "
             "step counts and times per step, ivdrem.sim.guards)")
-
-
-def gain_rule(config, law, model) -> tuple:
-    """(closed_loop's keyword arguments of `law`, its mixing, whether its loop calibrates
-    γ "auto"): closed_loop's rule (ivdrem.laws.arm_gain_rule) on the configured values; a
-    law without Δ refuses "auto" in closed_loop itself."""
-    from .experiments.config import closed_loop_kwargs
-    from .laws import arm_gain_rule, get_law
-    spec = get_law(law)
-    kw = closed_loop_kwargs(config, law)
-    gamma, mixing = arm_gain_rule(spec, model, kw.get("gamma"), kw.get("mixing"))
-    return kw, mixing, gamma == "auto" and spec.uses_delta
-
-
-def check_gamma_auto(config, law, model):
-    """Refuse `law`'s γ "auto" now, without simulating, when the reference estimate of
-    mean Δ² (ivdrem.diagrams.gamma_auto.check_reference_delta) is far below the doubles:
-    the composite term (21) could not be formed.  Returns the estimate, or None for a law
-    whose γ is not "auto"."""
-    kw, mixing, auto = gain_rule(config, law, model)
-    if not auto:
-        return None
-    from .diagrams.gamma_auto import check_reference_delta
-    return check_reference_delta(law, model, {**kw, "mixing": mixing},
-                                 variant=mixing or "paper")
 
 
 def fastest_omega(config) -> float:
@@ -223,26 +212,11 @@ def check_inertia(config, model) -> None:
             "parameters must be physical (positive masses and inertias)")
 
 
-def pricing_diagram(config, law, model):
-    """The closed loop of `law` as far as its cost goes: a γ "auto" is left at a
-    placeholder (the cost does not depend on γ's value), so nothing is calibrated."""
-    from .diagrams import closed_loop
-    kw, _, auto = gain_rule(config, law, model)
-    if auto:
-        kw["gamma"] = 1.0
-    return closed_loop(law, model, **kw)
-
-
-def check_law_cost(config, law, diagram, *, engine="compiled", allow_long=False, what=None):
-    """Refuse `law`'s run of `config` on `diagram` if its output memory or step bound is
-    above the limits of :mod:`ivdrem.sim.guards` (ValueError / CostLimitError)."""
-    from .experiments.config import solver_kwargs
-    from .sim.guards import check_diagram_cost
-    exp, solver = config["experiment"], solver_kwargs(config, law)
-    return check_diagram_cost(diagram, float(exp["t_end"]), engine=engine,
-                              dt_out=float(exp["dt_out"]), method=solver["method"],
-                              h=solver["h"], h_max=solver["h_max"], allow_long=allow_long,
-                              what=what or f"the {law} run")
+def pricing_diagram(experiment, law):
+    """The loop whose cost `law`'s run of `experiment` (an Experiment, or a configuration)
+    has: the run's own (``Experiment.loop``, a γ "auto" at a placeholder: the cost does not
+    depend on γ's value, so nothing is calibrated)."""
+    return experiment_of(experiment).loop(law)
 
 
 def _is_paper_robot(config) -> bool:
@@ -252,14 +226,15 @@ def _is_paper_robot(config) -> bool:
     return m.get("urdf") is None and m.get("name") in ("two-link", "planar-2")
 
 
-def fmu_check_prediction(config, t_end):
+def fmu_check_prediction(experiment, t_end):
     """The FMU check's explicit coupling at its coarsest communication step, predicted
-    from the model and the configuration alone (:func:`ivdrem.fmu.cosim.coupling_stability`:
-    ``.diverges``, ``.reason()``); a check predicted to diverge is not run, nor priced."""
-    from .experiments.config import closed_loop_kwargs, model_from_config
-    from .fmu.cosim import coupling_stability
-    return coupling_stability(model_from_config(config), max(FMU_CHECK_COMM_STEPS),
-                              float(t_end), **closed_loop_kwargs(config, "iv-drem"))
+    from the model and the experiment (an Experiment, or a configuration) alone
+    (:func:`ivdrem.fmu.cosim.coupling_stability`: ``.diverges``, ``.reason()``); a check
+    predicted to diverge is not run, nor priced."""
+    from ..fmu.cosim import coupling_stability
+    experiment = experiment_of(experiment)
+    return coupling_stability(experiment.model, max(FMU_CHECK_COMM_STEPS), float(t_end),
+                              **experiment.law("iv-drem").loop)
 
 
 def check_fmu_check_t_end(t_end) -> float:
@@ -283,15 +258,15 @@ def check_cache_dir(engine) -> None:
     check_c_compiler()          # both engines step in C (ivdrem/sim/stepper.c)
     if engine != "compiled":
         return
-    from .sim.compiled import cache_dir
+    from ..sim.compiled import cache_dir
     check_writable_dir(cache_dir(), "compile cache directory (IVDREM_CACHE_DIR)")
 
 
 def check_c_compiler() -> None:
     """$CC (or cc) must run (``--version``) before any work: CC=/bin/false or a missing
     compiler is one line naming it and what to install, not a traceback at the first run."""
-    from .sim import _cstepper
-    from .sim.compiled import C_COMPILER_HINT
+    from ..sim import _cstepper
+    from ..sim.compiled import C_COMPILER_HINT
     try:
         _cstepper._compiler()
     except _cstepper.CStepperUnavailable as e:
@@ -313,3 +288,18 @@ def timing_text(stats) -> str:
     if comp is not None and sim is not None:
         return f"compile {comp:.2f} s + simulation {sim:.2f} s"
     return f"{stats.get('wall_s', float('nan')):.2f} s"
+
+
+def config_from_args(args) -> dict:
+    """The validated configuration of the command line (raises ConfigError, PreflightError)."""
+    from .._paths import user_path
+    from ..experiments.config import load_config
+    overrides: dict = {}
+    if getattr(args, "t_end", None) is not None:
+        overrides["experiment.t_end"] = args.t_end
+    if getattr(args, "laws", None):
+        overrides["experiment.laws"] = list(args.laws)
+    config = getattr(args, "config", None)
+    overrides.update(method_overrides(getattr(args, "method", None),
+                                      None if config is None else user_path(config)))
+    return load_config(None if config is None else user_path(config), overrides or None)

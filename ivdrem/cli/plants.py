@@ -2,7 +2,7 @@
 (docs/mujoco.md).  Prints and writes (``--json``) per law θ̃ (absolute and relative to
 θ̃(0)), the tracking error, τ̃_d and the per-sample costs.  Also the robustness study's
 command (``ivdrem study FILE`` with a [robustness] table) and ``ivdrem report --plant
-mujoco`` (:func:`mujoco_paper_run`: the report builder on MuJoCo runs)."""
+mujoco`` (the report builder on :func:`ivdrem.plants.study.mujoco_paper_run`'s runs)."""
 from __future__ import annotations
 
 import json
@@ -11,7 +11,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 PROG = "ivdrem cosim --plant mujoco"
 
@@ -85,7 +84,7 @@ def add_arguments(p):
 
 def imperfections_from_args(args):
     from dataclasses import replace
-    from .sensing import REALISTIC, Imperfections
+    from ..plants.sensing import REALISTIC, Imperfections
     base = REALISTIC if args.realistic else Imperfections()
     given = {k: getattr(args, k) for k in ("encoder_counts", "encoder_noise", "velocity",
                                            "velocity_cutoff", "velocity_noise",
@@ -95,32 +94,14 @@ def imperfections_from_args(args):
     return imp.scaled(args.noise_level) if args.noise_level != 1.0 else imp
 
 
-def summarize(resp, *, last_fraction=0.2) -> dict:
-    """θ̃ at the start and the end (absolute, relative), tracking error and τ̃_d (RMS over
-    the last ``last_fraction`` of the run, max |e| there), the costs."""
-    from ..experiments.metrics import norm, rms, signal, window
-    t = np.asarray(resp.time)
-    e_th = norm(signal(resp, "theta_hat") - signal(resp, "theta"))
-    e_q = signal(resp, "q_d") - signal(resp, "q")
-    e_d = signal(resp, "tau_d_hat") - signal(resp, "tau_d")
-    last = window(t, t[-1] * (1 - last_fraction))
-    return dict(
-        law=resp.law, t_end=float(t[-1]), theta_error_0=float(e_th[0]),
-        theta_error_end=float(e_th[-1]), theta_error_ratio=float(e_th[-1] / e_th[0]),
-        tracking_rms_last=rms(t[last], norm(e_q)[last]),
-        tracking_max_last=float(np.abs(e_q[:, last]).max()),
-        tau_d_error_rms_last=rms(t[last], norm(e_d)[last]),
-        theta_hat_end=signal(resp, "theta_hat")[:, -1].tolist(),
-        theta_end=signal(resp, "theta")[:, -1].tolist(), **resp.costs)
-
-
 def main_cosim_mujoco(args) -> int:
     """``ivdrem cosim --plant mujoco``: exit 0 when every run finished, 1 when one
     diverged, 2 on bad input (before anything runs)."""
     from .._paths import user_path
     from .._progress import want_progress
     from ..experiments.config import load_config, model_from_config
-    from .mujoco import MujocoError, Payload, closed_loop, controller_kwargs, load
+    from ..plants.mujoco import MujocoError, Payload, closed_loop, controller_kwargs, load
+    from ..plants.study import summarize
     if args.study is not None:
         return _main_study(args)
     try:
@@ -221,7 +202,7 @@ def run_robustness_command(args, *, prog="ivdrem study") -> int:
     cosim --plant mujoco --study FILE``): prints the runs and writes the results and the
     report; 0 when every run finished, 1 when one failed, 2 on bad input."""
     from .._paths import user_path
-    from .study import conclusions, run_robustness
+    from ..plants.study import conclusions, run_robustness
     for opt, what in (("scheduler", "--scheduler"), ("resume", "--resume")):
         if getattr(args, opt, None):
             print(f"{prog}: error: {what} is not available for a robustness study (a "
@@ -256,54 +237,18 @@ def run_robustness_command(args, *, prog="ivdrem study") -> int:
     return 0 if (df["status"] == "ok").all() else 1
 
 
-# ----------------------------------------------------------------------------- the report
-def mujoco_paper_run(config, *, mu_max=135.0, every=None, progress=False, log=None):
-    """The experiment of ``config`` (its model, laws, t_end, reference, disturbance, gains)
-    with MuJoCo as the plant: a :class:`~ivdrem.experiments.paper.PaperRun` whose law runs
-    are :func:`ivdrem.plants.mujoco.closed_loop` responses (recorded every 10 ms), for the
-    report builder (``ivdrem report --plant mujoco``).  ``run.engine`` names the plant."""
-    import mujoco
-    from ..experiments.config import model_from_config
-    from ..experiments.paper import LawRun, PaperRun
-    from .mujoco import closed_loop, controller_kwargs, load
-    model = model_from_config(config)
-    t_end = float(config["experiment"]["t_end"])
-    h = 1e-3
-    plant = load(model, h=h)
-    every = every or max(1, int(round(float(config["experiment"]["dt_out"]) / h)))
-    run = PaperRun(config=config, theta=np.asarray(plant.theta, float), model=model)
-    run.engine = (f"MuJoCo {mujoco.__version__} plant ({plant.integrator} integrator, step "
-                  f"{plant.mj.opt.timestep:g} s; ivdrem.plants.mujoco), the sampled C "
-                  f"controller at h = {h:g} s, μ saturated at {mu_max:g}")
-    for law in config["experiment"]["laws"]:
-        kw, start = controller_kwargs(config, law)
-        kw["mu_max"] = float(mu_max)
-        if kw.get("gamma") == "auto":
-            from ..controller.block import auto_gamma
-            kw["gamma"] = auto_gamma(model, law, kw)["gamma"]
-        t0 = time.perf_counter()
-        resp = closed_loop(plant, t_end, law, every=every, progress=progress, **start, **kw)
-        wall = time.perf_counter() - t0
-        stats = dict(method=f"MuJoCo {plant.integrator}", h=h, steps=resp.costs["samples"],
-                     wall_s=wall, engine="MuJoCo plant, sampled C controller",
-                     plant_us=resp.costs["plant_us"], controller_us=resp.costs["controller_us"])
-        run.runs[law] = LawRun(law=law, response=resp, stats=stats, gamma=kw.get("gamma"))
-        if log is not None:
-            log(f"{law:>20s}: {resp.costs['samples']} samples in MuJoCo, {wall:.1f} s")
-    return run
-
-
 def run_mujoco_report(args) -> int:
     """``ivdrem report --plant mujoco``: the report's figures and C1-C3 for the experiment
     of ``--config`` with the arm in MuJoCo, written as ``ivdrem-mujoco.html`` / ``.pdf`` in
     ``--out``; 0 when written, 1 when a run or the write failed, 2 on bad input."""
     from ..experiments.metrics import conclusions, format_conclusions
-    from ..reports.cli import config_from_args
-    from ..reports.report import write_report, report_paths
+    from ..plants.study import mujoco_paper_run
+    from ..reports.report import report_paths, write_report
+    from .preflight import config_from_args
     from .._paths import check_writable_dir, user_path
     prog = "ivdrem report --plant mujoco"
     try:
-        from .mujoco import _mujoco
+        from ..plants.mujoco import _mujoco
         _mujoco()
         config = config_from_args(args)
         out = check_writable_dir(user_path(args.out), "report directory")

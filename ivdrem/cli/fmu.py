@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .export import DEFAULT_SUBSTEP
+from ..fmu.export import DEFAULT_SUBSTEP
 
 
 def _model_names() -> list[str]:
@@ -69,7 +69,7 @@ def main_fmu(argv=None) -> int:
     if args.command == "export":
         from ivdrem.models import get_model
         from .._paths import user_path
-        from .export import export_fmu
+        from ..fmu.export import export_fmu
         try:
             if args.config is not None:
                 from ivdrem.experiments.config import load_config, model_from_config
@@ -127,7 +127,7 @@ def _cosim_parser() -> argparse.ArgumentParser:
     p.add_argument("--plant", default="fmu", choices=("fmu", "mujoco"),
                    help="fmu: compare with the plant FMU (default); mujoco: close the sampled "
                         "controller around the arm in MuJoCo (docs/mujoco.md)")
-    from ivdrem.plants.cli import add_arguments
+    from ivdrem.cli.plants import add_arguments
     add_arguments(p)
     return p
 
@@ -151,7 +151,7 @@ def main_cosim(argv=None) -> int:
         return int(exc.code or 0)
     prog = "ivdrem cosim"
     if args.plant == "mujoco":
-        from ivdrem.plants.cli import main_cosim_mujoco
+        from ivdrem.cli.plants import main_cosim_mujoco
         return main_cosim_mujoco(args)
     if args.t_end is None:
         args.t_end = 40.0
@@ -169,24 +169,26 @@ def main_cosim(argv=None) -> int:
     from ivdrem._paths import user_path
     from ivdrem._progress import want_progress
     from ivdrem.sim import SimulationError
-    from .cosim import CosimError, _steps, compare_to_python
+    from ..fmu.cosim import CosimError, _steps, compare_to_python
     progress = want_progress(not args.quiet)
     steps = (H, H / 2, H / 4)
     fmu_path = None if args.fmu is None else user_path(args.fmu)
     try:   # every option before exporting or simulating anything
         for h, what in zip(steps, ("--comm-step H", "H/2", "H/4")):
             _steps(args.t_end, h, what)
-        from ivdrem._preflight import check_cache_dir
-        from ivdrem.diagrams import closed_loop
-        from ivdrem.experiments.config import closed_loop_kwargs, load_config, model_from_config
+        from ivdrem.cli.preflight import check_cache_dir
+        from ivdrem.experiments.config import load_config
+        from ivdrem.experiments.experiment import Experiment
         check_cache_dir(args.engine)
         config = load_config(None if args.config is None else user_path(args.config))
-        model = model_from_config(config)
-        loop_kw = closed_loop_kwargs(config, args.law)
+        experiment = Experiment.from_config(config, engine=args.engine, laws=[args.law])
+        model = experiment.model
+        setup = experiment.law(args.law)
+        loop_kw = setup.arguments()
         if not args.despite_prediction:
             # the explicit coupling at H, linearized at t = 0 (docs/fmu.md, "Co-simulation
             # check"): a run predicted to diverge is refused before any build or export
-            from .cosim import coupling_stability
+            from ..fmu.cosim import coupling_stability
             predicted = coupling_stability(model, H, args.t_end, **loop_kw)
             if predicted.diverges:
                 raise ValueError(
@@ -194,20 +196,22 @@ def main_cosim(argv=None) -> int:
                     f"--comm-step below {predicted.limit_end * 1e3:.2g} ms, or "
                     "--despite-prediction to run it anyway")
         if fmu_path is not None:  # missing, not an FMU, damaged, no CS, not this robot's plant
-            from .cosim import _check_interface
-            from .describe import read_description
+            from ..fmu.cosim import _check_interface
+            from ..fmu.describe import read_description
             _check_interface(fmu_path, read_description(fmu_path, "co-simulation"), model)
         from ivdrem.sim.guards import check_diagram_cost
         from ivdrem.sim.methods import REFERENCE_METHOD
-        reference = closed_loop(args.law, model, **loop_kw)
-        if getattr(reference, "gamma_choice", None) is not None:
-            loop_kw["gamma"] = reference.gamma_choice["gamma"]   # one γ "auto" for every run
+        reference = experiment.loop(args.law)     # a γ "auto" at a placeholder: priced
+        if setup.auto:
+            experiment.choose_gamma(args.law)
+            loop_kw = setup.arguments()           # one γ "auto" for every run
         # the all-Python reference: RK4 at the finest H, sampled there
         check_diagram_cost(reference, args.t_end, engine=args.engine,
                            method=REFERENCE_METHOD, h=min(steps), dt_out=min(steps),
                            return_states=False, allow_long=args.allow_long,
                            what="the reference run")
         del reference      # compare_to_python builds each loop when it runs, one at a time
+        experiment.release(args.law)
     except (ValueError, OSError, ImportError) as exc:   # OSError: missing FMU, cache
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
@@ -215,7 +219,7 @@ def main_cosim(argv=None) -> int:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="ivdrem_cosim_") as tmp:
         if args.fmu is None:
-            from .export import export_fmu
+            from ..fmu.export import export_fmu
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")   # compiler chatter; the FMU is tested

@@ -12,10 +12,10 @@ import argparse
 import sys
 
 from .._paths import OutputLocationError, check_writable_dir, user_path
-from .._preflight import (PreflightError, add_run_options, check_cache_dir, check_fmu_check_t_end,
-                          check_runs, horizon_note, method_overrides, timing_text)
+from .preflight import (PreflightError, add_run_options, check_cache_dir, check_fmu_check_t_end,
+                          check_runs, config_from_args, horizon_note, timing_text)
 from .._progress import want_progress
-from ..experiments.config import LAWS, ConfigError, load_config
+from ..experiments.config import LAWS, ConfigError
 
 __all__ = ["add_report_arguments", "run_report_command", "config_from_args", "fmu_check",
            "FmuCheckNotRun"]
@@ -58,30 +58,32 @@ class FmuCheckNotRun(Exception):
     the numbers, and what to do instead."""
 
 
-def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False, allow_long=False,
+def fmu_check(experiment, t_end=10.0, *, engine=None, progress=False, allow_long=False,
               gamma=None):
     """Export the plant FMU, co-simulate the IV-DREM controller against it at three
     communication steps, and return (rows for the report table, comparison).
 
-    First, before exporting or building anything, the explicit coupling at the coarsest
-    step is predicted from the model and the configuration
-    (:func:`ivdrem._preflight.fmu_check_prediction`); if it diverges, :class:`FmuCheckNotRun`
+    `experiment`: the report's :class:`~ivdrem.experiments.experiment.Experiment` (or a
+    configuration).  First, before exporting or building anything, the explicit coupling
+    at the coarsest step is predicted from the model and the configuration
+    (:func:`ivdrem.cli.preflight.fmu_check_prediction`); if it diverges, :class:`FmuCheckNotRun`
     is raised with the reason.  Then :func:`~ivdrem.fmu.cosim.compare_to_python`, which
     co-simulates at the coarsest step before it builds the all-Python loop.
 
-    With ``iv_drem.gamma = "auto"`` the check uses `gamma`, the γ the report's IV-DREM run
-    chose; without it, the one the rule gives with the run's own solver
-    (experiments.paper.law_diagram).  Calibrating again inside the co-simulation took
-    DP45 at 10 ms steps over 2T, a stiff loop on a real arm (the Panda: minutes)."""
+    With ``iv_drem.gamma = "auto"`` the check uses `gamma` if given, else the experiment's
+    choice (made once, by the report's IV-DREM run or here).  Calibrating again inside the
+    co-simulation took DP45 at 10 ms steps over 2T, a stiff loop on a real arm (the Panda:
+    minutes)."""
     import tempfile
     from pathlib import Path
 
-    from .._preflight import FMU_CHECK_COMM_STEPS, fmu_check_prediction
-    from ..experiments.config import closed_loop_kwargs, model_from_config
+    from .preflight import FMU_CHECK_COMM_STEPS, experiment_of, fmu_check_prediction
     from ..fmu import export_fmu
     from ..fmu.cosim import compare_to_python
 
-    predicted = fmu_check_prediction(config, t_end)
+    experiment = experiment_of(experiment, engine)
+    engine = experiment.engine if engine is None else engine
+    predicted = fmu_check_prediction(experiment, t_end)
     if predicted.diverges:
         raise FmuCheckNotRun(
             f"predicted to diverge: {predicted.reason()}.  The check co-simulates at H = "
@@ -89,14 +91,13 @@ def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False, allow_lo
             + f" ms; to check the plant FMU on this arm use `ivdrem cosim --config FILE.toml "
             f"--comm-step H --t-end {float(t_end):g}` with H below "
             f"{predicted.limit_end * 1e3:.2g} ms, or leave the check out with --no-fmu-check")
-    model = model_from_config(config)
-    kw = closed_loop_kwargs(config, "iv-drem")
-    if kw.get("gamma") == "auto":
-        if gamma is None:
-            from ..experiments.paper import law_diagram
-            gamma = law_diagram(config, "iv-drem", model=model,
-                                engine=engine).gamma_choice["gamma"]
-        kw["gamma"] = gamma
+    model = experiment.model
+    setup = experiment.law("iv-drem")
+    if setup.auto and gamma is None:
+        experiment.choose_gamma("iv-drem")
+    kw = setup.arguments()
+    if setup.auto and gamma is not None:
+        kw["gains"]["gamma"] = gamma
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "Plant.fmu"
         export_fmu(model, path, q0=kw["q0"], dq0=kw["dq0"])
@@ -112,22 +113,11 @@ def fmu_check(config, t_end=10.0, *, engine="compiled", progress=False, allow_lo
     return rows, cmp
 
 
-def config_from_args(args) -> dict:
-    """The validated configuration of the command line (raises ConfigError, PreflightError)."""
-    overrides: dict = {}
-    if getattr(args, "t_end", None) is not None:
-        overrides["experiment.t_end"] = args.t_end
-    if getattr(args, "laws", None):
-        overrides["experiment.laws"] = list(args.laws)
-    config = getattr(args, "config", None)
-    overrides.update(method_overrides(getattr(args, "method", None),
-                                      None if config is None else user_path(config)))
-    return load_config(None if config is None else user_path(config), overrides or None)
-
-
 def _preflight(args):
-    """Everything checked before the first simulation step: (config, html, pdf paths)."""
-    from .report import report_paths
+    """Everything checked before the first simulation step: (experiment, html, pdf
+    paths)."""
+    from ..experiments.experiment import Experiment
+    from ..reports.report import report_paths
 
     config = config_from_args(args)
     if not args.no_fmu_check:
@@ -135,9 +125,10 @@ def _preflight(args):
     out = check_writable_dir(user_path(args.out), "report directory")
     html_path, pdf_path = report_paths(out, overwrite=args.overwrite)
     check_cache_dir(args.engine)
-    check_runs(config, engine=args.engine, allow_long=args.allow_long,
+    experiment = Experiment.from_config(config, engine=args.engine)     # resolved once
+    check_runs(experiment, allow_long=args.allow_long,
                fmu_check_t_end=None if args.no_fmu_check else args.fmu_check_t_end)
-    return config, html_path, pdf_path
+    return experiment, html_path, pdf_path
 
 
 def _write_or_keep(run, out, check, overwrite):
@@ -146,7 +137,7 @@ def _write_or_keep(run, out, check, overwrite):
     import tempfile
 
     from .._atomic import os_error_behind
-    from .report import write_report
+    from ..reports.report import write_report
     try:
         return (*write_report(run, out, fmu_check=check, overwrite=overwrite), None)
     except Exception as exc:
@@ -160,20 +151,20 @@ def _write_or_keep(run, out, check, overwrite):
 def run_report_command(args) -> int:
     """Check every option and output location, run the experiment, write the report;
     returns the exit status (2: refused before any work, 1: a run or the write failed)."""
-    from .report import ReportError
+    from ..reports.report import ReportError
 
     if getattr(args, "plant", "ivdrem") == "mujoco":
-        from ..plants.cli import run_mujoco_report
+        from .plants import run_mujoco_report
         return run_mujoco_report(args)
     args.overwrite = getattr(args, "overwrite", False)
     args.allow_long = getattr(args, "allow_long", False)
     try:
-        config, html_path, pdf_path = _preflight(args)
+        experiment, html_path, pdf_path = _preflight(args)
     except (ConfigError, PreflightError, ReportError, OutputLocationError, ValueError,
             ImportError) as exc:
         print(f"ivdrem report: error: {exc}", file=sys.stderr)
         return 2
-    note = horizon_note(config)
+    note = horizon_note(experiment.config)
     if note:
         print(f"ivdrem report: {note}", file=sys.stderr)
 
@@ -184,7 +175,7 @@ def run_report_command(args) -> int:
     progress = want_progress(not args.quiet)
     extra = {"allow_long": True} if args.allow_long else {}
     try:
-        run = run_paper(config, progress=progress, engine=args.engine, log=print, **extra)
+        run = run_paper(experiment, progress=progress, log=print, **extra)
     except SimulationError as exc:
         print(f"ivdrem report: simulation failed: {exc}", file=sys.stderr)
         return 1
@@ -197,7 +188,7 @@ def run_report_command(args) -> int:
     if not args.no_fmu_check:
         try:
             ivdrem_run = run.runs.get("iv-drem")
-            check, cmp = fmu_check(config, args.fmu_check_t_end, engine=args.engine,
+            check, cmp = fmu_check(experiment, args.fmu_check_t_end,
                                    progress=progress,
                                    gamma=getattr(ivdrem_run, "gamma", None), **extra)
             print(cmp.table())
@@ -218,12 +209,12 @@ def run_report_command(args) -> int:
     return 1 if failed is not None else 0
 
 
-def main(argv=None) -> int:  # pragma: no cover - convenience for `python -m ivdrem.reports.cli`
+def main(argv=None) -> int:  # pragma: no cover - convenience for `python -m ivdrem.cli.report`
     parser = add_report_arguments(argparse.ArgumentParser(prog="ivdrem report"))
     try:
         return run_report_command(parser.parse_args(argv))
     except KeyboardInterrupt:
-        from ..cli import interrupted
+        from . import interrupted
         return interrupted("ivdrem report")
 
 

@@ -1,0 +1,171 @@
+"""An experiment resolved once (ivdrem.experiments.experiment) and a law's gains through one
+channel (closed_loop(law, model, gains={...})): counted on a real `ivdrem paper`, and a law
+registered here with a gain of its own run from closed_loop and from a configuration."""
+from __future__ import annotations
+
+import collections
+import importlib
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ivdrem import blocks as block_library
+from ivdrem import laws as registry
+from ivdrem.cli import main
+from ivdrem.diagrams import closed_loop
+from ivdrem.experiments.config import load_config
+from ivdrem.experiments.experiment import Experiment
+from ivdrem.sim import simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+closed_loop_module = importlib.import_module("ivdrem.diagrams.closed_loop")
+config_module = importlib.import_module("ivdrem.experiments.config")
+
+
+def _count_calls(functions, run):
+    """How many times each of `functions` is entered while `run()` runs (by code object,
+    so that a call through any imported name counts)."""
+    codes = {f.__code__: f.__name__ for f in functions}
+    counts = collections.Counter()
+
+    def profile(frame, event, arg):
+        if event == "call" and frame.f_code in codes:
+            counts[codes[frame.f_code]] += 1
+    previous = sys.getprofile()
+    sys.setprofile(profile)
+    try:
+        result = run()
+    finally:
+        sys.setprofile(previous)
+    return result, counts
+
+
+def test_ivdrem_paper_resolves_each_law_once_and_builds_its_loop_once(tmp_path):
+    """`ivdrem paper` of the default configuration (two laws): the configuration turned
+    into closed_loop's arguments once per law (13 times before the Experiment: 8 in the
+    preflight, 5 in the runs), each law's loop built once (twice before: priced, then
+    built again to run), the model built once."""
+    out = tmp_path / "o.json"
+    rc, counts = _count_calls(
+        [config_module.closed_loop_kwargs, closed_loop_module.build_resolved,
+         closed_loop_module.resolve_loop, config_module._build.__wrapped__],
+        lambda: main(["paper", "--t-end", "0.2", "--quiet", "--json", str(out)]))
+    assert rc == 0 and out.is_file()
+    assert counts["closed_loop_kwargs"] == 2          # iv-drem, composite-learning
+    assert counts["resolve_loop"] == 2
+    assert counts["build_resolved"] == 2
+    assert counts["_build"] <= 1                     # the model (0: built by an earlier test)
+
+
+def test_the_preflight_prices_the_loop_the_run_simulates():
+    from ivdrem.cli.preflight import check_runs
+    experiment = Experiment.from_config(load_config(overrides={"experiment.t_end": 0.1,
+                                                               "experiment.laws": ["iv-drem"]}))
+    check_runs(experiment)
+    priced = experiment.loop("iv-drem")
+    assert experiment.loop("iv-drem") is priced                  # kept, not built again
+    _, counts = _count_calls([closed_loop_module.build_resolved],
+                             lambda: experiment.run("iv-drem", progress=False))
+    assert counts["build_resolved"] == 0
+    experiment.release("iv-drem")
+    assert experiment.law("iv-drem").diagram is None
+
+
+def test_an_experiment_reads_the_configuration_once_per_law():
+    c = load_config(overrides={"iv_drem.T": 10.0, "controller.K": [3.0, 4.0]})
+    experiment, counts = _count_calls([config_module.closed_loop_kwargs],
+                                      lambda: Experiment.from_config(c))
+    assert counts["closed_loop_kwargs"] == 2                      # one per configured law
+    _, counts = _count_calls([config_module.closed_loop_kwargs],
+                             lambda: [experiment.law(law) for law in experiment.laws * 3])
+    assert counts["closed_loop_kwargs"] == 0                      # kept
+    setup = experiment.law("iv-drem")
+    assert setup.gains == {"T": 10.0, "p": 2.0, "F0": 1.0, "gamma": 1e10, "mixing": "paper"}
+    np.testing.assert_array_equal(setup.loop["K"], np.diag([3.0, 4.0]))
+    assert setup.solver["h_max"] == 5.0 and setup.gamma == 1e10 and not setup.auto
+
+
+def test_the_paper_arm_defaults_come_from_the_default_configuration():
+    """q(0) = (0, 0.3π), the reference and the disturbance of the paper are written in
+    ivdrem/experiments/default.toml; closed_loop's defaults on the 2-link arm are those."""
+    from ivdrem._default_config import paper_experiment
+    text = (ROOT / "ivdrem" / "experiments" / "default.toml").read_text()
+    assert "q0 = [0.0, 0.9424777960769379]" in text
+    paper = paper_experiment()
+    assert paper["q0"] == [0.0, 0.3 * np.pi]
+    d = closed_loop("none")
+    plant = next(s for s in d.syslist if s.name == "plant")
+    np.testing.assert_array_equal(plant.ivdrem.x0[:2], paper["q0"])
+    traj = next(s for s in d.syslist if s.name == "trajectory")
+    for key in ("amplitude", "omega", "phase", "offset"):
+        np.testing.assert_array_equal(traj.params[f"q_d_{key}"], paper["trajectory"][key])
+    # the values are written once: not again in the loop, the configuration or the cosim
+    literal = re.compile(r"0\.3\s*\*\s*(np\.|math\.)?pi\b|0\.9424777960769379")
+    for path in [*(ROOT / "ivdrem" / "diagrams").glob("*.py"),
+                 *(ROOT / "ivdrem" / "experiments").glob("*.py"),
+                 ROOT / "ivdrem" / "fmu" / "cosim.py"]:
+        assert not literal.search(path.read_text()), path
+
+
+# ----------------------------------------------------------------- one channel for gains
+def _leak_law(name="leak-kappa"):
+    """A law with a gain no built-in law has (kappa): ϑ_c = κ(θ* − θ̂), θ* the model's θ."""
+    def build(ctx):
+        return [block_library.sigma_modification_term(
+            ctx.ntheta, ctx.params["kappa"], ctx.model.theta_values)], []
+    return registry.Law(name, build, "leak with kappa", "#135790", section="leak_kappa",
+                        defaults={"kappa": 0.25})
+
+
+def test_a_law_with_a_new_gain_runs_from_closed_loop_and_from_a_configuration(tmp_path):
+    registry.register_law(_leak_law())
+    try:
+        d = closed_loop("leak-kappa", gains={"kappa": 0.5})
+        term = next(s for s in d.syslist if s.name == "sigma_modification_term")
+        assert term.params["sigma"] == 0.5
+        default = closed_loop("leak-kappa")
+        assert next(s for s in default.syslist
+                    if s.name == "sigma_modification_term").params["sigma"] == 0.25
+        with pytest.raises(ValueError, match=r"law 'leak-kappa' has no gain\(s\) 'kapa'; "
+                                             r"its gains .*: kappa"):
+            closed_loop("leak-kappa", gains={"kapa": 0.5})
+        with pytest.raises(TypeError, match=r"a law's gains go in gains=\{\.\.\.\} \(kappa\)"):
+            closed_loop("leak-kappa", kappa=0.5)
+        # from a configuration: its table [leak_kappa], through the Experiment
+        f = tmp_path / "c.toml"
+        f.write_text('[experiment]\nlaws = ["leak-kappa"]\nt_end = 0.1\n'
+                     '[leak_kappa]\nkappa = 0.75\n')
+        experiment = Experiment.from_config(load_config(f))
+        assert experiment.law("leak-kappa").gains == {"kappa": 0.75}
+        loop = experiment.loop("leak-kappa")
+        assert next(s for s in loop.syslist
+                    if s.name == "sigma_modification_term").params["sigma"] == 0.75
+        run = experiment.run("leak-kappa", progress=False)
+        assert run.response.time[-1] == pytest.approx(0.1)
+        # the same loop and run as closed_loop given the same gain by hand
+        by_hand = simulate(closed_loop("leak-kappa", gains={"kappa": 0.75}), 0.1,
+                           dt_out=float(experiment.dt_out), progress=False,
+                           **experiment.law("leak-kappa").solver)
+        np.testing.assert_array_equal(by_hand.outputs, run.response.outputs)
+    finally:
+        registry.LAWS.pop("leak-kappa")
+
+
+def test_gamma_auto_is_chosen_outside_closed_loop():
+    """closed_loop takes numbers: γ "auto" is refused naming where it is chosen;
+    calibrated_loop chooses it (ivdrem.diagrams.gamma_auto) and builds the same loop as
+    closed_loop with that number."""
+    from ivdrem.diagrams import calibrated_loop
+    from ivdrem.models import planar_arm
+    with pytest.raises(ValueError, match="calibrated_loop.*Experiment"):
+        closed_loop("iv-drem", gains={"gamma": "auto"})
+    with pytest.raises(ValueError, match="calibrated_loop"):      # the rule of a real arm
+        closed_loop("iv-drem", planar_arm(3))
+    d = calibrated_loop("iv-drem", planar_arm(3))                  # "eigen": the estimate
+    assert d.gamma_choice["source"] == "reference"
+    same = closed_loop("iv-drem", planar_arm(3), gains={"gamma": d.gamma_choice["gamma"]})
+    term = [next(s for s in x.syslist if s.name == "drem_term") for x in (d, same)]
+    assert term[0].params["gamma"] == term[1].params["gamma"] == d.gamma_choice["gamma"]
