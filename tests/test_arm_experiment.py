@@ -1,5 +1,5 @@
 """The model rule of the configuration ([model] name or urdf, one model_from_config) and
-the default experiment for an arm other than the paper's (ivdrem.experiments.arm)."""
+the default experiment for an arm other than the paper's (ivdrem.diagrams.arm_reference)."""
 import math
 from pathlib import Path
 
@@ -8,7 +8,7 @@ import pytest
 
 import ivdrem.models as models
 from ivdrem.blocks.sources import fourier_series
-from ivdrem.experiments import arm
+from ivdrem.diagrams import arm_reference as arm
 from ivdrem.experiments.config import (ConfigError, closed_loop_kwargs, dump_toml, load_config,
                                        model_from_config)
 from ivdrem.models import planar_arm

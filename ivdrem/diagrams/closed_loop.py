@@ -170,7 +170,7 @@ def closed_loop(law="iv-drem", model=None, *, gains=None, **loop):
 
     Any other model (a URDF arm, a planar arm) gets the real-arm experiment of
     docs/experiment.md, as a configuration naming that model does
-    (:mod:`ivdrem.experiments.arm`): what is left at None of `trajectory` (the Fourier
+    (:mod:`ivdrem.diagrams.arm_reference`): what is left at None of `trajectory` (the Fourier
     reference inside the joint limits), `disturbance` (scaled to the torque that reference
     needs), `q0`, `dq0` (on the reference), `K` (per joint) and the window T of the gains
     (a common period of reference and disturbance) is designed for the model; the mixing
@@ -282,7 +282,7 @@ def _arm_experiment(model, spec, theta, trajectory, disturbance, q0, dq0, K, T):
     configuration uses for that model (``ivdrem.experiments.config``, ARM_FOLLOWING): the
     Fourier reference, q(0) = q_d(0), q̇(0) = 0, the disturbance scaled to the arm, the gains
     per joint and the window T of (15a) for a law that has one."""
-    from ..experiments import arm as arm_experiment
+    from . import arm_reference as arm_experiment
     from ..blocks.sources import fourier_trajectory
     table = trajectory
     if trajectory is None:

@@ -263,7 +263,7 @@ MODEL_FOLLOWING = {
     ("controller", "K"): lambda m: [2.0] * m.n,
 }
 #: Keys whose default follows the Fourier reference (the real-arm experiment of
-#: docs/experiment.md, :mod:`ivdrem.experiments.arm`): q(0) on the reference, the
+#: docs/experiment.md, :mod:`ivdrem.diagrams.arm_reference`): q(0) on the reference, the
 #: disturbance scaled to the arm, gains per joint, the windows T of (15a) and (35).  Each gets (model, config, a memo
 #: shared by one filling).
 ARM_FOLLOWING = {
@@ -289,8 +289,8 @@ DEFAULT_MODEL = "two-link"
 
 
 def _arm():
-    from . import arm
-    return arm
+    from ..diagrams import arm_reference
+    return arm_reference
 
 
 def _user_traj_keys(user_set: set) -> set:
