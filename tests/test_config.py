@@ -15,6 +15,8 @@ from ivdrem.experiments.config import (
     default_config,
     dump_toml,
     load_config,
+    read_config,
+    resolve_config,
     schema,
     solver_kwargs,
 )
@@ -83,6 +85,54 @@ def test_effective_configurations_equal_the_snapshot():
         assert plain == snap[case], case
         assert [(s, list(t)) for s, t in plain.items()] == \
             [(s, list(t)) for s, t in snap[case].items()], case
+
+
+def test_read_config_is_data_and_builds_no_model(monkeypatch):
+    """read_config of a real arm's configuration (examples/panda.toml) builds no model and
+    designs no reference (both would raise here); the keys that follow the model are
+    absent from the data, and resolve_config fills them: the same configuration as the
+    snapshot-checked load_config, whose keys are exactly those the data lacks."""
+    from ivdrem import models
+    from ivdrem.diagrams import arm_reference
+    import ivdrem.experiments.config as config_module
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("read_config built a model or designed a reference")
+    for owner, name in ((models, "from_urdf"), (models, "get_model"),
+                        (config_module, "model_from_config"),
+                        (arm_reference, "design_trajectory"),
+                        (arm_reference, "design_disturbance"),
+                        (arm_reference, "design_gains"), (arm_reference, "design_window")):
+        monkeypatch.setattr(owner, name, refuse)
+    panda = ROOT / "examples" / "panda.toml"
+    data = read_config(panda)
+    assert data["model"]["name"] == "panda" and "theta" not in data["model"]
+    assert data["trajectory"]["kind"] == "fourier"
+    assert "a" not in data["trajectory"] and "K" not in data["controller"]
+    monkeypatch.undo()
+    resolved, model = resolve_config(data)
+    assert resolved == load_config(panda)
+    assert len(resolved["controller"]["K"]) == model.n
+    absent = {(s, k) for s, t in resolved.items() for k in t if k not in data[s]}
+    assert ("trajectory", "a") in absent and ("initial", "q0") in absent
+    assert {(s, k) for s, t in data.items() for k in t if k not in resolved[s]} == set()
+    # a resolved configuration resolves to itself; the paper's data is already complete
+    assert resolve_config(resolved, model)[0] == resolved
+    assert resolve_config(read_config())[0] == read_config() == load_config()
+
+
+def test_a_wrong_length_is_refused_when_resolved_with_the_same_message():
+    """A vector of the wrong length for the arm needs the model: read_config takes it as
+    data, resolving it (Experiment.from_config) refuses it naming the key, as load_config."""
+    from ivdrem.experiments.experiment import Experiment
+    ov = {"model": {"name": "planar-3"}, "initial": {"q0": [0.0, 0.0]}}
+    data = read_config(overrides=ov)
+    assert data["initial"]["q0"] == [0.0, 0.0]
+    with pytest.raises(ConfigError, match=r"^config key 'initial.q0' must have 3 entries "
+                       r"\(model 'planar-3' has n = 3\), got 2$"):
+        Experiment.from_config(data)
+    with pytest.raises(ConfigError, match="'initial.q0' must have 3 entries"):
+        resolve_config(data)
 
 
 def test_default_is_a_fresh_copy():

@@ -16,7 +16,7 @@ from ivdrem import blocks as block_library
 from ivdrem import laws as registry
 from ivdrem.cli import main
 from ivdrem.diagrams import closed_loop
-from ivdrem.experiments.config import load_config
+from ivdrem.experiments.config import load_config, read_config
 from ivdrem.experiments.experiment import Experiment
 from ivdrem.sim import simulate
 
@@ -86,6 +86,29 @@ def test_an_experiment_reads_the_configuration_once_per_law():
     assert setup.gains == {"T": 10.0, "p": 2.0, "F0": 1.0, "gamma": 1e10, "mixing": "paper"}
     np.testing.assert_array_equal(setup.loop["K"], np.diag([3.0, 4.0]))
     assert setup.solver["h_max"] == 5.0 and setup.gamma == 1e10 and not setup.auto
+
+
+def test_an_experiment_of_data_builds_the_model_once_and_designs_the_reference_once():
+    """Configuration data of an arm other than the paper's (the real-arm reference follows
+    the model): Experiment.from_config builds the model once and designs the reference,
+    its disturbance and window once; the laws' loops use that design (closed_loop designs
+    nothing more), and the experiment's configuration is load_config's."""
+    from ivdrem.diagrams import arm_reference
+    data = read_config(overrides={"model.name": "planar-3", "experiment.t_end": 0.1})
+    assert "a" not in data["trajectory"]                   # data: nothing designed yet
+    config_module._build.cache_clear()
+    designs = [arm_reference.design_trajectory, arm_reference.design_disturbance,
+               arm_reference.design_window, arm_reference.design_gains]
+    experiment, counts = _count_calls([config_module._build.__wrapped__, *designs],
+                                      lambda: Experiment.from_config(data))
+    assert counts["_build"] == 1
+    assert {f.__name__: counts[f.__name__] for f in designs} == \
+        {f.__name__: 1 for f in designs}
+    assert experiment.config == load_config(overrides={"model.name": "planar-3",
+                                                       "experiment.t_end": 0.1})
+    assert experiment.model.n == 3 and experiment.laws == ["iv-drem", "composite-learning"]
+    _, counts = _count_calls(designs, lambda: [experiment.loop(law) for law in experiment.laws])
+    assert sum(counts.values()) == 0
 
 
 def test_the_paper_arm_defaults_come_from_the_default_configuration():

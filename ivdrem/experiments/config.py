@@ -1,9 +1,12 @@
 """Configuration of the paper experiment: embedded default, loading, validation.
 
 The default configuration (the paper experiment) is the package data file
-``ivdrem/experiments/default.toml``.  :func:`load_config` deep-merges a user TOML
-file (and optional overrides) over it and validates the result *before* anything is
-simulated; every problem is reported as a :class:`ConfigError` naming the key.
+``ivdrem/experiments/default.toml``.  :func:`read_config` deep-merges a user TOML
+file (and optional overrides) over it and checks every key: data, no model built, the keys
+that follow the model left out.  :func:`resolve_config` (``Experiment.from_config``) builds
+the model once, fills those keys (the real-arm reference designed once) and checks the
+whole against the model, *before* anything is simulated; :func:`load_config` is both.
+Every problem is reported as a :class:`ConfigError` naming the key.
 
 :func:`closed_loop_kwargs` maps a validated configuration to the arguments of
 ``ivdrem.diagrams.closed_loop(law, model, **kwargs)`` (the loop's keywords and the law's
@@ -38,6 +41,8 @@ __all__ = [
     "SOLVER_METHODS",
     "OBSERVER_VARIANTS",
     "default_config",
+    "read_config",
+    "resolve_config",
     "load_config",
     "validate_config",
     "model_dims",
@@ -297,31 +302,72 @@ def _user_traj_keys(user_set: set) -> set:
     return {k for s, k in user_set if s == "trajectory"}
 
 
-def _follow_model(cfg: dict, user_set: set) -> None:
-    """Fill the keys the user did not set from the configured model: MODEL_FOLLOWING and the
-    laws' ``Key.follow`` for a model other than the paper's arm; with no [trajectory] key
-    set for such a model (or ``trajectory.kind = "fourier"``), the real-arm experiment's
-    reference and ARM_FOLLOWING."""
+def _following_keys() -> set:
+    """Every (section, key) that may follow the model: MODEL_FOLLOWING, the laws'
+    ``Key.follow``, the Fourier reference's keys and ARM_FOLLOWING."""
+    laws = {(section, key) for section, keys in _law_tables().items()
+            for key, (spec, _) in keys.items() if spec.follow is not None}
+    return (set(MODEL_FOLLOWING) | laws | set(ARM_FOLLOWING)
+            | {("trajectory", k) for k in TRAJECTORY_KINDS["fourier"] if k != "kind"})
+
+
+def _leave_following(cfg: dict, user_set: set) -> set:
+    """The data half of following the model (no model built): for a model other than the
+    paper's arm, the keys of MODEL_FOLLOWING and the laws' ``Key.follow`` the user did not
+    set are taken out; with no [trajectory] key set for such a model (or ``trajectory.kind
+    = "fourier"``) the reference is the real-arm experiment's (kind "fourier") and its keys
+    and ARM_FOLLOWING's the user did not set are taken out too.  Returns the keys taken
+    out: :func:`resolve_config` fills them from the model."""
     mcfg = cfg["model"]
     is_default = "urdf" not in mcfg and mcfg.get("name") == DEFAULT_MODEL
     user_traj = _user_traj_keys(user_set)
     fourier = cfg["trajectory"].get("kind") == "fourier" or (not is_default and not user_traj)
-    if is_default and not fourier:
+    out: set = set()
+    if not is_default:
+        laws = {(section, key) for section, keys in _law_tables().items()
+                for key, (spec, _) in keys.items() if spec.follow is not None}
+        out |= (set(MODEL_FOLLOWING) | laws) - user_set
+    if fourier:
+        cfg["trajectory"]["kind"] = "fourier"
+        out |= ({("trajectory", k) for k in TRAJECTORY_KINDS["fourier"] if k != "kind"}
+                | set(ARM_FOLLOWING)) - user_set
+    for section, key in out:
+        cfg[section].pop(key, None)
+    return out
+
+
+def _follow_model(cfg: dict, model) -> None:
+    """Fill the keys :func:`_leave_following` took out (those absent from `cfg`) from the
+    built `model`: MODEL_FOLLOWING and the laws' ``Key.follow`` for a model other than the
+    paper's arm; for the Fourier reference, the real-arm experiment's reference (designed
+    once) and ARM_FOLLOWING.  A key still absent after it (a design that needs numbers of
+    other shapes, a window T the design leaves to the law) takes the default's value."""
+    missing = {(s, k) for s, k in _following_keys() if k not in cfg.get(s, {})}
+    if not missing:
         return
-    model = model_from_config(cfg)
+    mcfg = cfg["model"]
+    is_default = "urdf" not in mcfg and mcfg.get("name") == DEFAULT_MODEL
+    fourier = cfg["trajectory"].get("kind") == "fourier"
     if not is_default:
         laws = {(section, key): spec.follow for section, keys in _law_tables().items()
                 for key, (spec, _) in keys.items() if spec.follow is not None}
         for (section, key), fn in {**MODEL_FOLLOWING, **laws}.items():
-            if (section, key) not in user_set:
+            if (section, key) in missing:
                 cfg[section][key] = fn(model)
-    if not fourier:
-        return
-    design = None
-    for key in TRAJECTORY_KINDS["fourier"]:
-        if key not in user_traj:
-            design = _arm().design_trajectory(model) if design is None else design
-            cfg["trajectory"][key] = design[key]
+    if fourier:
+        design = None
+        for key in TRAJECTORY_KINDS["fourier"]:
+            if ("trajectory", key) in missing:
+                design = _arm().design_trajectory(model) if design is None else design
+                cfg["trajectory"][key] = design[key]
+        _follow_arm(cfg, model, missing)
+    base = default_config()
+    for section, key in missing:
+        if key not in cfg[section] and key in base[section]:
+            cfg[section][key] = base[section][key]
+
+
+def _follow_arm(cfg: dict, model, missing: set) -> None:
     tr = cfg["trajectory"]
     try:   # needs numbers of the right shapes: otherwise validation names the key
         a, b = np.asarray(tr["a"], float), np.asarray(tr["b"], float)
@@ -330,7 +376,7 @@ def _follow_model(cfg: dict, user_set: set) -> None:
             return
         memo: dict = {}
         for (section, key), fn in ARM_FOLLOWING.items():
-            if (section, key) not in user_set:
+            if (section, key) in missing:
                 value = fn(model, cfg, memo)
                 if value is not None:
                     cfg[section][key] = value
@@ -449,13 +495,17 @@ def _default_raw() -> dict:
     return _DEFAULT_CACHE
 
 
-def load_config(path: str | Path | None = None, overrides: Mapping | None = None) -> dict:
-    """Load the experiment configuration.
+def read_config(path: str | Path | None = None, overrides: Mapping | None = None) -> dict:
+    """The experiment configuration as data: nothing built, nothing designed.
 
     The user TOML file at ``path`` (if any) and then ``overrides`` (a nested mapping
     ``{"experiment": {"t_end": 10.0}}`` or dotted keys ``{"experiment.t_end": 10.0}``)
-    are merged key by key over the embedded default; the result is validated and
-    returned as a plain dict (floats as ``float``, vectors as lists of ``float``).
+    are merged key by key over the embedded default and checked key by key (types,
+    ranges, choices, unknown sections and keys); returned as a plain dict (floats as
+    ``float``, vectors as lists of ``float``).  The keys that follow the model (a model
+    other than the paper's arm, the real-arm reference of docs/experiment.md) and that the
+    user did not set are absent: :func:`resolve_config` (``Experiment.from_config``) fills
+    them from the model it builds, and checks what needs it (vector lengths, joint limits).
     Raises :class:`ConfigError` for any invalid or unknown entry.
     """
     user = over = None
@@ -477,9 +527,27 @@ def load_config(path: str | Path | None = None, overrides: Mapping | None = None
     if over is not None:
         _merge(cfg, over, where="overrides", user_set=user_set)
     _settle_variants(cfg, user_set)
-    _follow_model(cfg, user_set)
+    following = _leave_following(cfg, user_set)
     _settle_variants(cfg, user_set)
-    return validate_config(cfg)
+    return validate_config(cfg, with_model=False, following=following)
+
+
+def resolve_config(data: Mapping, model=None) -> tuple[dict, object]:
+    """(configuration, model) of configuration data (:func:`read_config`): the model built
+    once (or `model`, already built for it), the keys that follow it filled (the real-arm
+    reference designed once), and the whole checked against it.  A complete configuration
+    comes back equal.  Raises :class:`ConfigError`."""
+    cfg = copy.deepcopy({s: dict(t) for s, t in data.items()})
+    model = model_from_config(cfg) if model is None else model
+    _follow_model(cfg, model)
+    return validate_config(cfg), model
+
+
+def load_config(path: str | Path | None = None, overrides: Mapping | None = None) -> dict:
+    """The experiment configuration resolved against its model: :func:`read_config`
+    then :func:`resolve_config` (the model built, the keys that follow it filled).
+    Raises :class:`ConfigError` for any invalid or unknown entry."""
+    return resolve_config(read_config(path, overrides))[0]
 
 
 def _check_reference_limits(config: Mapping) -> None:
@@ -680,7 +748,7 @@ def _section_keys(section: str, table: Mapping, keys: Mapping) -> dict:
     return {**keys, **{k: v for k, v in extra.items() if k in table and k not in keys}}
 
 
-def validate_config(cfg: Mapping, *, with_model: bool = True) -> dict:
+def validate_config(cfg: Mapping, *, with_model: bool = True, following=frozenset()) -> dict:
     """Check a complete configuration dict; return a normalized deep copy.
 
     Every section and key of :data:`SECTIONS` must be present (use :func:`load_config`
@@ -692,6 +760,8 @@ def validate_config(cfg: Mapping, *, with_model: bool = True) -> dict:
     ``with_model=False`` leaves out what needs the model built (vector lengths against
     n and nθ, the joint limits): the embedded default read as the base of another
     model's configuration, which :func:`load_config` validates whole once merged.
+    ``following`` (with ``with_model=False``): the (section, key) left absent to follow
+    the model (:func:`read_config`), neither required nor filled.
     """
     if not isinstance(cfg, Mapping):
         raise ConfigError(f"configuration must be a table, got {type(cfg).__name__}")
@@ -708,12 +778,15 @@ def validate_config(cfg: Mapping, *, with_model: bool = True) -> dict:
     specs: dict = {}
     for section, keys in sch.items():
         if section in law_defaults:       # a registered law's own table: defaults fill gaps
-            cfg = {**cfg, section: {**law_defaults[section], **cfg.get(section, {})}}
+            gaps = {k: v for k, v in law_defaults[section].items() if (section, k) not in following}
+            cfg = {**cfg, section: {**gaps, **cfg.get(section, {})}}
         if section not in cfg:
             raise ConfigError(f"config section '{section}' is missing")
         out[section] = {}
         specs[section] = _section_keys(section, cfg[section], keys)
         for key, spec in specs[section].items():
+            if key not in cfg[section] and (section, key) in following and not with_model:
+                continue
             if key not in cfg[section]:
                 raise ConfigError(f"config key '{section}.{key}' is missing")
             out[section][key] = _validate_value(f"{section}.{key}", spec, cfg[section][key])

@@ -1,11 +1,13 @@
 """An experiment resolved once: the model, every law's gains and loop, the solver settings.
 
-A configuration (:func:`ivdrem.experiments.config.load_config`) is data.  An
+A configuration (:func:`ivdrem.experiments.config.read_config`) is data.  An
 :class:`Experiment` is that data turned, once, into what the runs need, in the manner of
 Drake's systems framework (a system declares its parameters; the simulator and the hosts
 ask it, and nothing resolves the same value twice):
 
-* the robot model, built once (``Experiment.model``);
+* the robot model, built once (``Experiment.model``), and the configuration resolved
+  against it (``Experiment.config``: the keys that follow the model filled, the real-arm
+  reference designed once, the whole checked);
 * per law (:meth:`Experiment.law`, a :class:`LawSetup`): the configuration turned into
   ``closed_loop``'s arguments once: the loop's keywords and the law's ``gains`` (one
   channel, by the names its registry entry declares), the arm's rule for γ and the mixing
@@ -96,12 +98,15 @@ class Experiment:
     @classmethod
     def from_config(cls, config: Mapping | None = None, *, engine: str = "compiled",
                     model=None, laws=None) -> "Experiment":
-        """The experiment of `config` (default: the embedded paper experiment): its model
-        built once (or `model`, already built for it), the configured laws (or `laws`)
-        resolved."""
-        from .config import load_config, model_from_config
-        config = load_config() if config is None else config
-        model = model_from_config(config) if model is None else model
+        """The experiment of `config`, configuration data
+        (:func:`~ivdrem.experiments.config.read_config`; default: the embedded paper
+        experiment) or a configuration already resolved: its model built once (or `model`,
+        already built for it), the keys that follow the model filled and the real-arm
+        reference designed once (:func:`~ivdrem.experiments.config.resolve_config`, which
+        checks the whole against the model before any run), the configured laws (or
+        `laws`) resolved."""
+        from .config import read_config, resolve_config
+        config, model = resolve_config(read_config() if config is None else config, model)
         experiment = cls(config, model, engine=engine, laws=laws)
         for law in experiment.laws:
             experiment.law(law)
