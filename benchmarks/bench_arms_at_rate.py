@@ -30,7 +30,7 @@ def run(name, *, h, t_end, design, gamma, mix_every, law="iv-drem", backend="c",
     from ivdrem.controller.clib import CController
     from ivdrem.controller.loop import ModelPlant, sampled_loop
     from ivdrem.controller.sampled import SampledController, inertia_scaled_gains
-    from ivdrem.experiments import arm
+    from ivdrem.diagrams import arm_reference as arm
     from ivdrem.models import get_model
     m = get_model(name)
     traj = arm.design_trajectory(m)

@@ -83,7 +83,7 @@ def run(urdf, t_end, *, h=1e-3, gamma=None, mix_every=None, every=1000):
     import pybullet as p
     from ivdrem.controller.fmu_loop import _Slave
     from ivdrem.experiments.config import closed_loop_kwargs
-    from ivdrem.experiments.arm import joint_names
+    from ivdrem.diagrams.arm_reference import joint_names
     from ivdrem.controller.loop import disturbance_at
     with tempfile.TemporaryDirectory(prefix="ivdrem_bullet_") as tmp:
         fmu, model, config, st = export(urdf, tmp, h=h, gamma=gamma, mix_every=mix_every)

@@ -46,7 +46,7 @@ def compare(name, law, *, t_end=10.0, T=2.0, mix_every=20, **extra):
     from ivdrem._threads import one_blas_thread
     from ivdrem.controller.clib import CController
     from ivdrem.controller.sampled import SampledController
-    from ivdrem.experiments import arm
+    from ivdrem.diagrams import arm_reference as arm
     from ivdrem.models import get_model
     model = get_model(name)
     kw = dict(T=T, gamma=50.0, trajectory=arm.design_trajectory(model), mix_every=mix_every,

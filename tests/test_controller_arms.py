@@ -24,7 +24,7 @@ from ivdrem.models import get_model, two_link  # noqa: E402
 
 def _experiment(model):
     """The real-arm experiment of docs/experiment.md: reference, q0, disturbance, window."""
-    from ivdrem.experiments import arm
+    from ivdrem.diagrams import arm_reference as arm
     traj = arm.design_trajectory(model)
     q0, dq0 = arm.initial_state(traj)
     dist = arm.design_disturbance(model, traj)

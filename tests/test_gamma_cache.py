@@ -79,7 +79,7 @@ def test_a_loop_with_a_block_ivdrem_did_not_write_has_no_digest():
 
 # --------------------------------------------------------------------------- the estimate
 def _estimate_args(model):
-    from ivdrem.experiments import arm
+    from ivdrem.diagrams import arm_reference as arm
     from ivdrem.blocks.sources import fourier_trajectory
     table = arm.design_trajectory(model)
     traj = fourier_trajectory(model.n, float(table["omega_f"]), np.asarray(table["a"], float),

@@ -12,7 +12,7 @@ from ivdrem.controller.loop import ModelPlant, disturbance_at, sampled_loop  # n
 from ivdrem.controller.sampled import (GAIN_FLOOR, GRADIENT_GAIN, SampledController,  # noqa: E402
                                        gain_budget, inertia_scaled_gains)
 from ivdrem.controller.stability import UNSTABLE_GROWTH, sampled_stability  # noqa: E402
-from ivdrem.experiments import arm  # noqa: E402
+from ivdrem.diagrams import arm_reference as arm  # noqa: E402
 from ivdrem.models import get_model, two_link  # noqa: E402
 
 ARMS = ("panda", "ur5", "iiwa", "xarm7")

@@ -252,7 +252,7 @@ def test_real_arm_loop_without_K_takes_the_joint_gains_over_the_nominal_inertia(
     sampled controller's K before its cap."""
     from ivdrem.controller.sampled import inertia_scaled_gains
     from ivdrem.diagrams import closed_loop
-    from ivdrem.experiments import arm
+    from ivdrem.diagrams import arm_reference as arm
     m = get_model("ur5")
     loop = closed_loop("none", m, design="inertia-scaled")
     law = next(s for s in loop.syslist if s.name == "control_law")
