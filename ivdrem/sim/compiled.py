@@ -129,8 +129,11 @@ def _relative_params(slots):
         lo = a.offset - base
         if not a.shape:
             return f"p[{lo}]"
-        sl = f"p[{lo}:{lo + a.size}]"
-        return sl if len(a.shape) == 1 else f"{sl}.reshape({a.shape!r})"
+        if len(a.shape) == 1:
+            return f"p[{lo}:{lo + a.size}]"
+        # a matrix straight from its address: the same C-ordered array as p[...].reshape,
+        # without numba's reshape helper call on every kernel call
+        return f"carray(float_pointer(pp + {8 * lo}), {a.shape!r})"
     return base, size, [expr(a) for a in slots]
 
 
@@ -393,6 +396,10 @@ def _start_split(cdir, deps):
     the wrappers this process imports only after the child); deps: models, kernels and
     wrappers."""
     if not _compile_child.enabled():
+        return _compile_child.Warmup(), []
+    # a process that has imported every module (a second simulate of a loop) has nothing
+    # to compile or to write: reading its 67 files back was about 20 ms of each warm call
+    if all(name in sys.modules for name, _ in deps):
         return _compile_child.Warmup(), []
     for name, src in deps:
         _write(cdir, name, src)
