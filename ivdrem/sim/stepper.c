@@ -883,9 +883,6 @@ typedef struct {
     volatile i64 nbuf;     /* samples in block, from k0 (read after a longjmp: in memory) */
 } Rec;
 
-#define REC_BLOCK_SAMPLES 64
-#define REC_BLOCK_BYTES (128 * 1024)
-
 /* the samples in r->block to out_y and out_x (their values, unchanged) */
 static void rec_flush(Rec *r) {
     i64 nb = r->nbuf;
