@@ -99,11 +99,6 @@ LU_PANEL = 8
 LU_WORK_ROWS = 1 + LU_PANEL
 # rows of L at least this long are solved in pairs (stepper.c's slu_solve)
 SOLVE_PAIR_MIN = 64
-# the recording of a transposed layout (a response's outputs x samples): samples kept in a
-# block of at most this many, and this many bytes, then written out one contiguous run per
-# output and state (stepper.c's rec_flush)
-REC_BLOCK_SAMPLES = 64
-REC_BLOCK_BYTES = 128 * 1024
 
 
 def dsyevd_lwork(n):

@@ -28,7 +28,6 @@
 #include <setjmp.h>
 #include <stddef.h>
 #include <stdint.h>
-#include <stdlib.h>
 
 #include "stepper_consts.h"
 
@@ -874,45 +873,10 @@ static void newton_solve(Ctx *c, double *LU, const i64 *piv, i64 n, double *b) {
 typedef struct {
     double *out_y, *out_x;
     i64 ycols, ystep, ynext, xcols, xstep, xnext;
-    /* the transposed layout's block of samples (rows of nrow = record row + xcols), written
-     * out a column at a time by rec_flush: one contiguous run of nblock values per output
-     * and state instead of one store per sample into each of their rows (188 rows 240 kB
-     * apart in the paper's 300 s run: a cache line and a TLB entry per value) */
-    double *block;
-    i64 nrow, nblock, k0;
-    volatile i64 nbuf;     /* samples in block, from k0 (read after a longjmp: in memory) */
 } Rec;
 
-/* the samples in r->block to out_y and out_x (their values, unchanged) */
-static void rec_flush(Rec *r) {
-    i64 nb = r->nbuf;
-    if (nb == 0) return;
-    for (i64 j = 0; j < r->ycols; j++) {
-        double *dst = r->out_y + r->k0 * r->ystep + j * r->ynext;
-        for (i64 b = 0; b < nb; b++) dst[b * r->ystep] = r->block[b * r->nrow + j];
-    }
-    i64 y1 = r->nrow - r->xcols;
-    for (i64 i = 0; i < r->xcols; i++) {
-        double *dst = r->out_x + r->k0 * r->xstep + i * r->xnext;
-        for (i64 b = 0; b < nb; b++) dst[b * r->xstep] = r->block[b * r->nrow + y1 + i];
-    }
-    r->k0 += nb;
-    r->nbuf = 0;
-}
-
-static void emit(Ctx *c, double t, const double *x, i64 n, Rec *r, i64 *io) {
+static void emit(Ctx *c, double t, const double *x, i64 n, const Rec *r, i64 *io) {
     i64 k = io[0];
-    if (r->block != NULL) {
-        i64 nb = r->nbuf;
-        if (nb == 0) r->k0 = k;
-        double *row = r->block + nb * r->nrow;
-        diagram_eval(c, RECORD, t, x, row);
-        if (r->xcols == n) copy_into(row, r->nrow - n, x, 0, n);
-        r->nbuf = nb + 1;
-        io[0] = k + 1;
-        if (nb + 1 == r->nblock) rec_flush(r);
-        return;
-    }
     if (r->ynext == 1) {
         diagram_eval(c, RECORD, t, x, r->out_y + k * r->ystep);
     } else {
@@ -1186,7 +1150,7 @@ static void set_hold_modes(Ctx *c, double t_prev, double t, double t0, int fixed
 }
 
 static int step_loop(Ctx *c, i64 mid, double *tf, double t_stop, double *x, i64 n,
-                     const double *out_t, Rec *rec,
+                     const double *out_t, const Rec *rec,
                      i64 *io, i64 *stats, const double *ctl, double *K, double *J, double *LU,
                      i64 *piv, double *xn, double *f1, double *xg, double *D) {
     double rtol = ctl[0], atol = ctl[1], h_max = ctl[2], max_steps = ctl[3], x_limit = ctl[4];
@@ -1532,25 +1496,12 @@ EXPORT int ivdrem_step_loop(const i64 *waddr, const i64 *wshape, double *P, i64 
                             i64 *piv, double *xn, double *f1, double *xg, double *D) {
     Ctx c;
     bind_ctx(&c, waddr, wshape, P);
-    Rec rec = {out_y, out_x, rec_layout[0], rec_layout[1], rec_layout[2], rec_layout[3],
-               rec_layout[4], rec_layout[5], NULL, 0, 0, 0, 0};
-    /* a block of samples for a transposed layout (simulate's response arrays): at most
-     * REC_BLOCK_SAMPLES samples of REC_BLOCK_BYTES; none (each sample stored as it comes)
-     * for a row-major layout, a single sample's block, or where malloc fails */
-    if (rec_layout[2] != 1 || (rec_layout[3] == n && rec_layout[5] != 1)) {
-        rec.nrow = wshape[2 * FIELD_RECORD_ROW] + (rec_layout[3] == n ? n : 0);
-        rec.nblock = imin(REC_BLOCK_SAMPLES, REC_BLOCK_BYTES / (8 * imax(rec.nrow, 1)));
-        if (rec.nblock > 1) rec.block = malloc((size_t)(rec.nblock * rec.nrow) * sizeof(double));
-    }
-    Rec *volatile recp = &rec;
     int code = setjmp(c.exit);
-    if (code == 0)
-        code = step_loop(&c, mid, tf, t_stop, x, n, out_t, recp, io, stats,
-                         ctl, K, J, LU, piv, xn, f1, xg, D);
-    /* every return, also a failure's longjmp: the samples counted in io are written */
-    rec_flush(recp);
-    free(recp->block);
-    return code;
+    if (code) return code;
+    Rec rec = {out_y, out_x, rec_layout[0], rec_layout[1], rec_layout[2], rec_layout[3],
+               rec_layout[4], rec_layout[5]};
+    return step_loop(&c, mid, tf, t_stop, x, n, out_t, &rec, io, stats,
+                     ctl, K, J, LU, piv, xn, f1, xg, D);
 }
 
 EXPORT int ivdrem_diagram_eval(const i64 *waddr, const i64 *wshape, double *P, i64 mode,
