@@ -129,11 +129,8 @@ def _relative_params(slots):
         lo = a.offset - base
         if not a.shape:
             return f"p[{lo}]"
-        if len(a.shape) == 1:
-            return f"p[{lo}:{lo + a.size}]"
-        # a matrix straight from its address: the same C-ordered array as p[...].reshape,
-        # without numba's reshape helper call on every kernel call
-        return f"carray(float_pointer(pp + {8 * lo}), {a.shape!r})"
+        sl = f"p[{lo}:{lo + a.size}]"
+        return sl if len(a.shape) == 1 else f"{sl}.reshape({a.shape!r})"
     return base, size, [expr(a) for a in slots]
 
 
