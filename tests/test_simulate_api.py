@@ -365,6 +365,53 @@ def test_records_into_a_transposed_array_as_into_a_row_major_one():
         sim.advance(1.0, out_t=out_t[:5].copy(), out_y=np.empty((10, 2 * d.noutputs))[::2, ::2])
 
 
+def decay_until_update(t, x, u, dx, rate, t_fail):
+    """dx/dt = -rate x; raises once t passes t_fail (a block that fails part-way)."""
+    if t > t_fail:
+        raise ValueError("past t_fail")
+    for i in range(x.shape[0]):
+        dx[i] = -rate * x[i]
+
+
+def decay_output(t, x, u, y, rate, t_fail):
+    for i in range(x.shape[0]):
+        y[i] = x[i]
+
+
+def test_a_run_stopped_part_way_keeps_every_sample_before_the_stop():
+    """A run that a block stops part-way (the stepper leaves by its failure exit) has
+    written every sample it counted, the same numbers in the transposed layout as in a
+    row-major recording of the same run, and simulate(partial=True) returns exactly those
+    (its response's arrays start as broadcast placeholders)."""
+    from ivdrem.pycontrol import flatten
+    from ivdrem.sim.errors import BlockError
+    spec = BlockSpec("decay", inputs=[], outputs=[("y", 3)], states=[("x", 3)],
+                     x0=np.array([1.0, -2.0, 0.5]), param_names=("rate", "t_fail"),
+                     output=decay_output, update=decay_until_update)
+    blk = flatten(make_block(spec, {"rate": 0.7, "t_fail": 1.2345}))
+    out_t = np.arange(0.0, 3.0, 0.01)
+    got = []
+    for transposed in (False, True):
+        sim = Simulator(blk)
+        if transposed:
+            y, x = np.full((3, out_t.size), np.nan).T, np.full((3, out_t.size), np.nan).T
+        else:
+            y, x = np.full((out_t.size, 3), np.nan), np.full((out_t.size, 3), np.nan)
+        with pytest.raises(BlockError, match="past t_fail"):
+            sim.advance(3.0, out_t=out_t.copy(), out_y=y, out_x=x)
+        got.append((sim.recorded, y, x))
+    (n0, y0, x0), (n1, y1, x1) = got
+    assert n0 == n1 and 0 < n0 < out_t.size
+    assert out_t[n0 - 1] <= 1.2345       # the samples of the steps accepted before the stop
+    assert np.array_equal(y0, y1, equal_nan=True) and np.array_equal(x0, x1, equal_nan=True)
+    assert not np.isnan(y1[:n0]).any() and np.isnan(y1[n0:]).all()
+    np.testing.assert_allclose(y1[:n0, 0], np.exp(-0.7 * out_t[:n0]), rtol=1e-5)
+    r = simulate(blk, 3.0, dt_out=0.01, partial=True, progress=False)
+    assert not r.success and "past t_fail" in r.message
+    assert r.t.size == n0
+    assert np.array_equal(r.y.T, y0[:n0]) and np.array_equal(r.x.T, x0[:n0])
+
+
 def test_a_run_holds_its_recorded_outputs_once():
     """simulate() records into the response's own arrays: the run's peak memory grows by
     what the response holds, not twice that (TimeResponseData copies what it is given, so a
