@@ -698,7 +698,7 @@ def _expand(dst, f, src, length):
     """The runs of the Jacobian chain as single multiply-adds again (dst, f, src)."""
     out = []
     for d, g, s, m in zip(dst, f, src, length):
-        for k in range(m):
+        for k in range(abs(m)):
             if s == -1:                         # factors alone
                 out.append((d + k, g + k, -1))
             elif s < -1:                        # a factor and a source each
@@ -748,26 +748,60 @@ def test_chain_as_runs_reproduces_the_sums_of_single_multiply_adds():
     loop = _planar3_loop(mixing="eigen", gamma=50.0)
     prog = JacobianProgram(DiagramPlan.from_diagram(loop))
     # (planar-3: 5,740 multiply-adds in 2,159 runs; the UR5 loop: 2.08 million in 128,721)
-    assert prog.run_len.sum() == prog.n_ins and prog.run_len.size < prog.n_ins / 2
+    assert np.abs(prog.run_len).sum() >= prog.n_ins and prog.run_len.size < prog.n_ins / 2
     rng = np.random.default_rng(2)
     F = rng.standard_normal(prog.n_jb + prog.gains.size)
-    S1, S2 = np.zeros(prog.n_slots), np.zeros(prog.n_slots)
-    for d, g, s, m in zip(prog.run_dst, prog.run_f, prog.run_src, prog.run_len):
-        if s == -1:
-            S1[d:d + m] += F[g:g + m]
-        elif s < -1:
-            S1[d:d + m] += F[g:g + m] * S1[-2 - s:-2 - s + m]
-        else:
-            S1[d:d + m] += F[g] * S1[s:s + m]
+    F[prog.n_jb:] = prog.gains
+    S1 = _chain(prog, F)
+    S2 = np.zeros(prog.n_slots)
     for d, g, s in _expand(prog.run_dst, prog.run_f, prog.run_src, prog.run_len):
         S2[d] += F[g] if s < 0 else F[g] * S2[s]
     assert np.array_equal(S1, S2) and np.count_nonzero(S1) > 0
 
 
-def _chain(prog, F):
-    """The chain's slots S from the factors F, run by run as jac_chain runs them."""
-    S = np.zeros(prog.n_slots)
+def test_each_slots_first_term_is_stored_so_the_slots_need_no_clearing():
+    """A run of first terms (negative length) holds the first term each of its
+    destinations receives and nothing else; every slot, those no term reaches included, is
+    stored before it is read or added to, so that the chain run over slots left holding
+    anything (here NaN: the last Jacobian's values) gives the sums from +0 bit for bit."""
+    from ivdrem.sim.jacobian import JacobianProgram, _runs
+    from ivdrem.sim.plan import DiagramPlan
+    ins = np.array([(0, 5, 10), (1, 5, 11), (2, 5, 12),     # first terms of 0, 1, 2
+                    (1, 6, 13), (2, 6, 14),                  # second terms: a run of their own
+                    (3, 7, -1), (4, 8, -1)], dtype=np.int64)
+    first = np.array([1, 1, 1, 0, 0, 1, 1], dtype=bool)
+    dst, f, src, length = _runs(ins[:, 0], ins[:, 1], ins[:, 2], first)
+    assert list(length) == [-3, 2, -2]
+    assert _expand(dst, f, src, length) == [tuple(r) for r in ins.tolist()]
+    prog = JacobianProgram(DiagramPlan.from_diagram(_planar3_loop(mixing="eigen",
+                                                                  gamma=50.0)))
+    written = np.zeros(prog.n_slots, dtype=bool)
     for d, g, s, m in zip(prog.run_dst, prog.run_f, prog.run_src, prog.run_len):
+        rng_ = np.arange(d, d + abs(m))
+        # a gain that is 0 (the unreached slots' runs) reads no source (jac_chain)
+        zero = g >= prog.n_jb and prog.gains[g - prog.n_jb] == 0.0
+        reads = (np.arange(-2 - s, -2 - s + abs(m)) if s < -1 else
+                 np.arange(s, s + abs(m)) if s >= 0 and not zero else
+                 np.zeros(0, dtype=np.int64))
+        assert written[reads].all()             # a source is complete when read
+        assert (m < 0) == (not written[rng_].any()) and (m > 0) == written[rng_].all()
+        written[rng_] = True
+    assert written.all()
+    rng = np.random.default_rng(3)
+    F = rng.standard_normal(prog.n_jb + prog.gains.size)
+    F[prog.n_jb:] = prog.gains
+    F[:prog.n_jb][rng.random(prog.n_jb) < 0.2] = 0.0  # exact zeros among the factors
+    assert np.array_equal(_chain(prog, F, start=np.nan), _chain(prog, F))
+
+
+def _chain(prog, F, start=0.0):
+    """The chain's slots S from the factors F, run by run as jac_chain runs them, over
+    slots that held `start` before (a run of first terms, m < 0, stores 0.0 + term)."""
+    S = np.full(prog.n_slots, start)
+    for d, g, s, m in zip(prog.run_dst, prog.run_f, prog.run_src, prog.run_len):
+        first, m = m < 0, abs(m)
+        if first:
+            S[d:d + m] = 0.0
         if s == -1:
             S[d:d + m] += F[g:g + m]
         elif s < -1:
@@ -855,7 +889,7 @@ def test_a_jacobian_kernels_entries_are_read_row_by_row_into_consecutive_factors
     assert (prog.run_src < -1).sum() > 0
     nth = 6
     # the mixing's 1 + nθ + 1 rows over nθ² Psi entries: far fewer runs than entries
-    assert (prog.run_len[prog.run_src < -1] >= nth * nth).sum() >= nth
+    assert (np.abs(prog.run_len[prog.run_src < -1]) >= nth * nth).sum() >= nth
 
 
 def test_the_jacobian_sits_in_the_lu_pattern_and_comes_back_dense():

@@ -474,36 +474,53 @@ def _slots_by_row(rows, n_slots):
     return renumber
 
 
-def _runs(dst, f, src):
+def _runs(dst, f, src, first=None):
     """The multiply-adds S[dst] += F[f] * S[src] (F[f] alone where src < 0), in program
     order, merged into runs of consecutive destinations of three kinds: consecutive sources
     under one factor (run_src >= 0, their first), consecutive factors added alone (run_src =
     -1), or consecutive factors times consecutive sources, one each (run_src = -2 - their
     first source: a block's row read through single-entry rows, such as the mixing's
     derivatives with respect to the averaged Psi, one run instead of one per entry).
-    Merging keeps the order in which every slot receives its terms, so the chain's sums are
-    the same bit for bit."""
+    `first` (optional, boolean): the multiply-adds that are the first term of their
+    destination; a run holds only first terms or none, and a run of first terms has the
+    negative of its length (``jac_chain`` stores 0.0 + term there, so that S is never
+    cleared).  Merging keeps the order in which every slot receives its terms, so the
+    chain's sums are the same bit for bit."""
     if dst.size == 0:
         z = np.zeros(0, dtype=np.int64)
         return z, z, z, z
+    first = np.zeros(dst.size, dtype=bool) if first is None else np.asarray(first, bool)
     alone = src < 0
     cont = np.zeros(dst.size, dtype=bool)
-    step = (dst[1:] == dst[:-1] + 1) & (alone[1:] == alone[:-1])
+    step = ((dst[1:] == dst[:-1] + 1) & (alone[1:] == alone[:-1])
+            & (first[1:] == first[:-1]))
     cont[1:] = step & np.where(alone[1:], f[1:] == f[:-1] + 1,
                                (f[1:] == f[:-1]) & (src[1:] == src[:-1] + 1))
     start = np.flatnonzero(~cont)
     length = np.diff(np.append(start, dst.size))
-    d, g, s = dst[start], f[start], src[start]
+    d, g, s, fs = dst[start], f[start], src[start], first[start]
     # single multiply-adds next to each other in all three indices: elementwise runs
     single = (length == 1) & (s >= 0)
     each = np.zeros(d.size, dtype=bool)
     each[1:] = (single[1:] & single[:-1] & (d[1:] == d[:-1] + 1) & (g[1:] == g[:-1] + 1)
-                & (s[1:] == s[:-1] + 1))
-    first = np.flatnonzero(~each)
-    merged = np.diff(np.append(first, d.size))
-    s = np.where(merged > 1, -2 - s[first], s[first])
-    length = np.add.reduceat(length, first) if first.size else length
-    return d[first], g[first], s, length.astype(np.int64)
+                & (s[1:] == s[:-1] + 1) & (fs[1:] == fs[:-1]))
+    first_run = np.flatnonzero(~each)
+    merged = np.diff(np.append(first_run, d.size))
+    s = np.where(merged > 1, -2 - s[first_run], s[first_run])
+    length = np.add.reduceat(length, first_run) if first_run.size else length
+    length = np.where(fs[first_run], -length, length)
+    return d[first_run], g[first_run], s, length.astype(np.int64)
+
+
+def _first_terms(dst, n_slots):
+    """(first, unreached): whether each multiply-add S[dst] += ... is the first its
+    destination receives, and the slots none reaches (all their terms left out by
+    _parameter_zeros), sorted."""
+    first = np.zeros(dst.size, dtype=bool)
+    reached, at = np.unique(dst, return_index=True)
+    first[at] = True
+    unreached = np.setdiff1d(np.arange(n_slots, dtype=np.int64), reached)
+    return first, unreached
 
 
 def _entries_by_row(entries):
@@ -527,9 +544,11 @@ class JacobianProgram:
       n_jb: number of local-Jacobian values
       run_dst, run_f, run_src, run_len: the chain's multiply-adds as runs, F = [JB, gains]:
           S[dst + k] += F[f] * S[src + k] for k < len (src >= 0), S[dst + k] += F[f + k]
-          (src = -1), S[dst + k] += F[f + k] * S[-2 - src + k] (src <= -2); n_ins the
-          multiply-adds they hold (those of the factors _parameter_zeros finds left out);
-          gains (float64)
+          (src = -1), S[dst + k] += F[f + k] * S[-2 - src + k] (src <= -2) for k < len,
+          a run of first terms (len < 0) storing S[dst + k] = 0.0 + term for k < -len
+          (:func:`_runs`), the slots no term reaches first stored 0 by a zero factor (the
+          last gain); n_ins the multiply-adds they hold (those of the factors
+          _parameter_zeros finds left out); gains (float64)
       n_slots, j_row, j_col, j_slot: the entry (j_row, j_col) of df/dx is slot j_slot of
           the chain (tables.jacobian_positions places it in the LU pattern's order)
       pattern: boolean n x n structural pattern of df/dx
@@ -773,10 +792,21 @@ class JacobianProgram:
         # multiply-adds are left out (the entries of df/dx they reach stay in the pattern)
         ins = ins[~np.isin(ins[:, 1], np.asarray(dropped, dtype=np.int64))]
         self.n_ins = int(ins.shape[0])
-        self.run_dst, self.run_f, self.run_src, self.run_len = _runs(
-            renumber[ins[:, 0]], ins[:, 1], np.where(ins[:, 2] >= 0, renumber[ins[:, 2]], -1))
+        dst = renumber[ins[:, 0]]
+        src = np.where(ins[:, 2] >= 0, renumber[ins[:, 2]], -1)
+        fac = ins[:, 1]
+        # each slot's first term is stored, not added (S is not cleared before the chain);
+        # a slot no term reaches is stored +0 first, by a factor 0 appended to the gains
+        first, unreached = _first_terms(dst, self.n_slots)
+        g = np.zeros(len(gains) + (1 if unreached.size else 0))
+        if unreached.size:
+            zero = jb + len(gains)
+            dst = np.concatenate([unreached, dst])
+            fac = np.concatenate([np.full(unreached.size, zero, dtype=np.int64), fac])
+            src = np.concatenate([unreached, src])
+            first = np.concatenate([np.ones(unreached.size, dtype=bool), first])
+        self.run_dst, self.run_f, self.run_src, self.run_len = _runs(dst, fac, src, first)
         jrows = {i: {col: int(renumber[s]) for col, s in r.items()} for i, r in jrows.items()}
-        g = np.zeros(len(gains))
         for val, idx in gains.items():
             g[idx - jb] = val
         self.gains = g

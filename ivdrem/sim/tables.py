@@ -242,7 +242,7 @@ def build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu):
         fd_e_slot=_i32(prog.e_slot), jac_run_dst=_i32(prog.run_dst),
         jac_run_f=_i32(prog.run_f), jac_run_src=_i32(prog.run_src),
         jac_run_len=_i32(prog.run_len),
-        jac_j_pos=_i32(jacobian_positions(prog, slu)), jac_j_slot=_i32(prog.j_slot),
+        **_jacobian_stores(prog, slu),
         jac_gains=np.asarray(prog.gains, dtype=float), lu_perm=_i64(slu.perm),
         lu_rowptr=_i64(slu.rowptr), lu_colidx=_i32(slu.colidx), lu_diagp=_i64(slu.diagp),
         lu_panel_rows=_i64(slu.panel_rows), lu_panel_kptr=_i64(slu.panel_kptr),
@@ -268,6 +268,18 @@ def jacobian_positions(prog, slu):
     if key.size and (pos.max() >= pattern_key.size or (pattern_key[pos] != key).any()):
         raise AssertionError("an entry of df/dx is not in the LU pattern")
     return _i64(pos)
+
+
+def _jacobian_stores(prog, slu):
+    """jac_j_pos and jac_j_slot: the chain's slot of each entry of df/dx and its position
+    in the filled LU pattern (:func:`jacobian_positions`), in the order of the positions,
+    so that the stores into the Newton matrix's values go through them once from the first
+    to the last (in df/dx's row order they jumped around the permuted rows, a cache miss
+    each on the real arms; each store is a copy, so J is the same bit for bit)."""
+    pos = jacobian_positions(prog, slu)
+    order = np.argsort(pos, kind="stable")
+    return dict(jac_j_pos=_i32(pos[order]),
+                jac_j_slot=_i32(np.asarray(prog.j_slot, dtype=np.int64)[order]))
 
 
 def _value_rows(rowptr):
