@@ -429,3 +429,39 @@ def test_controller_fmu_tunable_gain_mid_run_equals_the_c_library(controller_fmu
     assert np.abs(tuned - plain).max() > 1e-3                  # the new gains acted
     f.terminate()
     f.freeInstance()
+
+
+def test_the_paper_q0_and_the_default_h_are_the_default_configurations():
+    """q(0) = (0, 0.3π) and the controller's h = 1 ms are written once, in the default
+    configuration: every default of the controller reads them there (bit for bit the
+    values typed before), and no module of the package types them again."""
+    import inspect
+    import re
+    from pathlib import Path
+
+    import ivdrem
+    from ivdrem.controller import block, fmu_loop, loop, sampled, ssp
+    from ivdrem.experiments.config import load_config
+    from ivdrem.plants import mujoco
+
+    config = load_config(None)
+    assert loop.paper_q0() == loop.PAPER_Q0 == tuple(config["initial"]["q0"]) == Q0
+    assert loop.default_period() == float(config["solver"]["h"]) == 1e-3
+    assert SampledController().h == 1e-3 == _REF.h
+    assert block.controller_block(backend="python").dt == 1e-3
+    assert sampled.PAPER_TRAJECTORY == dict(
+        amplitude=[0.4 * np.pi, 0.3 * np.pi], omega=[2.0, 0.3], phase=[0.0, np.pi / 2],
+        offset=[0.2 * np.pi, 0.3 * np.pi]) == config["trajectory"]
+    # the signatures say None (resolved inside), not a number typed again
+    for fn, names in ((SampledController.__init__, ("h",)), (block.controller_block, ("h",)),
+                      (block.sampled_closed_loop, ("h", "q0")), (mujoco.load, ("h",)),
+                      (fmu_loop.libcosim_closed_loop, ("q0",)), (ssp.write_ssp, ("q0",)),
+                      (ssp.libcosim_ssp_loop, ("q0",))):
+        params = inspect.signature(fn).parameters
+        for name in names:
+            assert params[name].default is None, (fn.__qualname__, name)
+    # the package's sources: 0.3π (or its digits) nowhere but experiments/default.toml
+    root = Path(ivdrem.__file__).parent
+    typed = [str(p.relative_to(root)) for p in sorted(root.rglob("*.py"))
+             if re.search(r"0\.3 ?\* ?(np|math)\.pi|0\.94247779", p.read_text(encoding="utf-8"))]
+    assert typed == [], typed

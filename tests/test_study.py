@@ -28,6 +28,7 @@ from ivdrem.experiments import metrics
 from ivdrem.experiments.config import dump_toml, load_config
 from ivdrem.experiments.paper import run_paper
 from ivdrem.experiments.study import RunStore, run_study
+from ivdrem.reports.study_report import write_study_report_of
 from ivdrem.experiments.study_spec import StudyError, expand_study, read_study
 
 T_END = 5.0
@@ -57,8 +58,8 @@ def grid_study(paper_runs, tmp_path_factory):
     """GRID on the default local cluster: 2 single-threaded worker processes (one per core),
     TCP on 127.0.0.1."""
     out = tmp_path_factory.mktemp("grid")
-    df = run_study(GRID, out, workers=min(2, os.cpu_count() or 1), progress=False)
-    return out, df
+    result = run_study(GRID, out, workers=min(2, os.cpu_count() or 1), progress=False)
+    return out, result.results, result
 
 
 @pytest.fixture(scope="module")
@@ -81,8 +82,10 @@ def _comparable(df):
 
 # --------------------------------------------------------------------------- same numbers as `paper`
 def test_grid_study_equals_paper_runs_bit_for_bit(grid_study, paper_runs):
-    out, df = grid_study
-    assert df.attrs["scheduler"].startswith("tcp://127.0.0.1:")
+    out, df, result = grid_study
+    assert result.scheduler.startswith("tcp://127.0.0.1:")
+    assert result.lost == {} and result.out == out and len(result.runs) == 4
+    assert not (out / "study.html").exists()    # a study returns results, writes no report
     assert list(df["run"]) == [0, 1, 2, 3]
     assert (df["status"] == "ok").all(), df["error"].tolist()
     assert str(df["status"].iloc[0]) == "ok"
@@ -113,8 +116,9 @@ def test_grid_study_equals_paper_runs_bit_for_bit(grid_study, paper_runs):
 
 
 def test_curves_on_a_one_second_grid(grid_study, paper_runs):
-    out, df = grid_study
+    out, df, result = grid_study
     cv = pd.read_parquet(out / "curves.parquet")
+    pd.testing.assert_frame_equal(cv, result.curves, check_dtype=False)
     assert sorted(set(cv["run"])) == [0, 1, 2, 3]
     one = cv[cv["run"] == 0]
     assert one["t"].tolist() == [float(k) for k in range(int(T_END) + 1)]
@@ -131,12 +135,49 @@ def test_curves_on_a_one_second_grid(grid_study, paper_runs):
 
 
 def test_report_is_written_and_self_contained(grid_study):
-    out, df = grid_study
+    out, df, result = grid_study
+    assert write_study_report_of(result) == (out / "study.html", out / "study.pdf")
     html = (out / "study.html").read_text("utf-8")
     assert "<svg" in html and "Metrics against controller.alpha" in html
     assert "Envelope of" in html and "Failed runs" in html
     assert "http://" not in html.replace("http://www.w3.org", "") and "src=" not in html
     assert (out / "study.pdf").read_bytes().startswith(b"%PDF")
+
+
+def test_the_command_writes_the_report_from_the_results(tmp_path, cluster, capsys):
+    """`ivdrem study` writes study.html / study.pdf from what run_study returns (run_study
+    itself writes none); --no-report leaves them out."""
+    from ivdrem.reports.study_report import GENERATOR
+    study = tmp_path / "s.toml"
+    study.write_text('[experiment]\nt_end = 5.0\nlaws = ["iv-drem"]\n'
+                     '[study.grid]\n"controller.alpha" = [1.0, 1.5]\n', encoding="utf-8")
+    rc = main(["study", str(study), "--out", str(tmp_path / "out"), "--quiet",
+               "--scheduler", cluster.scheduler_address])
+    assert rc == 0
+    html = (tmp_path / "out" / "study.html").read_text("utf-8")
+    assert GENERATOR in html and "ivdrem study: s.toml" in html
+    assert "Metrics against controller.alpha" in html
+    assert (tmp_path / "out" / "study.pdf").read_bytes().startswith(b"%PDF")
+    assert "study.html, study.pdf" in capsys.readouterr().out
+    rc = main(["study", str(study), "--out", str(tmp_path / "bare"), "--quiet", "--no-report",
+               "--scheduler", cluster.scheduler_address])
+    assert rc == 0
+    assert len(list((tmp_path / "bare" / "runs").glob("*.json"))) == 2
+    assert not (tmp_path / "bare" / "study.html").exists()
+
+
+def test_the_command_refuses_a_foreign_report_before_any_run(tmp_path, capsys):
+    study = tmp_path / "s.toml"
+    study.write_text('[experiment]\nt_end = 5.0\n[study.grid]\n"iv_drem.T" = [5.0]\n',
+                     encoding="utf-8")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "study.html").write_text("mine\n", encoding="utf-8")
+    rc = main(["study", str(study), "--out", str(out), "--quiet", "--workers", "1"])
+    assert rc == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["study.html"]      # nothing ran
+    assert (out / "study.html").read_text(encoding="utf-8") == "mine\n"
 
 
 # --------------------------------------------------------------------------- random draws
@@ -280,7 +321,7 @@ def test_a_directory_of_other_files_is_refused(tmp_path):
 
 
 def test_a_directory_with_runs_needs_resume(grid_study):
-    out, _ = grid_study
+    out, _, _ = grid_study
     with pytest.raises(StudyError, match="--resume"):
         run_study(GRID, out, workers=1, progress=False)
 
@@ -290,7 +331,9 @@ def test_failed_run_records_its_error_and_the_study_goes_on(tmp_path, cluster):
     study = {"experiment": {"t_end": T_END, "laws": ["iv-drem"]},
              # θ1 < 0: M(q) is not positive definite at t = 0 -> SimulationError
              "study": {"grid": {"model.theta[0]": [1.3, -1.0]}}}
-    df = run_study(study, tmp_path, scheduler=cluster.scheduler_address, progress=False)
+    result = run_study(study, tmp_path, scheduler=cluster.scheduler_address, progress=False)
+    write_study_report_of(result)
+    df = result.results
     assert df["status"].tolist() == ["ok", "failed"]
     assert "not positive definite" in df["error"].iloc[1]
     assert math.isnan(df["theta_err_norm"].iloc[1])
@@ -303,7 +346,7 @@ class _Stop(Exception):
 
 
 def test_resume_after_interruption_gives_the_uninterrupted_table(tmp_path, grid_study, cluster):
-    _, full = grid_study
+    _, full, _ = grid_study
     seen = []
 
     def stop_after_two(run, rec):
@@ -320,7 +363,7 @@ def test_resume_after_interruption_gives_the_uninterrupted_table(tmp_path, grid_
     (tmp_path / "runs" / ".deadbeef.json.1234.tmp").write_text("{", encoding="utf-8")
     again = []
     df = run_study(GRID, tmp_path, scheduler=cluster.scheduler_address, progress=False,
-                   resume=True, on_run=lambda run, rec: again.append(run.index))
+                   resume=True, on_run=lambda run, rec: again.append(run.index)).results
     assert sorted(again) == sorted(set(range(4)) - set(seen))  # only the missing ones ran
     pd.testing.assert_frame_equal(_comparable(df), _comparable(full))
 
@@ -333,7 +376,7 @@ def test_a_full_disk_keeps_every_finished_run_elsewhere(tmp_path, grid_study, cl
     import errno
     import shutil
     import tempfile
-    _, full = grid_study
+    _, full, _ = grid_study
     out, spare = tmp_path / "out", tmp_path / "spare"
     spare.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(spare))
@@ -353,7 +396,7 @@ def test_a_full_disk_keeps_every_finished_run_elsewhere(tmp_path, grid_study, cl
     shutil.copytree(kept, out / "runs", dirs_exist_ok=True)
     again = []
     df = run_study(GRID, out, scheduler=cluster.scheduler_address, progress=False,
-                   resume=True, on_run=lambda run, rec: again.append(run.index))
+                   resume=True, on_run=lambda run, rec: again.append(run.index)).results
     assert again == []
     pd.testing.assert_frame_equal(_comparable(df), _comparable(full))
 
@@ -371,8 +414,8 @@ def test_killed_worker_loses_no_run(tmp_path, cluster):
     result, killed = {}, {}
 
     def study_thread():
-        result["df"] = run_study(study, tmp_path, scheduler=cluster.scheduler_address,
-                                 progress=False)
+        result["study"] = run_study(study, tmp_path, scheduler=cluster.scheduler_address,
+                                    progress=False)
 
     th = threading.Thread(target=study_thread)
     th.start()
@@ -388,10 +431,10 @@ def test_killed_worker_loses_no_run(tmp_path, cluster):
     th.join(timeout=300)
     client.close()
     assert killed, "no task seen running"
-    df = result["df"]
+    df = result["study"].results
     assert len(df) == 4 and df["hash"].is_unique and (df["status"] == "ok").all()
     assert len(list((tmp_path / "runs").glob("*.json"))) == 4
-    assert not df.attrs["lost"]
+    assert not result["study"].lost
     with pytest.raises(ProcessLookupError):
         os.kill(killed["pid"], 0)  # it really died
 

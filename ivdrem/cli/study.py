@@ -1,6 +1,7 @@
 """The ``ivdrem study`` command (a grid or Monte Carlo study of the experiment on a Dask
 cluster, :func:`ivdrem.experiments.study.run_study`; a MuJoCo robustness study goes to
-:mod:`ivdrem.cli.plants`): its options, the run, the lines it prints."""
+:mod:`ivdrem.cli.plants`): its options, the run, the report written from its results
+(:func:`ivdrem.reports.study_report.write_study_report_of`), the lines it prints."""
 from __future__ import annotations
 
 import sys
@@ -37,10 +38,16 @@ def run_study_command(args) -> int:
     # Paths on the command line are the caller's (see ivdrem._paths), as for every command.
     study = user_path(args.study)
     out = user_path(args.out if args.out is not None else Path("studies") / study.stem)
+    report = not args.no_report
     try:
-        df = run_study(study, out, workers=args.workers, scheduler=args.scheduler,
-                       resume=args.resume, progress=False if args.quiet else None,
-                       report=not args.no_report)
+        if report:    # a foreign study.html / study.pdf is refused before any work
+            from ..reports.study_report import report_paths
+            try:
+                report_paths(out)
+            except FileExistsError as exc:
+                raise StudyError(str(exc)) from None
+        result = run_study(study, out, workers=args.workers, scheduler=args.scheduler,
+                           resume=args.resume, progress=False if args.quiet else None)
     except StudyError as exc:
         print(f"ivdrem study: error: {exc}", file=sys.stderr)
         return 2
@@ -51,16 +58,34 @@ def run_study_command(args) -> int:
               f"{out}/runs; continue with --resume", file=sys.stderr)
         from . import EXIT_INTERRUPTED
         return 128 + exc.signum if hasattr(exc, "signum") else EXIT_INTERRUPTED
-    print(summary_text(df, out))
-    return 1 if df.attrs.get("lost") else 0
+    if report:
+        from .._atomic import os_error_behind
+        from ..reports.study_report import write_study_report_of
+        try:
+            write_study_report_of(result)
+        except Exception as exc:
+            cause = os_error_behind(exc)
+            if cause is None:
+                raise
+            # the runs and the tables are written: only the report is missing
+            print(f"ivdrem study: error: cannot write the report in {out}: "
+                  f"{cause.strerror or cause}; the {len(result.results)} run(s) and the tables "
+                  f"are saved there (the report can be rebuilt from them: "
+                  f"ivdrem.reports.study_report.rebuild_study_report)", file=sys.stderr)
+            return 2
+    print(summary_text(result))
+    return 1 if result.lost else 0
 
 
-def summary_text(df, out) -> str:
-    """A few lines for the terminal: counts, medians per law, verdicts, files."""
+def summary_text(result) -> str:
+    """A few lines for the terminal from a study's results
+    (:class:`~ivdrem.experiments.study.StudyResult`): counts, medians per law, verdicts,
+    lost runs, files."""
+    df, out = result.results, result.out
     lines = []
     n_ok = int((df["status"] == "ok").sum()) if not df.empty else 0
     n_bad = len(df) - n_ok
-    wall = df.attrs.get("wall_s")
+    wall = result.wall_s
     lines.append(f"{len(df)} runs: {n_ok} ok, {n_bad} failed"
                  + (f"; {wall:.1f} s in this session" if wall is not None else ""))
     if n_ok:
@@ -74,7 +99,7 @@ def summary_text(df, out) -> str:
             v = pts[c].dropna()
             if len(v):
                 lines.append(f"{c}: PASS at {int(v.sum())} of {len(v)} points")
-    for h, msg in (df.attrs.get("lost") or {}).items():
+    for h, msg in result.lost.items():
         lines.append(f"lost run {h}: {msg} (run again with --resume)")
     lines.append(f"wrote {out}/results.parquet, results.csv, curves.parquet"
                  + ("" if not (Path(out) / "study.html").exists() else ", study.html, study.pdf"))

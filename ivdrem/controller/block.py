@@ -14,7 +14,7 @@ import control as ct
 
 from ..sim import declare_feedthrough, sampled
 from .clib import CController
-from .loop import PAPER_DISTURBANCE, PAPER_Q0, disturbance_at
+from .loop import PAPER_DISTURBANCE, default_period, disturbance_at, paper_q0
 from .sampled import SampledController
 
 __all__ = ["controller_block", "disturbance_block", "sampled_closed_loop", "auto_gamma"]
@@ -38,7 +38,7 @@ def auto_gamma(model, law, kwargs, calibration=None):
     return calibrate_gamma(law, model, args, **(calibration or {}))
 
 
-def controller_block(model=None, law="iv-drem", *, h=1e-3, backend="c", name="controller",
+def controller_block(model=None, law="iv-drem", *, h=None, backend="c", name="controller",
                      calibration=None, **kwargs):
     """The sampled controller as a discrete-time block (python-control semantics at
     t_k = k h; keyword arguments as :class:`SampledController`).
@@ -113,12 +113,16 @@ def disturbance_block(n, h, disturbance=PAPER_DISTURBANCE, *, name="disturbance"
                     outputs=[f"tau_d[{i}]" for i in range(n)], dt=h, name=name)
 
 
-def sampled_closed_loop(model=None, law="iv-drem", *, h=1e-3, q0=PAPER_Q0, dq0=None,
+def sampled_closed_loop(model=None, law="iv-drem", *, h=None, q0=None, dq0=None,
                         disturbance=PAPER_DISTURBANCE, backend="c", **kwargs):
     """The continuous plant (``ivdrem.blocks.plant``) with the sampled controller and the
     sampled disturbance: a mixed diagram for ``ivdrem.sim.simulate`` (outputs q, dq, tau,
-    theta_hat).  Returns (diagram, controller block)."""
+    theta_hat).  ``h``: the controller's period (default :func:`~ivdrem.controller.loop.
+    default_period`); ``q0``: the plant's q(0) (default the paper's,
+    :func:`~ivdrem.controller.loop.paper_q0`).  Returns (diagram, controller block)."""
     from ..blocks.plant import plant
+    h = default_period() if h is None else h
+    q0 = paper_q0() if q0 is None else q0
     if model is None:
         from ..models import two_link
         model = two_link()

@@ -71,7 +71,7 @@ def sampled_against_continuous(model, law="iv-drem", *, hs=(4e-3, 2e-3, 1e-3), t
     the n_out + 1 output times 0, t_end/n_out, ..., t_end, and the sampled run's seconds) and
     "continuous" (the response), "theta_moved" (max |θ̂_c − θ̂(0)|)."""
     import time
-    from ..experiments import arm
+    from ..diagrams import arm_reference as arm
     from ..sim import simulate
     from .clib import CController
     from .loop import ModelPlant, sampled_loop

@@ -37,6 +37,7 @@ from .._paths import check_replaceable
 from ..fmu.export import _platform, fmi2_header_dir, is_ivdrem_fmu
 from ..laws import get_law, sampled_laws
 from .codegen import _version, generate_controller_sources
+from .loop import default_period
 from .parameters import PARAMETERS, param_layout, param_vector
 from .sampled import SampledController
 
@@ -425,7 +426,7 @@ def controller_design(config, law, *, h=None, mu_max=None):
         sig = inspect.signature(SampledController.__init__).parameters
         out["K"] = np.diag(inertia_scaled_gains(
             model, K, np.asarray(config["initial"]["q0"], dtype=float),
-            out.get("h", sig["h"].default),
+            out.get("h", default_period()),
             delta_mu=out.get("delta_mu", sig["delta_mu"].default),
             mu_max=out.get("mu_max", sig["mu_max"].default),
             theta=np.asarray(config["model"]["theta"], dtype=float)))
@@ -442,7 +443,7 @@ def check_window(design, law):
     """h must divide the window T of (15a) into whole blocks: one line naming both if not."""
     if not get_law(law).windowed:       # the law's name is checked by the caller
         return
-    h = float(design.get("h", 1e-3))
+    h = float(design.get("h", default_period()))
     T = design.get("T")
     T = 20.0 if T is None else float(T)
     block = int(design.get("block", 10))
@@ -472,7 +473,7 @@ def check_mix_every(value, design, law):
         m = float(value)
     except (TypeError, ValueError):
         m = math.nan
-    h = float(design.get("h", 1e-3))
+    h = float(design.get("h", default_period()))
     T = design.get("T")
     T = 20.0 if T is None else float(T)
     N = int(round(T / h))
@@ -560,7 +561,7 @@ def main_export_controller(args) -> int:
     from ..models import get_model
     prog = "ivdrem fmu export"
     mu_max = 135.0 if args.mu_max is None else args.mu_max
-    h = 1e-3 if args.h is None else args.h
+    h = default_period() if args.h is None else args.h
     extra = ""
     try:
         if args.no_compile or args.q0 is not None or args.dq0 is not None:

@@ -15,7 +15,7 @@ import tempfile
 
 import numpy as np
 
-from .loop import PAPER_DISTURBANCE, PAPER_Q0, disturbance_at
+from .loop import PAPER_DISTURBANCE, disturbance_at, paper_q0
 
 __all__ = ["fmpy_closed_loop", "libcosim_closed_loop", "controller_period"]
 
@@ -169,24 +169,25 @@ def _reference_start(ctrl):
     start (0, 0.3 pi) at rest for the paper's arm (its experiment starts off the reference,
     Section 4) and for an FMU without the reference outputs."""
     if "q_d[0]" not in ctrl.vr or ctrl.model_name == "two-link":
-        return np.array(PAPER_Q0), None
+        return np.array(paper_q0()), None
     n = sum(1 for k in ctrl.vr if k.startswith("q_d["))
     q = np.array(ctrl.get(ctrl.refs([f"q_d[{i}]" for i in range(n)])))
     dq = np.array(ctrl.get(ctrl.refs([f"dq_d[{i}]" for i in range(n)])))
     return q, dq
 
 
-def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, q0=PAPER_Q0,
+def libcosim_closed_loop(controller_fmu, plant_fmu, t_end, *, q0=None,
                          dq0=None, disturbance=PAPER_DISTURBANCE, every=100):
     """Controller FMU + plant FMU in libcosim (``libcosimpy``, its fixed-step algorithm,
     step = the controller FMU's h, :func:`controller_period`): q, dq and tau connected FMU
     to FMU by libcosim; the disturbance tau_d(t_k) set on the plant before each step by an
     override manipulator.  Same record as :func:`fmpy_closed_loop` (t, q, dq, tau, tau_d,
-    theta_hat)."""
+    theta_hat).  ``q0``: default the paper's q(0) (:func:`~ivdrem.controller.loop.paper_q0`)."""
     from fmpy import read_model_description
     from libcosimpy.CosimExecution import CosimExecution
     from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
     from libcosimpy.CosimSlave import CosimLocalSlave
+    q0 = paper_q0() if q0 is None else q0
     n = len(q0)
     dq0 = np.zeros(n) if dq0 is None else dq0
     vr_p = {v.name: v.valueReference for v in read_model_description(str(plant_fmu)).modelVariables}
@@ -328,7 +329,7 @@ def main_cosim_controller(args) -> int:
     except (ValueError, OSError, KeyError) as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
-    q0 = (0.0, 0.3 * np.pi) if model.name == "two-link" else tuple([0.0] * model.n)
+    q0 = paper_q0() if model.name == "two-link" else tuple([0.0] * model.n)
     with tempfile.TemporaryDirectory(prefix="ivdrem_cosim_ctl_") as tmp:
         try:
             if args.fmu is None:

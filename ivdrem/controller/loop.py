@@ -19,15 +19,34 @@ import tempfile
 
 import numpy as np
 
+from .._default_config import paper_experiment
+
 __all__ = ["FmuPlant", "ModelPlant", "sampled_loop", "as_response", "PAPER_DISTURBANCE",
-           "PAPER_Q0"]
+           "PAPER_Q0", "paper_q0", "default_period"]
 
 #: The paper's external torque τ_d,i = A_i sin(ω_i t) (Section 4), as keywords of
 #: :func:`ivdrem.blocks.disturbance`.
 PAPER_DISTURBANCE = dict(amplitude=[7.5, 1.5], omega=[0.5 * np.pi, 0.05 * np.pi],
                          phase=[0.0, 0.0], offset=[0.0, 0.0])
-#: The paper's initial joint positions q(0) = (0, 0.3π) rad.
-PAPER_Q0 = (0.0, 0.3 * np.pi)
+
+
+def paper_q0() -> tuple:
+    """The paper's initial joint positions q(0) = (0, 0.3π) rad (Section 4), as the default
+    configuration writes them (``[initial] q0`` of experiments/default.toml)."""
+    return tuple(paper_experiment()["q0"])
+
+
+def default_period() -> float:
+    """The sampled controller's period h when none is given: the default configuration's
+    ``[solver] h`` (experiments/default.toml), the paper's 1 ms."""
+    return paper_experiment()["h"]
+
+
+def __getattr__(name):
+    # PAPER_Q0: the paper's q(0), read from the default configuration where it is written
+    if name == "PAPER_Q0":
+        return paper_q0()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class FmuPlant:

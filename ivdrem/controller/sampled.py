@@ -51,6 +51,7 @@ import math
 
 import numpy as np
 
+from .._default_config import paper_experiment
 from ..blocks._kernels import MIXING_VARIANTS, mixing_values, start_weight
 from ..blocks.control_law import DESIGNS, INJECTIONS, default_injection, inertia_scaled_gain
 from ..blocks.mixing import DEFAULT_F_REL, DEFAULT_GUARD, start_of_term
@@ -58,6 +59,7 @@ from ..blocks.sources import fourier_series
 from ..diagrams.gamma_auto import DEFAULT_RATE as GAMMA_RATE
 from ..laws import get_law, sampled_gain_defaults, sampled_laws
 from .discrete import averaging_factor, mu_integral, mu_saturated
+from .loop import default_period
 from .window import BlockWindow
 
 __all__ = ["SampledController", "SAMPLED_LAWS", "PAPER_TRAJECTORY", "phi1", "DESIGNS",
@@ -69,7 +71,7 @@ __all__ = ["SampledController", "SAMPLED_LAWS", "PAPER_TRAJECTORY", "phi1", "DES
 #: who compensates gravity: the controller's law alone, or the robot ("robot": tau - g_hat)
 GRAVITY_OPTIONS = ("controller", "robot")
 #: harmonics per joint of a Fourier reference (the C library's fixed size; the real-arm
-#: experiment's ivdrem.experiments.arm.HARMONICS)
+#: experiment's ivdrem.diagrams.arm_reference.HARMONICS)
 REFERENCE_HARMONICS = 5
 
 
@@ -92,9 +94,14 @@ def default_mixing(model):
 #: (ivdrem.laws.sampled_laws, in the order of their C codes)
 SAMPLED_LAWS = sampled_laws()
 
-#: the paper's reference trajectory (Section 4), as ivdrem.diagrams.closed_loop uses it
-PAPER_TRAJECTORY = dict(amplitude=[0.4 * np.pi, 0.3 * np.pi], omega=[2.0, 0.3],
-                        phase=[0.0, np.pi / 2], offset=[0.2 * np.pi, 0.3 * np.pi])
+
+def __getattr__(name):
+    # PAPER_TRAJECTORY: the paper's reference trajectory (Section 4), as
+    # ivdrem.diagrams.closed_loop uses it: read from the default configuration where it is
+    # written ([trajectory] of experiments/default.toml)
+    if name == "PAPER_TRAJECTORY":
+        return paper_experiment()["trajectory"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def generic_trajectory(n):
@@ -144,7 +151,7 @@ def gain_budget(delay):
 def inertia_scaled_gains(model, K, q0, h, *, delta_mu=0.8, mu_max=135.0, delay=1,
                          floor=GAIN_FLOOR, budget=None, theta=None):
     """The "inertia-scaled" design's K (1/s) from joint gains K (N m s/rad, e.g.
-    ivdrem.experiments.arm.design_gains): K_i / M_ii(q0) (the paper's feedback at q0 on the
+    ivdrem.diagrams.arm_reference.design_gains): K_i / M_ii(q0) (the paper's feedback at q0 on the
     diagonal), at least ``floor`` (a uniform bandwidth on the heavy joints, where
     K_i / M_ii is ~2 1/s), at most the cap
 
@@ -224,7 +231,7 @@ class SampledController:
       decides at t_k + m h;
     * ``trajectory``: the paper's sinusoid (amplitude, omega, phase, offset) or a Fourier
       reference {"kind": "fourier", "omega_f", "a", "b", "offset"} of at most
-      REFERENCE_HARMONICS harmonics (ivdrem.experiments.arm.design_trajectory);
+      REFERENCE_HARMONICS harmonics (ivdrem.diagrams.arm_reference.design_trajectory);
     * ``gravity``: "controller", or "robot" (the robot adds its own g(q): tau - g_hat(q)
       is commanded, g_hat = G(q, theta_nominal)); ``theta_nominal``: default the model's
       theta_values (the URDF's);
@@ -237,7 +244,7 @@ class SampledController:
       "inertia-scaled"; docs/controller.md, "The observer on the nominal inertia").
     """
 
-    def __init__(self, model=None, law="iv-drem", *, h=1e-3, alpha=1.0, K=2.0,
+    def __init__(self, model=None, law="iv-drem", *, h=None, alpha=1.0, K=2.0,
                  delta_mu=0.8, Gamma=0.01, mu0=1.0, mu1=15.0, mu_max=135.0,
                  observer_variant="corrected", l=50.0, T=None, p=None, F0=None, gamma=None,
                  sigma=None, theta_star=None, epsilon=None, theta_hat0=None, trajectory=None,
@@ -268,7 +275,7 @@ class SampledController:
         n, nth = model.n, model.ntheta
         self.model, self.law, self.n, self.ntheta = model, law, n, nth
         self.fn = model.jit_functions
-        self.h = _positive("h", h)
+        self.h = _positive("h", default_period() if h is None else h)
         self.alpha = float(alpha)
         self.K = _matrix("K", K, n, pd=True)
         if not 0.0 < float(delta_mu) < 1.0:
@@ -347,7 +354,7 @@ class SampledController:
         self.theta_hat0 = (np.zeros(nth) if theta_hat0 is None
                            else _vector("theta_hat0", theta_hat0, nth))
         if trajectory is None:
-            trajectory = PAPER_TRAJECTORY if n == 2 else generic_trajectory(n)
+            trajectory = paper_experiment()["trajectory"] if n == 2 else generic_trajectory(n)
         self._set_trajectory(trajectory)
         self.block = int(block)
         self.m = nth + nth * nth

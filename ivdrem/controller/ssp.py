@@ -17,7 +17,7 @@ import numpy as np
 
 from .._atomic import new_tempfile
 from .fmu_loop import run_libcosim
-from .loop import PAPER_DISTURBANCE
+from .loop import PAPER_DISTURBANCE, paper_q0
 
 __all__ = ["write_ssp", "libcosim_ssp_loop"]
 
@@ -31,9 +31,11 @@ def _connectors(md, kinds):
     return "\n".join(out)
 
 
-def write_ssp(controller_fmu, plant_fmu, path, *, q0=(0.0, 0.3 * np.pi), dq0=None,
+def write_ssp(controller_fmu, plant_fmu, path, *, q0=None, dq0=None,
               t_end=300.0):
-    """Write the SSP file of the loop; returns its path."""
+    """Write the SSP file of the loop; returns its path.  ``q0``: the plant's q(0), default
+    the paper's (:func:`~ivdrem.controller.loop.paper_q0`)."""
+    q0 = paper_q0() if q0 is None else q0
     from fmpy import read_model_description
     mc = read_model_description(str(controller_fmu))
     mp = read_model_description(str(plant_fmu))
@@ -113,7 +115,7 @@ def _controller_period(ssp_path):
         return controller_period(inner)
 
 
-def libcosim_ssp_loop(ssp_path, t_end, *, q0=(0.0, 0.3 * np.pi), dq0=None,
+def libcosim_ssp_loop(ssp_path, t_end, *, q0=None, dq0=None,
                       disturbance=PAPER_DISTURBANCE, every=100):
     """Run an SSP file of :func:`write_ssp` in libcosim (its SSP loader and fixed-step
     algorithm, step = the controller FMU's parameter h), the disturbance set on the plant's
@@ -125,6 +127,7 @@ def libcosim_ssp_loop(ssp_path, t_end, *, q0=(0.0, 0.3 * np.pi), dq0=None,
     from libcosimpy.CosimExecution import CosimExecution
     from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
     from .fmu_loop import _steps
+    q0 = paper_q0() if q0 is None else q0    # the paper's q(0) by default
     h = _controller_period(ssp_path)
     log_output_level(CosimLogLevel.ERROR)
     ex = CosimExecution.from_ssp_file(str(ssp_path), step_size=int(round(h * 1e9)))

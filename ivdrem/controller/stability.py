@@ -373,6 +373,7 @@ def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturba
 
     ``disturbance``: t -> τ_d(t) held by the plant.  ``suggest``: look for a smaller h
     predicted stable at the worst point (h/2, h/4, h/5, h/10 that divide T)."""
+    from .loop import default_period
     from .sampled import SampledController
     make = SampledController if controller_class is None else controller_class
     design = make(model, law, **gains)        # the design as given: every check
@@ -385,7 +386,7 @@ def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturba
         # window (15a), no mixing (17)) has the same torque (9) and fast states, at a
         # fraction of the cost of a step (Panda: 1.2 ms against 45 ms in Python)
         return make(model, "none", **{**gains, "h": h, "T": block * h})
-    controller = short(float(gains.get("h", 1e-3)))
+    controller = short(float(default_period() if gains.get("h") is None else gains["h"]))
     model = controller.model
     theta = np.asarray(model.theta_values if theta is None else theta, dtype=float)
     h = controller.h

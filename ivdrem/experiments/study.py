@@ -38,6 +38,7 @@ import sys
 import time
 import uuid
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -48,7 +49,7 @@ from .._paths import OutputLocationError, check_writable_dir
 from .._progress import want_progress
 from .study_spec import RunSpec, StudyError, StudySpec, expand_study, read_study
 
-__all__ = ["run_study", "StudyError", "run_one", "results_table", "CURVE_DT",
+__all__ = ["run_study", "StudyResult", "StudyError", "run_one", "results_table", "CURVE_DT",
            "SCHEDULER_TIMEOUT_S", "METRICS"]
 
 #: time step of DIR/curves.parquet, s
@@ -422,13 +423,39 @@ def check_study_cost(runs: list[RunSpec]) -> None:
 
 
 # --------------------------------------------------------------------------- the study
+@dataclass
+class StudyResult:
+    """What :func:`run_study` returns: the study's results, in its run order.
+
+    ``results``: one row per run with a record (the study's varied keys, law, status,
+    metrics, C1-C3, steps, wall times; the table of ``DIR/results.parquet``); ``curves``:
+    ‖θ̃‖, ‖e‖, |Δ| per run on a ``CURVE_DT`` grid (``DIR/curves.parquet``); ``lost``: the
+    runs whose task was lost (hash -> message; ``--resume`` runs them again); ``spec`` and
+    ``runs``: the study as read and expanded; ``out``: its directory; ``wall_s``: this
+    session's wall time, s; ``scheduler``: the address of the Dask scheduler that ran them
+    (``None`` when every run was already there).
+    """
+    results: Any
+    curves: Any
+    lost: dict[str, str]
+    spec: StudySpec
+    runs: list[RunSpec]
+    out: Path
+    wall_s: float
+    scheduler: str | None = None
+
+
 def run_study(study, out=None, *, workers: int | None = None, scheduler: str | None = None,
-              resume: bool = False, progress: bool | None = None, report: bool = True,
-              warm_up_laws: bool = False, on_run: Callable[[RunSpec, dict], None] | None = None):
-    """Run a study file (path) or dict; returns the results as a pandas DataFrame.
+              resume: bool = False, progress: bool | None = None,
+              warm_up_laws: bool = False, on_run: Callable[[RunSpec, dict], None] | None = None,
+              ) -> StudyResult:
+    """Run a study file (path) or dict; returns its results (:class:`StudyResult`).
 
     Everything is checked before the first run starts: the study file, every run's
-    configuration, the output directory and the scheduler (:class:`StudyError`).
+    configuration, the output directory and the scheduler (:class:`StudyError`).  Writes
+    the run files and the tables in `out`, not the report: ``ivdrem study`` writes
+    ``study.html`` / ``study.pdf`` from the result
+    (:func:`ivdrem.reports.study_report.write_study_report`).
 
     Parameters
     ----------
@@ -445,8 +472,6 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
         Skip the runs whose record is already in ``out/runs``.
     progress : bool, optional
         A bar over runs on stderr (default: when stderr is a terminal).
-    report : bool
-        Write ``out/study.html`` and ``out/study.pdf`` at the end.
     warm_up_laws : bool
         Compile each law in one task before its runs start (default: no; the first run of
         a law on each worker loads it from the disk cache, or compiles it).
@@ -455,8 +480,10 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
 
     Returns
     -------
-    pandas.DataFrame
-        One row per run: the study's keys, the status and the metrics.
+    StudyResult
+        ``results`` (pandas.DataFrame, one row per run: the study's keys, the status and
+        the metrics), ``curves``, ``lost``, ``spec``, ``runs``, ``out``, ``wall_s``,
+        ``scheduler``.
     """
     scheduler = _check_scheduler(workers, scheduler)    # within 5 s, before any other work
     spec = read_study(study)
@@ -477,12 +504,6 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
     if have and not resume:
         raise StudyError(f"{out} already holds {len(have)} finished run(s) of a study; pass "
                          "--resume to continue it, or choose another --out")
-    if report:
-        from ..reports.study_report import report_paths
-        try:
-            report_paths(out)  # refuses a foreign file before any work
-        except FileExistsError as exc:
-            raise StudyError(str(exc)) from None
     wanted = {r.hash: r for r in runs}
     todo = [h for h in dict.fromkeys(r.hash for r in runs) if h not in have]
     records = {h: rec for h, rec in have.items() if h in wanted}
@@ -522,19 +543,13 @@ def run_study(study, out=None, *, workers: int | None = None, scheduler: str | N
                 cluster.close()
         wall = time.perf_counter() - t_start
         df, cf = _write_tables(out, runs, records, spec)
-        df.attrs["wall_s"] = wall
-        df.attrs["lost"] = dict(lost)
-        df.attrs["scheduler"] = scheduler_address
-        if report:
-            from ..reports.study_report import write_study_report
-            write_study_report(out, spec=spec, runs=runs, results=df, curves=cf, lost=lost,
-                               wall_s=wall)
     except Exception as exc:
         cause = os_error_behind(exc)
         if cause is None:
             raise
         raise StudyError(_kept_elsewhere(out, records, cause)) from None
-    return df
+    return StudyResult(results=df, curves=cf, lost=dict(lost), spec=spec, runs=runs, out=out,
+                       wall_s=wall, scheduler=scheduler_address)
 
 
 def _kept_elsewhere(out: Path, records: dict, cause: OSError) -> str:

@@ -446,7 +446,7 @@ def _urdf_path(model, urdf):
     return Path(model.urdf)
 
 
-def load(model="two-link", *, urdf=None, h=1e-3, integrator="implicit", substeps=1,
+def load(model="two-link", *, urdf=None, h=None, integrator="implicit", substeps=1,
          joint_friction=False, payload=None, states=200, tol=LOAD_TOL, seed=0):
     """The arm of ``model`` (an ivdrem model or its name: "two-link", "planar-N", a named
     arm) as a :class:`MujocoPlant` stepping at h, checked against the model at load.
@@ -456,7 +456,8 @@ def load(model="two-link", *, urdf=None, h=1e-3, integrator="implicit", substeps
     urdf : path, optional
         The URDF of a URDF arm (default: the named arm's file, else ``model.urdf``).
     h, substeps : float, int
-        The sample (the controller's h) and the MuJoCo steps per sample.
+        The sample (the controller's h; default :func:`ivdrem.controller.loop.default_period`,
+        the default configuration's 1 ms) and the MuJoCo steps per sample.
     integrator : "implicit" (default), "implicitfast", "euler" or "rk4"
     joint_friction : bool
         Keep the URDF's ``<dynamics damping friction>`` in the plant (MuJoCo's joint
@@ -470,6 +471,9 @@ def load(model="two-link", *, urdf=None, h=1e-3, integrator="implicit", substeps
     if integrator not in INTEGRATORS:
         raise ValueError(f"integrator must be one of {', '.join(INTEGRATORS)}, got "
                          f"{integrator!r}")
+    if h is None:      # the controller's period by default
+        from ..controller.loop import default_period
+        h = default_period()
     if not (math.isfinite(h) and h > 0):
         raise ValueError(f"h must be a positive number of seconds, got {h!r}")
     if int(substeps) != substeps or substeps < 1:
@@ -627,7 +631,7 @@ def closed_loop(plant, t_end, law="iv-drem", *, controller=None, imperfections=N
     wall times include the time the process waited).
     """
     import control as ct
-    from ..controller.loop import PAPER_DISTURBANCE, PAPER_Q0, disturbance_at
+    from ..controller.loop import PAPER_DISTURBANCE, disturbance_at, paper_q0
     from ..controller.sampled import SampledController
     from .._progress import want_progress
     model, n = plant.model, plant.n
@@ -655,7 +659,7 @@ def closed_loop(plant, t_end, law="iv-drem", *, controller=None, imperfections=N
             amplitude=np.zeros(n), omega=np.zeros(n), phase=np.zeros(n), offset=np.zeros(n))
     disturbance = {k: np.asarray(v, float) for k, v in disturbance.items()}   # once
     if q0 is None:
-        q0 = PAPER_Q0 if n == 2 else (reference.reference(0.0)[0] if reference is not None
+        q0 = paper_q0() if n == 2 else (reference.reference(0.0)[0] if reference is not None
                                       else np.zeros(n))
     q0 = np.asarray(q0, float)
     dq0 = np.zeros(n) if dq0 is None else np.asarray(dq0, float)

@@ -6,6 +6,8 @@ the median over the other varied keys, every run as a dot), a heatmap of ‖θ̃
 the first two numeric grid keys, the envelope of ‖θ̃(t)‖ over the runs per law, and the
 runs that failed with their messages.  Built from the result tables only (results.parquet,
 curves.parquet), so it can be rebuilt without simulating: :func:`rebuild_study_report`.
+``ivdrem study`` writes it from the results :func:`ivdrem.experiments.study.run_study`
+returns (:func:`write_study_report_of`); the study itself writes no report.
 
 Written like the paper report: matplotlib figures without pyplot, temporary files next to
 the targets and ``os.replace``, and a file that ivdrem did not write is never replaced.
@@ -31,7 +33,8 @@ from . import figures as report_figures
 from .content import Table, fmt, git_commit
 from .pdf import TextPages
 
-__all__ = ["write_study_report", "rebuild_study_report", "report_paths", "GENERATOR"]
+__all__ = ["write_study_report", "write_study_report_of", "rebuild_study_report", "report_paths",
+           "GENERATOR"]
 
 #: marker of files written by this report (checked before overwriting)
 GENERATOR = "ivdrem study report"
@@ -420,6 +423,14 @@ def write_study_report(outdir, *, spec, runs, results, curves, lost=None, wall_s
                     pdf.savefig(fig)
             html_tmp.write_text(_render_html(title, meta, tables, svgs, spec.text), encoding="utf-8")
     return html_path, pdf_path
+
+
+def write_study_report_of(result):
+    """The report of what :func:`ivdrem.experiments.study.run_study` returned (its
+    ``StudyResult``), in the study's directory, as ``ivdrem study`` writes it."""
+    return write_study_report(result.out, spec=result.spec, runs=result.runs,
+                              results=result.results, curves=result.curves, lost=result.lost,
+                              wall_s=result.wall_s)
 
 
 def rebuild_study_report(outdir, study):
