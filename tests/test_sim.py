@@ -195,8 +195,11 @@ def test_input_output_response_refuses_delay_and_max_hold():
     (dict(observer_variant="paper"), r"unknown observer variant"),
 ])
 def test_closed_loop_rejects_bad_arguments(kw, pattern):
+    from ivdrem.diagrams.closed_loop import LOOP_ARGUMENTS
+    loop = {k: v for k, v in kw.items() if k in LOOP_ARGUMENTS}    # the law's gains apart
+    gains = {k: v for k, v in kw.items() if k not in LOOP_ARGUMENTS}
     with pytest.raises(ParameterError, match=pattern):
-        closed_loop("iv-drem", **kw)
+        closed_loop("iv-drem", gains=gains, **loop)
 
 
 def test_closed_loop_rejects_unknown_law_and_replacement():
