@@ -42,11 +42,8 @@ def default_period() -> float:
     return paper_experiment()["h"]
 
 
-def __getattr__(name):
-    # PAPER_Q0: the paper's q(0), read from the default configuration where it is written
-    if name == "PAPER_Q0":
-        return paper_q0()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+#: The paper's q(0) = (0, 0.3π) rad, read from the default configuration where it is written.
+PAPER_Q0 = paper_q0()
 
 
 class FmuPlant:

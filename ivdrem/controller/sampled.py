@@ -95,13 +95,9 @@ def default_mixing(model):
 SAMPLED_LAWS = sampled_laws()
 
 
-def __getattr__(name):
-    # PAPER_TRAJECTORY: the paper's reference trajectory (Section 4), as
-    # ivdrem.diagrams.closed_loop uses it: read from the default configuration where it is
-    # written ([trajectory] of experiments/default.toml)
-    if name == "PAPER_TRAJECTORY":
-        return paper_experiment()["trajectory"]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+#: The paper's reference trajectory (Section 4), as ivdrem.diagrams.closed_loop uses it: read
+#: from the default configuration where it is written ([trajectory] of experiments/default.toml).
+PAPER_TRAJECTORY = paper_experiment()["trajectory"]
 
 
 def generic_trajectory(n):
