@@ -23,7 +23,9 @@ class Key:
     A law's key may also give default: the configuration's default on the paper's arm where
     it differs from the law's ``defaults`` (closed_loop's), and follow(model): its default
     on any other model; unit and doc: the gain's unit and what it is (the sampled
-    controller's parameter table and its FMU's variables read them).
+    controller's parameter table and its FMU's variables read them); structural: the gain
+    fixes the memory of the law's state (a window's length), so a sampled controller takes
+    it before its first step and never between steps.
     """
     kind: str
     length: str | None = None
@@ -34,6 +36,7 @@ class Key:
     follow: Callable[[Any], Any] | None = None
     unit: str = ""
     doc: str = ""
+    structural: bool = False
 
 
 POSITIVE = dict(check=lambda x: x > 0, requirement="> 0")

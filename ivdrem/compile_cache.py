@@ -29,7 +29,7 @@ __all__ = ["cache_dir", "package_digest", "source_hash", "write_generated",
            "helpers_digest", "CacheFault", "guard_numba_index"]
 
 #: the package files every generated module imports its helpers from
-HELPER_FILES = ("blocks/_kernels.py", "sim/_native.py")
+HELPER_FILES = ("blocks/_kernels.py", "_native_call.py")
 
 
 def helpers_digest(root=Path(__file__).resolve().parent, files=HELPER_FILES):
@@ -47,7 +47,7 @@ def helpers_digest(root=Path(__file__).resolve().parent, files=HELPER_FILES):
 #: the first lines of every generated kernel module: what a kernel may call
 GENERATED_HEADER = [f"# helpers {helpers_digest()}", "import math", "import numpy as np",
                     "from numba import njit", "from ivdrem.blocks._kernels import *",
-                    "from ivdrem.sim._native import call_c"]
+                    "from ivdrem._native_call import call_c"]
 
 
 

@@ -16,12 +16,15 @@ place:
 * ``color`` and ``label``: the law's colour and legend label in every figure;
 * ``equation``, ``description``: what the report and the docs say about it;
 * ``sampled_code``: the law's code in the sampled controller's C library where it has a
-  sampled form (``ivdrem/controller/ivdrem_controller.c``; the header's ``IVC_LAW_<NAME>``
-  macros are generated from these codes), None where it has none.
+  sampled form of its own (its step in ``ivdrem/controller/ivdrem_controller.c``; the
+  header's ``IVC_LAW_<NAME>`` macros are generated from these codes), None where it has
+  none; ``sampled_as``: the name of a law whose sampled step this law runs (its code), for
+  a law that adds gains to another's step.
 
-A gain's declaration (:class:`Key`) gives its type, range, configuration default, unit and
-doc; the configuration's sections, the sampled controller's list of laws and law codes are
-read from here (:func:`sampled_laws`, :func:`law_codes`).
+A gain's declaration (:class:`Key`) gives its type, range, configuration default, unit,
+doc and whether it fixes the state's memory (``structural``); the configuration's
+sections, the sampled controller's list of laws, law codes and parameter table are read
+from here (:func:`sampled_laws`, :func:`law_codes`, :func:`sampled_gains`).
 
 :func:`register_law` adds a user's law; ``closed_loop``, the configuration and the
 figures then know it (see docs/custom-law.md and examples/custom_law.py).
@@ -40,7 +43,8 @@ from .blocks._kernels import MIXING_VARIANTS as _VARIANTS
 from .blocks.mixing import start_of_term
 
 __all__ = ["Law", "LawContext", "LAWS", "register_law", "get_law", "law_names",
-           "sampled_laws", "law_codes", "sampled_gain_defaults", "gain_declaration",
+           "sampled_laws", "law_codes", "sampled_step", "sampled_gains",
+           "sampled_gain_defaults", "gain_declaration",
            "mixed_regression_blocks", "MIXING_VARIANTS", "default_mixing", "is_paper_arm",
            "Key", "in_range", "magnitude"]
 
@@ -86,8 +90,12 @@ class Law:
     instrument: str | None = None          # recorded instrument signal (zeta or phi)
     linestyle: str = "-"                   # with the colour: five laws told apart in grey too
     # the law's code in the sampled controller (its C library's parameter ``law``); None: no
-    # sampled form.  A sampled form is C code of ivdrem_controller.c: built-in laws only
+    # sampled form of its own.  A sampled form is C code of ivdrem_controller.c (ivc_step)
+    # and its Python reference (SampledController.step): built-in laws only
     sampled_code: int | None = None
+    # the name of a law whose sampled step this law runs (that law's code): the law's own
+    # gains then ride in the controller's parameter vector, read by no step until one does
+    sampled_as: str | None = None
 
     @property
     def windowed(self) -> bool:
@@ -113,6 +121,13 @@ def register_law(law: Law, *, replace: bool = False) -> Law:
         raise ValueError("a law needs a non-empty string name")
     if law.name in LAWS and not replace:
         raise ValueError(f"law {law.name!r} is already registered (pass replace=True)")
+    if law.sampled_as is not None:
+        owner = LAWS.get(law.sampled_as)
+        if law.sampled_code is not None or owner is None or owner.sampled_code is None:
+            raise ValueError(f"law {law.name!r}: sampled_as {law.sampled_as!r} must name a "
+                             "registered law with a sampled step of its own (sampled_code), "
+                             "and then the law has no sampled_code; laws with a step: "
+                             + ", ".join(n for n, o in LAWS.items() if o.sampled_code is not None))
     if law.sampled_code is not None:
         taken = {o.sampled_code: o.name for o in LAWS.values() if o.name != law.name}
         if not isinstance(law.sampled_code, int) or law.sampled_code < 0 \
@@ -148,17 +163,31 @@ def law_names() -> tuple[str, ...]:
     return tuple(LAWS)
 
 
+def sampled_step(name: str) -> str:
+    """The name of the law whose sampled step runs law `name`: its own where it has a
+    ``sampled_code``, the law it names in ``sampled_as``; a ValueError where it has none."""
+    law = get_law(name)
+    if law.sampled_as is not None:
+        return law.sampled_as
+    if law.sampled_code is None:
+        raise ValueError(f"law {name!r} has no sampled form; choose one of "
+                         f"{', '.join(sampled_laws())}")
+    return name
+
+
 def sampled_laws() -> tuple[str, ...]:
     """Names of the laws with a sampled form (the sampled controller, its C library and
-    FMU), in the order of their codes."""
-    return tuple(sorted((n for n, law in LAWS.items() if law.sampled_code is not None),
-                        key=lambda n: LAWS[n].sampled_code))
+    FMU): their own step or another's (``sampled_as``), in the order of their codes."""
+    return tuple(sorted((n for n, law in LAWS.items()
+                         if law.sampled_code is not None or law.sampled_as in LAWS),
+                        key=lambda n: LAWS[sampled_step(n)].sampled_code))
 
 
 def law_codes() -> dict[str, int]:
     """{law name: code} of the laws with a sampled form (the C library's ``law``
-    parameter and its ``IVC_LAW_<NAME>`` macros: name upper-cased, ``-`` as ``_``)."""
-    return {n: LAWS[n].sampled_code for n in sampled_laws()}
+    parameter and its ``IVC_LAW_<NAME>`` macros: name upper-cased, ``-`` as ``_``); a law
+    that runs another's step (``sampled_as``) has that law's code."""
+    return {n: LAWS[sampled_step(n)].sampled_code for n in sampled_laws()}
 
 
 def gain_declaration(name: str) -> tuple[str, str]:
@@ -177,6 +206,30 @@ def gain_declaration(name: str) -> tuple[str, str]:
         head = head[:head.rfind(" ") + 1]
         return keys[0].unit, head + " or ".join(d[len(head):] for d in docs)
     return keys[0].unit, "".join(docs)
+
+
+#: the kinds of a gain the sampled controller's parameter vector holds as numbers (a
+#: choice, "str", is a coded entry of its own: the mixing)
+NUMERIC_KINDS = ("float", "float_or_auto", "vec")
+
+
+def sampled_gains() -> dict:
+    """{gain: :class:`Key`} of every numeric gain a law with a sampled form declares, in
+    code order (the first law's declaration where several declare it): the entries of the
+    sampled controller's parameter vector that belong to the laws.  A law with a sampled
+    form that leaves a gain undeclared (no ``keys`` entry: no unit, doc or size) is refused
+    here, naming it."""
+    out = {}
+    for name in sampled_laws():
+        law = LAWS[name]
+        for k in law.defaults:
+            key = (law.keys or {}).get(k)
+            if key is None:
+                raise ValueError(f"law {name!r} has a sampled form but does not declare its "
+                                 f"gain {k!r} (keys={{{k!r}: Key(...)}}: kind, unit, doc)")
+            if key.kind in NUMERIC_KINDS:
+                out.setdefault(k, key)
+    return out
 
 
 def sampled_gain_defaults() -> dict:
@@ -265,7 +318,7 @@ _IV_DREM_DEFAULTS = dict(T=20.0, p=2.0, F0=1.0, gamma=1e10, mixing="paper")
 GAIN_MAX = 1e12
 #: a sliding window T of (15a) or of composite learning's integrals: h_max follows T/2
 _WINDOW = Key("float", **in_range(2e-6, 1e6, "h_max follows T/2, at least 1e-06 s"),
-               unit="s", doc="window length T of (15a) (s)")
+               unit="s", doc="window length T of (15a) (s)", structural=True)
 
 #: the configuration keys of [iv_drem] with their ranges; on any arm but the paper's the
 #: mixing and γ follow the model, as in closed_loop

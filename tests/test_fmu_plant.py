@@ -255,8 +255,8 @@ def test_declaration(paper_fmu):
 
 
 def test_kernels_as_python_equal_the_fmpy_path(paper_fmu):
-    """The kernels run as plain Python (their call_c through ctypes, as the compiled engine's
-    sparsity probe runs them) give bit for bit what the fmpy path gives."""
+    """The kernels run as plain Python (calling the compiled helper fmi2_evaluate, as the
+    compiled engine's sparsity probe runs them) give bit for bit what the fmpy path gives."""
     from ivdrem.fmu.plant import fmu_plant_output, fmu_plant_update
     blk = fmu_plant(paper_fmu)
     spec = blk.ivdrem

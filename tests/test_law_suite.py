@@ -14,6 +14,9 @@ covered by registering it: nothing here names a law.  Every law
   it says it has the mixed regression (17) (``uses_delta``), its ``instrument`` signal;
 * keeps its own look in the figures: its own colour, its own (colour, line style) pair,
   and a line style of its own against any law whose colour has nearly the same grey.
+* where it has a sampled form: each of its gains is an entry of the sampled controller's
+  parameter table as its registry declaration (``Key``) says: size, unit, doc, structural
+  or tunable (the table is made from the registry; nothing to add for a new law).
 
 Its configuration section is checked from its registry entry in tests/test_laws.py.
 """
@@ -104,3 +107,22 @@ def test_has_its_own_colour_and_line_style(name):
         assert o.color.lower() != law.color.lower(), (name, other)
         if abs(_grey(o.color) - _grey(law.color)) < 0.1:
             assert o.linestyle != law.linestyle, (name, other)
+
+
+@pytest.mark.parametrize("name", registry.sampled_laws())
+def test_its_gains_are_entries_of_the_sampled_controller_s_table(name):
+    from ivdrem.controller.parameters import PARAMETERS
+    law = registry.get_law(name)
+    rows = {p.name: p for p in PARAMETERS}
+    for gain in law.defaults:
+        key = law.keys[gain]
+        # a choice ("str", the mixing) is a coded entry of the table's own
+        assert gain in rows, (name, gain)
+        if key.kind not in registry.NUMERIC_KINDS:
+            continue
+        p = rows[gain]
+        assert p.size == ("1" if key.kind != "vec" else key.length), (name, gain)
+        assert (p.structural, p.tunable) == (key.structural, not key.structural), (name, gain)
+        unit, doc = p.declared()
+        # a gain several laws declare has their docs joined ("... (21) or (35)")
+        assert unit == key.unit and key.doc and key.doc[:key.doc.rfind(" ")] in doc, (name, gain)

@@ -4,7 +4,7 @@ import ctypes
 import numpy as np
 from numba import njit
 
-from ivdrem.sim._native import call_c
+from ivdrem._native_call import call_c
 
 _CB = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_double, ctypes.c_void_p, ctypes.c_int64)
 

@@ -952,3 +952,98 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
         if c[i] > 0.0:
             for j in range(n):
                 jac[rows_Y + i, j] = C[i, j] / c[i]
+
+
+# ------------------------------------------------------------------ a model-exchange FMU's call
+# The FMU plant block (ivdrem.fmu.plant) evaluates its FMU with one sequence of fmi2 calls,
+# written here once for both of its kernels (derivatives and outputs).  The C functions are
+# called by address (call_c: a leaf of the base layer, so the blocks' helpers may use it);
+# the addresses arrive at run time in the float64 table `fmi`, never as literals, so the
+# generated code is the same in every process.
+from .._native_call import call_c  # noqa: E402 - with the helper that uses it (see above)
+
+#: what the address table ``fmi`` of :func:`fmi2_evaluate` holds, in order (``fmi[k]``):
+#: the FMU's component, its fmi2 functions, and the Python side's error report
+#: (``report(which, status, t, buffer, size)``: the message's length, the FMU reset);
+#: :func:`ivdrem.fmu.plant.fmu_plant` builds the table in this order
+FMI2_TABLE = ("component", "fmi2SetTime", "fmi2SetContinuousStates", "fmi2SetReal",
+              "fmi2GetDerivatives", "fmi2GetReal", "report")
+_FMI2_SET_TIME = FMI2_TABLE.index("fmi2SetTime")
+_FMI2_SET_STATES = FMI2_TABLE.index("fmi2SetContinuousStates")
+_FMI2_SET_REAL = FMI2_TABLE.index("fmi2SetReal")
+_FMI2_GET_DERIVATIVES = FMI2_TABLE.index("fmi2GetDerivatives")
+_FMI2_GET_REAL = FMI2_TABLE.index("fmi2GetReal")
+_FMI2_REPORT = FMI2_TABLE.index("report")
+#: fmi2Status: fmi2OK = 0, fmi2Warning = 1 (the call succeeded), then Discard, Error, Fatal
+_FMI2_WARNING = 1
+#: bytes of error text fetched from the Python side
+_FMI2_MESSAGE_BYTES = 2048
+
+
+@njit(cache=True)
+def fmi2_evaluate(fmi, derivatives, t, x, u, perm, vr_in, vr_out, out):
+    """out = a model-exchange FMU's state derivatives (``derivatives`` true:
+    fmi2GetDerivatives, in the block's state order) or its outputs ``vr_out``
+    (fmi2GetReal) at (t, x, u): fmi2SetTime, fmi2SetContinuousStates (block state k is
+    the FMU's state ``perm[k]``), fmi2SetReal of the inputs ``vr_in``, then the get.
+
+    A NaN time, state or input (a diverging trial step) gives NaN, as the Python plant
+    does, so the step control rejects the step (the FMU refuses NaN).  A call that fails
+    (status above fmi2Warning) raises ValueError with the message of the table's report
+    (the FMU's log; the FMU reset for the next call).  ``fmi``: :data:`FMI2_TABLE`'s
+    addresses as float64; ``vr_in``, ``vr_out``, ``perm``: integers as float64.
+    """
+    nx = x.shape[0]
+    nu = u.shape[0]
+    nout = out.shape[0]
+    xf = np.empty(nx)
+    uf = np.empty(nu)
+    vr = np.empty(nu, dtype=np.uint32)
+    got = np.empty(nout)
+    finite = np.isfinite(t)
+    for k in range(nx):
+        xf[np.int64(perm[k])] = x[k]
+        finite = finite and np.isfinite(x[k])
+    for i in range(nu):
+        uf[i] = u[i]
+        vr[i] = np.uint32(vr_in[i])
+        finite = finite and np.isfinite(u[i])
+    if not finite:
+        for i in range(nout):
+            out[i] = np.nan
+        return
+    c = np.int64(fmi[0])
+    which = _FMI2_SET_TIME
+    st = call_c(np.int64(fmi[_FMI2_SET_TIME]), (c, t))
+    if st <= _FMI2_WARNING:
+        which = _FMI2_SET_STATES
+        st = call_c(np.int64(fmi[_FMI2_SET_STATES]), (c, xf.ctypes.data, nx))
+    if st <= _FMI2_WARNING:
+        which = _FMI2_SET_REAL
+        st = call_c(np.int64(fmi[_FMI2_SET_REAL]), (c, vr.ctypes.data, nu, uf.ctypes.data))
+    if st <= _FMI2_WARNING:
+        if derivatives:
+            which = _FMI2_GET_DERIVATIVES
+            st = call_c(np.int64(fmi[_FMI2_GET_DERIVATIVES]), (c, got.ctypes.data, nout))
+        else:
+            vo = np.empty(nout, dtype=np.uint32)
+            for i in range(nout):
+                vo[i] = np.uint32(vr_out[i])
+            which = _FMI2_GET_REAL
+            st = call_c(np.int64(fmi[_FMI2_GET_REAL]),
+                        (c, vo.ctypes.data, nout, got.ctypes.data))
+    if st > _FMI2_WARNING:
+        # the FMU's message is on the Python side (its logger): fetch it, then raise
+        msg = np.zeros(_FMI2_MESSAGE_BYTES, dtype=np.uint8)
+        m = call_c(np.int64(fmi[_FMI2_REPORT]),
+                   (which, np.int64(st), t, msg.ctypes.data, _FMI2_MESSAGE_BYTES))
+        text = ""
+        for i in range(m):
+            text += chr(msg[i])
+        raise ValueError(text)
+    if derivatives:
+        for k in range(nout):
+            out[k] = got[np.int64(perm[k])]
+    else:
+        for i in range(nout):
+            out[i] = got[i]

@@ -5,13 +5,17 @@ size, unit, doc, tunable between steps, structural), from which the C library's 
 (:class:`~ivdrem.controller.clib.CController.from_params`, an FMU's start values) and the
 controller FMU's parameters are made.
 
-A law's gains (``T``, ``p``, ``F0``, ``gamma``, ``sigma``, ``epsilon``, ``theta_star``) take
-their unit and doc from the law registry (:func:`ivdrem.laws.gain_declaration`); the law
-codes are the registry's (:func:`ivdrem.laws.law_codes`), the other codes the positions in
-the enumerations the Python controller validates against.
+The laws' gains are not written here: their entries are made from the law registry each
+time the table is read (:func:`ivdrem.laws.sampled_gains`: every numeric gain a law with a
+sampled form declares, its size, unit, doc and whether it is structural from its
+:class:`~ivdrem.laws.Key`), so a law registered later, with a gain of its own, has it in
+the vector, the C header and the FMU without an edit here.  The law codes are the
+registry's (:func:`ivdrem.laws.law_codes`), the other codes the positions in the
+enumerations the Python controller validates against.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -19,12 +23,12 @@ import numpy as np
 
 from ..blocks._kernels import MIXING_VARIANTS
 from ..blocks.control_law import DESIGNS, INJECTIONS
-from ..laws import gain_declaration, law_codes
+from ..laws import gain_declaration, law_codes, sampled_gains
 from .sampled import GRAVITY_OPTIONS, REFERENCE_HARMONICS
 
-__all__ = ["Parameter", "PARAMETERS", "param_layout", "param_vector", "controller_arguments",
-           "TUNABLE", "STRUCTURAL", "DESIGN_CODES", "GRAVITY_CODES", "MIXING_CODES",
-           "INJECTION_CODES"]
+__all__ = ["Parameter", "PARAMETERS", "parameter_table", "param_layout", "param_vector",
+           "controller_arguments", "TUNABLE", "STRUCTURAL", "DESIGN_CODES", "GRAVITY_CODES",
+           "MIXING_CODES", "INJECTION_CODES"]
 
 
 def _codes(names):
@@ -86,16 +90,22 @@ def _code(key, codes):
     return lambda v, n: {key: names[int(v[0])]}
 
 
-def _gain(name, size="1", **kw):
-    """A law's gain: unit and doc from the registry (tunable unless said otherwise)."""
+def _gain(name, key):
+    """A law's gain, from its registry declaration: a number, or a vector of the Key's
+    length ("n" or "ntheta"); unit and doc from the registry; structural where the Key
+    says it fixes the state's memory, tunable otherwise."""
+    size = "1" if key.kind != "vec" else key.length
+    if size not in ("1", "n", "ntheta"):
+        raise ValueError(f"gain {name!r}: a vector gain of the sampled controller has "
+                         f"length 'n' or 'ntheta', not {key.length!r}")
     arg = _number(name) if size == "1" else _vector(name)
-    return Parameter(name, size, lambda c: getattr(c, name), arg, doc=None,
-                     tunable=kw.pop("tunable", True), **kw)
+    return Parameter(name, size, lambda c: c.gains[name], arg, doc=None,
+                     tunable=not key.structural, structural=key.structural)
 
 
 P = Parameter
-#: the parameter vector, in order (the C library's IVC_P_<NAME> indices)
-PARAMETERS = (
+#: the entries before the laws' gains
+_HEAD = (
     P("h", "1", lambda c: c.h, _number("h"), "sample period (s)", unit="s", structural=True),
     P("alpha", "1", lambda c: c.alpha, _number("alpha"),
       "tracking error filter alpha: r = de + alpha e", tunable=True),
@@ -111,13 +121,9 @@ PARAMETERS = (
     P("mu_max", "1", lambda c: c.mu_max, _number("mu_max"),
       "saturation of mu (docs/controller.md)", tunable=True),
     P("l", "1", lambda c: c.l, _number("l"), "filter gain l of (13), (14)", tunable=True),
-    _gain("T", tunable=False, structural=True),
-    _gain("p"),
-    _gain("F0"),
-    _gain("gamma"),
-    _gain("sigma"),
-    _gain("epsilon"),
-    _gain("theta_star", "ntheta"),
+)
+#: the entries after the laws' gains
+_TAIL = (
     P("theta_hat0", "ntheta", lambda c: c.theta_hat0, _vector("theta_hat0"),
       "initial estimate theta_hat(0)"),
     P("tau_max", "n", lambda c: c.tau_max, _vector("tau_max"),
@@ -179,10 +185,55 @@ PARAMETERS = (
 )
 del P
 
+
+def parameter_table() -> tuple:
+    """The parameter vector's entries, in order (the C library's IVC_P_<NAME> indices):
+    the controller's own, then every gain of the laws with a sampled form as the registry
+    declares them now (:func:`ivdrem.laws.sampled_gains`), then the rest.  A gain whose
+    name an entry of the table already has (e.g. the coded ``mixing``) is refused."""
+    gains = tuple(_gain(name, key) for name, key in sampled_gains().items())
+    table = _HEAD + gains + _TAIL
+    own = {p.name for p in _HEAD + _TAIL}
+    clash = sorted(own & {p.name for p in gains})
+    if clash:
+        raise ValueError(f"law gain(s) {clash} have the name of an entry of the sampled "
+                         "controller's parameter table; rename the gain")
+    return table
+
+
+class _FromTable(Sequence):
+    """A tuple read from :func:`parameter_table` each time it is used, so that it follows
+    the law registry (a law registered after this module's import included)."""
+
+    def __init__(self, pick):
+        self._pick = pick
+
+    def _now(self):
+        return self._pick(parameter_table())
+
+    def __getitem__(self, i):
+        return self._now()[i]
+
+    def __len__(self):
+        return len(self._now())
+
+    def __iter__(self):
+        return iter(self._now())
+
+    def __eq__(self, other):
+        return tuple(self) == tuple(other)
+
+    def __repr__(self):
+        return repr(self._now())
+
+
+#: the parameter vector, in order (the C library's IVC_P_<NAME> indices): the table as the
+#: registry makes it when read (:func:`parameter_table`)
+PARAMETERS = _FromTable(lambda table: table)
 #: parameters a host may change between steps
-TUNABLE = tuple(p.name for p in PARAMETERS if p.tunable)
+TUNABLE = _FromTable(lambda table: tuple(p.name for p in table if p.tunable))
 #: parameters that fix the memory or the meaning of the state (set before ivc_init)
-STRUCTURAL = tuple(p.name for p in PARAMETERS if p.structural)
+STRUCTURAL = _FromTable(lambda table: tuple(p.name for p in table if p.structural))
 #: the entries of a trajectory of each kind (ivdrem.controller.sampled)
 _TRAJECTORY = {"sinusoid": ("amplitude", "omega", "phase", "offset"),
                "fourier": ("kind", "omega_f", "a", "b", "offset")}
@@ -190,13 +241,14 @@ _TRAJECTORY = {"sinusoid": ("amplitude", "omega", "phase", "offset"),
 
 def param_layout(model):
     """[(name, size, description)] of the flat parameter vector, in order."""
-    return [(p.name, p.length(model.n, model.ntheta), p.declared()[1]) for p in PARAMETERS]
+    return [(p.name, p.length(model.n, model.ntheta), p.declared()[1])
+            for p in parameter_table()]
 
 
 def param_vector(ctrl):
     """The flat parameter vector of a :class:`~ivdrem.controller.sampled.SampledController`."""
     out = []
-    for p in PARAMETERS:
+    for p in parameter_table():
         v = np.atleast_1d(np.asarray(p.value(ctrl), dtype=float)).reshape(-1)
         assert v.size == p.length(ctrl.n, ctrl.ntheta), p.name
         out.extend(v.tolist())
@@ -209,15 +261,16 @@ def controller_arguments(model, law, par) -> dict:
     ValueError where its size or its law code does not match."""
     par = np.asarray(par, dtype=float).reshape(-1)
     n, nth = model.n, model.ntheta
-    total = sum(p.length(n, nth) for p in PARAMETERS)
+    table = parameter_table()
+    total = sum(p.length(n, nth) for p in table)
     codes = law_codes()
-    off = [p.name for p in PARAMETERS].index("law")
-    at = sum(p.length(n, nth) for p in PARAMETERS[:off])
+    off = [p.name for p in table].index("law")
+    at = sum(p.length(n, nth) for p in table[:off])
     if par.size != total or law not in codes or codes[law] != par[at]:
         raise ValueError(f"parameter vector of {par.size} entries (expected {total}) or "
                          f"law code does not match {law!r}")
     kwargs, trajectory, i = {}, {}, 0
-    for p in PARAMETERS:
+    for p in table:
         v = par[i:i + p.length(n, nth)]
         i += v.size
         for key, value in (p.argument(v, n) if p.argument else {}).items():

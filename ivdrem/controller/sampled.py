@@ -57,7 +57,7 @@ from ..blocks.control_law import DESIGNS, INJECTIONS, default_injection, inertia
 from ..blocks.mixing import DEFAULT_F_REL, DEFAULT_GUARD, start_of_term
 from ..blocks.sources import fourier_series
 from ..diagrams.gamma_auto import DEFAULT_RATE as GAMMA_RATE
-from ..laws import get_law, sampled_gain_defaults, sampled_laws
+from ..laws import get_law, sampled_gain_defaults, sampled_gains, sampled_laws, sampled_step
 from .discrete import averaging_factor, mu_integral, mu_saturated
 from .loop import default_period
 from .window import BlockWindow
@@ -167,6 +167,23 @@ def inertia_scaled_gains(model, K, q0, h, *, delta_mu=0.8, mu_max=135.0, delay=1
     return np.minimum(np.maximum(inertia_scaled_gain(model, K, q0, theta), floor), cap)
 
 
+def _declared_gain(name, key, value, n, ntheta):
+    """A gain of a law's registry declaration (:class:`~ivdrem.laws.Key`): a finite number,
+    or a vector of the Key's length, each number within the Key's check."""
+    if key.kind == "vec":
+        a = _vector(name, value, {"n": n, "ntheta": ntheta}[key.length])
+    else:
+        try:
+            a = np.array([float(value)])
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be a number, got {value!r}") from None
+        if not np.isfinite(a[0]):
+            raise ValueError(f"{name} must be finite, got {value!r}")
+    if key.check is not None and not all(key.check(float(x)) for x in a):
+        raise ValueError(f"{name} must be {key.requirement}, got {value!r}")
+    return a if key.kind == "vec" else float(a[0])
+
+
 def _limit(name, value, n):
     """A per-joint limit: a number or n numbers, each > 0 (inf: none)."""
     a = np.asarray(value, dtype=float)
@@ -210,6 +227,12 @@ class SampledController:
     ``delay`` (0 or 1) and ``block`` (samples per block sum of the window).  ``Gamma``:
     scalar or diagonal (the exact update of (11) above needs a diagonal gain).
 
+    The laws' gains: the keywords ``T`` ... ``epsilon`` the step reads, and any other gain a
+    law with a sampled form declares in the registry (``**gains``, e.g. a registered law's
+    own ``kappa``): each defaults to the law's registry value and is kept in ``gains``
+    with the others, the parameter vector's entries (:mod:`ivdrem.controller.parameters`).
+    A law that runs another's step (``sampled_as`` in its entry) runs that step.
+
     Real arms (docs/controller.md, "Sampled designs" and "The robot's contract"):
 
     * ``design``: "paper" (the feedback (K + delta_mu mu) r of (9)) or "inertia-scaled"
@@ -246,7 +269,8 @@ class SampledController:
                  sigma=None, theta_star=None, epsilon=None, theta_hat0=None, trajectory=None,
                  tau_max=math.inf, delay=0, block=10, design=None, mixing=None, mix_every=1,
                  f_rel=DEFAULT_F_REL, guard=DEFAULT_GUARD, gravity="controller",
-                 theta_nominal=None, tau_rate_max=math.inf, first_zero=False, injection=None):
+                 theta_nominal=None, tau_rate_max=math.inf, first_zero=False, injection=None,
+                 **gains):
         if model is None:
             from ..models import two_link
             model = two_link()
@@ -260,15 +284,29 @@ class SampledController:
             raise ValueError(f"delay must be 0 or 1 (samples), got {delay!r}")
         # the law's own gains default to its entry of the registry ivdrem.laws; the
         # parameter vector holds every sampled law's gains, the others at their registry
-        # defaults (ivdrem.laws.sampled_gain_defaults)
-        spec = get_law(law)
-        given = dict(T=T, p=p, F0=F0, gamma=gamma, sigma=sigma, epsilon=epsilon)
-        d = {k: v for k, v in sampled_gain_defaults().items() if k in given}
-        d.update({k: v for k, v in spec.defaults.items() if k in d})
-        d.update({k: v for k, v in given.items() if v is not None})
-        T, p, F0, gamma, sigma, epsilon = (d[k] for k in ("T", "p", "F0", "gamma", "sigma",
-                                                           "epsilon"))
+        # defaults (ivdrem.laws.sampled_gain_defaults); the step is the law's own or the
+        # one it names (sampled_as): its window, max-hold and instrument
+        declared = sampled_gains()
+        unknown = sorted(set(gains) - set(declared))
+        if unknown:
+            raise TypeError(f"SampledController got unexpected keyword argument(s) "
+                            f"{', '.join(map(repr, unknown))}; the gains of the laws with a "
+                            f"sampled form: {', '.join(declared)}")
+        own = get_law(law)
+        self.step_law = sampled_step(law)
+        spec = get_law(self.step_law)
+        # the gains the steps below read (theta_star apart: the model's theta by default)
+        read = dict(T=T, p=p, F0=F0, gamma=gamma, sigma=sigma, epsilon=epsilon)
+        given = {**read, **gains}
+        defaults = sampled_gain_defaults()
+        defaults.update({k: v for k, v in own.defaults.items() if k in defaults})
+        d = {k: defaults.get(k) if given.get(k) is None else given[k] for k in declared}
+        T, p, F0, gamma, sigma, epsilon = (d[k] for k in read)
         n, nth = model.n, model.ntheta
+        # the other declared gains: no step of this class reads them (a law that adds a
+        # gain to another's step), the parameter vector carries them
+        other = {k: _declared_gain(k, declared[k], d[k], n, nth) for k in declared
+                 if k not in read and k != "theta_star"}
         self.model, self.law, self.n, self.ntheta = model, law, n, nth
         self.fn = model.jit_functions
         self.h = _positive("h", default_period() if h is None else h)
@@ -347,6 +385,8 @@ class SampledController:
         self.sigma = _positive("sigma", sigma)
         ts = model.theta_values if theta_star is None else theta_star
         self.theta_star = _vector("theta_star", ts if ts is not None else np.zeros(nth), nth)
+        # every declared gain, as the parameter vector holds it
+        self.gains = {k: other[k] if k in other else getattr(self, k) for k in declared}
         self.theta_hat0 = (np.zeros(nth) if theta_hat0 is None
                            else _vector("theta_hat0", theta_hat0, nth))
         if trajectory is None:
@@ -568,7 +608,7 @@ class SampledController:
             gw = self.gamma * start_weight(tk, self.t_on, self.t_ramp)
             theta_c = gw * D * (self.calY_held - D * th)                        # (21)
             a = gw * D * D
-        elif self.law == "sigma-modification":
+        elif self.step_law == "sigma-modification":
             theta_c = self.sigma * (self.theta_star - th)                       # E5
             a = self.sigma
         else:

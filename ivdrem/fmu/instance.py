@@ -10,7 +10,7 @@ is garbage-collected (``weakref.finalize``) or on :meth:`close`.
 
 It also gives the C addresses of the fmi2 functions and of the component
 (:meth:`address`, :attr:`component_address`), so compiled code can call the FMU directly
-(:func:`ivdrem.sim._native.call_c`).
+(:func:`ivdrem._native_call.call_c`).
 """
 from __future__ import annotations
 

@@ -15,7 +15,8 @@ derivatives) or ``fmi2GetReal`` (outputs ``q``, ``dq``).  Two ways run the same 
   fmpy's Python wrappers;
 * the compiled engine runs the block's kernels (:func:`fmu_plant_update`,
   :func:`fmu_plant_output`), which call the fmi2 C functions directly by address
-  (:func:`ivdrem.sim._native.call_c`), so no Python runs per right-hand side.
+  (:func:`ivdrem._native_call.call_c`, through the kernel helper
+  :func:`ivdrem.blocks._kernels.fmi2_evaluate`), so no Python runs per right-hand side.
 
 The block declares itself (``sys.ivdrem``, a :class:`~ivdrem.blocks.BlockSpec`): its ports,
 its states, its initial state (the FMU's own after initialization: its start values unless
@@ -29,8 +30,6 @@ FMU's log message and the FMU is reset and re-initialized, so the next call work
 from __future__ import annotations
 
 import math
-# (ctypes names imported one by one: a module-level name "ctypes" would look like a
-# global to the kernels, which use the attribute arr.ctypes)
 from ctypes import CFUNCTYPE, c_double, c_int32, c_int64, c_uint, c_void_p, cast, memmove
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,22 +38,17 @@ import numpy as np
 import control as ct
 
 from ..blocks._core import BlockSpec
-from ..sim._native import call_c
+from ..blocks._kernels import FMI2_TABLE, fmi2_evaluate
 from .describe import direct_ports, output_dependencies, read_description
 from .instance import FmuError, FmuInstance
 
 __all__ = ["fmu_plant", "FmuPlantInfo", "FmuEvaluationError", "check_plant_fits", "size_mismatch",
            "fmu_plant_update", "fmu_plant_output"]
 
-# fmi2Status: fmi2OK = 0, fmi2Warning = 1 (the call succeeded), then Discard, Error, Fatal
-_FMI2_WARNING = 1
-# what the kernels' address table holds, in order (fmi[k])
-_TABLE = ("component", "fmi2SetTime", "fmi2SetContinuousStates", "fmi2SetReal",
-          "fmi2GetDerivatives", "fmi2GetReal", "report")
+# what the kernels' address table holds, in order (fmi[k]): the helper's one declaration
+_TABLE = FMI2_TABLE
 # a float64 holds every integer below 2^53 exactly (52-bit mantissa + hidden bit)
 _EXACT_INT = 2 ** 53
-# bytes of error text the kernels fetch from the Python side
-_MESSAGE_BYTES = 2048
 
 
 @dataclass
@@ -73,109 +67,29 @@ class FmuPlantInfo:
 
 # ----------------------------------------------------------------------------- kernels
 # Module-level functions in the numba subset: the compiled engine copies their source into
-# a cached module.  All C addresses arrive at run time in the float64 vector `fmi`, never
-# as literals, so the generated code is the same in every process (see _address_table).
+# a cached module.  Both run the same fmi2 call sequence, written once as the kernel helper
+# ivdrem.blocks._kernels.fmi2_evaluate; all C addresses arrive at run time in the float64
+# vector `fmi`, never as literals, so the generated code is the same in every process (see
+# _address_table).
 
 def fmu_plant_update(t, x, u, dx, fmi, vr_in, vr_out, perm):
     """The FMU plant block's update kernel: dx = the FMU's state derivatives at (t, x, u)."""
     # states   x = [q (n), dq (n)] (the FMU's state k' = perm[k] is the block's state k)
     # inputs   u = [tau (n), tau_d (n)]
-    # params   fmi: C addresses [component, fmi2SetTime, fmi2SetContinuousStates,
-    #               fmi2SetReal, fmi2GetDerivatives, fmi2GetReal, error report]
+    # params   fmi: C addresses, FMI2_TABLE's order (component, fmi2SetTime,
+    #               fmi2SetContinuousStates, fmi2SetReal, fmi2GetDerivatives, fmi2GetReal,
+    #               error report)
     #          vr_in (2n), vr_out (2n): value references of the inputs and outputs
     #          perm (2n): FMU state index of each block state
-    # writes   dx = fmi2GetDerivatives, in the block's state order
-    nx = x.shape[0]
-    nu = u.shape[0]
-    xf = np.empty(nx)
-    uf = np.empty(nu)
-    vr = np.empty(nu, dtype=np.uint32)
-    df = np.empty(nx)
-    finite = math.isfinite(t)
-    for k in range(nx):
-        xf[np.int64(perm[k])] = x[k]
-        finite = finite and math.isfinite(x[k])
-    for i in range(nu):
-        uf[i] = u[i]
-        vr[i] = np.uint32(vr_in[i])
-        finite = finite and math.isfinite(u[i])
-    if not finite:
-        # a NaN state or input (a diverging trial step): NaN derivatives, as the Python
-        # plant gives, so the step control rejects the step (the FMU refuses NaN)
-        for k in range(nx):
-            dx[k] = np.nan
-        return
-    c = np.int64(fmi[0])
-    which = 1
-    st = call_c(np.int64(fmi[1]), (c, t))
-    if st <= 1:
-        which = 2
-        st = call_c(np.int64(fmi[2]), (c, xf.ctypes.data, nx))
-    if st <= 1:
-        which = 3
-        st = call_c(np.int64(fmi[3]), (c, vr.ctypes.data, nu, uf.ctypes.data))
-    if st <= 1:
-        which = 4
-        st = call_c(np.int64(fmi[4]), (c, df.ctypes.data, nx))
-    if st > 1:
-        # the FMU's message is on the Python side (its logger): fetch it, then raise
-        msg = np.zeros(2048, dtype=np.uint8)
-        m = call_c(np.int64(fmi[6]), (which, np.int64(st), t, msg.ctypes.data, 2048))
-        text = ""
-        for i in range(m):
-            text += chr(msg[i])
-        raise ValueError(text)
-    for k in range(nx):
-        dx[k] = df[np.int64(perm[k])]
+    # writes   dx = fmi2GetDerivatives, in the block's state order (NaN for a NaN x, u)
+    fmi2_evaluate(fmi, True, t, x, u, perm, vr_in, vr_out, dx)
 
 
 def fmu_plant_output(t, x, u, y, fmi, vr_in, vr_out, perm):
     """The FMU plant block's output kernel: y = the FMU's outputs [q, dq] at (t, x, u)."""
     # states   x = [q (n), dq (n)];  inputs u = [tau (n), tau_d (n)] (as in the update)
-    # outputs  y = [q (n), dq (n)] = fmi2GetReal of the FMU's outputs
-    nx = x.shape[0]
-    nu = u.shape[0]
-    ny = y.shape[0]
-    xf = np.empty(nx)
-    uf = np.empty(nu)
-    vr = np.empty(nu, dtype=np.uint32)
-    vo = np.empty(ny, dtype=np.uint32)
-    yf = np.empty(ny)
-    finite = math.isfinite(t)
-    for k in range(nx):
-        xf[np.int64(perm[k])] = x[k]
-        finite = finite and math.isfinite(x[k])
-    for i in range(nu):
-        uf[i] = u[i]
-        vr[i] = np.uint32(vr_in[i])
-        finite = finite and math.isfinite(u[i])
-    for i in range(ny):
-        vo[i] = np.uint32(vr_out[i])
-    if not finite:
-        for i in range(ny):
-            y[i] = np.nan
-        return
-    c = np.int64(fmi[0])
-    which = 1
-    st = call_c(np.int64(fmi[1]), (c, t))
-    if st <= 1:
-        which = 2
-        st = call_c(np.int64(fmi[2]), (c, xf.ctypes.data, nx))
-    if st <= 1:
-        which = 3
-        st = call_c(np.int64(fmi[3]), (c, vr.ctypes.data, nu, uf.ctypes.data))
-    if st <= 1:
-        which = 5
-        st = call_c(np.int64(fmi[5]), (c, vo.ctypes.data, ny, yf.ctypes.data))
-    if st > 1:
-        msg = np.zeros(2048, dtype=np.uint8)
-        m = call_c(np.int64(fmi[6]), (which, np.int64(st), t, msg.ctypes.data, 2048))
-        text = ""
-        for i in range(m):
-            text += chr(msg[i])
-        raise ValueError(text)
-    for i in range(ny):
-        y[i] = yf[i]
+    # outputs  y = [q (n), dq (n)] = fmi2GetReal of the FMU's outputs vr_out
+    fmi2_evaluate(fmi, False, t, x, u, perm, vr_in, vr_out, y)
 
 
 # ----------------------------------------------------------------------------- the block

@@ -192,7 +192,7 @@ def numba_source(model) -> str:
              "import numpy as np",
              "from numba import types as _nt",
              "from ivdrem.models import _c_engine as _ce",
-             "from ivdrem.sim._native import float_pointer as _fp",
+             "from ivdrem._native_call import float_pointer as _fp",
              f"_ce.require({model.key!r})",
              "_P = _nt.CPointer(_nt.float64)", ""]
     for name, args in ENGINE_FUNCTIONS.items():

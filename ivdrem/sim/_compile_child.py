@@ -88,7 +88,7 @@ class Warmup:
 
 # the child's program: its job (:func:`_job`) with this process's ivdrem first on the path,
 # and ivdrem.sim and ivdrem.blocks bare packages: the generated modules import only
-# ivdrem.blocks._kernels and ivdrem.sim._native, and the packages' own imports
+# ivdrem.blocks._kernels and ivdrem._native_call, and the packages' own imports
 # (python-control, SciPy, matplotlib) would cost the child ~2 s
 _BOOT = """\
 import os, sys, types

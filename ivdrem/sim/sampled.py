@@ -95,7 +95,7 @@ def kernel_spec(sys, address):
     values (at `address`), state derivatives 0."""
     nx, ny = sys.nstates, sys.noutputs
     info = getattr(sys, SAMPLED_ATTRIBUTE)
-    src_out = ("from numba import carray\nfrom ivdrem.sim._native import float_pointer\n"
+    src_out = ("from numba import carray\nfrom ivdrem._native_call import float_pointer\n"
                f"def sampled_output_{ny}(t, x, u, out, address):\n"
                f"    held = carray(float_pointer(np.int64(address)), {ny})\n"
                f"    for i in range({ny}):\n        out[i] = held[i]\n")

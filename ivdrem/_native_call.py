@@ -1,5 +1,9 @@
 """Calls to C functions by address from compiled code (FMU functions, Python callbacks).
 
+A leaf of the package's base layer (docs/developers.md, "Layout"): the block kernels'
+helpers (:mod:`ivdrem.blocks._kernels`), the simulator's generated wrappers and the models'
+generated C faces all call through it, so it imports nothing of ivdrem.
+
 A C function's address is a runtime value (it changes from process to process), so it is
 passed in as an integer rather than baked into the machine code: the generated diagram
 modules stay cacheable on disk.  ``call_c(address, args)`` calls ``int f(args...)`` with
