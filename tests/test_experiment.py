@@ -271,3 +271,17 @@ def test_a_study_builds_its_model_once_and_designs_its_reference_once():
     assert model is not None and all(r.model is model for r in runs)
     assert [r.hash for r in runs] == [config_hash(r.config, r.law) for r in runs]
     assert [r.config["iv_drem"]["T"] for r in runs] == [5.0, 10.0, 5.0, 10.0]
+
+
+def test_an_experiment_travels_to_another_process_as_its_configuration():
+    """An Experiment pickles as its resolved configuration (a study's Dask worker gets it):
+    unpickled, the same configuration, engine, laws and h, its model from that
+    configuration."""
+    import pickle
+    experiment = Experiment.from_config(read_config(None, {"experiment.t_end": 0.5}),
+                                        engine="reference", laws=["iv-drem"])
+    again = pickle.loads(pickle.dumps(experiment))
+    assert isinstance(again, Experiment) and again is not experiment
+    assert again.config == experiment.config and again.engine == "reference"
+    assert again.laws == ["iv-drem"] and again.h == experiment.h == 1e-3
+    assert (again.model.name, again.model.n, again.model.ntheta) == ("two-link", 2, 5)

@@ -47,8 +47,8 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--mu-max", type=float, default=None, dest="mu_max",
                    help="--controller: saturation of mu (default 135)")
     e.add_argument("--h", type=float, default=None, dest="h", metavar="H",
-                   help="--controller: sample period in s (default 0.001); must divide the "
-                        "window T")
+                   help="--controller: sample period in s (default: the configuration's "
+                        "[solver] h, 0.001 s in the default); must divide the window T")
     e.add_argument("--mix-every", default=None, dest="mix_every", metavar="M",
                    help="--controller: the mixing (17), or composite learning's max-hold, "
                         "every M samples, its work spread over them (a whole number from 1 "
@@ -75,9 +75,10 @@ def main_fmu(argv=None) -> int:
                 from ivdrem.experiments.config import read_config
                 from ivdrem.experiments.experiment import Experiment
                 over = {} if args.model is None else {"model.name": args.model}
-                # the configuration checked whole against its model (built once)
-                model = Experiment.from_config(read_config(user_path(args.config),
-                                                           over)).model
+                # the configuration checked whole against its model (built once); the
+                # plant needs no law
+                model = Experiment.from_config(read_config(user_path(args.config), over),
+                                               laws=[]).model
             else:
                 model = get_model(args.model or "two-link")
             path = export_fmu(model, user_path(args.output), q0=args.q0, dq0=args.dq0,

@@ -187,7 +187,9 @@ def read_study(source) -> StudySpec:
             base_path = folder / base_path
     from .experiment import Experiment
     try:     # the base resolved once: its model built, the keys that follow it filled
-        experiment = Experiment.from_config(read_config(base_path, overrides=raw or None))
+        # (its laws are resolved by each run's own Experiment)
+        experiment = Experiment.from_config(read_config(base_path, overrides=raw or None),
+                                            laws=[])
     except ConfigError as exc:
         raise StudyError(f"{where}: {exc}") from None
     base = experiment.config
