@@ -404,3 +404,14 @@ def test_every_config_command_refuses_a_wrong_length_before_any_work(command, tm
         in err
     assert len(err.strip().splitlines()) == 1, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["arm.toml"]
+
+
+def test_fmu_export_config_exports_the_configured_arm(tmp_path, capsys):
+    """`ivdrem fmu export --config FILE` (the plant FMU): the configuration's arm, the
+    configuration checked whole against it (its Experiment, no law resolved)."""
+    cfg = tmp_path / "arm.toml"
+    cfg.write_text('[model]\nname = "planar-3"\n', encoding="utf-8")
+    fmu = tmp_path / "P.fmu"
+    assert main(["fmu", "export", "--config", str(cfg), "--no-compile", "-o", str(fmu)]) == 0
+    assert "(model planar-3, n = 3, ntheta = 6)" in capsys.readouterr().out
+    assert fmu.is_file()
