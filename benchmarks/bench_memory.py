@@ -37,7 +37,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 #: (file suffix, function name) -> phase, innermost on the stack wins
 PHASES = [
-    (("experiments/config.py", "load_config"), "configuration"),
+    (("experiments/config.py", "read_config"), "configuration"),
+    (("experiments/config.py", "resolve_config"), "configuration"),
     (("experiments/config.py", "model_from_config"), "model"),
     (("experiments/experiment.py", "loop"), "the loop (priced, then run)"),
     (("experiments/experiment.py", "check_gamma_auto"), "preflight: γ auto estimate"),

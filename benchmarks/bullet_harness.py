@@ -43,15 +43,17 @@ def export(urdf, directory, *, h=1e-3, gamma=None, mix_every=None, law="iv-drem"
     prediction)."""
     from ivdrem.controller.fmu_export import controller_design, export_controller_fmu, predict
     from ivdrem.controller.sampled import GRADIENT_GAIN
-    from ivdrem.experiments.config import load_config, model_from_config
+    from ivdrem.experiments.config import read_config
+    from ivdrem.experiments.experiment import Experiment
     gamma = 0.5 / GRADIENT_GAIN if gamma is None else gamma
-    config = load_config(None, {"model.urdf": str(urdf), "iv_drem.gamma": float(gamma),
-                                "controller.Gamma": GRADIENT_GAIN})
-    model = model_from_config(config)
-    design = controller_design(config, law, h=h)
+    experiment = Experiment.from_config(read_config(
+        None, {"model.urdf": str(urdf), "iv_drem.gamma": float(gamma),
+               "controller.Gamma": GRADIENT_GAIN}), laws=[law])
+    config, model = experiment.config, experiment.model
+    design = controller_design(experiment, law, h=h)
     if mix_every is not None:
         design["mix_every"] = int(mix_every)
-    st = predict(model, law, design, config)
+    st = predict(model, law, design, experiment)
     if not st.stable:
         raise SystemExit(st.reason())
     path = export_controller_fmu(model, Path(directory) / "Controller.fmu", law=law, **design)

@@ -12,13 +12,14 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from ivdrem.experiments import metrics
-from ivdrem.experiments.config import load_config
+from ivdrem.experiments.config import read_config
 from ivdrem.experiments.paper import run_paper
 from ivdrem.reports.figures import law_color, law_label
 
 # the default configuration with a shorter horizon; any key of examples/paper.toml can be
-# overridden this way (dotted names), or read from a TOML file with load_config("file.toml")
-config = load_config(overrides={"experiment.t_end": 60.0})
+# overridden this way (dotted names), or read from a TOML file with read_config("file.toml");
+# run_paper makes its Experiment (the model built once, docs/experiment.md)
+config = read_config(overrides={"experiment.t_end": 60.0})
 run = run_paper(config, laws=["iv-drem", "composite-learning"], progress=False)
 
 fig, ax = plt.subplots(figsize=(7, 3.5))

@@ -84,8 +84,8 @@ def test_version_and_consistent_law_option(capsys):
 
 
 def test_method_help_names_the_real_default(capsys):
-    from ivdrem.experiments.config import load_config
-    default = load_config()["solver"]["method"]
+    from ivdrem.experiments.config import read_config
+    default = read_config()["solver"]["method"]
     for cmd in ("paper", "report"):
         with pytest.raises(SystemExit):
             main([cmd, "--help"])
@@ -221,7 +221,7 @@ def test_the_preflight_prices_and_simulates_nothing(monkeypatch):
     import ivdrem.sim as sim
     from pathlib import Path
     from ivdrem.cli.preflight import check_runs
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config
 
     def never(*a, **k):
         raise AssertionError("simulated")
@@ -234,7 +234,7 @@ def test_the_preflight_prices_and_simulates_nothing(monkeypatch):
     monkeypatch.setattr(gamma_auto, "calibrate_gamma", never)
     monkeypatch.setattr(gamma_auto, "check_reference_delta", estimate)
     cfg = Path(__file__).resolve().parents[1] / "examples" / "planar3.toml"
-    config = load_config(cfg, {"experiment.laws": "all"})
+    config = read_config(cfg, {"experiment.laws": "all"})
     # it returns the estimated wall time of each run it could price ([(law, seconds)])
     for est in (check_runs(config), check_runs(config, fmu_check_t_end=1.0)):
         assert {law for law, _ in est} <= set(config["experiment"]["laws"])
@@ -248,13 +248,13 @@ def test_the_preflight_does_not_price_an_fmu_check_predicted_to_diverge():
     (ivdrem.fmu.cosim.coupling_stability), so a horizon whose reference would be refused
     does not stop the report."""
     from ivdrem.cli.preflight import check_runs, fmu_check_prediction
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config
     from ivdrem.sim.guards import CostLimitError
-    config = load_config(None, {"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"]})
+    config = read_config(None, {"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"]})
     assert not fmu_check_prediction(config, 40000.0).diverges
     with pytest.raises(CostLimitError, match="the FMU check"):
         check_runs(config, fmu_check_t_end=40000.0)
-    stiff = load_config(None, {"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"],
+    stiff = read_config(None, {"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"],
                                "controller.K": [2000.0, 2000.0]})
     assert fmu_check_prediction(stiff, 40000.0).diverges
     assert [law for law, _ in check_runs(stiff, fmu_check_t_end=40000.0)] == ["iv-drem"]
@@ -370,3 +370,48 @@ def test_every_command_line_face_is_in_the_cli_package():
                 assert not (name == "ivdrem.cli" or name.startswith("ivdrem.cli.")), (rel, name)
         checked += 1
     assert checked > 50
+
+
+@pytest.mark.parametrize("command", [
+    ["paper"], ["report", "--no-fmu-check"], ["cosim"], ["cosim", "--plant", "mujoco"],
+    ["fmu", "export", "-o", "P.fmu"], ["fmu", "export", "--controller", "-o", "C.fmu"]],
+    ids=lambda c: " ".join(c[:3]))
+def test_every_config_command_refuses_a_wrong_length_before_any_work(command, tmp_path,
+                                                                     monkeypatch, capsys):
+    """A vector of the wrong length for the arm in --config (only the model knows it:
+    read_config takes it as data, Experiment.from_config refuses it) is one line naming the
+    key, in the same words, with exit status 2, from every command that takes --config;
+    nothing simulated, exported or written."""
+    import ivdrem.sim as sim
+    import ivdrem.fmu.export as fmu_export
+    import ivdrem.controller.fmu_export as controller_export
+
+    def never(*a, **k):
+        raise AssertionError("work started")
+    monkeypatch.setattr(sim, "simulate", never)
+    monkeypatch.setattr(fmu_export, "export_fmu", never)
+    monkeypatch.setattr(controller_export, "export_controller_fmu", never)
+    monkeypatch.chdir(tmp_path)
+    cfg = tmp_path / "arm.toml"
+    cfg.write_text('[model]\nname = "planar-3"\n[initial]\nq0 = [0.0, 0.5]\n', encoding="utf-8")
+    argv = [*command, "--config", str(cfg)]
+    if command[0] == "report":
+        argv += ["--out", str(tmp_path / "rep")]
+    rc = main(argv)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "config key 'initial.q0' must have 3 entries (model 'planar-3' has n = 3), got 2" \
+        in err
+    assert len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["arm.toml"]
+
+
+def test_fmu_export_config_exports_the_configured_arm(tmp_path, capsys):
+    """`ivdrem fmu export --config FILE` (the plant FMU): the configuration's arm, the
+    configuration checked whole against it (its Experiment, no law resolved)."""
+    cfg = tmp_path / "arm.toml"
+    cfg.write_text('[model]\nname = "planar-3"\n', encoding="utf-8")
+    fmu = tmp_path / "P.fmu"
+    assert main(["fmu", "export", "--config", str(cfg), "--no-compile", "-o", str(fmu)]) == 0
+    assert "(model planar-3, n = 3, ntheta = 6)" in capsys.readouterr().out
+    assert fmu.is_file()

@@ -14,7 +14,6 @@ from ivdrem.experiments.config import (
     law_gains,
     default_config,
     dump_toml,
-    load_config,
     read_config,
     resolve_config,
     schema,
@@ -25,6 +24,12 @@ ROOT = Path(__file__).resolve().parents[1]
 PI = math.pi
 
 
+def resolved_config(path=None, overrides=None):
+    """The configuration resolved against its model: read_config, then resolve_config
+    (what Experiment.from_config holds as ``config``)."""
+    return resolve_config(read_config(path, overrides))[0]
+
+
 def write(tmp_path, text, name="user.toml"):
     p = tmp_path / name
     p.write_text(text, encoding="utf-8")
@@ -32,7 +37,7 @@ def write(tmp_path, text, name="user.toml"):
 
 
 def test_default_is_section_8_of_spec():
-    c = load_config()
+    c = resolved_config()
     assert c["experiment"] == {"t_end": 300.0, "laws": ["iv-drem", "composite-learning"], "dt_out": 0.01}
     assert c["model"] == {"name": "two-link", "theta": [1.3, 0.28, 0.32, 0.4, 1.4], "g": 9.81}
     assert c["initial"]["q0"] == [0.0, pytest.approx(0.3 * PI, abs=1e-15)]
@@ -70,15 +75,15 @@ _PLANAR3 = {"model.name": "planar-3", "initial.q0": [0.1, 0.2, 0.3],
 
 
 def test_effective_configurations_equal_the_snapshot():
-    """default_config() and load_config() of the default, the example files and a
+    """default_config() and resolved_config() of the default, the example files and a
     planar-3 arm (the keys that follow the model) are the values, sections and key order
     recorded in tests/data/config_snapshot.json, whatever file or registry they come from."""
     import json
     snap = json.loads((ROOT / "tests" / "data" / "config_snapshot.json").read_text("utf-8"))
-    got = {"default_config": default_config(), "load_config": load_config(),
-           "overrides planar-3": load_config(overrides=_PLANAR3)}
+    got = {"default_config": default_config(), "load_config": resolved_config(),
+           "overrides planar-3": resolved_config(overrides=_PLANAR3)}
     for name in ("paper", "planar3", "instrument"):
-        got[f"examples/{name}.toml"] = load_config(ROOT / "examples" / f"{name}.toml")
+        got[f"examples/{name}.toml"] = resolved_config(ROOT / "examples" / f"{name}.toml")
     assert set(got) == set(snap)
     for case, cfg in got.items():
         plain = json.loads(json.dumps(cfg))
@@ -91,7 +96,7 @@ def test_read_config_is_data_and_builds_no_model(monkeypatch):
     """read_config of a real arm's configuration (examples/panda.toml) builds no model and
     designs no reference (both would raise here); the keys that follow the model are
     absent from the data, and resolve_config fills them: the same configuration as the
-    snapshot-checked load_config, whose keys are exactly those the data lacks."""
+    snapshot-checked resolved configuration, whose keys are exactly those the data lacks."""
     from ivdrem import models
     from ivdrem.diagrams import arm_reference
     import ivdrem.experiments.config as config_module
@@ -111,19 +116,19 @@ def test_read_config_is_data_and_builds_no_model(monkeypatch):
     assert "a" not in data["trajectory"] and "K" not in data["controller"]
     monkeypatch.undo()
     resolved, model = resolve_config(data)
-    assert resolved == load_config(panda)
+    assert resolved == resolved_config(panda)
     assert len(resolved["controller"]["K"]) == model.n
     absent = {(s, k) for s, t in resolved.items() for k in t if k not in data[s]}
     assert ("trajectory", "a") in absent and ("initial", "q0") in absent
     assert {(s, k) for s, t in data.items() for k in t if k not in resolved[s]} == set()
     # a resolved configuration resolves to itself; the paper's data is already complete
     assert resolve_config(resolved, model)[0] == resolved
-    assert resolve_config(read_config())[0] == read_config() == load_config()
+    assert resolve_config(read_config())[0] == read_config() == resolved_config()
 
 
 def test_a_wrong_length_is_refused_when_resolved_with_the_same_message():
     """A vector of the wrong length for the arm needs the model: read_config takes it as
-    data, resolving it (Experiment.from_config) refuses it naming the key, as load_config."""
+    data, resolving it (Experiment.from_config) refuses it naming the key."""
     from ivdrem.experiments.experiment import Experiment
     ov = {"model": {"name": "planar-3"}, "initial": {"q0": [0.0, 0.0]}}
     data = read_config(overrides=ov)
@@ -136,9 +141,9 @@ def test_a_wrong_length_is_refused_when_resolved_with_the_same_message():
 
 
 def test_default_is_a_fresh_copy():
-    a = load_config()
+    a = resolved_config()
     a["controller"]["K"][0] = 99.0
-    assert load_config()["controller"]["K"] == [2.0, 2.0]
+    assert resolved_config()["controller"]["K"] == [2.0, 2.0]
     assert default_config()["controller"]["K"] == [2.0, 2.0]
 
 
@@ -161,7 +166,7 @@ def test_example_paper_toml_is_the_effective_default_key_by_key():
              for s, table in default.items() for k, v in table.items() if raw[s].get(k) != v]
     extra = [f"{s}.{k}" for s, table in raw.items() for k in table if k not in default[s]]
     assert not drift and not extra, "\n".join(drift + extra)
-    assert load_config(example) == load_config()
+    assert resolved_config(example) == resolved_config()
 
 
 def test_default_toml_has_no_law_section():
@@ -176,7 +181,7 @@ def test_default_toml_has_no_law_section():
 
 def test_user_file_is_merged_key_by_key(tmp_path):
     p = write(tmp_path, "[experiment]\nt_end = 60\n[controller]\nK = [3, 4]\nGamma = [0.1, 0.2, 0.3, 0.4, 0.5]\n")
-    c = load_config(p)
+    c = resolved_config(p)
     assert c["experiment"]["t_end"] == 60.0 and isinstance(c["experiment"]["t_end"], float)
     assert c["experiment"]["laws"] == ["iv-drem", "composite-learning"]
     assert c["controller"]["K"] == [3.0, 4.0]
@@ -188,7 +193,7 @@ def test_user_file_is_merged_key_by_key(tmp_path):
 
 def test_overrides_nested_and_dotted(tmp_path):
     p = write(tmp_path, "[experiment]\nt_end = 60\n")
-    c = load_config(p, overrides={"experiment": {"t_end": 5.0}, "experiment.laws": ["drem"]})
+    c = resolved_config(p, overrides={"experiment": {"t_end": 5.0}, "experiment.laws": ["drem"]})
     assert c["experiment"]["t_end"] == 5.0
     assert c["experiment"]["laws"] == ["drem"]
 
@@ -239,29 +244,29 @@ def test_overrides_nested_and_dotted(tmp_path):
 def test_bad_configs_are_rejected(tmp_path, text, fragment):
     p = write(tmp_path, text)
     with pytest.raises(ConfigError) as exc:
-        load_config(p)
+        resolved_config(p)
     assert fragment in str(exc.value)
     assert isinstance(exc.value, ValueError)
 
 
 def test_unknown_key_lists_valid_keys(tmp_path):
     with pytest.raises(ConfigError) as exc:
-        load_config(write(tmp_path, "[controller]\nKp = 1\n"))
+        resolved_config(write(tmp_path, "[controller]\nKp = 1\n"))
     for key in schema()["controller"]:
         assert key in str(exc.value)
 
 
 def test_missing_file_and_bad_toml(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
-        load_config(tmp_path / "nope.toml")
+        resolved_config(tmp_path / "nope.toml")
     with pytest.raises(ConfigError, match="not valid TOML"):
-        load_config(write(tmp_path, "[experiment\nt_end = 1\n"))
+        resolved_config(write(tmp_path, "[experiment\nt_end = 1\n"))
 
 
 def test_planar_model_checks_n_and_ntheta():
     vec3 = [0.0, 0.0, 0.0]
     with pytest.raises(ConfigError, match="'initial.q0' must have 3 entries"):
-        load_config(overrides={"model": {"name": "planar-3"}, "initial": {"q0": [0.0, 0.0]}})
+        resolved_config(overrides={"model": {"name": "planar-3"}, "initial": {"q0": [0.0, 0.0]}})
     ov = {
         "model": {"name": "planar-3", "theta": [1.0] * 6},
         "initial": {"q0": vec3, "dq0": vec3, "theta_hat0": [0.0] * 6},
@@ -270,14 +275,14 @@ def test_planar_model_checks_n_and_ntheta():
         "trajectory": {k: vec3 for k in ("amplitude", "omega", "phase", "offset")},
         "disturbance": {k: vec3 for k in ("amplitude", "omega", "phase", "offset")},
     }
-    c = load_config(overrides=ov)
+    c = resolved_config(overrides=ov)
     assert c["model"]["name"] == "planar-3"
     kw = closed_loop_kwargs(c, "iv-drem")
     assert kw["K"].shape == (3, 3) and kw["Gamma"].shape == (6, 6)
     # nθ of the model (6 for a planar 3-link arm) is checked
     ov["initial"] = dict(ov["initial"], theta_hat0=[0.0] * 4)
     with pytest.raises(ConfigError, match="'initial.theta_hat0' must have 6 entries"):
-        load_config(overrides=ov)
+        resolved_config(overrides=ov)
 
 
 def test_another_robot_needs_only_what_differs():
@@ -289,7 +294,7 @@ def test_another_robot_needs_only_what_differs():
           "trajectory": {k: vec3 for k in ("amplitude", "omega", "phase", "offset")},
           "disturbance": {k: vec3 for k in ("amplitude", "omega", "phase", "offset")},
           "controller": {"K": [3.0, 3.0, 3.0]}}
-    c = load_config(overrides=ov)
+    c = resolved_config(overrides=ov)
     m = get_model("planar-3")
     np.testing.assert_allclose(c["model"]["theta"], m.theta_values)
     assert c["initial"]["dq0"] == [0.0] * 3 and c["initial"]["theta_hat0"] == [0.0] * 6
@@ -298,25 +303,25 @@ def test_another_robot_needs_only_what_differs():
     assert c["iv_drem"]["gamma"] == "auto"
     assert closed_loop_kwargs(c, "iv-drem")["gains"]["gamma"] == "auto"
     # the paper's arm keeps the paper's numbers
-    d = load_config()
+    d = resolved_config()
     assert d["iv_drem"]["gamma"] == 1e10 and d["controller"]["K"] == [2.0, 2.0]
     # a number or "auto", nothing else
-    assert load_config(overrides={"iv_drem.gamma": "auto"})["iv_drem"]["gamma"] == "auto"
+    assert resolved_config(overrides={"iv_drem.gamma": "auto"})["iv_drem"]["gamma"] == "auto"
     with pytest.raises(ConfigError, match="iv_drem.gamma' must be a number or \"auto\""):
-        load_config(overrides={"iv_drem.gamma": "big"})
+        resolved_config(overrides={"iv_drem.gamma": "big"})
 
 
 def test_laws_all_expands_to_every_registered_law():
-    c = load_config(overrides={"experiment.laws": "all"})
+    c = resolved_config(overrides={"experiment.laws": "all"})
     assert c["experiment"]["laws"] == list(LAWS)
     with pytest.raises(ConfigError, match="or 'all'"):
-        load_config(overrides={"experiment.laws": ["al"]})
+        resolved_config(overrides={"experiment.laws": ["al"]})
 
 
 def test_closed_loop_kwargs_per_law():
     """The loop's keywords are the same for every law; the law's gains come in one dict,
     ``gains``, by the names its registry entry declares."""
-    c = load_config()
+    c = resolved_config()
     common = {"alpha", "K", "delta_mu", "Gamma", "mu0", "mu1", "observer_variant", "l",
               "theta_hat0", "q0", "dq0", "theta", "trajectory", "disturbance", "gains"}
     expect = {
@@ -357,17 +362,17 @@ def test_closed_loop_kwargs_per_law():
 
 
 def test_solver_kwargs():
-    assert solver_kwargs(load_config()) == {"method": "rodas5p", "rtol": 2e-4, "atol": 2e-6, "h": 1e-3, "h_max": 5.0}
+    assert solver_kwargs(resolved_config()) == {"method": "rodas5p", "rtol": 2e-4, "atol": 2e-6, "h": 1e-3, "h_max": 5.0}
 
 
 def test_solver_h_max_is_held_below_each_laws_window():
     """A step must not read a window's delay history beyond t: h_max <= T/2 of the law's
     window (eq. 14).  The paper's h_max = 5 s is below its T/2 = 10 s: unchanged."""
-    c = load_config()
+    c = resolved_config()
     for law in ("iv-drem", "composite-learning", "drem"):
         assert solver_kwargs(c, law)["h_max"] == 5.0
     assert solver_kwargs(c, "none")["h_max"] == 5.0
-    short = load_config(overrides={"iv_drem.T": 5.0})
+    short = resolved_config(overrides={"iv_drem.T": 5.0})
     assert solver_kwargs(short, "iv-drem")["h_max"] == 2.5
     assert solver_kwargs(short, "drem")["h_max"] == 2.5
     # composite learning has its own window: it is not held by iv_drem.T
@@ -379,16 +384,16 @@ def test_a_short_window_runs(tmp_path):
     """iv_drem.T = 5 s with the default h_max = 5 s ran into "the step must stay below the
     shortest transport delay" before any step; now it simulates past one window."""
     from ivdrem.experiments.paper import run_law
-    c = load_config(overrides={"iv_drem.T": 5.0, "experiment.t_end": 6.0})
+    c = resolved_config(overrides={"iv_drem.T": 5.0, "experiment.t_end": 6.0})
     run = run_law(c, "iv-drem", progress=False)
     assert run.stats["h_max"] == 2.5
     assert np.all(np.isfinite(run.response.states[:, -1]))
 
 
 def test_dump_toml_round_trip(tmp_path):
-    c = load_config(overrides={"controller": {"Gamma": [0.1, 0.2, 0.3, 0.4, 0.5]}, "experiment": {"laws": ["drem"]}})
+    c = resolved_config(overrides={"controller": {"Gamma": [0.1, 0.2, 0.3, 0.4, 0.5]}, "experiment": {"laws": ["drem"]}})
     p = write(tmp_path, dump_toml(c))
-    assert load_config(p) == c
+    assert resolved_config(p) == c
 
 
 def test_a_configuration_names_the_module_that_registers_its_laws(tmp_path):
@@ -404,7 +409,7 @@ def test_a_configuration_names_the_module_that_registers_its_laws(tmp_path):
                           '[normalised_iv_drem]\nnu = 2.5\n')
     from ivdrem.experiments import config as config_module
     try:
-        c = load_config(cfg)
+        c = resolved_config(cfg)
         assert "normalised-iv-drem" in LAWS
         assert c["experiment"]["plugins"] == [str(tmp_path / "my_laws.py")]
         kw = closed_loop_kwargs(c, "normalised-iv-drem")
@@ -426,14 +431,14 @@ def test_a_configuration_names_the_module_that_registers_its_laws(tmp_path):
 def test_bad_plugins_are_named(tmp_path, plugins, fragment):
     cfg = write(tmp_path, f"[experiment]\nplugins = {plugins}\n")
     with pytest.raises(ConfigError, match=re.escape(fragment)):
-        load_config(cfg)
+        resolved_config(cfg)
 
 
 def test_a_plugin_that_raises_is_named(tmp_path):
     (tmp_path / "broken.py").write_text("raise RuntimeError('my bug')\n")
     cfg = write(tmp_path, '[experiment]\nplugins = ["broken.py"]\n')
     with pytest.raises(ConfigError, match=r"importing '.*broken\.py' failed: RuntimeError: my bug"):
-        load_config(cfg)
+        resolved_config(cfg)
 
 
 def test_the_injection_key_reaches_the_loop_and_the_sampled_controller(tmp_path):
@@ -442,9 +447,26 @@ def test_the_injection_key_reaches_the_loop_and_the_sampled_controller(tmp_path)
     from ivdrem.controller.fmu_export import controller_design
     from ivdrem.experiments.config import closed_loop_kwargs
     base = "[controller]\ndesign = 'inertia-scaled'\n"
-    plain = load_config(write(tmp_path, base))
+    plain = resolved_config(write(tmp_path, base))
     assert "injection" not in closed_loop_kwargs(plain, "iv-drem")
     assert "injection" not in controller_design(plain, "iv-drem")
-    cfg = load_config(write(tmp_path, base + "injection = 'estimate'\n"))
+    cfg = resolved_config(write(tmp_path, base + "injection = 'estimate'\n"))
     assert closed_loop_kwargs(cfg, "iv-drem")["injection"] == "estimate"
     assert controller_design(cfg, "iv-drem")["injection"] == "estimate"
+
+
+def test_load_config_is_a_deprecated_alias_that_nothing_in_the_package_calls():
+    """load_config (deprecated, docs/experiment.md) warns, naming what replaces it, and gives
+    the configuration an Experiment of the data holds; no module of the package calls it."""
+    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.experiment import Experiment
+    for path, over in ((None, None),
+                       (ROOT / "examples" / "planar3.toml", {"experiment.t_end": 2.0})):
+        with pytest.warns(DeprecationWarning, match=r"read_config.*Experiment\.from_config"):
+            old = load_config(path, over)
+        assert old == Experiment.from_config(read_config(path, over)).config
+    callers = [str(p.relative_to(ROOT)) for p in (ROOT / "ivdrem").rglob("*.py")
+               if re.search(r"\bload_config\(", p.read_text(encoding="utf-8"))]
+    assert callers == ["ivdrem/experiments/config.py"]          # its definition alone
+    text = (ROOT / "ivdrem" / "experiments" / "config.py").read_text(encoding="utf-8")
+    assert len(re.findall(r"\bload_config\(", text)) == 1

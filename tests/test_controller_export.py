@@ -234,15 +234,16 @@ def ur5_fmus(tmp_path_factory):
     """The UR5's controller FMU from a configuration, FMI 2 by the CLI and FMI 3 by the API
     with the same design."""
     from ivdrem.controller.fmu_export import controller_design, export_controller_fmu
-    from ivdrem.experiments.config import load_config, model_from_config
+    from ivdrem.experiments.config import read_config
+    from ivdrem.experiments.experiment import Experiment
     d = tmp_path_factory.mktemp("ur5")
     cfg = d / "ur5.toml"
     cfg.write_text(UR5_TOML)
     code = main_fmu(["export", "--controller", "--config", str(cfg), "-o", str(d / "C2.fmu")])
     assert code == 0
-    config = load_config(cfg)
-    model = model_from_config(config)
-    design = controller_design(config, "iv-drem", h=1e-3)
+    experiment = Experiment.from_config(read_config(cfg))
+    model = experiment.model
+    design = controller_design(experiment, "iv-drem", h=1e-3)
     c3 = export_controller_fmu(model, d / "C3.fmu", fmi_version=3, **design)
     return model, design, {2: d / "C2.fmu", 3: c3}
 
@@ -376,14 +377,16 @@ def test_controller_design_mixes_a_real_arm_every_mix_every_samples():
     max-hold) every MIX_EVERY samples (the step within the deadline), the paper's 2-link
     experiment single-rate (its design bit for bit as before)."""
     from ivdrem.controller.fmu_export import MIX_EVERY, controller_design
-    from ivdrem.experiments.config import load_config
-    ur5 = controller_design(load_config(None, {"model.name": "ur5"}), "iv-drem", h=1e-3)
+    from ivdrem.experiments.config import read_config
+    from ivdrem.experiments.experiment import Experiment
+    ur5_experiment = Experiment.from_config(read_config(None, {"model.name": "ur5"}))
+    ur5 = controller_design(ur5_experiment, "iv-drem", h=1e-3)
     assert ur5["mix_every"] == MIX_EVERY == 20
     assert SampledController(get_model("ur5"), "iv-drem",
                              **{**ur5, "gamma": 50.0}).mix_every == 20
-    assert controller_design(load_config(None, {"model.name": "ur5"}), "none").get(
+    assert controller_design(ur5_experiment, "none").get(
         "mix_every", 1) == 1
-    assert controller_design(load_config(None, {"model.name": "ur5"}),
+    assert controller_design(ur5_experiment,
                              "composite-learning")["mix_every"] == MIX_EVERY  # its max-hold
-    paper = controller_design(load_config(None), "iv-drem", h=1e-3)
+    paper = controller_design(read_config(None), "iv-drem", h=1e-3)     # data: its Experiment
     assert paper.get("mix_every", 1) == 1

@@ -16,13 +16,18 @@ from ivdrem import blocks as block_library
 from ivdrem import laws as registry
 from ivdrem.cli import main
 from ivdrem.diagrams import closed_loop
-from ivdrem.experiments.config import load_config, read_config
+from ivdrem.experiments.config import read_config, resolve_config
 from ivdrem.experiments.experiment import Experiment
 from ivdrem.sim import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 closed_loop_module = importlib.import_module("ivdrem.diagrams.closed_loop")
 config_module = importlib.import_module("ivdrem.experiments.config")
+
+
+def resolved(path=None, overrides=None):
+    """The configuration resolved against its model (read_config, then resolve_config)."""
+    return resolve_config(read_config(path, overrides))[0]
 
 
 def _count_calls(functions, run):
@@ -62,7 +67,7 @@ def test_ivdrem_paper_resolves_each_law_once_and_builds_its_loop_once(tmp_path):
 
 def test_the_preflight_prices_the_loop_the_run_simulates():
     from ivdrem.cli.preflight import check_runs
-    experiment = Experiment.from_config(load_config(overrides={"experiment.t_end": 0.1,
+    experiment = Experiment.from_config(resolved(overrides={"experiment.t_end": 0.1,
                                                                "experiment.laws": ["iv-drem"]}))
     check_runs(experiment)
     priced = experiment.loop("iv-drem")
@@ -75,7 +80,7 @@ def test_the_preflight_prices_the_loop_the_run_simulates():
 
 
 def test_an_experiment_reads_the_configuration_once_per_law():
-    c = load_config(overrides={"iv_drem.T": 10.0, "controller.K": [3.0, 4.0]})
+    c = resolved(overrides={"iv_drem.T": 10.0, "controller.K": [3.0, 4.0]})
     experiment, counts = _count_calls([config_module.closed_loop_kwargs],
                                       lambda: Experiment.from_config(c))
     assert counts["closed_loop_kwargs"] == 2                      # one per configured law
@@ -92,7 +97,7 @@ def test_an_experiment_of_data_builds_the_model_once_and_designs_the_reference_o
     """Configuration data of an arm other than the paper's (the real-arm reference follows
     the model): Experiment.from_config builds the model once and designs the reference,
     its disturbance and window once; the laws' loops use that design (closed_loop designs
-    nothing more), and the experiment's configuration is load_config's."""
+    nothing more), and the experiment's configuration is the resolved data's."""
     from ivdrem.diagrams import arm_reference
     data = read_config(overrides={"model.name": "planar-3", "experiment.t_end": 0.1})
     assert "a" not in data["trajectory"]                   # data: nothing designed yet
@@ -104,7 +109,7 @@ def test_an_experiment_of_data_builds_the_model_once_and_designs_the_reference_o
     assert counts["_build"] == 1
     assert {f.__name__: counts[f.__name__] for f in designs} == \
         {f.__name__: 1 for f in designs}
-    assert experiment.config == load_config(overrides={"model.name": "planar-3",
+    assert experiment.config == resolved(overrides={"model.name": "planar-3",
                                                        "experiment.t_end": 0.1})
     assert experiment.model.n == 3 and experiment.laws == ["iv-drem", "composite-learning"]
     _, counts = _count_calls(designs, lambda: [experiment.loop(law) for law in experiment.laws])
@@ -161,7 +166,7 @@ def test_a_law_with_a_new_gain_runs_from_closed_loop_and_from_a_configuration(tm
         f = tmp_path / "c.toml"
         f.write_text('[experiment]\nlaws = ["leak-kappa"]\nt_end = 0.1\n'
                      '[leak_kappa]\nkappa = 0.75\n')
-        experiment = Experiment.from_config(load_config(f))
+        experiment = Experiment.from_config(resolved(f))
         assert experiment.law("leak-kappa").gains == {"kappa": 0.75}
         loop = experiment.loop("leak-kappa")
         assert next(s for s in loop.syslist
@@ -192,3 +197,91 @@ def test_gamma_auto_is_chosen_outside_closed_loop():
     same = closed_loop("iv-drem", planar_arm(3), gains={"gamma": d.gamma_choice["gamma"]})
     term = [next(s for s in x.syslist if s.name == "drem_term") for x in (d, same)]
     assert term[0].params["gamma"] == term[1].params["gamma"] == d.gamma_choice["gamma"]
+
+
+def _assert_same_design(got, want):
+    """Two SampledController designs equal key by key (arrays and the reference's table
+    compared element for element)."""
+    assert set(got) == set(want)
+    for key, value in want.items():
+        if isinstance(value, dict):
+            _assert_same_design(got[key], value)
+        elif isinstance(value, (np.ndarray, list)):
+            np.testing.assert_array_equal(got[key], value, err_msg=key)
+        else:
+            assert got[key] == value, key
+
+
+def test_fmu_export_controller_config_makes_one_experiment(tmp_path, monkeypatch):
+    """`ivdrem fmu export --controller --config` of an arm whose reference follows the model
+    (planar-3): the configuration read as data and its Experiment made once: the model asked
+    for once, the reference designed once, the law's arguments resolved once; the FMU gets
+    that experiment's design (controller_design, γ "auto" resolved on its loop) with h the
+    configuration's [solver] h."""
+    from ivdrem.diagrams import arm_reference
+    fmu_export = importlib.import_module("ivdrem.controller.fmu_export")
+    got = {}
+
+    def export(model, path, *, law, cc=None, overwrite=False, fmi_version=2, **design):
+        got.update(design, model=model)          # the design the FMU would be written with
+        assert law == "iv-drem"
+        Path(path).write_bytes(b"not an FMU")
+        return Path(path)
+    monkeypatch.setattr(fmu_export, "export_controller_fmu", export)
+    cfg = tmp_path / "arm.toml"
+    cfg.write_text('[model]\nname = "planar-3"\n[solver]\nh = 5e-4\n', encoding="utf-8")
+    rc, counts = _count_calls(
+        [config_module.model_from_config, config_module.resolve_config,
+         config_module.closed_loop_kwargs, arm_reference.design_trajectory],
+        lambda: main(["fmu", "export", "--controller", "--config", str(cfg), "-o",
+                      str(tmp_path / "c.fmu"), "--despite-prediction"]))
+    assert rc == 0
+    assert dict(counts) == {"model_from_config": 1, "resolve_config": 1,
+                            "closed_loop_kwargs": 1, "design_trajectory": 1}
+    model = got.pop("model")
+    experiment = Experiment.from_config(read_config(cfg), laws=["iv-drem"])
+    assert model is experiment.model and experiment.h == 5e-4
+    want = fmu_export.controller_design(experiment, "iv-drem", h=experiment.h, mu_max=135.0)
+    want, choice = fmu_export.resolve_gamma(model, "iv-drem", want, experiment)
+    assert choice is not None and got["h"] == 5e-4
+    _assert_same_design(got, want)
+
+
+def test_a_study_builds_its_model_once_and_designs_its_reference_once():
+    """A study of an arm whose reference follows the model: reading it, expanding a 2 x 2
+    grid and pricing its runs ask for the model once and design the reference once (the
+    base's Experiment); the runs' hashes (what --resume matches) are those of their
+    configurations alone."""
+    from ivdrem.diagrams import arm_reference
+    from ivdrem.experiments.study import check_study_cost
+    from ivdrem.experiments.study_spec import config_hash, expand_study, read_study
+    study = {"model": {"name": "planar-3"},
+             "experiment": {"t_end": 0.5, "laws": ["iv-drem"]},
+             "study": {"grid": {"controller.alpha": [1.0, 1.5], "iv_drem.T": [5.0, 10.0]}}}
+
+    def read_expand_price():
+        runs = expand_study(read_study(study))
+        check_study_cost(runs)
+        return runs
+    runs, counts = _count_calls([config_module.model_from_config,
+                                 arm_reference.design_trajectory], read_expand_price)
+    assert len(runs) == 4
+    assert dict(counts) == {"model_from_config": 1, "design_trajectory": 1}
+    model = runs[0].model
+    assert model is not None and all(r.model is model for r in runs)
+    assert [r.hash for r in runs] == [config_hash(r.config, r.law) for r in runs]
+    assert [r.config["iv_drem"]["T"] for r in runs] == [5.0, 10.0, 5.0, 10.0]
+
+
+def test_an_experiment_travels_to_another_process_as_its_configuration():
+    """An Experiment pickles as its resolved configuration (a study's Dask worker gets it):
+    unpickled, the same configuration, engine, laws and h, its model from that
+    configuration."""
+    import pickle
+    experiment = Experiment.from_config(read_config(None, {"experiment.t_end": 0.5}),
+                                        engine="reference", laws=["iv-drem"])
+    again = pickle.loads(pickle.dumps(experiment))
+    assert isinstance(again, Experiment) and again is not experiment
+    assert again.config == experiment.config and again.engine == "reference"
+    assert again.laws == ["iv-drem"] and again.h == experiment.h == 1e-3
+    assert (again.model.name, again.model.n, again.model.ntheta) == ("two-link", 2, 5)

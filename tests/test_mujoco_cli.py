@@ -140,17 +140,19 @@ def test_seeds_vary_the_runs_that_draw_noise_and_only_those(tmp_path):
     text = ('[experiment]\nt_end = 0.3\nlaws = ["iv-drem"]\n[model]\nname = "two-link"\n'
             '[robustness]\nnoise_levels = [0.0, 10.0]\nseeds = [4, 7]\nmu_max = 60.0\n')
     study.write_text(text + "encoder_noise = 1.0\n", encoding="utf-8")
-    config, rob, _ = read_robustness(study)
-    runs = expand(config, rob)
+    experiment, rob, _ = read_robustness(study)
+    runs = expand(experiment, rob)
     assert [(r["noise_level"], r["seed"]) for r in runs] == [(0.0, 4), (10.0, 4), (10.0, 7)]
-    rows = [run_one(config, rob, r) for r in runs[1:]]
+    rows = [run_one(experiment, rob, r) for r in runs[1:]]
     assert all(r["status"] == "ok" for r in rows), rows
     assert rows[0]["tracking_rms_last"] != rows[1]["tracking_rms_last"]
-    again = run_one(config, rob, runs[1])
-    assert again["tracking_rms_last"] == rows[0]["tracking_rms_last"]      # seeded
+    # seeded; and a worker, given the experiment's configuration, runs the same numbers
+    again = run_one(experiment.config, rob, runs[1])
+    assert again["tracking_rms_last"] == rows[0]["tracking_rms_last"]
     study.write_text(text, encoding="utf-8")
-    config, rob, _ = read_robustness(study)
-    assert [(r["noise_level"], r["seed"]) for r in expand(config, rob)] == [(0.0, 4), (10.0, 4)]
+    experiment, rob, _ = read_robustness(study)
+    assert [(r["noise_level"], r["seed"]) for r in expand(experiment, rob)] == \
+        [(0.0, 4), (10.0, 4)]
     study.write_text(text + "encoder_noise = -1\n", encoding="utf-8")
     with pytest.raises(ValueError, match="encoder_noise must be"):
         read_robustness(study)
@@ -189,7 +191,8 @@ def test_a_bad_gamma_is_refused(tmp_path, capsys):
 def test_report_plant_mujoco_gives_the_reports_figures_and_conclusions(tmp_path, capsys):
     """`ivdrem report --plant mujoco`: the paper experiment with the arm in MuJoCo, the
     report (saying so) and C1-C3; its runs are closed_loop's, number for number."""
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config
+    from ivdrem.experiments.experiment import Experiment
     from ivdrem.experiments.metrics import signal
     from ivdrem.plants.study import mujoco_paper_run
     from ivdrem.plants.mujoco import closed_loop, controller_kwargs, load
@@ -201,9 +204,9 @@ def test_report_plant_mujoco_gives_the_reports_figures_and_conclusions(tmp_path,
     html = (out / "ivdrem-mujoco.html").read_text(encoding="utf-8")
     assert "MuJoCo" in html and "<svg" in html
     assert (out / "ivdrem-mujoco.pdf").read_bytes().startswith(b"%PDF")
-    config = load_config(None, {"experiment.t_end": 0.5})
-    run = mujoco_paper_run(config)
-    kw, start = controller_kwargs(config, "iv-drem")
+    experiment = Experiment.from_config(read_config(None, {"experiment.t_end": 0.5}))
+    run = mujoco_paper_run(experiment)
+    kw, start = controller_kwargs(experiment, "iv-drem")
     direct = closed_loop(load("two-link"), 0.5, "iv-drem", every=10, mu_max=135.0, **start,
                          **kw)
     assert np.array_equal(signal(run.runs["iv-drem"].response, "theta_hat"),

@@ -25,7 +25,7 @@ import pytest
 
 from ivdrem.cli import main
 from ivdrem.experiments import metrics
-from ivdrem.experiments.config import dump_toml, load_config
+from ivdrem.experiments.config import dump_toml, read_config
 from ivdrem.experiments.paper import run_paper
 from ivdrem.experiments.study import RunStore, run_study
 from ivdrem.reports.study_report import write_study_report_of
@@ -39,7 +39,7 @@ TIMING = ["sim_s", "compile_s", "task_s"]
 
 def _point_configs():
     """The two configurations of GRID, each written out and read back as `--config` would."""
-    return [load_config(None, {"experiment.t_end": T_END, "controller.alpha": a}) for a in (1.0, 1.5)]
+    return [read_config(None, {"experiment.t_end": T_END, "controller.alpha": a}) for a in (1.0, 1.5)]
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +49,7 @@ def paper_runs(tmp_path_factory):
     for i, cfg in enumerate(_point_configs()):
         path = tmp_path_factory.mktemp("cfg") / f"point{i}.toml"
         path.write_text(dump_toml(cfg), encoding="utf-8")
-        out.append(run_paper(load_config(path), progress=False))
+        out.append(run_paper(read_config(path), progress=False))
     return out
 
 

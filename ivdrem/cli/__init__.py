@@ -19,7 +19,8 @@ __all__ = ["main"]
 
 
 def _cmd_paper(args):
-    from ..experiments.config import ConfigError, load_config
+    from ..experiments.config import ConfigError, read_config
+    from ..experiments.experiment import Experiment
     from .._paths import STDOUT, OutputLocationError, check_replaceable, user_path
     from .preflight import (PreflightError, check_cache_dir, check_runs, method_overrides,
                              horizon_note, long_run_note, timing_text)
@@ -37,21 +38,22 @@ def _cmd_paper(args):
         if args.t_end is not None and not (math.isfinite(args.t_end) and args.t_end > 0):
             raise PreflightError(f"--t-end must be a finite number of seconds > 0, "
                                  f"got {args.t_end:g}")
-        try:
-            config = load_config(None if args.config is None else user_path(args.config),
-                                 overrides or None)
+        try:     # the data, then the experiment: the model built once, the keys that
+            # follow it filled and checked against it (Experiment.from_config)
+            data = read_config(None if args.config is None else user_path(args.config),
+                               overrides or None)
+            if args.json == STDOUT:      # the JSON alone on stdout; the lines go to stderr
+                json_path = STDOUT
+            elif args.json:
+                json_path = check_replaceable(user_path(args.json), "JSON file",
+                                              overwrite=args.overwrite, ours=_is_paper_json)
+            check_cache_dir(args.engine)
+            experiment = Experiment.from_config(data, engine=args.engine)   # resolved once
         except ConfigError as e:     # the value came from --t-end: name the option
             if args.t_end is not None and "experiment.t_end" in str(e):
                 raise PreflightError(f"--t-end {args.t_end:g} s: {e}") from None
             raise
-        if args.json == STDOUT:      # the JSON alone on stdout; the lines go to stderr
-            json_path = STDOUT
-        elif args.json:
-            json_path = check_replaceable(user_path(args.json), "JSON file",
-                                          overwrite=args.overwrite, ours=_is_paper_json)
-        check_cache_dir(args.engine)
-        from ..experiments.experiment import Experiment
-        experiment = Experiment.from_config(config, engine=args.engine)   # resolved once
+        config = experiment.config
         walls = check_runs(experiment, allow_long=args.allow_long)
     except (ConfigError, PreflightError, OutputLocationError, ValueError, ImportError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)

@@ -47,8 +47,8 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--mu-max", type=float, default=None, dest="mu_max",
                    help="--controller: saturation of mu (default 135)")
     e.add_argument("--h", type=float, default=None, dest="h", metavar="H",
-                   help="--controller: sample period in s (default 0.001); must divide the "
-                        "window T")
+                   help="--controller: sample period in s (default: the configuration's "
+                        "[solver] h, 0.001 s in the default); must divide the window T")
     e.add_argument("--mix-every", default=None, dest="mix_every", metavar="M",
                    help="--controller: the mixing (17), or composite learning's max-hold, "
                         "every M samples, its work spread over them (a whole number from 1 "
@@ -72,9 +72,13 @@ def main_fmu(argv=None) -> int:
         from ..fmu.export import export_fmu
         try:
             if args.config is not None:
-                from ivdrem.experiments.config import load_config, model_from_config
+                from ivdrem.experiments.config import read_config
+                from ivdrem.experiments.experiment import Experiment
                 over = {} if args.model is None else {"model.name": args.model}
-                model = model_from_config(load_config(user_path(args.config), over))
+                # the configuration checked whole against its model (built once); the
+                # plant needs no law
+                model = Experiment.from_config(read_config(user_path(args.config), over),
+                                               laws=[]).model
             else:
                 model = get_model(args.model or "two-link")
             path = export_fmu(model, user_path(args.output), q0=args.q0, dq0=args.dq0,
@@ -177,11 +181,11 @@ def main_cosim(argv=None) -> int:
         for h, what in zip(steps, ("--comm-step H", "H/2", "H/4")):
             _steps(args.t_end, h, what)
         from ivdrem.cli.preflight import check_cache_dir
-        from ivdrem.experiments.config import load_config
+        from ivdrem.experiments.config import read_config
         from ivdrem.experiments.experiment import Experiment
         check_cache_dir(args.engine)
-        config = load_config(None if args.config is None else user_path(args.config))
-        experiment = Experiment.from_config(config, engine=args.engine, laws=[args.law])
+        data = read_config(None if args.config is None else user_path(args.config))
+        experiment = Experiment.from_config(data, engine=args.engine, laws=[args.law])
         model = experiment.model
         setup = experiment.law(args.law)
         loop_kw = setup.arguments()

@@ -99,19 +99,20 @@ def main_cosim_mujoco(args) -> int:
     diverged, 2 on bad input (before anything runs)."""
     from .._paths import user_path
     from .._progress import want_progress
-    from ..experiments.config import load_config, model_from_config
+    from ..experiments.config import read_config
+    from ..experiments.experiment import Experiment
     from ..plants.mujoco import MujocoError, Payload, closed_loop, controller_kwargs, load
     from ..plants.study import summarize
     if args.study is not None:
         return _main_study(args)
     try:
-        config = load_config(None if args.config is None else user_path(args.config),
-                             overrides=None if args.model is None
-                             else {"model": {"name": args.model}})
-        t_end = float(args.t_end if args.t_end is not None else config["experiment"]["t_end"])
+        data = read_config(None if args.config is None else user_path(args.config),
+                           overrides=None if args.model is None
+                           else {"model": {"name": args.model}})
+        t_end = float(args.t_end if args.t_end is not None else data["experiment"]["t_end"])
         if not (math.isfinite(t_end) and t_end > 0):
             raise ValueError(f"--t-end must be a finite number > 0, got {t_end:g}")
-        laws = args.laws or list(config["experiment"]["laws"])
+        laws = args.laws or list(data["experiment"]["laws"])
         from ..controller.sampled import SAMPLED_LAWS
         bad = [law for law in laws if law not in SAMPLED_LAWS]
         if bad:
@@ -124,8 +125,10 @@ def main_cosim_mujoco(args) -> int:
         if not (math.isfinite(args.comm_step) and args.comm_step > 0):
             raise ValueError(f"--comm-step (the controller's h) must be > 0, got "
                              f"{args.comm_step:g}")
-        runs = [(law, *controller_kwargs(config, law)) for law in laws]
-        model = model_from_config(config)
+        # the model built once, the reference designed once, each law resolved once
+        experiment = Experiment.from_config(data, laws=laws)
+        runs = [(law, *controller_kwargs(experiment, law)) for law in laws]
+        model = experiment.model
         plant = load(model, h=args.comm_step, integrator=args.integrator, substeps=args.substeps,
                      joint_friction=args.joint_friction, payload=payload)
     except (ValueError, OSError, ImportError) as exc:     # MujocoError is a ValueError
@@ -244,21 +247,24 @@ def run_mujoco_report(args) -> int:
     from ..experiments.metrics import conclusions, format_conclusions
     from ..plants.study import mujoco_paper_run
     from ..reports.report import report_paths, write_report
+    from ..experiments.experiment import Experiment
     from .preflight import config_from_args
     from .._paths import check_writable_dir, user_path
     prog = "ivdrem report --plant mujoco"
     try:
         from ..plants.mujoco import _mujoco
         _mujoco()
-        config = config_from_args(args)
+        data = config_from_args(args)
         out = check_writable_dir(user_path(args.out), "report directory")
         report_paths(out, "ivdrem-mujoco", overwrite=getattr(args, "overwrite", False))
         from ..controller.sampled import SAMPLED_LAWS
-        bad = [law for law in config["experiment"]["laws"] if law not in SAMPLED_LAWS]
+        bad = [law for law in data["experiment"]["laws"] if law not in SAMPLED_LAWS]
         if bad:
             raise ValueError(f"law(s) {bad} have no sampled form; choose from "
                              f"{', '.join(SAMPLED_LAWS)}")
-        run = mujoco_paper_run(config, progress=not getattr(args, "quiet", False), log=print)
+        experiment = Experiment.from_config(data)          # resolved once
+        run = mujoco_paper_run(experiment, progress=not getattr(args, "quiet", False),
+                               log=print)
     except (FloatingPointError, RuntimeError) as exc:
         print(f"{prog}: run failed: {exc}", file=sys.stderr)
         return 1

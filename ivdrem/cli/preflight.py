@@ -80,7 +80,7 @@ def method_overrides(name, config_path=None) -> dict:
     from ..sim.methods import method_info
     user = {}
     if config_path is not None:
-        try:   # a broken file is reported by load_config, with its own message
+        try:   # a broken file is reported by read_config, with its own message
             from ..experiments.config import read_toml
             user = read_toml(config_path)[0].get("solver", {})   # never a FIFO or a device
         except Exception:
@@ -97,9 +97,7 @@ def experiment_of(experiment, engine=None):
     """`experiment` itself (an :class:`ivdrem.experiments.experiment.Experiment`), or the
     Experiment of a configuration (its model built, its laws resolved once)."""
     from ..experiments.experiment import Experiment
-    if isinstance(experiment, Experiment):
-        return experiment
-    return Experiment.from_config(experiment, engine=engine or "compiled")
+    return Experiment.of(experiment, engine=engine)
 
 
 def check_runs(experiment, *, engine=None, allow_long=False, fmu_check_t_end=None):
@@ -291,9 +289,11 @@ def timing_text(stats) -> str:
 
 
 def config_from_args(args) -> dict:
-    """The validated configuration of the command line (raises ConfigError, PreflightError)."""
+    """The configuration data of the command line (``--config``, ``--t-end``, ``--laws``,
+    ``--method``), checked key by key and nothing built (:func:`read_config`; raises
+    ConfigError, PreflightError): ``Experiment.from_config`` of it builds the model."""
     from .._paths import user_path
-    from ..experiments.config import load_config
+    from ..experiments.config import read_config
     overrides: dict = {}
     if getattr(args, "t_end", None) is not None:
         overrides["experiment.t_end"] = args.t_end
@@ -302,4 +302,4 @@ def config_from_args(args) -> dict:
     config = getattr(args, "config", None)
     overrides.update(method_overrides(getattr(args, "method", None),
                                       None if config is None else user_path(config)))
-    return load_config(None if config is None else user_path(config), overrides or None)
+    return read_config(None if config is None else user_path(config), overrides or None)

@@ -375,16 +375,20 @@ HOST_KEYS = ("q0", "dq0", "theta", "disturbance")
 MIX_EVERY = 20
 
 
-def controller_design(config, law, *, h=None, mu_max=None):
-    """The arguments of :class:`~ivdrem.controller.sampled.SampledController` for the
-    experiment of ``config`` (:func:`ivdrem.experiments.config.load_config`) and ``law``:
-    the gains, the reference, the window T, the mixing, γ as configured ("auto" left for
-    :func:`resolve_gamma`), ``h`` and ``mu_max`` when given; the scale-free mixings (the
-    URDF arms' default) every :data:`MIX_EVERY` samples.  An option of the experiment
-    the sampled controller does not have is refused in one line (ValueError)."""
+def controller_design(experiment, law, *, h=None, mu_max=None):
+    """The arguments of :class:`~ivdrem.controller.sampled.SampledController` for
+    ``experiment`` (an :class:`~ivdrem.experiments.experiment.Experiment`, or a
+    configuration: its Experiment is made) and ``law``: the gains, the reference, the
+    window T, the mixing, γ as configured ("auto" left for :func:`resolve_gamma`), ``h``
+    and ``mu_max`` when given; the scale-free mixings (the URDF arms' default) every
+    :data:`MIX_EVERY` samples.  The law's arguments are the experiment's, resolved once
+    (``LawSetup.configured``); the model is the experiment's.  An option of the
+    experiment the sampled controller does not have is refused in one line (ValueError)."""
     import inspect
-    from ..experiments.config import closed_loop_kwargs
-    kw = closed_loop_kwargs(config, law)
+    from ..experiments.experiment import Experiment
+    experiment = Experiment.of(experiment)
+    config, model = experiment.config, experiment.model
+    kw = dict(experiment.law(law).configured)
     kw.update(kw.pop("gains"))     # the sampled controller takes the law's gains by name
     accepted = set(inspect.signature(SampledController.__init__).parameters) - {"self", "model",
                                                                                 "law"}
@@ -407,9 +411,7 @@ def controller_design(config, law, *, h=None, mu_max=None):
         out["h"] = float(h)
     if mu_max is not None:
         out["mu_max"] = float(mu_max)
-    from ..experiments.config import model_from_config
     from .sampled import GRADIENT_GAIN, default_design, default_mixing, inertia_scaled_gains
-    model = model_from_config(config)
     if (out.get("mixing", default_mixing(model)) != "paper"
             and get_law(law).windowed):
         # the scale-free mixing of a real arm's tens of parameters is a Jacobi SVD, composite
@@ -495,37 +497,38 @@ def check_generated(model):
             from None
 
 
-def resolve_gamma(model, law, design, config):
+def resolve_gamma(model, law, design, experiment):
     """γ = "auto" resolved to a number by the continuous loop's rule
-    (:func:`ivdrem.diagrams.gamma_auto.calibrate_gamma` on the configuration's closed loop
-    with the design's Γ, the same γ `ivdrem paper` takes when Γ is the configuration's,
-    cached with it): returns (design with γ a number, the
-    calibration's record or None)."""
+    (:func:`ivdrem.diagrams.gamma_auto.calibrate_gamma` on the closed loop of
+    ``experiment``, an Experiment or a configuration, with the design's Γ, the same γ
+    `ivdrem paper` takes when Γ is the configuration's, cached with it): returns (design
+    with γ a number, the calibration's record or None)."""
     if design.get("gamma") != "auto":
         return design, None
     from ..diagrams.gamma_auto import calibrate_gamma
-    from ..experiments.config import closed_loop_kwargs
-    args = {k: v for k, v in closed_loop_kwargs(config, law).items() if k != "gamma"}
+    from ..experiments.experiment import Experiment
+    configured = Experiment.of(experiment).law(law).configured
+    args = {k: v for k, v in configured.items() if k != "gamma"}
     if "Gamma" in design:           # the sampled design's own Γ (controller_design)
         args["Gamma"] = np.asarray(design["Gamma"], dtype=float)
     choice = calibrate_gamma(law, model, args)
     return {**design, "gamma": float(choice["gamma"])}, choice
 
 
-def predict(model, law, design, config=None):
-    """The sampled loop's stability (ivdrem.controller.stability) for the experiment of
-    ``config`` (its θ, disturbance and horizon; None: the model's θ, the paper's disturbance
-    on the 2-link arm, 300 s) over the horizon, and until μ saturates."""
+def predict(model, law, design, experiment=None):
+    """The sampled loop's stability (ivdrem.controller.stability) for ``experiment`` (an
+    Experiment or a configuration: its θ, disturbance and horizon; None: the model's θ, the
+    paper's disturbance on the 2-link arm, 300 s) over the horizon, and until μ saturates."""
     from .loop import PAPER_DISTURBANCE, disturbance_at
     from .stability import sampled_stability
-    if config is None:
+    if experiment is None:
         theta, t_end = model.theta_values, 300.0
         dist = PAPER_DISTURBANCE if model.n == 2 and model.name == "two-link" else None
     else:
-        from ..experiments.config import closed_loop_kwargs
-        kw = closed_loop_kwargs(config, law)
-        theta, t_end, dist = kw["theta"], float(config["experiment"]["t_end"]), \
-            kw.get("disturbance")
+        from ..experiments.experiment import Experiment
+        experiment = Experiment.of(experiment)
+        kw = experiment.law(law).configured
+        theta, t_end, dist = kw["theta"], experiment.t_end, kw.get("disturbance")
     mu0 = float(design.get("mu0", 1.0))
     mu1, mu_max = float(design.get("mu1", 15.0)), float(design.get("mu_max", 135.0))
     if mu0 > 0 and np.isfinite(mu_max):
@@ -537,7 +540,7 @@ def predict(model, law, design, config=None):
 
 
 def _model_override(name):
-    """load_config's overrides for ``--model``: a URDF file or a model name."""
+    """The configuration's overrides for ``--model``: a URDF file or a model name."""
     from pathlib import Path as _P
     from .._paths import user_path
     if name is None:
@@ -552,7 +555,10 @@ def main_export_controller(args) -> int:
 
     Without ``--config`` and for the paper's arms (two-link, planar-N) the controller has
     SampledController's defaults (the paper's experiment); with ``--config``, or a URDF arm
-    by ``--model``, the configuration's experiment becomes the FMU's defaults.  Before
+    by ``--model``, the configuration's experiment (an
+    :class:`~ivdrem.experiments.experiment.Experiment`: its model, built once, its law's
+    gains and its h, the configuration's ``[solver] h``, unless ``--h``) becomes the FMU's
+    defaults.  Before
     anything is built: the options, h against the window T, the C code's generation, γ
     "auto" resolved, and the sampled loop's stability (refused if predicted unstable unless
     ``--despite-prediction``).  Exit 0 written, 2 refused (one line on stderr)."""
@@ -561,7 +567,7 @@ def main_export_controller(args) -> int:
     from ..models import get_model
     prog = "ivdrem fmu export"
     mu_max = 135.0 if args.mu_max is None else args.mu_max
-    h = default_period() if args.h is None else args.h
+    h = args.h          # None: the experiment's (with a configuration) or default_period()
     extra = ""
     try:
         if args.no_compile or args.q0 is not None or args.dq0 is not None:
@@ -577,29 +583,33 @@ def main_export_controller(args) -> int:
         mix_every = getattr(args, "mix_every", None)
         if paper_arm:
             model = get_model(args.model or "two-link")
-            design = dict(mu_max=mu_max, h=h)
+            design = dict(mu_max=mu_max, h=default_period() if h is None else h)
             check_window(dict(design, **_law_window(args.law)), args.law)
             if mix_every is not None:
                 design["mix_every"] = check_mix_every(
                     mix_every, dict(design, **_law_window(args.law)), args.law)
             check_generated(model)
-            config = None
+            experiment = None
         else:
-            from ..experiments.config import load_config, model_from_config
-            config = load_config(None if args.config is None else user_path(args.config),
-                                 _model_override(args.model))
-            model = model_from_config(config)
-            design = controller_design(config, args.law, h=h, mu_max=mu_max)
+            from ..experiments.config import read_config
+            from ..experiments.experiment import Experiment
+            data = read_config(None if args.config is None else user_path(args.config),
+                               _model_override(args.model))
+            # the model built once, the reference designed once, the law resolved once
+            experiment = Experiment.from_config(data, laws=[args.law])
+            model = experiment.model
+            design = controller_design(experiment, args.law,
+                                       h=experiment.h if h is None else h, mu_max=mu_max)
             check_window(design, args.law)
             if mix_every is not None:
                 design["mix_every"] = check_mix_every(mix_every, design, args.law)
             check_generated(model)
-            design, choice = resolve_gamma(model, args.law, design, config)
+            design, choice = resolve_gamma(model, args.law, design, experiment)
             if choice is not None:
                 extra += f", gamma = {design['gamma']:.4g} (auto)"
         SampledController(model, args.law, **design)           # every other check
         if not args.despite_prediction:
-            st = predict(model, args.law, design, config)
+            st = predict(model, args.law, design, experiment)
             if not st.stable:
                 raise ValueError(st.reason() + "; or --despite-prediction")
             extra += f", predicted growth {st.growth:.4g} per step"
@@ -610,7 +620,7 @@ def main_export_controller(args) -> int:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {path} (controller, law {args.law}, model {model.name}, n = {model.n}, "
-          f"ntheta = {model.ntheta}, h = {design.get('h', h) * 1e3:g} ms, "
+          f"ntheta = {model.ntheta}, h = {design['h'] * 1e3:g} ms, "
           f"mu_max = {design.get('mu_max', mu_max):g}, mix_every = "
           f"{design.get('mix_every', 1)}{extra})")
     return 0

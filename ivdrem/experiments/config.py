@@ -5,7 +5,9 @@ The default configuration (the paper experiment) is the package data file
 file (and optional overrides) over it and checks every key: data, no model built, the keys
 that follow the model left out.  :func:`resolve_config` (``Experiment.from_config``) builds
 the model once, fills those keys (the real-arm reference designed once) and checks the
-whole against the model, *before* anything is simulated; :func:`load_config` is both.
+whole against that model, *before* anything is simulated.  ``load_config`` (both) is a
+deprecated alias: the commands and the library take the
+:class:`~ivdrem.experiments.experiment.Experiment` of the data instead.
 Every problem is reported as a :class:`ConfigError` naming the key.
 
 :func:`closed_loop_kwargs` maps a validated configuration to the arguments of
@@ -215,7 +217,7 @@ def _build(name, urdf, stamp, g, friction, joints):
 
 def model_from_config(config: Mapping):
     """The robot model of a configuration's [model] section: ``name`` (any name of
-    ``ivdrem.models.get_model``) or ``urdf`` (a file; made absolute by :func:`load_config`),
+    ``ivdrem.models.get_model``) or ``urdf`` (a file; made absolute by :func:`read_config`),
     with ``g`` and the URDF options ``friction`` and ``joints``.  Built once per process
     and options (a URDF file also by its modification time).  Raises :class:`ConfigError`
     naming the key."""
@@ -540,20 +542,24 @@ def resolve_config(data: Mapping, model=None) -> tuple[dict, object]:
     cfg = copy.deepcopy({s: dict(t) for s, t in data.items()})
     model = model_from_config(cfg) if model is None else model
     _follow_model(cfg, model)
-    return validate_config(cfg), model
+    return validate_config(cfg, model=model), model
 
 
 def load_config(path: str | Path | None = None, overrides: Mapping | None = None) -> dict:
-    """The experiment configuration resolved against its model: :func:`read_config`
-    then :func:`resolve_config` (the model built, the keys that follow it filled).
-    Raises :class:`ConfigError` for any invalid or unknown entry."""
+    """Deprecated: ``Experiment.from_config(read_config(path, overrides)).config`` (the
+    :class:`~ivdrem.experiments.experiment.Experiment` keeps the model it built); warns."""
+    import warnings
+    warnings.warn("ivdrem.experiments.config.load_config is deprecated: read the data with "
+                  "read_config(path, overrides) and resolve it once with "
+                  "Experiment.from_config(data) (docs/experiment.md)",
+                  DeprecationWarning, stacklevel=2)
     return resolve_config(read_config(path, overrides))[0]
 
 
-def _check_reference_limits(config: Mapping) -> None:
+def _check_reference_limits(config: Mapping, model=None) -> None:
     """The configured reference stays inside the model's position and velocity limits
     over the run (models without limits pass); a ConfigError names joint and time."""
-    model = model_from_config(config)
+    model = model_from_config(config) if model is None else model
     if not any(hasattr(model, a) for a in ("position_limits", "velocity_limits")):
         return
     try:
@@ -748,10 +754,11 @@ def _section_keys(section: str, table: Mapping, keys: Mapping) -> dict:
     return {**keys, **{k: v for k, v in extra.items() if k in table and k not in keys}}
 
 
-def validate_config(cfg: Mapping, *, with_model: bool = True, following=frozenset()) -> dict:
+def validate_config(cfg: Mapping, *, with_model: bool = True, following=frozenset(),
+                    model=None) -> dict:
     """Check a complete configuration dict; return a normalized deep copy.
 
-    Every section and key of :data:`SECTIONS` must be present (use :func:`load_config`
+    Every section and key of :data:`SECTIONS` must be present (use :func:`read_config`
     to fill missing ones from the default); a law's own section takes the registry's
     defaults for the keys it lacks; the keys of :data:`OPTIONAL` may be.  The
     reference must stay inside the model's joint limits over the run.
@@ -759,9 +766,10 @@ def validate_config(cfg: Mapping, *, with_model: bool = True, following=frozense
 
     ``with_model=False`` leaves out what needs the model built (vector lengths against
     n and nθ, the joint limits): the embedded default read as the base of another
-    model's configuration, which :func:`load_config` validates whole once merged.
+    model's configuration, which :func:`resolve_config` validates whole once merged.
     ``following`` (with ``with_model=False``): the (section, key) left absent to follow
-    the model (:func:`read_config`), neither required nor filled.
+    the model (:func:`read_config`), neither required nor filled.  ``model``: the model
+    of `cfg`, already built (:func:`resolve_config`); default :func:`model_from_config`.
     """
     if not isinstance(cfg, Mapping):
         raise ConfigError(f"configuration must be a table, got {type(cfg).__name__}")
@@ -793,7 +801,10 @@ def validate_config(cfg: Mapping, *, with_model: bool = True, following=frozense
 
     if not with_model:
         return out
-    n, ntheta = model_dims(out)
+    if model is None:
+        n, ntheta = model_dims(out)
+    else:
+        n, ntheta = int(model.n), int(model.ntheta)
     dims = {"n": n, "ntheta": ntheta}
     label = model_label(out)
     for section, keys in specs.items():
@@ -820,7 +831,7 @@ def validate_config(cfg: Mapping, *, with_model: bool = True, following=frozense
         )
     if len(set(exp["laws"])) != len(exp["laws"]):
         raise ConfigError(f"config key 'experiment.laws' lists a law twice: {exp['laws']}")
-    _check_reference_limits(out)
+    _check_reference_limits(out, model)
     _check_step_bounds(out)
     return out
 
@@ -944,8 +955,11 @@ def law_gains(config: Mapping, law: str) -> dict:
     return {k: (_argument(table[k]) if k in table else v) for k, v in spec.defaults.items()}
 
 
-def closed_loop_kwargs(config: Mapping, law: str) -> dict:
-    """The arguments of ``ivdrem.diagrams.closed_loop(law, model, **kwargs)`` for `config`.
+def closed_loop_kwargs(config: Mapping, law: str, model=None) -> dict:
+    """The arguments of ``ivdrem.diagrams.closed_loop(law, model, **kwargs)`` for `config`
+    (`model`: its model, already built; default :func:`model_from_config`, read only by
+    the inertia-scaled design).  An :class:`~ivdrem.experiments.experiment.Experiment`
+    calls it once per law (``LawSetup.configured``).
 
     The loop's own keywords: alpha, K (n×n; with ``design = "inertia-scaled"`` the joint
     gains over M̂_ii(q0), in 1/s), design and injection (when configured), delta_mu, Gamma
@@ -986,7 +1000,8 @@ def closed_loop_kwargs(config: Mapping, law: str) -> dict:
     if "design" in ctl:
         kw["design"] = ctl["design"]
         if ctl["design"] == "inertia-scaled":     # K in 1/s: the joint gain over M̂_ii(q0)
-            kw["K"] = np.diag(inertia_scaled_gain(model_from_config(c), ctl["K"], kw["q0"],
+            kw["K"] = np.diag(inertia_scaled_gain(model_from_config(c) if model is None
+                                                  else model, ctl["K"], kw["q0"],
                                                   theta))
     return kw
 
@@ -1050,7 +1065,7 @@ def _toml_value(v: Any) -> str:
 
 
 def dump_toml(config: Mapping) -> str:
-    """TOML text of a configuration; ``load_config`` of it gives the same dict."""
+    """TOML text of a configuration; :func:`read_config` of it, resolved, gives the same dict."""
     lines = []
     for section, table in config.items():
         lines.append(f"[{section}]")

@@ -9,9 +9,12 @@ ask it, and nothing resolves the same value twice):
   against it (``Experiment.config``: the keys that follow the model filled, the real-arm
   reference designed once, the whole checked);
 * per law (:meth:`Experiment.law`, a :class:`LawSetup`): the configuration turned into
-  ``closed_loop``'s arguments once: the loop's keywords and the law's ``gains`` (one
-  channel, by the names its registry entry declares), the arm's rule for γ and the mixing
-  applied (:func:`ivdrem.diagrams.closed_loop.resolve_loop`), and the solver settings;
+  ``closed_loop``'s arguments once (``configured``, as the configuration sets them: what
+  the sampled controller and the MuJoCo loop take, with their own defaults for the rest):
+  the loop's keywords and the law's ``gains`` (one channel, by the names its registry
+  entry declares), the arm's rule for γ and the mixing applied
+  (:func:`ivdrem.diagrams.closed_loop.resolve_loop`), and the solver settings;
+* the sampled controller's period ``h`` (the configuration's ``[solver] h``);
 * γ "auto" chosen once by its calibration (:meth:`Experiment.choose_gamma`,
   :func:`ivdrem.diagrams.gamma_auto.calibrate_gamma`, kept on disk as before) and kept;
 * each law's loop built once (:meth:`Experiment.loop`): the preflight prices the loop the
@@ -19,7 +22,9 @@ ask it, and nothing resolves the same value twice):
   (``simulate(..., params={"gamma": γ})``), so pricing it needs no calibration.
 
 ``ivdrem paper`` and ``ivdrem report`` (their preflight, runs, report and FMU check),
-``cosim``, a study's runs and ``fmu export --controller --config`` take one.
+``cosim`` (with the plant FMU or in MuJoCo), a study's runs (and a robustness study's),
+``report --plant mujoco`` and ``fmu export --controller --config`` take one
+(:meth:`Experiment.of` makes one of a configuration handed to a library function).
 """
 from __future__ import annotations
 
@@ -47,11 +52,15 @@ class LawSetup:
     """One law of an :class:`Experiment`, resolved: ``gains`` (the law's, by name; γ may be
     "auto" until :meth:`Experiment.choose_gamma`), ``loop`` (closed_loop's own keywords,
     the real-arm experiment designed), ``solver`` (the simulator's settings, h_max held to
-    half the window T), and γ's calibration once chosen (``gamma_choice``, ``gamma``)."""
+    half the window T), ``configured`` (closed_loop's arguments as the configuration sets
+    them, before the loop's defaults and the arm's rules: what the sampled controller
+    takes, :func:`ivdrem.controller.fmu_export.controller_design`), and γ's calibration
+    once chosen (``gamma_choice``, ``gamma``)."""
     law: str
     gains: dict
     loop: dict
     solver: dict
+    configured: dict = field(default_factory=dict, repr=False)
     gamma_choice: dict | None = None
     diagram: object = field(default=None, repr=False)
 
@@ -93,7 +102,19 @@ class Experiment:
         self.t_end = float(config["experiment"]["t_end"])
         self.dt_out = float(config["experiment"]["dt_out"])
         self.theta = np.asarray(config["model"]["theta"], float)
+        #: the sampled controller's period h, s: the configuration's ``[solver] h`` (the
+        #: default configuration's 1 ms, experiments/default.toml)
+        self.h = float(config["solver"]["h"])
         self._setups: dict[str, LawSetup] = {}
+
+    @classmethod
+    def of(cls, experiment, *, engine: str | None = None) -> "Experiment":
+        """`experiment` itself if it is an Experiment, else the Experiment of that
+        configuration (data or resolved; :meth:`from_config`): for the library functions
+        that take either."""
+        if isinstance(experiment, cls):
+            return experiment
+        return cls.from_config(experiment, engine=engine or "compiled")
 
     @classmethod
     def from_config(cls, config: Mapping | None = None, *, engine: str = "compiled",
@@ -112,6 +133,11 @@ class Experiment:
             experiment.law(law)
         return experiment
 
+    def __reduce__(self):
+        # to another process (a study's Dask worker) as its resolved configuration: the
+        # model is built there, once per process (config.model_from_config keeps it)
+        return (_experiment_of, (self.config, self.engine, self.laws))
+
     def law(self, law: str) -> LawSetup:
         """`law`'s setup, resolved the first time it is asked for (a law outside
         ``laws``, e.g. the FMU check's iv-drem, is resolved on demand)."""
@@ -119,9 +145,10 @@ class Experiment:
         if setup is None:
             from ..diagrams.closed_loop import resolve_loop
             from .config import closed_loop_kwargs, solver_kwargs
-            kw = closed_loop_kwargs(self.config, law)       # once per law
+            kw = closed_loop_kwargs(self.config, law, self.model)     # once per law
+            configured = {**kw, "gains": dict(kw["gains"])}
             _, _, gains, loop = resolve_loop(law, self.model, **kw)
-            setup = LawSetup(law, gains, loop, solver_kwargs(self.config, law))
+            setup = LawSetup(law, gains, loop, solver_kwargs(self.config, law), configured)
             self._setups[law] = setup
         return setup
 
@@ -209,6 +236,11 @@ class Experiment:
         if choice is not None:
             stats["gamma_choice"] = choice
         return LawRun(law, resp, stats, gamma=setup.gamma)
+
+
+def _experiment_of(config, engine, laws):
+    """The Experiment of a resolved configuration (unpickling, :meth:`Experiment.__reduce__`)."""
+    return Experiment.from_config(config, engine=engine, laws=laws)
 
 
 def _number_text(value, fmt=".4g"):

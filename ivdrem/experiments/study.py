@@ -407,7 +407,7 @@ def check_study_cost(runs: list[RunSpec]) -> None:
                                sort_keys=True)
         key = (run.law, model_key, json.dumps(run.config.get("iv_drem", {}).get("mixing")))
         try:
-            experiment = Experiment.from_config(run.config, laws=[run.law])
+            experiment = Experiment.from_config(run.config, laws=[run.law], model=run.model)
             if key not in priced:
                 priced[key] = experiment.loop(run.law)
                 experiment.release(run.law)

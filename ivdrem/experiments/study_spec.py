@@ -44,7 +44,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .config import (ConfigError, closed_loop_kwargs, load_config, read_toml, solver_kwargs,
+from .config import (ConfigError, closed_loop_kwargs, read_config, read_toml, solver_kwargs,
                      validate_config)
 
 
@@ -96,6 +96,9 @@ class StudySpec:
     seed: int | None = None
     text: str = ""  # the study definition as TOML-ish text, for the report
     raw: dict = field(default_factory=dict)
+    #: the base's model, built once (its Experiment's): the runs that keep the base's
+    #: [model] are checked against it and carry it to their Experiment (in this process)
+    model: Any = field(default=None, repr=False, compare=False)
 
 
 @dataclass
@@ -108,6 +111,8 @@ class RunSpec:
     values: dict  # varied column -> value ("iv_drem.T": 10.0, "disturbance.omega[0]": 1.2)
     config: dict  # complete validated configuration, experiment.laws == [law]
     hash: str
+    #: the run's model when it is the base's (built once, :attr:`StudySpec.model`), else None
+    model: Any = field(default=None, repr=False, compare=False)
 
     @property
     def label(self) -> str:
@@ -123,12 +128,13 @@ def _short(v) -> str:
     return json.dumps(v) if not isinstance(v, str) else v
 
 
-def config_hash(config: Mapping, law: str) -> str:
+def config_hash(config: Mapping, law: str, model=None) -> str:
     """Hash of everything one law's run reads from a configuration (identifies the run).
 
-    That is the closed loop's arguments (``closed_loop_kwargs``), the solver's
-    (``solver_kwargs``), the model and the horizon: two runs that differ only in keys
-    their law does not read (composite learning and ``iv_drem.T``) have the same hash.
+    That is the closed loop's arguments (``closed_loop_kwargs``; `model`: the
+    configuration's, already built), the solver's (``solver_kwargs``), the model and the
+    horizon: two runs that differ only in keys their law does not read (composite learning
+    and ``iv_drem.T``) have the same hash.
     """
     def plain(v):
         if isinstance(v, np.ndarray):
@@ -139,8 +145,11 @@ def config_hash(config: Mapping, law: str) -> str:
             return [plain(x) for x in v]
         return v
 
-    loop = closed_loop_kwargs(config, law)
+    loop = closed_loop_kwargs(config, law, model)
     loop.update(loop.pop("gains"))      # by name beside the loop's: hashes of earlier studies
+    if not isinstance(loop["trajectory"], Mapping):
+        # a Fourier reference is a block in closed_loop's arguments: hashed as its table
+        loop["trajectory"] = dict(config["trajectory"])
     what = {
         "law": law,
         "model": config["model"],
@@ -176,10 +185,14 @@ def read_study(source) -> StudySpec:
         base_path = Path(base_path)
         if not base_path.is_absolute():
             base_path = folder / base_path
-    try:
-        base = load_config(base_path, overrides=raw or None)
+    from .experiment import Experiment
+    try:     # the base resolved once: its model built, the keys that follow it filled
+        # (its laws are resolved by each run's own Experiment)
+        experiment = Experiment.from_config(read_config(base_path, overrides=raw or None),
+                                            laws=[])
     except ConfigError as exc:
         raise StudyError(f"{where}: {exc}") from None
+    base = experiment.config
     grid = _flatten(study.get("grid", {}), stop_at_dist=False)
     rand = dict(study.get("random", {}))
     samples, seed = rand.pop("samples", None), rand.pop("seed", None)
@@ -187,7 +200,8 @@ def read_study(source) -> StudySpec:
     if not grid and not rand:
         raise StudyError(f"{where}: [study] varies nothing: give [study.grid] and/or [study.random] keys")
     spec = StudySpec(source=where, base=base, grid={}, random={}, text=text or _dict_text(source),
-                     raw=copy.deepcopy(dict(source)) if isinstance(source, Mapping) else {})
+                     raw=copy.deepcopy(dict(source)) if isinstance(source, Mapping) else {},
+                     model=experiment.model)
     for key, values in grid.items():
         _check_key(base, key, f"[study.grid] key '{key}'")
         if not isinstance(values, list):
@@ -413,16 +427,18 @@ def expand_study(spec: StudySpec) -> list[RunSpec]:
                 values.update(_columns(key, value))
             sample = s if spec.random else None
             where = _point_label(point, assigned, sample)
+            # a point that keeps the base's [model] has the base's model (built once)
+            model = spec.model if cfg["model"] == spec.base["model"] else None
             try:
-                cfg = validate_config(cfg)
+                cfg = validate_config(cfg, model=model)
             except ConfigError as exc:
                 raise StudyError(f"{where}: {exc}") from None
             for law in cfg["experiment"]["laws"]:
                 run_cfg = copy.deepcopy(cfg)
                 run_cfg["experiment"]["laws"] = [law]
-                h = config_hash(run_cfg, law)
+                h = config_hash(run_cfg, law, model)
                 r = RunSpec(index=len(runs), point=point, law=law, sample=sample,
-                            values=dict(values), config=run_cfg, hash=h)
+                            values=dict(values), config=run_cfg, hash=h, model=model)
                 # runs with the same configuration (a law that does not read a varied
                 # key, a repeated draw of `choice`) are simulated once and share a record
                 runs.append(r)

@@ -581,17 +581,20 @@ def _fit_theta(plant, *, states, seed):
 
 
 # ----------------------------------------------------------------------------- the loop
-def controller_kwargs(config, law):
-    """The sampled controller's arguments and the run's (q0, dq0, disturbance) from an
-    experiment configuration (ivdrem.experiments.config): ``closed_loop_kwargs`` without
-    the continuous loop's own keys, the reference as the configuration's table (a sinusoid
-    or the Fourier series of docs/experiment.md)."""
-    from ..experiments.config import closed_loop_kwargs
-    kw = closed_loop_kwargs(config, law)
+def controller_kwargs(experiment, law):
+    """The sampled controller's arguments and the run's (q0, dq0, disturbance) of
+    ``experiment`` (an :class:`~ivdrem.experiments.experiment.Experiment`, or a
+    configuration: its Experiment is made): the law's arguments as the experiment resolved
+    them once (``LawSetup.configured``) without the continuous loop's own keys, the
+    reference as the configuration's table (a sinusoid or the Fourier series of
+    docs/experiment.md)."""
+    from ..experiments.experiment import Experiment
+    experiment = Experiment.of(experiment)
+    kw = dict(experiment.law(law).configured)
     kw.update(kw.pop("gains"))     # the sampled controller takes the law's gains by name
     run = dict(q0=kw.pop("q0"), dq0=kw.pop("dq0"), disturbance=kw.pop("disturbance"))
     kw.pop("theta", None)
-    tr = config["trajectory"]
+    tr = experiment.config["trajectory"]
     if tr.get("kind", "sinusoid") == "fourier":
         kw["trajectory"] = dict(kind="fourier", omega_f=float(tr["omega_f"]),
                                 a=np.asarray(tr["a"], float), b=np.asarray(tr["b"], float),

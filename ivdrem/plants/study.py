@@ -71,9 +71,11 @@ def is_robustness_file(path) -> bool:
 
 
 def read_robustness(path, *, model=None, t_end=None):
-    """(base configuration, [robustness] table with defaults) of a study file; ``model``
-    and ``t_end`` override the file's."""
-    from ..experiments.config import load_config, read_toml
+    """(the base :class:`~ivdrem.experiments.experiment.Experiment`, [robustness] table
+    with defaults, the file's text) of a study file; ``model`` and ``t_end`` override the
+    file's.  The experiment's model is built once, its laws resolved once."""
+    from ..experiments.config import read_config, read_toml
+    from ..experiments.experiment import Experiment
     raw, text = read_toml(Path(path), "study file")
     table = raw.pop("robustness", None)
     if not isinstance(table, dict):
@@ -105,8 +107,7 @@ def read_robustness(path, *, model=None, t_end=None):
         raw.setdefault("model", {})["name"] = model
     if t_end is not None:
         raw.setdefault("experiment", {})["t_end"] = float(t_end)
-    config = load_config(None, overrides=raw)
-    return config, rob, text
+    return Experiment.from_config(read_config(None, overrides=raw)), rob, text
 
 
 #: the laws whose γ scales Δ² of the mixing (21); composite learning's γ of (35) multiplies
@@ -135,10 +136,11 @@ def sensing(rob, level, seed):
                    encoder_noise=float(rob["encoder_noise"]))
 
 
-def expand(config, rob):
-    """The runs: dicts of (law, noise_level, payload_mass, omega_scale, seed); a noise
-    level whose sensing draws no noise runs with the first seed only (the others would
-    repeat it)."""
+def expand(experiment, rob):
+    """The runs of `experiment` (an Experiment, or its configuration): dicts of (law,
+    noise_level, payload_mass, omega_scale, seed); a noise level whose sensing draws no
+    noise runs with the first seed only (the others would repeat it)."""
+    config = getattr(experiment, "config", experiment)
     laws = list(config["experiment"]["laws"])
     first = rob["seeds"][0]
     return [dict(law=law, noise_level=float(lv), payload_mass=float(pm), omega_scale=float(om),
@@ -149,15 +151,18 @@ def expand(config, rob):
             if sd == first or sensing(rob, lv, sd).random]
 
 
-def run_one(config, rob, run) -> dict:
-    """One MuJoCo loop of the study (on a worker); never raises: a failed run is a row."""
+def run_one(experiment, rob, run) -> dict:
+    """One MuJoCo loop of the study's `experiment` (an Experiment; on a worker, its
+    configuration, resolved there once); never raises: a failed run is a row."""
     from .mujoco import Payload, closed_loop, controller_kwargs, load
-    from ..experiments.config import model_from_config
+    from ..experiments.experiment import Experiment
     t0, cpu0 = time.perf_counter(), time.process_time()
     row = dict(run, status="ok", error="")
     try:
-        model = model_from_config(config)
-        kw, start = controller_kwargs(config, run["law"])
+        if not isinstance(experiment, Experiment):
+            experiment = Experiment.from_config(experiment, laws=[run["law"]])
+        model = experiment.model
+        kw, start = controller_kwargs(experiment, run["law"])
         kw["mu_max"] = float(rob["mu_max"])
         gamma = _law_gamma(rob["gamma"], run["law"])
         if gamma is not None:                     # instead of the configuration's
@@ -173,8 +178,7 @@ def run_one(config, rob, run) -> dict:
             run["payload_mass"], tuple(rob["payload_com"]))
         plant = load(model, payload=payload, states=20)
         imp = sensing(rob, run["noise_level"], run["seed"])
-        t_end = float(config["experiment"]["t_end"])
-        resp = closed_loop(plant, t_end, run["law"], imperfections=imp, q0=start["q0"],
+        resp = closed_loop(plant, experiment.t_end, run["law"], imperfections=imp, q0=start["q0"],
                            dq0=start["dq0"], disturbance=dist, every=100, progress=False,
                            **kw)
         s = summarize(resp)
@@ -194,8 +198,8 @@ def run_robustness(path, out, *, workers=1, model=None, t_end=None, progress=Tru
     robustness.html (:func:`write_report`)."""
     import pandas as pd
     from .._atomic import write_text_atomic
-    config, rob, text = read_robustness(path, model=model, t_end=t_end)
-    runs = expand(config, rob)
+    experiment, rob, text = read_robustness(path, model=model, t_end=t_end)
+    runs = expand(experiment, rob)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "study.toml", text)
@@ -229,19 +233,21 @@ def run_robustness(path, out, *, workers=1, model=None, t_end=None, progress=Tru
             # sample), so that no worker is left with a long run at the end
             order = sorted(runs, key=lambda r: r["law"] not in _MIXING_LAWS + (
                 "composite-learning",))
-            futs = [client.submit(run_one, config, rob, r, pure=False) for r in order]
+            # a worker gets the resolved configuration and makes its Experiment once per run
+            futs = [client.submit(run_one, experiment.config, rob, r, pure=False)
+                    for r in order]
             for f in as_completed(futs):
                 done(f.result())
     else:
         for r in runs:
-            done(run_one(config, rob, r))
+            done(run_one(experiment, rob, r))
     wall = time.perf_counter() - t0
     key = ["noise_level", "payload_mass", "omega_scale", "seed", "law"]
     df = pd.DataFrame(rows).sort_values(key).reset_index(drop=True)
     write_text_atomic(out / "results.csv", df.to_csv(index=False))
     df.attrs.update(wall_s=wall, workers=workers)
     if report:
-        write_report(df, out, model=config["model"].get("name", "?"), study_text=text,
+        write_report(df, out, model=experiment.config["model"].get("name", "?"), study_text=text,
                      wall_s=wall, workers=workers)
     return df, wall
 
@@ -425,26 +431,27 @@ def summarize(resp, *, last_fraction=0.2) -> dict:
         theta_end=signal(resp, "theta")[:, -1].tolist(), **resp.costs)
 
 
-def mujoco_paper_run(config, *, mu_max=135.0, every=None, progress=False, log=None):
-    """The experiment of ``config`` (its model, laws, t_end, reference, disturbance, gains)
-    with MuJoCo as the plant: a :class:`~ivdrem.experiments.paper.PaperRun` whose law runs
-    are :func:`ivdrem.plants.mujoco.closed_loop` responses (recorded every 10 ms), for the
-    report builder (``ivdrem report --plant mujoco``).  ``run.engine`` names the plant."""
+def mujoco_paper_run(experiment, *, mu_max=135.0, every=None, progress=False, log=None):
+    """``experiment`` (an :class:`~ivdrem.experiments.experiment.Experiment`, or a
+    configuration: its model, laws, t_end, reference, disturbance, gains, and the sampled
+    controller's h) with MuJoCo as the plant: a :class:`~ivdrem.experiments.paper.PaperRun`
+    whose law runs are :func:`ivdrem.plants.mujoco.closed_loop` responses (recorded every
+    10 ms), for the report builder (``ivdrem report --plant mujoco``).  ``run.engine``
+    names the plant."""
     import mujoco
-    from ..experiments.config import model_from_config
+    from ..experiments.experiment import Experiment
     from ..experiments.paper import LawRun, PaperRun
     from ..plants.mujoco import closed_loop, controller_kwargs, load
-    model = model_from_config(config)
-    t_end = float(config["experiment"]["t_end"])
-    h = 1e-3
+    experiment = Experiment.of(experiment)
+    config, model, t_end, h = experiment.config, experiment.model, experiment.t_end, experiment.h
     plant = load(model, h=h)
     every = every or max(1, int(round(float(config["experiment"]["dt_out"]) / h)))
     run = PaperRun(config=config, theta=np.asarray(plant.theta, float), model=model)
     run.engine = (f"MuJoCo {mujoco.__version__} plant ({plant.integrator} integrator, step "
                   f"{plant.mj.opt.timestep:g} s; ivdrem.plants.mujoco), the sampled C "
                   f"controller at h = {h:g} s, μ saturated at {mu_max:g}")
-    for law in config["experiment"]["laws"]:
-        kw, start = controller_kwargs(config, law)
+    for law in experiment.laws:
+        kw, start = controller_kwargs(experiment, law)
         kw["mu_max"] = float(mu_max)
         if kw.get("gamma") == "auto":
             from ..controller.block import auto_gamma

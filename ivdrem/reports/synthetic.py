@@ -123,10 +123,10 @@ def synthetic_paper_run(config=None, *, t_end=None, dt=None, laws=None, cl_conve
     makes IV-DREM stall (C2 fails), iv_tau_better=False gives IV-DREM the baseline's
     τ_d error (C3 fails).
     """
-    from ..experiments.config import load_config
+    from ..experiments.config import read_config
 
-    if config is None:
-        config = load_config()
+    if config is None:   # the paper's 2-link experiment: its data is complete (no model needed)
+        config = read_config()
     config = getattr(config, "config", config)     # an Experiment's configuration
     t_end = float(config["experiment"]["t_end"] if t_end is None else t_end)
     dt = float(config["experiment"]["dt_out"] if dt is None else dt)
