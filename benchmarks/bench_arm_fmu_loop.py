@@ -35,10 +35,10 @@ def run_arm(name, t_end, h=1e-3, gamma=None, mix_every=None, every=1000, law="iv
     from ivdrem.controller.fmu_export import (controller_design, export_controller_fmu,
                                               predict, resolve_gamma)
     from ivdrem.controller.fmu_loop import fmpy_closed_loop
-    from ivdrem.experiments.config import closed_loop_kwargs, load_config, model_from_config
+    from ivdrem.experiments.config import closed_loop_kwargs, read_config, resolve_config, model_from_config
     from ivdrem.fmu import export_fmu
-    config = load_config(None, {"model.name": name,
-                                **({} if Gamma is None else {"controller.Gamma": Gamma})})
+    config = resolve_config(read_config(None, {"model.name": name,
+                                **({} if Gamma is None else {"controller.Gamma": Gamma})}))[0]
     model = model_from_config(config)
     design = controller_design(config, law, h=h)
     if gamma is not None:

@@ -92,8 +92,8 @@ def _experiment(model):
     m = re.fullmatch(r"planar-(\d+)", model.name)
     if m:
         return planar_experiment(int(m.group(1)))
-    from ivdrem.experiments.config import closed_loop_kwargs, load_config
-    kw = closed_loop_kwargs(load_config(overrides={"model.name": model.name}), "iv-drem")
+    from ivdrem.experiments.config import closed_loop_kwargs, read_config, resolve_config
+    kw = closed_loop_kwargs(resolve_config(read_config(overrides={"model.name": model.name}))[0], "iv-drem")
     # T: the window the real-arm design gives (a common period of reference and disturbance)
     return {**{k: kw[k] for k in ("trajectory", "disturbance", "q0", "dq0")},
             "T": kw["gains"]["T"]}

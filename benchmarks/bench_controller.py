@@ -190,12 +190,12 @@ def arm_parameters(name, law, h=1e-3, mix_every=None):
     from ivdrem.controller.parameters import param_vector
     from ivdrem.controller.fmu_export import controller_design
     from ivdrem.controller.sampled import SampledController
-    from ivdrem.experiments.config import load_config, model_from_config
+    from ivdrem.experiments.config import read_config, resolve_config, model_from_config
     if name == "two-link":
         from ivdrem.models import two_link
         model = two_link()
         return model, param_vector(SampledController(model, law, mu_max=135.0, h=h))
-    config = load_config(None, {"model.name": name})
+    config = resolve_config(read_config(None, {"model.name": name}))[0]
     model = model_from_config(config)
     design = controller_design(config, law, h=h)
     if design.get("gamma") == "auto":

@@ -46,9 +46,9 @@ _RSS_CHILD = ("import resource, sys; from ivdrem.cli import main; rc = main(sys.
 _CLOSED_LOOP_CHILD = """
 import sys, time
 import ivdrem.sim, ivdrem.diagrams
-from ivdrem.experiments.config import closed_loop_kwargs, load_config, model_from_config
+from ivdrem.experiments.config import closed_loop_kwargs, read_config, resolve_config, model_from_config
 t0 = time.perf_counter()
-config = load_config(overrides={"model.name": sys.argv[1]})
+config = resolve_config(read_config(overrides={"model.name": sys.argv[1]}))[0]
 model = model_from_config(config)
 t1 = time.perf_counter()
 from ivdrem.diagrams import closed_loop
@@ -58,12 +58,12 @@ print("TIMES", t1 - t0, t2 - t1)
 """
 _SERIAL_STUDY_CHILD = """
 import sys, time
-from ivdrem.experiments.config import load_config
+from ivdrem.experiments.config import read_config, resolve_config
 from ivdrem.experiments.paper import run_law
 t0 = time.perf_counter()
 for alpha in [float(a) for a in sys.argv[2].split(",")]:
-    config = load_config(overrides={"experiment.t_end": float(sys.argv[1]),
-                                    "controller.alpha": alpha})
+    config = resolve_config(read_config(overrides={"experiment.t_end": float(sys.argv[1]),
+                                    "controller.alpha": alpha}))[0]
     for law in ("iv-drem", "composite-learning"):
         run_law(config, law, progress=False)
 print("TIMES", time.perf_counter() - t0)

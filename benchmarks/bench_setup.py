@@ -41,7 +41,7 @@ def child(arm, gamma, repo):
     sys.path.insert(0, str(repo))
     import ivdrem
     from ivdrem.diagrams import closed_loop
-    from ivdrem.experiments.config import (closed_loop_kwargs, load_config,
+    from ivdrem.experiments.config import (closed_loop_kwargs, read_config, resolve_config,
                                            model_from_config, solver_kwargs)
     from ivdrem.sim import compiled, jacobian, simulate
     out = {"import": time.perf_counter() - t_start, "ivdrem": ivdrem.__file__}
@@ -68,7 +68,7 @@ def child(arm, gamma, repo):
     over = {"iv_drem.gamma": gamma}
     if path is None:
         over["model.name"] = arm
-    cfg = load_config(None if path is None else repo / path, overrides=over)
+    cfg = resolve_config(read_config(None if path is None else repo / path, overrides=over))[0]
     t = time.perf_counter()
     model = model_from_config(cfg)
     out["model"] = time.perf_counter() - t

@@ -50,18 +50,18 @@ def _echo(payload):
 def main():
     from dask.distributed import Client, LocalCluster
 
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config, resolve_config
     from ivdrem.experiments.paper import run_law
     from ivdrem.experiments.study import run_study
 
     print(f"load average before: {os.getloadavg()}")
     # warm the disk cache and measure the floor: 8 runs in this process, one after the other
     for law in ("iv-drem", "composite-learning"):
-        run_law(load_config(None, {"experiment.t_end": 1.0}), law, progress=False)
+        run_law(resolve_config(read_config(None, {"experiment.t_end": 1.0}))[0], law, progress=False)
     t0 = time.perf_counter()
     serial = []
     for a in ALPHAS:
-        cfg = load_config(None, {"experiment.t_end": T_END, "controller.alpha": a})
+        cfg = resolve_config(read_config(None, {"experiment.t_end": T_END, "controller.alpha": a}))[0]
         for law in cfg["experiment"]["laws"]:
             serial.append(run_law(cfg, law, progress=False).stats["wall_s"])
     t_serial = time.perf_counter() - t0

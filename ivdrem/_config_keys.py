@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
-__all__ = ["Key", "in_range", "magnitude", "POSITIVE"]
+__all__ = ["Key", "in_range", "magnitude", "POSITIVE", "base_unit"]
 
 
 @dataclass(frozen=True)
@@ -37,6 +37,38 @@ class Key:
     unit: str = ""
     doc: str = ""
     structural: bool = False
+
+    def __post_init__(self):
+        if self.unit:
+            base_unit(self.unit)     # refused here, at the declaration, not at an FMU export
+
+
+#: SI base-unit exponents of the unit symbols a variable may carry (FMI's BaseUnit
+#: attributes: kg, m, s, A, K, mol, cd, rad)
+_UNIT_SYMBOLS = {"1": {}, "rad": {"rad": 1}, "s": {"s": 1}, "m": {"m": 1}, "kg": {"kg": 1},
+                 "N": {"kg": 1, "m": 1, "s": -2}, "Hz": {"s": -1}}
+
+
+def base_unit(unit):
+    """The BaseUnit attributes of `unit` ("rad/s", "N.m", "1/s", "kg.m^2", ...): symbols
+    joined by "." (product) and "/" (the rest divides), each with an optional integer
+    power "^k"; a symbol FMI's base units cannot express is refused naming it."""
+    exps = {}
+    for i, part in enumerate(unit.split("/")):
+        for factor in part.split("."):
+            symbol, _, power = factor.partition("^")
+            try:
+                k = int(power) if power else 1
+            except ValueError:
+                k = None
+            if symbol not in _UNIT_SYMBOLS or k is None:
+                raise ValueError(f"unit {unit!r}: {factor!r} is not one of the units an FMU's "
+                                 f"BaseUnit can express ({', '.join(_UNIT_SYMBOLS)}, "
+                                 "joined by '.' and '/', powers as '^k')")
+            for b, e in _UNIT_SYMBOLS[symbol].items():
+                exps[b] = exps.get(b, 0) + (k * e if i == 0 else -k * e)
+    order = ("kg", "m", "s", "A", "K", "mol", "cd", "rad")
+    return " ".join(f'{b}="{exps[b]}"' for b in order if exps.get(b))
 
 
 POSITIVE = dict(check=lambda x: x > 0, requirement="> 0")

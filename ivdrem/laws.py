@@ -38,7 +38,7 @@ from typing import Callable
 import numpy as np
 
 from . import blocks as block_library
-from ._config_keys import Key, in_range, magnitude
+from ._config_keys import Key, base_unit, in_range, magnitude
 from .blocks._kernels import MIXING_VARIANTS as _VARIANTS
 from .blocks.mixing import start_of_term
 
@@ -46,7 +46,7 @@ __all__ = ["Law", "LawContext", "LAWS", "register_law", "get_law", "law_names",
            "sampled_laws", "law_codes", "sampled_step", "sampled_gains",
            "sampled_gain_defaults", "gain_declaration",
            "mixed_regression_blocks", "MIXING_VARIANTS", "default_mixing", "is_paper_arm",
-           "Key", "in_range", "magnitude"]
+           "Key", "base_unit", "in_range", "magnitude"]
 
 
 @dataclass

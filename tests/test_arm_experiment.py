@@ -9,7 +9,7 @@ import pytest
 import ivdrem.models as models
 from ivdrem.blocks.sources import fourier_series
 from ivdrem.diagrams import arm_reference as arm
-from ivdrem.experiments.config import (ConfigError, closed_loop_kwargs, dump_toml, load_config,
+from ivdrem.experiments.config import (ConfigError, closed_loop_kwargs, dump_toml, read_config, resolve_config,
                                        model_from_config)
 from ivdrem.models import planar_arm
 
@@ -50,11 +50,11 @@ def fake_urdf(monkeypatch):
 
 # --------------------------------------------------------------------------- the model rule
 def test_name_resolves_through_the_models_package():
-    c = load_config(overrides={"model.name": "planar-2"})
+    c = resolve_config(read_config(overrides={"model.name": "planar-2"}))[0]
     m = model_from_config(c)
     assert (m.name, m.n, m.ntheta) == ("planar-2", 2, 4)
     assert model_from_config(c) is m                       # built once
-    assert model_from_config(load_config()).name == "two-link"
+    assert model_from_config(resolve_config(read_config())[0]).name == "two-link"
 
 
 @pytest.mark.parametrize("name, fragment", [
@@ -64,7 +64,7 @@ def test_name_resolves_through_the_models_package():
 ])
 def test_bad_model_names_are_named_with_the_valid_ones(name, fragment):
     with pytest.raises(ConfigError) as exc:
-        load_config(overrides={"model.name": name})
+        resolve_config(read_config(overrides={"model.name": name}))[0]
     assert fragment in str(exc.value)
     if "not a known model" in str(exc.value):
         assert "two-link" in str(exc.value)                # the valid names are listed
@@ -78,16 +78,16 @@ def test_urdf_path_is_relative_to_the_config_file(tmp_path, fake_urdf, monkeypat
     p = write(cfg_dir, '[model]\nurdf = "../robots/arm.urdf"\nfriction = "viscous"\n'
                        'joints = ["j1", "j2"]\n[experiment]\nt_end = 2.0\n')
     monkeypatch.chdir(tmp_path / "robots")               # not the file's directory
-    c = load_config(p)
+    c = resolve_config(read_config(p))[0]
     assert "name" not in c["model"]
     assert Path(c["model"]["urdf"]) == (tmp_path / "robots" / "arm.urdf").resolve()
     assert fake_urdf[-1] == ((tmp_path / "robots" / "arm.urdf").resolve(),
                              {"friction": "viscous", "joints": ["j1", "j2"], "gravity": 9.81})
     # the dumped configuration loads again to the same one (absolute path)
-    again = load_config(write(tmp_path, dump_toml(c), "dumped.toml"))
+    again = resolve_config(read_config(write(tmp_path, dump_toml(c), "dumped.toml")))[0]
     assert again == c
     # overrides: relative to the caller's directory
-    c2 = load_config(overrides={"model.urdf": "arm.urdf"})
+    c2 = resolve_config(read_config(overrides={"model.urdf": "arm.urdf"}))[0]
     assert Path(c2["model"]["urdf"]) == (tmp_path / "robots" / "arm.urdf").resolve()
 
 
@@ -104,13 +104,13 @@ def test_bad_model_sections_name_the_key(tmp_path, fake_urdf, text, fragment):
     (tmp_path / "arm.urdf").write_text("<robot/>")
     (tmp_path / "bad.urdf").write_text("bad")
     with pytest.raises(ConfigError) as exc:
-        load_config(write(tmp_path, text))
+        resolve_config(read_config(write(tmp_path, text)))[0]
     assert fragment in str(exc.value)
 
 
 # --------------------------------------------------------------------------- the experiment
 def test_planar_arm_gets_the_real_arm_experiment():
-    c = load_config(overrides={"model.name": "planar-2"})
+    c = resolve_config(read_config(overrides={"model.name": "planar-2"}))[0]
     m = model_from_config(c)
     tr = c["trajectory"]
     assert tr["kind"] == "fourier" and set(tr) == {"kind", "omega_f", "a", "b", "offset"}
@@ -141,8 +141,8 @@ def test_planar_arm_gets_the_real_arm_experiment():
 
 def test_a_user_sinusoid_keeps_the_previous_rules():
     vec = [0.1, 0.2]
-    c = load_config(overrides={"model.name": "planar-2", "initial.q0": vec,
-                               "trajectory": {k: vec for k in ("amplitude", "omega", "phase", "offset")}})
+    c = resolve_config(read_config(overrides={"model.name": "planar-2", "initial.q0": vec,
+                               "trajectory": {k: vec for k in ("amplitude", "omega", "phase", "offset")}}))[0]
     assert "kind" not in c["trajectory"] and c["controller"]["K"] == [2.0, 2.0]
     assert c["disturbance"]["amplitude"] == [7.5, 1.5]          # the paper's
 
@@ -185,20 +185,20 @@ def test_limit_violation_names_the_joint_and_the_time():
 
 def test_configured_reference_outside_the_limits_is_refused_before_the_run(tmp_path, fake_urdf):
     (tmp_path / "arm.urdf").write_text("<robot/>")
-    ok = load_config(write(tmp_path, '[model]\nurdf = "arm.urdf"\n'))   # the designed one
+    ok = resolve_config(read_config(write(tmp_path, '[model]\nurdf = "arm.urdf"\n')))[0]   # the designed one
     assert ok["trajectory"]["kind"] == "fourier"
     a = np.array(ok["trajectory"]["a"]) * 3.0
     text = ('[model]\nurdf = "arm.urdf"\n[trajectory]\nkind = "fourier"\n'
             f'a = {a.tolist()}\n')
     with pytest.raises(ConfigError, match=r"\[trajectory\]: the reference trajectory leaves .* "
                                           r"at joint \d \('j\d'\) at t = "):
-        load_config(write(tmp_path, text, "fast.toml"))
+        resolve_config(read_config(write(tmp_path, text, "fast.toml")))[0]
     with pytest.raises(ConfigError, match="'trajectory.amplitude' is not a key of trajectory.kind = 'fourier'"):
-        load_config(write(tmp_path, '[model]\nname = "planar-2"\n[trajectory]\nkind = "fourier"\n'
-                                    'amplitude = [1.0, 1.0]\n', "mixed.toml"))
+        resolve_config(read_config(write(tmp_path, '[model]\nname = "planar-2"\n[trajectory]\nkind = "fourier"\n'
+                                    'amplitude = [1.0, 1.0]\n', "mixed.toml")))[0]
     with pytest.raises(ConfigError, match="'trajectory.a' must have 2 rows"):
-        load_config(write(tmp_path, '[model]\nname = "planar-2"\n[trajectory]\nkind = "fourier"\n'
-                                    'a = [[0.1, 0.2]]\nb = [[0.1, 0.2]]\n', "rows.toml"))
+        resolve_config(read_config(write(tmp_path, '[model]\nname = "planar-2"\n[trajectory]\nkind = "fourier"\n'
+                                    'a = [[0.1, 0.2]]\nb = [[0.1, 0.2]]\n', "rows.toml")))[0]
 
 
 @pytest.mark.parametrize("law", ["none", "sigma-modification"])
@@ -206,8 +206,8 @@ def test_short_closed_loop_on_a_planar_arm(law):
     """The real-arm experiment of planar-2 runs 1.5 s on the default engine; the arm starts
     on its reference and stays near it."""
     from ivdrem.experiments.paper import run_law
-    c = load_config(overrides={"model.name": "planar-2", "experiment.t_end": 1.5,
-                               "experiment.laws": [law]})
+    c = resolve_config(read_config(overrides={"model.name": "planar-2", "experiment.t_end": 1.5,
+                               "experiment.laws": [law]}))[0]
     run = run_law(c, law, progress=False)
     r = run.response
     out = np.asarray(r.outputs)
@@ -232,7 +232,7 @@ def test_report_model_table_of_the_paper_arm():
     """The paper's Section 4: M = [[θ1 + 2θ2 c2, θ3 + θ2 c2], [., θ3]],
     G = [θ4 g c12 + θ5 g c1, θ4 g c12]: where each θ enters, read off by hand."""
     from ivdrem.reports.content import _model_table
-    t = _model_table(_run_of(load_config()))
+    t = _model_table(_run_of(resolve_config(read_config())[0]))
     assert t.key == "model" and "two-link" in t.title and "nθ = 5" in t.title
     assert [r[1:] for r in t.rows] == [["θ1", "M11", "1.3"], ["θ2", "M11, M12", "0.28"],
                                        ["θ3", "M12, M22", "0.32"], ["θ4", "G1, G2", "0.4"],
@@ -248,7 +248,7 @@ def test_report_model_table_takes_the_models_own_table():
         def parameter_table(self):
             return [("a1", ["m1", "m2"]), ("b1", "I1"), ("a2", 0.5, "kg m", [(1.0, "mx2")]),
                     ("b2", 0.1, "kg m2", [(1.0, "I2")] + [(0.25, f"m{k}") for k in range(7)])]
-    t = _model_table(_run_of(load_config(overrides={"model.name": "planar-2"}), WithTable()))
+    t = _model_table(_run_of(resolve_config(read_config(overrides={"model.name": "planar-2"}))[0], WithTable()))
     assert t.header[2] == "standard parameters it groups"
     assert [r[1:3] for r in t.rows] == [
         ["a1", "m1 + m2"], ["b1", "I1"], ["a2", "mx2"],
@@ -274,7 +274,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_example_of_a_named_arm_loads_inside_its_limits(name, ntheta):
     if not _arm_available(name):
         pytest.skip(f"arm {name!r} not available (ivdrem.models / the arms extra)")
-    c = load_config(ROOT / "examples" / f"{name}.toml")
+    c = resolve_config(read_config(ROOT / "examples" / f"{name}.toml"))[0]
     m = model_from_config(c)
     assert (m.ntheta, c["trajectory"]["kind"]) == (ntheta, "fourier")
     d = arm.design_trajectory(m)
@@ -295,8 +295,8 @@ def test_short_closed_loop_on_the_panda():
     if not _arm_available("panda"):
         pytest.skip("arm 'panda' not available (ivdrem.models / the arms extra)")
     from ivdrem.experiments.paper import run_law
-    c = load_config(ROOT / "examples" / "panda.toml",
-                    overrides={"experiment.t_end": 1.0, "experiment.laws": ["none"]})
+    c = resolve_config(read_config(ROOT / "examples" / "panda.toml",
+                    overrides={"experiment.t_end": 1.0, "experiment.laws": ["none"]}))[0]
     r = run_law(c, "none", progress=False).response
     out = np.asarray(r.outputs)
     assert np.all(np.isfinite(out))
@@ -317,12 +317,12 @@ def test_a_real_urdf_file_relative_to_the_config(tmp_path):
     (tmp_path / "cfg").mkdir()
     p = write(tmp_path / "cfg", '[model]\nurdf = "../robots/ur5.urdf"\nfriction = "viscous"\n'
                                 '[experiment]\nt_end = 5.0\nlaws = ["none"]\n')
-    c = load_config(p)
+    c = resolve_config(read_config(p))[0]
     m = model_from_config(c)
     assert (m.n, m.ntheta) == (6, 36 + 6)              # 36 base parameters + viscous friction
     assert c["trajectory"]["kind"] == "fourier" and len(c["model"]["theta"]) == 42
     with pytest.raises(ConfigError, match="config key 'model.joints'.*no_such_joint.*shoulder_pan_joint"):
-        load_config(p, overrides={"model.joints": ["no_such_joint"]})
+        resolve_config(read_config(p, overrides={"model.joints": ["no_such_joint"]}))[0]
 
 
 def test_fmu_export_model_help_names_every_model():
@@ -337,7 +337,7 @@ def test_validate_config_alone_checks_the_limits(tmp_path, fake_urdf):
     """A study validates varied configurations with validate_config: the limits too."""
     from ivdrem.experiments.config import validate_config
     (tmp_path / "arm.urdf").write_text("<robot/>")
-    c = load_config(write(tmp_path, '[model]\nurdf = "arm.urdf"\n'))
+    c = resolve_config(read_config(write(tmp_path, '[model]\nurdf = "arm.urdf"\n')))[0]
     c["trajectory"]["offset"] = [1.4, 0.0]             # joint 1's upper limit is 1.5 rad
     with pytest.raises(ConfigError, match=r"joint 1 \('j1'\) at t = "):
         validate_config(c)
@@ -348,7 +348,7 @@ def test_window_is_a_common_period_of_reference_and_disturbance():
     at least 20 s (40 s for the design: reference period 10 s, disturbance on the π/20 rad/s
     grid); none for incommensurate frequencies or a sinusoid reference; the configuration
     takes it for both windowed laws unless the user sets T."""
-    c = load_config(overrides={"model.name": "planar-2"})
+    c = resolve_config(read_config(overrides={"model.name": "planar-2"}))[0]
     tr, d = c["trajectory"], c["disturbance"]
     assert arm.design_window(tr, d) == pytest.approx(40.0)
     assert c["iv_drem"]["T"] == pytest.approx(40.0)
@@ -364,9 +364,9 @@ def test_window_is_a_common_period_of_reference_and_disturbance():
     assert arm.design_window(tr, off) == pytest.approx(20.0)
     assert arm.design_window({"amplitude": [1, 1], "omega": [1, 2], "phase": [0, 0],
                               "offset": [0, 0]}, d) is None
-    user = load_config(overrides={"model.name": "planar-2", "iv_drem.T": 25.0})
+    user = resolve_config(read_config(overrides={"model.name": "planar-2", "iv_drem.T": 25.0}))[0]
     assert user["iv_drem"]["T"] == 25.0 and user["composite_learning"]["T"] == pytest.approx(40.0)
-    assert load_config()["iv_drem"]["T"] == 20.0                              # the paper's
+    assert resolve_config(read_config())[0]["iv_drem"]["T"] == 20.0                              # the paper's
 
 
 def test_over_a_common_period_the_instrument_is_blind_to_the_disturbance():
@@ -374,7 +374,7 @@ def test_over_a_common_period_the_instrument_is_blind_to_the_disturbance():
     ∫_{t-T}^t ζ w ds (W of (16) before the averaging; KA3's integral (19)) vanishes once the
     window is full, while over T = 20 s it does not.  ζ of (14) and w of (13) integrated
     here by their exact first-order-hold updates along the reference (no closed loop)."""
-    c = load_config(overrides={"model.name": "planar-2"})
+    c = resolve_config(read_config(overrides={"model.name": "planar-2"}))[0]
     from scipy.integrate import trapezoid
     m = model_from_config(c)
     tr, d = c["trajectory"], c["disturbance"]

@@ -233,8 +233,8 @@ def _export(path):
 
 
 def _load(path):
-    from ivdrem.experiments.config import load_config
-    return load_config(path)
+    from ivdrem.experiments.config import read_config, resolve_config
+    return resolve_config(read_config(path))[0]
 
 
 def _simulate(t_end, **kw):
@@ -365,12 +365,12 @@ def test_small_limits_refuse_and_allow_long_lifts_them(kw, message):
 
 
 def test_config_bounds_equal_the_guards():
-    from ivdrem.experiments.config import ConfigError, load_config
+    from ivdrem.experiments.config import ConfigError, read_config, resolve_config
     from ivdrem.sim.guards import DT_OUT_MIN, H_MAX_MIN
-    load_config(overrides={"solver.h_max": H_MAX_MIN, "experiment.dt_out": DT_OUT_MIN})
+    resolve_config(read_config(overrides={"solver.h_max": H_MAX_MIN, "experiment.dt_out": DT_OUT_MIN}))[0]
     for key, low in (("solver.h_max", H_MAX_MIN), ("experiment.dt_out", DT_OUT_MIN)):
         with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
-            load_config(overrides={key: low * 0.99})
+            resolve_config(read_config(overrides={key: low * 0.99}))[0]
 
 
 def test_allow_long_reaches_simulate(monkeypatch, capsys):
@@ -575,19 +575,19 @@ def test_run_time_guard_from_the_measured_cost_of_the_paper_loop():
     not the lower bound t_end / h_max (tens of steps); the paper's default runs on the
     compiled engine, one law on the reference engine and --allow-long are accepted."""
     from ivdrem.cli.preflight import check_runs
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config, resolve_config
     from ivdrem.sim.guards import CostLimitError
-    config = load_config(None)
+    config = resolve_config(read_config(None))[0]
     with pytest.raises(CostLimitError, match=r"the 2 runs would take about 40 min on the "
                        r"reference engine \(iv-drem 19 min \+ composite-learning 22 min"):
         check_runs(config, engine="reference")
     check_runs(config, engine="compiled")
     check_runs(config, engine="reference", allow_long=True)
-    check_runs(load_config(None, {"experiment.laws": ["iv-drem"]}), engine="reference")
+    check_runs(resolve_config(read_config(None, {"experiment.laws": ["iv-drem"]}))[0], engine="reference")
     with pytest.raises(CostLimitError, match=r"the iv-drem run \(900 s\) would take about 56 "
                        "min on the reference engine"):
-        check_runs(load_config(None, {"experiment.laws": ["iv-drem"],
-                                      "experiment.t_end": 900.0}), engine="reference")
+        check_runs(resolve_config(read_config(None, {"experiment.laws": ["iv-drem"],
+                                      "experiment.t_end": 900.0}))[0], engine="reference")
 
 
 @pytest.mark.parametrize("law", ["iv-drem", "composite-learning"])

@@ -441,10 +441,10 @@ def test_the_paper_q0_and_the_default_h_are_the_default_configurations():
 
     import ivdrem
     from ivdrem.controller import block, fmu_loop, loop, sampled, ssp
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config, resolve_config
     from ivdrem.plants import mujoco
 
-    config = load_config(None)
+    config = resolve_config(read_config(None))[0]
     assert loop.paper_q0() == loop.PAPER_Q0 == tuple(config["initial"]["q0"]) == Q0
     assert loop.default_period() == float(config["solver"]["h"]) == 1e-3
     assert SampledController().h == 1e-3 == _REF.h

@@ -316,9 +316,9 @@ def test_prediction_needs_the_horizon_and_its_assumptions():
 def test_report_check_on_the_paper_arm_is_run():
     """The report's FMU check (ivdrem.cli.report.fmu_check) on the paper's configuration:
     not predicted to diverge, so run, and first order."""
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config, resolve_config
     from ivdrem.cli.report import fmu_check
-    rows, cmp = fmu_check(load_config(None), 1.0, progress=False)
+    rows, cmp = fmu_check(resolve_config(read_config(None))[0], 1.0, progress=False)
     assert cmp.ok and rows["verdict"]["max |co-sim − Python|"].startswith("OK")
     assert len(rows) == 1 + 3 * 3
 

@@ -138,6 +138,15 @@ def test_rate_fit_recovers_the_exponent():
     assert c["verdict"] == diagnostics.UNDECIDED
 
 
+def test_rate_of_a_run_too_short_for_its_windows_is_not_evaluated():
+    """Two samples (t_end = 0.1 s at dt_out = 0.1 s): no window of the last half holds
+    one, so nothing is fitted and the check says so (it raised IndexError before)."""
+    t = np.array([0.0, 0.1])
+    c, (a, C) = diagnostics.check_rate(t, np.array([2.0, 1.95]))
+    assert c["verdict"] == diagnostics.UNDECIDED and c["note"].startswith("not evaluated")
+    assert math.isnan(a) and math.isnan(C)
+
+
 def test_lyapunov_function_and_bound():
     rng = np.random.default_rng(1)
     n, nth, nt = 2, 3, 5
@@ -187,9 +196,9 @@ def test_gamma_auto_rule():
 
 def test_json_has_no_arrays_and_no_nan():
     import json
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config, resolve_config
     from ivdrem.reports.synthetic import synthetic_paper_run
-    run = synthetic_paper_run(load_config(), t_end=60.0)
+    run = synthetic_paper_run(resolve_config(read_config())[0], t_end=60.0)
     for law, lr in run.runs.items():
         d = diagnostics.diagnose(lr, run.config, None, theta=run.theta)
         text = json.dumps(diagnostics.to_json(d), allow_nan=False)
@@ -290,7 +299,7 @@ def _shared_frequency_config(tmp_path):
 def test_a_closed_loop_that_does_not_learn_warns_in_run_summary_and_report(tmp_path, capsys):
     import json
     from ivdrem.cli import main
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config, resolve_config
     from ivdrem.experiments.paper import run_paper
     from ivdrem.reports.content import build_content
     cfg_path = _shared_frequency_config(tmp_path)
@@ -300,12 +309,12 @@ def test_a_closed_loop_that_does_not_learn_warns_in_run_summary_and_report(tmp_p
     assert "WARNING: the run does not learn: the bias floor" in text
     data = json.loads(out.read_text())
     assert any("does not learn" in w for w in data["iv-drem"]["warnings"])
-    run = run_paper(load_config(cfg_path), progress=False)
+    run = run_paper(resolve_config(read_config(cfg_path))[0], progress=False)
     meta = dict(build_content(run).meta)
     assert "does not learn" in meta["WARNING (iv-drem)"]
     # the paper's own experiment over the same horizon learns: no warning
-    good = run_paper(load_config(overrides={"experiment.t_end": 60.0,
-                                            "experiment.laws": ["iv-drem"]}), progress=False)
+    good = run_paper(resolve_config(read_config(overrides={"experiment.t_end": 60.0,
+                                            "experiment.laws": ["iv-drem"]}))[0], progress=False)
     d = diagnostics.diagnose_run(good)["iv-drem"]
     assert diagnostics.learning_warnings(d) == []
     assert not any(k.startswith("WARNING") for k, _ in build_content(good).meta)

@@ -17,7 +17,7 @@ import time
 import pytest
 
 from ivdrem.cli import main
-from ivdrem.experiments.config import ConfigError, load_config
+from ivdrem.experiments.config import ConfigError, read_config, resolve_config
 
 #: what the sweep tries in every numeric key (the first entry of a vector key)
 ABSURD = (0.0, -1.0, 1e-300, 1e300, math.nan, math.inf, -math.inf)
@@ -39,7 +39,7 @@ def _numeric_keys():
     """Every numeric key of the embedded configuration, vector keys too (a new key is swept
     without editing this file)."""
     out = []
-    for section, table in load_config().items():
+    for section, table in resolve_config(read_config())[0].items():
         if not isinstance(table, dict):
             continue
         for key, value in table.items():
@@ -62,7 +62,7 @@ def test_every_numeric_config_key_refuses_absurd_values_naming_the_key():
         for bad in ABSURD:
             t0 = time.perf_counter()
             try:
-                load_config(overrides={name: _with(value, bad)})
+                resolve_config(read_config(overrides={name: _with(value, bad)}))[0]
                 outcome = "accepted"
             except ConfigError as exc:
                 outcome = "refused" if name in str(exc) else f"key not named: {exc}"
@@ -214,13 +214,13 @@ def test_absurd_magnitudes_are_refused_naming_the_key_and_its_range(name):
     refused by the configuration, with the key and the accepted range, before any run
     (experiment.t_end = 1e300 is refused by the cost guard, test above)."""
     section, key = name.split(".")
-    value = load_config()[section][key]
+    value = resolve_config(read_config())[0][section][key]
     cases = [1e300] if name != "experiment.t_end" else []
     if name in TINY_REFUSED:
         cases.append(1e-300)
     for bad in cases:
         with pytest.raises(ConfigError) as exc:
-            load_config(overrides={name: _with(value, bad)})
+            resolve_config(read_config(overrides={name: _with(value, bad)}))[0]
         text = str(exc.value)      # its range, or the other key it must stay below
         assert name in text and ("must be" in text or "exceeds" in text), text
 
@@ -228,12 +228,12 @@ def test_absurd_magnitudes_are_refused_naming_the_key_and_its_range(name):
 def test_the_paper_values_and_documented_examples_stay_inside_the_ranges():
     """The ranges refuse absurd values only: the paper's γ = 1e10, and every example file."""
     from pathlib import Path
-    load_config(overrides={"iv_drem.gamma": 1e10, "controller.mu1": 15.0})
+    resolve_config(read_config(overrides={"iv_drem.gamma": 1e10, "controller.mu1": 15.0}))[0]
     for p in sorted(Path(__file__).parent.parent.joinpath("examples").glob("*.toml")):
         # study files (study-*.toml, and the MuJoCo robustness study's [robustness]) are
         # not configurations of one run
         if not p.name.startswith("study") and "[robustness]" not in p.read_text():
-            load_config(p)
+            resolve_config(read_config(p))[0]
 
 
 def test_a_tiny_observer_weight_is_refused_not_run_into_numba_noise(capsys, runs_refused,
@@ -277,10 +277,10 @@ def test_a_fast_disturbance_is_priced_from_its_periods(tmp_path, capsys, runs_re
     from ivdrem.sim.guards import CostLimitError, oscillation_steps
     (steps, _), _ = oscillation_steps(5000.0, 300.0)
     assert steps == pytest.approx(5000.0 * 300.0 / (2 * math.pi))
-    config = load_config(None, {"disturbance.omega": [5000.0, 500.0],
-                                "experiment.laws": ["iv-drem"]})
+    config = resolve_config(read_config(None, {"disturbance.omega": [5000.0, 500.0],
+                                "experiment.laws": ["iv-drem"]}))[0]
     assert fastest_omega(config) == 5000.0
-    paper = load_config(None)     # the paper's fastest sinusoid: the reference, 2 rad/s
+    paper = resolve_config(read_config(None))[0]     # the paper's fastest sinusoid: the reference, 2 rad/s
     assert fastest_omega(paper) == max(paper["trajectory"]["omega"] + paper["disturbance"]["omega"])
     with pytest.raises(CostLimitError, match=r"12.6 h on the reference engine .*ω = 5000 rad/s"):
         check_runs(config, engine="reference")
@@ -296,9 +296,9 @@ def test_an_adaptive_first_step_is_held_under_the_step_bound():
     """An adaptive method's h is only its first step: a small h_max (or window) lowers it
     instead of refusing the configuration."""
     from ivdrem.experiments.config import solver_kwargs
-    c = load_config(None, {"solver.h_max": 1e-4})
+    c = resolve_config(read_config(None, {"solver.h_max": 1e-4}))[0]
     assert solver_kwargs(c, "iv-drem")["h"] == 1e-4
-    c = load_config(None, {"solver.h": 4.0, "iv_drem.T": 6.0})
+    c = resolve_config(read_config(None, {"solver.h": 4.0, "iv_drem.T": 6.0}))[0]
     kw = solver_kwargs(c, "iv-drem")
     assert kw["h"] == kw["h_max"] == 3.0
-    assert solver_kwargs(load_config(None), "iv-drem")["h"] == 1e-3     # the paper's, as set
+    assert solver_kwargs(resolve_config(read_config(None))[0], "iv-drem")["h"] == 1e-3     # the paper's, as set

@@ -87,8 +87,8 @@ def test_sigma_modification_with_no_leakage_is_the_plain_law(runs):
 
 
 def test_lyapunov_bound_of_the_proof_holds_on_a_closed_loop(runs):
-    from ivdrem.experiments.config import load_config
-    cfg = load_config(overrides={"experiment.t_end": T_RUN})
+    from ivdrem.experiments.config import read_config, resolve_config
+    cfg = resolve_config(read_config(overrides={"experiment.t_end": T_RUN}))[0]
 
     class Run:
         law, response, gamma = "iv-drem", runs["iv-drem"], 1e10
@@ -119,7 +119,7 @@ def test_gamma_auto_follows_the_documented_rule():
 
 def test_a_registered_law_is_known_to_the_diagram_config_and_figures():
     from ivdrem import blocks as block_library
-    from ivdrem.experiments.config import closed_loop_kwargs, load_config
+    from ivdrem.experiments.config import closed_loop_kwargs, read_config, resolve_config
     from ivdrem.reports.figures import law_color, law_label
 
     def build(ctx):
@@ -133,7 +133,7 @@ def test_a_registered_law_is_known_to_the_diagram_config_and_figures():
         d = closed_loop("leak-to-zero", MODEL)
         term = [s for s in d.syslist if s.name == "sigma_modification_term"][0]
         assert term.params["sigma"] == 0.05
-        cfg = load_config(overrides={"experiment.laws": ["iv-drem", "leak-to-zero"]})
+        cfg = resolve_config(read_config(overrides={"experiment.laws": ["iv-drem", "leak-to-zero"]}))[0]
         assert cfg["experiment"]["laws"] == ["iv-drem", "leak-to-zero"]
         assert closed_loop_kwargs(cfg, "leak-to-zero")["gains"] == {"sigma": 0.05}
         assert law_color("leak-to-zero") == "#123456" and law_label("leak-to-zero") == "leak to 0"
@@ -150,7 +150,7 @@ def test_a_registered_law_brings_its_own_configuration_table(tmp_path):
     from ivdrem import blocks as block_library
     from ivdrem import diagrams
     from ivdrem.experiments import config as config_mod
-    from ivdrem.experiments.config import ConfigError, closed_loop_kwargs, load_config
+    from ivdrem.experiments.config import ConfigError, closed_loop_kwargs, read_config, resolve_config
 
     def build(ctx):
         return [block_library.sigma_modification_term(ctx.ntheta, ctx.params["sigma"],
@@ -160,18 +160,18 @@ def test_a_registered_law_brings_its_own_configuration_table(tmp_path):
         defaults={"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0]}))
     try:
         assert "leak-to-guess" in diagrams.LAWS and "leak-to-guess" in config_mod.LAWS
-        cfg = load_config()
+        cfg = resolve_config(read_config())[0]
         assert cfg["leak_to_guess"] == {"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0]}
         f = tmp_path / "c.toml"
         f.write_text('[experiment]\nlaws = ["leak-to-guess"]\n[leak_to_guess]\nsigma = 0.2\n')
-        cfg = load_config(f)
+        cfg = resolve_config(read_config(f))[0]
         kw = closed_loop_kwargs(cfg, "leak-to-guess")["gains"]
         assert kw["sigma"] == 0.2
         np.testing.assert_array_equal(kw["theta_star"], [1.0, 0.0, 0.0, 0.0, 1.0])
         with pytest.raises(ConfigError, match=r"'leak_to_guess.sigmaa' is not known.*'leak_to_guess.sigma'"):
-            load_config(overrides={"leak_to_guess.sigmaa": 1.0})
+            resolve_config(read_config(overrides={"leak_to_guess.sigmaa": 1.0}))[0]
         with pytest.raises(ConfigError, match=r"'leak_to_guess.sigma' must be a number"):
-            load_config(overrides={"leak_to_guess.sigma": "big"})
+            resolve_config(read_config(overrides={"leak_to_guess.sigma": "big"}))[0]
         d = closed_loop("leak-to-guess", MODEL, **closed_loop_kwargs(cfg, "leak-to-guess"))
         term = [s for s in d.syslist if s.name == "sigma_modification_term"][0]
         assert term.params["sigma"] == 0.2
@@ -179,14 +179,14 @@ def test_a_registered_law_brings_its_own_configuration_table(tmp_path):
         registry.LAWS.pop("leak-to-guess")
     assert "leak-to-guess" not in diagrams.LAWS
     with pytest.raises(ConfigError, match="section 'leak_to_guess' is not known"):
-        load_config(f)
+        resolve_config(read_config(f))[0]
 
 
 def test_a_built_in_laws_section_is_its_registry_entry():
     """[iv_drem], [composite_learning], [sigma_modification]: keys, checks and defaults are
     the registry entry's (Law.keys over Law.defaults); a replaced entry is what the
     configuration then checks, with the key and the new range in the message."""
-    from ivdrem.experiments.config import ConfigError, default_config, load_config, schema
+    from ivdrem.experiments.config import ConfigError, default_config, read_config, resolve_config, schema
     sch, default = schema(), default_config()
     for name in [n for n in registry.law_names() if registry.get_law(n).section]:
         law = registry.get_law(name)
@@ -203,10 +203,10 @@ def test_a_built_in_laws_section_is_its_registry_entry():
     try:
         with pytest.raises(ConfigError, match=re.escape(
                 "config key 'composite_learning.epsilon' must be > 0 and <= 0.001, got 0.01")):
-            load_config(overrides={"composite_learning.epsilon": 0.01})
+            resolve_config(read_config(overrides={"composite_learning.epsilon": 0.01}))[0]
     finally:
         registry.register_law(real, replace=True)
-    assert load_config(overrides={"composite_learning.epsilon": 0.01})[
+    assert resolve_config(read_config(overrides={"composite_learning.epsilon": 0.01}))[0][
         "composite_learning"]["epsilon"] == 0.01
 
 
@@ -215,7 +215,7 @@ def test_a_user_law_declares_its_keys_like_a_built_in_law(tmp_path):
     are checked and filled as the built-in laws' are (a gain it does not declare is a
     number, as before); a bad declaration is refused when the law is registered."""
     from ivdrem import blocks as block_library
-    from ivdrem.experiments.config import ConfigError, closed_loop_kwargs, load_config
+    from ivdrem.experiments.config import ConfigError, closed_loop_kwargs, read_config, resolve_config
 
     def build(ctx):
         return [block_library.sigma_modification_term(ctx.ntheta, ctx.params["sigma"],
@@ -229,10 +229,10 @@ def test_a_user_law_declares_its_keys_like_a_built_in_law(tmp_path):
         defaults={"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0], "rate": 2.0},
         keys=keys))
     try:
-        cfg = load_config(overrides={"experiment.laws": ["leak-checked"]})
+        cfg = resolve_config(read_config(overrides={"experiment.laws": ["leak-checked"]}))[0]
         assert cfg["leak_checked"] == {"sigma": 0.05, "theta_star": [1.0, 0.0, 0.0, 0.0, 1.0],
                                        "rate": 2.0}     # not declared: a number, unchecked
-        assert load_config(overrides={"leak_checked.rate": -1e9})["leak_checked"]["rate"] == -1e9
+        assert resolve_config(read_config(overrides={"leak_checked.rate": -1e9}))[0]["leak_checked"]["rate"] == -1e9
         assert closed_loop_kwargs(cfg, "leak-checked")["gains"]["sigma"] == 0.05
         for name, bad, words in (
                 ("leak_checked.sigma", 2.0, "must be > 0 and <= 1 (a leak), got 2.0"),
@@ -241,12 +241,12 @@ def test_a_user_law_declares_its_keys_like_a_built_in_law(tmp_path):
                  "entries must be at most 10 in magnitude, got leak_checked.theta_star[0]"),
                 ("leak_checked.theta_star", [0.0] * 4, "must have 5 entries")):
             with pytest.raises(ConfigError, match=re.escape(f"'{name}' {words}")):
-                load_config(overrides={name: bad})
+                resolve_config(read_config(overrides={name: bad}))[0]
         vec3 = [0.1, 0.2, 0.3]
-        planar = load_config(overrides={
+        planar = resolve_config(read_config(overrides={
             "model.name": "planar-3", "initial.q0": vec3,
             **{f"{s}.{k}": vec3 for s in ("trajectory", "disturbance")
-               for k in ("amplitude", "omega", "phase", "offset")}})
+               for k in ("amplitude", "omega", "phase", "offset")}}))[0]
         assert planar["leak_checked"]["theta_star"] == [0.5] * 6     # followed the model
     finally:
         registry.LAWS.pop("leak-checked")

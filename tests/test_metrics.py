@@ -5,7 +5,7 @@ import control as ct
 import numpy as np
 import pytest
 
-from ivdrem.experiments.config import load_config
+from ivdrem.experiments.config import read_config, resolve_config
 from ivdrem.experiments.metrics import (
     calW,
     conclusions,
@@ -20,7 +20,7 @@ from ivdrem.experiments.metrics import (
 )
 from ivdrem.reports.synthetic import SyntheticPaperRun, synthetic_lawrun, synthetic_paper_run
 
-CFG = load_config()
+CFG = resolve_config(read_config())[0]
 THETA = np.array(CFG["model"]["theta"])
 T_END = 100.0
 T = np.linspace(0.0, T_END, 2001)

@@ -21,7 +21,7 @@ from ivdrem import laws as registry
 from ivdrem.blocks._core import flat_kernel
 from ivdrem.diagrams import calibrated_loop, closed_loop
 from ivdrem.diagrams.gamma_auto import GainRuleError, gamma_from_delta, GAMMA_MAX
-from ivdrem.experiments.config import ConfigError, closed_loop_kwargs, load_config
+from ivdrem.experiments.config import ConfigError, closed_loop_kwargs, read_config, resolve_config
 from ivdrem.experiments.metrics import signal
 from ivdrem.models import planar_arm, two_link
 from ivdrem.sim import simulate
@@ -97,21 +97,21 @@ def test_closed_loop_without_disturbance_has_no_calW(variant):
 
 
 def test_mixing_key_in_the_configuration():
-    c = load_config()
+    c = resolve_config(read_config())[0]
     assert c["iv_drem"]["mixing"] == "paper"                      # the paper's arm: eq. (17)
     for v in VARIANTS:
-        c = load_config(overrides={"iv_drem.mixing": v})
+        c = resolve_config(read_config(overrides={"iv_drem.mixing": v}))[0]
         assert closed_loop_kwargs(c, "iv-drem")["gains"]["mixing"] == v
         assert closed_loop_kwargs(c, "drem")["gains"]["mixing"] == v
     with pytest.raises(ConfigError, match=r"iv_drem.mixing.*'eigen'.*'channel'"):
-        load_config(overrides={"iv_drem.mixing": "eigenvalue"})
+        resolve_config(read_config(overrides={"iv_drem.mixing": "eigenvalue"}))[0]
     with pytest.raises(ConfigError, match="must be a string"):
-        load_config(overrides={"iv_drem.mixing": 1})
+        resolve_config(read_config(overrides={"iv_drem.mixing": 1}))[0]
     # every other arm: the variant that works at its size, unless the user sets one
     arm = _bench_arms().planar_config_overrides(3)
-    assert load_config(overrides=arm)["iv_drem"]["mixing"] == registry.default_mixing(planar_arm(3))
+    assert resolve_config(read_config(overrides=arm))[0]["iv_drem"]["mixing"] == registry.default_mixing(planar_arm(3))
     assert registry.default_mixing(planar_arm(3)) == "eigen"
-    assert load_config(overrides={**arm, "iv_drem.mixing": "paper"})["iv_drem"]["mixing"] == "paper"
+    assert resolve_config(read_config(overrides={**arm, "iv_drem.mixing": "paper"}))[0]["iv_drem"]["mixing"] == "paper"
 
 
 def test_closed_loop_mixing_argument():
@@ -250,8 +250,8 @@ def test_diagnostics_figures_and_report_take_a_per_channel_delta():
     from ivdrem.experiments.paper import run_paper
     from ivdrem.reports.content import build_content, fmt
     from ivdrem.reports.figures import fig_delta_W
-    cfg = load_config(overrides={"experiment.t_end": 45.0, "experiment.laws": ["iv-drem"],
-                                 "iv_drem.mixing": "channel", "iv_drem.gamma": "auto"})
+    cfg = resolve_config(read_config(overrides={"experiment.t_end": 45.0, "experiment.laws": ["iv-drem"],
+                                 "iv_drem.mixing": "channel", "iv_drem.gamma": "auto"}))[0]
     run = run_paper(cfg, progress=False)
     lr = run.runs["iv-drem"]
     assert np.ndim(lr.gamma) == 1 and len(lr.gamma) == 5
@@ -380,7 +380,7 @@ def test_the_reference_estimate_of_delta_matches_the_calibration():
     calibration run's, paper mixing, the paper's arm and a 3-link arm: within half a decade
     (measured: 2-link and 3-link in docs/mixing.md)."""
     from ivdrem.diagrams.gamma_auto import calibrate_gamma, reference_mean_delta2
-    c = load_config(str(ROOT / "examples" / "planar3.toml"), {"iv_drem.mixing": "paper"})
+    c = resolve_config(read_config(str(ROOT / "examples" / "planar3.toml"), {"iv_drem.mixing": "paper"}))[0]
     from ivdrem.experiments.config import model_from_config
     for model, kw in ((two_link(), {}), (model_from_config(c), closed_loop_kwargs(c, "iv-drem"))):
         args = {k: v for k, v in kw.items() if k != "gamma"}

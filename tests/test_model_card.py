@@ -57,8 +57,8 @@ def test_the_symbolic_content_is_built_on_first_use_and_is_the_models(cache):
 
 
 def test_a_run_of_a_carded_model_does_not_import_sympy(tmp_path):
-    code = ("import sys; from ivdrem.experiments.config import load_config, model_from_config; "
-            "m = model_from_config(load_config(overrides={'model.name': 'planar-2'})); "
+    code = ("import sys; from ivdrem.experiments.config import read_config, resolve_config, model_from_config; "
+            "m = model_from_config(resolve_config(read_config(overrides={'model.name': 'planar-2'}))[0]); "
             "m.jit_functions; print(type(m).__name__, 'sympy' in sys.modules)")
     env = {**os.environ, "IVDREM_CACHE_DIR": str(tmp_path)}
     outs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

@@ -138,9 +138,9 @@ def test_the_panda_in_mujoco_equals_its_own_dynamics_in_the_loop():
     order in MuJoCo's step (one and four steps per sample)."""
     from ivdrem.controller.clib import CController
     from ivdrem.controller.loop import ModelPlant, sampled_loop
-    from ivdrem.experiments.config import load_config, model_from_config
+    from ivdrem.experiments.config import read_config, resolve_config, model_from_config
     from ivdrem.plants.mujoco import controller_kwargs
-    config = load_config("examples/panda.toml")
+    config = resolve_config(read_config("examples/panda.toml"))[0]
     model = model_from_config(config)
     kw, run = controller_kwargs(config, "iv-drem")
     kw.update(gamma=53.2, mix_every=50, mu_max=135.0)
@@ -198,9 +198,9 @@ def test_composite_learning_on_the_panda_in_mujoco_is_its_python_reference():
     through step() give the same run to rounding over 0.3 s."""
     from dataclasses import replace
 
-    from ivdrem.experiments.config import load_config, model_from_config
+    from ivdrem.experiments.config import read_config, resolve_config, model_from_config
     from ivdrem.plants.mujoco import controller_kwargs
-    config = load_config("examples/panda.toml")
+    config = resolve_config(read_config("examples/panda.toml"))[0]
     model = model_from_config(config)
     kw, run = controller_kwargs(config, "composite-learning")
     kw.update(mu_max=135.0, mix_every=50)

@@ -34,7 +34,7 @@ from ivdrem.models import get_model
 from ivdrem.sim import simulate
 
 NAME, SECTION = "leak-kappa", "leak_kappa"
-KAPPA = registry.Key("float", **registry.in_range(0, 1e6, open_lo=True),
+KAPPA = registry.Key("float", **registry.in_range(0, 1e6, open_lo=True), unit="1/s",
                      doc="leak rate kappa of the test law (1/s)")
 
 
@@ -154,6 +154,17 @@ def test_a_sampled_form_is_derived_without_an_edit_of_the_controller(registered)
     var = next(v for v in ET.fromstring(xml).iter("ScalarVariable") if v.get("name") == "kappa")
     assert (var.get("causality"), var.get("variability")) == ("parameter", "tunable")
     assert var.get("description") == KAPPA.doc and float(var.find("Real").get("start")) == 0.5
+    # its unit, 1/s, in the FMU's unit definitions as FMI's base units
+    assert var.find("Real").get("unit") == "1/s"
+    unit = next(u for u in ET.fromstring(xml).iter("Unit") if u.get("name") == "1/s")
+    assert unit.find("BaseUnit").attrib == {"s": "-1"}
+    # a configuration that sets the gain: the design `fmu export --controller --config`
+    # exports takes it, through the Experiment
+    from ivdrem.controller.fmu_export import controller_design
+    from ivdrem.experiments.config import read_config
+    design = controller_design(Experiment.from_config(read_config(overrides={
+        "experiment.laws": [NAME], f"{SECTION}.kappa": 0.5})), NAME)
+    assert design["kappa"] == 0.5
     # the C library: its parameter vector holds kappa (read back from C), and it runs the
     # step of sigma-modification, as the Python reference does
     c = CController(model, NAME, kappa=0.5)
@@ -199,3 +210,19 @@ def test_a_sampled_law_declares_every_gain():
             registry.sampled_gains()
     finally:
         registry.LAWS.pop("no-key")
+
+
+@pytest.mark.parametrize("unit, base", [("1/s", {"s": "-1"}), ("rad/s", {"s": "-1", "rad": "1"}),
+                                        ("N.m", {"kg": "1", "m": "2", "s": "-2"}),
+                                        ("kg.m^2", {"kg": "1", "m": "2"}),
+                                        ("N.m.s/rad", {"kg": "1", "m": "2", "s": "-1",
+                                                       "rad": "-1"})])
+def test_a_gain_unit_becomes_fmi_base_units(unit, base):
+    """A gain's unit, as its Key declares it, in FMI's BaseUnit exponents (N = kg m s^-2)."""
+    attrs = dict(re.findall(r'(\w+)="(-?\d+)"', registry.base_unit(unit)))
+    assert attrs == base
+
+
+def test_a_unit_an_fmu_cannot_express_is_refused_at_the_declaration():
+    with pytest.raises(ValueError, match=r"unit 'furlong/s': 'furlong' is not one of"):
+        registry.Key("float", unit="furlong/s", doc="a rate")

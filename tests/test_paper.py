@@ -8,14 +8,14 @@ import json
 import numpy as np
 import pytest
 
-from ivdrem.experiments.config import load_config
+from ivdrem.experiments.config import read_config, resolve_config
 from ivdrem.experiments.metrics import conclusions, signal, summary, theta_error
 from ivdrem.experiments.paper import run_paper
 
 
 @pytest.fixture(scope="module")
 def paper_run():
-    return run_paper(load_config(), progress=False)
+    return run_paper(resolve_config(read_config())[0], progress=False)
 
 
 @pytest.mark.slow

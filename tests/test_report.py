@@ -15,7 +15,7 @@ import matplotlib as mpl
 import numpy as np
 import pytest
 
-from ivdrem.experiments.config import load_config
+from ivdrem.experiments.config import read_config, resolve_config
 from ivdrem.experiments.metrics import conclusions, key_numbers
 from ivdrem.reports import ReportError, write_report
 from ivdrem.reports import figures as report_figures
@@ -552,7 +552,7 @@ def test_fmu_check_takes_the_runs_gamma_auto_instead_of_calibrating_again(monkey
     import ivdrem.cli.report as rcli
     from pathlib import Path
 
-    from ivdrem.experiments.config import closed_loop_kwargs, load_config
+    from ivdrem.experiments.config import closed_loop_kwargs, read_config, resolve_config
     seen = []
 
     class _Cmp:
@@ -573,7 +573,7 @@ def test_fmu_check_takes_the_runs_gamma_auto_instead_of_calibrating_again(monkey
     monkeypatch.setattr(fmu_mod, "export_fmu", lambda *a, **k: None)
     monkeypatch.setattr(cosim_mod, "compare_to_python", compare)
     monkeypatch.setattr(gamma_auto, "calibrate_gamma", calibrate_gamma)
-    config = load_config(Path(__file__).parents[1] / "examples" / "planar3.toml")
+    config = resolve_config(read_config(Path(__file__).parents[1] / "examples" / "planar3.toml"))[0]
     assert closed_loop_kwargs(config, "iv-drem")["gains"]["gamma"] == "auto"
     rcli.fmu_check(config, 1.0, gamma=50.2)
     assert seen == [50.2] and built == []              # the run's γ, no calibration

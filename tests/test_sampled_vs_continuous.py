@@ -185,10 +185,10 @@ def test_configuration_selects_the_design_with_the_sampled_controllers_gains():
     (floor GAIN_FLOOR, cap h (K + (1 + δ_μ) μ_max) <= 0.5 for the FMU's one-sample delay)."""
     from ivdrem.controller.sampled import GAIN_FLOOR, gain_budget
     from ivdrem.controller.fmu_export import controller_design
-    from ivdrem.experiments.config import closed_loop_kwargs, load_config
+    from ivdrem.experiments.config import closed_loop_kwargs, read_config, resolve_config
     m = get_model("ur5")
-    config = load_config(None, overrides={"model.name": "ur5",
-                                          "controller.design": "inertia-scaled"})
+    config = resolve_config(read_config(None, overrides={"model.name": "ur5",
+                                          "controller.design": "inertia-scaled"}))[0]
     kw = closed_loop_kwargs(config, "iv-drem")
     assert kw["design"] == "inertia-scaled"
     M = np.empty((m.n, m.n))

@@ -104,11 +104,11 @@ def test_closed_loop_of_a_urdf_arm_is_the_configurations_loop():
     `disturbance`" (and with a trajectory, "q_d_amplitude must have length 6, got 2")."""
     pytest.importorskip("pinocchio")
     from ivdrem.diagrams import closed_loop
-    from ivdrem.experiments.config import closed_loop_kwargs, load_config
+    from ivdrem.experiments.config import closed_loop_kwargs, read_config, resolve_config
     from ivdrem.models import arm
     model = arm("ur5")
     mine = closed_loop("iv-drem", model, gains=dict(gamma=1.0))
-    cfg = load_config(overrides={"model.name": "ur5", "iv_drem.gamma": 1.0})
+    cfg = resolve_config(read_config(overrides={"model.name": "ur5", "iv_drem.gamma": 1.0}))[0]
     theirs = closed_loop("iv-drem", model, **closed_loop_kwargs(cfg, "iv-drem"))
     assert [b.name for b in mine.syslist] == [b.name for b in theirs.syslist]
     compared = 0
@@ -577,7 +577,7 @@ def test_tight_tolerances_are_priced_from_measured_step_counts():
     from ivdrem.sim.guards import (CostLimitError, PAPER_LOOP_STEPS_BY_RTOL, paper_loop_steps,
                                    tolerance_factor)
     from ivdrem.cli.preflight import check_runs, long_run_note
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config, resolve_config
     assert tolerance_factor(2e-4, 300.0) == (1.0, None)
     assert tolerance_factor(1e-3, 300.0)[0] == 1.0
     # at the measured points the factor is the measured ratio
@@ -591,10 +591,10 @@ def test_tight_tolerances_are_priced_from_measured_step_counts():
     assert 0.85 * 399_000 < steps60 < 1.3 * 399_000, steps60
     tight = {"solver.rtol": 1e-12, "solver.atol": 1e-14}
     with pytest.raises(CostLimitError, match="raise solver.rtol"):
-        check_runs(load_config(overrides=tight))                        # 300 s: ~40 min
-    walls = check_runs(load_config(overrides={**tight, "experiment.t_end": 60.0}))
+        check_runs(resolve_config(read_config(overrides=tight))[0])                        # 300 s: ~40 min
+    walls = check_runs(resolve_config(read_config(overrides={**tight, "experiment.t_end": 60.0}))[0])
     assert "estimated at about" in long_run_note(walls)
-    assert long_run_note(check_runs(load_config(overrides={"experiment.t_end": 60.0}))) is None
+    assert long_run_note(check_runs(resolve_config(read_config(overrides={"experiment.t_end": 60.0}))[0])) is None
 
 
 def test_sigterm_inside_a_gc_callback_is_delivered_again_not_swallowed():

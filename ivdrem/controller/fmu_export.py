@@ -35,7 +35,7 @@ from .._atomic import zip_tree_atomic
 from .._cc import compile_shared, compiler
 from .._paths import check_replaceable
 from ..fmu.export import _platform, fmi2_header_dir, is_ivdrem_fmu
-from ..laws import get_law, sampled_laws
+from ..laws import base_unit, get_law, sampled_gains, sampled_laws
 from .codegen import _version, generate_controller_sources
 from .loop import default_period
 from .parameters import PARAMETERS, param_layout, param_vector
@@ -120,11 +120,9 @@ def _head_sections(V):
     """The UnitDefinitions, LogCategories and DefaultExperiment of both FMI versions'
     modelDescription (the same in FMI 2.0 and 3.0)."""
     units = sorted({v["unit"] for v in V if v.get("unit")})
-    base = {"rad": 'rad="1"', "rad/s": 's="-1" rad="1"', "N.m": 'kg="1" m="2" s="-2"',
-            "s": 's="1"'}
     h = next(v["start"] for v in V if v["name"] == "h")
     out = ['  <UnitDefinitions>']
-    out += [f'    <Unit name="{u}"><BaseUnit {base[u]}/></Unit>' for u in units]
+    out += [f'    <Unit name="{u}"><BaseUnit {base_unit(u)}/></Unit>' for u in units]
     out += ['  </UnitDefinitions>', '  <LogCategories>',
             '    <Category name="logEvents" description="Initialization (debug logging)"/>',
             '    <Category name="logStatusError" description="Errors: illegal calls, bad values (always logged)"/>',
@@ -390,8 +388,10 @@ def controller_design(experiment, law, *, h=None, mu_max=None):
     config, model = experiment.config, experiment.model
     kw = dict(experiment.law(law).configured)
     kw.update(kw.pop("gains"))     # the sampled controller takes the law's gains by name
-    accepted = set(inspect.signature(SampledController.__init__).parameters) - {"self", "model",
-                                                                                "law"}
+    # its own options and every gain a law with a sampled form declares (the registry's,
+    # which SampledController takes as keywords)
+    accepted = ((set(inspect.signature(SampledController.__init__).parameters)
+                 - {"self", "model", "law", "gains"}) | set(sampled_gains()))
     out = {}
     for k, v in kw.items():
         if k in HOST_KEYS:

@@ -434,6 +434,15 @@ def check_rate(t, theta_err_norm, figure=None, calW_over_Delta=None):
         centers.append(float(np.mean(t[sel])))
         means.append(float(np.mean(y[sel])))
     centers, means = np.asarray(centers), np.asarray(means)
+    if means.size == 0:
+        # a run too short to hold a sample in any of the last half's windows (dt_out
+        # against t_end): nothing to fit, and nothing the run shows either way
+        return _check("RATE", "θ̃ → 0, rate", "Theorem 2 statement 2", UNDECIDED,
+                      {"windows_with_samples": int(means.size)},
+                      f"windowed means of ‖θ̃‖ over the last half (×{N_BINS})", figure,
+                      note=f"not evaluated: none of the last half's {N_BINS} windows holds a "
+                      "sample (the run is too short for its output step)"), \
+            (float("nan"), float("nan"))
     a, C, r2 = power_fit(centers, means)
     floor = _floor_fit(centers, means)
     im = int(np.searchsorted(t, tm))
