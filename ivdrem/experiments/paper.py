@@ -20,6 +20,9 @@ class PaperRun:
     theta: np.ndarray
     model: object
     runs: dict = field(default_factory=dict)
+    #: the :class:`~ivdrem.experiments.experiment.Experiment` the runs came from (each
+    #: law's arguments resolved there once: the report reads them, it does not resolve again)
+    experiment: object = field(default=None, repr=False, compare=False)
 
 
 def run_law(config, law, *, model=None, progress=True, engine="compiled", log=None,
@@ -61,7 +64,8 @@ def run_paper(config=None, *, laws=None, progress=True, engine="compiled", log=N
         experiment = Experiment.from_config(config, engine=engine)
     config = experiment.config
     laws = list(experiment.laws if laws is None else laws)
-    run = PaperRun(config=config, theta=experiment.theta, model=experiment.model)
+    run = PaperRun(config=config, theta=experiment.theta, model=experiment.model,
+                   experiment=experiment)
     show = want_progress(progress)   # one rule for every bar (ivdrem._progress)
     # a γ "auto" that its calibration refuses must stop the command before any law has
     # run (nothing computed is lost): the later laws' choices are made first and kept

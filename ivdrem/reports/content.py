@@ -402,7 +402,10 @@ def _mixing_table(run, diags: Mapping) -> Table | None:
         return None
     cfg = run.config
     ivd = cfg["iv_drem"]
-    kw = closed_loop_kwargs(cfg, laws[0])
+    experiment = getattr(run, "experiment", None)
+    # the law's arguments as its Experiment resolved them (a run made without one: again)
+    kw = (experiment.law(laws[0]).configured if experiment is not None
+          else closed_loop_kwargs(cfg, laws[0], model))
     trajectory = kw.get("trajectory") or PAPER_TRAJECTORY
     lam = _lambda_max(kw.get("Gamma", 0.01), model.ntheta)
     ran = {}
