@@ -35,7 +35,10 @@ Sparsity is fixed when the diagram's tables are built: each block's kernels are 
 points (random states, inputs and parameter values, so that a gain that is 0
 today, or a diagonal matrix parameter, does not hide an entry once it changes; parameter
 values are not part of the compiled code).  An entry is structural when a difference of
-the kernel's output is not exactly zero at any probe.  The Jacobian then only
+the kernel's output is not exactly zero at any probe.  A block with a Jacobian kernel of its
+own and no robot model gives its pattern from that kernel at the same points instead (one
+call per point, :func:`_jacobian_pattern`; the difference probe's entries on every library
+block).  The Jacobian then only
 touches structural nonzeros: the chain is a list of multiply-adds over slots of a flat
 array, each row's slots consecutive in column order so that the multiply-adds merge into
 runs over consecutive slots (a vectorised loop each; the UR5 loop's 2.08 million in 128,721
