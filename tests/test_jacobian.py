@@ -1161,3 +1161,34 @@ def test_the_program_cache_keeps_no_diagram():
     again = jacobian.JacobianProgram(plan)
     assert again.run_dst is run_dst and again.plan is plan
     assert all(b in plan.blocks for b in again.fd_blocks)
+
+
+def test_column_groups_are_the_greedy_first_fit_groups():
+    """_color (a table of rows x groups) against the greedy grouping written plainly: each
+    column, by decreasing row count, into the first group it shares no row with; the same
+    groups on random patterns (so the Jacobian program is unchanged)."""
+    import random
+    from ivdrem.sim.jacobian import _color
+
+    def first_fit(rows_of_col):
+        groups = []
+        for c in sorted(rows_of_col, key=lambda c: -len(rows_of_col[c])):
+            for rows, cols in groups:
+                if not rows & rows_of_col[c]:
+                    rows.update(rows_of_col[c])
+                    cols.append(c)
+                    break
+            else:
+                groups.append((set(rows_of_col[c]), [c]))
+        return [sorted(cols) for _, cols in groups]
+
+    rng = random.Random(0)
+    for trial in range(200):
+        n_rows = rng.randint(1, 40)
+        cols = rng.sample(range(300), rng.randint(0, 60))
+        pattern = {c: set(rng.sample(range(n_rows), rng.randint(0 if trial % 5 == 0 else 1,
+                                                                 min(n_rows, 6))))
+                   for c in cols}
+        assert _color(pattern) == first_fit(pattern)
+    many = {c: set(range(45)) for c in range(100)}          # the mixing's shape: one each
+    assert _color(many) == [[c] for c in range(100)]
