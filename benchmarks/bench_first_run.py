@@ -17,6 +17,7 @@ the default for the "eigen" and "channel" mixings) and from the calibration run 
 Usage::
 
     ./run python benchmarks/bench_first_run.py --rows              # first run and warm, before/after
+    ./run python benchmarks/bench_first_run.py --rows --stages --commit main   # and where it goes
     ./run python benchmarks/bench_first_run.py --rows --t-end 300  # the 300 s run's memory
     ./run python benchmarks/bench_first_run.py --gamma --arms two-link,planar-3,planar-4,planar-5,planar-6,ur5,panda
 """
@@ -41,7 +42,7 @@ except ImportError:
 
 
 def _timed(cmd, cwd, env):
-    """(wall s, peak RSS MiB, exit status, output tail, CPU s) of `cmd` under
+    """(wall s, peak RSS MiB, exit status, output tail, CPU s, stderr) of `cmd` under
     /usr/bin/time -v (CPU: user + system, children included)."""
     t0 = time.perf_counter()
     out = subprocess.run(["/usr/bin/time", "-v", *cmd], cwd=cwd, env=env, capture_output=True,
@@ -51,25 +52,69 @@ def _timed(cmd, cwd, env):
     rss = int(m.group(1)) / 1024 if m else float("nan")
     cpu = sum(float(x) for x in re.findall(r"(?:User|System) time \(seconds\): ([\d.]+)",
                                            out.stderr))
-    return wall, rss, out.returncode, (out.stdout + out.stderr)[-1500:], cpu
+    return wall, rss, out.returncode, (out.stdout + out.stderr)[-1500:], cpu, out.stderr
 
 
-def first_run_rows(tree, label, t_end, cache):
-    """The first run (empty cache) and the warm run of the Panda command in `tree`."""
+#: ``--stages``: the command run under a timer of its set-up stages (the functions below,
+#: by module and name, wrapped where the version has them), each printed to stderr as
+#: "[stage] name: wall W s, cpu C s" (CPU of the main process; a child compiling wrappers
+#: is not in it)
+STAGES = [("ivdrem.diagrams.gamma_auto", "reference_mean_delta2", "γ reference estimate"),
+          ("ivdrem.sim.jacobian", "_local_patterns", "sparsity probe"),
+          ("ivdrem.sim.jacobian", "JacobianProgram._build", "Jacobian program build"),
+          ("ivdrem.sim.sparse_lu", "_grouped_symbolic_lu", "symbolic LU (orderings, search)"),
+          ("ivdrem.sim.compiled", "_load_kernels", "kernels compiled and imported")]
+_STAGE_RUNNER = """
+import functools, importlib, sys, time
+def wrap(mod, name, label):
+    mod = importlib.import_module(mod)
+    owner, _, attr = name.rpartition('.')
+    owner = getattr(mod, owner) if owner else mod
+    if not hasattr(owner, attr):
+        return
+    f = getattr(owner, attr)
+    @functools.wraps(f)
+    def g(*a, **k):
+        w, c = time.perf_counter(), time.process_time()
+        try:
+            return f(*a, **k)
+        finally:
+            print(f'[stage] {label}: wall {time.perf_counter() - w:.2f} s, '
+                  f'cpu {time.process_time() - c:.2f} s', file=sys.stderr, flush=True)
+    setattr(owner, attr, g)
+for m, n, l in %r:
+    wrap(m, n, l)
+sys.argv = ['ivdrem'] + sys.argv[1:]
+from ivdrem.cli import run
+run()
+"""
+
+
+def first_run_rows(tree, label, t_end, cache, stages=False):
+    """The first run (empty cache) and the warm run of the Panda command in `tree`; with
+    `stages`, each run's set-up stages too (STAGES: seconds summed per stage)."""
     env = dict(os.environ, IVDREM_CACHE_DIR=str(cache), PYTHONPATH=str(tree),
                OPENBLAS_NUM_THREADS="1")
     env.pop("NUMBA_CACHE_DIR", None)
-    cmd = [sys.executable, "-m", "ivdrem", "paper", "--config", "examples/panda.toml",
-           "--t-end", f"{t_end:g}", "--laws", "iv-drem", "--quiet"]
+    head = ([sys.executable, "-c", _STAGE_RUNNER % (STAGES,)] if stages
+            else [sys.executable, "-m", "ivdrem"])
+    cmd = head + ["paper", "--config", "examples/panda.toml", "--t-end", f"{t_end:g}",
+                  "--laws", "iv-drem", "--quiet"]
     rows = []
     for kind in ("first", "warm"):
-        wall, rss, rc, tail, cpu = _timed(cmd, tree, env)
+        wall, rss, rc, tail, cpu, err = _timed(cmd, tree, env)
         if rc != 0:
             raise RuntimeError(f"{label} {kind} run failed (exit {rc}):\n{tail}")
         theta = re.search(r"theta_err\|\(t_end\)[^\n]*", tail)
         rows.append(dict(version=label, run=kind, wall_s=wall, cpu_s=cpu, peak_MiB=rss,
                          theta=theta.group(0) if theta else None))
-        print(json.dumps(rows[-1]), flush=True)
+        if stages:
+            got = {}
+            for name, w, c in re.findall(r"\[stage\] (.+?): wall ([\d.]+) s, cpu ([\d.]+) s", err):
+                a, b = got.get(name, (0.0, 0.0))
+                got[name] = (a + float(w), b + float(c))
+            rows[-1]["stages"] = got
+        print(json.dumps(rows[-1], ensure_ascii=False), flush=True)
     return rows
 
 
@@ -131,6 +176,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rows", action="store_true", help="first run and warm run, before/after")
     ap.add_argument("--commit", default="dca66b6")
+    ap.add_argument("--stages", action="store_true",
+                    help="with --rows: time the set-up stages of each run (main process)")
     ap.add_argument("--t-end", type=float, default=1.0)
     ap.add_argument("--gamma", action="store_true", help="γ auto: reference estimate vs run")
     ap.add_argument("--arms", default="two-link,planar-3,planar-4,planar-5,planar-6,ur5,panda")
@@ -147,7 +194,8 @@ def main(argv=None):
         try:
             rows = []
             for tree, label in ((before, f"before ({a.commit})"), (REPO, "after")):
-                rows += first_run_rows(tree, label, a.t_end, tmp / f"cache-{tree.name}")
+                rows += first_run_rows(tree, label, a.t_end, tmp / f"cache-{tree.name}",
+                                       stages=a.stages)
             out["rows"] = rows
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
@@ -157,6 +205,13 @@ def main(argv=None):
         for r in out["rows"]:
             print(f"{r['version']:<22} {r['run']:<6} {r['wall_s']:>8.1f} {r['cpu_s']:>7.1f} "
                   f"{r['peak_MiB']:>9.0f}")
+        if a.stages:
+            print(f"\n{'stage (main process): CPU s (wall s)':<44}"
+                  + "".join(f" {r['version'][:14] + ' ' + r['run']:>22}" for r in out["rows"]))
+            for _, _, name in STAGES:
+                cells = [r["stages"].get(name) for r in out["rows"]]
+                print(f"{name:<44}" + "".join(
+                    f" {'-' if c is None else f'{c[1]:.1f} ({c[0]:.1f})':>22}" for c in cells))
     if a.gamma:
         print(f"\n{'arm':<10} {'nθ':>3} {'mixing':<7} {'γ run (today)':>14} {'γ reference':>12} "
               f"{'max rel diff':>12} {'run s':>7} {'ref s':>6}")

@@ -109,6 +109,10 @@ def test_the_reference_estimate_is_kept_and_keyed_by_what_it_reads(tmp_path, mon
     again = gamma_auto.check_reference_delta("iv-drem", model, _estimate_args(model),
                                              variant="eigen")
     assert len(calls) == 1 and again == first
+    # the run's γ "auto" asks with t_cal = 2T, the horizon the preflight's check means
+    ch = gamma_auto.calibrate_gamma("iv-drem", model, _estimate_args(model))
+    assert ch["source"] == "reference" and ch["t_cal"] == 8.0
+    assert len(calls) == 1 and ch["reference_log10_mean_Delta2"] == first[0]
     gamma_auto._ESTIMATES.clear()                        # as a new process: from the disk
     assert gamma_auto.check_reference_delta("iv-drem", model, args, variant="eigen") == first
     assert len(calls) == 1

@@ -669,15 +669,169 @@ def test_compiled_probe_gives_the_python_probes_pattern(monkeypatch, arm, mixing
         args = kernel_args(b.spec, plan.block_params(b))
         sizes = (b.sys.nstates, b.sys.ninputs, b.sys.noutputs)
         monkeypatch.setattr(jac, "PROBE_COMPILE_WORK", 10 ** 18)
-        python = jac.block_pattern(b.spec, args, *sizes, seed=b.index)
+        python = jac._difference_pattern(b.spec, args, *sizes, seed=b.index, n_points=3)
         assert not hasattr(jac._probe_kernels(b.spec, args, *sizes)[0], "py_func")
         monkeypatch.setattr(jac, "PROBE_COMPILE_WORK", 0)
         assert hasattr(jac._probe_kernels(b.spec, args, *sizes)[0], "py_func")  # numba's
-        compiled = jac.block_pattern(b.spec, args, *sizes, seed=b.index)
+        compiled = jac._difference_pattern(b.spec, args, *sizes, seed=b.index, n_points=3)
         assert python is not None and python.any()
         assert np.array_equal(compiled, python), b.sys.name
         seen.add(b.sys.name)
     assert seen == names
+
+
+def _arm_plan(arm):
+    """The plan of the IV-DREM loop of examples/<arm>.toml (the run's loop)."""
+    from pathlib import Path
+    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.experiment import Experiment
+    from ivdrem.sim.plan import DiagramPlan
+    root = Path(__file__).resolve().parents[1]
+    c = load_config(root / "examples" / f"{arm}.toml",
+                    overrides={"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"]})
+    return DiagramPlan.from_diagram(Experiment.from_config(c).loop("iv-drem"))
+
+
+@pytest.mark.parametrize("case", [
+    "iv-drem", "composite-learning", "literal-observer", "planar3-iv-drem",
+    "planar3-eigen", "planar3-composite-learning",
+    pytest.param("ur5", marks=pytest.mark.slow), pytest.param("panda", marks=pytest.mark.slow)])
+def test_a_jacobian_kernel_gives_the_difference_probe_s_pattern(case):
+    """A block with its own Jacobian kernel and no robot model takes its local pattern from
+    that kernel at three random points (one call each) instead of 2 (nx + nu) kernel calls
+    per point: on every such block of the paper's loops, planar-3 and the real arms' loops
+    it is the difference probe's pattern entry by entry (so the Jacobian program, the LU
+    and the run are unchanged)."""
+    from ivdrem.sim import jacobian as jac
+    from ivdrem.sim.plan import DiagramPlan
+    from ivdrem.blocks._core import kernel_args
+    if case in ("ur5", "panda"):
+        plan = _arm_plan(case)
+    elif case.startswith("planar3"):
+        law = case[len("planar3-"):]
+        plan = DiagramPlan.from_diagram(_planar3_loop("iv-drem", mixing="eigen")
+                                        if law == "eigen" else _planar3_loop(law))
+    elif case == "literal-observer":
+        from ivdrem.diagrams import closed_loop
+        plan = DiagramPlan.from_diagram(closed_loop("iv-drem", observer_variant="literal"))
+    else:
+        plan = DiagramPlan.from_diagram(paper_loop(case))
+    seen = set()
+    for b in plan.blocks:
+        if (b.spec.kind != "ode" or b.spec.jacobian is None or b.spec.model is not None):
+            continue
+        args = kernel_args(b.spec, plan.block_params(b))
+        sizes = (b.sys.nstates, b.sys.ninputs, b.sys.noutputs)
+        from_kernel = jac._jacobian_pattern(b.spec, args, *sizes, seed=b.index, n_points=3)
+        differences = jac._difference_pattern(b.spec, args, *sizes, seed=b.index, n_points=3)
+        assert from_kernel is not None and differences.any()
+        assert np.array_equal(from_kernel, differences), (
+            f"{b.sys.name}: {int((differences & ~from_kernel).sum())} entries missing, "
+            f"{int((from_kernel & ~differences).sum())} more")
+        # whichever of the two the probe takes (the kernel's, unless calling it would first
+        # make numba compile a helper)
+        assert np.array_equal(jac.block_pattern(b.spec, args, *sizes, seed=b.index),
+                              from_kernel)
+        seen.add(b.sys.name)
+    want = {"control_law", "adaptation_law", "extension", "tracking_error"}
+    if "composite-learning" not in case:
+        want |= {"mixing", "drem_term"}
+    assert want <= seen, sorted(want - seen)
+
+
+def _coupled_update(t, x, u, dx):
+    # dx0 = -x0 + u0 u1, dx1 = -x1 + u1
+    dx[0] = -x[0] + u[0] * u[1]
+    dx[1] = -x[1] + u[1]
+
+
+def _coupled_output(t, x, u, y):
+    y[0] = x[0]
+    y[1] = x[1]
+
+
+def _coupled_jacobian_forgetting_u1(t, x, u, jac):
+    # rows y0, y1, dx0, dx1; columns x0, x1, u0, u1: d(dx0)/du1 = u0 left out
+    jac[0, 0] = 1.0
+    jac[1, 1] = 1.0
+    jac[2, 0] = -1.0
+    jac[2, 2] = u[1]
+    jac[3, 1] = -1.0
+    jac[3, 3] = 1.0
+
+
+def _coupled_jacobian_without_dx1(t, x, u, jac):
+    # the row of dx1 left empty: a dependence forgotten that the check along w sees
+    jac[0, 0] = 1.0
+    jac[1, 1] = 1.0
+    jac[2, 0] = -1.0
+    jac[2, 2] = u[1]
+    jac[2, 3] = u[0]
+
+
+def test_a_jacobian_kernel_that_forgets_a_dependence_is_caught():
+    """A wrong (too small) pattern from a Jacobian kernel: an empty row is caught at probe
+    time (the difference along a random direction moves it; the block is probed by
+    differences instead, which finds the whole pattern); an entry left out of a row that
+    has others is what the comparison above fails on (and the kernel's own values, checked
+    against differences by test_block_jacobian_kernels_match_their_own_differences)."""
+    from ivdrem.sim import jacobian as jac
+    true = np.zeros((4, 4), dtype=bool)
+    true[[0, 1, 2, 2, 2, 3, 3], [0, 1, 0, 2, 3, 1, 3]] = True
+
+    def spec(jacobian):
+        return BlockSpec("coupled", [("u", 2)], [("y", 2)], [("x", 2)], np.zeros(2),
+                         param_names=(), update=_coupled_update, output=_coupled_output,
+                         jacobian=jacobian)
+
+    diff = jac._difference_pattern(spec(None), [], 2, 2, 2, seed=0, n_points=3)
+    assert np.array_equal(diff, true)
+    # the empty row: back to the differences, the whole pattern
+    s = spec(_coupled_jacobian_without_dx1)
+    assert jac._jacobian_pattern(s, [], 2, 2, 2, seed=0, n_points=3) is None
+    assert np.array_equal(jac.block_pattern(s, [], 2, 2, 2), true)
+    # the entry left out: the kernel's pattern is smaller, and differs from the probe's
+    s = spec(_coupled_jacobian_forgetting_u1)
+    small = jac._jacobian_pattern(s, [], 2, 2, 2, seed=0, n_points=3)
+    assert small is not None and not small[2, 3] and np.array_equal(small | (diff & ~small), diff)
+    assert not np.array_equal(small, diff)
+
+
+def _slope(u1):
+    return u1
+
+
+_SLOPE = None           # a numba dispatcher of _slope, made fresh by the test below
+
+
+def _coupled_jacobian_with_helper(t, x, u, J):
+    J[0, 0] = 1.0
+    J[1, 1] = 1.0
+    J[2, 0] = -1.0
+    J[2, 2] = _SLOPE(u[1])
+    J[2, 3] = u[0]
+    J[3, 1] = -1.0
+    J[3, 3] = 1.0
+
+
+def test_a_jacobian_kernel_whose_helper_is_not_compiled_yet_is_probed_by_differences(
+        monkeypatch):
+    """On a first run a Jacobian kernel calling a numba helper that is neither compiled
+    in this process nor in numba's cache would cost that compile to probe: the block is
+    probed by differences of its kernels then, by its kernel once the helper is compiled;
+    the pattern is the same."""
+    from numba import njit
+    from ivdrem.sim import jacobian as jac
+    monkeypatch.setitem(globals(), "_SLOPE", njit(cache=False)(_slope))
+    kernel = _coupled_jacobian_with_helper
+    spec = BlockSpec("coupled", [("u", 2)], [("y", 2)], [("x", 2)], np.zeros(2),
+                     param_names=(), update=_coupled_update, output=_coupled_output,
+                     jacobian=kernel)
+    assert jac._compiles_first(kernel) and not jac._kernel_probe_applies(spec)
+    by_differences = jac.block_pattern(spec, [], 2, 2, 2)
+    _SLOPE(0.5)
+    assert not jac._compiles_first(kernel) and jac._kernel_probe_applies(spec)
+    assert np.array_equal(jac.block_pattern(spec, [], 2, 2, 2), by_differences)
 
 
 def test_probe_falls_back_to_python_for_kernels_numba_refuses(monkeypatch):
@@ -1007,3 +1161,34 @@ def test_the_program_cache_keeps_no_diagram():
     again = jacobian.JacobianProgram(plan)
     assert again.run_dst is run_dst and again.plan is plan
     assert all(b in plan.blocks for b in again.fd_blocks)
+
+
+def test_column_groups_are_the_greedy_first_fit_groups():
+    """_color (a table of rows x groups) against the greedy grouping written plainly: each
+    column, by decreasing row count, into the first group it shares no row with; the same
+    groups on random patterns (so the Jacobian program is unchanged)."""
+    import random
+    from ivdrem.sim.jacobian import _color
+
+    def first_fit(rows_of_col):
+        groups = []
+        for c in sorted(rows_of_col, key=lambda c: -len(rows_of_col[c])):
+            for rows, cols in groups:
+                if not rows & rows_of_col[c]:
+                    rows.update(rows_of_col[c])
+                    cols.append(c)
+                    break
+            else:
+                groups.append((set(rows_of_col[c]), [c]))
+        return [sorted(cols) for _, cols in groups]
+
+    rng = random.Random(0)
+    for trial in range(200):
+        n_rows = rng.randint(1, 40)
+        cols = rng.sample(range(300), rng.randint(0, 60))
+        pattern = {c: set(rng.sample(range(n_rows), rng.randint(0 if trial % 5 == 0 else 1,
+                                                                 min(n_rows, 6))))
+                   for c in cols}
+        assert _color(pattern) == first_fit(pattern)
+    many = {c: set(range(45)) for c in range(100)}          # the mixing's shape: one each
+    assert _color(many) == [[c] for c in range(100)]

@@ -317,26 +317,42 @@ def dense_cost(pattern, order):
 
 
 @pytest.mark.parametrize("n,density", [(1, 0.5), (12, 0.2), (60, 0.05), (120, 0.03)])
-def test_elimination_cost_equals_the_dense_count_on_every_path(n, density):
-    """The cost the search minimises, three ways: from the filled rows, from the one-pass
-    kernel run as Python and compiled by numba, each against the dense elimination; and a
-    cost limit below the cost stops the kernel, one at the cost does not."""
-    from numba import njit
+def test_elimination_cost_equals_the_dense_count_on_every_path(n, density, monkeypatch):
+    """The cost the search minimises, two ways: from the filled rows (Python) and from
+    elimination_cost.c (the search of a real arm's loop), each against the dense
+    elimination; a cost limit below the cost stops both, one at the cost does not; the
+    fill-only limit (the candidate orderings' comparison) the same."""
     rng = np.random.default_rng(n)
     pattern = rng.random((n, n)) < density
     csr = as_csr(pattern)
-    compiled = njit(sparse_lu._elimination_cost_kernel)
+    w = sparse_lu.SOLVES_PER_FACTOR
+    assert sparse_lu._compiled_cost() is not None          # a C compiler is required here
     for order in (np.arange(n), rng.permutation(n)):
         ref = dense_cost(pattern, order)
         assert sparse_lu.elimination_cost(sparse_lu._filled_rows(csr, order)) == ref
-        ip, ix = csr.indptr.astype(np.int64), csr.indices.astype(np.int64)
-        w = sparse_lu.SOLVES_PER_FACTOR
-        for kernel in (sparse_lu._elimination_cost_kernel, compiled):
-            assert tuple(kernel(ip, ix, order, w, np.inf)) == ref
-            total = float(ref[0] + w * ref[1])
-            assert tuple(kernel(ip, ix, order, w, total)) == ref
-            assert tuple(kernel(ip, ix, order, w, total - 1.0)) == (-1, -1)
+        total = float(ref[0] + w * ref[1])
+        for compiled_from in (10 ** 9, 0):                 # in Python, then in C
+            monkeypatch.setattr(sparse_lu, "REFINE_COMPILED_FROM", compiled_from)
+            assert sparse_lu._order_cost(csr, order, np.inf) == ref
+            assert sparse_lu._order_cost(csr, order, total) == ref
+            assert sparse_lu._order_cost(csr, order, total - 1.0) is None
+            assert sparse_lu._order_cost(csr, order, ref[1], fill_only=True) == ref
+            assert sparse_lu._order_cost(csr, order, ref[1] - 1, fill_only=True) is None
         assert sparse_lu._filled_rows(csr, order, cost_limit=total - 1) is None
+
+
+def test_no_c_compiler_searches_in_python(tmp_path, monkeypatch):
+    """Without a C compiler the cost is counted in Python: the same orders, nothing
+    raised (the C library is built once per cache and source, else not at all)."""
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    monkeypatch.setattr(sparse_lu, "_C_COST", {})
+    monkeypatch.setattr(sparse_lu, "REFINE_COMPILED_FROM", 0)
+    assert sparse_lu._compiled_cost() is None
+    P, groups = _two_stage_adaptation(seed=0)
+    csr = as_csr(P)
+    base = sparse_lu._symbolic_lu(P)
+    assert sparse_lu._order_cost(csr, base.perm, np.inf) == dense_cost(P, base.perm)
 
 
 def _two_stage_adaptation(n_slow=30, n_theta=6, n_fast=8, seed=0):
@@ -379,14 +395,16 @@ def test_group_moves_lower_the_cost_and_keep_every_group_in_order(seed):
 
 
 def test_the_compiled_search_finds_the_python_search_s_order(monkeypatch):
-    """The search of a real arm's loop evaluates its orders with the numba-compiled cost
-    (REFINE_COMPILED_FROM states or more): the same moves, the same order as in Python."""
+    """The search of a real arm's loop evaluates its orders with the cost compiled from
+    elimination_cost.c (REFINE_COMPILED_FROM states or more): the same moves, the same
+    order as in Python; the candidate orderings too."""
     P, groups = _two_stage_adaptation(seed=1)
     base, csr = sparse_lu._symbolic_lu(P), as_csr(P)
     in_python = sparse_lu.refine_by_groups(csr, base.perm, groups)
     monkeypatch.setattr(sparse_lu, "REFINE_COMPILED_FROM", 0)
     compiled = sparse_lu.refine_by_groups(csr, base.perm, groups)
     assert np.array_equal(compiled[0], in_python[0]) and compiled[1:] == in_python[1:]
+    assert np.array_equal(sparse_lu._symbolic_lu(P).perm, base.perm)
 
 
 def test_the_refined_order_factors_and_solves_as_numpy(tmp_path, monkeypatch):

@@ -243,9 +243,12 @@ def check_reference_delta(law, model, args, *, variant, margin=ESTIMATE_MARGIN, 
     if trajectory is None:
         from .._default_config import paper_experiment
         trajectory = paper_experiment()["trajectory"]     # the paper's arm
-    numbers = dict(T=float(par["T"]), p=float(par["p"]), F0=float(par["F0"]),
+    # t_cal keyed as the horizon it stands for (2T when not given): the preflight's check
+    # (no t_cal) and calibrate_gamma's (t_cal = 2T) are the same estimate, computed once
+    T = float(par["T"])
+    numbers = dict(T=T, p=float(par["p"]), F0=float(par["F0"]),
                    l=float(args.get("l") or 50.0), variant=variant,
-                   t_cal=None if t_cal is None else float(t_cal))
+                   t_cal=2.0 * T if t_cal is None else float(t_cal))
     path = _estimate_path(model, trajectory, numbers)
     est = _read_estimate(path)
     if est is None:

@@ -31,7 +31,10 @@ factor is bit for bit the same; :func:`panels` chooses them.
 from __future__ import annotations
 
 import hashlib
+import os
+import tempfile
 import warnings
+from pathlib import Path
 
 import numpy as np
 from scipy import sparse
@@ -143,78 +146,67 @@ def elimination_cost(rows):
     return int(ulen[flat[lower]].sum()), int(sizes.sum())
 
 
-def _elimination_cost_kernel(indptr, indices, order, weight, cost_limit):
-    """(multiply-adds, entries of L + U) of eliminating P A P^T in the diagonal order, or
-    (-1, -1) once madds + weight * entries exceeds cost_limit: _filled_rows and
-    elimination_cost in one pass that keeps each row's upper part unsorted (compiled by
-    numba for the group search on large patterns, REFINE_COMPILED_FROM)."""
-    n = order.size
-    inv = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        inv[order[i]] = i
-    up_ptr = np.zeros(n + 1, dtype=np.int64)
-    up = np.empty(max(4 * indices.size, 16), dtype=np.int64)
-    mark = np.full(n, -1, dtype=np.int64)
-    row = np.empty(n, dtype=np.int64)
-    stack = np.empty(n, dtype=np.int64)
-    madds = 0
-    nnz = 0
-    for i in range(n):
-        # the row of A, then the row of U of every column of L reached (each column once)
-        lo, hi, from_a = indptr[order[i]], indptr[order[i] + 1], True
-        cnt = 0
-        top = 0
-        while True:
-            for q in range(lo, hi):
-                c = inv[indices[q]] if from_a else up[q]
-                if mark[c] != i:
-                    mark[c] = i
-                    row[cnt] = c
-                    cnt += 1
-                    if c < i:
-                        stack[top] = c
-                        top += 1
-            if top == 0:
-                break
-            top -= 1
-            j = stack[top]
-            lo, hi, from_a = up_ptr[j], up_ptr[j + 1], False
-            madds += hi - lo
-        if up_ptr[i] + cnt > up.size:
-            grown = np.empty(2 * up.size + cnt, dtype=np.int64)
-            grown[:up_ptr[i]] = up[:up_ptr[i]]
-            up = grown
-        m = up_ptr[i]
-        for t in range(cnt):
-            if row[t] > i:
-                up[m] = row[t]
-                m += 1
-        up_ptr[i + 1] = m
-        nnz += cnt
-        if madds + weight * nnz > cost_limit:
-            return -1, -1
-    return madds, nnz
-
-
-#: patterns of at least this many states are searched with the compiled cost (a real arm's
-#: loop: 0.1 s an order in Python, 25 s for the Panda's search); smaller ones in Python,
-#: which needs no compilation
+#: patterns of at least this many states are searched with the cost compiled from
+#: elimination_cost.c (a real arm's loop: 0.1 s an order in Python, 25 s for the Panda's
+#: search; 5 ms compiled); smaller ones, or all where no C compiler builds it, in Python
 REFINE_COMPILED_FROM = 1000
-_COMPILED_COST = []
+_C_COST = {}            # the loaded library's function (None: not built), by its path
+_C_SOURCE_HASH = {}
 
 
-def _order_cost(A, order, cost_limit):
-    """(madds, nnz) of `order` on the CSR pattern A, None above cost_limit."""
-    if A.shape[0] >= REFINE_COMPILED_FROM:
-        if not _COMPILED_COST:
-            from numba import njit
-            _COMPILED_COST.append(njit(cache=True)(_elimination_cost_kernel))
-        madds, nnz = _COMPILED_COST[0](A.indptr.astype(np.int64), A.indices.astype(np.int64),
-                                       np.asarray(order, dtype=np.int64),
-                                       SOLVES_PER_FACTOR, float(cost_limit))
-        return None if madds < 0 else (int(madds), int(nnz))
-    rows = _filled_rows(A, order, cost_limit=cost_limit)
-    return None if rows is None else elimination_cost(rows)
+def _compiled_cost():
+    """The C elimination cost (elimination_cost.c, built with ivdrem._cc into the compile
+    cache on first use: a fraction of a second, where numba compiling the same loop took
+    6-7 s of a cold run), or None where no C compiler builds it."""
+    import ctypes
+
+    from .._cc import CompilerError, compile_shared
+    src = Path(__file__).with_name("elimination_cost.c")
+    if src not in _C_SOURCE_HASH:
+        _C_SOURCE_HASH[src] = hashlib.sha256(src.read_bytes()).hexdigest()[:20]
+    path = cache_dir() / "lu-orders" / f"cost-{_C_SOURCE_HASH[src]}.so"
+    fn = _C_COST.get(str(path))
+    if fn is not None or str(path) in _C_COST:
+        return fn
+    try:
+        if not path.is_file():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
+                built = Path(tmp) / path.name
+                compile_shared([src], built, what="ivdrem's elimination_cost.c")
+                os.replace(built, path)
+        fn = ctypes.CDLL(str(path)).ivdrem_elimination_cost
+    except (CompilerError, OSError):
+        fn = None           # the search runs in Python: slower, the same orders
+    else:
+        i64p = ctypes.POINTER(ctypes.c_int64)
+        fn.argtypes = [ctypes.c_int64, i64p, i64p, i64p, ctypes.c_double, ctypes.c_double,
+                       ctypes.c_double, i64p]
+        fn.restype = ctypes.c_int
+    _C_COST[str(path)] = fn
+    return fn
+
+
+def _order_cost(A, order, cost_limit, *, fill_only=False):
+    """(madds, nnz) of `order` on the CSR pattern A, None above cost_limit (of
+    :func:`_cost`, or with `fill_only` of nnz alone)."""
+    fn = _compiled_cost() if A.shape[0] >= REFINE_COMPILED_FROM else None
+    if fn is None:
+        if fill_only:
+            rows = _filled_rows(A, order, limit=None if np.isinf(cost_limit) else cost_limit)
+        else:
+            rows = _filled_rows(A, order, cost_limit=cost_limit)
+        return None if rows is None else elimination_cost(rows)
+    import ctypes
+    i64p = ctypes.POINTER(ctypes.c_int64)
+    arrays = [np.ascontiguousarray(a, dtype=np.int64) for a in (A.indptr, A.indices, order)]
+    out = np.zeros(2, dtype=np.int64)
+    status = fn(A.shape[0], *(a.ctypes.data_as(i64p) for a in arrays),
+                0.0 if fill_only else 1.0, 1.0 if fill_only else float(SOLVES_PER_FACTOR),
+                float(cost_limit), out.ctypes.data_as(i64p))
+    if status < 0:
+        raise MemoryError("the symbolic LU's ordering search ran out of memory")
+    return None if status else (int(out[0]), int(out[1]))
 
 
 def _cost(madds, nnz):
@@ -379,12 +371,12 @@ def _grouped_symbolic_lu(pattern, groups):
     if kept is not None:
         order, name = kept
         return SymbolicLU(order, _filled_rows(A, order), A.nnz, name)
-    base = _symbolic_lu(pattern, A)
-    refined = refine_by_groups(A, base.perm, groups)
+    base_name, base_order = _least_fill_order(A)
+    refined = refine_by_groups(A, base_order, groups)
     if refined is None:
-        order, name = np.array(base.perm), base.ordering
+        order, name = np.array(base_order), base_name
     else:
-        order, name = refined[0], f"{base.ordering}, groups moved"
+        order, name = refined[0], f"{base_name}, groups moved"
     if path is not None:
         try:
             write_file_atomic(path,
@@ -392,8 +384,6 @@ def _grouped_symbolic_lu(pattern, groups):
                                                   name=np.array(name)))
         except OSError:
             pass            # an unwritable cache costs the search next time
-    if refined is None:
-        return base
     return SymbolicLU(order, _filled_rows(A, order), A.nnz, name)
 
 
@@ -409,8 +399,14 @@ def _pattern_csr(pattern):
 def _symbolic_lu(pattern, A=None):
     """The least-fill candidate ordering of `pattern` (A: its _pattern_csr, if built)."""
     A = _pattern_csr(pattern) if A is None else A
+    name, order = _least_fill_order(A)
+    return SymbolicLU(order, _filled_rows(A, order), A.nnz, name)
+
+
+def _least_fill_order(A):
+    """(name, order) of the candidate ordering with the least fill of L + U on the CSR
+    pattern A (the first of natural, COLAMD, MMD_AT_PLUS_A on a tie)."""
     n = A.shape[0]
-    nnz_a = A.nnz
     # candidates in the order that breaks ties: the first with the least fill wins
     candidates = [("natural", np.arange(n))]
     if n > 1:
@@ -426,12 +422,11 @@ def _symbolic_lu(pattern, A=None):
     # the fill-reducing orderings first: the natural order of a real arm's loop fills most
     # of the matrix (4.9 M of 14.5 M entries on the UR5's), and its elimination stops as
     # soon as it has more entries than the best so far (it can no longer be the least)
-    found = {}                  # rank in candidates -> (nnz of L + U, rows)
+    found = {}                  # rank in candidates -> nnz of L + U
     for rank in list(range(1, len(candidates))) + [0]:
-        best = min((nnz for nnz, _ in found.values()), default=None)
-        rows = _filled_rows(A, candidates[rank][1], limit=best)
-        if rows is not None:
-            found[rank] = (sum(r.size for r in rows), rows)
-    rank = min(found, key=lambda r: (found[r][0], r))
-    name, order = candidates[rank]
-    return SymbolicLU(order, found[rank][1], nnz_a, name)
+        best = min(found.values(), default=np.inf)
+        got = _order_cost(A, candidates[rank][1], best, fill_only=True)
+        if got is not None:
+            found[rank] = got[1]
+    rank = min(found, key=lambda r: (found[r], r))
+    return candidates[rank]
