@@ -69,7 +69,7 @@ def planar_experiment(n):
 
 
 def planar_config_overrides(n):
-    """The same experiment as load_config overrides (``ivdrem paper --config`` keys)."""
+    """The same experiment as configuration overrides (``ivdrem paper --config`` keys)."""
     e = planar_experiment(n)
     return {"model.name": f"planar-{n}", "initial.q0": e["q0"],
             **{f"trajectory.{k}": v for k, v in e["trajectory"].items()},

@@ -177,7 +177,7 @@ def main(argv=None):
         cfg = statistics.median(g[0] for g in got)
         cl = statistics.median(g[1] for g in got)
         print(f"{'closed_loop of a cached planar-6 model':<44s} median {cl:6.2f} s  "
-              f"(load_config + model {cfg:.2f} s)  [target <= 1 s]  {load()}", flush=True)
+              f"(configuration resolved + model {cfg:.2f} s)  [target <= 1 s]  {load()}", flush=True)
         results["planar6_closed_loop"], results["planar6_config"] = cl, cfg
 
     # ---------------------------------------------------------------- memory

@@ -683,12 +683,12 @@ def test_compiled_probe_gives_the_python_probes_pattern(monkeypatch, arm, mixing
 def _arm_plan(arm):
     """The plan of the IV-DREM loop of examples/<arm>.toml (the run's loop)."""
     from pathlib import Path
-    from ivdrem.experiments.config import load_config
+    from ivdrem.experiments.config import read_config, resolve_config
     from ivdrem.experiments.experiment import Experiment
     from ivdrem.sim.plan import DiagramPlan
     root = Path(__file__).resolve().parents[1]
-    c = load_config(root / "examples" / f"{arm}.toml",
-                    overrides={"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"]})
+    c = resolve_config(read_config(root / "examples" / f"{arm}.toml",
+                    overrides={"experiment.t_end": 1.0, "experiment.laws": ["iv-drem"]}))[0]
     return DiagramPlan.from_diagram(Experiment.from_config(c).loop("iv-drem"))
 
 

@@ -150,11 +150,11 @@ def test_an_ordering_stops_once_it_has_more_entries_than_the_limit():
 
 def _loop_plan(n_joints):
     from ivdrem.diagrams import closed_loop
-    from ivdrem.experiments.config import closed_loop_kwargs, load_config, model_from_config
+    from ivdrem.experiments.config import closed_loop_kwargs, read_config, resolve_config, model_from_config
     from ivdrem.sim.compiled import _check_kernels
     from ivdrem.sim.plan import DiagramPlan
     # gamma pinned: "auto" would calibrate it by a run, which the pattern does not need
-    cfg = load_config(overrides={"model.name": f"planar-{n_joints}", "iv_drem.gamma": 1.0})
+    cfg = resolve_config(read_config(overrides={"model.name": f"planar-{n_joints}", "iv_drem.gamma": 1.0}))[0]
     loop = closed_loop("iv-drem", model_from_config(cfg), **closed_loop_kwargs(cfg, "iv-drem"))
     plan = DiagramPlan.from_diagram(loop)
     _check_kernels(plan)
