@@ -5,8 +5,8 @@ Python (reference path) and from generated numba code (compiled path).
 """
 import llvmlite.binding as llvm
 import numpy as np
-from numba import njit, types
-from numba.extending import get_cython_function_address
+from numba import carray, njit, types
+from numba.extending import get_cython_function_address, intrinsic, overload
 
 from ..models._rigid_body_jit import (SINGULAR_INERTIA_MESSAGE, _rb_cholesky,
                                       _rb_cholesky_solve)
@@ -20,6 +20,56 @@ for _name in ("dgesdd", "dgesv"):
 _PTR = types.voidptr
 _dgesdd = types.ExternalFunction("ivdrem_dgesdd", types.void(*([_PTR] * 14)))
 _dgesv = types.ExternalFunction("ivdrem_dgesv", types.void(*([_PTR] * 8)))
+
+
+# ------------------------------------------------------------------ scratch on the stack
+# A kernel's temporaries (the regressors a block combines, the inertia's Cholesky factor,
+# the mixing's LU) are small and live for one call: numba's np.empty takes each from the
+# heap through its reference-counted allocator, about 22 allocations per right-hand side
+# of the paper's loop (1.2 million a run, a tenth of its time in malloc, free and the
+# allocator's bookkeeping).  stack_empty gives the same uninitialised array in the calling
+# function's stack frame instead: an LLVM alloca, gone when that function returns.
+# Plain Python (the reference path) gets np.empty.  Use it only for a temporary that does
+# not outlive the function that creates it (never returned, never stored), at the
+# function's top level (an alloca inside a loop grows the frame on every iteration), and
+# for sizes of the model (a few regressor matrices: kilobytes, not the stack's megabytes).
+
+@intrinsic
+def _stack_buffer(typingctx, count, dtype):
+    """A pointer to `count` uninitialised items of `dtype` in the caller's stack frame."""
+    item = dtype.dtype if isinstance(dtype, types.DType) else dtype.instance_type
+
+    def codegen(context, builder, signature, args):
+        return builder.alloca(context.get_value_type(item), size=args[0])
+    return types.CPointer(item)(types.intp, dtype), codegen
+
+
+def stack_empty(shape, dtype=np.float64):
+    """np.empty(shape, dtype) (shape an int or a pair); compiled: on the caller's stack."""
+    return np.empty(shape, dtype)
+
+
+@overload(stack_empty, inline="always")
+def _stack_empty_compiled(shape, dtype=np.float64):
+    if isinstance(dtype, types.NumberClass):
+        item = dtype.instance_type
+    elif isinstance(dtype, types.Omitted) or dtype is np.float64:
+        item = types.float64
+    else:
+        return None
+    # the item type as a Python object the compiled code can carry (a NumberClass)
+    kind = {types.float64: np.float64, types.int64: np.int64}.get(item)
+    if kind is None:
+        return None
+    if isinstance(shape, types.Integer):
+        def impl(shape, dtype=np.float64):
+            return carray(_stack_buffer(max(shape, 1), kind), (shape,))
+        return impl
+    if isinstance(shape, types.UniTuple) and shape.count == 2:
+        def impl(shape, dtype=np.float64):
+            return carray(_stack_buffer(max(shape[0] * shape[1], 1), kind), shape)
+        return impl
+    return None
 
 
 @njit(cache=True)
@@ -581,9 +631,9 @@ def mixing_values(code, Y, Psi, f_rel, guard, Delta, calY, logD):
     n = Y.shape[0]
     nrm = _frobenius(Psi)
     s = 1.0 + nrm
-    # P, then (the paper's variant) the LU route's scratch, P^-1 and one vector: one
-    # allocation per call, and the other variants' as before
-    work = np.empty((2 * n + 1, n)) if code == 0 else np.empty((n, n))
+    # P, then the LU route's scratch, P^-1 and one vector, and its pivots: on the stack
+    work = stack_empty((2 * n + 1, n))
+    piv = stack_empty(n, np.int64)
     P = work[:n]
     for i in range(n):
         for j in range(n):
@@ -591,8 +641,7 @@ def mixing_values(code, Y, Psi, f_rel, guard, Delta, calY, logD):
     if code == 1 and nrm > 0.0 and _eigen_fast(Y, P, s, f_rel * nrm / s, Delta, calY, logD):
         return
     if code == 0 and nrm > 0.0:
-        if _paper_lu(Y, P, s, Delta, calY, logD, np.empty(n, np.int64), work[n:2 * n],
-                     work[2 * n]):
+        if _paper_lu(Y, P, s, Delta, calY, logD, piv, work[n:2 * n], work[2 * n]):
             return
         for i in range(n):                              # P was factored in place
             for j in range(n):
@@ -680,13 +729,13 @@ def _paper_lu_derivatives(Y, P, s, g, jac):
     d(C Y)_c/dP_ab = det ((P^-1)_ba x_c - (P^-1)_ca x_b), chained through s as in
     mixing_derivatives.  False (nothing written) where 1/cond_1(P) < LU_MIN_RCOND."""
     n = Y.shape[0]
-    LU = np.empty((n, n))
-    inv = np.empty((n, n))
-    piv = np.empty(n, np.int64)
+    LU = stack_empty((n, n))
+    inv = stack_empty((n, n))
+    piv = stack_empty(n, np.int64)
+    x = stack_empty(n)
     D, logd, rc = lu_inverse(P, LU, piv, inv)
     if not rc >= LU_MIN_RCOND:
         return False
-    x = np.empty(n)
     for i in range(n):
         x[i] = Y[i]
     lu_solve(LU, piv, x)
@@ -733,13 +782,12 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
     k = n if code == 2 else 1
     nrm = _frobenius(Psi)
     s = 1.0 + nrm
-    P = np.empty((n, n))
-    g = np.zeros(nn)
+    P = stack_empty((n, n))
+    g = stack_empty(nn)
     for i in range(n):
         for j in range(n):
             P[i, j] = Psi[i * n + j] / s
-            if nrm > 0.0:
-                g[i * n + j] = Psi[i * n + j] / nrm
+            g[i * n + j] = Psi[i * n + j] / nrm if nrm > 0.0 else 0.0
     if code == 0 and nrm > 0.0 and _paper_lu_derivatives(Y, P, s, g, jac):
         return
     U, sig, Vt, s_uv = svd_signed(P)

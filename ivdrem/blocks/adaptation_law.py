@@ -6,7 +6,7 @@ import numpy as np
 from .jacobians import adaptation_law_jacobian
 from ._core import BlockSpec, make_block
 from . import _validate as checks
-from ._kernels import matT_vec
+from ._kernels import matT_vec, stack_empty
 
 
 def adaptation_law_update(t, x, u, dx, Gamma):
@@ -16,7 +16,7 @@ def adaptation_law_update(t, x, u, dx, Gamma):
     # dtheta_hat = Gamma (Pi r + vartheta_c)                                     (eq. 11)
     nth = x.theta_hat.shape[0]
     n = u.r.shape[0]
-    g = np.empty(nth)
+    g = stack_empty(nth)
     matT_vec(u.Pi.reshape((n, nth)), u.r, g)   # Pi r, Pi = (Pi^T)^T (the paper's "Pi^T r" is a typo)
     for i in range(nth):
         g[i] += u.theta_c[i]

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from .jacobians import control_law_jacobian, inertia_scaled_control_law_jacobian
+from ._kernels import stack_empty
 from ._core import BlockSpec, make_block, ParameterError
 from . import _validate as checks
 
@@ -74,13 +75,13 @@ def inertia_scaled_control_law_output(t, x, u, y, K, delta_mu, ntheta, theta_nom
     n = K.shape[0]
     r = u.r
     Pi = u.Pi.reshape((n, ntheta))
-    w = np.empty(n)
+    w = stack_empty(n)
     for i in range(n):
         s = delta_mu * u.mu[0] * r[i]
         for j in range(n):
             s += K[i, j] * r[j]
         w[i] = s
-    PM = np.empty((n, ntheta))
+    PM = stack_empty((n, ntheta))
     model.Phi_M(u.q, w, PM)
     for i in range(n):
         s = -u.u_f[i]
@@ -99,13 +100,13 @@ def nominal_injection_control_law_output(t, x, u, y, K, delta_mu, ntheta, theta_
     n = K.shape[0]
     r = u.r
     Pi = u.Pi.reshape((n, ntheta))
-    w = np.empty(n)
+    w = stack_empty(n)
     for i in range(n):
         s = delta_mu * u.mu[0] * r[i]
         for j in range(n):
             s += K[i, j] * r[j]
         w[i] = s
-    PM = np.empty((n, ntheta))
+    PM = stack_empty((n, ntheta))
     model.Phi_M(u.q, w, PM)
     for i in range(n):
         s = u.chi[i] - u.u_f[i]

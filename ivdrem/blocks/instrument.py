@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._kernels import stack_empty
 from ._core import BlockSpec, make_block
 from . import _validate as checks
 from .jacobians import instrument_jacobian
@@ -15,7 +16,7 @@ def instrument_update(t, x, u, dx, l):
     # dzeta^T = l (Phi^T(q_d, dq_d, dq_d, ddq_d) - zeta^T)                       (14)
     n = u.q_d.shape[0]
     nth = x.zeta.shape[0] // n
-    A = np.empty((n, nth))
+    A = stack_empty((n, nth))
     model.Phi(u.q_d, u.dq_d, u.dq_d, u.ddq_d, A)
     for i in range(n):
         for j in range(nth):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._kernels import stack_empty
 from ._core import BlockSpec, make_block
 from . import _validate as checks
 from .jacobians import plant_jacobian
@@ -14,7 +15,7 @@ def plant_update(t, x, u, dx, theta):
     # params   theta (nθ): the true parameters
     # dq/dt = dq ;  M(q) ddq = tau + tau_d - C(q, dq) dq - F(dq) - G(q)   (eq. 1)
     n = x.q.shape[0]
-    tau = np.empty(n)
+    tau = stack_empty(n)
     for i in range(n):
         tau[i] = u.tau[i] + u.tau_d[i]
         dx.q[i] = x.dq[i]

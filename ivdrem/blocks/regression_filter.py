@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._kernels import stack_empty
 from ._core import BlockSpec, make_block
 from . import _validate as checks
 from .jacobians import regression_filter_jacobian
@@ -18,10 +19,10 @@ def regression_filter_update(t, x, u, dx, l, ntheta):
     n = u.q.shape[0]
     for i in range(n):
         dx.z[i] = l * (u.tau[i] - x.z[i])                 # dz = l (tau - z)
-    A = np.empty((n, ntheta))
-    B = np.empty((n, ntheta))
-    C = np.empty((n, ntheta))
-    D = np.empty((n, ntheta))
+    A = stack_empty((n, ntheta))
+    B = stack_empty((n, ntheta))
+    C = stack_empty((n, ntheta))
+    D = stack_empty((n, ntheta))
     model.Phi_M(u.q, u.dq, A)
     for i in range(n):
         for j in range(ntheta):
@@ -42,7 +43,7 @@ def regression_filter_output(t, x, u, y, l, ntheta):
     # outputs  y.z (n), y.phi (phi^T, n*nθ row-major),
     #          phi^T = l (Phi_M^T(q,dq) - xi) + eta                               (13)
     n = u.q.shape[0]
-    A = np.empty((n, ntheta))
+    A = stack_empty((n, ntheta))
     model.Phi_M(u.q, u.dq, A)
     for i in range(n):
         y.z[i] = x.z[i]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._kernels import stack_empty
 from ._core import BlockSpec, make_block
 from ._core import ParameterError
 from . import _validate as checks
@@ -27,9 +28,9 @@ def torque_observer_update(t, x, u, dx, n, ntheta, literal_e1, nominal, theta_no
     # params   n, ntheta, literal_e1 (0: erratum E1 gain mu + dmu/mu; 1: the paper's mu);
     #          nominal, theta_nominal: the outputs' injection only (the states are the same)
     mu = u.mu[0]
-    A = np.empty((n, ntheta))
-    B = np.empty((n, ntheta))
-    C = np.empty((n, ntheta))
+    A = stack_empty((n, ntheta))
+    B = stack_empty((n, ntheta))
+    C = stack_empty((n, ntheta))
     model.Phi(u.q, u.dq, u.v, u.dv, A)
     model.Phi_C(u.q, u.dq, u.r, B)
     model.Phi_dM(u.q, u.dq, u.r, C)
@@ -55,8 +56,8 @@ def torque_observer_output(t, x, u, y, n, ntheta, literal_e1, nominal, theta_nom
     #   Pi^T = mu (Phi_M^T(q,r) - Phi_Mf^T) + Phi^T(q,dq,v,dv) - Phi_f^T      (eq. 8)
     #   tau_d_hat = -mu (Phi_M^T(q,r) - Phi_Mf^T - Phi_f^T/mu) theta_hat + u_f (Section 4)
     mu = u.mu[0]
-    PM = np.empty((n, ntheta))
-    P = np.empty((n, ntheta))
+    PM = stack_empty((n, ntheta))
+    P = stack_empty((n, ntheta))
     model.Phi_M(u.q, u.r, PM)
     model.Phi(u.q, u.dq, u.v, u.dv, P)
     for i in range(n):
@@ -76,8 +77,8 @@ def torque_observer_nominal_output(t, x, u, y, n, ntheta, literal_e1, nominal, t
     #   chi = mu (Phi_M^T(q,r) - Phi_Mf^T) theta_nominal   (the injection, nominal momentum)
     #   tau_d_hat = -(chi - Phi_f^T theta_hat) + u_f   (Section 4, the same observer)
     mu = u.mu[0]
-    PM = np.empty((n, ntheta))
-    P = np.empty((n, ntheta))
+    PM = stack_empty((n, ntheta))
+    P = stack_empty((n, ntheta))
     model.Phi_M(u.q, u.r, PM)
     model.Phi(u.q, u.dq, u.v, u.dv, P)
     for i in range(n):
