@@ -64,6 +64,7 @@ from .._atomic import write_file_atomic
 from ..blocks._core import bind_model, kernel_args
 from ..compile_cache import PACKAGE_ROOT as _PACKAGE_ROOT, cache_dir
 from ..compile_cache import package_digest as _package_digest
+from ._compile_child import index_exists
 from .foreign import ForeignSpec
 
 __all__ = ["block_pattern", "JacobianProgram", "DeclarationError"]
@@ -232,9 +233,9 @@ def _probe_kernels(spec, args, nx, nu, ny):
         jupd = njit(upd) if upd is not None else None
         x, u, yf = np.full(nx, 0.5), np.full(nu, 0.5), np.zeros(ny + nx)
         with np.errstate(all="ignore"):
-            jout(0.7315, x, u, yf[:ny], *args)      # compiles for these argument types
+            jout(_PROBE_TIME, x, u, yf[:ny], *args)      # compiles for these argument types
             if jupd is not None:
-                jupd(0.7315, x, u, yf[ny:], *args)
+                jupd(_PROBE_TIME, x, u, yf[ny:], *args)
     except Exception:           # numba cannot compile it (or it raised here): Python probe
         return out, upd
     return jout, jupd
@@ -258,7 +259,6 @@ def _compiles_first(fn):
     than the difference probe it replaces (the mixing's derivatives: 10 s of CPU against
     2.6 s of differences through the mixing step, already compiled for γ "auto"); the
     compile is left to the kernels' wrappers, which share the work between two processes."""
-    from ._compile_child import index_exists
     for name in fn.__code__.co_names:
         helper = fn.__globals__.get(name)
         if not hasattr(helper, "py_func") or helper.signatures:
@@ -270,6 +270,32 @@ def _compiles_first(fn):
             pass
         return True
     return False
+
+
+#: the time at which a probe evaluates a block's kernels (no particular instant)
+_PROBE_TIME = 0.7315
+
+
+def _probe_points(spec, args, rng, size, n_points):
+    """The random points of a probe, (parameter arguments, [x, u]) for each of at most
+    4 n_points attempts (the caller stops once n_points gave finite values): entries of
+    magnitude 0.5-1.5, every third point with random signs, the others positive."""
+    for attempt in range(4 * n_points):
+        a = _random_args(spec, args, rng)
+        sign = 1.0 if attempt % 3 != 2 else rng.choice([-1.0, 1.0], size=size)
+        yield a, sign * rng.uniform(0.5, 1.5, size=size)
+
+
+def _stacked_evaluation(out, upd, nx, ny):
+    """ev(v, a): the block's outputs then its state derivatives at [x, u] = v (copies:
+    a kernel may not keep or change its arguments)."""
+    def ev(v, a):
+        yf = np.zeros(ny + nx)
+        out(_PROBE_TIME, v[:nx].copy(), v[nx:].copy(), yf[:ny], *a)
+        if upd is not None:
+            upd(_PROBE_TIME, v[:nx].copy(), v[nx:].copy(), yf[ny:], *a)
+        return yf
+    return ev
 
 
 def _jacobian_pattern(spec, args, nx, nu, ny, *, seed, n_points):
@@ -291,27 +317,16 @@ def _jacobian_pattern(spec, args, nx, nu, ny, *, seed, n_points):
     upd = bind_model(spec.update, spec.model) if nx else None
     rng = np.random.default_rng(seed)
     pat = np.zeros((ny + nx, nx + nu), dtype=bool)
-    t = 0.7315
-
-    def ev(v, a):
-        yf = np.zeros(ny + nx)
-        out(t, v[:nx].copy(), v[nx:].copy(), yf[:ny], *a)
-        if upd is not None:
-            upd(t, v[:nx].copy(), v[nx:].copy(), yf[ny:], *a)
-        return yf
-
+    ev = _stacked_evaluation(out, upd, nx, ny)
     good = 0
-    for attempt in range(4 * n_points):
+    for a, v in _probe_points(spec, args, rng, nx + nu, n_points):
         if good >= n_points:
             break
-        a = _random_args(spec, args, rng)
-        sign = 1.0 if attempt % 3 != 2 else rng.choice([-1.0, 1.0], size=nx + nu)
-        v = sign * rng.uniform(0.5, 1.5, size=nx + nu)
         w = rng.uniform(-1.0, 1.0, size=nx + nu)
         J = np.zeros((ny + nx, nx + nu))
         try:
             with np.errstate(all="ignore"):
-                jac(t, v[:nx].copy(), v[nx:].copy(), J, *a)
+                jac(_PROBE_TIME, v[:nx].copy(), v[nx:].copy(), J, *a)
                 h = 1e-3 * max(float(np.max(np.abs(v))), 1.0)
                 d = ev(v + h * w, a) - ev(v - h * w, a)
         except (ValueError, ArithmeticError):
@@ -351,27 +366,16 @@ def _difference_pattern(spec, args, nx, nu, ny, *, seed, n_points):
     out, upd = _probe_kernels(spec, args, nx, nu, ny)
     rng = np.random.default_rng(seed)
     pat = np.zeros((ny + nx, nx + nu), dtype=bool)
-    t = 0.7315
-
-    def ev(x, u, a):
-        yf = np.zeros(ny + nx)
-        out(t, x, u, yf[:ny], *a)
-        if upd is not None:
-            upd(t, x, u, yf[ny:], *a)
-        return yf
-
+    ev = _stacked_evaluation(out, upd, nx, ny)
     good = 0
-    for attempt in range(4 * n_points):
+    for a, v in _probe_points(spec, args, rng, nx + nu, n_points):
         if good >= n_points:
             break
-        a = _random_args(spec, args, rng)
-        sign = 1.0 if attempt % 3 != 2 else rng.choice([-1.0, 1.0], size=nx + nu)
-        v = sign * rng.uniform(0.5, 1.5, size=nx + nu)
         ok = True
         cols = np.zeros_like(pat)
         try:
             with np.errstate(all="ignore"):
-                base = ev(v[:nx].copy(), v[nx:].copy(), a)
+                base = ev(v, a)
                 ok = bool(np.all(np.isfinite(base)))
                 for c in range(nx + nu):
                     if not ok:
@@ -381,7 +385,7 @@ def _difference_pattern(spec, args, nx, nu, ny, *, seed, n_points):
                     vp[c] += h
                     vm = v.copy()
                     vm[c] -= h
-                    d = ev(vp[:nx], vp[nx:], a) - ev(vm[:nx], vm[nx:], a)
+                    d = ev(vp, a) - ev(vm, a)
                     ok = bool(np.all(np.isfinite(d)))
                     cols[:, c] = d != 0.0
         except (ValueError, ArithmeticError):
@@ -485,7 +489,7 @@ def _parameter_zeros(plan, patterns, *, seed=0, n_points=3):
                     sign = 1.0 if k % 3 != 2 else rng.choice([-1.0, 1.0], size=nx + nu)
                     v = sign * rng.uniform(0.5, 1.5, size=nx + nu)
                     J = np.zeros((ny + nx, nx + nu))
-                    jac(0.7315, v[:nx].copy(), v[nx:].copy(), J, *args)
+                    jac(_PROBE_TIME, v[:nx].copy(), v[nx:].copy(), J, *args)
                     if not np.all(np.isfinite(J)):
                         raise ArithmeticError("not finite")
                     zero &= J == 0.0
