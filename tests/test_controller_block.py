@@ -122,7 +122,7 @@ def controller_fmu(tmp_path_factory):
 #: comparisons are about runs in them: the window filling (0 to T), the composite term
 #: switching on at T, and the learning after it (the relative error of theta_hat falls from
 #: 0.44 at T to 0.014 at 60 s; measured 0.14 at 40 s, too early for the convergence check).
-#: The paper's 300 s run of the 1 kHz loop is benchmarks/bench_controller.py's (--t-end 300).
+#: benchmarks/bench_two_link_loops.py measures the same equivalences over the paper's 300 s.
 T_LOOP = 60.0
 
 
