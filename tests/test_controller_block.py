@@ -4,8 +4,9 @@ ivdrem simulates the 1 kHz controller against the continuous plant.
 Independent checks: the FMPy loop of the same controller (the C library) around the
 plant FMU (ivdrem.controller.loop, its own fixed-step host), and ivdrem's continuous
 closed loop with the same saturated mu, which the sampled loop approaches at first order.
-The controller FMU's 300 s FMPy loop is run once (module fixture) and checked twice: against
-ivdrem's block simulation, and, with the libcosim loop, against the C library's loop.
+The controller FMU's FMPy loop over 60 s of the paper experiment is run once (module fixture)
+and checked twice: against ivdrem's block simulation, and, with the libcosim loop, against the
+C library's loop.
 """
 import warnings
 
@@ -117,33 +118,44 @@ def controller_fmu(tmp_path_factory):
                                  law="iv-drem", mu_max=135.0)
 
 
+#: The equivalence runs' horizon: 3 T of the paper's window T = 20 s, so every phase the
+#: comparisons are about runs in them: the window filling (0 to T), the composite term
+#: switching on at T, and the learning after it (the relative error of theta_hat falls from
+#: 0.44 at T to 0.014 at 60 s; measured 0.14 at 40 s, too early for the convergence check).
+#: benchmarks/bench_two_link_loops.py measures the same equivalences over the paper's 300 s.
+T_LOOP = 60.0
+
+
 @pytest.fixture(scope="module")
-def fmpy_loop_300s(controller_fmu, plant_fmu):
-    """The controller FMU closed around the plant FMU in FMPy over 300 s of the paper
-    experiment: one run, checked against ivdrem's block simulation and the C reference."""
+def fmpy_loop(controller_fmu, plant_fmu):
+    """The controller FMU closed around the plant FMU in FMPy over T_LOOP = 60 s of the
+    paper experiment: one run, checked against ivdrem's block simulation and the C
+    reference."""
     from ivdrem.controller.fmu_loop import fmpy_closed_loop
-    return fmpy_closed_loop(controller_fmu, plant_fmu, 300.0)
+    return fmpy_closed_loop(controller_fmu, plant_fmu, T_LOOP)
 
 
 @pytest.mark.slow
-def test_controller_block_equals_the_controller_fmu_loop_over_300_s(fmpy_loop_300s):
-    """The issue's equivalence: ivdrem's simulation of the controller block (delay 1, as a
-    Jacobi host applies the FMU's torque) against the continuous plant equals the
-    controller FMU closed around the plant FMU in FMPy over 300 s of the paper experiment
-    (measured 1.7e-12 on theta_hat, 2.4e-12 on q at rtol 1e-9)."""
-    a = fmpy_loop_300s
+def test_controller_block_equals_the_controller_fmu_loop_over_3_windows(fmpy_loop):
+    """ivdrem's simulation of the controller block (delay 1, as a Jacobi host applies the
+    FMU's torque) against the continuous plant equals the controller FMU closed around the
+    plant FMU in FMPy over 60 s = 3 T of the paper experiment (T_LOOP: filling, switching
+    on, learning; measured 1.7e-12 on theta_hat, 2.4e-12 on q over 300 s at rtol 1e-9).
+    Two implementations of one loop: a difference from any phase would show within 3 T."""
+    a = fmpy_loop
     r = _run(sampled_closed_loop(mu_max=135.0, delay=1)[0], a["t"], rtol=1e-9, atol=1e-11)
     assert np.max(np.abs(_signals(r, "theta_hat", NTH).T - a["theta_hat"])) <= 1e-6
     assert np.max(np.abs(_signals(r, "q", 2).T - a["q"])) <= 1e-6
 
 
 @pytest.mark.slow
-def test_fmu_loops_in_fmpy_and_libcosim_equal_the_reference_over_300_s(controller_fmu,
-                                                                        plant_fmu,
-                                                                        fmpy_loop_300s):
+def test_fmu_loops_in_fmpy_and_libcosim_equal_the_reference_over_3_windows(controller_fmu,
+                                                                            plant_fmu,
+                                                                            fmpy_loop):
     """The controller FMU in FMPy and in libcosim around the plant FMU equals the C
-    library's loop (ivdrem.controller.loop, delay 1) to 1e-6 on theta_hat and q over 300 s
-    (measured about 1e-12), and the estimate ends near the arm's parameters."""
+    library's loop (ivdrem.controller.loop, delay 1) to 1e-6 on theta_hat and q over
+    T_LOOP = 60 s = 3 T (filling, switching on, learning; measured about 1e-12 over 300 s),
+    and the estimate ends near the arm's parameters (relative error 0.014 at 60 s)."""
     pytest.importorskip("libcosimpy")
     from ivdrem.controller.clib import CController
     from ivdrem.controller.fmu_loop import libcosim_closed_loop
@@ -151,11 +163,11 @@ def test_fmu_loops_in_fmpy_and_libcosim_equal_the_reference_over_300_s(controlle
     from ivdrem.models import TWO_LINK_THETA
     plant = FmuPlant(plant_fmu, Q0, (0.0, 0.0), substep=1e-3)
     try:
-        ref = sampled_loop(CController(mu_max=135.0, delay=1), plant, 300.0)
+        ref = sampled_loop(CController(mu_max=135.0, delay=1), plant, T_LOOP)
     finally:
         plant.close()
-    hosts = {"fmpy": fmpy_loop_300s,
-             "libcosim": libcosim_closed_loop(controller_fmu, plant_fmu, 300.0)}
+    hosts = {"fmpy": fmpy_loop,
+             "libcosim": libcosim_closed_loop(controller_fmu, plant_fmu, T_LOOP)}
     for host, r in hosts.items():
         assert np.abs(r["theta_hat"] - ref["theta_hat"]).max() < 1e-6, host
         assert np.abs(r["q"] - ref["q"]).max() < 1e-6, host

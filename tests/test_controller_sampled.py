@@ -135,8 +135,8 @@ def test_sampled_loop_converges_to_the_continuous_loop_at_first_order(plant_fmu)
 @pytest.fixture(scope="module")
 def c_loop_300s(plant_fmu):
     """c_loop_300s(law): the 1 kHz loop (C library, delay 0, mu_max = 135) over 300 s of
-    the paper experiment, recorded every 0.1 s and at 300 s; each law's run made once for
-    the tests that read it (C1-C3, theta_hat(300 s) against the continuous loop)."""
+    the paper experiment, recorded every 0.1 s and at 300 s; each law's run made once (the
+    conclusions C1-C3 read both laws' runs)."""
     from ivdrem.controller.clib import CController
     runs = {}
 
@@ -379,19 +379,24 @@ int main(void) {
 
 
 @pytest.mark.slow
-def test_sampled_loop_against_the_continuous_loop_over_300_s(plant_fmu, c_loop_300s):
-    """theta_hat(300 s) of the 1 kHz loop (C library) against ivdrem's continuous loop with
-    the same saturated mu: within the issue's 1e-3 (measured 4.7e-6 at h = 1 ms), and half
-    that at 0.5 ms (first order)."""
+def test_sampled_loop_against_the_continuous_loop_over_3_windows(plant_fmu):
+    """theta_hat(60 s) of the 1 kHz loop (C library) against ivdrem's continuous loop with
+    the same saturated mu: within the issue's 1e-3 (measured 2.55e-5 at h = 1 ms), and half
+    that at 0.5 ms (first order: measured 1.28e-5, ratio 1.99).  60 s is 3 T of the paper's
+    window T = 20 s: the window filling, the composite term switching on at T and the
+    learning after it all run, so a sampled loop that departs from the continuous one in
+    any phase shows in theta_hat(60 s).  Over the paper's 300 s the same comparison
+    measured 4.7e-6 at h = 1 ms."""
     from ivdrem.controller.clib import CController
     from ivdrem.controller.continuous import continuous_closed_loop
     from ivdrem.sim import simulate
-    r = simulate(continuous_closed_loop("iv-drem", mu_max=135.0), 300.0, dt_out=1.0,
+    t_end = 60.0
+    r = simulate(continuous_closed_loop("iv-drem", mu_max=135.0), t_end, dt_out=1.0,
                  rtol=1e-7, atol=1e-9, h_max=0.5)
     lab = list(r.output_labels)
     th = r.outputs[[lab.index(f"theta_hat[{j}]") for j in range(5)], -1]
-    half = _loop(CController(mu_max=135.0, h=5e-4), plant_fmu, 300.0, every=10 ** 6)
-    errs = [np.abs(rec["theta_hat"][-1] - th).max() for rec in (c_loop_300s(), half)]
+    errs = [np.abs(_loop(CController(mu_max=135.0, h=h), plant_fmu, t_end,
+                         every=10 ** 6)["theta_hat"][-1] - th).max() for h in (1e-3, 5e-4)]
     assert errs[0] < 1e-3
     assert 1.7 < errs[0] / errs[1] < 2.3, errs
 

@@ -91,13 +91,16 @@ def test_dp45_stays_stable_where_fixed_rk4_diverges():
     assert np.all(np.isfinite(np.asarray(a.outputs)))
 
 
-# ============================================================== reference vs compiled (2 s)
+# ============================================================== reference vs compiled (1 s)
 @pytest.mark.parametrize("law", ["iv-drem", "composite-learning"])
 def test_reference_and_compiled_engines_agree(law):
     """All outputs (and states) agree to 1e-9 relative to each signal's scale (measured:
-    bit-identical, both engines run the same stepping template on the same kernels)."""
-    a = paper_run(law, 2.0, "rk4", "reference")
-    b = paper_run(law, 2.0, "rk4", "compiled")
+    bit-identical, both engines run the same stepping template on the same kernels).
+    1 s (1,000 RK4 steps, every block of the loop evaluated at each): the reference engine
+    runs Python per step, and an equivalence of the same kernels does not need more; the
+    max-hold of composite learning engages at 0.01 s, so its held path is compared too."""
+    a = paper_run(law, 1.0, "rk4", "reference")
+    b = paper_run(law, 1.0, "rk4", "compiled")
     assert a.stats["engine"] == "reference" and b.stats["engine"] == "compiled"
     assert list(a.output_labels) == list(b.output_labels)
     A, Bo = np.asarray(a.outputs), np.asarray(b.outputs)
