@@ -63,14 +63,16 @@ STAGES = [("ivdrem.diagrams.gamma_auto", "reference_mean_delta2", "γ reference 
           ("ivdrem.sim.jacobian", "_local_patterns", "sparsity probe"),
           ("ivdrem.sim.jacobian", "JacobianProgram._build", "Jacobian program build"),
           ("ivdrem.sim.sparse_lu", "_grouped_symbolic_lu", "symbolic LU (orderings, search)"),
-          ("ivdrem.sim.compiled", "_load_kernels", "kernels compiled and imported")]
+          ("ivdrem.sim.compiled", "_load_kernels", "kernels compiled and imported"),
+          # this version: the child started before the probe, the rest after the tables
+          ("ivdrem.sim.compiled", "KernelCompile.finish", "kernels compiled and imported")]
 _STAGE_RUNNER = """
 import functools, importlib, sys, time
 def wrap(mod, name, label):
     mod = importlib.import_module(mod)
     owner, _, attr = name.rpartition('.')
-    owner = getattr(mod, owner) if owner else mod
-    if not hasattr(owner, attr):
+    owner = getattr(mod, owner, None) if owner else mod
+    if owner is None or not hasattr(owner, attr):
         return
     f = getattr(owner, attr)
     @functools.wraps(f)
