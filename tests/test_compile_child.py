@@ -1,5 +1,5 @@
-"""A child process compiling half the kernel wrappers numba's cache does not hold while the
-parent compiles the other half (ivdrem/sim/_compile_child.py, compiled._load_kernels)."""
+"""A child process compiling the kernel wrappers numba's cache does not hold while the parent
+builds the tables and compiles the others (ivdrem/sim/_compile_child.py, compiled.start_kernels)."""
 import math
 import signal
 import subprocess
