@@ -210,7 +210,7 @@ def main(argv=None):
         if a.stages:
             print(f"\n{'stage (main process): CPU s (wall s)':<44}"
                   + "".join(f" {r['version'][:14] + ' ' + r['run']:>22}" for r in out["rows"]))
-            for _, _, name in STAGES:
+            for name in dict.fromkeys(name for _, _, name in STAGES):
                 cells = [r["stages"].get(name) for r in out["rows"]]
                 print(f"{name:<44}" + "".join(
                     f" {'-' if c is None else f'{c[1]:.1f} ({c[0]:.1f})':>22}" for c in cells))
