@@ -63,14 +63,16 @@ STAGES = [("ivdrem.diagrams.gamma_auto", "reference_mean_delta2", "γ reference 
           ("ivdrem.sim.jacobian", "_local_patterns", "sparsity probe"),
           ("ivdrem.sim.jacobian", "JacobianProgram._build", "Jacobian program build"),
           ("ivdrem.sim.sparse_lu", "_grouped_symbolic_lu", "symbolic LU (orderings, search)"),
-          ("ivdrem.sim.compiled", "_load_kernels", "kernels compiled and imported")]
+          ("ivdrem.sim.compiled", "_load_kernels", "kernels compiled and imported"),
+          # this version: the child started before the probe, the rest after the tables
+          ("ivdrem.sim.compiled", "KernelCompile.finish", "kernels compiled and imported")]
 _STAGE_RUNNER = """
 import functools, importlib, sys, time
 def wrap(mod, name, label):
     mod = importlib.import_module(mod)
     owner, _, attr = name.rpartition('.')
-    owner = getattr(mod, owner) if owner else mod
-    if not hasattr(owner, attr):
+    owner = getattr(mod, owner, None) if owner else mod
+    if owner is None or not hasattr(owner, attr):
         return
     f = getattr(owner, attr)
     @functools.wraps(f)
@@ -208,7 +210,7 @@ def main(argv=None):
         if a.stages:
             print(f"\n{'stage (main process): CPU s (wall s)':<44}"
                   + "".join(f" {r['version'][:14] + ' ' + r['run']:>22}" for r in out["rows"]))
-            for _, _, name in STAGES:
+            for name in dict.fromkeys(name for _, _, name in STAGES):
                 cells = [r["stages"].get(name) for r in out["rows"]]
                 print(f"{name:<44}" + "".join(
                     f" {'-' if c is None else f'{c[1]:.1f} ({c[0]:.1f})':>22}" for c in cells))

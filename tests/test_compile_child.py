@@ -1,6 +1,8 @@
-"""A child process compiling half the kernel wrappers numba's cache does not hold while the
-parent compiles the other half (ivdrem/sim/_compile_child.py, compiled._load_kernels)."""
+"""A child process compiling the kernel wrappers numba's cache does not hold while the parent
+builds the tables and compiles the others (ivdrem/sim/_compile_child.py, compiled.start_kernels)."""
+import math
 import signal
+import subprocess
 import sys
 
 import numpy as np
@@ -127,12 +129,20 @@ def test_the_split_is_balanced_and_covers_every_uncached_wrapper_once(monkeypatc
     # the child's job: its wrappers after the kernel and model modules they import
     job = compiled._with_imports(child, deps)
     order = [n for n, _ in deps]
-    assert set(child) <= set(job) and job == sorted(job, key=order.index)
+    assert job[-len(child):] == child                          # in the split's order
+    assert job[:-len(child)] == sorted(job[:-len(child)], key=order.index)
     for w in child:
         kernel = compiled._GENERATED_IMPORT.findall(dict(deps)[w])[0]
         assert job.index(kernel) < job.index(w)
     # nothing uncached: nothing for a child
     assert compiled._split({}) == ([], [])
+    # this process busy first (the probe, the Jacobian program, the LU: the engine's case):
+    # the child gets every wrapper, the dearest first, and this process takes back the
+    # cheapest from the end (_import_all)
+    parent, child = compiled._split(costs, head, math.inf)
+    assert parent == [] and sorted(child) == sorted(wrappers)
+    totals = [costs[n][0] + sum(costs[n][1].values()) for n in child]
+    assert totals == sorted(totals, reverse=True)
 
 
 def test_a_child_compiles_half_the_wrappers(monkeypatch):
@@ -202,3 +212,47 @@ def test_no_child_for_a_small_share(monkeypatch):
     monkeypatch.setattr(_compile_child, "start_modules", lambda names: 1 / 0)
     loop, k = _lags(6, "small_share")
     _check(loop, k)
+
+
+def test_the_child_starts_before_the_probe_and_a_failing_probe_kills_it(monkeypatch):
+    # the kernels' compile starts before the tables are built; an error in the probe (or
+    # the Jacobian program, or the LU) reaches the user as it is and leaves no child
+    _pretend_uncached(monkeypatch)
+    seen = _spy(monkeypatch)
+    running = []
+
+    def failing_probe(plan):
+        running.extend(s[1].poll() is None for s in seen)   # the child, compiling now
+        raise ValueError("the probe failed")
+
+    monkeypatch.setattr(compiled, "JacobianProgram", failing_probe)
+    loop, _ = _lags(5, "probe_fails")
+    with pytest.raises(ValueError, match="the probe failed"):
+        simulate(loop, [0.0, 0.5], inputs=1.0, progress=False)
+    assert len(seen) == 1 and running == [True]
+    w, proc, _ = seen[0]
+    assert w.proc is None and proc.returncode == -signal.SIGKILL    # killed and reaped
+
+
+def test_the_parent_takes_back_what_the_child_has_not_reached(monkeypatch):
+    # a child that compiles nothing (it sleeps): the parent, its tables built, compiles the
+    # child's whole share itself, from the last back, then joins the child
+    _pretend_uncached(monkeypatch)
+    given = []
+
+    def idle_child(names):
+        given.extend(names)
+        proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(2)"])
+        return _compile_child.Warmup(proc, names)
+
+    monkeypatch.setattr(_compile_child, "start_modules", idle_child)
+    imported = []
+    real = compiled._import
+    monkeypatch.setattr(compiled, "_import",
+                        lambda cdir, name, src: imported.append(name) or real(cdir, name, src))
+    loop, k = _lags(7, "child_idle")
+    _check(loop, k)
+    wrappers = [n for n in given if n.startswith("ivdrem_wrapper_")]
+    assert len(wrappers) == 3                       # output, update, jacobian: all of them
+    assert [n for n in imported if n in wrappers] == wrappers[::-1]
+    assert all(n in sys.modules for n in given)

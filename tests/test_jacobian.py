@@ -1192,3 +1192,30 @@ def test_column_groups_are_the_greedy_first_fit_groups():
         assert _color(pattern) == first_fit(pattern)
     many = {c: set(range(45)) for c in range(100)}          # the mixing's shape: one each
     assert _color(many) == [[c] for c in range(100)]
+
+
+def test_the_probes_way_reads_numbas_cache_as_it_was_before_the_compile_child(monkeypatch):
+    """The engine starts its compile child before the probe; within helpers_cache_as_now a
+    helper the child writes to numba's cache meanwhile still counts as not compiled, so the
+    block's way (differences here) does not depend on how far the child has come."""
+    from numba import njit
+    from ivdrem.blocks import _kernels
+    from ivdrem.sim import _compile_child
+    from ivdrem.sim import jacobian as jac
+    helper = njit(cache=True)(_slope)
+    monkeypatch.setattr(_kernels, "slope_for_the_probe_test", helper, raising=False)
+    monkeypatch.setitem(globals(), "_SLOPE", helper)
+    kernel = _coupled_jacobian_with_helper
+    in_cache = {"now": False}
+    monkeypatch.setattr(_compile_child, "index_exists", lambda cache: in_cache["now"])
+    with jac.helpers_cache_as_now():
+        assert jac._compiles_first(kernel)
+        in_cache["now"] = True                 # the child has compiled it meanwhile
+        assert jac._compiles_first(kernel)
+    assert not jac._compiles_first(kernel)     # outside: numba's cache as it is now
+    with jac.helpers_cache_as_now():
+        assert not jac._compiles_first(kernel)
+    in_cache["now"] = False
+    helper(0.5)                                # compiled in this process: as outside
+    with jac.helpers_cache_as_now():
+        assert not jac._compiles_first(kernel)

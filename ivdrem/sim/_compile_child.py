@@ -1,13 +1,14 @@
-"""The compile child: a second process that compiles half the kernel wrappers while this
-one compiles the others.
+"""The compile child: a second process that compiles kernel wrappers while this one builds
+the diagram's tables and compiles the others.
 
 numba compiles under one process-wide lock, so a thread cannot overlap the first compiled
 run's kernels and wrappers; a child process can.  The child imports, and so compiles into
 numba's cache, the generated modules the parent has written to the cache directory and
-given it (about half of the wrappers not cached yet, :func:`start_modules`); the parent
-compiles the others, :meth:`Warmup.wait` s for the child and loads the child's work from
-the cache.  Any failure of the child only costs the overlap: the parent then compiles that
-work itself.  ``IVDREM_COMPILE_CHILD=0`` (or the older ``IVDREM_STEPPER_PREFETCH=0``) turns
+given it (:func:`start_modules`: the compiled engine gives it every wrapper not cached yet,
+before its sparsity probe); the parent, its tables built, takes the child's list back from
+the end (each module under its lock: loaded from the cache if the child has compiled it),
+then :meth:`Warmup.wait` s for the child.  Any failure of the child only costs the
+overlap: the parent then compiles that work itself.  ``IVDREM_COMPILE_CHILD=0`` (or the older ``IVDREM_STEPPER_PREFETCH=0``) turns
 it off.
 """
 from __future__ import annotations

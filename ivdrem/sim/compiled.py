@@ -7,6 +7,7 @@ hash of their source, with numba's machine code beside them.
 from __future__ import annotations
 
 import inspect
+import math
 import re
 import sys
 import textwrap
@@ -26,7 +27,7 @@ from .._progress import preparing
 from ..compile_cache import (GENERATED_HEADER, cache_dir, import_generated as _import,  # noqa: F401
                     source_hash as _hash, write_generated as _write)
 from .errors import BLOCK_RAISED_MESSAGE, BlockError, CompileError  # noqa: F401
-from .jacobian import JacobianProgram
+from .jacobian import JacobianProgram, helpers_cache_as_now
 from ..models._jit_module import model_module, module_source as _model_module  # noqa: F401
 from .sparse_lu import symbolic_lu
 from .tables import build_tables, dense_to_sparse, sparse_to_dense
@@ -186,6 +187,27 @@ def generate_source(plan, param_slots=None):
     model functions and wrappers get modules of their own, shared by every diagram that uses
     them, so numba compiles each once (and caches it); the diagram itself is data.
     """
+    modules = kernel_modules(plan, param_slots)
+    return DiagramProgram(modules.deps, modules.wrappers, diagram_tables(plan, modules))
+
+
+class KernelModules(NamedTuple):
+    """A diagram's generated modules, known before its tables: `deps` [(module name,
+    source)] in import order, `wrappers` [(block name, role, wrapper module)], and where the
+    tables find them (`windex` {(block index, role): wrapper index}, `wrapper_nx`, the
+    parameter layout `playout` and each block's parameter base `pbase`)."""
+    deps: list
+    wrappers: list
+    windex: dict
+    wrapper_nx: list
+    playout: dict
+    pbase: dict
+
+
+def kernel_modules(plan, param_slots=None):
+    """The models', kernels' and wrappers' modules of a diagram (:class:`KernelModules`):
+    their sources depend on the blocks' kernels, shapes and parameter layout only, not on
+    the sparsity probe, the Jacobian program or the LU, so their compile can start first."""
     _check_kernels(plan)
     deps = {}                      # module name -> source, in dependency order
     kernels = {}                   # (module, qualname, model key) -> (module, function)
@@ -235,11 +257,16 @@ def generate_source(plan, param_slots=None):
             windex[(b.index, role)] = len(wrappers)
             wrappers.append((b.sys.name, role, wmod))
             wrapper_nx.append(b.sys.nstates)
-    # the Jacobian's FD program and the Newton matrix's static LU pattern
+    return KernelModules(list(deps.items()), wrappers, windex, wrapper_nx, playout, pbase)
+
+
+def diagram_tables(plan, modules):
+    """The diagram's tables: the Jacobian's FD program (after the sparsity probe) and the
+    Newton matrix's static LU pattern, with where `modules` put the kernels."""
     prog = JacobianProgram(plan)
     slu = symbolic_lu(prog.pattern, plan.state_groups())
-    tables = build_tables(plan, playout, pbase, windex, wrapper_nx, prog, slu)
-    return DiagramProgram(list(deps.items()), wrappers, tables)
+    return build_tables(plan, modules.playout, modules.pbase, modules.windex,
+                        modules.wrapper_nx, prog, slu)
 
 
 def _param_values(plan, b):
@@ -354,12 +381,13 @@ def _uncached_wrappers(cdir, deps):
     return out
 
 
-def _split(costs, head_start=_CHILD_START_S):
+def _split(costs, head_start=_CHILD_START_S, parent_busy=0.0):
     """(this process's, the child's) shares of the modules `costs` ({name: (seconds,
     {callee: seconds})}): the dearest first, each to the process that would finish it
-    first (the child starting `head_start` late; a callee costs a process only once), so
-    both finish together."""
-    load, have, shares = [0.0, head_start], [set(), set()], ([], [])
+    first (the child starting `head_start` late, this process `parent_busy` seconds busy
+    with other work first, ``math.inf`` giving the child everything; a callee costs a
+    process only once), so both finish together."""
+    load, have, shares = [parent_busy, head_start], [set(), set()], ([], [])
 
     def total(name):
         own, callees = costs[name]
@@ -377,21 +405,26 @@ def _split(costs, head_start=_CHILD_START_S):
 
 
 def _with_imports(names, deps):
-    """`names` and the generated modules they import (recursively), in the order of deps."""
+    """The generated modules `names` import (recursively; models, kernels: importing them
+    compiles nothing) in the order of deps, then `names` in their order (the order the child
+    compiles them in, and this process takes them back in reverse)."""
     sources = dict(deps)
-    need, todo = set(), list(names)
+    need, todo = set(), [m for n in names for m in _GENERATED_IMPORT.findall(sources[n])]
     while todo:
         n = todo.pop()
         if n not in need:
             need.add(n)
             todo += _GENERATED_IMPORT.findall(sources[n])
-    return [n for n, _ in deps if n in need]
+    named = set(names)
+    return [n for n, _ in deps if n in need and n not in named] + list(names)
 
 
-def _start_split(cdir, deps):
+def _start_split(cdir, deps, parent_busy=0.0):
     """(a child compiling about half the wrappers of deps that numba's cache does not hold,
-    the wrappers this process imports only after the child); deps: models, kernels and
-    wrappers."""
+    the wrappers this process imports last); deps: models, kernels and wrappers.  With
+    `parent_busy` (:func:`_split`) ``math.inf`` the child gets every uncached wrapper, the
+    dearest first, and this process takes the cheapest back when its other work is done
+    (:func:`_import_all`)."""
     if not _compile_child.enabled():
         return _compile_child.Warmup(), []
     # a process that has imported every module (a second simulate of a loop) has nothing
@@ -401,37 +434,63 @@ def _start_split(cdir, deps):
     for name, src in deps:
         _write(cdir, name, src)
     costs = _uncached_wrappers(cdir, deps)
-    later = _split(costs, _CHILD_START_S)[1]
+    later = _split(costs, _CHILD_START_S, parent_busy)[1]
     if sum(costs[n][0] + sum(costs[n][1].values()) for n in later) < _CHILD_MIN_S:
         return _compile_child.Warmup(), []
     return _compile_child.start_modules(_with_imports(later, deps)), later
 
 
 def _import_all(cdir, deps, warmup, later=()):
-    """Import deps in order, those in `later` only after the child `warmup` has finished
-    (from numba's cache then, or compiled here if it failed); a failure or an interrupt
-    here kills the child."""
-    later = set(later)
+    """Import deps in order, then those in `later` (the child `warmup`'s, which it compiles
+    in order) from the last back: each under its module's lock, so a module the child is
+    compiling is waited for and then loaded from numba's cache, one the child has done is
+    loaded, one it has not reached is compiled here (and the child loads it), so the two
+    processes finish together however long this one was busy before; then the child is
+    waited for.  A failure or an interrupt here kills the child."""
+    sources = dict(deps)
+    order = [name for name, _ in deps if name not in set(later)] + list(reversed(later))
     try:
-        for name, dsrc in deps:
-            if name not in later:
-                _import(cdir, name, dsrc)
+        for name in order:
+            _import(cdir, name, sources[name])
     except BaseException:
         warmup.cancel()
         raise
     warmup.wait()
-    for name, dsrc in deps:
-        if name in later:
-            _import(cdir, name, dsrc)
+
+
+class KernelCompile(NamedTuple):
+    """Kernel modules whose compile has started (:func:`start_kernels`): the child
+    `warmup`, the wrappers it was given (`later`), the cache directory and the modules."""
+    cdir: object
+    deps: list
+    warmup: object
+    later: list
+
+    def finish(self):
+        """Import every module (this process's share compiled here, the child's loaded or
+        taken back), the child joined; an error or an interrupt kills the child."""
+        _import_all(self.cdir, self.deps, self.warmup, self.later)
+
+    def cancel(self):
+        """Kill the child (the work between start and finish failed or was interrupted)."""
+        self.warmup.cancel()
+
+
+def start_kernels(deps, parent_busy=0.0):
+    """Write the models, kernels and wrappers `deps` and start a child compiling the
+    wrappers numba's cache does not hold (its share by :func:`_split`; ``math.inf``: all of
+    them, this process being busy first with work of unknown length); :meth:`KernelCompile.finish`
+    imports them."""
+    cdir = cache_dir()
+    cdir.mkdir(parents=True, exist_ok=True)
+    return KernelCompile(cdir, deps, *_start_split(cdir, deps, parent_busy))
 
 
 def _load_kernels(deps):
     """Import the models, kernels and wrappers `deps` (their import compiles
     the wrappers), about half the wrappers numba's cache does not hold compiled by a child
     process meanwhile (:mod:`ivdrem.sim._compile_child`)."""
-    cdir = cache_dir()
-    cdir.mkdir(parents=True, exist_ok=True)
-    _import_all(cdir, deps, *_start_split(cdir, deps))
+    start_kernels(deps).finish()
 
 
 #: what to install where no C compiler builds the stepper
@@ -471,13 +530,27 @@ class CompiledEngine:
         with preparing(f"generating and compiling the kernels of diagram "
                        f"{plan.diagram.name!r} (numba; loaded from the cache when they are "
                        "there)", cached_in=cache_dir(), only_if_slow=True):
-            self.program = generate_source(plan, param_slots)
+            modules = kernel_modules(plan, param_slots)
+            # the kernels' sources do not depend on the probe, the Jacobian program or the
+            # LU: a child compiles the wrappers (all those not cached, the dearest first)
+            # while this process builds the tables (on a first run 10-25 s of CPU), then
+            # takes back those the child has not reached; the helpers' cache as it stands
+            # now decides which blocks the probe reads from their Jacobian kernels (the
+            # child's compiles must not change the probe's way, docs/performance.md)
+            with helpers_cache_as_now():
+                compiling = start_kernels(modules.deps, parent_busy=math.inf)
+                try:
+                    tables = diagram_tables(plan, modules)
+                except BaseException:
+                    compiling.cancel()
+                    raise
+            self.program = DiagramProgram(modules.deps, modules.wrappers, tables)
             # the C stepper is built (or loaded) on a thread while this process compiles
             # its kernels: the C compiler is a process of its own
             with ThreadPoolExecutor(1, thread_name_prefix="ivdrem-cstepper") as pool:
                 pending = pool.submit(load_c_stepper)
                 try:
-                    _load_kernels(self.program.deps)
+                    compiling.finish()
                 finally:
                     self.module = pending.result()
         self.stepper = self.module.name

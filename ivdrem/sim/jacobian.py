@@ -56,6 +56,7 @@ from __future__ import annotations
 import hashlib
 import sys
 from collections import OrderedDict
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -252,6 +253,35 @@ def _kernel_probe_applies(spec):
             and not isinstance(spec, ForeignSpec) and not _compiles_first(spec.jacobian))
 
 
+#: {helper: in numba's cache} read when :func:`helpers_cache_as_now` was entered, or None
+_HELPERS_SEEN = None
+
+
+@contextmanager
+def helpers_cache_as_now():
+    """Within the block, :func:`_compiles_first` answers from numba's on-disk cache of the
+    ivdrem.blocks._kernels helpers as it stood on entry (and from what this process has
+    compiled, as outside the block): a compile child started inside
+    writes that cache meanwhile, and the probe's way for a block (its Jacobian kernel or
+    differences) must not depend on how far the child has come."""
+    global _HELPERS_SEEN
+    from ..blocks import _kernels
+    from ._compile_child import index_exists
+    seen = {}
+    for name in dir(_kernels):
+        helper = getattr(_kernels, name)
+        if hasattr(helper, "py_func"):
+            try:
+                seen[helper] = index_exists(helper._cache)
+            except Exception:     # pragma: no cover - numba internals changed: assume not
+                seen[helper] = False
+    outer, _HELPERS_SEEN = _HELPERS_SEEN, seen
+    try:
+        yield
+    finally:
+        _HELPERS_SEEN = outer
+
+
 def _compiles_first(fn):
     """Whether calling the kernel `fn` would first make numba compile a helper it calls
     (one neither compiled in this process nor in numba's cache).  The probe runs only when
@@ -263,6 +293,10 @@ def _compiles_first(fn):
         helper = fn.__globals__.get(name)
         if not hasattr(helper, "py_func") or helper.signatures:
             continue
+        if _HELPERS_SEEN is not None and helper in _HELPERS_SEEN:
+            if _HELPERS_SEEN[helper]:
+                continue
+            return True
         try:
             if index_exists(helper._cache):
                 continue
