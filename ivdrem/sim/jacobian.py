@@ -266,7 +266,6 @@ def helpers_cache_as_now():
     differences) must not depend on how far the child has come."""
     global _HELPERS_SEEN
     from ..blocks import _kernels
-    from ._compile_child import index_exists
     seen = {}
     for name in dir(_kernels):
         helper = getattr(_kernels, name)
