@@ -266,14 +266,8 @@ def helpers_cache_as_now():
     differences) must not depend on how far the child has come."""
     global _HELPERS_SEEN
     from ..blocks import _kernels
-    seen = {}
-    for name in dir(_kernels):
-        helper = getattr(_kernels, name)
-        if hasattr(helper, "py_func"):
-            try:
-                seen[helper] = index_exists(helper._cache)
-            except Exception:     # pragma: no cover - numba internals changed: assume not
-                seen[helper] = False
+    helpers = (getattr(_kernels, name) for name in dir(_kernels))
+    seen = {h: _in_numba_cache(h) for h in helpers if hasattr(h, "py_func")}
     outer, _HELPERS_SEEN = _HELPERS_SEEN, seen
     try:
         yield
@@ -293,16 +287,20 @@ def _compiles_first(fn):
         if not hasattr(helper, "py_func") or helper.signatures:
             continue
         if _HELPERS_SEEN is not None and helper in _HELPERS_SEEN:
-            if _HELPERS_SEEN[helper]:
-                continue
+            cached = _HELPERS_SEEN[helper]
+        else:
+            cached = _in_numba_cache(helper)
+        if not cached:
             return True
-        try:
-            if index_exists(helper._cache):
-                continue
-        except Exception:     # pragma: no cover - numba internals changed: assume not
-            pass
-        return True
     return False
+
+
+def _in_numba_cache(helper):
+    """Whether numba's on-disk cache holds machine code of the njit function `helper`."""
+    try:
+        return bool(index_exists(helper._cache))
+    except Exception:     # pragma: no cover - numba internals changed: assume not
+        return False
 
 
 #: the time at which a probe evaluates a block's kernels (no particular instant)
