@@ -394,3 +394,17 @@ def test_a_run_shorter_than_the_window_gives_no_verdict_about_learning(tmp_path,
         assert checks[cid]["note"].startswith("not evaluated: the composite term starts at T")
     # what a short run can judge keeps its own verdict and note
     assert not checks["KA2"]["note"].startswith("not evaluated")
+
+
+def test_learning_is_not_decided_when_the_last_half_has_no_two_windows():
+    """A run of a few samples (``ivdrem paper --laws none --t-end 0.1`` records 11): the
+    last half's growth cannot be measured, so LEARN is not decided (it said "holds" with a
+    growth of nan); the same record with enough samples, θ̃ falling, holds."""
+    t = np.linspace(0.0, 0.1, 3)
+    short = diagnostics.check_learning(t, np.array([2.0, 1.98, 1.95]), 20.0)
+    assert short["verdict"] == diagnostics.UNDECIDED
+    assert not np.isfinite(short["measured"]["growth_last_half"])
+    assert short["note"].startswith("not evaluated: none of the last half")
+    t = np.linspace(0.0, 10.0, 1001)
+    long = diagnostics.check_learning(t, 2.0 * np.exp(-0.1 * t), 20.0)
+    assert long["verdict"] == diagnostics.HOLDS and np.isfinite(long["measured"]["growth_last_half"])

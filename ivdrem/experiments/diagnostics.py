@@ -680,6 +680,13 @@ def check_learning(t, theta_err_norm, T, *, calW_over_Delta=None, delta_log10=No
                     f"drives θ̂ faster than Ψ settles: a numeric iv_drem.gamma 100x below "
                     + ("the calibrated one" if gamma_auto else "this one") + gtxt)
     verdict = FAILS if note else HOLDS
+    if verdict == HOLDS and not np.isfinite(growth):
+        # the last half holds fewer than two windows with samples: whether θ̃ grows there
+        # cannot be judged, so the run is not said to learn (a 0.1 s run of 7 steps)
+        verdict = UNDECIDED
+        held = ("none" if not means else f"only {len(means)}")
+        note = (f"not evaluated: {held} of the last half's {N_BINS} windows holds a sample "
+                "(the run is too short for its output step)")
     return _check("LEARN", "the run learns", "θ̃ → 0 (Theorem 2) observed, not presumed",
                   verdict, measured,
                   f"‖θ̃(t_end)‖ < ‖θ̃(0)‖ (< {LEARN_REDUCTION:g} ‖θ̃(0)‖ for a law with Δ), "
@@ -830,7 +837,7 @@ def diagnose(lawrun, config, model=None, *, theta=None, figure=None):
                        delta_log10=logd, mixing=mixing if has_delta else None, gamma=gamma,
                        gamma_auto=choice is not None)
     checks.append(c)
-    if c["note"]:
+    if c["note"] and c["verdict"] == FAILS:
         warnings.insert(0, c["note"])
     # the law's own window: [iv_drem]'s T, or its section's (composite learning's (35))
     own = config.get(spec.section, {}) if spec is not None and spec.section else {}
