@@ -18,6 +18,7 @@ import re
 import shlex
 import subprocess
 import sys
+from functools import lru_cache
 from pathlib import Path
 
 try:
@@ -117,6 +118,16 @@ def _parse_ivdrem(words):
         cli.build_parser().parse_args(words)
 
 
+@lru_cache(maxsize=None)
+def _script_help(script):
+    """(exit code, stdout, stderr) of `python script --help`: once per script, as a block
+    often shows one script with several options (each child imports ivdrem, 3-4 s)."""
+    proc = subprocess.run([sys.executable, str(script), "--help"], cwd=REPO,
+                          capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, PYTHONPATH=str(REPO)))
+    return proc.returncode, proc.stdout, proc.stderr
+
+
 def _check_command(page, line, words):
     if words[0] == "./run":
         words = words[1:] or ["report"]
@@ -125,14 +136,12 @@ def _check_command(page, line, words):
         if words[0] == "python":
             script = REPO / words[1]
             assert script.is_file(), f"{_rel(page)}: `{line}`: no file {words[1]}"
-            proc = subprocess.run([sys.executable, str(script), "--help"], cwd=REPO,
-                                  capture_output=True, text=True, timeout=300,
-                                  env=dict(os.environ, PYTHONPATH=str(REPO)))
-            assert proc.returncode == 0, f"{_rel(page)}: `{words[1]} --help` fails: {proc.stderr}"
+            returncode, stdout, stderr = _script_help(script)
+            assert returncode == 0, f"{_rel(page)}: `{words[1]} --help` fails: {stderr}"
             for w in words[2:]:
                 if w.startswith("--"):
                     opt = w.split("=")[0]
-                    assert opt in proc.stdout, f"{_rel(page)}: `{line}`: {words[1]} has no {opt}"
+                    assert opt in stdout, f"{_rel(page)}: `{line}`: {words[1]} has no {opt}"
             return
     elif words[0] == "ivdrem":
         words = words[1:]

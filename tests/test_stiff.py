@@ -245,16 +245,27 @@ def test_method_table_is_the_one_source_of_names():
         simulate(d, 1.0, method="rodas", engine="reference", progress=False)
 
 
-def test_rodas5p_and_dp45_agree_on_the_lab_diagram_reference_engine():
+# h_max: the plain delay's history slopes come from quadratics through history points,
+# accurate only when those are close (both methods alike)
+LAB_RODAS5P = dict(method="rodas5p", engine="reference", rtol=1e-7, atol=1e-10, h_max=2e-3,
+                   dt_out=0.01, progress=False)
+
+
+@pytest.fixture(scope="module")
+def lab_rodas5p():
+    """The lab diagram on Rodas5P, reference engine, over 2 s (2.7 windows LAB_T; the hold
+    fires at 0.47 s): run once for the two tests below, which read it (13.6 s of the
+    module's time)."""
+    return simulate(build_lab(), 2.0, **LAB_RODAS5P)
+
+
+def test_rodas5p_and_dp45_agree_on_the_lab_diagram_reference_engine(lab_rodas5p):
     """Delays (Hermite and plain) and the max-hold on the reference engine: Rodas5P with
     tight tolerances matches DP45; the hold fires at the same sampling time t_e."""
     d = build_lab()
-    # h_max: the plain delay's history slopes come from quadratics through history points,
-    # accurate only when those are close (both methods alike)
     a = simulate(d, 2.0, method="dp45", engine="reference", rtol=1e-9, atol=1e-11,
-                 h_max=2e-3, progress=False)
-    b = simulate(d, 2.0, method="rodas5p", engine="reference", rtol=1e-7, atol=1e-10,
-                 h_max=2e-3, progress=False)
+                 h_max=LAB_RODAS5P["h_max"], dt_out=LAB_RODAS5P["dt_out"], progress=False)
+    b = lab_rodas5p
     A, Bo = np.asarray(a.outputs), np.asarray(b.outputs)
     assert np.abs(A - Bo).max() <= 1e-6 * max(1.0, np.abs(A).max())
     assert a.hold_times[0] == b.hold_times[0]
@@ -264,7 +275,7 @@ def test_rodas5p_and_dp45_agree_on_the_lab_diagram_reference_engine():
     assert b.stats["jacobians"] + b.stats["explicit_steps"] >= b.stats["steps"] > 0
 
 
-def test_pinned_explicit_steps_give_way_to_rodas5p_on_a_stiff_mode():
+def test_pinned_explicit_steps_give_way_to_rodas5p_on_a_stiff_mode(lab_rodas5p):
     """The lab diagram plus a Prothero-Robinson block with a mode at -1e4, outside BS23's
     stability region at the 1 ms grid (h*lambda = -10): while the hold pins the steps, the
     explicit steps are rejected and Rodas5P takes them; the stiff state stays on sin t
@@ -277,12 +288,9 @@ def test_pinned_explicit_steps_give_way_to_rodas5p_on_a_stiff_mode():
         return [-1e4 * (x[0] - np.sin(t)) + np.cos(t)]
     pr = ct.nlsys(upd, lambda t, x, u, params: x, states=1, outputs=["pr_y"], inputs=0,
                   name="pr")
-    lab = build_lab()
     d = assemble(lab_blocks() + [pr], LAB_OUTPUTS + ["pr_y"], name="lab_pr")
-    kw = dict(engine="reference", rtol=1e-7, atol=1e-10, h_max=2e-3, dt_out=0.01,
-              progress=False)
-    a = simulate(lab, 2.0, method="rodas5p", **kw)
-    b = simulate(d, 2.0, method="rodas5p", **kw)
+    a = lab_rodas5p                                        # the lab alone, the same options
+    b = simulate(d, 2.0, **LAB_RODAS5P)
     assert b.hold_times[0] == a.hold_times[0]
     assert a.stats["explicit_steps"] > 100                # the lab alone: BS23 steps
     assert b.stats["explicit_steps"] < a.stats["explicit_steps"] / 10
