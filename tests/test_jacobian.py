@@ -479,16 +479,21 @@ def test_two_processes_filling_the_pattern_cache_at_once_both_succeed(tmp_path, 
     assert not list((tmp_path / "patterns").glob(".*.tmp"))
 
 
-def test_a_second_run_of_a_diagram_is_bit_for_bit_the_first():
-    """The second simulate() of a diagram reuses the probed patterns: same steps, same
-    numbers."""
+def test_a_second_run_of_a_diagram_is_bit_for_bit_the_first(monkeypatch):
+    """The second simulate() of a diagram reuses the tables the first kept in the process
+    (nothing probed, built or read from disk again): same steps, same numbers."""
     from ivdrem.diagrams import closed_loop
     from ivdrem.models import two_link
-    from ivdrem.sim import jacobian as jac, simulate
-    jac._PATTERNS.clear()
+    from ivdrem.sim import compiled, simulate
+    compiled._TABLES.clear()
     d = closed_loop("iv-drem", two_link())
     first = simulate(d, 3.0, progress=False)
-    assert jac._PATTERNS
+    assert len(compiled._TABLES) == 1
+
+    def again(*a, **k):
+        raise AssertionError("built or read again")
+    monkeypatch.setattr(compiled, "JacobianProgram", again)
+    monkeypatch.setattr(compiled, "load_tables", again)
     second = simulate(d, 3.0, progress=False)
     assert first.stats["steps"] == second.stats["steps"]
     assert np.array_equal(first.outputs, second.outputs)

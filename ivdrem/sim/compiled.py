@@ -6,6 +6,7 @@ hash of their source, with numba's machine code beside them.
 """
 from __future__ import annotations
 
+import hashlib
 import inspect
 import math
 import re
@@ -13,6 +14,7 @@ import sys
 import textwrap
 import warnings
 import weakref
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -27,10 +29,12 @@ from .._progress import preparing
 from ..compile_cache import (GENERATED_HEADER, cache_dir, import_generated as _import,  # noqa: F401
                     source_hash as _hash, write_generated as _write)
 from .errors import BLOCK_RAISED_MESSAGE, BlockError, CompileError  # noqa: F401
-from .jacobian import JacobianProgram, helpers_cache_as_now
+from .jacobian import (JacobianProgram, helpers_cache_as_now, kernel_code_ids,
+                       structure_digest)
 from ..models._jit_module import model_module, module_source as _model_module  # noqa: F401
 from .sparse_lu import symbolic_lu
-from .tables import build_tables, dense_to_sparse, sparse_to_dense
+from .tables import (build_tables, dense_to_sparse, load_tables, save_tables,
+                     sparse_to_dense)
 from . import foreign, sampled
 from .foreign import foreign_module as _foreign_module
 from . import _compile_child
@@ -57,8 +61,21 @@ def _read_source(fn):
     return src
 
 
+#: a kernel's checked source, per function object and whether its block has a model: the
+#: checks read the function's globals and source again on every simulate (a third of the
+#: paper's loop's per-call set-up once its tables are kept)
+_CHECKED = weakref.WeakKeyDictionary()
+
+
 def _kernel_source(fn, block_name, has_model):
     """Source of a block kernel, after checking it only uses what its module provides."""
+    checked = _CHECKED.setdefault(fn, {})
+    if has_model not in checked:
+        checked[has_model] = _checked_kernel_source(fn, block_name, has_model)
+    return checked[has_model]
+
+
+def _checked_kernel_source(fn, block_name, has_model):
     cv = inspect.getclosurevars(fn)
     if cv.nonlocals:
         raise CompileError(f"kernel {fn.__name__} of block '{block_name}' is a closure "
@@ -260,13 +277,74 @@ def kernel_modules(plan, param_slots=None):
     return KernelModules(list(deps.items()), wrappers, windex, wrapper_nx, playout, pbase)
 
 
-def diagram_tables(plan, modules):
+#: the tables of the diagrams simulated in this process, by what they are built from: a
+#: study or a benchmark simulates one diagram many times (the Panda's loop: 0.5-0.8 s of
+#: set-up a call; the paper's loop: most of a call's set-up)
+_TABLES: OrderedDict = OrderedDict()
+_TABLES_MAX = 8
+
+
+def tables_key(plan, modules):
+    """The key of `plan`'s tables: (the digest of :func:`~ivdrem.sim.jacobian.
+    structure_digest` and of where `modules` put the kernels and parameters, which names
+    the file on disk; the kernels' code objects, which this process's keeping adds); None
+    where the diagram's blocks cannot be keyed (a user's nlsys, an FMU: their tables are
+    built every time)."""
+    digest = structure_digest(plan)
+    if digest is None:
+        return None
+    layout = (sorted(modules.playout.items()), sorted(modules.pbase.items()),
+              sorted(modules.windex.items()), list(modules.wrapper_nx))
+    return (hashlib.sha256(f"{digest} {layout!r}".encode()).hexdigest(),
+            kernel_code_ids(plan))
+
+
+def _tables_path(key):
+    return cache_dir() / "tables" / f"{key[:40]}.npz"
+
+
+def kept_tables(key):
+    """The tables kept under `key` (:func:`tables_key`) in this process or on disk, or None
+    (then :func:`diagram_tables` builds them)."""
+    if key is None:
+        return None
+    tables = _TABLES.get(key)
+    if tables is None:
+        tables = load_tables(_tables_path(key[0]))
+        if tables is None:
+            return None
+        _keep(key, tables)
+    _TABLES.move_to_end(key)
+    return tables
+
+
+def _keep(key, tables):
+    _TABLES[key] = tables
+    while len(_TABLES) > _TABLES_MAX:
+        _TABLES.popitem(last=False)
+
+
+def diagram_tables(plan, modules, key=None):
     """The diagram's tables: the Jacobian's FD program (after the sparsity probe) and the
-    Newton matrix's static LU pattern, with where `modules` put the kernels."""
+    Newton matrix's static LU pattern, with where `modules` put the kernels.  Kept in this
+    process and on disk by :func:`tables_key` (`key`, if the caller has it; the same inputs
+    give the same tables, bit for bit): a warm run reads one file instead of the blocks'
+    patterns, the program and the LU order and building the tables from them (the Panda's
+    loop: 1.7 s of CPU), a second call of the same diagram reads nothing."""
+    key = tables_key(plan, modules) if key is None else key
+    tables = kept_tables(key)
+    if tables is not None:
+        return tables
     prog = JacobianProgram(plan)
     slu = symbolic_lu(prog.pattern, plan.state_groups())
-    return build_tables(plan, modules.playout, modules.pbase, modules.windex,
-                        modules.wrapper_nx, prog, slu)
+    tables = build_tables(plan, modules.playout, modules.pbase, modules.windex,
+                          modules.wrapper_nx, prog, slu)
+    if key is not None:
+        save_tables(_tables_path(key[0]), tables)
+        for a in tables:
+            a.flags.writeable = False       # shared by every later call
+        _keep(key, tables)
+    return tables
 
 
 def _param_values(plan, b):
@@ -531,28 +609,37 @@ class CompiledEngine:
                        f"{plan.diagram.name!r} (numba; loaded from the cache when they are "
                        "there)", cached_in=cache_dir(), only_if_slow=True):
             modules = kernel_modules(plan, param_slots)
-            # the kernels' sources do not depend on the probe, the Jacobian program or the
-            # LU: a child compiles the wrappers (all those not cached, the dearest first)
-            # while this process builds the tables (on a first run 10-25 s of CPU), then
-            # takes back those the child has not reached; the helpers' cache as it stands
-            # now decides which blocks the probe reads from their Jacobian kernels (the
-            # child's compiles must not change the probe's way, docs/performance.md)
-            with helpers_cache_as_now():
-                compiling = start_kernels(modules.deps, parent_busy=math.inf)
-                try:
-                    tables = diagram_tables(plan, modules)
-                except BaseException:
-                    compiling.cancel()
-                    raise
+            key = tables_key(plan, modules)
+            tables = kept_tables(key)
+            if tables is not None:      # a warm run, or a second call of the same diagram
+                compiling = start_kernels(modules.deps)
+            else:
+                # the kernels' sources do not depend on the probe, the Jacobian program or
+                # the LU: a child compiles the wrappers (all those not cached, the dearest
+                # first) while this process builds the tables (on a first run 10-25 s of
+                # CPU), then takes back those the child has not reached; the helpers'
+                # cache as it stands now decides which blocks the probe reads from their
+                # Jacobian kernels (the child's compiles must not change the probe's way,
+                # docs/performance.md)
+                with helpers_cache_as_now():
+                    compiling = start_kernels(modules.deps, parent_busy=math.inf)
+                    try:
+                        tables = diagram_tables(plan, modules, key)
+                    except BaseException:
+                        compiling.cancel()
+                        raise
             self.program = DiagramProgram(modules.deps, modules.wrappers, tables)
-            # the C stepper is built (or loaded) on a thread while this process compiles
-            # its kernels: the C compiler is a process of its own
-            with ThreadPoolExecutor(1, thread_name_prefix="ivdrem-cstepper") as pool:
-                pending = pool.submit(load_c_stepper)
-                try:
-                    compiling.finish()
-                finally:
-                    self.module = pending.result()
+            if all(name in sys.modules for name, _ in modules.deps):
+                self.module = load_c_stepper()      # nothing to compile: no thread
+            else:
+                # the C stepper is built (or loaded) on a thread while this process
+                # compiles its kernels: the C compiler is a process of its own
+                with ThreadPoolExecutor(1, thread_name_prefix="ivdrem-cstepper") as pool:
+                    pending = pool.submit(load_c_stepper)
+                    try:
+                        compiling.finish()
+                    finally:
+                        self.module = pending.result()
         self.stepper = self.module.name
         self.integrate = self.module.integrate
         self.tables = self.program.tables

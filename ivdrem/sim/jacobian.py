@@ -57,6 +57,7 @@ import hashlib
 import sys
 from collections import OrderedDict
 from contextlib import contextmanager
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -154,8 +155,15 @@ def _own_kernel(f):
         return True
     module = sys.modules.get(getattr(f, "__module__", None) or "")
     file = getattr(module, "__file__", None)
-    return (file is not None and Path(file).resolve().is_relative_to(_PACKAGE_ROOT)
+    return (file is not None and _in_package(file)
             and "<locals>" not in f.__qualname__ and getattr(f, "__closure__", None) is None)
+
+
+@lru_cache(maxsize=256)
+def _in_package(file):
+    """Whether the module file `file` lies in ivdrem's package (resolved once per file: every
+    simulate keys its tables by its blocks' kernels)."""
+    return Path(file).resolve().is_relative_to(_PACKAGE_ROOT)
 
 
 def _pattern_path(spec, rest):
@@ -563,12 +571,17 @@ def _program_key(plan, patterns, zeros=None):
     return h.hexdigest()
 
 
-def run_digest(plan, *, seed=0):
-    """A digest of everything a run of `plan` computes from, for results kept across
-    processes (``gamma = "auto"``'s calibration): ivdrem's source, the structure the
-    Jacobian program is built from, every block's kernels, robot model and parameter
-    values, the delays, holds and the initial state.  None where a block's kernels are not
-    ivdrem's own (a user's nlsys, an FMU): what they compute cannot be keyed."""
+def structure_digest(plan, *, seed=0):
+    """A digest of everything the compiled engine's tables of `plan` are built from, read
+    off the plan without probing: ivdrem's source (the probe, the program's builder, the
+    LU's search), and per block its kind, information, kernels (by name), robot model,
+    place in the state, input and output vectors, direct inputs, state labels (the LU's
+    groups) and kernel arguments (the parameter values the probe moves and
+    :func:`_parameter_zeros` reads); the delays and max-holds, the connection, input and
+    output maps, the evaluation order and the probe's `seed`.  The block patterns, the
+    Jacobian program and the symbolic LU are functions of these (each kept on disk under
+    a key made of some of them).  None where a block's kernels are not ivdrem's own (a
+    user's nlsys, an FMU): what they compute cannot be keyed."""
     digest = _package_digest()
     if digest is None:
         return None
@@ -581,12 +594,44 @@ def run_digest(plan, *, seed=0):
         if not all(_own_kernel(f) for f in funcs):
             return None
         h.update(repr((b.index, spec.name, spec.kind, repr(spec.info), _kernel_names(funcs),
-                       spec.model.key if spec.model is not None else None)).encode())
+                       spec.model.key if spec.model is not None else None,
+                       (b.x.start, b.x.stop), (b.u.start, b.u.stop), (b.y.start, b.y.stop),
+                       [int(i) for i in b.direct_inputs], list(b.sys.state_labels))).encode())
         if spec.kind == "ode":
-            h.update(repr(tuple(_value_key(a) for a in
-                                kernel_args(spec, plan.block_params(b)))).encode())
-    h.update(_program_key(plan, _local_patterns(plan, seed)).encode())
-    h.update(repr((plan.delays, plan.holds)).encode())
+            for a in kernel_args(spec, plan.block_params(b)):
+                *kind, data = _value_key(a)     # an array's bytes hashed as they are
+                data = data if isinstance(data, bytes) else data.encode()
+                h.update(repr((kind, len(data))).encode())
+                h.update(data)
+    h.update(repr((plan.delays, plan.holds, plan.nd, plan.nh, list(plan.order),
+                   plan.x0.size, seed)).encode())
+    for m in plan.maps:                 # CSR, each row's entries in column order
+        h.update(repr(m.shape).encode())
+        for a in (m.indptr, m.indices, m.data):
+            h.update(repr(a.dtype.str).encode())
+            h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def kernel_code_ids(plan):
+    """The identities of the blocks' kernels' code objects: what, besides
+    :func:`structure_digest`, keys a result kept in this process (a kernel replaced by
+    another function of the same name, as a test does, is a new key)."""
+    return tuple(None if f is None else id(getattr(f, "__code__", f))
+                 for b in plan.blocks if b.spec is not None
+                 for f in (b.spec.update, b.spec.output, getattr(b.spec, "jacobian", None)))
+
+
+def run_digest(plan, *, seed=0):
+    """A digest of everything a run of `plan` computes from, for results kept across
+    processes (``gamma = "auto"``'s calibration): the diagram's structure, kernels and
+    parameter values (:func:`structure_digest`) and the initial state.  None where a
+    block's kernels are not ivdrem's own (a user's nlsys, an FMU): what they compute
+    cannot be keyed."""
+    digest = structure_digest(plan, seed=seed)
+    if digest is None:
+        return None
+    h = hashlib.sha256(digest.encode())
     h.update(np.ascontiguousarray(plan.x0, dtype=float).tobytes())
     return h.hexdigest()
 

@@ -12,9 +12,12 @@ from collections import namedtuple
 
 import numpy as np
 
+from .._atomic import write_file_atomic
+
 from . import _diagram
 
 __all__ = ["DiagramTables", "TABLES_LAYOUT", "DIMS", "build_tables", "empty_tables", "pack",
+           "load_tables", "save_tables",
            "with_fill_runs", "INT_FIELDS", "FLOAT_FIELDS", "jacobian_positions", "sparse_to_dense",
            "dense_to_sparse"]
 
@@ -85,6 +88,36 @@ def scratch_size(tables):
 def hold_nmat(plan):
     """The largest matrix order of the diagram's max-holds (1 without one)."""
     return max([hd["nmat"] for hd in plan.holds] + [1])
+
+
+def save_tables(path, tables):
+    """Keep `tables` at `path` for later processes, every field in one ``.npz`` (one file
+    read instead of the block patterns, the Jacobian program and the LU order it is built
+    from), written atomically (two processes filling the cache at once both succeed); an
+    unwritable cache only costs the build next time."""
+    try:
+        write_file_atomic(path, lambda fh: np.savez(fh, **tables._asdict()))
+    except OSError:
+        pass
+
+
+def load_tables(path):
+    """The DiagramTables kept at `path`, read-only; None where there is none or it does not
+    hold every field of :data:`TABLES_LAYOUT` with its type and dimensions (a damaged file
+    is built again and rewritten)."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            got = {k: f[k] for k in f.files}
+    except (OSError, ValueError, EOFError, KeyError):
+        return None
+    if set(got) != set(DiagramTables._fields):
+        return None
+    for name, dtype, ndim in TABLES_LAYOUT:
+        a = got[name]
+        if a.dtype != np.dtype(dtype) or a.ndim != ndim:
+            return None
+        a.flags.writeable = False
+    return DiagramTables(**got)
 
 
 def _i64(v, cols=None):
