@@ -19,6 +19,13 @@ Usage::
     ./run python benchmarks/bench_first_run.py --rows              # first run and warm, before/after
     ./run python benchmarks/bench_first_run.py --rows --stages --commit main   # and where it goes
     ./run python benchmarks/bench_first_run.py --rows --t-end 300  # the 300 s run's memory
+    ./run python benchmarks/bench_first_run.py --warm 5 --commit main  # warm runs, alternating
+
+``--warm N``: the warm run alone, this checkout and ``--commit`` alternating N times each
+after one untimed run of each (which fills the cache if it is not yet), both with the
+usual compile cache (``$IVDREM_CACHE_DIR`` or its default: what each version keeps there is
+keyed by its own sources; numba's machine code of equal kernels is shared); the median and
+the range of wall, CPU and peak memory per version.
     ./run python benchmarks/bench_first_run.py --gamma --arms two-link,planar-3,planar-4,planar-5,planar-6,ur5,panda
 """
 from __future__ import annotations
@@ -120,6 +127,33 @@ def first_run_rows(tree, label, t_end, cache, stages=False):
     return rows
 
 
+def warm_rows(trees, t_end, n):
+    """`n` warm runs of the Panda command per (tree, label) of `trees`, alternating, after one
+    untimed run each; every run's row, then per version the medians."""
+    cmd = [sys.executable, "-m", "ivdrem", "paper", "--config", "examples/panda.toml",
+           "--t-end", f"{t_end:g}", "--laws", "iv-drem", "--quiet"]
+    envs = {label: dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1")
+            for tree, label in trees}
+    for tree, label in trees:
+        if _timed(cmd, tree, envs[label])[2] != 0:
+            raise RuntimeError(f"{label}: the untimed first run failed")
+    rows = []
+    for _ in range(n):
+        for tree, label in trees:
+            wall, rss, rc, tail, cpu, _ = _timed(cmd, tree, envs[label])
+            if rc != 0:
+                raise RuntimeError(f"{label} warm run failed (exit {rc}):\n{tail}")
+            rows.append(dict(version=label, run="warm", wall_s=wall, cpu_s=cpu, peak_MiB=rss,
+                             load=os.getloadavg()[0]))
+            print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def _median(v):
+    v = sorted(v)
+    return 0.5 * (v[(len(v) - 1) // 2] + v[len(v) // 2])
+
+
 def gamma_rows(arms):
     """γ "auto" of IV-DREM per arm from the reference estimate and from the calibration run."""
     import numpy as np
@@ -181,6 +215,8 @@ def main(argv=None):
     ap.add_argument("--stages", action="store_true",
                     help="with --rows: time the set-up stages of each run (main process)")
     ap.add_argument("--t-end", type=float, default=1.0)
+    ap.add_argument("--warm", type=int, default=0, metavar="N",
+                    help="N warm runs of each version, alternating (see the docstring)")
     ap.add_argument("--gamma", action="store_true", help="γ auto: reference estimate vs run")
     ap.add_argument("--arms", default="two-link,planar-3,planar-4,planar-5,planar-6,ur5,panda")
     ap.add_argument("--json", default=None)
@@ -188,6 +224,26 @@ def main(argv=None):
     out = {"uptime": os.getloadavg()}
     if a.gamma:
         out["gamma"] = gamma_rows([x for x in a.arms.split(",") if x])
+    if a.warm:
+        tmp = Path(tempfile.mkdtemp(prefix="ivdrem-warm-"))
+        before = tmp / "before"
+        subprocess.run(["git", "worktree", "add", "--detach", str(before), a.commit], cwd=REPO,
+                       check=True, capture_output=True)
+        try:
+            out["warm"] = warm_rows([(before, f"before ({a.commit})"), (REPO, "after")],
+                                    a.t_end, a.warm)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
+                           capture_output=True)
+            shutil.rmtree(tmp, ignore_errors=True)
+        print(f"\n{'version':<22} {'runs':>4} {'wall s: median (range)':>24} "
+              f"{'CPU s: median':>14} {'peak MiB':>9}")
+        for label in dict.fromkeys(r["version"] for r in out["warm"]):
+            rs = [r for r in out["warm"] if r["version"] == label]
+            w = [r["wall_s"] for r in rs]
+            print(f"{label:<22} {len(rs):>4} {_median(w):>10.2f} ({min(w):.2f}-{max(w):.2f})"
+                  f"{'':>5} {_median([r['cpu_s'] for r in rs]):>14.2f} "
+                  f"{_median([r['peak_MiB'] for r in rs]):>9.0f}")
     if a.rows:
         tmp = Path(tempfile.mkdtemp(prefix="ivdrem-first-run-"))
         before = tmp / "before"
