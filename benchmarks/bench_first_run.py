@@ -20,6 +20,7 @@ Usage::
     ./run python benchmarks/bench_first_run.py --rows --stages --commit main   # and where it goes
     ./run python benchmarks/bench_first_run.py --rows --t-end 300  # the 300 s run's memory
     ./run python benchmarks/bench_first_run.py --warm 5 --commit main  # warm runs, alternating
+    ./run python benchmarks/bench_first_run.py --warm 3 --stages --commit main  # and their stages
 
 ``--warm N``: the warm run alone, this checkout and ``--commit`` alternating N times each
 after one untimed run of each (which fills the cache if it is not yet), both with the
@@ -66,15 +67,27 @@ def _timed(cmd, cwd, env):
 #: by module and name, wrapped where the version has them), each printed to stderr as
 #: "[stage] name: wall W s, cpu C s" (CPU of the main process; a child compiling wrappers
 #: is not in it)
-STAGES = [("ivdrem.diagrams.gamma_auto", "reference_mean_delta2", "γ reference estimate"),
+STAGES = [("ivdrem.cli.preflight", "check_runs", "preflight (the loop built and priced)"),
+          ("ivdrem.experiments.experiment", "Experiment.loop", "the loop built"),
+          ("ivdrem.diagrams.gamma_auto", "reference_mean_delta2", "γ reference estimate"),
+          ("ivdrem.sim.plan", "DiagramPlan.from_diagram", "the plan (each simulate)"),
+          ("ivdrem.sim.compiled", "kernel_modules", "the kernels' sources"),
+          ("ivdrem.sim.compiled", "diagram_tables", "the tables (built, or read)"),
           ("ivdrem.sim.jacobian", "_local_patterns", "sparsity probe"),
           ("ivdrem.sim.jacobian", "JacobianProgram._build", "Jacobian program build"),
           ("ivdrem.sim.sparse_lu", "_grouped_symbolic_lu", "symbolic LU (orderings, search)"),
           ("ivdrem.sim.compiled", "_load_kernels", "kernels compiled and imported"),
           # this version: the child started before the probe, the rest after the tables
-          ("ivdrem.sim.compiled", "KernelCompile.finish", "kernels compiled and imported")]
+          ("ivdrem.sim.compiled", "KernelCompile.finish", "kernels compiled and imported"),
+          ("ivdrem.sim.simulator", "Simulator.advance", "the simulation (C stepper)"),
+          ("ivdrem.experiments.diagnostics", "diagnose_run", "diagnostics")]
 _STAGE_RUNNER = """
 import functools, importlib, sys, time
+w, c = time.perf_counter(), time.process_time()
+import ivdrem.laws
+print(f'[stage] imports (python-control, SciPy, numba, ivdrem): '
+      f'wall {time.perf_counter() - w:.2f} s, cpu {time.process_time() - c:.2f} s',
+      file=sys.stderr, flush=True)
 def wrap(mod, name, label):
     mod = importlib.import_module(mod)
     owner, _, attr = name.rpartition('.')
@@ -99,6 +112,32 @@ run()
 """
 
 
+def _stages_of(err):
+    """{stage: (wall s, CPU s)} summed from a run's "[stage]" lines."""
+    got = {}
+    for name, w, c in re.findall(r"\[stage\] (.+?): wall ([\d.]+) s, cpu ([\d.]+) s", err):
+        a, b = got.get(name, (0.0, 0.0))
+        got[name] = (a + float(w), b + float(c))
+    return got
+
+
+def _stage_table(rows):
+    """The stages of `rows` per version: median CPU s (median wall s) of each."""
+    labels = list(dict.fromkeys(r["version"] + " " + r["run"] for r in rows))
+    print(f"\n{'stage (main process): CPU s (wall s)':<46}" + "".join(f" {l[:24]:>24}"
+                                                                   for l in labels))
+    names = ["imports (python-control, SciPy, numba, ivdrem)"] + list(
+        dict.fromkeys(name for _, _, name in STAGES))
+    for name in names:
+        cells = []
+        for l in labels:
+            got = [r["stages"][name] for r in rows
+                   if r["version"] + " " + r["run"] == l and name in r.get("stages", {})]
+            cells.append("-" if not got else
+                         f"{_median([g[1] for g in got]):.2f} ({_median([g[0] for g in got]):.2f})")
+        print(f"{name:<46}" + "".join(f" {c:>24}" for c in cells))
+
+
 def first_run_rows(tree, label, t_end, cache, stages=False):
     """The first run (empty cache) and the warm run of the Panda command in `tree`; with
     `stages`, each run's set-up stages too (STAGES: seconds summed per stage)."""
@@ -118,20 +157,19 @@ def first_run_rows(tree, label, t_end, cache, stages=False):
         rows.append(dict(version=label, run=kind, wall_s=wall, cpu_s=cpu, peak_MiB=rss,
                          theta=theta.group(0) if theta else None))
         if stages:
-            got = {}
-            for name, w, c in re.findall(r"\[stage\] (.+?): wall ([\d.]+) s, cpu ([\d.]+) s", err):
-                a, b = got.get(name, (0.0, 0.0))
-                got[name] = (a + float(w), b + float(c))
-            rows[-1]["stages"] = got
+            rows[-1]["stages"] = _stages_of(err)
         print(json.dumps(rows[-1], ensure_ascii=False), flush=True)
     return rows
 
 
-def warm_rows(trees, t_end, n):
+def warm_rows(trees, t_end, n, stages=False):
     """`n` warm runs of the Panda command per (tree, label) of `trees`, alternating, after one
-    untimed run each; every run's row, then per version the medians."""
-    cmd = [sys.executable, "-m", "ivdrem", "paper", "--config", "examples/panda.toml",
-           "--t-end", f"{t_end:g}", "--laws", "iv-drem", "--quiet"]
+    untimed run each; every run's row (with `stages`, its stages: STAGES), then per version
+    the medians."""
+    head = ([sys.executable, "-c", _STAGE_RUNNER % (STAGES,)] if stages
+            else [sys.executable, "-m", "ivdrem"])
+    cmd = head + ["paper", "--config", "examples/panda.toml", "--t-end", f"{t_end:g}",
+                  "--laws", "iv-drem", "--quiet"]
     envs = {label: dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1")
             for tree, label in trees}
     for tree, label in trees:
@@ -140,11 +178,13 @@ def warm_rows(trees, t_end, n):
     rows = []
     for _ in range(n):
         for tree, label in trees:
-            wall, rss, rc, tail, cpu, _ = _timed(cmd, tree, envs[label])
+            wall, rss, rc, tail, cpu, err = _timed(cmd, tree, envs[label])
             if rc != 0:
                 raise RuntimeError(f"{label} warm run failed (exit {rc}):\n{tail}")
             rows.append(dict(version=label, run="warm", wall_s=wall, cpu_s=cpu, peak_MiB=rss,
                              load=os.getloadavg()[0]))
+            if stages:
+                rows[-1]["stages"] = _stages_of(err)
             print(json.dumps(rows[-1]), flush=True)
     return rows
 
@@ -213,7 +253,7 @@ def main(argv=None):
     ap.add_argument("--rows", action="store_true", help="first run and warm run, before/after")
     ap.add_argument("--commit", default="dca66b6")
     ap.add_argument("--stages", action="store_true",
-                    help="with --rows: time the set-up stages of each run (main process)")
+                    help="with --rows or --warm: time the stages of each run (main process)")
     ap.add_argument("--t-end", type=float, default=1.0)
     ap.add_argument("--warm", type=int, default=0, metavar="N",
                     help="N warm runs of each version, alternating (see the docstring)")
@@ -231,7 +271,7 @@ def main(argv=None):
                        check=True, capture_output=True)
         try:
             out["warm"] = warm_rows([(before, f"before ({a.commit})"), (REPO, "after")],
-                                    a.t_end, a.warm)
+                                    a.t_end, a.warm, stages=a.stages)
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
                            capture_output=True)
@@ -244,6 +284,8 @@ def main(argv=None):
             print(f"{label:<22} {len(rs):>4} {_median(w):>10.2f} ({min(w):.2f}-{max(w):.2f})"
                   f"{'':>5} {_median([r['cpu_s'] for r in rs]):>14.2f} "
                   f"{_median([r['peak_MiB'] for r in rs]):>9.0f}")
+        if a.stages:
+            _stage_table(out["warm"])
     if a.rows:
         tmp = Path(tempfile.mkdtemp(prefix="ivdrem-first-run-"))
         before = tmp / "before"
@@ -264,12 +306,7 @@ def main(argv=None):
             print(f"{r['version']:<22} {r['run']:<6} {r['wall_s']:>8.1f} {r['cpu_s']:>7.1f} "
                   f"{r['peak_MiB']:>9.0f}")
         if a.stages:
-            print(f"\n{'stage (main process): CPU s (wall s)':<44}"
-                  + "".join(f" {r['version'][:14] + ' ' + r['run']:>22}" for r in out["rows"]))
-            for name in dict.fromkeys(name for _, _, name in STAGES):
-                cells = [r["stages"].get(name) for r in out["rows"]]
-                print(f"{name:<44}" + "".join(
-                    f" {'-' if c is None else f'{c[1]:.1f} ({c[0]:.1f})':>22}" for c in cells))
+            _stage_table(out["rows"])
     if a.gamma:
         print(f"\n{'arm':<10} {'nθ':>3} {'mixing':<7} {'γ run (today)':>14} {'γ reference':>12} "
               f"{'max rel diff':>12} {'run s':>7} {'ref s':>6}")

@@ -9,6 +9,7 @@ Usage::
 
     ./run python benchmarks/bench_setup.py                        # planar-4 and the UR5
     ./run python benchmarks/bench_setup.py --arms planar-4 --repo /path/to/another/tree
+    ./run python benchmarks/bench_setup.py --arms two-link,panda --calls 20   # per-call set-up
 
 Each arm runs in a child process (nothing cached in memory: the patterns and symbolic LUs
 are cached per process).  The loop is IV-DREM as ``ivdrem paper`` builds it (the arm's
@@ -36,7 +37,7 @@ PHASES = ["import", "model", "closed_loop", "probe", "jacobian_rest", "symbolic_
           "tables", "kernel_modules", "engine_rest", "simulate_rest", "simulate", "total"]
 
 
-def child(arm, gamma, repo):
+def child(arm, gamma, repo, calls=0):
     t_start = time.perf_counter()
     sys.path.insert(0, str(repo))
     import ivdrem
@@ -44,6 +45,7 @@ def child(arm, gamma, repo):
     from ivdrem.experiments.config import (closed_loop_kwargs, read_config, resolve_config,
                                            model_from_config, solver_kwargs)
     from ivdrem.sim import compiled, jacobian, simulate
+    import numpy as np
     out = {"import": time.perf_counter() - t_start, "ivdrem": ivdrem.__file__}
     acc = dict.fromkeys(["probe", "jacobian", "symbolic_lu", "tables", "kernel_modules",
                          "engine"], 0.0)
@@ -87,6 +89,15 @@ def child(arm, gamma, repo):
                                           + acc["kernel_modules"])
     out["simulate_rest"] = out["simulate"] - acc["engine"]
     out["total"] = time.perf_counter() - t_start
+    # the same simulate again, as a study or a benchmark calls it: the per-call set-up
+    walls, sets = [], []
+    for _ in range(calls):
+        t = time.perf_counter()
+        again = simulate(loop, 0.01, dt_out=0.01, progress=False, **solver_kwargs(cfg, "iv-drem"))
+        walls.append(time.perf_counter() - t)
+        sets.append(again.stats["compile_s"])
+    out["call_ms"] = 1e3 * float(np.median(walls)) if calls else float("nan")
+    out["call_setup_ms"] = 1e3 * float(np.median(sets)) if calls else float("nan")
     out["n_states"] = int(resp.states.shape[0])
     out["steps"] = int(resp.stats["steps"])
     out["load_end"] = round(os.getloadavg()[0], 2)
@@ -99,6 +110,9 @@ def main(argv=None):
     ap.add_argument("--gamma", type=float, default=50.7,
                     help="γ of the composite term (a number: no calibration run)")
     ap.add_argument("--repo", default=str(REPO), help="the ivdrem source tree to time")
+    ap.add_argument("--calls", type=int, default=0, metavar="N",
+                    help="then N more simulate calls of the same loop: median wall and set-up "
+                         "(compile_s) per call")
     ap.add_argument("--json", help="write the measurements here")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -106,7 +120,7 @@ def main(argv=None):
     if not (repo / "ivdrem" / "__init__.py").is_file():
         ap.error(f"--repo {repo}: no ivdrem package there")
     if a.child:
-        print(json.dumps(child(a.child, a.gamma, repo)))
+        print(json.dumps(child(a.child, a.gamma, repo, a.calls)))
         return 0
     arms = [s for s in a.arms.split(",") if s]
     print(f"repo {repo}; load average at start {os.getloadavg()[0]:.2f}", flush=True)
@@ -114,7 +128,8 @@ def main(argv=None):
     results = {}
     for arm in arms:
         r = subprocess.run([sys.executable, __file__, "--child", arm, "--gamma", str(a.gamma),
-                            "--repo", str(repo)], env=env, capture_output=True, text=True)
+                            "--repo", str(repo), "--calls", str(a.calls)], env=env,
+                           capture_output=True, text=True)
         if r.returncode != 0:
             print(f"{arm}: child failed\n{r.stderr[-3000:]}", file=sys.stderr)
             return 1
@@ -123,6 +138,9 @@ def main(argv=None):
     w = 12
     print(f"{'phase (s)':<16}" + "".join(f"{arm:>{w}}" for arm in arms))
     for p in PHASES:
+        print(f"{p:<16}" + "".join(f"{results[arm][p]:>{w}.2f}" for arm in arms))
+    rows = ("call_ms", "call_setup_ms") if a.calls else ()
+    for p in rows:
         print(f"{p:<16}" + "".join(f"{results[arm][p]:>{w}.2f}" for arm in arms))
     for p in ("n_states", "steps", "load_end"):
         print(f"{p:<16}" + "".join(f"{results[arm][p]:>{w}}" for arm in arms))

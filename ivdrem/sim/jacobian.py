@@ -576,7 +576,8 @@ def structure_digest(plan, *, seed=0):
     off the plan without probing: ivdrem's source (the probe, the program's builder, the
     LU's search), and per block its kind, information, kernels (by name), robot model,
     place in the state, input and output vectors, direct inputs, state labels (the LU's
-    groups) and kernel arguments (the parameter values the probe moves and
+    groups), parameter names (which of them are constants: the probe keeps those) and
+    kernel arguments (the parameter values the probe moves and
     :func:`_parameter_zeros` reads); the delays and max-holds, the connection, input and
     output maps, the evaluation order and the probe's `seed`.  The block patterns, the
     Jacobian program and the symbolic LU are functions of these (each kept on disk under
@@ -595,6 +596,9 @@ def structure_digest(plan, *, seed=0):
             return None
         h.update(repr((b.index, spec.name, spec.kind, repr(spec.info), _kernel_names(funcs),
                        spec.model.key if spec.model is not None else None,
+                       tuple(getattr(spec, "param_names", ())),
+                       sorted(getattr(spec, "constants", None) or ()),
+                       repr(getattr(spec, "kernel_names", None)),
                        (b.x.start, b.x.stop), (b.u.start, b.u.stop), (b.y.start, b.y.stop),
                        [int(i) for i in b.direct_inputs], list(b.sys.state_labels))).encode())
         if spec.kind == "ode":
