@@ -73,6 +73,8 @@ STAGES = [("ivdrem.cli.preflight", "check_runs", "preflight (the loop built and 
           ("ivdrem.sim.plan", "DiagramPlan.from_diagram", "the plan (each simulate)"),
           ("ivdrem.sim.compiled", "kernel_modules", "the kernels' sources"),
           ("ivdrem.sim.compiled", "diagram_tables", "the tables (built, or read)"),
+          # this version: the engine reads kept tables before it starts any compile
+          ("ivdrem.sim.compiled", "kept_tables", "the tables (built, or read)"),
           ("ivdrem.sim.jacobian", "_local_patterns", "sparsity probe"),
           ("ivdrem.sim.jacobian", "JacobianProgram._build", "Jacobian program build"),
           ("ivdrem.sim.sparse_lu", "_grouped_symbolic_lu", "symbolic LU (orderings, search)"),
