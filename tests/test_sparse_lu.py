@@ -466,13 +466,20 @@ def test_the_refined_order_is_kept_on_disk_and_a_damaged_file_is_searched_again(
         raise AssertionError("searched again")
     with monkeypatch.context() as m:
         m.setattr(sparse_lu, "refine_by_groups", no_search)
+        m.setattr(sparse_lu, "_filled_rows", no_search)         # nor eliminated
         again = sparse_lu.symbolic_lu(P, groups)                 # another process: from disk
-    assert np.array_equal(again.perm, first.perm) and again.ordering == first.ordering
-    assert np.array_equal(again.colidx, first.colidx)
+    assert again.ordering == first.ordering
+    assert (again.n, again.nnz_a, again.nnz_lu, again.fill) == \
+        (first.n, first.nnz_a, first.nnz_lu, first.fill)
+    for k in sparse_lu.SymbolicLU.ARRAYS:
+        a, b = getattr(again, k), getattr(first, k)
+        assert a.dtype == b.dtype and np.array_equal(a, b) and not a.flags.writeable, k
     files[0].write_bytes(b"not an npz")
     sparse_lu._SYMBOLIC.clear()
     assert np.array_equal(sparse_lu.symbolic_lu(P, groups).perm, first.perm)
-    assert sparse_lu._read_order(files[0], P.shape[0]) is not None  # rewritten
+    assert sparse_lu._read_kept(files[0], P.shape[0]) is not None  # rewritten
+    # a file whose rows do not fit the pattern's size is not read
+    assert sparse_lu._read_kept(files[0], P.shape[0] + 1) is None
     # groups of the wrong size are refused before any work
     with pytest.raises(ValueError, match="groups has 3 entries"):
         sparse_lu.symbolic_lu(P, [0, 1, 2])

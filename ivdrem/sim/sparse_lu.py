@@ -69,23 +69,37 @@ class SymbolicLU:
     """perm, rowptr, diagp (int64) and colidx (int32) of the filled pattern; nnz_a, nnz_lu,
     fill; the panels (:func:`panels`): first rows, and for each the columns it eliminates."""
 
+    #: the arrays a SymbolicLU is kept on disk as (with nnz_a and the ordering's name)
+    ARRAYS = ("perm", "rowptr", "colidx", "diagp", "panel_rows", "panel_kptr", "panel_k")
+
     def __init__(self, perm, rows, nnz_a, ordering):
         n = len(rows)
-        self.n = n
-        self.perm = np.asarray(perm, dtype=np.int64)
-        self.ordering = ordering
         sizes = np.fromiter((r.size for r in rows), dtype=np.int64, count=n)
-        self.rowptr = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
+        rowptr = np.concatenate(([0], np.cumsum(sizes))).astype(np.int64)
         # int32, as the factorisation and the solves read them (tables._i32)
-        self.colidx = (np.concatenate(rows).astype(np.int32) if n
-                       else np.zeros(0, dtype=np.int32))
-        self.diagp = self.rowptr[:-1] + np.fromiter(
+        colidx = (np.concatenate(rows).astype(np.int32) if n
+                  else np.zeros(0, dtype=np.int32))
+        diagp = rowptr[:-1] + np.fromiter(
             (int(np.searchsorted(r, i)) for i, r in enumerate(rows)), dtype=np.int64, count=n)
+        self._set(np.asarray(perm, dtype=np.int64), rowptr, colidx, diagp,
+                  *panels(rowptr, colidx, diagp), nnz_a=nnz_a, ordering=ordering)
+
+    @classmethod
+    def from_arrays(cls, arrays, nnz_a, ordering):
+        """The SymbolicLU whose :data:`ARRAYS` are `arrays` (a dict), as kept on disk."""
+        self = cls.__new__(cls)
+        self._set(*(arrays[k] for k in cls.ARRAYS), nnz_a=nnz_a, ordering=ordering)
+        return self
+
+    def _set(self, perm, rowptr, colidx, diagp, panel_rows, panel_kptr, panel_k, *, nnz_a,
+             ordering):
+        self.n = int(perm.size)
+        self.perm, self.rowptr, self.colidx, self.diagp = perm, rowptr, colidx, diagp
+        self.panel_rows, self.panel_kptr, self.panel_k = panel_rows, panel_kptr, panel_k
+        self.ordering = ordering
         self.nnz_a = int(nnz_a)
         self.nnz_lu = int(self.colidx.size)
         self.fill = self.nnz_lu - self.nnz_a
-        self.panel_rows, self.panel_kptr, self.panel_k = panels(self.rowptr, self.colidx,
-                                                                self.diagp)
         for a in (self.perm, self.rowptr, self.colidx, self.diagp, self.panel_rows,
                   self.panel_kptr, self.panel_k):
             a.flags.writeable = False     # shared by every run of the same pattern
@@ -319,7 +333,8 @@ def symbolic_lu(pattern, groups=None):
     fill among the candidate orderings (:func:`_symbolic_lu`), refined by moving whole
     groups where `groups` (the group of each state, e.g. its block and state name) is given
     (:func:`refine_by_groups`).  Computed once per process for a pattern and its groups;
-    the refined order is kept on disk (the search takes seconds on a real arm's loop).
+    the result (the refined order, its filled rows and panels) is kept on disk (the search
+    takes seconds on a real arm's loop, the elimination in its order 0.4 s on the Panda's).
     SymbolicLU is read-only."""
     A = np.asarray(pattern, dtype=bool)
     g = None if groups is None else np.unique(np.asarray(groups), return_inverse=True)[1]
@@ -335,7 +350,7 @@ def symbolic_lu(pattern, groups=None):
 
 
 def _order_path(pattern, groups):
-    """Where the refined order of (pattern, groups) is kept: named by both and by the
+    """Where the symbolic LU of (pattern, groups) is kept: named by both and by the
     digest of ivdrem's sources (a changed search never reads a stale order)."""
     digest = package_digest()
     if digest is None:
@@ -347,44 +362,56 @@ def _order_path(pattern, groups):
     return cache_dir() / "lu-orders" / f"{h.hexdigest()[:40]}.npz"
 
 
-def _read_order(path, n):
-    """(order, name) kept at `path`, or None where there is none or it is not a
-    permutation of n (a damaged file is searched again and rewritten)."""
+def _read_kept(path, n):
+    """The SymbolicLU kept at `path` (its order with its filled rows and panels, so that a
+    new process neither searches nor eliminates: 0.4 s of CPU on the Panda's loop), or None
+    where there is none or it is not a whole one of n states (a damaged file is searched
+    again and rewritten)."""
     if path is None:
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
-            order, name = np.asarray(z["order"]), str(z["name"])
-    except (OSError, ValueError, EOFError, KeyError):
+            got = {k: np.asarray(z[k]) for k in SymbolicLU.ARRAYS}
+            name, nnz_a = str(z["name"]), int(z["nnz_a"])
+    except (OSError, ValueError, EOFError, KeyError, TypeError):
         return None
-    if (order.dtype != np.int64 or order.shape != (n,)
-            or not np.array_equal(np.sort(order), np.arange(n))):
+    perm, rowptr, colidx, diagp = (got[k] for k in ("perm", "rowptr", "colidx", "diagp"))
+    ints = all(got[k].dtype == np.int64 and got[k].ndim == 1
+               for k in SymbolicLU.ARRAYS if k != "colidx")
+    if not (ints and colidx.dtype == np.int32 and colidx.ndim == 1 and perm.shape == (n,)
+            and rowptr.shape == (n + 1,) and diagp.shape == (n,)
+            and np.array_equal(np.sort(perm), np.arange(n)) and rowptr[0] == 0
+            and rowptr[-1] == colidx.size and np.all(np.diff(rowptr) > 0)
+            and np.all((colidx >= 0) & (colidx < n)) and np.all(diagp >= rowptr[:-1])
+            and np.all(diagp < rowptr[1:]) and np.array_equal(colidx[diagp], np.arange(n))
+            and got["panel_kptr"].shape == (got["panel_rows"].size + 1,)
+            and got["panel_kptr"][-1] == got["panel_k"].size):
         return None
-    return order, name
+    return SymbolicLU.from_arrays(got, nnz_a, name)
 
 
 def _grouped_symbolic_lu(pattern, groups):
     n = pattern.shape[0]
     path = _order_path(pattern, groups)
-    kept = _read_order(path, n)
-    A = _pattern_csr(pattern)
+    kept = _read_kept(path, n)
     if kept is not None:
-        order, name = kept
-        return SymbolicLU(order, _filled_rows(A, order), A.nnz, name)
+        return kept
+    A = _pattern_csr(pattern)
     base_name, base_order = _least_fill_order(A)
     refined = refine_by_groups(A, base_order, groups)
     if refined is None:
         order, name = np.array(base_order), base_name
     else:
         order, name = refined[0], f"{base_name}, groups moved"
+    slu = SymbolicLU(order, _filled_rows(A, order), A.nnz, name)
     if path is not None:
         try:
-            write_file_atomic(path,
-                              lambda fh: np.savez(fh, order=np.asarray(order, np.int64),
-                                                  name=np.array(name)))
+            write_file_atomic(path, lambda fh: np.savez(
+                fh, name=np.array(name), nnz_a=np.array(slu.nnz_a),
+                **{k: getattr(slu, k) for k in SymbolicLU.ARRAYS}))
         except OSError:
             pass            # an unwritable cache costs the search next time
-    return SymbolicLU(order, _filled_rows(A, order), A.nnz, name)
+    return slu
 
 
 def _pattern_csr(pattern):
