@@ -136,3 +136,20 @@ def test_the_key_follows_what_the_tables_are_built_from(loop):
     plan = DiagramPlan.from_diagram(d)
     compiled._check_kernels(plan)
     assert compiled.tables_key(plan, compiled.kernel_modules(plan)) is None
+
+
+def test_the_kept_tables_are_pruned_least_recently_used_first(tmp_path):
+    """A study at many parameter values keeps one file per value: beyond the limit the
+    files read or written longest ago go first."""
+    import os
+    from ivdrem.sim.tables import prune_kept_tables
+    for k in range(5):
+        f = tmp_path / f"{k}.npz"
+        f.write_bytes(b"x" * 1000)
+        os.utime(f, (1000.0 + k, 1000.0 + k))        # 0 the oldest, 4 the newest
+    os.utime(tmp_path / "1.npz", (2000.0, 2000.0))    # 1 read last
+    (tmp_path / "other.txt").write_bytes(b"y" * 10_000)   # not a kept table: left alone
+    prune_kept_tables(tmp_path, limit=2500)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["1.npz", "4.npz", "other.txt"]
+    prune_kept_tables(tmp_path, limit=10_000)         # under the limit: nothing removed
+    assert len(list(tmp_path.glob("*.npz"))) == 2

@@ -34,8 +34,8 @@ from .jacobian import (JacobianProgram, helpers_cache_as_now, kernel_code_ids,
                        structure_digest)
 from ..models._jit_module import model_module, module_source as _model_module  # noqa: F401
 from .sparse_lu import symbolic_lu
-from .tables import (build_tables, dense_to_sparse, load_tables, save_tables,
-                     sparse_to_dense)
+from .tables import (build_tables, dense_to_sparse, load_tables, prune_kept_tables,
+                     save_tables, sparse_to_dense)
 from . import foreign, sampled
 from .foreign import foreign_module as _foreign_module
 from . import _compile_child
@@ -344,7 +344,9 @@ def diagram_tables(plan, modules, key=None):
     tables = build_tables(plan, modules.playout, modules.pbase, modules.windex,
                           modules.wrapper_nx, prog, slu)
     if key is not None:
-        save_tables(_tables_path(key[0]), tables)
+        path = _tables_path(key[0])
+        save_tables(path, tables)
+        prune_kept_tables(path.parent)
         for a in tables:
             a.flags.writeable = False       # shared by every later call
         _keep(key, tables)

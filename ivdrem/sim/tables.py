@@ -8,7 +8,9 @@ numba compiles that code once; only the values differ.
 """
 from __future__ import annotations
 
+import os
 from collections import namedtuple
+from pathlib import Path
 
 import numpy as np
 
@@ -17,7 +19,7 @@ from .._atomic import write_file_atomic
 from . import _diagram
 
 __all__ = ["DiagramTables", "TABLES_LAYOUT", "DIMS", "build_tables", "empty_tables", "pack",
-           "load_tables", "save_tables",
+           "load_tables", "save_tables", "prune_kept_tables",
            "with_fill_runs", "INT_FIELDS", "FLOAT_FIELDS", "jacobian_positions", "sparse_to_dense",
            "dense_to_sparse"]
 
@@ -101,6 +103,31 @@ def save_tables(path, tables):
         pass
 
 
+#: the most the kept tables (``tables/`` of the compile cache) may hold: a study that runs a
+#: real arm's loop at many parameter values keeps one file per value (the Panda's: 8 MB);
+#: beyond this the least recently used files are removed
+TABLES_KEPT_BYTES = 256 * 2 ** 20
+
+
+def prune_kept_tables(directory, limit=TABLES_KEPT_BYTES):
+    """Remove the least recently used ``.npz`` files of `directory` (by modification time,
+    which :func:`load_tables` renews on every read) until they hold at most `limit` bytes;
+    a file another process removes meanwhile is skipped."""
+    files = []
+    for f in Path(directory).glob("*.npz"):
+        try:
+            st = f.stat()
+        except OSError:
+            continue
+        files.append((st.st_mtime, st.st_size, f))
+    total = sum(size for _, size, _ in files)
+    for _, size, f in sorted(files, key=lambda e: e[0]):
+        if total <= limit:
+            break
+        f.unlink(missing_ok=True)
+        total -= size
+
+
 def load_tables(path):
     """The DiagramTables kept at `path`, read-only; None where there is none or it does not
     hold every field of :data:`TABLES_LAYOUT` with its type and dimensions (a damaged file
@@ -117,6 +144,10 @@ def load_tables(path):
         if a.dtype != np.dtype(dtype) or a.ndim != ndim:
             return None
         a.flags.writeable = False
+    try:
+        os.utime(path)            # recently used: the last to be pruned
+    except OSError:
+        pass
     return DiagramTables(**got)
 
 
