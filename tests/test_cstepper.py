@@ -165,24 +165,3 @@ def test_an_int32_table_is_packed_as_its_count_and_values_two_to_an_int64():
     for f in int32:                      # every int32 table of no diagram: a count of 0
         k = tables.INT_FIELDS.index(f)
         assert ints[ints[k]] == 0 and ints[k + 1] - ints[k] == 1
-
-
-def test_the_library_is_built_for_the_host_cpu_and_named_by_it(tmp_path, monkeypatch):
-    """Built with NATIVE_FLAGS (the host's vector width) into a file whose name depends on
-    the host CPU (a cache shared by hosts never hands one's build to another); a compiler
-    that refuses the flags builds without them, the same library interface."""
-    p1 = _cstepper.build(tmp_path)
-    monkeypatch.setattr(_cstepper, "_host_cpu", lambda: "another-cpu +feature")
-    p2 = _cstepper.build(tmp_path)
-    assert p1 != p2 and p2.exists()
-    monkeypatch.setattr(_cstepper, "NATIVE_FLAGS", ("-mno-such-flag-anywhere",))
-    p3 = _cstepper.build(tmp_path)
-    assert p3 not in (p1, p2) and p3.exists()
-    st = _cstepper.load(tmp_path)
-    assert st.path == p3
-    b = np.array([2.0, -4.0])
-    x = b.copy()
-    LU = np.array([1.0, 0.0, 0.0, 1.0, 0.5, 0.25] + [0.0] * (_diagram.LU_WORK_ROWS * 2))
-    st.slu_solve(LU, 2, np.array([0, 1]), np.array([0, 2, 4]),
-                 np.array([0, 1, 0, 1], dtype=np.int32), np.array([0, 3]), x)
-    np.testing.assert_array_equal(x, [1.0, -1.0])        # U = I: y = b, x = y / pivots

@@ -39,12 +39,6 @@ SOURCE = Path(__file__).with_name("stepper.c")
 #: results are checked against it, benchmarks/record_theta.py), no -ffast-math
 CFLAGS = ("-O3", "-std=c99", "-fPIC", "-shared", "-ffp-contract=off", "-fvisibility=hidden",
           "-Wall", "-Wextra", "-Wno-unused-parameter", "-Wno-unused-function")
-#: built for the host's CPU where the compiler can (as numba builds the kernels): its vector
-#: width for the stages' elementwise arithmetic; elementwise IEEE operations round alike at
-#: any width, and with contraction off no multiply-add is fused, so the values are those of
-#: the generic build (the whole 300 s response of the paper's loops equal bit for bit).
-#: The cache key names the CPU (_host_cpu); a compiler that refuses the flag builds without.
-NATIVE_FLAGS = ("-march=native",)
 
 #: the failures stepper.c reports by longjmp where the Python source raises: name ->
 #: (code, the message of the RuntimeError; codes beyond the template's statuses)
@@ -148,17 +142,6 @@ def _compiler_version(cc):
     return res.stdout
 
 
-@functools.lru_cache(maxsize=1)
-def _host_cpu():
-    """The host's CPU and its features as LLVM names them (numba's own target): a library
-    built with NATIVE_FLAGS runs on this CPU, and a cache directory may be shared by hosts."""
-    try:
-        import llvmlite.binding as llvm
-        return f"{llvm.get_host_cpu_name()} {llvm.get_host_cpu_features().flatten()}"
-    except Exception:      # pragma: no cover - llvmlite cannot tell: the processor's name
-        return platform.processor()
-
-
 def _disk_full(cache, what):
     """The one line for a compile cache on a full disk, naming it and the remedy."""
     return CacheFault(f"the compile cache {cache} is on a full disk (No space left on device) "
@@ -172,9 +155,8 @@ def build(cache):
     hdr = header_source()
     src = SOURCE.read_text()
     # the architecture too: a cache directory shared by the hosts of a cluster
-    key = hashlib.sha256("\0".join([src, hdr, ver, " ".join(CFLAGS + NATIVE_FLAGS),
-                                    sys.platform, platform.machine(), _host_cpu()]
-                                   ).encode()).hexdigest()[:20]
+    key = hashlib.sha256("\0".join([src, hdr, ver, " ".join(CFLAGS), sys.platform,
+                                    platform.machine()]).encode()).hexdigest()[:20]
     lib = Path(cache) / f"ivdrem_cstepper_{key}.so"
     if lib.exists():
         return lib
@@ -185,14 +167,8 @@ def build(cache):
             (tmp / "stepper_consts.h").write_text(hdr)
             (tmp / "stepper.c").write_text(src)
             out = tmp / lib.name
-            cmd = [cc, *CFLAGS, *NATIVE_FLAGS, "-I", str(tmp), str(tmp / "stepper.c"), "-o",
-                   str(out), "-lm"]
+            cmd = [cc, *CFLAGS, "-I", str(tmp), str(tmp / "stepper.c"), "-o", str(out), "-lm"]
             res = subprocess.run(cmd, capture_output=True, text=True)
-            if res.returncode != 0 and NATIVE_FLAGS and "No space left" not in res.stderr:
-                # a compiler without -march=native (some cross or older ones): the generic
-                # build, the same values
-                cmd = [a for a in cmd if a not in NATIVE_FLAGS]
-                res = subprocess.run(cmd, capture_output=True, text=True)
             if res.returncode != 0:
                 if "No space left on device" in res.stderr or "Disk quota exceeded" in res.stderr:
                     raise _disk_full(cache, "building the C stepper")

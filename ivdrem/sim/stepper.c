@@ -519,22 +519,6 @@ static void jac_chain(const double *F, double *S, jvec dst, jvec fidx, jvec src,
     for (i64 r = 0; r < dst.n; r++) {
         double *restrict d = S + dst.p[r];
         i64 m = len.p[r];
-        if (m == 1 || m == -1) {
-            /* a run of one term (535 of the paper's loop's 753 runs), without the branches
-             * of the general case below, which cost more than its one multiply-add: the
-             * factor times its source (times 1.0 for src = -1: the factor itself), a factor
-             * 0 with src >= 0 giving +0 as the skip below does (d + 0 = d: the sums never
-             * are -0), the first term added to +0.  Every load in bounds (S[0] read for
-             * src = -1, *d for a first term), every choice a select */
-            i64 sr = src.p[r];
-            double a = F[fidx.p[r]];
-            double s = S[sr >= 0 ? sr : (sr == -1 ? 0 : -2 - sr)];
-            double term = a * (sr == -1 ? 1.0 : s);
-            term = sr >= 0 && a == 0.0 ? 0.0 : term;
-            double base = *d;
-            *d = (m < 0 ? 0.0 : base) + term;
-            continue;
-        }
         int first = m < 0;
         if (first) m = -m;
         if (src.p[r] < 0) {
@@ -848,17 +832,15 @@ static int diagram_jacobian_at(Ctx *c, double t, const double *x, double *J, i64
             jl0 += (ny + nx) * (nx + nu);
             c->jac_dirty[0] = 1;
             call_kernel(c, wnx, r[FD_WJAC], t, xb, 0, ub, 0, jb, 0, p0);
-            /* the block's entries, column by column as the groups list them, in one loop
-             * over the entries (about one a column: a loop per column cost more than its
-             * entry) */
-            i64 cc = fd_gc_ptr.p[fd_g_ptr.p[kb]], cc1 = fd_gc_ptr.p[fd_g_ptr.p[kb + 1]];
-            i64 e1 = fd_e_ptr.p[cc1];
-            for (i64 e = fd_e_ptr.p[cc]; e < e1; e++) {
-                while (e >= fd_e_ptr.p[cc + 1]) cc++;
-                double *v = jb + fd_e_row.p[e] * (nx + nu) + fd_col.p[cc];
-                F[fd_e_slot.p[e]] = *v;
-                *v = 0.0;
-            }
+            for (i64 g = fd_g_ptr.p[kb]; g < fd_g_ptr.p[kb + 1]; g++)
+                for (i64 cc = fd_gc_ptr.p[g]; cc < fd_gc_ptr.p[g + 1]; cc++) {
+                    i64 col = fd_col.p[cc];
+                    for (i64 e = fd_e_ptr.p[cc]; e < fd_e_ptr.p[cc + 1]; e++) {
+                        double *v = jb + fd_e_row.p[e] * (nx + nu) + col;
+                        F[fd_e_slot.p[e]] = *v;
+                        *v = 0.0;
+                    }
+                }
             c->jac_dirty[0] = 0;
             continue;
         }
