@@ -235,8 +235,42 @@ def test_panels_give_the_row_by_row_factor_bit_for_bit(seed):
     load_c_stepper().slu_solve(LU, n, slu.perm, slu.rowptr, slu.colidx, slu.diagp, x)
     np.testing.assert_allclose(x, np.linalg.solve(50.0 * np.eye(n) - J, b), rtol=1e-12,
                                atol=1e-14)
-    # the long rows of L are solved two at a time: the same sums as one row at a time
+    # the long rows of L are solved four or two side by side: the same sums as one row
+    # at a time
     assert np.array_equal(x, _solve_one_row_at_a_time(slu, LU, b))
+
+
+@pytest.mark.parametrize("n_joints", [2, 4])
+def test_rows_solved_side_by_side_give_the_one_row_at_a_time_solve(n_joints):
+    """The solve takes rows with at least SOLVE_GROUP_MIN entries of L four (or two) side by
+    side over the columns before the first of them: on the loops' own patterns (the paper's
+    two-link loop, 123 states; planar-4), where both paths are taken, the same values as one
+    row at a time, bit for bit, for several right-hand sides and factors."""
+    from ivdrem.sim._diagram import SOLVE_GROUP_MIN
+    from ivdrem.sim.compiled import load_c_stepper
+    from ivdrem.sim.tables import dense_to_sparse
+    pattern, groups = _loop_pattern_and_groups(n_joints)
+    slu = sparse_lu.symbolic_lu(pattern, groups)
+    n = slu.n
+    long_rows = (slu.diagp - slu.rowptr[:-1]) >= SOLVE_GROUP_MIN
+    fours = [i for i in range(n - 3) if long_rows[i:i + 4].all()]
+    alone = [i for i in range(n - 1) if long_rows[i] and not long_rows[i + 1]]
+    assert fours and alone                     # both side-by-side paths are exercised
+    rng = np.random.default_rng(n_joints)
+    stepper = load_c_stepper()
+    for c in (2.0, 30.0):
+        J = np.where(pattern, rng.standard_normal(pattern.shape), 0.0)
+        values = dense_to_sparse(J, slu.perm, slu.rowptr, slu.colidx)
+        st, LU = _factor(slu, values, c, panels=True)
+        assert st == 0
+        LU = np.concatenate([LU, np.zeros(n)])
+        for _ in range(3):
+            b = rng.standard_normal(n) * 10.0 ** rng.integers(-3, 4, n)
+            x = b.copy()
+            stepper.slu_solve(LU, n, slu.perm, slu.rowptr, slu.colidx, slu.diagp, x)
+            assert np.array_equal(x, _solve_one_row_at_a_time(slu, LU, b))
+            np.testing.assert_allclose(x, np.linalg.solve(c * np.eye(n) - J, b), rtol=1e-9,
+                                       atol=1e-12 * np.abs(b).max())
 
 
 def _solve_one_row_at_a_time(slu, LU, b):

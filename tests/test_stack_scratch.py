@@ -15,7 +15,7 @@ import sys
 import numpy as np
 from numba import njit
 
-from ivdrem.blocks._kernels import mixing_values, stack_empty
+from ivdrem.blocks._kernels import as_matrix, mixing_values, stack_empty
 
 
 @njit(cache=False)
@@ -120,3 +120,36 @@ def test_paper_loop_kernels_do_not_allocate_per_call():
     assert s["allocs"] == s["frees"]
     per_rhs = s["allocs"] / s["rhs"]
     assert per_rhs < 6.0, s
+
+
+# ------------------------------------------------------------------ as_matrix
+@njit(cache=False)
+def _views(v, n, m):
+    u = v[2:2 + n * m]                  # a slice of a contiguous vector, as a kernel's port
+    A = as_matrix(u, n, m)
+    B = u.reshape((n, m))
+    A[1, 1] += 100.0                    # a view: writes reach the vector
+    return A.copy(), B.copy(), A.shape, A.strides, B.strides
+
+
+@njit(cache=False)
+def _wrong_size(v, n, m):
+    return as_matrix(v, n, m).sum()
+
+
+def test_as_matrix_is_numpy_s_reshape_without_a_copy():
+    """Compiled, as_matrix of a contiguous vector is reshape's view (shape, strides, values)
+    sharing the vector's memory; a shape that does not match the size is an error, as
+    reshape's; in plain Python it is reshape."""
+    import pytest
+    from ivdrem.blocks._kernels import as_matrix as plain
+    v = np.arange(20.0)
+    A, B, shape, sa, sb = _views(v, 3, 4)
+    assert shape == (3, 4) and sa == sb == (32, 8)
+    assert v[2 + 4 + 1] == 107.0 and A[1, 1] == 107.0 and B[1, 1] == 107.0
+    assert np.array_equal(A, v[2:14].reshape(3, 4)) and np.array_equal(A, B)
+    with pytest.raises(ValueError, match="size"):
+        _wrong_size(np.arange(20.0), 3, 4)
+    w = np.arange(6.0)
+    P = plain(w, 2, 3)
+    assert P.base is w and np.array_equal(P, w.reshape(2, 3))

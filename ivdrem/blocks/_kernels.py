@@ -6,7 +6,10 @@ Python (reference path) and from generated numba code (compiled path).
 import llvmlite.binding as llvm
 import numpy as np
 from numba import carray, njit, types
+from numba.core import cgutils
+from numba.core.imputils import impl_ret_borrowed
 from numba.extending import get_cython_function_address, intrinsic, overload
+from numba.np.arrayobj import make_array, populate_array
 
 from ..models._rigid_body_jit import (SINGULAR_INERTIA_MESSAGE, _rb_cholesky,
                                       _rb_cholesky_solve)
@@ -70,6 +73,53 @@ def _stack_empty_compiled(shape, dtype=np.float64):
             return carray(_stack_buffer(max(shape[0] * shape[1], 1), kind), shape)
         return impl
     return None
+
+
+# ------------------------------------------------------------------ matrix views
+# Matrix-valued signals are flat row-major (ivdrem/blocks/_ports.py): a kernel sees one as a
+# matrix through a view.  numba's a.reshape((rows, cols)) calls its C helper
+# numba_attempt_nocopy_reshape, which works out the strides of any layout, on every call
+# (about 2 % of a run of the paper's loop, a few reshapes per right-hand side); for a
+# contiguous vector the view is known without it: the same data, strides (cols, 1) items.
+# as_matrix gives that view (plain Python, and compiled for other layouts: a.reshape).
+
+@intrinsic
+def _matrix_view(typingctx, a, rows, cols):
+    """The rows x cols row-major view of the contiguous vector a (rows cols == a.size)."""
+    if not (isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C"):
+        return None
+    matrix = a.copy(ndim=2, layout="C")
+
+    def codegen(context, builder, signature, args):
+        vec = make_array(signature.args[0])(context, builder, args[0])
+        out = make_array(signature.return_type)(context, builder)
+        r = context.cast(builder, args[1], signature.args[1], types.intp)
+        c = context.cast(builder, args[2], signature.args[2], types.intp)
+        populate_array(out, data=vec.data, shape=cgutils.pack_array(builder, [r, c]),
+                       strides=cgutils.pack_array(builder, [builder.mul(c, vec.itemsize),
+                                                            vec.itemsize]),
+                       itemsize=vec.itemsize, meminfo=vec.meminfo, parent=vec.parent)
+        return impl_ret_borrowed(context, builder, signature.return_type, out._getvalue())
+    return matrix(a, rows, cols), codegen
+
+
+def as_matrix(a, rows, cols):
+    """The flat row-major vector a seen as a rows x cols matrix, without a copy."""
+    return a.reshape((rows, cols))
+
+
+@overload(as_matrix, inline="always")
+def _as_matrix_compiled(a, rows, cols):
+    if isinstance(a, types.Array) and a.ndim == 1 and a.layout == "C":
+        def impl(a, rows, cols):
+            if rows < 0 or cols < 0 or rows * cols != a.size:
+                raise ValueError("as_matrix: rows x cols is not the vector's size")
+            return _matrix_view(a, rows, cols)
+        return impl
+
+    def impl(a, rows, cols):
+        return a.reshape((rows, cols))
+    return impl
 
 
 @njit(cache=True)

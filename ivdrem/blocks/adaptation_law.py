@@ -6,7 +6,7 @@ import numpy as np
 from .jacobians import adaptation_law_jacobian
 from ._core import BlockSpec, make_block
 from . import _validate as checks
-from ._kernels import matT_vec, stack_empty
+from ._kernels import as_matrix, matT_vec, stack_empty
 
 
 def adaptation_law_update(t, x, u, dx, Gamma):
@@ -17,7 +17,7 @@ def adaptation_law_update(t, x, u, dx, Gamma):
     nth = x.theta_hat.shape[0]
     n = u.r.shape[0]
     g = stack_empty(nth)
-    matT_vec(u.Pi.reshape((n, nth)), u.r, g)   # Pi r, Pi = (Pi^T)^T (the paper's "Pi^T r" is a typo)
+    matT_vec(as_matrix(u.Pi, n, nth), u.r, g)   # Pi r, Pi = (Pi^T)^T (the paper's "Pi^T r" is a typo)
     for i in range(nth):
         g[i] += u.theta_c[i]
     for i in range(nth):

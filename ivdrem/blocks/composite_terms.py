@@ -5,7 +5,7 @@ import numpy as np
 
 from .jacobians import drem_term_jacobian, composite_learning_term_jacobian
 from ._core import BlockSpec, make_block
-from ._kernels import start_weight
+from ._kernels import as_matrix, start_weight
 from . import _validate as checks
 
 
@@ -136,7 +136,7 @@ def composite_learning_term_output(t, x, u, y, gamma):
     # outputs  y.theta_c = gamma (Y_b(t_e) - Psi_b(t_e) theta_hat)           (eq. 35)
     # params   gamma > 0
     nth = y.theta_c.shape[0]
-    Psi = u.held[nth:nth + nth * nth].reshape((nth, nth))
+    Psi = as_matrix(u.held[nth:nth + nth * nth], nth, nth)
     for i in range(nth):
         s = u.held[i]
         for j in range(nth):

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from .jacobians import control_law_jacobian, inertia_scaled_control_law_jacobian
-from ._kernels import stack_empty
+from ._kernels import as_matrix, stack_empty
 from ._core import BlockSpec, make_block, ParameterError
 from . import _validate as checks
 
@@ -54,7 +54,7 @@ def control_law_output(t, x, u, y, K, delta_mu, ntheta):
     # params   K (n x n, positive definite), delta_mu in (0, 1), ntheta
     n = K.shape[0]
     r = u.r
-    Pi = u.Pi.reshape((n, ntheta))
+    Pi = as_matrix(u.Pi, n, ntheta)
     for i in range(n):
         s = delta_mu * u.mu[0] * r[i] - u.u_f[i]
         for j in range(n):
@@ -74,7 +74,7 @@ def inertia_scaled_control_law_output(t, x, u, y, K, delta_mu, ntheta, theta_nom
     #          theta_nominal (nθ)
     n = K.shape[0]
     r = u.r
-    Pi = u.Pi.reshape((n, ntheta))
+    Pi = as_matrix(u.Pi, n, ntheta)
     w = stack_empty(n)
     for i in range(n):
         s = delta_mu * u.mu[0] * r[i]
@@ -99,7 +99,7 @@ def nominal_injection_control_law_output(t, x, u, y, K, delta_mu, ntheta, theta_
     # params   as inertia_scaled_control_law_output
     n = K.shape[0]
     r = u.r
-    Pi = u.Pi.reshape((n, ntheta))
+    Pi = as_matrix(u.Pi, n, ntheta)
     w = stack_empty(n)
     for i in range(n):
         s = delta_mu * u.mu[0] * r[i]

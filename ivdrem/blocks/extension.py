@@ -9,26 +9,26 @@ import numpy as np
 
 from .jacobians import extension_jacobian
 from ._core import BlockSpec, make_block
-from ._kernels import matT_vec, matT_mat
+from ._kernels import as_matrix, matT_vec, matT_mat
 
 
 def extension_output(t, x, u, y, n, ntheta, has_instrument):
     # inputs   u.z (n), u.phi (phi^T, n*nθ row-major)
     # outputs  y.g = [phi z (nθ), phi phi^T (nθ*nθ)]: (15a) with zeta := phi (baseline, 35)
     # params   n, ntheta, has_instrument (0 here; shared with the block's Jacobian kernel)
-    phiT = u.phi.reshape((n, ntheta))
+    phiT = as_matrix(u.phi, n, ntheta)
     matT_vec(phiT, u.z, y.g[0:ntheta])
-    matT_mat(phiT, phiT, y.g[ntheta:ntheta + ntheta * ntheta].reshape((ntheta, ntheta)))
+    matT_mat(phiT, phiT, as_matrix(y.g[ntheta:ntheta + ntheta * ntheta], ntheta, ntheta))
 
 
 def iv_extension_output(t, x, u, y, n, ntheta, has_instrument):
     # inputs   u.z (n), u.phi (phi^T), u.zeta (zeta^T, instrument (14)), n*nθ row-major
     # outputs  y.g = [zeta z (nθ), zeta phi^T (nθ*nθ)]: the integrand of (15a)
     # params   n, ntheta, has_instrument (1 here; shared with the block's Jacobian kernel)
-    phiT = u.phi.reshape((n, ntheta))
-    zetaT = u.zeta.reshape((n, ntheta))
+    phiT = as_matrix(u.phi, n, ntheta)
+    zetaT = as_matrix(u.zeta, n, ntheta)
     matT_vec(zetaT, u.z, y.g[0:ntheta])
-    matT_mat(zetaT, phiT, y.g[ntheta:ntheta + ntheta * ntheta].reshape((ntheta, ntheta)))
+    matT_mat(zetaT, phiT, as_matrix(y.g[ntheta:ntheta + ntheta * ntheta], ntheta, ntheta))
 
 
 def extension(n, ntheta, *, instrument=True, output="ext_g", name="extension"):

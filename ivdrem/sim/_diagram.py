@@ -97,8 +97,8 @@ LU_PANEL = 8
 # the factor's work array: the values of L + U, then n inverse pivots and LU_PANEL rows of n
 # (the panel's work block; its first row is the one-row elimination's and the solve's)
 LU_WORK_ROWS = 1 + LU_PANEL
-# rows of L at least this long are solved in pairs (stepper.c's slu_solve)
-SOLVE_PAIR_MIN = 64
+# rows of L at least this long are solved four (or two) side by side (stepper.c's slu_solve)
+SOLVE_GROUP_MIN = 4
 
 
 def dsyevd_lwork(n):

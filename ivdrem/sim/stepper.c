@@ -697,6 +697,13 @@ static int slu_factor(const double *J, i64 n, double cc, double *LU, i64 *piv,
     return OK;
 }
 
+/* the number of the first entries p0 .. p1 of a row's L part that lie in columns before c:
+ * its columns increase, so only the last few can be c or more */
+static inline i64 prefix_before(const int32_t *colidx, i64 p0, i64 p1, i64 c) {
+    while (p1 > p0 && colidx[p1 - 1] >= c) p1--;
+    return p1 - p0;
+}
+
 static void slu_solve(double *LU, i64 n, const SluPattern *pt, double *b) {
     const i64 *perm = pt->perm, *rowptr = pt->rowptr, *diagp = pt->diagp;
     const int32_t *colidx = pt->colidx;
@@ -706,16 +713,40 @@ static void slu_solve(double *LU, i64 n, const SluPattern *pt, double *b) {
     for (i64 i = 0; i < n; i++) y[i] = b[perm[i]];
     for (i64 i = 0; i < n; i++) {
         i64 a0 = rowptr[i], a1 = diagp[i];
-        if (a1 - a0 >= SOLVE_PAIR_MIN && i + 1 < n) {
-            /* a long row and the next summed side by side over the columns before i, where
-             * the next row does not wait for y[i]: two chains of dependent subtractions in
-             * flight instead of one (each row's own order kept, so the same sums) */
-            i64 b0 = rowptr[i + 1], b1 = diagp[i + 1], lo = b0, hi = b1;
-            while (lo < hi) {                   /* the next row's first column >= i */
-                i64 mid = lo + (hi - lo) / 2;
-                if (colidx[mid] < i) lo = mid + 1; else hi = mid;
+        if (a1 - a0 >= SOLVE_GROUP_MIN && i + 3 < n
+            && diagp[i + 1] - rowptr[i + 1] >= SOLVE_GROUP_MIN
+            && diagp[i + 2] - rowptr[i + 2] >= SOLVE_GROUP_MIN
+            && diagp[i + 3] - rowptr[i + 3] >= SOLVE_GROUP_MIN) {
+            /* four rows summed side by side over their first entries in columns before i,
+             * where none waits for another's y: four chains of dependent subtractions in
+             * flight instead of one (each row's own order kept, so the same sums), then
+             * each row's rest, in row order */
+            i64 b0 = rowptr[i + 1], c0 = rowptr[i + 2], d0 = rowptr[i + 3];
+            i64 b1 = diagp[i + 1], c1 = diagp[i + 2], d1 = diagp[i + 3];
+            i64 m = imin(imin(a1 - a0, prefix_before(colidx, b0, b1, i)),
+                         imin(prefix_before(colidx, c0, c1, i), prefix_before(colidx, d0, d1, i)));
+            double s = y[i], u = y[i + 1], v = y[i + 2], w = y[i + 3];
+            for (i64 k = 0; k < m; k++) {
+                s -= vals[a0 + k] * y[colidx[a0 + k]];
+                u -= vals[b0 + k] * y[colidx[b0 + k]];
+                v -= vals[c0 + k] * y[colidx[c0 + k]];
+                w -= vals[d0 + k] * y[colidx[d0 + k]];
             }
-            i64 m = imin(a1 - a0, lo - b0);
+            for (i64 p = a0 + m; p < a1; p++) s -= vals[p] * y[colidx[p]];
+            y[i] = s;
+            for (i64 p = b0 + m; p < b1; p++) u -= vals[p] * y[colidx[p]];
+            y[i + 1] = u;
+            for (i64 p = c0 + m; p < c1; p++) v -= vals[p] * y[colidx[p]];
+            y[i + 2] = v;
+            for (i64 p = d0 + m; p < d1; p++) w -= vals[p] * y[colidx[p]];
+            y[i + 3] = w;
+            i += 3;
+            continue;
+        }
+        if (a1 - a0 >= SOLVE_GROUP_MIN && i + 1 < n) {
+            /* the same for two rows (the next is long too, or the one after is not) */
+            i64 b0 = rowptr[i + 1], b1 = diagp[i + 1];
+            i64 m = imin(a1 - a0, prefix_before(colidx, b0, b1, i));
             double s = y[i], u = y[i + 1];
             for (i64 k = 0; k < m; k++) {
                 s -= vals[a0 + k] * y[colidx[a0 + k]];
