@@ -169,6 +169,7 @@ def as_response(rec):
 
 # ----------------------------------------------------------------------- a model's own plant
 _RK4_STEPPERS: dict = {}
+_CLOSED_LOOPS: dict = {}
 
 #: RK4 over a model's forward dynamics with the torque held, compiled in a module of the
 #: compile cache beside the model's own (``fd``, ``G``): numba keeps its machine code, so a
@@ -210,6 +211,51 @@ def step(q, dq, tau, tau_d, theta, h, nsub, gravity):
         for i in range(n):
             q[i] += dt / 6.0 * (k1q[i] + 2.0 * k2q[i] + 2.0 * k3q[i] + k4q[i])
             dq[i] += dt / 6.0 * (k1v[i] + 2.0 * k2v[i] + 2.0 * k3v[i] + k4v[i])
+
+
+@njit(cache=True)
+def closed_loop(ctl_step, ctl_outputs, handle, q, dq, theta, tau_d, h, nsub, gravity, delay,
+                keep, rec_q, rec_dq, rec_u, rec_theta_hat, progress):
+    # The sampled loop of stability.closed_loop_prefix in one call: the C library's
+    # controller (ivc_step, ivc_outputs at the address handle; pointers as integers) around
+    # step() above, the same calls in the same order as the Python loop, so the same numbers.
+    # states   q[n], dq[n] (advanced in place), u[n] the torque held (delay 1)
+    # inputs   tau_d[N, n] the disturbance held over step k
+    # records  at k with keep[k] (k = 0..N): q, dq, u, theta_hat -> rec_*[j], j-th kept k
+    # returns  0: ran to N; 1: the controller refused step progress[0]; 2: the plant's
+    #          state not finite after it (a ValueError of the plant leaves progress[0] set)
+    n = q.shape[0]
+    N = tau_d.shape[0]
+    u = np.zeros(n)
+    tau = np.zeros(n)
+    qk, dqk = np.empty(n), np.empty(n)
+    tdh, Delta, tau_o = np.empty(n), np.empty(1), np.empty(n)
+    j = 0
+    for k in range(N + 1):
+        t = k * h
+        progress[0] = k
+        qk[:] = q
+        dqk[:] = dq
+        if keep[k]:
+            ctl_outputs(handle, rec_theta_hat[j].ctypes.data, tdh.ctypes.data,
+                        Delta.ctypes.data, tau_o.ctypes.data)
+            rec_q[j] = qk
+            rec_dq[j] = dqk
+            rec_u[j] = u
+            j += 1
+        if k == N:
+            break
+        if ctl_step(handle, t, qk.ctypes.data, dqk.ctypes.data, tau.ctypes.data) != 0:
+            return 1
+        if delay == 0:
+            step(q, dq, tau, tau_d[k], theta, h, nsub, gravity)
+        else:
+            step(q, dq, u, tau_d[k], theta, h, nsub, gravity)
+        for i in range(n):
+            if not (math.isfinite(q[i]) and math.isfinite(dq[i])):
+                return 2
+        u[:] = tau
+    return 0
 """
 
 
@@ -228,9 +274,18 @@ def _rk4_stepper(model):
                      "Do not edit.", *GENERATED_HEADER,
                      f"from {functions.__name__} import forward_dynamics as fd, G", "",
                      _RK4_SOURCE])
-    step = import_generated(cache_dir(), f"ivdrem_rk4_{source_hash(src)}", src).step
-    _RK4_STEPPERS[key] = step
-    return step
+    module = import_generated(cache_dir(), f"ivdrem_rk4_{source_hash(src)}", src)
+    _RK4_STEPPERS[key] = module.step
+    _CLOSED_LOOPS[key] = module.closed_loop
+    return module.step
+
+
+def compiled_closed_loop(model):
+    """The compiled sampled loop of the model's RK4 plant around the C library's controller
+    (``closed_loop`` of the generated module above): stability.closed_loop_prefix's steps
+    in one call."""
+    _rk4_stepper(model)
+    return _CLOSED_LOOPS[model.key]
 
 
 class ModelPlant:

@@ -223,7 +223,7 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
 
 
 def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=None,
-                       checkpoints=8, backend="c", **gains):
+                       checkpoints=8, backend="c", compiled=True, **gains):
     """The sampled loop itself over [0, t_end]: the controller of ``law`` (``gains`` as
     :class:`~ivdrem.controller.sampled.SampledController`'s, its ``delay`` included) around
     the plant FMU's RK4 (``substep``; torque and ``disturbance`` held), started on the
@@ -231,7 +231,9 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     ``checkpoints`` states (t, q, q̇, u held, θ̂) spread over the run, and None or
     (t, the state 0.1 s before) where the plant's state stopped being finite.
     ``backend`` "c": the generated C library (:class:`~ivdrem.controller.clib.CController`;
-    the Python reference if it cannot be loaded), "python": SampledController."""
+    the Python reference if it cannot be loaded), "python": SampledController.
+    ``compiled``: the C library's loop in one compiled call (:func:`_compiled_prefix`, the
+    same points); False: step by step from Python (the check of the compiled loop)."""
     from ..fmu.export import DEFAULT_SUBSTEP
     from .loop import ModelPlant
     from .sampled import SampledController
@@ -254,6 +256,8 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     N = int(round(t_end / h))
     marks = set(np.linspace(0, N, max(2, checkpoints) + 1, dtype=int)[1:].tolist())
     delay = ctl.delay
+    if compiled and cls is not SampledController:
+        return _compiled_prefix(model, ctl, plant, N, marks, disturbance)
     u = np.zeros(n)
     points, recent = [], []
     for k in range(N + 1):
@@ -274,6 +278,44 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
             return points, (t, recent[0])
         u = np.asarray(tau, dtype=float)
     return points, None
+
+
+def _compiled_prefix(model, ctl, plant, N, marks, disturbance):
+    """closed_loop_prefix's loop in one compiled call (the C controller ``ctl`` around the
+    RK4 of ``plant``: :func:`~ivdrem.controller.loop.compiled_closed_loop`), the same
+    steps as the Python loop, so the same points to the last bit
+    (tests/test_sampled_stability.py); the loop's Python per step, not its arithmetic, was
+    a third of the prefix's time."""
+    from .loop import compiled_closed_loop
+    h, n = ctl.h, ctl.n
+    tau_d = np.zeros((N, n))
+    if disturbance is not None:         # held over step k: τ_d(t_k), as the plant takes it
+        for k in range(N):
+            tau_d[k] = disturbance(k * h)
+    keep = np.zeros(N + 1, dtype=np.bool_)
+    keep[::100] = True                  # the states 0.1-0.2 s before a divergence
+    keep[sorted(marks)] = True
+    rows = int(keep.sum())
+    rec_q, rec_dq, rec_u = (np.zeros((rows, n)) for _ in range(3))
+    rec_theta_hat = np.zeros((rows, ctl.ntheta))
+    progress = np.zeros(1, dtype=np.int64)
+    step, outputs, handle = ctl.entry_points()
+    try:
+        status = compiled_closed_loop(model)(
+            step, outputs, handle, plant.q, plant.dq, plant.theta, tau_d, float(h),
+            plant.substeps, plant.gravity, int(ctl.delay), keep, rec_q, rec_dq, rec_u,
+            rec_theta_hat, progress)
+    except ValueError:                  # M(q) singular along a diverged motion
+        status = 2
+    ks = np.flatnonzero(keep)
+    last = int(progress[0])
+    points = [(k * h, rec_q[j], rec_dq[j], rec_u[j], rec_theta_hat[j])
+              for j, k in enumerate(ks) if k in marks and k <= last]
+    if status == 0:
+        return points, None
+    recent = [j for j, k in enumerate(ks) if k % 100 == 0 and k <= last][-2:]
+    j = recent[0]
+    return points, (last * h, (ks[j] * h, rec_q[j], rec_dq[j], rec_u[j], rec_theta_hat[j]))
 
 
 @dataclass(frozen=True)
