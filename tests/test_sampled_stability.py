@@ -270,3 +270,21 @@ def test_compiled_prefix_prediction_rows_unchanged_panda(monkeypatch):
     slow = predict(model, "iv-drem", design, experiment)
     assert sum(w.startswith("theta_hat(t) of the run") for _, w, _ in fast.points) == 8
     assert fast.points == slow.points and fast.growth == slow.growth
+
+
+def test_prefix_library_at_o3_is_o2_bit_for_bit():
+    """The prefix's C library is built with -O3 (PREFIX_FLAGS: 1.3-1.6 times as fast on the
+    Panda, benchmarks/bench_predict.py); its points are -O2's to the last bit (the UR5's
+    IV-DREM past a short window, so the composite term (21) and the mixing (17) run)."""
+    from ivdrem.controller.stability import PREFIX_FLAGS, closed_loop_prefix
+    m, traj, q0, dist, _, Kj, _ = _experiment("ur5")
+    gains = dict(h=1e-3, K=inertia_scaled_gains(m, Kj, q0, 1e-3), trajectory=traj,
+                 delay=1, Gamma=GRADIENT_GAIN, gamma=0.5 / GRADIENT_GAIN, T=0.2,
+                 mixing="eigen", mix_every=10)
+    kw = dict(disturbance=lambda t: disturbance_at(t, dist), checkpoints=4, **gains)
+    assert PREFIX_FLAGS == ("-O3",)
+    o3 = closed_loop_prefix(m, "iv-drem", m.theta_values, 0.3, **kw)
+    o2 = closed_loop_prefix(m, "iv-drem", m.theta_values, 0.3, flags=("-O2",), **kw)
+    assert o3[1] is None and len(o3[0]) == 4
+    assert np.abs(o3[0][-1][4]).max() > 0            # θ̂ moved
+    _same_prefix(o3, o2)

@@ -56,7 +56,8 @@ import numpy as np
 from ..laws import get_law
 
 __all__ = ["SampledStability", "sampled_stability", "loop_growth", "closed_loop_prefix",
-           "UNSTABLE_GROWTH", "POINTS", "PREFIX_POINTS", "PREFIX_PAST_T", "UnstableDesignError"]
+           "UNSTABLE_GROWTH", "POINTS", "PREFIX_POINTS", "PREFIX_PAST_T", "PREFIX_FLAGS",
+           "UnstableDesignError"]
 
 #: The growth per step from which a sampled loop is refused: an error then grows at least
 #: 1e6-fold within 1400 steps (1.4 s at 1 kHz).  Slightly above 1 so that finite-difference
@@ -77,6 +78,12 @@ PREFIX_POINTS = 8
 #: θ_nominal (0.9998, converges over 300 s) and example-robot-data's UR3 (0.9991;
 #: converged around PyBullet, benchmarks/bullet_harness.py); docs/controller.md.
 PREFIX_PAST_T = 1.25
+
+#: The C compiler's flags of the controller library the prefix runs: -O3 steps the Panda's
+#: IV-DREM 1.3-1.6 times as fast as -O2 (benchmarks/bench_predict.py) with the same bits:
+#: without -ffast-math GCC vectorises only where the order of the operations is kept
+#: (tests/test_sampled_stability.py checks the points against -O2's).
+PREFIX_FLAGS = ("-O3",)
 
 #: Relative finite-difference step of the linearisation.
 _EPS = 1e-7
@@ -223,7 +230,8 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
 
 
 def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=None,
-                       checkpoints=8, backend="c", compiled=True, **gains):
+                       checkpoints=8, backend="c", compiled=True, flags=PREFIX_FLAGS,
+                       **gains):
     """The sampled loop itself over [0, t_end]: the controller of ``law`` (``gains`` as
     :class:`~ivdrem.controller.sampled.SampledController`'s, its ``delay`` included) around
     the plant FMU's RK4 (``substep``; torque and ``disturbance`` held), started on the
@@ -233,7 +241,8 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     ``backend`` "c": the generated C library (:class:`~ivdrem.controller.clib.CController`;
     the Python reference if it cannot be loaded), "python": SampledController.
     ``compiled``: the C library's loop in one compiled call (:func:`_compiled_prefix`, the
-    same points); False: step by step from Python (the check of the compiled loop)."""
+    same points); False: step by step from Python (the check of the compiled loop).
+    ``flags``: the C library's compiler flags (:data:`PREFIX_FLAGS`)."""
     from ..fmu.export import DEFAULT_SUBSTEP
     from .loop import ModelPlant
     from .sampled import SampledController
@@ -241,11 +250,12 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     if backend == "c":
         try:
             from .clib import CController
-            CController(model, law, **gains)
+            ctl = CController(model, law, flags=flags, **gains)
             cls = CController
         except Exception:       # no compiler, or a model the generator does not take
             cls = SampledController
-    ctl = cls(model, law, **gains)
+    if cls is SampledController:
+        ctl = cls(model, law, **gains)
     h, n = ctl.h, ctl.n
     substep = DEFAULT_SUBSTEP if substep is None else float(substep)
     nsub = max(1, math.ceil(h / substep - 1e-9))
@@ -379,7 +389,7 @@ def _c_library(model, law, gains):
     """Whether the generated C library runs the controller of ``law`` for ``model``."""
     try:
         from .clib import CController
-        CController(model, law, **gains)
+        CController(model, law, flags=PREFIX_FLAGS, **gains)   # the prefix's build
         return True
     except Exception:       # no compiler, or a model the generator does not take
         return False
