@@ -3,9 +3,10 @@
 ``ivdrem fmu export --controller`` calls it: ``fmu_export.predict`` on an arm's
 configuration, γ = 500, the default prefix 1.25 T) as it is now (the prefix's loop in one
 compiled call around the C library built with -O3) against as it was (the loop stepped
-from Python, ``compiled=False``, around the library built with -O2), side by side, alternating, in one process, both warm (a short prediction of each first: the
-compile cache's load is printed apart).  Per run: the wall time, the prefix's share, and
-whether every row (t, which θ̂, ρ) is the same as the other path's, bit for bit.
+from Python, ``compiled=False``, around the library built with -O2), side by side,
+alternating, in one process, both warm (a short prediction of each first; the compile
+cache's load is printed apart).  Per run: the wall time, the prefix's share, and whether
+every row (t, which θ̂, ρ) is the same as the other path's, bit for bit.
 
 Usage::
 
@@ -53,6 +54,7 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=2)
     args = ap.parse_args(argv)
     print(f"load at start {os.getloadavg()[0]:.1f}")
+    differ = []
     for arm in args.arms:
         experiment = Experiment.from_config(read_config(f"examples/{arm}.toml",
                                                         {"iv_drem.gamma": 500.0}))
@@ -73,12 +75,15 @@ def main(argv=None):
                       f"(prefix {pre:5.1f} s), growth {st.growth:.6f}, "
                       f"load {os.getloadavg()[0]:.1f}", flush=True)
         same = rows[True] == rows[False]
+        if not same:
+            differ.append(arm)
         best = {c: min(w) for c, w in walls.items()}
         print(f"{arm}: before / now = {best[False] / best[True]:.2f} (best of "
               f"{args.rounds} each: {best[False]:.1f} s / {best[True]:.1f} s); rows "
               f"{'identical' if same else 'DIFFER'} ({len(rows[True])} rows)")
     print(f"load at end {os.getloadavg()[0]:.1f}")
+    return 1 if differ else 0         # a prediction that moved is a failure
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -252,8 +252,9 @@ def test_compiled_prefix_is_the_python_loop_two_link(K, delay, diverges):
 
 def test_compiled_prefix_prediction_rows_unchanged_panda(monkeypatch):
     """The Panda's prediction as the export makes it (its configuration's design, the
-    FMU's delay 1, the configuration's disturbance), over a short prefix past a short window (the law's composite term runs in the C library): every row (t,
-    which θ̂, ρ) the same with the prefix run step by step from Python."""
+    FMU's delay 1, the configuration's disturbance), over a short prefix past a short
+    window (the law's composite term runs in the C library): every row (t, which θ̂, ρ)
+    the same with the prefix run step by step from Python."""
     import functools
 
     from ivdrem.controller import stability
