@@ -212,3 +212,80 @@ def test_prediction_with_the_robots_gravity_is_the_loop_without_it():
     except (FloatingPointError, ValueError, RuntimeError):
         fell = np.inf
     assert fell > 1e-2
+
+
+# ------------------------------------------------- the prefix's loop in one compiled call
+def _same_prefix(a, b):
+    """Two results of closed_loop_prefix equal to the last bit: every point's t, q, q̇, u,
+    θ̂, and the divergence's time and state."""
+    (pa, da), (pb, db) = a, b
+    assert len(pa) == len(pb)
+    for x, y in zip(pa, pb):
+        assert x[0] == y[0]
+        for u, v in zip(x[1:], y[1:]):
+            assert np.array_equal(u, v), (x[0], u, v)
+    assert (da is None) == (db is None)
+    if da is not None:
+        assert da[0] == db[0]
+        _same_prefix(([da[1]], None), ([db[1]], None))
+
+
+@pytest.mark.parametrize("K, delay, diverges", [(200.0, 1, False), (480.0, 0, False),
+                                                (480.0, 1, True)])
+def test_compiled_prefix_is_the_python_loop_two_link(K, delay, diverges):
+    """The C library's loop in one compiled call (the default) against the same C
+    controller stepped from Python around the same RK4: the same points, bit for bit, with
+    the paper's disturbance, either delay, and a loop that diverges (K = 480 with the delay,
+    test_delay_halves_the_two_link_boundary), whose time and state 0.1-0.2 s before are
+    the same too."""
+    from ivdrem.controller.loop import PAPER_DISTURBANCE
+    from ivdrem.controller.stability import closed_loop_prefix
+    m = two_link()
+    kw = dict(disturbance=lambda t: disturbance_at(t, PAPER_DISTURBANCE), checkpoints=5,
+              h=1e-3, K=K, delay=delay)
+    fast = closed_loop_prefix(m, "iv-drem", m.theta_values, 1.5, **kw)
+    slow = closed_loop_prefix(m, "iv-drem", m.theta_values, 1.5, compiled=False, **kw)
+    assert (fast[1] is not None) is diverges
+    assert len(fast[0]) == (5 if not diverges else len(slow[0]))
+    _same_prefix(fast, slow)
+
+
+def test_compiled_prefix_prediction_rows_unchanged_panda(monkeypatch):
+    """The Panda's prediction as the export makes it (its configuration's design, the
+    FMU's delay 1, the configuration's disturbance), over a short prefix past a short
+    window (the law's composite term runs in the C library): every row (t, which θ̂, ρ)
+    the same with the prefix run step by step from Python."""
+    import functools
+
+    from ivdrem.controller import stability
+    from ivdrem.controller.fmu_export import controller_design, predict
+    from ivdrem.experiments.config import read_config
+    from ivdrem.experiments.experiment import Experiment
+    experiment = Experiment.from_config(read_config("examples/panda.toml",
+                                                    {"iv_drem.gamma": 500.0}))
+    design = {**controller_design(experiment, "iv-drem", h=experiment.h), "T": 0.4}
+    model = experiment.model
+    fast = predict(model, "iv-drem", design, experiment)
+    monkeypatch.setattr(stability, "closed_loop_prefix",
+                        functools.partial(stability.closed_loop_prefix, compiled=False))
+    slow = predict(model, "iv-drem", design, experiment)
+    assert sum(w.startswith("theta_hat(t) of the run") for _, w, _ in fast.points) == 8
+    assert fast.points == slow.points and fast.growth == slow.growth
+
+
+def test_prefix_library_at_o3_is_o2_bit_for_bit():
+    """The prefix's C library is built with -O3 (PREFIX_FLAGS: 1.3-1.6 times as fast on the
+    Panda, benchmarks/bench_predict.py); its points are -O2's to the last bit (the UR5's
+    IV-DREM past a short window, so the composite term (21) and the mixing (17) run)."""
+    from ivdrem.controller.stability import PREFIX_FLAGS, closed_loop_prefix
+    m, traj, q0, dist, _, Kj, _ = _experiment("ur5")
+    gains = dict(h=1e-3, K=inertia_scaled_gains(m, Kj, q0, 1e-3), trajectory=traj,
+                 delay=1, Gamma=GRADIENT_GAIN, gamma=0.5 / GRADIENT_GAIN, T=0.2,
+                 mixing="eigen", mix_every=10)
+    kw = dict(disturbance=lambda t: disturbance_at(t, dist), checkpoints=4, **gains)
+    assert PREFIX_FLAGS == ("-O3",)
+    o3 = closed_loop_prefix(m, "iv-drem", m.theta_values, 0.3, **kw)
+    o2 = closed_loop_prefix(m, "iv-drem", m.theta_values, 0.3, flags=("-O2",), **kw)
+    assert o3[1] is None and len(o3[0]) == 4
+    assert np.abs(o3[0][-1][4]).max() > 0            # θ̂ moved
+    _same_prefix(o3, o2)

@@ -112,6 +112,20 @@ class CController:
                                    f"(status {st})")
         return self._tau.copy()
 
+    def entry_points(self):
+        """(step, outputs, handle): ``ivc_step`` and ``ivc_outputs`` as ctypes function
+        pointers whose pointer arguments (the controller, the arrays) are integers
+        (``handle``; ``a.ctypes.data``), so a numba function can call them
+        (:func:`ivdrem.controller.loop.compiled_closed_loop`): step(handle, t, q, dq,
+        tau) -> status, outputs(handle, theta_hat, tau_d_hat, Delta, tau) -> status.
+        Valid while this controller lives."""
+        P = ctypes.c_size_t             # a pointer, as an integer (same size and passing)
+        step = ctypes.CFUNCTYPE(ctypes.c_int, P, ctypes.c_double, P, P, P)(
+            ctypes.cast(self.lib.ivc_step, ctypes.c_void_p).value)
+        outputs = ctypes.CFUNCTYPE(ctypes.c_int, P, P, P, P, P)(
+            ctypes.cast(self.lib.ivc_outputs, ctypes.c_void_p).value)
+        return step, outputs, int(self._c)
+
     def _outputs(self):
         self.lib.ivc_outputs(self._c, *self._p[3:])
 

@@ -56,7 +56,8 @@ import numpy as np
 from ..laws import get_law
 
 __all__ = ["SampledStability", "sampled_stability", "loop_growth", "closed_loop_prefix",
-           "UNSTABLE_GROWTH", "POINTS", "PREFIX_POINTS", "PREFIX_PAST_T", "UnstableDesignError"]
+           "UNSTABLE_GROWTH", "POINTS", "PREFIX_POINTS", "PREFIX_PAST_T", "PREFIX_FLAGS",
+           "UnstableDesignError"]
 
 #: The growth per step from which a sampled loop is refused: an error then grows at least
 #: 1e6-fold within 1400 steps (1.4 s at 1 kHz).  Slightly above 1 so that finite-difference
@@ -77,6 +78,12 @@ PREFIX_POINTS = 8
 #: θ_nominal (0.9998, converges over 300 s) and example-robot-data's UR3 (0.9991;
 #: converged around PyBullet, benchmarks/bullet_harness.py); docs/controller.md.
 PREFIX_PAST_T = 1.25
+
+#: The C compiler's flags of the controller library the prefix runs: -O3 steps the Panda's
+#: IV-DREM 1.3-1.6 times as fast as -O2 (benchmarks/bench_predict.py) with the same bits:
+#: without -ffast-math GCC vectorises only where the order of the operations is kept
+#: (tests/test_sampled_stability.py checks the points against -O2's).
+PREFIX_FLAGS = ("-O3",)
 
 #: Relative finite-difference step of the linearisation.
 _EPS = 1e-7
@@ -223,7 +230,8 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
 
 
 def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=None,
-                       checkpoints=8, backend="c", **gains):
+                       checkpoints=8, backend="c", compiled=True, flags=PREFIX_FLAGS,
+                       **gains):
     """The sampled loop itself over [0, t_end]: the controller of ``law`` (``gains`` as
     :class:`~ivdrem.controller.sampled.SampledController`'s, its ``delay`` included) around
     the plant FMU's RK4 (``substep``; torque and ``disturbance`` held), started on the
@@ -231,7 +239,10 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     ``checkpoints`` states (t, q, q̇, u held, θ̂) spread over the run, and None or
     (t, the state 0.1 s before) where the plant's state stopped being finite.
     ``backend`` "c": the generated C library (:class:`~ivdrem.controller.clib.CController`;
-    the Python reference if it cannot be loaded), "python": SampledController."""
+    the Python reference if it cannot be loaded), "python": SampledController.
+    ``compiled``: the C library's loop in one compiled call (:func:`_compiled_prefix`, the
+    same points); False: step by step from Python (the check of the compiled loop).
+    ``flags``: the C library's compiler flags (:data:`PREFIX_FLAGS`)."""
     from ..fmu.export import DEFAULT_SUBSTEP
     from .loop import ModelPlant
     from .sampled import SampledController
@@ -239,11 +250,12 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     if backend == "c":
         try:
             from .clib import CController
-            CController(model, law, **gains)
+            ctl = CController(model, law, flags=flags, **gains)
             cls = CController
         except Exception:       # no compiler, or a model the generator does not take
             cls = SampledController
-    ctl = cls(model, law, **gains)
+    if cls is SampledController:
+        ctl = cls(model, law, **gains)
     h, n = ctl.h, ctl.n
     substep = DEFAULT_SUBSTEP if substep is None else float(substep)
     nsub = max(1, math.ceil(h / substep - 1e-9))
@@ -254,6 +266,8 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     N = int(round(t_end / h))
     marks = set(np.linspace(0, N, max(2, checkpoints) + 1, dtype=int)[1:].tolist())
     delay = ctl.delay
+    if compiled and cls is not SampledController:
+        return _compiled_prefix(model, ctl, plant, N, marks, disturbance)
     u = np.zeros(n)
     points, recent = [], []
     for k in range(N + 1):
@@ -274,6 +288,44 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
             return points, (t, recent[0])
         u = np.asarray(tau, dtype=float)
     return points, None
+
+
+def _compiled_prefix(model, ctl, plant, N, marks, disturbance):
+    """closed_loop_prefix's loop in one compiled call (the C controller ``ctl`` around the
+    RK4 of ``plant``: :func:`~ivdrem.controller.loop.compiled_closed_loop`), the same
+    steps as the Python loop, so the same points to the last bit
+    (tests/test_sampled_stability.py); the loop's Python per step, not its arithmetic, was
+    a third of the prefix's time."""
+    from .loop import compiled_closed_loop
+    h, n = ctl.h, ctl.n
+    tau_d = np.zeros((N, n))
+    if disturbance is not None:         # held over step k: τ_d(t_k), as the plant takes it
+        for k in range(N):
+            tau_d[k] = disturbance(k * h)
+    keep = np.zeros(N + 1, dtype=np.bool_)
+    keep[::100] = True                  # the states 0.1-0.2 s before a divergence
+    keep[sorted(marks)] = True
+    rows = int(keep.sum())
+    rec_q, rec_dq, rec_u = (np.zeros((rows, n)) for _ in range(3))
+    rec_theta_hat = np.zeros((rows, ctl.ntheta))
+    progress = np.zeros(1, dtype=np.int64)
+    step, outputs, handle = ctl.entry_points()
+    try:
+        status = compiled_closed_loop(model)(
+            step, outputs, handle, plant.q, plant.dq, plant.theta, tau_d, float(h),
+            plant.substeps, plant.gravity, int(ctl.delay), keep, rec_q, rec_dq, rec_u,
+            rec_theta_hat, progress)
+    except ValueError:                  # M(q) singular along a diverged motion
+        status = 2
+    ks = np.flatnonzero(keep)
+    last = int(progress[0])
+    points = [(k * h, rec_q[j], rec_dq[j], rec_u[j], rec_theta_hat[j])
+              for j, k in enumerate(ks) if k in marks and k <= last]
+    if status == 0:
+        return points, None
+    recent = [j for j, k in enumerate(ks) if k % 100 == 0 and k <= last][-2:]
+    j = recent[0]
+    return points, (last * h, (ks[j] * h, rec_q[j], rec_dq[j], rec_u[j], rec_theta_hat[j]))
 
 
 @dataclass(frozen=True)
@@ -337,7 +389,7 @@ def _c_library(model, law, gains):
     """Whether the generated C library runs the controller of ``law`` for ``model``."""
     try:
         from .clib import CController
-        CController(model, law, **gains)
+        CController(model, law, flags=PREFIX_FLAGS, **gains)   # the prefix's build
         return True
     except Exception:       # no compiler, or a model the generator does not take
         return False
