@@ -183,10 +183,10 @@ def test_phi_jac_against_pinocchio_rnea_derivatives(arms):
         J = np.empty((n, nb, 4 * n))
         model.functions.Phi_jac(q, dq, dq, ddq, J)
         d = np.einsum("ijc,j->ic", J, th)
-        dq_dq, dtau_dv, dtau_da = pin.computeRNEADerivatives(pm, pd, model.pinocchio_configuration(q),
-                                                             dq, ddq)
+        qp = model.pinocchio_configuration(q)
+        dtau_dq, dtau_dv, dtau_da = pin.computeRNEADerivatives(pm, pd, qp, dq, ddq)
         dtau_da = np.triu(dtau_da) + np.triu(dtau_da, 1).T
-        for got, ref in ((d[:, :n], dq_dq), (d[:, n:2 * n] + d[:, 2 * n:3 * n], dtau_dv),
+        for got, ref in ((d[:, :n], dtau_dq), (d[:, n:2 * n] + d[:, 2 * n:3 * n], dtau_dv),
                          (d[:, 3 * n:], dtau_da)):
             assert np.max(np.abs(got - ref)) <= 1e-9 * max(1.0, np.max(np.abs(ref)))
 
