@@ -13,6 +13,8 @@ Usage::
                                                                # the real arms (docs/mixing-derivations.md, "On real arms")
     OPENBLAS_NUM_THREADS=1 ./run python benchmarks/bench_arms.py --step --arms panda,ur5
                                                                # a Rosenbrock step's parts (docs/performance.md)
+    ./run python benchmarks/bench_arms.py --model-calls --arms panda [--against OTHER.so]
+                                                               # the model's derivatives one Jacobian calls
 
 Run it with ``OPENBLAS_NUM_THREADS=1``: on a shared 2-core machine OpenBLAS's own threads
 slow the mixing's small SVDs down instead of up.  The UR5 and the Panda
@@ -313,6 +315,64 @@ def step_row(spec, variant="eigen", t_at=None, steps=40, method="rodas5p", rtol=
                                  float).tolist())
 
 
+# ----------------------------------------------------------------- the model's derivatives
+#: what the blocks' Jacobian kernels ask the robot model for in one Jacobian of the loop
+#: (ivdrem/blocks/jacobians.py): block, function, arguments (v = dq where the block passes
+#: q̇ twice)
+JACOBIAN_MODEL_CALLS = (
+    ("observer", "Phi_M_jac", ("q", "r")), ("observer", "Phi_jac", ("q", "dq", "v", "dv")),
+    ("observer", "Phi_C_jac", ("q", "dq", "r")), ("observer", "Phi_dM_jac", ("q", "dq", "r")),
+    ("filter", "Phi_M_jac", ("q", "dq")), ("filter", "Phi_C_jac", ("q", "dq", "dq")),
+    ("filter", "Phi_dM_jac", ("q", "dq", "dq")), ("filter", "Phi_G_jac", ("q",)),
+    ("plant", "Phi_jac", ("q", "dq", "dq", "qdd")),
+    ("instrument", "Phi_jac", ("qd", "dqd", "dqd", "ddqd")))
+
+
+def model_call_rows(spec, against=None, reps=15, calls=40):
+    """The robot model's C functions a Jacobian of the loop calls (JACOBIAN_MODEL_CALLS), each
+    timed in this thread's CPU time (best of `reps` x `calls`) at random arguments; with
+    `against` (the path of another version's C library of the same model, e.g. from the
+    compile cache of a previous version's run) the two alternately in this process, and the
+    largest difference of their results relative to the largest entry."""
+    import ctypes
+    from ivdrem.models import _c_engine
+    model = resolve_model(spec)
+    if _c_engine.load(model) is None:
+        raise SystemExit("model_call_rows: no C compiler (the model's C library is timed)")
+    libs = {"this": (ctypes.CDLL(str(_c_engine.library_path(model.key))),
+                     _c_engine.symbol_prefix(model.key))}
+    if against:
+        # the library's name starts with the key of its model (_c_engine.library_path)
+        libs["other"] = (ctypes.CDLL(str(against)), f"ivdrem_{Path(against).name[:16]}_")
+    n, nb = model.n, model.ntheta
+    rng = np.random.default_rng(0)
+    vals = {a: rng.uniform(-1.5, 1.5, n)
+            for a in ("q", "dq", "r", "v", "dv", "qdd", "qd", "dqd", "ddqd")}
+    rows = []
+    for block, name, args in JACOBIAN_MODEL_CALLS:
+        prep, best = {}, {}
+        for lab, (lib, pre) in libs.items():
+            fn = getattr(lib, pre + name)
+            fn.restype = None
+            out = np.zeros((n, nb, len(args) * n))
+            ptrs = [ctypes.c_void_p(vals[a].ctypes.data) for a in args]
+            prep[lab] = (fn, ptrs + [ctypes.c_void_p(out.ctypes.data)], out)
+            best[lab] = math.inf
+        for _ in range(reps):
+            for lab, (fn, ptrs, _out) in prep.items():
+                c0 = time.thread_time()
+                for _ in range(calls):
+                    fn(*ptrs)
+                best[lab] = min(best[lab], (time.thread_time() - c0) / calls)
+        row = dict(arm=model.name, block=block, function=name, us=1e6 * best["this"])
+        if against:
+            a, b = prep["this"][2], prep["other"][2]
+            row.update(other_us=1e6 * best["other"],
+                       max_rel_diff=float(np.max(np.abs(a - b)) / np.max(np.abs(b))))
+        rows.append(row)
+    return rows
+
+
 def _theta_hat(sim):
     idx = [i for i, label in enumerate(sim.state_labels) if "theta_hat" in label]
     return np.asarray(sim.x)[idx]
@@ -374,6 +434,11 @@ def main(argv=None):
     ap.add_argument("--accuracy", action="store_true", help="the mixing's accuracy only")
     ap.add_argument("--step", action="store_true",
                     help="a Rosenbrock step's cost and parts per arm, 5 s after the window T")
+    ap.add_argument("--model-calls", action="store_true",
+                    help="the robot model's derivatives a Jacobian calls, per arm (µs each)")
+    ap.add_argument("--against", default=None, metavar="LIB",
+                    help="with --model-calls: another version's C library of the (one) arm, "
+                         "timed alternately with this one")
     ap.add_argument("--one", nargs=3, metavar=("ARM", "VARIANT", "T_END"), help=argparse.SUPPRESS)
     ap.add_argument("--one-step", nargs=3, metavar=("ARM", "VARIANT", "T_AT"),
                     help=argparse.SUPPRESS)
@@ -386,6 +451,31 @@ def main(argv=None):
         print(json.dumps(step_row(a.one_step[0], a.one_step[1], t_at)), flush=True)
         return 0
     arms = [s.strip() for s in a.arms.split(",") if s.strip()]
+    if a.model_calls:
+        if a.against and len(arms) != 1:
+            raise SystemExit("--against compares one arm's libraries: give one arm in --arms")
+        print(f"# the robot model's derivatives one Jacobian calls, this thread's CPU µs per call "
+              f"(load {os.getloadavg()[0]:.1f}; best of 15 x 40"
+              + (f"; 'other' = {a.against}, alternated)" if a.against else ")"))
+        rows = []
+        for spec in arms:
+            rs = model_call_rows(spec, a.against)
+            rows += rs
+            for r in rs:
+                line = f"{r['arm']:>10s} {r['block']:>10s} {r['function']:>11s} {r['us']:8.1f}"
+                if a.against:
+                    line += (f"  other {r['other_us']:8.1f}  ratio {r['other_us'] / r['us']:5.2f}"
+                             f"  max rel diff {r['max_rel_diff']:.1e}")
+                print(line, flush=True)
+            tot = sum(r["us"] for r in rs)
+            line = f"{rs[0]['arm']:>10s} {'all':>10s} {'(one Jac.)':>11s} {tot:8.1f}"
+            if a.against:
+                other = sum(r["other_us"] for r in rs)
+                line += f"  other {other:8.1f}  ratio {other / tot:5.2f}"
+            print(line, flush=True)
+        if a.json:
+            Path(a.json).write_text(json.dumps({"model_calls": rows}, indent=1))
+        return 0
     if a.step:
         print(f"# a Rodas5P step of IV-DREM, this thread's CPU ms (load "
               f"{os.getloadavg()[0]:.1f}); its parts at the state reached, best of 5")

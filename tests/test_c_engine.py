@@ -58,7 +58,7 @@ def _differences(model, fns, ref, seed=3):
 
 @pytest.mark.parametrize("which", ["panda", "ur5_friction"])
 def test_c_library_equals_numba_kernels(which, request):
-    """Every function, the derivatives (and the complex step) too: equal to 0.0."""
+    """Every function, the derivatives too: equal to 0.0."""
     model = request.getfixturevalue(which)
     from ivdrem.models import _c_engine
     assert _c_engine.load(model) is not None, "no C compiler on this machine"

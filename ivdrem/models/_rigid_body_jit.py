@@ -14,10 +14,8 @@ from . import rigid_body as _src
 
 SINGULAR_INERTIA_MESSAGE = _src.SINGULAR_INERTIA_MESSAGE
 PIVOT_RTOL = _src.PIVOT_RTOL
-COMPLEX_STEP = _src.COMPLEX_STEP
 
 for _fn in _src.KERNELS:
     globals()[_fn.__name__] = numba.njit(cache=True)(
         types.FunctionType(_fn.__code__, globals(), _fn.__name__, _fn.__defaults__))
 del _fn
-_rb_std_complex = _rb_std    # noqa: F821  (the compiled _rb_std, specialised for complex128)

@@ -35,15 +35,19 @@ for the motion transform of every joint type, so that
     dA_j = X_j dA_p - d_j S_j x (X_j A_p) + dV_j x (S_j w_j)
     d(X_j^T F) = X_j^T dF + d_j X_j^T (S_j x* F).
 
-Every function takes its arrays with the dtype of ``q`` (float64, or complex128 for the one
-second derivative taken by the complex step, ``Phi_dM_jac`` with respect to ``q``).
+The regressors' derivatives (``*_jac``, many columns at one q) project a body force onto a
+joint by the joint's axis in the body's frame instead, ``Y[k, 10 j + c] = (X_{j<-k} S_k) .
+Phi_b[j][:, c]`` (``_rb_axes``, computed once per q), with the axes' tangent
+``d(X_{j<-k} S_k) = X_j d(X_{p<-k} S_k) - d_j S_j x (X_{j<-k} S_k)``; the one second
+derivative, of ``Phi_dM`` with respect to ``q``, is the tangent of that tangent
+(``_rb_mass_tangent2``).  Every function computes in the dtype of ``q`` (float64).
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KERNELS", "C_KERNELS", "C_CHOLESKY", "C_STD_KERNELS", "C_JAC_KERNELS",
-           "COMPLEX_STEP", "SINGULAR_INERTIA_MESSAGE", "PIVOT_RTOL"]
+__all__ = ["KERNELS", "C_KERNELS", "C_CHOLESKY", "C_JAC_KERNELS", "SINGULAR_INERTIA_MESSAGE",
+           "PIVOT_RTOL"]
 
 #: The message of the error raised where M(q) is not positive definite.
 SINGULAR_INERTIA_MESSAGE = "inertia matrix M(q) is not positive definite (singular inertia)"
@@ -350,9 +354,19 @@ def _rb_bodies(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: 
                Pb: "real[N,6,10]", dPb: "real[N,6,10]"):
     # body regressors (and tangents along d) of C(q, x) y + M(q) acc + grav * G(q), and the
     # bodies' poses (R, p)
-    n = q.shape[0]
-    dt = Pb.dtype
     _rb_kinematics(q, jtype, axis, Rp, pp, R, p)
+    _rb_body_terms(R, p, x, y, acc, grav, tangent, d, parent, jtype, axis, gvec, Pb, dPb)
+
+
+def _rb_body_terms(R: "const real[N,3,3]", p: "const real[N,3]", x: "const real[N]",
+                   y: "const real[N]", acc: "const real[N]", grav: "real", tangent: "bool",
+                   d: "const real[N]", parent: "const int[N]", jtype: "const int[N]",
+                   axis: "const float[N,3]", gvec: "const float[3]", Pb: "real[N,6,10]",
+                   dPb: "real[N,6,10]"):
+    # body regressors (and tangents along d) of C(q, x) y + M(q) acc + grav * G(q) at the
+    # bodies' poses (R, p) of q
+    n = x.shape[0]
+    dt = Pb.dtype
     V = np.empty((n, 6), dtype=dt)
     A = np.empty((n, 6), dtype=dt)
     dV = np.empty((n, 6), dtype=dt)
@@ -384,12 +398,18 @@ def _rb_bodies(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: 
                 _rb_body_regressor(dV[j], V[j], dA[j], 1.0, dPb[j])
                 _rb_body_regressor(V[j], dV[j], z6, 1.0, dPb[j])
         return
-    # acceleration and gravity pass (the base accelerates at -g)
-    _rb_forward(R, p, parent, jtype, axis, z, acc, a0, tangent, d, V, A, dV, dA)
-    for j in range(n):
-        _rb_body_regressor(z6, z6, A[j], 1.0, Pb[j])
-        if tangent:
-            _rb_body_regressor(z6, z6, dA[j], 1.0, dPb[j])
+    # acceleration and gravity pass (the base accelerates at -g); none without either (it
+    # would add exact zeros to the zeros Pb starts from: the same bits)
+    moves = grav != 0.0
+    for i in range(n):
+        if acc[i] != 0.0:
+            moves = True
+    if moves:
+        _rb_forward(R, p, parent, jtype, axis, z, acc, a0, tangent, d, V, A, dV, dA)
+        for j in range(n):
+            _rb_body_regressor(z6, z6, A[j], 1.0, Pb[j])
+            if tangent:
+                _rb_body_regressor(z6, z6, dA[j], 1.0, dPb[j])
     # velocity terms: the polar form of c(w) = C(q, w) w
     if sx > 0.0 and sy > 0.0:
         for r in range(6):
@@ -578,9 +598,17 @@ def _rb_std(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "co
             Y: "real[N,NSTD]", dY: "real[N,NSTD]"):
     # the standard regressor of C(q, x) y + M(q) acc + grav G(q) (+ F(fdq) if fric,
     # + armature acc if arm) and its tangent along d
-    n = q.shape[0]
-    ns = Y.shape[1]
     _rb_links(q, x, y, acc, grav, tangent, d, parent, jtype, axis, Rp, pp, gvec, Y, dY)
+    _rb_joint_terms(acc, fdq, fric, arm, tangent, fv, fc, ia, width, Y, dY)
+
+
+def _rb_joint_terms(acc: "const real[N]", fdq: "const real[N]", fric: "bool", arm: "bool",
+                    tangent: "bool", fv: "int", fc: "int", ia: "int", width: "float",
+                    Y: "real[N,NSTD]", dY: "real[N,NSTD]"):
+    # the columns after the links' of the standard regressor: friction F(fdq) if fric,
+    # armature acc if arm, 0 otherwise (their tangents along q are 0)
+    n = acc.shape[0]
+    ns = Y.shape[1]
     for i in range(n):
         for k in range(10 * n, ns):
             Y[i, k] = 0.0
@@ -596,9 +624,227 @@ def _rb_std(q: "const real[N]", x: "const real[N]", y: "const real[N]", acc: "co
                 Y[i, ia + i] = acc[i]
 
 
-#: _rb_std of complex arrays: the complex step of _rb_Phi_dM_jac (numba compiles the same
-#: function for complex128; the C face prints the kernels it calls again in double complex)
-_rb_std_complex = _rb_std
+# ------------------------------------------- the regressor at given poses, by the joint axes
+# What the regressors' derivatives evaluate, many times at one q: the poses (R, p) and the
+# joint axes in the bodies' frames computed once, and the projection of a body force onto
+# the joints above it a dot product with such an axis (Featherstone, Rigid Body Dynamics
+# Algorithms, sec. 2.9: S_k^T X*_{k<-j} f = (X_{j<-k} S_k) . f) instead of carrying the
+# force through every frame on the way (_rb_project).
+
+def _rb_axes(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int[N]",
+             jtype: "const int[N]", axis: "const float[N,3]", Sx: "real[N,N,6]"):
+    # Sx[j, k] = X_{j<-k} S_k: the motion of joint k at unit rate in the frame of body j (the
+    # velocity of body j it causes), for k = j and the ancestors of j; 0 for the other k
+    n = parent.shape[0]
+    for j in range(n):
+        for k in range(n):
+            for r in range(6):
+                Sx[j, k, r] = 0.0
+        _rb_subspace(jtype, axis, j, 1.0, Sx[j, j])
+        pa = parent[j]
+        k = pa
+        while k >= 0:
+            _rb_xmotion(R, p, j, Sx[pa, k], Sx[j, k])
+            k = parent[k]
+
+
+def _rb_axes_tangent(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int[N]",
+                     jtype: "const int[N]", axis: "const float[N,3]", Sx: "const real[N,N,6]",
+                     d: "const real[N]", dSx: "real[N,N,6]"):
+    # the tangent of Sx along d: dSx[j, k] = X_j dSx[parent j, k] - d_j S_j x Sx[j, k] (the
+    # derivative of the motion transform, dX_j = -d_j (S_j x) X_j); dSx[j, j] = 0
+    n = parent.shape[0]
+    sa = np.empty(6, dtype=dSx.dtype)
+    for j in range(n):
+        for k in range(n):
+            for r in range(6):
+                dSx[j, k, r] = 0.0
+        pa = parent[j]
+        k = pa
+        if k >= 0:
+            _rb_subspace(jtype, axis, j, 1.0, sa)
+        while k >= 0:
+            _rb_xmotion(R, p, j, dSx[pa, k], dSx[j, k])
+            _rb_cross_motion(sa, Sx[j, k], dSx[j, k], -d[j])
+            k = parent[k]
+
+
+def _rb_project_axes(Sx: "const real[N,N,6]", dSx: "const real[N,N,6]",
+                     parent: "const int[N]", Pb: "const real[N,6,10]",
+                     dPb: "const real[N,6,10]", tangent: "bool", Y: "real[N,NSTD]",
+                     dY: "real[N,NSTD]"):
+    # Y[k, 10 j + c] = Sx[j, k] . Pb[j][:, c] for k = j and the ancestors of j, 0 for the
+    # others (as _rb_project); the tangent dSx . Pb + Sx . dPb
+    n = Pb.shape[0]
+    acc = np.empty(10, dtype=Y.dtype)
+    dacc = np.empty(10, dtype=Y.dtype)
+    for i in range(n):
+        for c in range(10 * n):
+            Y[i, c] = 0.0
+            if tangent:
+                dY[i, c] = 0.0
+    for j in range(n):
+        # a body at rest in every sense (the bodies below a unit acceleration of a joint
+        # further out) adds nothing: its entries stay 0
+        still = True
+        for r in range(6):
+            for c in range(10):
+                if Pb[j, r, c] != 0.0 or (tangent and dPb[j, r, c] != 0.0):
+                    still = False
+                    break
+            if not still:
+                break
+        k = -1 if still else j
+        while k >= 0:
+            # the ten columns side by side (ten independent sums, each over r in order)
+            for c in range(10):
+                acc[c] = Sx[j, k, 0] * Pb[j, 0, c]
+                if tangent:
+                    dacc[c] = Sx[j, k, 0] * dPb[j, 0, c] + dSx[j, k, 0] * Pb[j, 0, c]
+            for r in range(1, 6):
+                sr = Sx[j, k, r]
+                for c in range(10):
+                    acc[c] += sr * Pb[j, r, c]
+                if tangent:
+                    dsr = dSx[j, k, r]
+                    for c in range(10):
+                        dacc[c] += sr * dPb[j, r, c] + dsr * Pb[j, r, c]
+            for c in range(10):
+                Y[k, 10 * j + c] = acc[c]
+                if tangent:
+                    dY[k, 10 * j + c] = dacc[c]
+            k = parent[k]
+
+
+def _rb_axes_tangent2(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int[N]",
+                      jtype: "const int[N]", axis: "const float[N,3]",
+                      dSd: "const real[N,N,6]", dSe: "const real[N,N,6]", d: "const real[N]",
+                      e: "const real[N]", ddS: "real[N,N,6]"):
+    # the tangent along e of dSd (the tangent of Sx along d; dSe the tangent along e):
+    # ddS[j, k] = X_j ddS[parent j, k] - e_j S_j x (X_j dSd[parent j, k]) - d_j S_j x dSe[j, k]
+    n = parent.shape[0]
+    sa = np.empty(6, dtype=ddS.dtype)
+    t6 = np.empty(6, dtype=ddS.dtype)
+    for j in range(n):
+        for k in range(n):
+            for r in range(6):
+                ddS[j, k, r] = 0.0
+        pa = parent[j]
+        k = pa
+        if k >= 0:
+            _rb_subspace(jtype, axis, j, 1.0, sa)
+        while k >= 0:
+            _rb_xmotion(R, p, j, ddS[pa, k], ddS[j, k])
+            _rb_xmotion(R, p, j, dSd[pa, k], t6)
+            _rb_cross_motion(sa, t6, ddS[j, k], -e[j])
+            _rb_cross_motion(sa, dSe[j, k], ddS[j, k], -d[j])
+            k = parent[k]
+
+
+def _rb_accelerations2(R: "const real[N,3,3]", p: "const real[N,3]", parent: "const int[N]",
+                       jtype: "const int[N]", axis: "const float[N,3]", acc: "const real[N]",
+                       d: "const real[N]", e: "const real[N]", A: "real[N,6]",
+                       dA: "real[N,6]", eA: "real[N,6]", deA: "real[N,6]"):
+    # the bodies' accelerations A_j = X_j A_p + S_j acc_j of joint accelerations acc alone
+    # (no velocity, no gravity: M(q) acc), their tangents along d and e, and the tangent
+    # along e of the one along d (dX_j = -d_j (S_j x) X_j, as _rb_forward):
+    #   dA_j = X_j dA_p - d_j S_j x T,  T = X_j A_p;  eA_j = X_j eA_p - e_j S_j x T
+    #   deA_j = X_j deA_p - e_j S_j x (X_j dA_p) - d_j S_j x eA_j
+    n = acc.shape[0]
+    sa = np.empty(6, dtype=A.dtype)
+    t6 = np.empty(6, dtype=A.dtype)
+    for j in range(n):
+        pa = parent[j]
+        _rb_subspace(jtype, axis, j, acc[j], sa)
+        if pa < 0:
+            for r in range(6):
+                A[j, r] = sa[r]
+                dA[j, r] = 0.0
+                eA[j, r] = 0.0
+                deA[j, r] = 0.0
+        else:
+            _rb_xmotion(R, p, j, A[pa], t6)
+            for r in range(6):
+                A[j, r] = t6[r] + sa[r]
+            _rb_subspace(jtype, axis, j, 1.0, sa)
+            _rb_xmotion(R, p, j, dA[pa], dA[j])
+            _rb_cross_motion(sa, t6, dA[j], -d[j])
+            _rb_xmotion(R, p, j, eA[pa], eA[j])
+            _rb_cross_motion(sa, t6, eA[j], -e[j])
+            _rb_xmotion(R, p, j, deA[pa], deA[j])
+            _rb_xmotion(R, p, j, dA[pa], t6)
+            _rb_cross_motion(sa, t6, deA[j], -e[j])
+            _rb_cross_motion(sa, eA[j], deA[j], -d[j])
+
+
+def _rb_mass_tangent2(R: "const real[N,3,3]", p: "const real[N,3]", Sx: "const real[N,N,6]",
+                      dSd: "const real[N,N,6]", dSe: "const real[N,N,6]",
+                      ddS: "const real[N,N,6]", acc: "const real[N]", d: "const real[N]",
+                      e: "const real[N]", parent: "const int[N]", jtype: "const int[N]",
+                      axis: "const float[N,3]", ddY: "real[N,NSTD]"):
+    # the tangent along e of the tangent along d of the standard regressor of M(q) acc (the
+    # links' columns; the armature's, acc, does not depend on q: 0).  With Y[k, 10 j + c] =
+    # Sx[j, k] . L(A_j)[:, c] (L the body regressor of an acceleration, linear):
+    #   ddY = ddS . L(A) + dSd . L(eA) + dSe . L(dA) + Sx . L(deA)
+    n = acc.shape[0]
+    ns = ddY.shape[1]
+    A = np.empty((n, 6), dtype=ddY.dtype)
+    dA = np.empty((n, 6), dtype=ddY.dtype)
+    eA = np.empty((n, 6), dtype=ddY.dtype)
+    deA = np.empty((n, 6), dtype=ddY.dtype)
+    L0 = np.zeros((6, 10), dtype=ddY.dtype)
+    Ld = np.zeros((6, 10), dtype=ddY.dtype)
+    Le = np.zeros((6, 10), dtype=ddY.dtype)
+    Lde = np.zeros((6, 10), dtype=ddY.dtype)
+    z6 = np.zeros(6, dtype=ddY.dtype)
+    yc = np.empty(10, dtype=ddY.dtype)
+    _rb_accelerations2(R, p, parent, jtype, axis, acc, d, e, A, dA, eA, deA)
+    for i in range(n):
+        for c in range(ns):
+            ddY[i, c] = 0.0
+    for j in range(n):
+        for r in range(6):
+            for c in range(10):
+                L0[r, c] = 0.0
+                Ld[r, c] = 0.0
+                Le[r, c] = 0.0
+                Lde[r, c] = 0.0
+        _rb_body_regressor(z6, z6, A[j], 1.0, L0)
+        _rb_body_regressor(z6, z6, dA[j], 1.0, Ld)
+        _rb_body_regressor(z6, z6, eA[j], 1.0, Le)
+        _rb_body_regressor(z6, z6, deA[j], 1.0, Lde)
+        k = j
+        while k >= 0:
+            for c in range(10):
+                s = ddS[j, k, 0] * L0[0, c] + dSd[j, k, 0] * Le[0, c]
+                yc[c] = s + dSe[j, k, 0] * Ld[0, c] + Sx[j, k, 0] * Lde[0, c]
+            for r in range(1, 6):
+                s0 = ddS[j, k, r]
+                s1 = dSd[j, k, r]
+                s2 = dSe[j, k, r]
+                s3 = Sx[j, k, r]
+                for c in range(10):
+                    yc[c] += s0 * L0[r, c] + s1 * Le[r, c]
+                    yc[c] += s2 * Ld[r, c] + s3 * Lde[r, c]
+            for c in range(10):
+                ddY[k, 10 * j + c] = yc[c]
+            k = parent[k]
+
+
+def _rb_std_at(R: "const real[N,3,3]", p: "const real[N,3]", Sx: "const real[N,N,6]",
+               dSx: "const real[N,N,6]", x: "const real[N]", y: "const real[N]",
+               acc: "const real[N]", grav: "real", fdq: "const real[N]", fric: "bool",
+               arm: "bool", tangent: "bool", d: "const real[N]", parent: "const int[N]",
+               jtype: "const int[N]", axis: "const float[N,3]", gvec: "const float[3]",
+               fv: "int", fc: "int", ia: "int", width: "float", Y: "real[N,NSTD]",
+               dY: "real[N,NSTD]"):
+    # _rb_std at the poses (R, p) and axes Sx of q (and dSx, their tangent along d)
+    n = x.shape[0]
+    Pb = np.empty((n, 6, 10), dtype=Y.dtype)
+    dPb = np.empty((n, 6, 10), dtype=Y.dtype)
+    _rb_body_terms(R, p, x, y, acc, grav, tangent, d, parent, jtype, axis, gvec, Pb, dPb)
+    _rb_project_axes(Sx, dSx, parent, Pb, dPb, tangent, Y, dY)
+    _rb_joint_terms(acc, fdq, fric, arm, tangent, fv, fc, ia, width, Y, dY)
 
 
 def _rb_select(Y: "const real[N,NSTD]", base: "const int[NTHETA]", out: "real[N,NTHETA]"):
@@ -790,14 +1036,12 @@ def _rb_forward_dynamics(q: "const real[N]", dq: "const real[N]", tau: "const re
 
 # ------------------------------------------------------- the regressors' derivatives
 # out[i, b, arg * n + m] = d Phi[i, b] / d arg[m], the arguments in signature order (what
-# the blocks' Jacobians use: ivdrem.blocks.jacobians): exact forward-mode derivatives of
-# the recursion along the unit vectors e_m (tangent=True), and the regressors' linearity in
-# acc, x and y; d/dq of Phi_dM (a second derivative) by the complex step of the forward-mode
-# derivative, step COMPLEX_STEP.
-
-#: step of the complex-step derivative (Phi_dM_jac with respect to q): exact to rounding,
-#: no difference is taken
-COMPLEX_STEP = 1e-20
+# the blocks' Jacobians use: ivdrem.blocks.jacobians).  Each function computes the poses and
+# the joint axes at q once (_rb_axes) and every column from them (_rb_std_at): d/dq_m the
+# exact forward-mode derivative of the recursion along e_m (tangent=True, the axes' tangent
+# _rb_axes_tangent), d/d of a linear argument the regressor at e_m (C(q, x) y is bilinear,
+# M(q) a linear).  d/dq of Phi_dM (a second derivative of M(q) a) by the tangent of the
+# tangent (_rb_mass_tangent2).
 
 
 def _rb_Phi_M_jac(q: "const real[N]", a: "const real[N]",
@@ -811,13 +1055,20 @@ def _rb_Phi_M_jac(q: "const real[N]", a: "const real[N]",
     ncol = out.shape[2]
     z = np.zeros(n)
     e = np.zeros(n)
+    R = np.empty((n, 3, 3))
+    p = np.empty((n, 3))
+    Sx = np.empty((n, n, 6))
+    dSx = np.empty((n, n, 6))
+    _rb_kinematics(q, jtype, axis, Rp, pp, R, p)
+    _rb_axes(R, p, parent, jtype, axis, Sx)
     for m in range(n):
         e[m] = 1.0
-        _rb_std(q, z, z, a, 0.0, z, False, True, True, e, parent, jtype, axis, Rp, pp, gvec,
-                fv, fc, ia, width, Y, dY)
+        _rb_axes_tangent(R, p, parent, jtype, axis, Sx, e, dSx)
+        _rb_std_at(R, p, Sx, dSx, z, z, a, 0.0, z, False, True, True, e, parent, jtype, axis,
+                   gvec, fv, fc, ia, width, Y, dY)
         _rb_select_column(dY, base, ncol, m, out)
-        _rb_std(q, z, z, e, 0.0, z, False, True, False, q, parent, jtype, axis, Rp, pp, gvec,
-                fv, fc, ia, width, Y, Y)
+        _rb_std_at(R, p, Sx, dSx, z, z, e, 0.0, z, False, True, False, e, parent, jtype,
+                   axis, gvec, fv, fc, ia, width, Y, Y)
         _rb_select_column(Y, base, ncol, n + m, out)
         e[m] = 0.0
 
@@ -828,60 +1079,76 @@ def _rb_Phi_C_jac(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
                   gvec: "const float[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
                   ia: "int", width: "float",
                   Y: "real[N,NSTD]", dY: "real[N,NSTD]", out: "real[N,NTHETA,N3]"):
-    # d Phi_C / d(q, dq, v)
+    # d Phi_C / d(q, dq, v); at v = dq (the regression filter's) the columns of dq and v
+    # are equal
     n = q.shape[0]
     ncol = out.shape[2]
+    nb = base.shape[0]
+    same = True
+    for i in range(n):
+        if dq[i] != v[i]:
+            same = False
     z = np.zeros(n)
     e = np.zeros(n)
+    R = np.empty((n, 3, 3))
+    p = np.empty((n, 3))
+    Sx = np.empty((n, n, 6))
+    dSx = np.empty((n, n, 6))
+    _rb_kinematics(q, jtype, axis, Rp, pp, R, p)
+    _rb_axes(R, p, parent, jtype, axis, Sx)
     for m in range(n):
         e[m] = 1.0
-        _rb_std(q, dq, v, z, 0.0, z, False, False, True, e, parent, jtype, axis, Rp, pp,
-                gvec, fv, fc, ia, width, Y, dY)
+        _rb_axes_tangent(R, p, parent, jtype, axis, Sx, e, dSx)
+        _rb_std_at(R, p, Sx, dSx, dq, v, z, 0.0, z, False, False, True, e, parent, jtype,
+                   axis, gvec, fv, fc, ia, width, Y, dY)
         _rb_select_column(dY, base, ncol, m, out)
-        _rb_std(q, e, v, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
-                gvec, fv, fc, ia, width, Y, Y)
+        _rb_std_at(R, p, Sx, dSx, e, v, z, 0.0, z, False, False, False, e, parent, jtype,
+                   axis, gvec, fv, fc, ia, width, Y, Y)
         _rb_select_column(Y, base, ncol, n + m, out)
-        _rb_std(q, dq, e, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
-                gvec, fv, fc, ia, width, Y, Y)
-        _rb_select_column(Y, base, ncol, 2 * n + m, out)
+        if same:
+            # C(q, e_m) v = C(q, v) e_m (Christoffel-consistent C): the column just computed
+            for i in range(n):
+                for b in range(nb):
+                    out[i, b, 2 * n + m] = out[i, b, n + m]
+        else:
+            _rb_std_at(R, p, Sx, dSx, dq, e, z, 0.0, z, False, False, False, e, parent, jtype,
+                       axis, gvec, fv, fc, ia, width, Y, Y)
+            _rb_select_column(Y, base, ncol, 2 * n + m, out)
         e[m] = 0.0
 
 
 def _rb_Phi_dM_jac(q: "const real[N]", dq: "const real[N]", a: "const real[N]",
                    parent: "const int[N]", jtype: "const int[N]",
-                  axis: "const float[N,3]", Rp: "const float[N,3,3]", pp: "const float[N,3]",
-                  gvec: "const float[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
-                  ia: "int", width: "float",
-                   Y: "real[N,NSTD]", dY: "real[N,NSTD]", Yc: "cplx[N,NSTD]",
-                   dYc: "cplx[N,NSTD]", out: "real[N,NTHETA,N3]"):
-    # d Phi_dM / d(q, dq, a); d/dq by the complex step of the forward-mode derivative
+                   axis: "const float[N,3]", Rp: "const float[N,3,3]", pp: "const float[N,3]",
+                   gvec: "const float[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
+                   ia: "int", width: "float",
+                   Y: "real[N,NSTD]", dY: "real[N,NSTD]", out: "real[N,NTHETA,N3]"):
+    # d Phi_dM / d(q, dq, a); d/dq_m the tangent along e_m of the tangent along dq (the
+    # second derivative of M(q) a, _rb_mass_tangent2)
     n = q.shape[0]
     ncol = out.shape[2]
-    nb = base.shape[0]
     z = np.zeros(n)
     e = np.zeros(n)
-    qc = np.empty(n, dtype=Yc.dtype)
-    dqc = np.empty(n, dtype=Yc.dtype)
-    ac = np.empty(n, dtype=Yc.dtype)
-    zc = np.zeros(n, dtype=Yc.dtype)
-    for i in range(n):
-        dqc[i] = dq[i]
-        ac[i] = a[i]
+    R = np.empty((n, 3, 3))
+    p = np.empty((n, 3))
+    Sx = np.empty((n, n, 6))
+    dSx = np.empty((n, n, 6))
+    dSq = np.empty((n, n, 6))
+    ddS = np.empty((n, n, 6))
+    _rb_kinematics(q, jtype, axis, Rp, pp, R, p)
+    _rb_axes(R, p, parent, jtype, axis, Sx)
+    _rb_axes_tangent(R, p, parent, jtype, axis, Sx, dq, dSq)
     for m in range(n):
-        for i in range(n):
-            qc[i] = q[i]
-        qc[m] += COMPLEX_STEP * 1j
-        _rb_std_complex(qc, zc, zc, ac, 0.0, zc, False, False, True, dqc, parent, jtype, axis,
-                        Rp, pp, gvec, fv, fc, ia, width, Yc, dYc)
-        for i in range(n):
-            for b in range(nb):
-                out[i, b, m] = dYc[i, base[b]].imag / COMPLEX_STEP
         e[m] = 1.0
-        _rb_std(q, z, z, a, 0.0, z, False, False, True, e, parent, jtype, axis, Rp, pp, gvec,
-                fv, fc, ia, width, Y, dY)
+        _rb_axes_tangent(R, p, parent, jtype, axis, Sx, e, dSx)
+        _rb_axes_tangent2(R, p, parent, jtype, axis, dSq, dSx, dq, e, ddS)
+        _rb_mass_tangent2(R, p, Sx, dSq, dSx, ddS, a, dq, e, parent, jtype, axis, Y)
+        _rb_select_column(Y, base, ncol, m, out)
+        _rb_std_at(R, p, Sx, dSx, z, z, a, 0.0, z, False, False, True, e, parent, jtype,
+                   axis, gvec, fv, fc, ia, width, Y, dY)
         _rb_select_column(dY, base, ncol, n + m, out)
-        _rb_std(q, z, z, e, 0.0, z, False, False, True, dq, parent, jtype, axis, Rp, pp, gvec,
-                fv, fc, ia, width, Y, dY)
+        _rb_std_at(R, p, Sx, dSq, z, z, e, 0.0, z, False, False, True, dq, parent, jtype,
+                   axis, gvec, fv, fc, ia, width, Y, dY)
         _rb_select_column(dY, base, ncol, 2 * n + m, out)
         e[m] = 0.0
 
@@ -896,10 +1163,17 @@ def _rb_Phi_G_jac(q: "const real[N]", parent: "const int[N]", jtype: "const int[
     ncol = out.shape[2]
     z = np.zeros(n)
     e = np.zeros(n)
+    R = np.empty((n, 3, 3))
+    p = np.empty((n, 3))
+    Sx = np.empty((n, n, 6))
+    dSx = np.empty((n, n, 6))
+    _rb_kinematics(q, jtype, axis, Rp, pp, R, p)
+    _rb_axes(R, p, parent, jtype, axis, Sx)
     for m in range(n):
         e[m] = 1.0
-        _rb_std(q, z, z, z, 1.0, z, False, False, True, e, parent, jtype, axis, Rp, pp, gvec,
-                fv, fc, ia, width, Y, dY)
+        _rb_axes_tangent(R, p, parent, jtype, axis, Sx, e, dSx)
+        _rb_std_at(R, p, Sx, dSx, z, z, z, 1.0, z, False, False, True, e, parent, jtype,
+                   axis, gvec, fv, fc, ia, width, Y, dY)
         _rb_select_column(dY, base, ncol, m, out)
         e[m] = 0.0
 
@@ -928,59 +1202,74 @@ def _rb_Phi_jac(q: "const real[N]", dq: "const real[N]", v: "const real[N]",
                   gvec: "const float[3]", base: "const int[NTHETA]", fv: "int", fc: "int",
                   ia: "int", width: "float", Y: "real[N,NSTD]", dY: "real[N,NSTD]",
                 out: "real[N,NTHETA,N4]"):
-    # d Phi / d(q, dq, v, dv)
+    # d Phi / d(q, dq, v, dv); at v = dq (the plant's and the instrument's) the columns of
+    # dq and v differ by the friction's alone
     n = q.shape[0]
     ncol = out.shape[2]
     nb = base.shape[0]
+    same = True
+    for i in range(n):
+        if dq[i] != v[i]:
+            same = False
     z = np.zeros(n)
     e = np.zeros(n)
     dF = np.empty((n, nb, n))
+    R = np.empty((n, 3, 3))
+    p = np.empty((n, 3))
+    Sx = np.empty((n, n, 6))
+    dSx = np.empty((n, n, 6))
     _rb_Phi_F_jac(dq, base, fv, fc, width, Y, dF)
+    _rb_kinematics(q, jtype, axis, Rp, pp, R, p)
+    _rb_axes(R, p, parent, jtype, axis, Sx)
     for m in range(n):
         e[m] = 1.0
-        _rb_std(q, dq, v, dv, 1.0, dq, True, True, True, e, parent, jtype, axis, Rp, pp, gvec,
-                fv, fc, ia, width, Y, dY)
+        _rb_axes_tangent(R, p, parent, jtype, axis, Sx, e, dSx)
+        _rb_std_at(R, p, Sx, dSx, dq, v, dv, 1.0, dq, True, True, True, e, parent, jtype,
+                   axis, gvec, fv, fc, ia, width, Y, dY)
         _rb_select_column(dY, base, ncol, m, out)
-        _rb_std(q, e, v, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
-                gvec, fv, fc, ia, width, Y, Y)
+        _rb_std_at(R, p, Sx, dSx, e, v, z, 0.0, z, False, False, False, e, parent, jtype,
+                   axis, gvec, fv, fc, ia, width, Y, Y)
         _rb_select_column(Y, base, ncol, n + m, out)
         for i in range(n):
             for b in range(nb):
+                if same:
+                    # C(q, dq) e_m = C(q, e_m) dq (Christoffel-consistent C)
+                    out[i, b, 2 * n + m] = out[i, b, n + m]
                 out[i, b, n + m] += dF[i, b, m]
-        _rb_std(q, dq, e, z, 0.0, z, False, False, False, q, parent, jtype, axis, Rp, pp,
-                gvec, fv, fc, ia, width, Y, Y)
-        _rb_select_column(Y, base, ncol, 2 * n + m, out)
-        _rb_std(q, z, z, e, 0.0, z, False, True, False, q, parent, jtype, axis, Rp, pp, gvec,
-                fv, fc, ia, width, Y, Y)
+        if not same:
+            _rb_std_at(R, p, Sx, dSx, dq, e, z, 0.0, z, False, False, False, e, parent, jtype,
+                       axis, gvec, fv, fc, ia, width, Y, Y)
+            _rb_select_column(Y, base, ncol, 2 * n + m, out)
+        _rb_std_at(R, p, Sx, dSx, z, z, e, 0.0, z, False, True, False, e, parent, jtype,
+                   axis, gvec, fv, fc, ia, width, Y, Y)
         _rb_select_column(Y, base, ncol, 3 * n + m, out)
         e[m] = 0.0
 
 
 #: The kernels, in dependency order (their source goes into every rigid-body model's code).
 KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
-           _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_backward,
-           _rb_rnea, _rb_mass, _rb_cholesky, _rb_cholesky_solve, _rb_spd_solve,
-           _rb_std, _rb_select, _rb_select_column, _rb_pi, _rb_Phi_M, _rb_Phi_C,
-           _rb_Phi_dM, _rb_Phi_G, _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics,
+           _rb_body_regressor, _rb_project, _rb_scale, _rb_body_terms, _rb_bodies, _rb_links,
+           _rb_backward, _rb_rnea, _rb_mass, _rb_cholesky, _rb_cholesky_solve, _rb_spd_solve,
+           _rb_joint_terms, _rb_std, _rb_select, _rb_select_column, _rb_pi, _rb_Phi_M,
+           _rb_Phi_C, _rb_Phi_dM, _rb_Phi_G, _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F,
+           _rb_forward_dynamics, _rb_axes, _rb_axes_tangent, _rb_project_axes,
+           _rb_axes_tangent2, _rb_accelerations2, _rb_mass_tangent2, _rb_std_at,
            _rb_Phi_M_jac, _rb_Phi_C_jac, _rb_Phi_dM_jac, _rb_Phi_G_jac, _rb_Phi_F_jac,
            _rb_Phi_jac)
 
 #: The kernels of a model's C face (:mod:`ivdrem.models._c_printer`), in dependency order.
 C_KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
-             _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links,
+             _rb_body_regressor, _rb_project, _rb_scale, _rb_body_terms, _rb_bodies, _rb_links,
              _rb_backward, _rb_rnea, _rb_mass, _rb_cholesky, _rb_cholesky_solve,
-             _rb_std, _rb_select, _rb_pi, _rb_Phi_M, _rb_Phi_C, _rb_Phi_dM, _rb_Phi_G,
-             _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics)
+             _rb_joint_terms, _rb_std, _rb_select, _rb_pi, _rb_Phi_M, _rb_Phi_C, _rb_Phi_dM,
+             _rb_Phi_G, _rb_Phi_F, _rb_Phi, _rb_M, _rb_C, _rb_G, _rb_F, _rb_forward_dynamics)
 
-#: The kernels _rb_std calls (printed again in double complex for _rb_Phi_dM_jac's complex
-#: step): part of the compiled engine's C library of a model.
-C_STD_KERNELS = (_rb_kinematics, _rb_xmotion, _rb_cross_motion, _rb_subspace, _rb_forward,
-                 _rb_body_regressor, _rb_project, _rb_scale, _rb_bodies, _rb_links, _rb_std)
-#: The regressors' derivatives in q and q̇: the rest of the compiled engine's C library of a
-#: model (:mod:`ivdrem.models._c_engine`).
-C_JAC_KERNELS = (_rb_select_column, _rb_Phi_M_jac, _rb_Phi_C_jac, _rb_Phi_dM_jac,
-                 _rb_Phi_G_jac, _rb_Phi_F_jac,
-                 _rb_Phi_jac)
+#: The regressors' derivatives in q and q̇ and what they call beyond the C face: the rest
+#: of the compiled engine's C library of a model (:mod:`ivdrem.models._c_engine`).
+C_JAC_KERNELS = (_rb_axes, _rb_axes_tangent, _rb_project_axes, _rb_axes_tangent2,
+                 _rb_accelerations2, _rb_mass_tangent2, _rb_std_at,
+                 _rb_select_column, _rb_Phi_M_jac, _rb_Phi_C_jac, _rb_Phi_dM_jac,
+                 _rb_Phi_G_jac, _rb_Phi_F_jac, _rb_Phi_jac)
 
 #: The Cholesky alone: the C face of every model (a symbolic one too) prints it.
 C_CHOLESKY = (_rb_cholesky, _rb_cholesky_solve)

@@ -705,8 +705,7 @@ _GLUE = {
 _JAC_GLUE = {
     "Phi_M_jac": (("Y", "dY"), "q, a, {chain}, {base}, {fric}, Y, dY", ("q", "a"), 2),
     "Phi_C_jac": (("Y", "dY"), "q, dq, v, {chain}, {base}, {fric}, Y, dY", ("q", "dq", "v"), 3),
-    "Phi_dM_jac": (("Y", "dY", "Yc", "dYc"),
-                   "q, dq, a, {chain}, {base}, {fric}, Y, dY, Yc, dYc", ("q", "dq", "a"), 3),
+    "Phi_dM_jac": (("Y", "dY"), "q, dq, a, {chain}, {base}, {fric}, Y, dY", ("q", "dq", "a"), 3),
     "Phi_G_jac": (("Y", "dY"), "q, {chain}, {base}, {fric}, Y, dY", ("q",), 1),
     "Phi_F_jac": (("Y",), "dq, {base}, {fv}, {fc}, {width}, Y", ("dq",), 1),
     "Phi_jac": (("Y", "dY"), "q, dq, v, dv, {chain}, {base}, {fric}, Y, dY",
@@ -861,9 +860,7 @@ class RigidBodyModel(RobotModel):
             glue.append(f"def {P}{name}({', '.join(C_FUNCTION_ARGS[name][:-1])}, out):\n"
                         f'    """{doc}"""\n{alloc}    {call}\n    return None\n')
         for name, (work, args, vec, k) in _JAC_GLUE.items():
-            shapes = {"Yc": f"({n}, {ns}), dtype=np.complex128",
-                      "dYc": f"({n}, {ns}), dtype=np.complex128"}
-            alloc = "".join(f"    {w} = np.empty({shapes.get(w, repr((n, ns)))})\n" for w in work)
+            alloc = "".join(f"    {w} = np.empty({(n, ns)!r})\n" for w in work)
             call = f"{k_}{name}({args.format(**self._glue_args(K, chain_args))}, out)"
             glue.append(f"def {P}{name}({', '.join(vec)}, out):\n"
                         f'    """d{name[:-4]}[i, j]/d({", ".join(vec)})[c], c = arg * {n} + entry;'
@@ -938,34 +935,29 @@ class RigidBodyModel(RobotModel):
     def engine_c_source(self, prefix: str) -> str:
         """:meth:`c_source` and the regressors' derivatives ``<prefix>Phi_M_jac`` ...
         (``_JAC_GLUE``: out (n, nθ, k n) row major, the derivative by argument k's entry m
-        in column k n + m; d/dq of Phi_dM by the complex step, ``<complex.h>``): the C
+        in column k n + m): the C
         library the compiled engine and :attr:`functions` call
         (:mod:`ivdrem.models._c_engine`), printed from the same kernels as :meth:`source`."""
         from ._c_printer import print_kernels
-        from .rigid_body import C_CHOLESKY, C_JAC_KERNELS, C_KERNELS, C_STD_KERNELS
+        from .rigid_body import C_CHOLESKY, C_JAC_KERNELS, C_KERNELS
         prefix = self._check_c_prefix(prefix)
         P = prefix.upper()
         K = f"{prefix}"
         chain_args = ", ".join(f"{K}{a}" for a in ("PARENT", "JTYPE", "AXIS", "RP", "PP",
                                                     "GRAV"))
         ga = self._glue_args(K, chain_args)
-        complex_std = print_kernels(C_STD_KERNELS, prefix, real="double complex",
-                                    suffix="_complex")
         jac = print_kernels(C_JAC_KERNELS, prefix,
-                            printed=[f for f in C_KERNELS if f not in C_CHOLESKY],
-                            also=("_rb_std_complex",))
+                            printed=[f for f in C_KERNELS if f not in C_CHOLESKY])
         glue = []
         for name, (work, args, vec, k) in _JAC_GLUE.items():
-            decl = "".join(f"    {'double complex' if w.endswith('c') else 'double'} "
-                           f"{w}[{P}N * {P}NSTD];\n" for w in work)
+            decl = "".join(f"    double {w}[{P}N * {P}NSTD];\n" for w in work)
             sig = ", ".join([f"const double *{a}" for a in vec] + ["double *out"])
             glue.append(f"{P}FN void {prefix}{name}({sig}) {{\n{decl}"
                         f"    {prefix}rb_{name}({args.format(**ga)}, out);\n}}\n")
         sizes = "".join(f"#define {P}N{k} ({k} * {P}N)\n" for k in (2, 3, 4))
         return (self.c_source(prefix)
-                + "\n/* The regressors' derivatives (the compiled engine's Jacobians): the kernels"
-                  "\n * of _rb_std again in double complex for the complex step of Phi_dM_jac. */"
-                  "\n#include <complex.h>\n" + sizes + "\n" + complex_std + "\n" + jac + "\n"
+                + "\n/* The regressors' derivatives (the compiled engine's Jacobians). */\n"
+                + sizes + "\n" + jac + "\n"
                 + "\n".join(glue))
 
     @cached_property
