@@ -326,6 +326,25 @@ def test_cache(tmp_path, monkeypatch):
     assert len(list((tmp_path / "urdf").glob("*.json"))) == 3
 
 
+def test_a_cached_build_names_the_file_it_was_read_from(tmp_path, monkeypatch):
+    """The cache is keyed by the URDF's content: the same text at another place (another
+    environment's copy, the first file deleted) gives a model whose ``urdf`` is that
+    place, so that Pinocchio's model of it can be built (it named the deleted file)."""
+    monkeypatch.setenv("IVDREM_CACHE_DIR", str(tmp_path / "cache"))
+    (tmp_path / "a").mkdir()
+    first = _two_links(tmp_path / "a")
+    m1 = from_urdf(first)
+    moved = tmp_path / "b.urdf"
+    moved.write_text(first.read_text())
+    first.unlink()
+    m2 = from_urdf(moved)
+    assert len(list((tmp_path / "cache" / "urdf").glob("*.json"))) == 1   # one content, one entry
+    assert m2.urdf == str(moved.resolve()) and m1.urdf != m2.urdf
+    assert m2.key == m1.key
+    err = _errors(m2, m2.pinocchio_model(), N=20)
+    assert all(v <= 1e-10 for v in err.values()), err
+
+
 # ----------------------------------------------------------------------------- bad input
 _LINK = ('<link name="{n}"><inertial><origin xyz="0 0 0.1"/><mass value="1"/>'
          '<inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial></link>')

@@ -651,6 +651,9 @@ def from_urdf(path, *, base=True, friction=None, joints=None, gravity=9.81, arma
         if chain is not None:   # the checks of the text hold for a cached build too (an
             # older ivdrem cached files they refuse); XML only, no Pinocchio
             _check_chain(path, _check_urdf_text(path, path.read_text()), chain["joint_names"])
+            # the entry is keyed by the file's content, not its place: the same text read
+            # from elsewhere (another environment's copy, the first one deleted) is this file
+            chain["urdf"] = str(path.resolve())
     if chain is None:
         chain = _build(path, options["joints"], gravity, friction, friction_width, armature,
                        base)
