@@ -130,7 +130,8 @@ def engine_of(nodeid, default, on_reference):
 
 def _per_test(default, on_reference):
     """ivdrem's drop-in on the running test's engine (:func:`engine_of`); the engine is
-    recorded with the test's calls."""
+    recorded with the test's calls, and a response that says it ran on another engine
+    (its ``stats``: a system without states has none) fails the test."""
     engines = {e: pc.drop_in(engine=e) for e in {default, "reference"}}
 
     def input_output_response(*args, **kwargs):
@@ -138,7 +139,12 @@ def _per_test(default, on_reference):
         rec = _record(_current["id"])
         if rec.setdefault("engine", engine) != engine:
             raise AssertionError(f"{_current['id']} ran on {rec['engine']} and {engine}")
-        return engines[engine](*args, **kwargs)
+        resp = engines[engine](*args, **kwargs)
+        for r in (resp if isinstance(resp, ct.TimeResponseList) else [resp]):
+            ran = (getattr(r, "stats", None) or {}).get("engine", engine)
+            if ran != engine:
+                raise AssertionError(f"{_current['id']}: asked for {engine}, ran on {ran}")
+        return resp
     input_output_response.__doc__ = pc.input_output_response.__doc__
     return input_output_response
 
