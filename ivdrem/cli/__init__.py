@@ -19,8 +19,7 @@ __all__ = ["main"]
 
 
 def _cmd_paper(args):
-    from ..experiments.config import ConfigError, read_config
-    from ..experiments.experiment import Experiment
+    from .._config_file import ConfigError, read_toml
     from .._paths import STDOUT, OutputLocationError, check_replaceable, user_path
     from .preflight import (PreflightError, check_cache_dir, check_runs, method_overrides,
                              horizon_note, long_run_note, timing_text)
@@ -38,16 +37,24 @@ def _cmd_paper(args):
         if args.t_end is not None and not (math.isfinite(args.t_end) and args.t_end > 0):
             raise PreflightError(f"--t-end must be a finite number of seconds > 0, "
                                  f"got {args.t_end:g}")
-        try:     # the data, then the experiment: the model built once, the keys that
-            # follow it filled and checked against it (Experiment.from_config)
-            data = read_config(None if args.config is None else user_path(args.config),
-                               overrides or None)
+        try:
+            # the file, the output and the compiler first, before python-control and
+            # SciPy are imported: a typo costs a tenth of a second, not three
+            if args.config is not None:
+                read_toml(user_path(args.config))
             if args.json == STDOUT:      # the JSON alone on stdout; the lines go to stderr
                 json_path = STDOUT
             elif args.json:
                 json_path = check_replaceable(user_path(args.json), "JSON file",
                                               overwrite=args.overwrite, ours=_is_paper_json)
             check_cache_dir(args.engine)
+            import_library()
+            from ..experiments.config import read_config
+            from ..experiments.experiment import Experiment
+            # the data, then the experiment: the model built once, the keys that follow it
+            # filled and checked against it (Experiment.from_config)
+            data = read_config(None if args.config is None else user_path(args.config),
+                               overrides or None)
             experiment = Experiment.from_config(data, engine=args.engine)   # resolved once
         except ConfigError as e:     # the value came from --t-end: name the option
             if args.t_end is not None and "experiment.t_end" in str(e):
@@ -170,10 +177,19 @@ def _cmd_report(args):
     return run_report_command(args)
 
 
+class LawNames:
+    """The laws' names, joined by commas when a help text is printed (``%(law_names)s``
+    in an option's help): the registry (:mod:`ivdrem.laws`) imports python-control, which
+    parsing the arguments does not need."""
+
+    def __str__(self):
+        from ..laws import law_names
+        return ", ".join(law_names())
+
+
 def build_parser():
     from .. import __version__
     from .preflight import add_run_options
-    from ..laws import law_names
     from .report import add_report_arguments
     p = argparse.ArgumentParser(prog="ivdrem", description=(
         "Composite adaptive disturbance rejection via IV-based DREM "
@@ -185,9 +201,11 @@ def build_parser():
     pp.add_argument("--t-end", type=float, default=None, metavar="SECONDS",
                     help="horizon (default from the config: 300 s, the horizon "
                          "conclusions C1-C3 need)")
-    pp.add_argument("--laws", "--law", dest="law", nargs="+", default=None, metavar="NAME",
-                    help="laws to run, overrides experiment.laws; 'all' or any of: "
-                         + ", ".join(law_names()) + " (default: iv-drem composite-learning)")
+    laws = pp.add_argument(
+        "--laws", "--law", dest="law", nargs="+", default=None, metavar="NAME",
+        help="laws to run, overrides experiment.laws; 'all' or any of: %(law_names)s "
+             "(default: iv-drem composite-learning)")
+    laws.law_names = LawNames()
     pp.add_argument("--json", default=None, metavar="FILE",
                     help="write per-law numbers as JSON (an existing file only if ivdrem "
                          "wrote it, or with --overwrite; - for standard output, the other "
@@ -369,10 +387,9 @@ def run():
     its own, which it starts and ends faster than a plain ``sys.exit(main())`` (a caller
     in Python uses :func:`main`, which changes neither).
 
-    Start: the cyclic garbage collector is paused while python-control, scipy and numpy
-    are imported, and what they allocated is frozen out of later collections.  Those
-    collections find nothing to free there: 0.11 s of the 2.6 s of ``ivdrem paper
-    --t-end 1``, measured.
+    Start: nothing heavy before the arguments are checked; then the cyclic garbage
+    collector is paused while python-control, scipy and numpy are imported, and what they
+    allocated is frozen out of later collections (:func:`import_library`).
 
     End: once the command has returned, its output is flushed and the exit handlers
     (``atexit``) have run, the process exits without the interpreter's teardown.  Freeing
@@ -381,20 +398,35 @@ def run():
     before the command returns.  An exception that escapes the command (argparse's exit
     included) keeps the ordinary exit.
     """
+    global _freeze_imports
+    _freeze_imports = True
+    code = main()
+    _exit_now(code)
+
+
+#: whether :func:`import_library` pauses and freezes the garbage collector (the console
+#: script's own process, :func:`run`; never a caller's of :func:`main`)
+_freeze_imports = False
+
+
+def import_library():
+    """Import python-control and its SciPy (:mod:`ivdrem.laws`, 2-3 s of CPU), which every
+    command's work needs and none of its checks: a command calls this once its arguments,
+    files and output locations are checked, so that a refusal comes in a tenth of a second.
+
+    In the console script (:func:`run`) the cyclic garbage collector is paused meanwhile
+    and what the imports allocated is frozen out of later collections, which find nothing
+    to free there (0.11 s of ``ivdrem paper --t-end 1``, measured)."""
+    if not _freeze_imports:
+        from .. import laws  # noqa: F401
+        return
     import gc
     gc.disable()
     try:
-        from .. import laws  # noqa: F401 - python-control and its scipy, as every command
-    except KeyboardInterrupt as exc:
+        from .. import laws  # noqa: F401, F811
+    finally:
+        gc.freeze()
         gc.enable()
-        sys.exit(interrupted("ivdrem", exc))
-    except BaseException:
-        gc.enable()
-        raise
-    gc.freeze()
-    gc.enable()
-    code = main()
-    _exit_now(code)
 
 
 def _exit_now(code):

@@ -67,10 +67,15 @@ def main_fmu(argv=None) -> int:
         from ivdrem.controller.fmu_export import main_export_controller
         return main_export_controller(args)
     if args.command == "export":
-        from ivdrem.models import get_model
+        from .._config_file import read_toml
         from .._paths import user_path
-        from ..fmu.export import export_fmu
         try:
+            if args.config is not None:      # the file before python-control and SciPy
+                read_toml(user_path(args.config))
+            from . import import_library
+            import_library()
+            from ivdrem.models import get_model
+            from ..fmu.export import export_fmu
             if args.config is not None:
                 from ivdrem.experiments.config import read_config
                 from ivdrem.experiments.experiment import Experiment

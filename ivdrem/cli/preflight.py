@@ -81,7 +81,7 @@ def method_overrides(name, config_path=None) -> dict:
     user = {}
     if config_path is not None:
         try:   # a broken file is reported by read_config, with its own message
-            from ..experiments.config import read_toml
+            from .._config_file import read_toml
             user = read_toml(config_path)[0].get("solver", {})   # never a FIFO or a device
         except Exception:
             user = {}
@@ -256,7 +256,7 @@ def check_cache_dir(engine) -> None:
     check_c_compiler()          # both engines step in C (ivdrem/sim/stepper.c)
     if engine != "compiled":
         return
-    from ..sim.compiled import cache_dir
+    from ..compile_cache import cache_dir
     check_writable_dir(cache_dir(), "compile cache directory (IVDREM_CACHE_DIR)")
 
 
@@ -264,10 +264,10 @@ def check_c_compiler() -> None:
     """$CC (or cc) must run (``--version``) before any work: CC=/bin/false or a missing
     compiler is one line naming it and what to install, not a traceback at the first run."""
     from ..sim import _cstepper
-    from ..sim.compiled import C_COMPILER_HINT
     try:
         _cstepper._compiler()
     except _cstepper.CStepperUnavailable as e:
+        from ..sim.compiled import C_COMPILER_HINT
         raise PreflightError(f"{e}; {C_COMPILER_HINT}") from None
 
 

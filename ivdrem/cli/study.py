@@ -8,7 +8,6 @@ import sys
 from pathlib import Path
 
 from .._paths import user_path
-from ..experiments.study import RunStore, StudyError, run_study
 
 __all__ = ["add_study_arguments", "run_study_command", "summary_text"]
 
@@ -39,6 +38,15 @@ def run_study_command(args) -> int:
     study = user_path(args.study)
     out = user_path(args.out if args.out is not None else Path("studies") / study.stem)
     report = not args.no_report
+    from .._config_file import ConfigError, read_toml
+    try:      # the file before python-control, SciPy and Dask are imported
+        read_toml(study, "study file")
+    except ConfigError as exc:
+        print(f"ivdrem study: error: {exc}", file=sys.stderr)
+        return 2
+    from . import import_library
+    import_library()
+    from ..experiments.study import RunStore, StudyError, run_study
     try:
         if report:    # a foreign study.html / study.pdf is refused before any work
             from ..reports.study_report import report_paths

@@ -29,6 +29,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .._config_keys import POSITIVE, Key, in_range, magnitude
+from .._config_file import ConfigError, read_toml  # noqa: F401 - read without the library (ivdrem.cli)
 from ..laws import LAWS as _LAW_REGISTRY, get_law, law_names
 from ..blocks.control_law import DESIGNS, INJECTIONS, inertia_scaled_gain
 
@@ -71,10 +72,6 @@ from ..sim.simulator import METHODS as SOLVER_METHODS  # noqa: E402  (one source
 from ..sim.methods import method_info  # noqa: E402
 #: Variants of the Φ_Mf filter gain (erratum E1).
 OBSERVER_VARIANTS = ("corrected", "literal")
-
-
-class ConfigError(ValueError):
-    """An invalid experiment configuration (raised before any simulation)."""
 
 
 # --------------------------------------------------------------------------- schema
@@ -566,31 +563,6 @@ def _check_reference_limits(config: Mapping, model=None) -> None:
         _arm().check_limits(model, config["trajectory"], float(config["experiment"]["t_end"]))
     except _arm().LimitError as exc:
         raise ConfigError(f"config section [trajectory]: {exc}") from None
-
-
-def read_toml(path, what: str = "config file", error=None) -> tuple[dict, str]:
-    """(table, text) of a TOML file; a missing, unreadable, non-UTF-8 or invalid file raises
-    `error` (default ConfigError) naming `what` and the path."""
-    error = ConfigError if error is None else error
-    from .._paths import InputFileError, read_input_bytes
-    p = Path(path)
-    try:    # a FIFO, a device or a runaway file: refused, never read (ivdrem._paths)
-        text = read_input_bytes(p, what).decode("utf-8")
-    except FileNotFoundError:
-        raise error(f"{what} '{p}' not found") from None
-    except IsADirectoryError:
-        raise error(f"{what} '{p}' is a directory, not a file") from None
-    except InputFileError as exc:
-        raise error(str(exc)) from None
-    except UnicodeDecodeError as exc:
-        raise error(f"{what} '{p}' is not UTF-8 text (TOML must be UTF-8): "
-                    f"byte {exc.object[exc.start]:#04x} at offset {exc.start}") from None
-    except OSError as exc:
-        raise error(f"{what} '{p}' cannot be read: {exc}") from None
-    try:
-        return tomllib.loads(text), text
-    except tomllib.TOMLDecodeError as exc:
-        raise error(f"{what} '{p}' is not valid TOML: {exc}") from None
 
 
 def _undot(overrides: Mapping) -> dict:

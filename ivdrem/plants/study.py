@@ -62,7 +62,7 @@ DEFAULTS = dict(noise_levels=[0.0, 1.0], payload_mass=[0.0], payload_com=[0.0, 0
 def is_robustness_file(path) -> bool:
     """Whether the TOML file at ``path`` is a robustness study (has a [robustness] table);
     False for a file that cannot be read (the study command then says why)."""
-    from ..experiments.config import read_toml
+    from .._config_file import read_toml
     try:
         raw, _ = read_toml(Path(path), "study file")
     except Exception:  # noqa: BLE001 - reported by the command that reads it
