@@ -121,3 +121,17 @@ def test_the_sim_package_loads_its_names_when_used():
             "assert ok")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr
+
+
+def test_the_console_script_freezes_what_the_library_import_allocated():
+    """In the console script, import_library pauses the garbage collector during the heavy
+    imports, then freezes what they allocated and turns it back on; from a caller of main
+    it leaves the collector alone."""
+    code = ("import gc, sys, ivdrem.cli as c\n"
+            "c.import_library()\n"
+            "assert 'control' in sys.modules and gc.get_freeze_count() == 0\n"
+            "c._freeze_imports = True\n"        # as run() sets it
+            "c.import_library()\n"
+            "assert gc.isenabled() and gc.get_freeze_count() > 1000, gc.get_freeze_count()\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr

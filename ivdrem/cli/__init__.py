@@ -166,6 +166,7 @@ def _cmd_study(args):
     from .._paths import user_path
     from ..plants.study import is_robustness_file
     if is_robustness_file(user_path(args.study)):       # the MuJoCo robustness study
+        import_library()
         from .plants import run_robustness_command
         return run_robustness_command(args)
     from .study import run_study_command

@@ -64,6 +64,8 @@ def main_fmu(argv=None) -> int:
     """Entry point of ``ivdrem fmu``; ``argv`` excludes the leading ``fmu``. Returns exit code."""
     args = _parser().parse_args(argv)
     if args.command == "export" and args.controller:
+        from . import import_library
+        import_library()
         from ivdrem.controller.fmu_export import main_export_controller
         return main_export_controller(args)
     if args.command == "export":
@@ -154,6 +156,8 @@ def main_cosim(argv=None) -> int:
     import warnings
     from pathlib import Path
 
+    from . import import_library
+    import_library()        # its parser lists the diagrams' laws (python-control)
     try:
         args = _cosim_parser().parse_args(argv)
     except SystemExit as exc:           # --help (0) or an argparse error (2, already printed)

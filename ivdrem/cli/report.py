@@ -170,6 +170,8 @@ def run_report_command(args) -> int:
     """Check every option and output location, run the experiment, write the report;
     returns the exit status (2: refused before any work, 1: a run or the write failed)."""
     if getattr(args, "plant", "ivdrem") == "mujoco":
+        from . import import_library
+        import_library()
         from .plants import run_mujoco_report
         return run_mujoco_report(args)
     args.overwrite = getattr(args, "overwrite", False)

@@ -9,9 +9,10 @@ import sys
 import types
 
 class _Package(types.ModuleType):
-    """``sampled`` names both a submodule and its function: the package's name stays the
-    function (as an eager ``from .sampled import sampled`` left it), also after the import
-    system set it to the submodule when that was first imported."""
+    """``sampled`` names both a submodule and its function: the package's name is the
+    function (``ivdrem.sim.sampled(sys)``), also after the import system set it to the
+    submodule when that was first imported (the modules here import the submodule's names
+    with ``from .sampled import ...``)."""
 
     @property
     def sampled(self):

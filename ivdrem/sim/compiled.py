@@ -36,7 +36,8 @@ from ..models._jit_module import model_module, module_source as _model_module  #
 from .sparse_lu import symbolic_lu
 from .tables import (build_tables, dense_to_sparse, load_tables, prune_kept_tables,
                      save_tables, sparse_to_dense)
-from . import foreign, sampled
+from . import foreign
+from .sampled import SAMPLED_ATTRIBUTE, kernel_spec
 from .foreign import foreign_module as _foreign_module
 from . import _compile_child
 from . import _cstepper
@@ -366,8 +367,8 @@ def _check_kernels(plan):
     """Give every block ivdrem did not write its kernels (ivdrem.sim.foreign.adapt_block),
     once per plan; then every block has a BlockSpec."""
     for b in plan.blocks:
-        if b.spec is None and getattr(b.sys, sampled.SAMPLED_ATTRIBUTE, None) is not None:
-            b.spec = sampled.kernel_spec(b.sys, plan.sampling.address(b))
+        if b.spec is None and getattr(b.sys, SAMPLED_ATTRIBUTE, None) is not None:
+            b.spec = kernel_spec(b.sys, plan.sampling.address(b))
         elif b.spec is None:
             try:
                 b.spec = foreign.adapt_block(b.sys, effective_params(b.sys, plan.diagram,
