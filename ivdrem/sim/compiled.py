@@ -439,11 +439,14 @@ def _callees(cdir, ksrc, sources):
                 out[(mname, f)] = _S_PER_CHAR * len(defs[f].group(0))
     for f in sorted(_ALLOWED_GLOBALS - {"np", "math", "model", "call_c"}):
         helper = getattr(_kernels, f)
-        if not (hasattr(helper, "py_func") and re.search(rf"(?<![\w.]){f}\s*\(", ksrc)):
+        # a mixing function compiles one variant (its njit functions: .variants), the
+        # run's; priced as one when none is cached
+        compiled = (helper,) if hasattr(helper, "py_func") else getattr(helper, "variants", ())
+        if not (compiled and re.search(rf"(?<![\w.]){f}\s*\(", ksrc)):
             continue
         try:
-            if not _compile_child.index_exists(helper._cache):
-                out[("_kernels", f)] = _S_PER_CHAR * len(inspect.getsource(helper.py_func))
+            if not any(_compile_child.index_exists(c._cache) for c in compiled):
+                out[("_kernels", f)] = _S_PER_CHAR * len(inspect.getsource(compiled[0].py_func))
         except Exception:     # pragma: no cover - numba internals changed
             pass
     return out
