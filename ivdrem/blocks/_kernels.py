@@ -599,6 +599,18 @@ def _compiled_variants(factory, name):
     return tuple(out)
 
 
+def compile_variant(name, code):
+    """Compile variant `code` of the mixing function `name` ("mixing_values",
+    "mixing_derivatives") for the argument types every caller passes (C-contiguous float64
+    vectors, float64 numbers, the derivatives' C-contiguous matrix): what a kernel's
+    wrapper, γ "auto"'s estimate and the Python path then load from numba's cache."""
+    vec, mat = types.float64[::1], types.float64[:, ::1]
+    args = {"mixing_values": (vec, vec, types.float64, types.float64, vec, vec, vec),
+            "mixing_derivatives": (vec, vec, types.float64, types.float64, mat)}[name]
+    fn = {"mixing_values": mixing_values, "mixing_derivatives": mixing_derivatives}[name]
+    fn.variants[_variant_index(code)].compile(args)
+
+
 def _variant_index(code):
     """The variant a mixing function takes for `code`: 0 "paper", 1 "eigen", any other
     "channel" (the else branch of the one function they were written as)."""

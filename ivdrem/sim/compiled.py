@@ -618,6 +618,9 @@ class CompiledEngine:
                        f"{plan.diagram.name!r} (numba; loaded from the cache when they are "
                        "there)", cached_in=cache_dir(), only_if_slow=True):
             modules = kernel_modules(plan, param_slots)
+            # a helper child (γ "auto"'s estimate started one) done: its functions are in
+            # numba's cache before the probe reads that cache and the wrappers load them
+            _compile_child.join_helpers()
             key = tables_key(plan, modules)
             tables = kept_tables(key)
             if tables is not None:      # a warm run, or a second call of the same diagram
