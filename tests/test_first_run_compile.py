@@ -160,3 +160,20 @@ def test_the_model_modules_strided_fallback_has_no_slice_assignment():
     big = np.zeros((2, 3, 8))
     ns["copy"](big[:, :, ::2], o)
     assert np.array_equal(big[:, :, ::2], o) and not big[:, :, 1::2].any()
+
+
+def test_a_mixing_function_counts_as_ready_for_the_probe_when_one_variant_is(monkeypatch):
+    # the probe reads a block from its Jacobian kernel only where the helpers it calls are
+    # compiled or cached; a mixing function is its variants (a run uses one of them)
+    from ivdrem.blocks.jacobians import mixing_jacobian
+    from ivdrem.sim import jacobian as jac
+    assert jac._compiled_functions(mixing_derivatives) == mixing_derivatives.variants
+    assert jac._compiled_functions(np.sum) == ()
+    cached = set()
+    monkeypatch.setattr(jac, "index_exists", lambda cache: cache in cached)
+    fresh = [type("Variant", (), {"signatures": [], "_cache": object(), "py_func": None})()
+             for _ in MIXING_VARIANTS]
+    monkeypatch.setattr(mixing_derivatives, "variants", tuple(fresh))
+    assert jac._compiles_first(mixing_jacobian)
+    cached.add(fresh[2]._cache)                # one variant in numba's cache
+    assert not jac._compiles_first(mixing_jacobian)
