@@ -123,7 +123,7 @@ run()
 
 
 _COMPILE_RUNNER = """
-import collections, json, sys, time
+import atexit, collections, json, sys, time
 from numba.core import event
 stack, mods = [], []
 funcs = collections.defaultdict(lambda: [0.0, 0.0, 0])   # name: [own, with callees, count]
@@ -163,15 +163,17 @@ def timed(cdir, name, src):
 
 compiled._import = timed
 c0 = time.process_time()
-sys.argv = ['ivdrem'] + sys.argv[1:]
-from ivdrem.cli import run
-try:
-    run()
-finally:
+
+@atexit.register          # the command ends by its exit handlers, without a teardown
+def report():
     print('[compile-table] ' + json.dumps(dict(
         cpu=time.process_time() - c0, funcs=funcs,
         modules=[(m[0], m[2] - m[1], m[2]) for m in mods if m[2] is not None])),
         file=sys.stderr, flush=True)
+
+sys.argv = ['ivdrem'] + sys.argv[1:]
+from ivdrem.cli import run
+run()
 """
 
 
