@@ -1,5 +1,6 @@
 #!/usr/bin/env python
-"""The cost of running the stability prediction's prefix in pieces (so that Ctrl-C and
+"""The cost of returning to Python often enough that Ctrl-C and SIGTERM stop a long compiled
+call within about 0.1 s: (1) the stability prediction's prefix in pieces (so that Ctrl-C and
 SIGTERM stop it: ``ivdrem.controller.stability.run_in_pieces``, pieces of PIECE_S = 0.1 s of
 wall time) against the same loop in one compiled call (``pieces=N + 1``), side by side,
 alternating, in one process, both warm; and whether the points are the same, bit for bit.
@@ -12,9 +13,15 @@ its design, the FMU's delay 1, the configuration's disturbance, 1.25 windows T),
 2-link arm's IV-DREM (the cheapest step ivdrem has, ~13 µs: the largest share for the calls
 between pieces).
 
+(2) The C stepper's reports by wall time (``ivdrem.sim.simulator.REPORT_WALL_S``: about
+every 0.1 s between the 200 reports of an ``advance``) against the 200 alone
+(``REPORT_WALL_S = inf``), on the paper's IV-DREM loop (Rodas5P, ``--paper-t`` s) and the
+2-link loop at fixed step (RK4, h = 1e-4, 20 s: 2e5 cheap steps); the cost of one report
+measured as (2).
+
 Usage::
 
-    ./run python benchmarks/bench_pieces.py [--rounds 5] [--two-link-t 100]
+    ./run python benchmarks/bench_pieces.py [--rounds 5] [--two-link-t 100] [--paper-t 300]
 """
 from __future__ import annotations
 
@@ -102,6 +109,8 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--two-link-t", type=float, default=100.0,
                     help="the 2-link prefix's length in s (default 100)")
+    ap.add_argument("--paper-t", type=float, default=300.0,
+                    help="the paper loop's run in s (default 300)")
     args = ap.parse_args(argv)
     from ivdrem.models import two_link
     m2 = two_link()
@@ -142,8 +151,62 @@ def main(argv=None):
               flush=True)
         if not same:
             return 1
+    if not _stepper_reports(args):
+        return 1
     print(f"load at end {os.getloadavg()[0]:.1f}")
     return 0
+
+
+def _stepper_reports(args):
+    """(2): the stepper's runs with the reports by wall time and without, alternating."""
+    import math
+
+    from ivdrem.diagrams import closed_loop
+    from ivdrem.models import two_link  # noqa: F401 - the loops' model
+    from ivdrem.sim import simulate
+    from ivdrem.sim import simulator as sim_module
+    real = sim_module.Simulator._report_trampoline
+    count = [0]
+
+    def counted(self, t):
+        count[0] += 1
+        return real(self, t)
+    sim_module.Simulator._report_trampoline = counted
+    loop = closed_loop("iv-drem")
+    cases = {f"paper IV-DREM {args.paper_t:g} s (rodas5p)": (args.paper_t, {}),
+             "paper IV-DREM 20 s (rk4, h = 1e-4)": (20.0, dict(method="rk4", h=1e-4))}
+    ok = True
+    try:
+        for name, (t_end, kw) in cases.items():
+            simulate(loop, 1.0, progress=False, **kw)              # compiled, warm
+            walls, calls, outs = {}, {}, {}
+            for r in range(args.rounds):
+                order = (sim_module.REPORT_WALL_S, math.inf, 1e-6)
+                for every in (order if r % 2 == 0 else order[::-1]):
+                    sim_module.REPORT_WALL_S = every
+                    count[0] = 0
+                    t0 = time.perf_counter()
+                    res = simulate(loop, t_end, progress=False, **kw)
+                    walls.setdefault(every, []).append(time.perf_counter() - t0)
+                    calls[every] = count[0]
+                    outs.setdefault(every, np.asarray(res.outputs))
+                sim_module.REPORT_WALL_S = order[0]
+            default = order[0]
+            best = {e: min(w) for e, w in walls.items()}
+            per = (best[1e-6] - best[math.inf]) / max(1, calls[1e-6] - calls[math.inf])
+            extra = calls[default] - calls[math.inf]
+            same = all(np.array_equal(outs[e], outs[math.inf]) for e in outs)
+            ok = ok and same
+            print(f"{name}: {calls[default]} reports ({extra} by wall time) against "
+                  f"{calls[math.inf]}; one report {per * 1e6:.1f} µs ({calls[1e-6]} reports "
+                  f"at every step: {best[1e-6]:.2f} s / {best[math.inf]:.2f} s), so "
+                  f"{extra * per / best[math.inf] * 100:.3f} % of the run; measured "
+                  f"{(best[default] / best[math.inf] - 1) * 100:+.2f} % (best of "
+                  f"{args.rounds}); outputs {'identical' if same else 'DIFFER'}; load "
+                  f"{os.getloadavg()[0]:.1f}", flush=True)
+    finally:
+        sim_module.Simulator._report_trampoline = real
+    return ok
 
 
 if __name__ == "__main__":
