@@ -285,6 +285,23 @@ def test_prefix_in_pieces_is_the_prefix_in_one_call(K, delay, diverges):
         _same_prefix(runs[p], runs[N + 1])
 
 
+def test_the_prefix_progress_bar_changes_nothing(monkeypatch, capsys):
+    """On a terminal the prefix draws a bar of its steps on stderr, updated between the
+    pieces; the points are those of a run without it, bit for bit."""
+    import ivdrem._progress as progress_rule
+    from ivdrem.controller.stability import closed_loop_prefix
+    m = two_link()
+    kw = dict(checkpoints=4, h=1e-3, delay=1, pieces=100)
+    quiet = closed_loop_prefix(m, "iv-drem", m.theta_values, 1.0, progress=False, **kw)
+    assert "stability prediction" not in capsys.readouterr().err
+    monkeypatch.setattr(progress_rule, "want_progress", lambda requested=None, stream=None:
+                        requested is not False)
+    shown = closed_loop_prefix(m, "iv-drem", m.theta_values, 1.0, **kw)
+    err = capsys.readouterr().err
+    assert "stability prediction, the loop's first 1 s" in err and "/1000" in err
+    _same_prefix(shown, quiet)
+
+
 def test_run_in_pieces_sizes_pieces_by_wall_time():
     """run_in_pieces: the first piece FIRST_PIECE steps, then sized to piece_s from the
     last piece's speed (at most 4 times the last), and the last piece ends at stop; a
