@@ -5,7 +5,9 @@ Loaded with ``-p pycontrol_plugin`` in a subprocess whose ``IVDREM_PYCONTROL_ENG
 * ``none``: python-control's own ``input_output_response``, only counted;
 * ``compiled`` / ``reference``: ivdrem's drop-in on that engine, installed for the whole
   session with :func:`ivdrem.pycontrol.replaced` before the test modules are imported (so
-  ``from control import input_output_response`` in a test module gets it too).
+  ``from control import input_output_response`` in a test module gets it too).  The tests
+  whose node ids start with one of ``IVDREM_PYCONTROL_ON_REFERENCE`` (a JSON list) run on
+  the reference engine instead; every test's record names the engine its calls ran on.
 
 Per test it writes to ``IVDREM_PYCONTROL_REPORT`` (JSON): the outcome, the number of calls
 that reached the simulator and, on an ivdrem engine, for every call python-control's own
@@ -42,6 +44,8 @@ import ivdrem.pycontrol as pc
 ENGINE = os.environ.get("IVDREM_PYCONTROL_ENGINE", "none")
 REPORT = os.environ.get("IVDREM_PYCONTROL_REPORT")
 AGREEMENT = float(os.environ.get("IVDREM_PYCONTROL_AGREEMENT", "inf"))
+#: node-id prefixes of the tests run on the reference engine whatever ENGINE is
+ON_REFERENCE = tuple(json.loads(os.environ.get("IVDREM_PYCONTROL_ON_REFERENCE", "[]")))
 #: the size of the initial-state perturbation of _self_difference, in units of
 #: atol + rtol |x0|: far below what either solver is asked to resolve
 PERTURBATION = 1e-3
@@ -114,10 +118,40 @@ def _callers():
     return names
 
 
+def _record(nodeid):
+    return _records.setdefault(nodeid, {"calls": 0, "diff": [], "ill_conditioned": []})
+
+
+def engine_of(nodeid, default, on_reference):
+    """The engine a test runs on: the reference engine for a node id starting with one of
+    `on_reference`, `default` otherwise (one rule, used by tests/test_pycontrol.py too)."""
+    return "reference" if nodeid.startswith(tuple(on_reference)) else default
+
+
+def _per_test(default, on_reference):
+    """ivdrem's drop-in on the running test's engine (:func:`engine_of`); the engine is
+    recorded with the test's calls, and a response that says it ran on another engine
+    (its ``stats``: a system without states has none) fails the test."""
+    engines = {e: pc.drop_in(engine=e) for e in {default, "reference"}}
+
+    def input_output_response(*args, **kwargs):
+        engine = engine_of(_current["id"] or "", default, on_reference)
+        rec = _record(_current["id"])
+        if rec.setdefault("engine", engine) != engine:
+            raise AssertionError(f"{_current['id']} ran on {rec['engine']} and {engine}")
+        resp = engines[engine](*args, **kwargs)
+        for r in (resp if isinstance(resp, ct.TimeResponseList) else [resp]):
+            ran = (getattr(r, "stats", None) or {}).get("engine", engine)
+            if ran != engine:
+                raise AssertionError(f"{_current['id']}: asked for {engine}, ran on {ran}")
+        return resp
+    input_output_response.__doc__ = pc.input_output_response.__doc__
+    return input_output_response
+
+
 def _counted(simulator, original):
     def input_output_response(*args, **kwargs):
-        rec = _records.setdefault(_current["id"], {"calls": 0, "diff": [],
-                                                   "ill_conditioned": []})
+        rec = _record(_current["id"])
         rec["calls"] += 1
         resp = simulator(*args, **kwargs)
         if original is not None and not isinstance(args[0] if args else None, (list, tuple)):
@@ -148,7 +182,7 @@ def pytest_configure(config):
     if ENGINE == "none":
         fn = _counted(original, None)
     else:
-        fn = _counted(pc.drop_in(engine=ENGINE), original)
+        fn = _counted(_per_test(ENGINE, ON_REFERENCE), original)
     _patch = pc.replaced(fn)
     _patch.__enter__()
 
@@ -199,7 +233,7 @@ def pytest_runtest_protocol(item, nextitem):
 
 
 def pytest_runtest_logreport(report):
-    rec = _records.setdefault(report.nodeid, {"calls": 0, "diff": [], "ill_conditioned": []})
+    rec = _record(report.nodeid)
     if report.when == "call" or report.outcome != "passed":
         if rec.get("outcome") in (None, "passed"):
             rec["outcome"] = report.outcome

@@ -470,6 +470,21 @@ def test_short_horizon_note(monkeypatch, capsys, tmp_path):
     assert "shorter than the 300 s horizon that conclusions C1-C3" in capsys.readouterr().err
 
 
+def test_a_run_shorter_than_the_window_prints_no_conclusion(monkeypatch, capsys):
+    """`ivdrem paper --t-end 1`: the window T is not full, so no C1-C3 line (a verdict about
+    learning the run cannot show); the diagnostics' note says why.  At 30 s they print."""
+    import ivdrem.experiments.paper as paper
+    monkeypatch.setattr(paper, "run_paper", _synthetic)
+    assert main(["paper", "--t-end", "1", "--quiet"]) == 0
+    out = capsys.readouterr()
+    lines = (out.out + out.err).splitlines()
+    assert not [ln for ln in lines if ln.startswith(("C1 ", "C2 ", "C3 "))]
+    assert any("not evaluated: the run ends at t = 1 s, before the window" in ln for ln in lines)
+    assert main(["paper", "--t-end", "30", "--quiet"]) == 0
+    out = capsys.readouterr()
+    assert [ln for ln in (out.out + out.err).splitlines() if ln.startswith("C2 ")]
+
+
 def test_timing_text_splits_compile_and_simulation():
     from ivdrem.cli.preflight import timing_text
     assert timing_text({"compile_s": 38.6, "sim_s": 0.08, "wall_s": 38.7}) == \

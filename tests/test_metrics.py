@@ -183,6 +183,30 @@ def test_missing_law_is_not_evaluated():
     assert "not evaluated" in format_conclusions(conclusions(run))
 
 
+def test_a_run_shorter_than_the_window_judges_no_conclusion():
+    """A run that ends before the window (15a) is full (the composite term cannot have
+    acted) gives C1-C3 no verdict, with the diagnostics' note, while its numbers are kept;
+    the same profiles over the whole horizon are judged (the synthetic C2 would FAIL at 1 s:
+    ‖θ̃‖ has not fallen yet)."""
+    T_win = float(CFG["iv_drem"]["T"])
+    t_short = np.linspace(0.0, 1.0, 101)
+    assert t_short[-1] <= T_win
+    direction = THETA / np.linalg.norm(THETA)
+    runs = {law: synthetic_lawrun(law, t_short, THETA, direction[:, None] * np.ones_like(t_short),
+                                  0.1 * np.vstack([np.sin(t_short), np.cos(t_short)]), CFG)
+            for law in ("iv-drem", "composite-learning")}
+    short = by_id(SyntheticPaperRun(config=CFG, theta=THETA, runs=runs))
+    for cid in ("C1", "C2", "C3"):
+        assert short[cid]["verdict"] is None, cid
+        assert short[cid]["note"] == (f"not evaluated: the run ends at t = 1 s, before the "
+                                      f"window T = {T_win:g} s is full")
+        assert short[cid]["measured"]                     # the numbers are still there
+    assert short["C2"]["measured"]["end_to_initial_ratio"] == pytest.approx(1.0)
+    # the horizon past the window: judged as before
+    full = by_id(make_run(STALLED, CONVERGING))
+    assert T_END > T_win and all(full[c]["verdict"] is True for c in ("C1", "C2", "C3"))
+
+
 def test_synthetic_paper_run_flags():
     def verdicts(**kw):
         return [c["verdict"] for c in conclusions(synthetic_paper_run(t_end=60.0, dt=0.05, **kw))]

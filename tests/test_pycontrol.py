@@ -6,8 +6,10 @@ The test files ship with python-control (``control/tests``).  They run in a subp
 tests/pycontrol_plugin.py, once on python-control's own simulator and once on ivdrem's, and
 the tests are compared one by one.  ``tests/data/pycontrol_reaching.txt`` lists the tests
 that reach the simulator and pass on python-control; the default suite runs those of
-QUICK_FILES on the compiled engine; ``IVDREM_PYCONTROL_FULL=1`` runs all of them (about 8
-minutes per engine), on both engines, and checks the list against the whole files.
+QUICK_FILES once, each on one engine (ON_REFERENCE: the tests of a response's conventions on
+the reference engine, the others on the compiled one); ``IVDREM_PYCONTROL_FULL=1`` runs all
+of them (about 8 minutes per engine), on both engines, and checks the list against the whole
+files.
 
 Numerical agreement: every call of a test is also run on python-control, and the outputs
 and states must agree within a multiple of the tolerances the call asked for (both
@@ -51,6 +53,18 @@ FILES = ("ctrlplot_test.py", "descfcn_test.py", "flatsys_test.py", "interconnect
 QUICK_FILES = ("flatsys_test.py", "interconnect_test.py", "kwargs_test.py", "nlsys_test.py",
                "statefbk_test.py", "timeresp_test.py", "trdata_test.py")
 
+#: the tests of QUICK_FILES the default suite runs on the reference engine (node-id
+#: prefixes; the others run on the compiled engine): python-control's checks of a
+#: response's conventions (squeeze and shapes, aliases, pandas, labels) on random linear
+#: systems of many sizes.  The drop-in wraps either engine's run in the same code
+#: (ivdrem.pycontrol.input_output_response), and on the compiled engine each new size is a
+#: new compile: from an empty compile cache the harness compiled 53 kernels of blocks it
+#: did not write with every test on the compiled engine, 17 with these on the reference one
+#: (186 s → 110 s at load 5; docs/performance.md, "The test suite").  The compiled engine
+#: keeps the nonlinear, interconnected, flat and gain-scheduled systems, the LTI systems of
+#: nlsys_test and trdata's params; IVDREM_PYCONTROL_FULL=1 runs every test on each engine.
+ON_REFERENCE = ("timeresp_test.py", "trdata_test.py::test_trdata_labels")
+
 #: tests that fail with ivdrem on purpose: ivdrem is stricter (docs/simulation.md,
 #: "Where the drop-in differs"); node id -> the difference
 _PARAMS = ("a params name no block declares is refused (python-control passes it on to "
@@ -89,15 +103,17 @@ EXPECTED_TABLE = {
 AGREEMENT = 100.0
 
 
-def _run(engine, targets, tmp_path, name):
+def _run(engine, targets, tmp_path, name, on_reference=()):
     """Run python-control's tests `targets` with the plugin on `engine` ("none":
-    python-control's simulator); returns {node id: record}."""
+    python-control's simulator), those whose node ids start with one of `on_reference` on
+    the reference engine; returns {node id: record}."""
     report = tmp_path / f"{name}.json"
     ini = tmp_path / "pytest.ini"
     ini.write_text("[pytest]\n")      # not ivdrem's pyproject.toml (its pythonpath)
     env = dict(os.environ, IVDREM_PYCONTROL_ENGINE=engine,
                IVDREM_PYCONTROL_REPORT=str(report), MPLBACKEND="Agg",
                IVDREM_PYCONTROL_AGREEMENT=str(AGREEMENT),
+               IVDREM_PYCONTROL_ON_REFERENCE=json.dumps(list(on_reference)),
                PYTHONPATH=os.pathsep.join([str(HERE.parent), str(HERE)]))
     cmd = [sys.executable, "-m", "pytest", "-c", str(ini), "-p", "pycontrol_plugin",
            "-p", "no:cacheprovider", "-q", "--rootdir", str(CT_TESTS), "-W",
@@ -143,30 +159,41 @@ def test_release_is_the_supported_one():
     assert ct.__version__ == pc.SUPPORTED_RELEASE
 
 
+_FULL_ONLY = pytest.mark.skipif(not FULL, reason="every file on both engines: "
+                                "IVDREM_PYCONTROL_FULL=1")
+
+
 @pytest.mark.parametrize("engine", [
-    "compiled",
-    pytest.param("reference", marks=pytest.mark.skipif(
-        not FULL, reason="both engines: IVDREM_PYCONTROL_FULL=1"))])
+    pytest.param("quick", marks=pytest.mark.skipif(FULL, reason="the full run instead")),
+    pytest.param("compiled", marks=_FULL_ONLY), pytest.param("reference", marks=_FULL_ONLY)])
 def test_python_control_tests_pass_on_ivdrem(engine, tmp_path):
     # the whole list takes about 8 minutes on one engine (python-control's optimal tests
-    # alone are minutes): the default suite runs the files of QUICK_FILES
+    # alone are minutes): the default suite runs the files of QUICK_FILES, once
     ids = [i for i in _reaching() if FULL or _file(i) in QUICK_FILES]
     # the list is python-control's own passing tests that reach the simulator
     # (test_reaching_list_is_current)
     base = set(ids)
-    mine = _run(engine, _targets(ids), tmp_path, engine)
+    default, on_reference = ("compiled", ON_REFERENCE) if engine == "quick" else (engine, ())
+    mine = _run(default, _targets(ids), tmp_path, engine, on_reference)
     ok = {k for k, r in mine.items() if r.get("outcome") == "passed"}
+    ran = {i: mine[i].get("engine") for i in ok}
     table = _count_table(ids, ok)
     print(f"\npython-control's tests on ivdrem ({engine}): per file, the tests that reach "
           "the simulator and pass on python-control, those passing here, the deliberate "
-          "differences, other failures")
+          "differences, other failures, the engine")
     for f, row in table.items():
-        print(f"  {f:24s} {row[0]:4d} {row[1]:4d} {row[2]:4d} {row[3]:4d}")
+        on = "/".join(sorted({ran[i] for i in ok if _file(i) == f}))
+        print(f"  {f:24s} {row[0]:4d} {row[1]:4d} {row[2]:4d} {row[3]:4d}  {on}")
     print(f"  {'total':24s} " + " ".join(f"{sum(r[k] for r in table.values()):4d}"
                                           for k in range(4)))
     failed = {i: mine.get(i, {}).get("error", "not run") for i in ids if i not in ok}
     unexpected = {i: e for i, e in failed.items() if i not in DELIBERATE}
     assert not unexpected, "\n\n".join(f"{i}:\n{e}" for i, e in unexpected.items())
+    # every test's calls ran on its engine, and the quick run has both
+    expected = {i: plugin.engine_of(i, default, on_reference) for i in ok}
+    assert ran == expected, {i: (ran[i], e) for i, e in expected.items() if ran[i] != e}
+    if engine == "quick":
+        assert set(ran.values()) == {"compiled", "reference"}, set(ran.values())
     # the table of docs/simulation.md is this run's (the same on both engines)
     assert table == {f: row for f, row in EXPECTED_TABLE.items()
                      if FULL or f in QUICK_FILES}, table

@@ -32,14 +32,20 @@ from ivdrem.reports.study_report import write_study_report_of
 from ivdrem.experiments.study_spec import StudyError, expand_study, read_study
 
 T_END = 5.0
-GRID = {"experiment": {"t_end": T_END},
+#: both laws' windows shorter than the horizon, so that C1-C3 are judged (a run ending
+#: before its window is full gives them no verdict)
+WINDOW = 2.0
+GRID = {"experiment": {"t_end": T_END}, "iv_drem": {"T": WINDOW},
+        "composite_learning": {"T": WINDOW},
         "study": {"grid": {"controller.alpha": [1.0, 1.5]}}}  # both laws read alpha: 4 runs
 TIMING = ["sim_s", "compile_s", "task_s"]
 
 
 def _point_configs():
     """The two configurations of GRID, each written out and read back as `--config` would."""
-    return [read_config(None, {"experiment.t_end": T_END, "controller.alpha": a}) for a in (1.0, 1.5)]
+    return [read_config(None, {"experiment.t_end": T_END, "iv_drem.T": WINDOW,
+                               "composite_learning.T": WINDOW, "controller.alpha": a})
+            for a in (1.0, 1.5)]
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +112,7 @@ def test_grid_study_equals_paper_runs_bit_for_bit(grid_study, paper_runs):
         assert row["C2_end_ratio"] == concl["C2"]["measured"]["end_to_initial_ratio"]
         assert row["C3_ratio"] == concl["C3"]["measured"]["ratio"]
         for cid in ("C1", "C2", "C3"):
-            assert bool(row[cid]) is concl[cid]["verdict"]
+            assert concl[cid]["verdict"] is not None and bool(row[cid]) is concl[cid]["verdict"]
     # the files hold the same table
     pq = pd.read_parquet(out / "results.parquet")
     pd.testing.assert_frame_equal(pq, df, check_dtype=False)
@@ -159,6 +165,9 @@ def test_the_command_writes_the_report_from_the_results(tmp_path, cluster, capsy
     assert "Metrics against controller.alpha" in html
     assert (tmp_path / "out" / "study.pdf").read_bytes().startswith(b"%PDF")
     assert "study.html, study.pdf" in capsys.readouterr().out
+    # t_end = 5 s ends before the window T = 20 s is full: C2's numbers kept, no verdict
+    df = pd.read_csv(tmp_path / "out" / "results.csv")
+    assert df["C2"].isna().all() and np.isfinite(df["C2_end_ratio"]).all()
     rc = main(["study", str(study), "--out", str(tmp_path / "bare"), "--quiet", "--no-report",
                "--scheduler", cluster.scheduler_address])
     assert rc == 0

@@ -277,7 +277,8 @@ def horizon_note(config) -> str | None:
     if t_end >= CONCLUSIONS_HORIZON:
         return None
     return (f"note: t_end = {t_end:g} s is shorter than the {CONCLUSIONS_HORIZON:g} s horizon "
-            f"that conclusions C1-C3 are stated for; expect FAIL verdicts")
+            f"that conclusions C1-C3 are stated for; expect FAIL verdicts, or none where "
+            f"the run ends before the composite term can act")
 
 
 def timing_text(stats) -> str:

@@ -40,6 +40,8 @@ from typing import Mapping
 import numpy as np
 from scipy.integrate import cumulative_trapezoid
 
+from .metrics import law_horizon_note, short_horizon_note
+
 __all__ = ["diagnose", "measured_label", "diagnose_run", "tau_d_decomposition", "observer_error_true_theta", "decay_exponent", "power_fit", "check_ka1", "check_pe",
            "check_ka2", "check_ka3", "check_prop2", "check_property42", "check_rate",
            "check_lyapunov", "check_active", "check_learning", "learning_warnings", "filtered_disturbance", "excitation_beta",
@@ -841,11 +843,7 @@ def diagnose(lawrun, config, model=None, *, theta=None, figure=None):
     checks.append(c)
     if c["note"] and c["verdict"] == FAILS:
         warnings.insert(0, c["note"])
-    # the law's own window: [iv_drem]'s T, or its section's (composite learning's (35))
-    own = config.get(spec.section, {}) if spec is not None and spec.section else {}
-    windowed = spec is not None and "T" in spec.defaults
-    short = short_horizon_note(t[-1], float(own.get("T", T)), mixing if has_delta else None,
-                               windowed=windowed)
+    short = law_horizon_note(lawrun, config)
     if short:
         # a horizon that ends before the composite term could act judges nothing about it:
         # its checks are not decided, and no warning speaks of learning
@@ -860,24 +858,6 @@ def diagnose(lawrun, config, model=None, *, theta=None, figure=None):
 #: the checks a run must outlive the window (15a) (and the start of the composite term)
 #: to judge: they measure Δ, the excitation of a full window, 𝒲 or the decay of θ̃
 HORIZON_CHECKS = ("KA1", "PE", "P2", "RATE", "ACTIVE", "LEARN")
-
-
-def short_horizon_note(t_end, T, mixing, *, windowed=True):
-    """The note of a run too short to judge the composite term, or "": the window (15a)
-    is full at t = T, and the scale-free mixings start the term (21) there
-    (:func:`ivdrem.blocks.mixing.start_of_term`), so a run ending by then (by the end of
-    the start's ramp for those mixings) cannot show whether the law learns."""
-    if not windowed:
-        return ""
-    from ..blocks.mixing import start_of_term
-    t_on, t_ramp = start_of_term(mixing, T) if mixing is not None else (0.0, 0.0)
-    if t_on > 0 and t_end <= t_on + t_ramp:
-        return (f"not evaluated: the composite term starts at T = {T:g} s"
-                f" (the run ends at t = {t_end:g} s)")
-    if t_end <= T:
-        return (f"not evaluated: the run ends at t = {t_end:g} s, before the window "
-                f"T = {T:g} s is full")
-    return ""
 
 
 def learning_warnings(diag: Mapping) -> list:

@@ -11,7 +11,8 @@ uses their duck type:
   ``.stats`` (solver statistics).
 
 Conclusions, each a dict with keys id, statement, criterion, law(s),
-measured, threshold, verdict (True/False; None when a needed law was not run):
+measured, threshold, verdict (True/False; None when a needed law was not run, or when the
+run ends before the composite term of one of its laws could act: :func:`law_horizon_note`):
 
 * C1 (composite learning, θ̃ bounded, no convergence): over the last half of the run
   max and min of ‖θ̃‖ stay within 10 % of ‖θ̃‖ at mid-run, and ‖θ̃(t_end)‖ > 0.1‖θ̃(0)‖.
@@ -41,6 +42,7 @@ __all__ = [
     "rms",
     "summary",
     "conclusions",
+    "law_horizon_note",
     "format_conclusions",
     "verdict_text",
     "key_numbers",
@@ -334,6 +336,48 @@ def _c4(proposed, plain, theta) -> dict:
     }
 
 
+def short_horizon_note(t_end, T, mixing, *, windowed=True):
+    """The note of a run too short to judge the composite term, or "": the window (15a)
+    is full at t = T, and the scale-free mixings start the term (21) there
+    (:func:`ivdrem.blocks.mixing.start_of_term`), so a run ending by then (by the end of
+    the start's ramp for those mixings) cannot show whether the law learns."""
+    if not windowed:
+        return ""
+    from ..blocks.mixing import start_of_term
+    t_on, t_ramp = start_of_term(mixing, T) if mixing is not None else (0.0, 0.0)
+    if t_on > 0 and t_end <= t_on + t_ramp:
+        return (f"not evaluated: the composite term starts at T = {T:g} s"
+                f" (the run ends at t = {t_end:g} s)")
+    if t_end <= T:
+        return (f"not evaluated: the run ends at t = {t_end:g} s, before the window "
+                f"T = {T:g} s is full")
+    return ""
+
+
+
+def law_horizon_note(lawrun, config) -> str:
+    """:func:`short_horizon_note` of one law's run: the law's own window T (its
+    configuration section's, as composite learning's (35), else [iv_drem]'s), the mixing its
+    Δ came from (γ "auto"'s choice if the run made one), whether the law has a window at
+    all.  The diagnostics' horizon checks and conclusions C1-C4 both read it."""
+    from ..laws import LAWS as registry
+
+    resp = getattr(lawrun, "response", lawrun)
+    spec = registry.get(getattr(lawrun, "law", "?"))
+    ivd = (config or {}).get("iv_drem") or {}
+    if "T" not in ivd:
+        return ""           # runs given without their configuration: no window known
+    stats = getattr(lawrun, "stats", None) or {}
+    choice = stats.get("gamma_choice") if isinstance(stats, Mapping) else None
+    mixing = (choice or {}).get("variant") or ivd.get("mixing", "paper")
+    own = config.get(spec.section, {}) if spec is not None and spec.section else {}
+    windowed = spec is not None and "T" in spec.defaults
+    t_end = float(np.asarray(resp.time, dtype=float)[-1])
+    has_delta = "Delta" in signal_names(resp)
+    return short_horizon_note(t_end, float(own.get("T", ivd["T"])),
+                              mixing if has_delta else None, windowed=windowed)
+
+
 def conclusions(run) -> list[dict]:
     """Conclusions C1-C4 of a PaperRun with their numbers and verdicts."""
     runs = run.runs
@@ -349,6 +393,10 @@ def conclusions(run) -> list[dict]:
             out.append(_missing(cid, laws, runs))
             continue
         res = fn()
+        # a run that ends before the composite term of one of its laws could act judges
+        # nothing about learning: the numbers are kept, the verdict is not given
+        short = next((note for note in (law_horizon_note(runs[law], run.config) for law in laws)
+                      if note), "")
         out.append({
             "id": cid,
             "statement": _STATEMENTS[cid],
@@ -356,8 +404,8 @@ def conclusions(run) -> list[dict]:
             "laws": laws,
             "measured": res["measured"],
             "threshold": res["threshold"],
-            "verdict": res["verdict"],
-            "note": "",
+            "verdict": None if short else res["verdict"],
+            "note": short,
         })
     return out
 

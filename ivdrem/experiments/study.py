@@ -102,6 +102,7 @@ def run_one(config: Mapping, law: str) -> dict:
             sim_s=float(sim_s), compile_s=float(compile_s),
             conclusions=_own_conclusions(PaperRun(config=dict(config), theta=theta, model=model,
                                                   runs={law: lr})),
+            horizon_note=metrics.law_horizon_note(lr, config),
             curves=_curves(lr, theta),
         )
     except Exception as exc:  # noqa: BLE001 - a failed run is a result, the study goes on
@@ -111,12 +112,16 @@ def run_one(config: Mapping, law: str) -> dict:
 
 
 def _own_conclusions(run) -> dict:
-    """The conclusions one law decides alone: C1 for composite learning, C2 for IV-DREM."""
+    """The conclusions one law decides alone: C1 for composite learning, C2 for IV-DREM,
+    with their numbers; the verdict None where the run ends before the law's composite term
+    could act (:func:`ivdrem.experiments.metrics.law_horizon_note`)."""
     from . import metrics
     out = {}
     for c in metrics.conclusions(run):
-        if c["verdict"] is not None:
-            out[c["id"]] = {"measured": c["measured"], "verdict": bool(c["verdict"])}
+        if c["measured"]:                     # not a conclusion of a law this run lacks
+            out[c["id"]] = {"measured": c["measured"],
+                            "verdict": None if c["verdict"] is None else bool(c["verdict"]),
+                            "note": c["note"]}
     return out
 
 
@@ -156,7 +161,9 @@ def warm_up(config: Mapping, law: str) -> float:
 
 # --------------------------------------------------------------------------- results
 def _c3(iv: Mapping, cl: Mapping) -> dict:
-    """C3 of one point from the two runs' RMS ‖τ̃_d‖ over the last 20 % (metrics.summary).
+    """C3 of one point from the two runs' RMS ‖τ̃_d‖ over the last 20 % (metrics.summary);
+    no verdict where either run ended before its composite term could act (the run's
+    ``horizon_note``, as ``metrics.conclusions`` decides).
 
     Same numbers as ``metrics.conclusions`` (a test compares them on full runs).
     """
@@ -164,7 +171,8 @@ def _c3(iv: Mapping, cl: Mapping) -> dict:
     r_iv = iv["summary"]["tau_d_err_rms_last20"]
     r_cl = cl["summary"]["tau_d_err_rms_last20"]
     ratio = r_iv / r_cl if r_cl > 0 else (0.0 if r_iv == 0 else math.inf)
-    return {"ratio": ratio, "verdict": bool(r_iv <= C3_RMS_RATIO * r_cl)}
+    short = iv.get("horizon_note") or cl.get("horizon_note")
+    return {"ratio": ratio, "verdict": None if short else bool(r_iv <= C3_RMS_RATIO * r_cl)}
 
 
 def results_table(runs: list[RunSpec], records: Mapping[str, dict], spec: StudySpec | None = None):

@@ -54,6 +54,7 @@ or its order: df/dx is the same bit for bit.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import sys
 from collections import OrderedDict
 from contextlib import contextmanager
@@ -451,6 +452,19 @@ def _difference_pattern(spec, args, nx, nu, ny, *, seed, n_points):
     return pat
 
 
+def _rows_of_columns(sub, lo):
+    """{column: set of rows + lo} of the nonzeros of the boolean matrix `sub`, its columns
+    with any in increasing order (one pass over the nonzeros, not one per column)."""
+    cols, rows = np.nonzero(sub.T)                  # by column, then row
+    if cols.size == 0:
+        return {}
+    cut = np.flatnonzero(cols[1:] != cols[:-1]) + 1
+    starts = np.concatenate(([0], cut)).tolist()
+    ends = np.concatenate((cut, [cols.size])).tolist()
+    rows = (rows + lo).tolist()
+    return {c: set(rows[a:b]) for c, a, b in zip(cols[starts].tolist(), starts, ends)}
+
+
 def _color(rows_of_col):
     """Greedy grouping of columns whose row sets are disjoint (Curtis-Powell-Reid): the
     columns by decreasing row count, each into the first group none of its rows is in.
@@ -728,11 +742,12 @@ def _first_terms(dst, n_slots):
     """(first, unreached): whether each multiply-add S[dst] += ... is the first its
     destination receives, and the slots none reaches (all their terms left out by
     _parameter_zeros), sorted."""
+    at = np.full(n_slots, dst.size, dtype=np.int64)      # each slot's first multiply-add
+    np.minimum.at(at, dst, np.arange(dst.size, dtype=np.int64))
+    reached = at < dst.size
     first = np.zeros(dst.size, dtype=bool)
-    reached, at = np.unique(dst, return_index=True)
-    first[at] = True
-    unreached = np.setdiff1d(np.arange(n_slots, dtype=np.int64), reached)
-    return first, unreached
+    first[at[reached]] = True
+    return first, np.flatnonzero(~reached).astype(np.int64)
 
 
 def _entries_by_row(entries):
@@ -865,8 +880,7 @@ class JacobianProgram:
             # own column groups (a column that only moves outputs costs no update call)
             groups = []             # (kernel, [(column, [rows])]) in the order differenced
             for kind, lo, hi in ((0, 0, ny), (1, ny, ny + nx)):
-                rows_of_col = {c: set((lo + np.flatnonzero(pat[lo:hi, c])).tolist())
-                               for c in range(nx + nu) if pat[lo:hi, c].any()}
+                rows_of_col = _rows_of_columns(pat[lo:hi], lo)
                 for grp in _color(rows_of_col):
                     groups.append((kind, [(c, sorted(rows_of_col[c])) for c in grp]))
             if getattr(spec, "jacobian", None) is None:
@@ -919,14 +933,13 @@ class JacobianProgram:
         self.g_kind = i64(g_kind)
         self.e_ptr, self.e_row, self.e_slot = i64(e_ptr), i64(e_row), i64(e_slot)
 
-        # ---- chain rule, symbolically: rows are {state column: slot}
-        slots = [0]
+        # ---- chain rule, symbolically: rows are {state column: slot}; each multiply-add
+        # S[dst] += F[f] * S[src] appended to three int lists (src -1: F[f] alone), which
+        # numpy reads as they are (a list of tuples took seconds to convert on the Panda)
+        n_slot = [0]        # the next slot
         gains = {}
-        ins = []
-
-        def new_slot():
-            slots[0] += 1
-            return slots[0] - 1
+        ins_dst, ins_f, ins_src = [], [], []
+        add_dst, add_f, add_src = ins_dst.append, ins_f.append, ins_src.append
 
         def gain_index(g):
             if g not in gains:
@@ -938,12 +951,27 @@ class JacobianProgram:
         sorted_rows = {}
 
         def by_column(row):
-            # a row read as a source is complete (blocks in topological order): its entries
-            # sorted by column once, so that a source's run lands on a destination run
+            # a row read as a source is complete (blocks in topological order): its columns
+            # and slots sorted by column once, so that a source's run lands on a
+            # destination run
             got = sorted_rows.get(id(row))
             if got is None:
-                got = sorted_rows[id(row)] = (row, sorted(row.items()))
-            return got[1]
+                items = sorted(row.items())
+                got = sorted_rows[id(row)] = (row, [c for c, _ in items], [s for _, s in items])
+            return got[1], got[2]
+
+        def add_row(row, src_row, f):
+            # row[col] += F[f] * src_row[col] over src_row's entries in column order; the
+            # columns new to row get the next slots in that order
+            cols, srcs = by_column(src_row)
+            new = [c for c in cols if c not in row] if row else cols
+            if new:
+                k = n_slot[0]
+                n_slot[0] = k + len(new)
+                row.update(zip(new, range(k, k + len(new))))
+            ins_dst.extend([row[c] for c in cols])
+            ins_f.extend(itertools.repeat(f, len(cols)))
+            ins_src.extend(srcs)
 
         def make_u(k):
             srcs = plan.conn[k]
@@ -952,25 +980,22 @@ class JacobianProgram:
                 return
             row = {}
             for j, g in srcs:
-                f = gain_index(g)
-                for col, s in by_column(yrow[j]):
-                    if col not in row:
-                        row[col] = new_slot()
-                    ins.append((row[col], f, s))
+                add_row(row, yrow[j], gain_index(g))
             urow[k] = row
 
         def accumulate(row, entries, nx, u0, x0):
             for r, c, slot in entries:
                 if c < nx:
                     col = x0 + c
-                    if col not in row:
-                        row[col] = new_slot()
-                    ins.append((row[col], slot, -1))
+                    d = row.get(col)
+                    if d is None:
+                        d = row[col] = n_slot[0]
+                        n_slot[0] += 1
+                    add_dst(d)
+                    add_f(slot)
+                    add_src(-1)
                 else:
-                    for col, s in by_column(urow[u0 + c - nx]):
-                        if col not in row:
-                            row[col] = new_slot()
-                        ins.append((row[col], slot, s))
+                    add_row(row, urow[u0 + c - nx], slot)
 
         for k in plan.order:
             b = plan.blocks[k]
@@ -996,17 +1021,21 @@ class JacobianProgram:
                 row = {}
                 accumulate(row, by_row.get(ny + r, ()), nx, b.u.start, b.x.start)
                 jrows[b.x.start + r] = row
-        self.n_slots = slots[0]
+        self.n_slots = n_slot[0]
         rows = {id(r): r for r in (*yrow, *urow.values(), *jrows.values())}
         renumber = _slots_by_row(rows.values(), self.n_slots)
-        ins = np.asarray(ins, dtype=np.int64).reshape(-1, 3)
+        ins_dst = np.array(ins_dst, dtype=np.int64)
+        ins_f = np.array(ins_f, dtype=np.int64)
+        ins_src = np.array(ins_src, dtype=np.int64)
         # a factor that is exactly zero for this run's parameters adds nothing: its
         # multiply-adds are left out (the entries of df/dx they reach stay in the pattern)
-        ins = ins[~np.isin(ins[:, 1], np.asarray(dropped, dtype=np.int64))]
-        self.n_ins = int(ins.shape[0])
-        dst = renumber[ins[:, 0]]
-        src = np.where(ins[:, 2] >= 0, renumber[ins[:, 2]], -1)
-        fac = ins[:, 1]
+        left_out = np.zeros(jb + len(gains), dtype=bool)
+        left_out[np.asarray(dropped, dtype=np.int64)] = True
+        keep = ~left_out[ins_f]
+        ins_dst, fac, ins_src = ins_dst[keep], ins_f[keep], ins_src[keep]
+        self.n_ins = int(fac.size)
+        dst = renumber[ins_dst]
+        src = np.where(ins_src >= 0, renumber[np.maximum(ins_src, 0)], -1)
         # each slot's first term is stored, not added (S is not cleared before the chain);
         # a slot no term reaches is stored +0 first, by a factor 0 appended to the gains
         first, unreached = _first_terms(dst, self.n_slots)
