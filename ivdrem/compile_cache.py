@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import math
 import os
 import sys
 from contextlib import contextmanager
@@ -26,7 +27,8 @@ from ._cache_home import cache_dir   # noqa: F401 - one definition, read before 
 
 __all__ = ["cache_dir", "package_digest", "source_hash", "write_generated",
            "import_generated", "import_path", "compile_lock", "GENERATED_HEADER",
-           "helpers_digest", "CacheFault", "guard_numba_index"]
+           "helpers_digest", "CacheFault", "CompileLockTimeout", "guard_numba_index",
+           "lock_wait_limit", "lock_holder", "LOCK_WAIT_S", "LOCK_NOTICE_S", "LOCK_WAIT_ENV"]
 
 #: the package files every generated module imports its helpers from
 HELPER_FILES = ("blocks/_kernels.py", "_native_call.py")
@@ -133,8 +135,144 @@ def import_path(name, path):
     return mod
 
 
+#: Seconds a wait on a module's compile lock lasts before it says so (one line on stderr).
+LOCK_NOTICE_S = 30.0
+
+#: Seconds a wait on a module's compile lock lasts before it gives up
+#: (:class:`CompileLockTimeout`); the environment variable :data:`LOCK_WAIT_ENV` sets
+#: another.  As long as the compile child's own wait (``ivdrem/sim/_compile_child.py``): a
+#: module numba takes longer than that to compile is not to be expected.
+LOCK_WAIT_S = 900.0
+
+#: The environment variable that sets the limit of a wait on a compile lock, in seconds.
+LOCK_WAIT_ENV = "IVDREM_LOCK_WAIT_S"
+
+
+class CompileLockTimeout(CacheFault):
+    """A wait on a generated module's compile lock that lasted past its limit (a process
+    holding it forever: a stuck compile, a hung network file system); the message names the
+    lock file, its holder when known, and what to do."""
+
+
+def lock_wait_limit() -> float:
+    """The limit of a wait on a compile lock: ``$IVDREM_LOCK_WAIT_S`` if set, else
+    :data:`LOCK_WAIT_S`; a value that is not a number of seconds > 0 is refused, naming
+    the variable."""
+    raw = os.environ.get(LOCK_WAIT_ENV, "").strip()
+    if not raw:
+        return LOCK_WAIT_S
+    try:
+        value = float(raw)
+    except ValueError:
+        value = math.nan
+    if not value > 0:                  # NaN too
+        raise CacheFault(f"{LOCK_WAIT_ENV} = {raw!r}: must be a number of seconds > 0 (how "
+                         f"long to wait for another process compiling the same module; "
+                         f"default {LOCK_WAIT_S:g})")
+    return value
+
+
+def _process(pid) -> str:
+    """``process PID (its command line, shortened)``; only the number where /proc does not
+    say (another system, another machine's process)."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            argv = [a.decode(errors="replace") for a in f.read().split(b"\0") if a]
+        with open(f"/proc/{pid}/stat") as f:
+            ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return f"process {pid}"
+    if "-c" in argv:                   # a program given inline: its name, not its text
+        i = argv.index("-c")
+        argv = argv[:i + 1] + ["..."] + argv[i + 2:]
+    text = " ".join(argv)
+    text = text if len(text) <= 120 else text[:117] + "..."
+    mine = "" if ppid != os.getpid() else (
+        ", this process's compile child" if "--modules" in argv else ", a child of this process")
+    return f"process {pid} ({text}{mine})"
+
+
+def lock_holder(fd):
+    """Who holds the flock on the open file ``fd``: "process PID (command)" from the
+    kernel's table of locks (/proc/locks, Linux), else from the line the holder wrote into
+    the lock file (``PID HOST``), else None."""
+    try:
+        st = os.fstat(fd)
+        dev = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+        with open("/proc/locks") as f:
+            for line in f:
+                words = line.split()
+                # "1: FLOCK  ADVISORY  WRITE 1234 fe:00:5678 0 EOF"; "1: -> FLOCK ..." waits
+                if len(words) > 5 and words[1] == "FLOCK" and words[5] == dev:
+                    return _process(int(words[4]))
+    except (OSError, ValueError):
+        pass
+    try:
+        pid, host = os.pread(fd, 200, 0).decode(errors="replace").split()[:2]
+        int(pid)
+    except (OSError, ValueError):
+        return None
+    import socket
+    here = host == socket.gethostname()
+    return _process(pid) if here else f"process {pid} on {host}"
+
+
+def _take_lock(lock, limit, notice):
+    """The descriptor of the lock file ``lock`` with its flock taken, polling (a blocking
+    flock cannot be given a limit): one line on stderr once the wait lasts ``notice`` s,
+    naming the file and its holder; :class:`CompileLockTimeout` after ``limit`` s.  A lock
+    file deleted while waited for (as the message after the limit suggests) is created
+    again and taken.  Ctrl-C stops the wait.  OSError: the file cannot be opened."""
+    import fcntl
+    import time
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        t0 = time.monotonic()
+        pause, said = 0.001, False
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return fd
+            except BlockingIOError:
+                pass
+            waited = time.monotonic() - t0
+            if waited >= limit:
+                holder = lock_holder(fd)
+                raise CompileLockTimeout(
+                    f"gave up after {waited:.0f} s waiting for the compile lock {lock} of "
+                    f"{lock.name[1:-5]}.py, held by {holder or 'another process'}: if that "
+                    f"process is stuck, end it"
+                    f"{f' (kill {holder.split()[1]})' if holder else ''}; if none is running "
+                    f"(a hung network file system, a process on another machine), delete "
+                    f"{lock}; {LOCK_WAIT_ENV} sets how long to wait (now {limit:g} s)")
+            if not said and waited >= notice:
+                said = True
+                holder = lock_holder(fd)
+                print(f"ivdrem: waiting {waited:.0f} s so far for the compile lock {lock} of "
+                      f"{lock.name[1:-5]}.py, held by {holder or 'another process'}; giving "
+                      f"up after {limit:g} s ({LOCK_WAIT_ENV})", file=sys.stderr, flush=True)
+            time.sleep(min(pause, max(0.0, limit - waited)))
+            pause = min(2 * pause, 0.02)      # a released lock is taken within 20 ms
+            if not _same_file(fd, lock):      # deleted (or replaced) while waited for
+                os.close(fd)
+                fd = -1
+                fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    except BaseException:
+        if fd >= 0:
+            os.close(fd)
+        raise
+
+
+def _same_file(fd, path) -> bool:
+    try:
+        a, b = os.fstat(fd), os.stat(path)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
 @contextmanager
-def compile_lock(path):
+def compile_lock(path, *, limit=None, notice=LOCK_NOTICE_S):
     """An exclusive lock on the generated module at `path` in the cache directory, held
     while it is imported (numba compiles its kernels then, or loads them from its cache).
 
@@ -143,23 +281,45 @@ def compile_lock(path):
     of compilation in all against 9 s for both laws in one process, measured).  With the
     lock the second worker waits for each shared module, then loads it.  An advisory
     ``flock`` on ``.NAME.lock`` beside the module, released when the process ends, however
-    it ends; no lock where the cache cannot hold the lock file or flock does not exist."""
+    it ends; no lock where the cache cannot hold the lock file or flock does not exist.
+    The holder writes ``PID HOST`` into the file (read where /proc/locks does not say).
+
+    A wait that lasts ``notice`` seconds says so in one line on stderr (the lock file and
+    the process holding it); one that lasts ``limit`` seconds (default
+    :func:`lock_wait_limit`: ``$IVDREM_LOCK_WAIT_S`` or :data:`LOCK_WAIT_S`) raises
+    :class:`CompileLockTimeout`, naming the lock file and what to do: a process holding a
+    lock forever blocked every later run silently."""
     try:
-        import fcntl
+        import fcntl  # noqa: F401 - the lock exists here
     except ImportError:           # not a POSIX system: compiled twice at worst
         yield
         return
+    limit = lock_wait_limit() if limit is None else float(limit)
     path = Path(path)
     try:
-        fd = os.open(path.with_name(f".{path.stem}.lock"), os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError:
+        fd = _take_lock(path.with_name(f".{path.stem}.lock"), limit, notice)
+    except CompileLockTimeout:
+        raise
+    except OSError:               # the cache cannot hold the lock file
         yield
         return
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        _say_holder(fd)
         yield
     finally:
         os.close(fd)              # closing the descriptor releases the lock
+
+
+def _say_holder(fd):
+    """Write ``PID HOST`` into the lock file just taken (who holds it, where /proc/locks
+    does not say: another system, a network file system); a file that cannot be written
+    (a read-only cache) only loses the name."""
+    import socket
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
+    except OSError:
+        pass
 
 
 #: the installed ivdrem package, whose sources key everything kept across processes

@@ -77,6 +77,30 @@ def test_ctrl_c_inside_simulate_is_a_keyboard_interrupt(case, ctrl_c_delivered):
     assert time.perf_counter() - t0 < 30.0
 
 
+#: another process that sends SIGINT to argv[1] after argv[2] seconds and prints when (a
+#: thread of this process would wait for the GIL, which the compiled loop holds)
+_KILLER = ("import os, signal, sys, time; time.sleep(float(sys.argv[2])); "
+           "print(repr(time.time()), flush=True); os.kill(int(sys.argv[1]), signal.SIGINT)")
+
+
+def test_ctrl_c_stops_a_long_compiled_run_within_a_second(ctrl_c_delivered):
+    """The compiled loop without Python blocks returns to Python at its 200 reports and
+    about every REPORT_WALL_S = 0.1 s of wall time between them: a 1e4 s run at h = 1e-4
+    (1e8 steps; a 200th of it is tens of seconds) stops within a second of a SIGINT sent
+    by another process (1.6 s with the 200 reports alone, measured)."""
+    diagram, kw = build_lab(), dict(engine="compiled", method="rk4", h=1e-4)
+    simulate(diagram, 0.01, progress=False, **kw)            # compiled before the clock
+    killer = subprocess.Popen([sys.executable, "-c", _KILLER, str(os.getpid()), "1.0"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            simulate(diagram, 1e4, progress=False, allow_long=True, **kw)
+        stopped = time.time()
+    finally:
+        out, _ = killer.communicate(timeout=60)
+    assert stopped - float(out) < 1.0, stopped - float(out)
+
+
 def test_a_ctrl_c_at_a_callbacks_entry_stops_the_run_as_a_keyboard_interrupt(capfd):
     """Python may raise a pending Ctrl-C as the stepper's report callback is entered, before
     its own try: ctypes hands it to sys.unraisablehook ("Exception ignored ...") and the C

@@ -52,6 +52,34 @@ def test_progress_does_not_change_the_run(monkeypatch, engine, method):
     assert np.all(np.diff(interval) > 0) and len(seen) >= 10
 
 
+@pytest.mark.parametrize("engine,method", [("compiled", "rodas5p"), ("compiled", "dp45"),
+                                           ("reference", "rk4")])
+def test_reports_by_wall_time_do_not_change_the_run(monkeypatch, engine, method):
+    """Between the 200 reports the stepper returns to Python about every REPORT_WALL_S of
+    wall time (where a pending Ctrl-C is handled); with REPORT_WALL_S = 1 µs that is after
+    nearly every accepted step: every counter, output, state and hold time the same as with
+    the 200 reports alone (REPORT_WALL_S = inf), and the progress bar still given one time
+    in each of the 200 intervals."""
+    lab = build_lab()
+    t_end = 2.0
+    kw = dict(method=method, engine=engine, h=2e-3, dt_out=0.05)
+    calls = {}
+    real = simulator_module.Simulator._report_trampoline
+    runs = {}
+    for every in (float("inf"), 1e-6):
+        monkeypatch.setattr(simulator_module, "REPORT_WALL_S", every)
+
+        def counted(self, t, every=every):
+            calls[every] = calls.get(every, 0) + 1
+            return real(self, t)
+        monkeypatch.setattr(simulator_module.Simulator, "_report_trampoline", counted)
+        seen = _spy_bar(monkeypatch)
+        runs[every] = (simulate(lab, t_end, progress=True, **kw), seen)
+    _same_run(runs[float("inf")][0], runs[1e-6][0])
+    assert runs[float("inf")][1] == runs[1e-6][1] and len(runs[1e-6][1]) >= 10
+    assert calls[1e-6] > 2 * calls[float("inf")]     # the reports by wall time did happen
+
+
 def test_progress_does_not_change_the_paper_loop(monkeypatch):
     """IV-DREM on the paper's loop (Rodas5P, 30 s): the steps (and so theta_hat) do not
     depend on the progress bar; before, 200 chunks each ending a step changed them."""

@@ -250,6 +250,85 @@ def test_compiled_prefix_is_the_python_loop_two_link(K, delay, diverges):
     _same_prefix(fast, slow)
 
 
+@pytest.mark.parametrize("K, delay, diverges", [(200.0, 1, False), (480.0, 1, True)])
+def test_prefix_in_pieces_is_the_prefix_in_one_call(K, delay, diverges):
+    """The compiled prefix runs in pieces of about PIECE_S s (between which Python handles
+    Ctrl-C and SIGTERM); in one call, in pieces of 1 step, of 7 steps (boundaries that fall
+    on records, checkpoints and the divergence's step or not) and of the default size:
+    the same points, bit for bit, through a divergence too."""
+    from ivdrem.controller import stability
+    from ivdrem.controller.loop import PAPER_DISTURBANCE
+    from ivdrem.controller.stability import FIRST_PIECE, closed_loop_prefix
+    m = two_link()
+    kw = dict(disturbance=lambda t: disturbance_at(t, PAPER_DISTURBANCE), checkpoints=5,
+              h=1e-3, K=K, delay=delay)
+    N = 1500
+    calls = {}
+    real = stability.run_in_pieces
+
+    def counted(piece, progress, stop, pieces=None, **k):
+        def one(k_stop):
+            calls.setdefault(pieces, []).append(k_stop)
+            return piece(k_stop)
+        return real(one, progress, stop, pieces, **k)
+    stability.run_in_pieces = counted
+    try:
+        runs = {p: closed_loop_prefix(m, "iv-drem", m.theta_values, N * 1e-3, pieces=p, **kw)
+                for p in (N + 1, 1, 7, None)}
+    finally:
+        stability.run_in_pieces = real
+    assert (runs[None][1] is not None) is diverges
+    assert calls[N + 1] == [N + 1]                  # one call: the whole loop
+    assert calls[None][0] == FIRST_PIECE          # the default: pieces (K = 480 diverges
+    assert len(calls[None]) > 1 or diverges       # within the first)
+    for p in (1, 7, None):
+        _same_prefix(runs[p], runs[N + 1])
+
+
+def test_the_prefix_progress_bar_changes_nothing(monkeypatch, capsys):
+    """On a terminal the prefix draws a bar of its steps on stderr, updated between the
+    pieces; the points are those of a run without it, bit for bit."""
+    import ivdrem._progress as progress_rule
+    from ivdrem.controller.stability import closed_loop_prefix
+    m = two_link()
+    kw = dict(checkpoints=4, h=1e-3, delay=1, pieces=100)
+    quiet = closed_loop_prefix(m, "iv-drem", m.theta_values, 1.0, progress=False, **kw)
+    assert "stability prediction" not in capsys.readouterr().err
+    monkeypatch.setattr(progress_rule, "want_progress", lambda requested=None, stream=None:
+                        requested is not False)
+    shown = closed_loop_prefix(m, "iv-drem", m.theta_values, 1.0, **kw)
+    err = capsys.readouterr().err
+    assert "stability prediction, the loop's first 1 s" in err and "/1000" in err
+    _same_prefix(shown, quiet)
+
+
+def test_run_in_pieces_sizes_pieces_by_wall_time():
+    """run_in_pieces: the first piece FIRST_PIECE steps, then sized to piece_s from the
+    last piece's speed (at most 4 times the last), and the last piece ends at stop; a
+    status other than "go on" is returned at once."""
+    import time
+
+    from ivdrem.controller.stability import FIRST_PIECE, run_in_pieces
+    progress = [0]
+    sizes = []
+
+    def piece(k_stop):                  # 1 ms a step
+        sizes.append(k_stop - progress[0])
+        time.sleep(1e-3 * (k_stop - progress[0]))
+        progress[0] = k_stop
+        return 0 if k_stop == 2000 else 3
+    assert run_in_pieces(piece, progress, 2000, piece_s=0.05) == 0
+    assert sizes[0] == FIRST_PIECE and progress[0] == 2000
+    assert all(b <= 4 * a for a, b in zip(sizes, sizes[1:]))
+    assert 25 <= min(sizes[1:-1]) and max(sizes[1:-1]) <= 50      # ~50 steps of 1 ms
+    progress[0] = 0
+
+    def refused(k_stop):
+        progress[0] = 5
+        return 1
+    assert run_in_pieces(refused, progress, 2000) == 1
+
+
 def test_compiled_prefix_prediction_rows_unchanged_panda(monkeypatch):
     """The Panda's prediction as the export makes it (its configuration's design, the
     FMU's delay 1, the configuration's disturbance), over a short prefix past a short

@@ -579,6 +579,44 @@ MIXING_VARIANTS = ("paper", "eigen", "channel")
 LOG10_ZERO_SIGMA = -400.0          # log10 of a singular value that is exactly zero
 
 
+# Each mixing function is written once, with the variant `code` a free variable, and
+# compiled once per variant (numba prunes the branches of the other variants before it
+# types them, so a run compiles the variant it uses: the Panda's "eigen" mixing step and
+# its derivatives in about a third of the time of all three; docs/performance.md).  The
+# public function takes `code` as before: from Python it calls the variant's compiled
+# function; in a kernel, where `code` is the block's structural constant (a literal in
+# its wrapper), the overload calls that variant alone, else it chooses at run time.  The
+# arithmetic of every variant is that of the one function it was before.
+
+def _compiled_variants(factory, name):
+    """The njit functions factory(code) for the codes of MIXING_VARIANTS, each cached in a
+    file of its own (``name_<variant>``: numba names the cache by the qualified name)."""
+    out = []
+    for code, variant in enumerate(MIXING_VARIANTS):
+        fn = factory(code)
+        fn.__name__ = fn.__qualname__ = f"{name}_{variant}"
+        out.append(njit(cache=True)(fn))
+    return tuple(out)
+
+
+def compile_variant(name, code):
+    """Compile variant `code` of the mixing function `name` ("mixing_values",
+    "mixing_derivatives") for the argument types every caller passes (C-contiguous float64
+    vectors, float64 numbers, the derivatives' C-contiguous matrix): what a kernel's
+    wrapper, γ "auto"'s estimate and the Python path then load from numba's cache."""
+    vec, mat = types.float64[::1], types.float64[:, ::1]
+    args = {"mixing_values": (vec, vec, types.float64, types.float64, vec, vec, vec),
+            "mixing_derivatives": (vec, vec, types.float64, types.float64, mat)}[name]
+    fn = {"mixing_values": mixing_values, "mixing_derivatives": mixing_derivatives}[name]
+    fn.variants[_variant_index(code)].compile(args)
+
+
+def _variant_index(code):
+    """The variant a mixing function takes for `code`: 0 "paper", 1 "eigen", any other
+    "channel" (the else branch of the one function they were written as)."""
+    return code if code == 0 or code == 1 else 2
+
+
 @njit(cache=True)
 def _frobenius(Psi):
     big = 0.0
@@ -674,92 +712,124 @@ def _eigen_fast(Y, P, s, f, Delta, calY, logD):
     return True
 
 
-@njit(cache=True)
+def _mixing_values_of(code):
+    """mixing_values with its variant `code` fixed: see :func:`_compiled_variants`."""
+    def mixing_values_variant(Y, Psi, f_rel, guard, Delta, calY, logD):
+        n = Y.shape[0]
+        nrm = _frobenius(Psi)
+        s = 1.0 + nrm
+        # P, then the LU route's scratch, P^-1 and one vector, and its pivots: on the stack
+        work = stack_empty((2 * n + 1, n))
+        piv = stack_empty(n, np.int64)
+        P = work[:n]
+        for i in range(n):
+            for j in range(n):
+                P[i, j] = Psi[i * n + j] / s
+        if code == 1 and nrm > 0.0 and _eigen_fast(Y, P, s, f_rel * nrm / s, Delta, calY, logD):
+            return
+        if code == 0 and nrm > 0.0:
+            if _paper_lu(Y, P, s, Delta, calY, logD, piv, work[n:2 * n], work[2 * n]):
+                return
+            for i in range(n):                              # P was factored in place
+                for j in range(n):
+                    P[i, j] = Psi[i * n + j] / s
+        U, sig, Vt, s_uv = svd_signed(P)
+        coef = np.empty(n)
+        C = np.empty((n, n))
+        if code == 0:
+            products_without(sig, -1, coef)
+            _scaled_adjugate(U, Vt, coef, s_uv, C)
+            d = s_uv
+            for k in range(n):
+                d *= sig[k]
+            Delta[0] = d
+            logD[0] = _log10_sum(sig)
+            for i in range(n):
+                acc = 0.0
+                for j in range(n):
+                    acc += C[i, j] * Y[j]
+                calY[i] = acc / s
+        elif code == 1:
+            if nrm == 0.0:
+                Delta[0] = 0.0
+                logD[0] = n * LOG10_ZERO_SIGMA
+                calY[:] = 0.0
+                return
+            f = f_rel * nrm / s
+            r = np.empty(n)
+            for k in range(n):
+                r[k] = sig[k] / (sig[k] + f)
+            products_without(r, -1, coef)
+            for k in range(n):
+                coef[k] /= sig[k] + f                       # pi_k / prod_j (sigma_j + f)
+            _scaled_adjugate(U, Vt, coef, s_uv, C)
+            d = s_uv
+            for k in range(n):
+                d *= r[k]
+            Delta[0] = d
+            acc = 0.0                                       # log10 r_j = -log1p(f/sigma_j)/ln 10
+            for k in range(n):
+                acc += -np.log1p(f / sig[k]) / np.log(10.0) if sig[k] > 0.0 else LOG10_ZERO_SIGMA
+            logD[0] = acc
+            for i in range(n):
+                acc = 0.0
+                for j in range(n):
+                    acc += C[i, j] * Y[j]
+                calY[i] = acc / s
+        else:
+            # normalised by K = prod_{j != m} sigma_j (m the smallest): C/K has entries <= 1
+            m = n - 1
+            _channel_coefficients(sig, coef)
+            _scaled_adjugate(U, Vt, coef, s_uv, C)
+            c = np.empty(n)
+            _channel_divisors(C, guard, c)
+            logK = _log10_sum(sig[:m])
+            for i in range(n):
+                acc = 0.0
+                for j in range(n):
+                    acc += C[i, j] * Y[j]
+                if c[i] > 0.0:
+                    calY[i] = acc / c[i]
+                    Delta[i] = s * s_uv * sig[m] / c[i]
+                    logD[i] = (np.log10(s) + (np.log10(sig[m]) if sig[m] > 0.0
+                                              else LOG10_ZERO_SIGMA) - np.log10(c[i]))
+                else:
+                    calY[i] = 0.0
+                    Delta[i] = 0.0
+                    logD[i] = np.log10(s) + logK + LOG10_ZERO_SIGMA
+    return mixing_values_variant
+
+
+_MIXING_VALUES = _compiled_variants(_mixing_values_of, "mixing_values")
+
+
 def mixing_values(code, Y, Psi, f_rel, guard, Delta, calY, logD):
     """The mixing step (17) in variant `code` (MIXING_VARIANTS): writes Delta, calY and
     logD = log10 |Delta| (finite where Delta underflows)."""
-    n = Y.shape[0]
-    nrm = _frobenius(Psi)
-    s = 1.0 + nrm
-    # P, then the LU route's scratch, P^-1 and one vector, and its pivots: on the stack
-    work = stack_empty((2 * n + 1, n))
-    piv = stack_empty(n, np.int64)
-    P = work[:n]
-    for i in range(n):
-        for j in range(n):
-            P[i, j] = Psi[i * n + j] / s
-    if code == 1 and nrm > 0.0 and _eigen_fast(Y, P, s, f_rel * nrm / s, Delta, calY, logD):
-        return
-    if code == 0 and nrm > 0.0:
-        if _paper_lu(Y, P, s, Delta, calY, logD, piv, work[n:2 * n], work[2 * n]):
-            return
-        for i in range(n):                              # P was factored in place
-            for j in range(n):
-                P[i, j] = Psi[i * n + j] / s
-    U, sig, Vt, s_uv = svd_signed(P)
-    coef = np.empty(n)
-    C = np.empty((n, n))
-    if code == 0:
-        products_without(sig, -1, coef)
-        _scaled_adjugate(U, Vt, coef, s_uv, C)
-        d = s_uv
-        for k in range(n):
-            d *= sig[k]
-        Delta[0] = d
-        logD[0] = _log10_sum(sig)
-        for i in range(n):
-            acc = 0.0
-            for j in range(n):
-                acc += C[i, j] * Y[j]
-            calY[i] = acc / s
-    elif code == 1:
-        if nrm == 0.0:
-            Delta[0] = 0.0
-            logD[0] = n * LOG10_ZERO_SIGMA
-            calY[:] = 0.0
-            return
-        f = f_rel * nrm / s
-        r = np.empty(n)
-        for k in range(n):
-            r[k] = sig[k] / (sig[k] + f)
-        products_without(r, -1, coef)
-        for k in range(n):
-            coef[k] /= sig[k] + f                       # pi_k / prod_j (sigma_j + f)
-        _scaled_adjugate(U, Vt, coef, s_uv, C)
-        d = s_uv
-        for k in range(n):
-            d *= r[k]
-        Delta[0] = d
-        acc = 0.0                                       # log10 r_j = -log1p(f/sigma_j)/ln 10
-        for k in range(n):
-            acc += -np.log1p(f / sig[k]) / np.log(10.0) if sig[k] > 0.0 else LOG10_ZERO_SIGMA
-        logD[0] = acc
-        for i in range(n):
-            acc = 0.0
-            for j in range(n):
-                acc += C[i, j] * Y[j]
-            calY[i] = acc / s
-    else:
-        # normalised by K = prod_{j != m} sigma_j (m the smallest): C/K has entries <= 1
-        m = n - 1
-        _channel_coefficients(sig, coef)
-        _scaled_adjugate(U, Vt, coef, s_uv, C)
-        c = np.empty(n)
-        _channel_divisors(C, guard, c)
-        logK = _log10_sum(sig[:m])
-        for i in range(n):
-            acc = 0.0
-            for j in range(n):
-                acc += C[i, j] * Y[j]
-            if c[i] > 0.0:
-                calY[i] = acc / c[i]
-                Delta[i] = s * s_uv * sig[m] / c[i]
-                logD[i] = (np.log10(s) + (np.log10(sig[m]) if sig[m] > 0.0
-                                          else LOG10_ZERO_SIGMA) - np.log10(c[i]))
-            else:
-                calY[i] = 0.0
-                Delta[i] = 0.0
-                logD[i] = np.log10(s) + logK + LOG10_ZERO_SIGMA
+    _MIXING_VALUES[_variant_index(code)](Y, Psi, f_rel, guard, Delta, calY, logD)
+
+
+mixing_values.variants = _MIXING_VALUES
+
+
+@overload(mixing_values, prefer_literal=True)
+def _mixing_values_compiled(code, Y, Psi, f_rel, guard, Delta, calY, logD):
+    if isinstance(code, types.IntegerLiteral):      # a kernel's structural constant
+        variant = _MIXING_VALUES[_variant_index(code.literal_value)]
+
+        def impl(code, Y, Psi, f_rel, guard, Delta, calY, logD):
+            variant(Y, Psi, f_rel, guard, Delta, calY, logD)
+        return impl
+    paper, eigen, channel = _MIXING_VALUES
+
+    def impl(code, Y, Psi, f_rel, guard, Delta, calY, logD):
+        if code == 0:
+            paper(Y, Psi, f_rel, guard, Delta, calY, logD)
+        elif code == 1:
+            eigen(Y, Psi, f_rel, guard, Delta, calY, logD)
+        else:
+            channel(Y, Psi, f_rel, guard, Delta, calY, logD)
+    return impl
 
 
 @njit(cache=True)
@@ -817,7 +887,238 @@ def _paper_lu_derivatives(Y, P, s, g, jac):
     return True
 
 
-@njit(cache=True)
+def _mixing_derivatives_of(code):
+    """mixing_derivatives with its variant `code` fixed: see :func:`_compiled_variants`."""
+    def mixing_derivatives_variant(Y, Psi, f_rel, guard, jac):
+        n = Y.shape[0]
+        nn = n * n
+        k = n if code == 2 else 1
+        nrm = _frobenius(Psi)
+        s = 1.0 + nrm
+        P = stack_empty((n, n))
+        g = stack_empty(nn)
+        for i in range(n):
+            for j in range(n):
+                P[i, j] = Psi[i * n + j] / s
+                g[i * n + j] = Psi[i * n + j] / nrm if nrm > 0.0 else 0.0
+        if code == 0 and nrm > 0.0 and _paper_lu_derivatives(Y, P, s, g, jac):
+            return
+        U, sig, Vt, s_uv = svd_signed(P)
+        m = n - 1
+        ln10 = np.log(10.0)
+        C = np.empty((n, n))                  # adj(P), scaled per variant (below)
+        coef = np.empty(n)
+        A, G, B = adj_derivative_parts(U, sig, Vt)
+        # dlogsig[a, b] = sum_j u_aj v_bj / sigma_j = d sum_j log sigma_j / dP_ab
+        dls = np.zeros((n, n))
+        for a in range(n):                  # each sum over j in order, a row at a time
+            for j in range(n):
+                if sig[j] > 0.0:
+                    u = U[a, j]
+                    sj = sig[j]
+                    for b in range(n):
+                        dls[a, b] += u * Vt[j, b] / sj
+        scale_A = 1.0                          # A (and C) carry this factor: N or K below
+        rows_D = 0
+        rows_Y = k
+        rows_L = k + n
+        if code == 1 and nrm == 0.0:
+            return                             # all outputs are 0 near Psi = 0 along rays
+        if code == 0:
+            products_without(sig, -1, coef)
+        elif code == 1:
+            f = f_rel * nrm / s
+            r = np.empty(n)
+            tau = np.empty(n)
+            for j in range(n):
+                tau[j] = sig[j] + f
+                r[j] = sig[j] / tau[j]
+            products_without(r, -1, coef)
+            for j in range(n):
+                coef[j] /= tau[j]
+            # A / N: w_i / N = (1/(tau_i tau_m)) prod_{l != i, m} r_l
+            wN = np.empty(n)
+            products_without(r, m, wN)
+            for i in range(m):
+                wN[i] /= tau[i] * tau[m]
+            UT = np.ascontiguousarray(U.T)
+            A[:, :] = 0.0
+            for i in range(n):              # each sum over l in order, a row at a time
+                for l in range(n):
+                    c = Vt[l, i] * wN[l]
+                    for j in range(n):
+                        A[i, j] += c * UT[l, j]
+            # Lam = d log N / dP = U diag(1/tau) V^T + f_rel P/||P||_F sum 1/tau
+            # (||P||_F = nrm / s and f = f_rel ||P||_F, so df/dP = f_rel P / ||P||_F)
+            sinv = 0.0
+            for j in range(n):
+                sinv += 1.0 / tau[j]
+            Lam = np.zeros((n, n))
+            pn = nrm / s
+            for a in range(n):              # each sum over j in order, a row at a time
+                for j in range(n):
+                    u = U[a, j]
+                    tj = tau[j]
+                    for b in range(n):
+                        Lam[a, b] += u * Vt[j, b] / tj
+                for b in range(n):
+                    Lam[a, b] = Lam[a, b] + f_rel * P[a, b] / pn * sinv
+            # d log10 Delta / dP without the cancellation of dls - Lam:
+            # 1/sigma_j - 1/tau_j = f / (sigma_j tau_j)
+            dls[:, :] = 0.0
+            for a in range(n):              # each sum over j in order, a row at a time
+                for j in range(n):
+                    u = U[a, j]
+                    if sig[j] > 0.0:
+                        wj = f / (sig[j] * tau[j])
+                        for b in range(n):
+                            dls[a, b] += u * Vt[j, b] * wj
+                    else:
+                        tj = tau[j]
+                        for b in range(n):
+                            dls[a, b] -= u * Vt[j, b] / tj
+                for b in range(n):
+                    dls[a, b] = dls[a, b] - f_rel * P[a, b] / pn * sinv
+        else:
+            full = _channel_coefficients(sig, coef)
+            if not full:
+                return                         # rank <= n - 2: outputs 0, a kink
+            for i in range(n):
+                for j in range(n):
+                    acc = 0.0
+                    for l in range(m):
+                        acc += Vt[l, i] * U[j, l] / sig[l]      # A / K: w_l / K = 1 / sigma_l
+                    A[i, j] = acc
+        _scaled_adjugate(U, Vt, coef, s_uv, C)
+        CY = np.empty(n)
+        AY = np.empty(n)
+        BY = np.empty(n)
+        GtY = np.empty(n)
+        for i in range(n):
+            a1 = 0.0
+            a2 = 0.0
+            a3 = 0.0
+            a4 = 0.0
+            for j in range(n):
+                a1 += C[i, j] * Y[j]
+                a2 += A[i, j] * Y[j]
+                a3 += B[i, j] * Y[j]
+                a4 += G[j, i] * Y[j]
+            CY[i] = a1
+            AY[i] = a2
+            BY[i] = a3
+            GtY[i] = a4
+        # dF[c] = d (C Y)_c / dP_ab, C = adj(P) (times the variant's 1/N or 1/K), for one (a, b)
+        # at a time (_adjugate_y_derivative): all n^3 of them at once cost 0.6 MiB per call on
+        # the Panda, a fresh allocation whose pages the kernel zeroed on every Jacobian
+        dF = np.empty(n)
+        if code == 0 or code == 1:
+            if code == 0:
+                D = s_uv
+                for j in range(n):
+                    D *= sig[j]
+                qD, qF, eF, qL = float(n), float(n - 1), -1.0, n / ln10
+            else:
+                D = s_uv
+                for j in range(n):
+                    D *= r[j]
+                qD, qF, eF, qL = 0.0, -1.0, -1.0, 0.0
+            for a in range(n):
+                for b in range(n):
+                    col = n + a * n + b
+                    dD = C[b, a]
+                    dL = dls[a, b] / ln10
+                    if code == 1:
+                        # C^T/N - D Lam cancels: D dlog|D| (dls, computed directly) when D != 0
+                        dD = D * dls[a, b] if sig[m] > 0.0 else dD - D * Lam[a, b]
+                    jac[rows_D, col] = (dD - qD * D * g[col - n]) / s
+                    jac[rows_L, col] = (dL - qL * g[col - n]) / s
+            # d(C Y)_c/dP_ab (_adjugate_y_derivative's sums, term for term) row by row: each
+            # row of jac written in order, not one entry per row in turn (a cache line each)
+            gbT = np.empty((n, n))               # G_ab + B_ba, A_ba, GtY_b + BY_b
+            AT = np.empty((n, n))
+            t2 = np.empty(n)
+            for a in range(n):
+                for b in range(n):
+                    gbT[a, b] = G[a, b] + B[b, a]
+                    AT[a, b] = A[b, a]
+            for b in range(n):
+                t2[b] = GtY[b] + BY[b]
+            for c in range(n):
+                row = rows_Y + c
+                for a in range(n):
+                    Aca = A[c, a]
+                    Bca = B[c, a]
+                    for b in range(n):
+                        col = n + a * n + b
+                        dFc = s_uv * (gbT[a, b] * AY[c] + AT[a, b] * BY[c] - Aca * t2[b]
+                                      - Bca * AY[b])
+                        if code == 1:
+                            dFc -= CY[c] * Lam[a, b]
+                        # calY = F s^-1, F of degree qF: s^-2 (dF - (qF + 1) F g)
+                        jac[row, col] = (dFc - (qF - eF) * CY[c] * g[col - n]) / (s * s)
+            for i in range(n):
+                for j in range(n):
+                    jac[rows_Y + i, j] = C[i, j] / s
+            return
+        # "channel", with C, A and c divided by K = prod_{j != m} sigma_j:
+        # Delta_i = s Di, Di = s_uv sigma_m / c_i (degree 1); calY_i = (C Y)_i / c_i (degree 0)
+        c = np.empty(n)
+        _channel_divisors(C, guard, c)
+        # d c_i / c_i = [C_ii dC_ii + guard^2 sum_j C_ij dC_ij] / c_i^2, with
+        # dC_ij/dP_ab = s_uv [(G_ab + B_ba) A_ij - A_ia (G_jb + B_bj) + A_ba B_ij - B_ia A_bj]
+        ACt = np.zeros(n)
+        BCt = np.zeros(n)
+        CG = np.zeros((n, n))
+        CBt = np.zeros((n, n))
+        CAt = np.zeros((n, n))
+        for i in range(n):
+            for j in range(n):
+                ACt[i] += A[i, j] * C[i, j]
+                BCt[i] += B[i, j] * C[i, j]
+            for b in range(n):
+                a1 = 0.0
+                a2 = 0.0
+                a3 = 0.0
+                for j in range(n):
+                    a1 += C[i, j] * G[j, b]
+                    a2 += C[i, j] * B[b, j]
+                    a3 += C[i, j] * A[b, j]
+                CG[i, b] = a1
+                CBt[i, b] = a2
+                CAt[i, b] = a3
+        g2 = guard * guard
+        for a in range(n):
+            for b in range(n):
+                col = n + a * n + b
+                gb = G[a, b] + B[b, a]
+                aba = A[b, a]
+                _adjugate_y_derivative(a, b, A, G, B, AY, BY, GtY, s_uv, dF)
+                for i in range(n):
+                    if not c[i] > 0.0:
+                        continue
+                    dCii = s_uv * (gb * A[i, i] - A[i, a] * (G[i, b] + B[b, i]) + aba * B[i, i]
+                                   - B[i, a] * A[b, i])
+                    dR = s_uv * (gb * ACt[i] - A[i, a] * (CG[i, b] + CBt[i, b]) + aba * BCt[i]
+                                 - B[i, a] * CAt[i, b])
+                    dlc = (C[i, i] * dCii + g2 * dR) / (c[i] * c[i])
+                    Di = s_uv * sig[m] / c[i]
+                    # Delta_i = s Di(P), Di of degree 1: q - e = 0, do/dPsi = dDi/dP
+                    jac[rows_D + i, col] = C[b, a] / c[i] - Di * dlc
+                    yi = CY[i] / c[i]
+                    jac[rows_Y + i, col] = (dF[i] / c[i] - yi * dlc) / s
+                    # log10 |Delta_i| = log10 s + log10 |Di|: the s terms cancel
+                    jac[rows_L + i, col] = (dls[a, b] - dlc) / (ln10 * s)
+        for i in range(n):
+            if c[i] > 0.0:
+                for j in range(n):
+                    jac[rows_Y + i, j] = C[i, j] / c[i]
+    return mixing_derivatives_variant
+
+
+_MIXING_DERIVATIVES = _compiled_variants(_mixing_derivatives_of, "mixing_derivatives")
+
+
 def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
     """Jacobian of mixing_values: jac[(k + n + k), (n + n*n)] over (Y, Psi), rows Delta (k
     entries: 1, or n for "channel"), calY, logD; O(n^3) (docs/mixing.md).
@@ -827,229 +1128,30 @@ def mixing_derivatives(code, Y, Psi, f_rel, guard, jac):
         do/dPsi_ab = s^(e-1) (dh/dP_ab - (q - e) h g_ab),      do/dY = s^e dh/dY.
     dh/dP comes from d det = tr(adj dP) and the adjugate's derivative in
     adj_derivative_parts; at Psi = 0 the kink of ||Psi||_F is taken as g = 0."""
-    n = Y.shape[0]
-    nn = n * n
-    k = n if code == 2 else 1
-    nrm = _frobenius(Psi)
-    s = 1.0 + nrm
-    P = stack_empty((n, n))
-    g = stack_empty(nn)
-    for i in range(n):
-        for j in range(n):
-            P[i, j] = Psi[i * n + j] / s
-            g[i * n + j] = Psi[i * n + j] / nrm if nrm > 0.0 else 0.0
-    if code == 0 and nrm > 0.0 and _paper_lu_derivatives(Y, P, s, g, jac):
-        return
-    U, sig, Vt, s_uv = svd_signed(P)
-    m = n - 1
-    ln10 = np.log(10.0)
-    C = np.empty((n, n))                  # adj(P), scaled per variant (below)
-    coef = np.empty(n)
-    A, G, B = adj_derivative_parts(U, sig, Vt)
-    # dlogsig[a, b] = sum_j u_aj v_bj / sigma_j = d sum_j log sigma_j / dP_ab
-    dls = np.zeros((n, n))
-    for a in range(n):                  # each sum over j in order, a row at a time
-        for j in range(n):
-            if sig[j] > 0.0:
-                u = U[a, j]
-                sj = sig[j]
-                for b in range(n):
-                    dls[a, b] += u * Vt[j, b] / sj
-    scale_A = 1.0                          # A (and C) carry this factor: N or K below
-    rows_D = 0
-    rows_Y = k
-    rows_L = k + n
-    if code == 1 and nrm == 0.0:
-        return                             # all outputs are 0 near Psi = 0 along rays
-    if code == 0:
-        products_without(sig, -1, coef)
-    elif code == 1:
-        f = f_rel * nrm / s
-        r = np.empty(n)
-        tau = np.empty(n)
-        for j in range(n):
-            tau[j] = sig[j] + f
-            r[j] = sig[j] / tau[j]
-        products_without(r, -1, coef)
-        for j in range(n):
-            coef[j] /= tau[j]
-        # A / N: w_i / N = (1/(tau_i tau_m)) prod_{l != i, m} r_l
-        wN = np.empty(n)
-        products_without(r, m, wN)
-        for i in range(m):
-            wN[i] /= tau[i] * tau[m]
-        UT = np.ascontiguousarray(U.T)
-        A[:, :] = 0.0
-        for i in range(n):              # each sum over l in order, a row at a time
-            for l in range(n):
-                c = Vt[l, i] * wN[l]
-                for j in range(n):
-                    A[i, j] += c * UT[l, j]
-        # Lam = d log N / dP = U diag(1/tau) V^T + f_rel P/||P||_F sum 1/tau
-        # (||P||_F = nrm / s and f = f_rel ||P||_F, so df/dP = f_rel P / ||P||_F)
-        sinv = 0.0
-        for j in range(n):
-            sinv += 1.0 / tau[j]
-        Lam = np.zeros((n, n))
-        pn = nrm / s
-        for a in range(n):              # each sum over j in order, a row at a time
-            for j in range(n):
-                u = U[a, j]
-                tj = tau[j]
-                for b in range(n):
-                    Lam[a, b] += u * Vt[j, b] / tj
-            for b in range(n):
-                Lam[a, b] = Lam[a, b] + f_rel * P[a, b] / pn * sinv
-        # d log10 Delta / dP without the cancellation of dls - Lam:
-        # 1/sigma_j - 1/tau_j = f / (sigma_j tau_j)
-        dls[:, :] = 0.0
-        for a in range(n):              # each sum over j in order, a row at a time
-            for j in range(n):
-                u = U[a, j]
-                if sig[j] > 0.0:
-                    wj = f / (sig[j] * tau[j])
-                    for b in range(n):
-                        dls[a, b] += u * Vt[j, b] * wj
-                else:
-                    tj = tau[j]
-                    for b in range(n):
-                        dls[a, b] -= u * Vt[j, b] / tj
-            for b in range(n):
-                dls[a, b] = dls[a, b] - f_rel * P[a, b] / pn * sinv
-    else:
-        full = _channel_coefficients(sig, coef)
-        if not full:
-            return                         # rank <= n - 2: outputs 0, a kink
-        for i in range(n):
-            for j in range(n):
-                acc = 0.0
-                for l in range(m):
-                    acc += Vt[l, i] * U[j, l] / sig[l]      # A / K: w_l / K = 1 / sigma_l
-                A[i, j] = acc
-    _scaled_adjugate(U, Vt, coef, s_uv, C)
-    CY = np.empty(n)
-    AY = np.empty(n)
-    BY = np.empty(n)
-    GtY = np.empty(n)
-    for i in range(n):
-        a1 = 0.0
-        a2 = 0.0
-        a3 = 0.0
-        a4 = 0.0
-        for j in range(n):
-            a1 += C[i, j] * Y[j]
-            a2 += A[i, j] * Y[j]
-            a3 += B[i, j] * Y[j]
-            a4 += G[j, i] * Y[j]
-        CY[i] = a1
-        AY[i] = a2
-        BY[i] = a3
-        GtY[i] = a4
-    # dF[c] = d (C Y)_c / dP_ab, C = adj(P) (times the variant's 1/N or 1/K), for one (a, b)
-    # at a time (_adjugate_y_derivative): all n^3 of them at once cost 0.6 MiB per call on
-    # the Panda, a fresh allocation whose pages the kernel zeroed on every Jacobian
-    dF = np.empty(n)
-    if code == 0 or code == 1:
+    _MIXING_DERIVATIVES[_variant_index(code)](Y, Psi, f_rel, guard, jac)
+
+
+mixing_derivatives.variants = _MIXING_DERIVATIVES
+
+
+@overload(mixing_derivatives, prefer_literal=True)
+def _mixing_derivatives_compiled(code, Y, Psi, f_rel, guard, jac):
+    if isinstance(code, types.IntegerLiteral):      # a kernel's structural constant
+        variant = _MIXING_DERIVATIVES[_variant_index(code.literal_value)]
+
+        def impl(code, Y, Psi, f_rel, guard, jac):
+            variant(Y, Psi, f_rel, guard, jac)
+        return impl
+    paper, eigen, channel = _MIXING_DERIVATIVES
+
+    def impl(code, Y, Psi, f_rel, guard, jac):
         if code == 0:
-            D = s_uv
-            for j in range(n):
-                D *= sig[j]
-            qD, qF, eF, qL = float(n), float(n - 1), -1.0, n / ln10
+            paper(Y, Psi, f_rel, guard, jac)
+        elif code == 1:
+            eigen(Y, Psi, f_rel, guard, jac)
         else:
-            D = s_uv
-            for j in range(n):
-                D *= r[j]
-            qD, qF, eF, qL = 0.0, -1.0, -1.0, 0.0
-        for a in range(n):
-            for b in range(n):
-                col = n + a * n + b
-                dD = C[b, a]
-                dL = dls[a, b] / ln10
-                if code == 1:
-                    # C^T/N - D Lam cancels: D dlog|D| (dls, computed directly) when D != 0
-                    dD = D * dls[a, b] if sig[m] > 0.0 else dD - D * Lam[a, b]
-                jac[rows_D, col] = (dD - qD * D * g[col - n]) / s
-                jac[rows_L, col] = (dL - qL * g[col - n]) / s
-        # d(C Y)_c/dP_ab (_adjugate_y_derivative's sums, term for term) row by row: each
-        # row of jac written in order, not one entry per row in turn (a cache line each)
-        gbT = np.empty((n, n))               # G_ab + B_ba, A_ba, GtY_b + BY_b
-        AT = np.empty((n, n))
-        t2 = np.empty(n)
-        for a in range(n):
-            for b in range(n):
-                gbT[a, b] = G[a, b] + B[b, a]
-                AT[a, b] = A[b, a]
-        for b in range(n):
-            t2[b] = GtY[b] + BY[b]
-        for c in range(n):
-            row = rows_Y + c
-            for a in range(n):
-                Aca = A[c, a]
-                Bca = B[c, a]
-                for b in range(n):
-                    col = n + a * n + b
-                    dFc = s_uv * (gbT[a, b] * AY[c] + AT[a, b] * BY[c] - Aca * t2[b]
-                                  - Bca * AY[b])
-                    if code == 1:
-                        dFc -= CY[c] * Lam[a, b]
-                    # calY = F s^-1, F of degree qF: s^-2 (dF - (qF + 1) F g)
-                    jac[row, col] = (dFc - (qF - eF) * CY[c] * g[col - n]) / (s * s)
-        for i in range(n):
-            for j in range(n):
-                jac[rows_Y + i, j] = C[i, j] / s
-        return
-    # "channel", with C, A and c divided by K = prod_{j != m} sigma_j:
-    # Delta_i = s Di, Di = s_uv sigma_m / c_i (degree 1); calY_i = (C Y)_i / c_i (degree 0)
-    c = np.empty(n)
-    _channel_divisors(C, guard, c)
-    # d c_i / c_i = [C_ii dC_ii + guard^2 sum_j C_ij dC_ij] / c_i^2, with
-    # dC_ij/dP_ab = s_uv [(G_ab + B_ba) A_ij - A_ia (G_jb + B_bj) + A_ba B_ij - B_ia A_bj]
-    ACt = np.zeros(n)
-    BCt = np.zeros(n)
-    CG = np.zeros((n, n))
-    CBt = np.zeros((n, n))
-    CAt = np.zeros((n, n))
-    for i in range(n):
-        for j in range(n):
-            ACt[i] += A[i, j] * C[i, j]
-            BCt[i] += B[i, j] * C[i, j]
-        for b in range(n):
-            a1 = 0.0
-            a2 = 0.0
-            a3 = 0.0
-            for j in range(n):
-                a1 += C[i, j] * G[j, b]
-                a2 += C[i, j] * B[b, j]
-                a3 += C[i, j] * A[b, j]
-            CG[i, b] = a1
-            CBt[i, b] = a2
-            CAt[i, b] = a3
-    g2 = guard * guard
-    for a in range(n):
-        for b in range(n):
-            col = n + a * n + b
-            gb = G[a, b] + B[b, a]
-            aba = A[b, a]
-            _adjugate_y_derivative(a, b, A, G, B, AY, BY, GtY, s_uv, dF)
-            for i in range(n):
-                if not c[i] > 0.0:
-                    continue
-                dCii = s_uv * (gb * A[i, i] - A[i, a] * (G[i, b] + B[b, i]) + aba * B[i, i]
-                               - B[i, a] * A[b, i])
-                dR = s_uv * (gb * ACt[i] - A[i, a] * (CG[i, b] + CBt[i, b]) + aba * BCt[i]
-                             - B[i, a] * CAt[i, b])
-                dlc = (C[i, i] * dCii + g2 * dR) / (c[i] * c[i])
-                Di = s_uv * sig[m] / c[i]
-                # Delta_i = s Di(P), Di of degree 1: q - e = 0, do/dPsi = dDi/dP
-                jac[rows_D + i, col] = C[b, a] / c[i] - Di * dlc
-                yi = CY[i] / c[i]
-                jac[rows_Y + i, col] = (dF[i] / c[i] - yi * dlc) / s
-                # log10 |Delta_i| = log10 s + log10 |Di|: the s terms cancel
-                jac[rows_L + i, col] = (dls[a, b] - dlc) / (ln10 * s)
-    for i in range(n):
-        if c[i] > 0.0:
-            for j in range(n):
-                jac[rows_Y + i, j] = C[i, j] / c[i]
+            channel(Y, Psi, f_rel, guard, jac)
+    return impl
 
 
 # ------------------------------------------------------------------ a model-exchange FMU's call

@@ -515,10 +515,11 @@ def resolve_gamma(model, law, design, experiment):
     return {**design, "gamma": float(choice["gamma"])}, choice
 
 
-def predict(model, law, design, experiment=None):
+def predict(model, law, design, experiment=None, progress=None):
     """The sampled loop's stability (ivdrem.controller.stability) for ``experiment`` (an
     Experiment or a configuration: its θ, disturbance and horizon; None: the model's θ, the
-    paper's disturbance on the 2-link arm, 300 s) over the horizon, and until μ saturates."""
+    paper's disturbance on the 2-link arm, 300 s) over the horizon, and until μ saturates.
+    ``progress``: a bar of the simulated prefix on stderr (None: on a terminal)."""
     from .loop import PAPER_DISTURBANCE, disturbance_at
     from .stability import sampled_stability
     if experiment is None:
@@ -535,7 +536,7 @@ def predict(model, law, design, experiment=None):
         t_end = max(t_end, (mu_max - mu1) / mu0)      # the largest gain is reached too
     return sampled_stability(model, law, theta=theta, t_end=t_end,
                              disturbance=None if dist is None else
-                             (lambda t: disturbance_at(t, dist)),
+                             (lambda t: disturbance_at(t, dist)), progress=progress,
                              **{**design, "delay": 1})     # the FMU's torque: one sample late
 
 

@@ -217,25 +217,28 @@ def step(q, dq, tau, tau_d, theta, h, nsub, gravity):
 #: own (importing step), so that the plant's module and its machine code stay as they were
 _CLOSED_LOOP_SOURCE = """
 @njit(cache=True)
-def closed_loop(ctl_step, ctl_outputs, handle, q, dq, theta, tau_d, h, nsub, gravity, delay,
-                keep, rec_q, rec_dq, rec_u, rec_theta_hat, progress):
-    # The sampled loop of stability.closed_loop_prefix in one call: the C library's
-    # controller (ivc_step, ivc_outputs at the address handle; pointers as integers) around
-    # the plant's RK4 step(), the same calls in the same order as the Python loop, so the
-    # same numbers.
-    # states   q[n], dq[n] (advanced in place), u[n] the torque held (delay 1)
+def closed_loop(ctl_step, ctl_outputs, handle, q, dq, u, theta, tau_d, h, nsub, gravity,
+                delay, keep, rec_q, rec_dq, rec_u, rec_theta_hat, progress, k_stop):
+    # The sampled loop of stability.closed_loop_prefix, steps progress[0] .. k_stop - 1 of
+    # it: the C library's controller (ivc_step, ivc_outputs at the address handle;
+    # pointers as integers) around the plant's RK4 step(), the same calls in the same order
+    # as the Python loop, so the same numbers.  Called again with the same arrays it goes
+    # on where it stopped, so a loop run in pieces (between which Python sees a Ctrl-C) is
+    # the loop run in one call, bit for bit.
+    # states   q[n], dq[n] (advanced in place), u[n] the torque held (delay 1),
+    #          progress = [k, j]: the next step k, the next record row j
     # inputs   tau_d[N, n] the disturbance held over step k
     # records  at k with keep[k] (k = 0..N): q, dq, u, theta_hat -> rec_*[j], j-th kept k
     # returns  0: ran to N; 1: the controller refused step progress[0]; 2: the plant's
-    #          state not finite after it (a ValueError of the plant leaves progress[0] set)
+    #          state not finite after it (a ValueError of the plant leaves progress[0]
+    #          set); 3: stopped at k_stop < N + 1 (call again to go on)
     n = q.shape[0]
     N = tau_d.shape[0]
-    u = np.zeros(n)
     tau = np.zeros(n)
     qk, dqk = np.empty(n), np.empty(n)
     tdh, Delta, tau_o = np.empty(n), np.empty(1), np.empty(n)
-    j = 0
-    for k in range(N + 1):
+    j = progress[1]
+    for k in range(progress[0], k_stop):
         t = k * h
         progress[0] = k
         qk[:] = q
@@ -247,8 +250,9 @@ def closed_loop(ctl_step, ctl_outputs, handle, q, dq, theta, tau_d, h, nsub, gra
             rec_dq[j] = dqk
             rec_u[j] = u
             j += 1
+            progress[1] = j
         if k == N:
-            break
+            return 0
         if ctl_step(handle, t, qk.ctypes.data, dqk.ctypes.data, tau.ctypes.data) != 0:
             return 1
         if delay == 0:
@@ -259,7 +263,8 @@ def closed_loop(ctl_step, ctl_outputs, handle, q, dq, theta, tau_d, h, nsub, gra
             if not (math.isfinite(q[i]) and math.isfinite(dq[i])):
                 return 2
         u[:] = tau
-    return 0
+    progress[0] = k_stop
+    return 3
 """
 
 
@@ -292,7 +297,7 @@ def _generated_module(kind, title, imports, body):
 def compiled_closed_loop(model):
     """The compiled sampled loop of the model's RK4 plant around the C library's controller
     (``closed_loop`` of the generated module above, one per model key): the steps of
-    stability.closed_loop_prefix in one call."""
+    stability.closed_loop_prefix, in pieces of any length (:func:`run_in_pieces`)."""
     key = model.key
     if key in _CLOSED_LOOPS:
         return _CLOSED_LOOPS[key]

@@ -231,7 +231,7 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
 
 def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=None,
                        checkpoints=8, backend="c", compiled=True, flags=PREFIX_FLAGS,
-                       **gains):
+                       pieces=None, progress=None, **gains):
     """The sampled loop itself over [0, t_end]: the controller of ``law`` (``gains`` as
     :class:`~ivdrem.controller.sampled.SampledController`'s, its ``delay`` included) around
     the plant FMU's RK4 (``substep``; torque and ``disturbance`` held), started on the
@@ -240,8 +240,11 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     (t, the state 0.1 s before) where the plant's state stopped being finite.
     ``backend`` "c": the generated C library (:class:`~ivdrem.controller.clib.CController`;
     the Python reference if it cannot be loaded), "python": SampledController.
-    ``compiled``: the C library's loop in one compiled call (:func:`_compiled_prefix`, the
-    same points); False: step by step from Python (the check of the compiled loop).
+    ``compiled``: the C library's loop compiled (:func:`_compiled_prefix`, the same points),
+    run in pieces of about :data:`PIECE_S` s so that Ctrl-C and SIGTERM stop it
+    (``pieces``: that many steps per piece instead, the same points; ``progress``: a bar of
+    its steps, None: on a terminal); False: step by step from Python (the check of the
+    compiled loop).
     ``flags``: the C library's compiler flags (:data:`PREFIX_FLAGS`)."""
     from ..fmu.export import DEFAULT_SUBSTEP
     from .loop import ModelPlant
@@ -267,7 +270,7 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     marks = set(np.linspace(0, N, max(2, checkpoints) + 1, dtype=int)[1:].tolist())
     delay = ctl.delay
     if compiled and cls is not SampledController:
-        return _compiled_prefix(model, ctl, plant, N, marks, disturbance)
+        return _compiled_prefix(model, ctl, plant, N, marks, disturbance, pieces, progress)
     u = np.zeros(n)
     points, recent = [], []
     for k in range(N + 1):
@@ -290,12 +293,16 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     return points, None
 
 
-def _compiled_prefix(model, ctl, plant, N, marks, disturbance):
-    """closed_loop_prefix's loop in one compiled call (the C controller ``ctl`` around the
-    RK4 of ``plant``: :func:`~ivdrem.controller.loop.compiled_closed_loop`), the same
-    steps as the Python loop, so the same points to the last bit
-    (tests/test_sampled_stability.py); the loop's Python per step, not its arithmetic, was
-    a third of the prefix's time."""
+def _compiled_prefix(model, ctl, plant, N, marks, disturbance, pieces=None,
+                     progress=None):
+    """closed_loop_prefix's loop compiled (the C controller ``ctl`` around the RK4 of
+    ``plant``: :func:`~ivdrem.controller.loop.compiled_closed_loop`), the same steps as the
+    Python loop, so the same points to the last bit (tests/test_sampled_stability.py); the
+    loop's Python per step, not its arithmetic, was a third of the prefix's time.  Run in
+    pieces of about :data:`PIECE_S` seconds (``pieces``: a fixed number of steps per
+    piece instead), between which Python handles Ctrl-C and SIGTERM: one call of the
+    whole prefix (6-12 s on the Panda) ignored them until it returned.  ``progress``: a bar
+    of the steps on stderr (None: on a terminal, :func:`ivdrem._progress.want_progress`)."""
     from .loop import compiled_closed_loop
     h, n = ctl.h, ctl.n
     tau_d = np.zeros((N, n))
@@ -308,17 +315,26 @@ def _compiled_prefix(model, ctl, plant, N, marks, disturbance):
     rows = int(keep.sum())
     rec_q, rec_dq, rec_u = (np.zeros((rows, n)) for _ in range(3))
     rec_theta_hat = np.zeros((rows, ctl.ntheta))
-    progress = np.zeros(1, dtype=np.int64)
+    at = np.zeros(2, dtype=np.int64)                # the next step k, the next record row
     step, outputs, handle = ctl.entry_points()
+    loop = compiled_closed_loop(model)
+    u = np.zeros(n)                                 # the torque held (delay 1)
+
+    def piece(k_stop):
+        return loop(step, outputs, handle, plant.q, plant.dq, u, plant.theta, tau_d,
+                    float(h), plant.substeps, plant.gravity, int(ctl.delay), keep, rec_q,
+                    rec_dq, rec_u, rec_theta_hat, at, k_stop)
+    bar = _steps_bar(progress, N, f"stability prediction, the loop's first {N * h:g} s")
     try:
-        status = compiled_closed_loop(model)(
-            step, outputs, handle, plant.q, plant.dq, plant.theta, tau_d, float(h),
-            plant.substeps, plant.gravity, int(ctl.delay), keep, rec_q, rec_dq, rec_u,
-            rec_theta_hat, progress)
+        status = run_in_pieces(piece, at, N + 1, pieces,
+                               report=None if bar is None else lambda k: bar.update(k - bar.n))
     except ValueError:                  # M(q) singular along a diverged motion
         status = 2
+    finally:
+        if bar is not None:
+            bar.close()
     ks = np.flatnonzero(keep)
-    last = int(progress[0])
+    last = int(at[0])
     points = [(k * h, rec_q[j], rec_dq[j], rec_u[j], rec_theta_hat[j])
               for j, k in enumerate(ks) if k in marks and k <= last]
     if status == 0:
@@ -326,6 +342,56 @@ def _compiled_prefix(model, ctl, plant, N, marks, disturbance):
     recent = [j for j, k in enumerate(ks) if k % 100 == 0 and k <= last][-2:]
     j = recent[0]
     return points, (last * h, (ks[j] * h, rec_q[j], rec_dq[j], rec_u[j], rec_theta_hat[j]))
+
+
+#: Wall time of one piece of a compiled loop (:func:`run_in_pieces`): a Ctrl-C or SIGTERM
+#: waits at most about this long; a call costs 20-30 µs (benchmarks/bench_pieces.py), so
+#: the pieces cost about 0.02 % of the loop.
+PIECE_S = 0.1
+
+#: Steps of a compiled loop's first piece, before its speed is known.
+FIRST_PIECE = 64
+
+#: A compiled loop's status "stopped at k_stop, call again" (loop.compiled_closed_loop).
+_GO_ON = 3
+
+
+def _steps_bar(progress, N, desc):
+    """A tqdm bar of N steps on stderr if :func:`ivdrem._progress.want_progress` says so
+    (``progress`` None: on a terminal, not in CI), else None."""
+    from .._progress import want_progress
+    if N < 1 or not want_progress(progress):
+        return None
+    import sys
+
+    from tqdm import tqdm
+    return tqdm(total=N, unit="step", desc=desc, file=sys.stderr, leave=False)
+
+
+def run_in_pieces(piece, progress, stop, pieces=None, piece_s=PIECE_S, report=None):
+    """Run a compiled loop over steps progress[0] .. stop - 1 as calls ``piece(k_stop)``,
+    each going on from progress[0] (which it advances) and returning the loop's status,
+    :data:`_GO_ON` when it reached k_stop; returns the first other status.  Python handles
+    a pending Ctrl-C or SIGTERM between two calls only: each call is sized to last about
+    ``piece_s`` seconds from the speed of the last (a loop whose steps vary in cost, the
+    mixing (17) every few samples, is measured over many of them); ``pieces``: that many
+    steps per call instead (the tests: 1, or ``stop``: one call); ``report(k)`` after each
+    piece but the last (a progress bar).  The pieces change nothing the loop computes, only
+    where it returns to Python."""
+    import time
+    size = FIRST_PIECE if pieces is None else max(1, int(pieces))
+    while True:
+        start = int(progress[0])
+        t0 = time.perf_counter()
+        status = piece(min(stop, start + size))
+        if status != _GO_ON:
+            return status
+        if report is not None:
+            report(int(progress[0]))
+        if pieces is None:
+            done = int(progress[0]) - start
+            spent = time.perf_counter() - t0
+            size = max(1, min(4 * size, int(done * piece_s / spent) if spent > 0 else 4 * size))
 
 
 @dataclass(frozen=True)
@@ -407,7 +473,7 @@ def _reference_points(t_end, h, count):
 def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturbance=None,
                       points=POINTS, substep=None, suggest=True, controller_class=None,
                       prefix=None, prefix_points=PREFIX_POINTS, backend="c",
-                      **gains) -> SampledStability:
+                      progress=None, **gains) -> SampledStability:
     """Predict the growth per step of the sampled controller of ``law`` for ``model``
     (``gains``: the arguments of :class:`~ivdrem.controller.sampled.SampledController`, h
     and ``delay`` among them: the controller FMU's hosts have delay 1) closed around the
@@ -424,7 +490,8 @@ def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturba
       θ̂ = θ̂₀, θ̂ = θ and the θ̂ the prefix ended with.
 
     ``disturbance``: t -> τ_d(t) held by the plant.  ``suggest``: look for a smaller h
-    predicted stable at the worst point (h/2, h/4, h/5, h/10 that divide T)."""
+    predicted stable at the worst point (h/2, h/4, h/5, h/10 that divide T).  ``progress``:
+    a bar of the prefix's steps on stderr (None: on a terminal, not in CI; False: never)."""
     from .loop import default_period
     from .sampled import SampledController
     make = SampledController if controller_class is None else controller_class
@@ -465,7 +532,7 @@ def sampled_stability(model, law="iv-drem", *, theta=None, t_end=300.0, disturba
         pgains = {**gains, "T": block * h} if plaw == "none" else dict(gains)
         run, div = closed_loop_prefix(model, plaw, theta, horizon, disturbance=disturbance,
                                       substep=substep, checkpoints=prefix_points,
-                                      backend=backend, **pgains)
+                                      backend=backend, progress=progress, **pgains)
         for t, q, dq, u, th in run:
             rows.append((t, "theta_hat(t) of the run", look(t, None, th, (q, dq, u))))
             ops.append((th, (q, dq, u)))

@@ -252,6 +252,12 @@ def check_reference_delta(law, model, args, *, variant, margin=ESTIMATE_MARGIN, 
     path = _estimate_path(model, trajectory, numbers)
     est = _read_estimate(path)
     if est is None:
+        # the run this estimate is for needs the mixing's derivatives (its Jacobian kernel):
+        # a child compiles them meanwhile (about 8 s of numba on a first run, docs/
+        # performance.md), while this process compiles the mixing step the estimate calls
+        from ..blocks._kernels import MIXING_VARIANTS
+        from ..sim._compile_child import start_helpers
+        start_helpers([("mixing_derivatives", MIXING_VARIANTS.index(variant))])
         est = [float(v) for v in reference_mean_delta2(model, trajectory, **numbers)]
         _write_estimate(path, est)
     worst = min(est)

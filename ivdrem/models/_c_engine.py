@@ -181,6 +181,16 @@ def _ctypes_function(model, name, args, fn, out_shape):
     return call
 
 
+def _copy_back(out, nd):
+    """Lines copying the contiguous result o into `out` (nd dimensions) entry by entry:
+    numba compiles ``out[:, :] = o`` with its shape-mismatch error, whose message
+    formatting cost about 2 s of compile per dimension count in every process that
+    compiled a model module (docs/performance.md); the loops copy the same values."""
+    idx = ", ".join(f"i{k}" for k in range(nd))
+    lines = [f"{'    ' * (k + 2)}for i{k} in range(o.shape[{k}]):" for k in range(nd)]
+    return lines + [f"{'    ' * (nd + 2)}{out}[{idx}] = o[{idx}]"]
+
+
 def numba_source(model) -> str:
     """Python source of the compiled engine's model module for `model` (its library built
     by :func:`load`): every function of ``model.functions`` as a function calling the C
@@ -204,7 +214,6 @@ def numba_source(model) -> str:
         vals = ", ".join(args)
         ptrs = ", ".join(f"_fp({a}.ctypes.data)" for a in args)
         nd = len(shapes[name])
-        whole = ", ".join([":"] * nd)
         contiguous = " and ".join(f"{a}.flags.c_contiguous" for a in args)
         copies = ", ".join(f"np.ascontiguousarray({a})" for a in args[:-1])
         status = "s = " if name == "forward_dynamics" else ""
@@ -220,7 +229,7 @@ def numba_source(model) -> str:
             "    else:",
             f"        o = np.empty({args[-1]}.shape)",
             f"        {status}_call_{name}({copies}, o)",
-            f"        {args[-1]}[{whole}] = o",
+            *_copy_back(args[-1], nd),
         ]
         if status:
             lines += ["    if s != 0:", f"        raise ValueError({SINGULAR_INERTIA_MESSAGE!r})"]

@@ -13,6 +13,7 @@ it off.
 """
 from __future__ import annotations
 
+import atexit
 import os
 import subprocess
 import sys
@@ -121,12 +122,64 @@ def start_modules(names) -> Warmup:
     return Warmup(proc, names)
 
 
+#: helper children running (:func:`start_helpers`), joined by :func:`join_helpers`
+_HELPERS: list = []
+
+
+def start_helpers(entries) -> Warmup:
+    """Launch a child compiling mixing functions into numba's cache, `entries` [(name, variant
+    code)] of :func:`ivdrem.blocks._kernels.compile_variant` not cached yet, while this process
+    does other work (γ "auto"'s estimate, then the loop's set-up): the compiled engine
+    :func:`join_helpers` before its probe and wrappers, which then load them."""
+    from ..blocks import _kernels
+    todo = [(name, int(code)) for name, code in entries
+            if not index_exists(getattr(_kernels, name).variants[int(code)]._cache)]
+    if not todo or not enabled():
+        return Warmup()
+    env = dict(os.environ)
+    env[_CHILD_ENV] = "1"
+    env["IVDREM_CACHE_DIR"] = str(cache_dir())
+    root = str(Path(__file__).resolve().parents[2])
+    try:
+        proc = subprocess.Popen([sys.executable, "-c", _BOOT, root, "--helpers",
+                                 *(f"{name}:{code}" for name, code in todo)],
+                                env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+    except OSError:                # pragma: no cover - cannot start a process here
+        return Warmup()
+    if not _HELPERS:
+        atexit.register(_cancel_helpers)     # a process that ends first does not leave it
+    warmup = Warmup(proc, [f"{name}:{code}" for name, code in todo])
+    _HELPERS.append(warmup)
+    return warmup
+
+
+def join_helpers(limit=WAIT_LIMIT_S):
+    """Wait for the helper children (:func:`start_helpers`): what they compiled is then in
+    numba's cache, whatever else this process does meanwhile (the probe's way for a block
+    reads that cache, and must not depend on how far a child has come)."""
+    while _HELPERS:
+        _HELPERS.pop().wait(limit)
+
+
+def _cancel_helpers():
+    while _HELPERS:
+        _HELPERS.pop().cancel()
+
+
 def _job(argv):
-    """The child's job, ``--modules name ...``: import the modules, in order, from the cache
+    """The child's job: ``--modules name ...``, import the modules, in order, from the cache
     directory the parent has written them to (what compiled._import does, without
-    importing the compiled engine)."""
+    importing the compiled engine); ``--helpers name:code ...``, compile those variants of
+    the mixing functions (:func:`ivdrem.blocks._kernels.compile_variant`)."""
+    if argv[:1] == ["--helpers"]:
+        from ..blocks._kernels import compile_variant
+        for entry in argv[1:]:
+            name, code = entry.split(":")
+            compile_variant(name, int(code))
+        return 0
     if argv[:1] != ["--modules"]:
-        raise SystemExit("usage: the child's job is --modules NAME ...")
+        raise SystemExit("usage: the child's job is --modules NAME ... or --helpers NAME:CODE ...")
     cdir = cache_dir()       # the parent's, passed as IVDREM_CACHE_DIR
     for name in argv[1:]:
         path = Path(cdir) / f"{name}.py"

@@ -440,11 +440,14 @@ def _callees(cdir, ksrc, sources):
                 out[(mname, f)] = _S_PER_CHAR * len(defs[f].group(0))
     for f in sorted(_ALLOWED_GLOBALS - {"np", "math", "model", "call_c"}):
         helper = getattr(_kernels, f)
-        if not (hasattr(helper, "py_func") and re.search(rf"(?<![\w.]){f}\s*\(", ksrc)):
+        # a mixing function compiles one variant (its njit functions: .variants), the
+        # run's; priced as one when none is cached
+        compiled = (helper,) if hasattr(helper, "py_func") else getattr(helper, "variants", ())
+        if not (compiled and re.search(rf"(?<![\w.]){f}\s*\(", ksrc)):
             continue
         try:
-            if not _compile_child.index_exists(helper._cache):
-                out[("_kernels", f)] = _S_PER_CHAR * len(inspect.getsource(helper.py_func))
+            if not any(_compile_child.index_exists(c._cache) for c in compiled):
+                out[("_kernels", f)] = _S_PER_CHAR * len(inspect.getsource(compiled[0].py_func))
         except Exception:     # pragma: no cover - numba internals changed
             pass
     return out
@@ -616,6 +619,9 @@ class CompiledEngine:
                        f"{plan.diagram.name!r} (numba; loaded from the cache when they are "
                        "there)", cached_in=cache_dir(), only_if_slow=True):
             modules = kernel_modules(plan, param_slots)
+            # a helper child (γ "auto"'s estimate started one) done: its functions are in
+            # numba's cache before the probe reads that cache and the wrappers load them
+            _compile_child.join_helpers()
             key = tables_key(plan, modules)
             tables = kept_tables(key)
             if tables is not None:      # a warm run, or a second call of the same diagram

@@ -275,8 +275,8 @@ def helpers_cache_as_now():
     differences) must not depend on how far the child has come."""
     global _HELPERS_SEEN
     from ..blocks import _kernels
-    helpers = (getattr(_kernels, name) for name in dir(_kernels))
-    seen = {h: _in_numba_cache(h) for h in helpers if hasattr(h, "py_func")}
+    helpers = (f for name in dir(_kernels) for f in _compiled_functions(getattr(_kernels, name)))
+    seen = {h: _in_numba_cache(h) for h in helpers}
     outer, _HELPERS_SEEN = _HELPERS_SEEN, seen
     try:
         yield
@@ -292,16 +292,30 @@ def _compiles_first(fn):
     2.6 s of differences through the mixing step, already compiled for γ "auto"); the
     compile is left to the kernels' wrappers, which share the work between two processes."""
     for name in fn.__code__.co_names:
-        helper = fn.__globals__.get(name)
-        if not hasattr(helper, "py_func") or helper.signatures:
-            continue
-        if _HELPERS_SEEN is not None and helper in _HELPERS_SEEN:
-            cached = _HELPERS_SEEN[helper]
-        else:
-            cached = _in_numba_cache(helper)
-        if not cached:
+        compiled = _compiled_functions(fn.__globals__.get(name))
+        if compiled and not any(_compiled_or_cached(f) for f in compiled):
             return True
     return False
+
+
+def _compiled_functions(helper):
+    """The njit functions behind `helper`: itself, a mixing function's variants (one
+    compiled function per variant, ivdrem.blocks._kernels), or none."""
+    if hasattr(helper, "py_func"):
+        return (helper,)
+    return tuple(getattr(helper, "variants", ()))
+
+
+def _compiled_or_cached(helper):
+    """Whether the njit function `helper` is compiled in this process or in numba's cache
+    (as it stood when :func:`helpers_cache_as_now` was entered, within it).  A mixing
+    function counts as ready when one of its variants is: a run uses one variant, and the
+    kernel probe of another (a user who changed the variant) compiles that one alone."""
+    if helper.signatures:
+        return True
+    if _HELPERS_SEEN is not None and helper in _HELPERS_SEEN:
+        return _HELPERS_SEEN[helper]
+    return _in_numba_cache(helper)
 
 
 def _in_numba_cache(helper):

@@ -224,6 +224,10 @@ _REPORT_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_double)
 #: handled while the stepper runs without calling Python
 REPORTS = 200
 
+#: wall seconds between two reports at most (about: from the speed of the last two), also
+#: where a 200th of the run takes longer: a Ctrl-C or SIGTERM waits no longer than this
+REPORT_WALL_S = 0.1
+
 #: the sampled blocks' sample function: int32 f(t, x*) (stepper.c's sample_fn)
 _SAMPLE_CALLBACK = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_double, ctypes.c_int64)
 
@@ -473,20 +477,31 @@ class Simulator:
         self._emit_due(out_t, out_y, out_x, io)
         t_start, span = self.t, t_to - self.t
         reported = [t_start]
+        due = [t_start + span / REPORTS]        # the next of the REPORTS equally spaced times
+        last = [t_start, _time.perf_counter()]  # the last report's t and wall clock
 
         def report(t):
             # called by the stepper after the first accepted step at or past tf[F_REPORT]:
             # the steps are those of a run without it (docs/simulation.md, "Progress")
-            if progress is not None:
-                progress(t)
-                reported[0] = t
-            # the first of the REPORTS equally spaced times after t (t_to at the end)
-            k = min(REPORTS, math.floor((t - t_start) / span * REPORTS) + 1) if span > 0 \
-                else REPORTS
-            while k < REPORTS and t_start + span * k / REPORTS <= t:
-                k += 1
-            self.tf[tpl.F_REPORT] = t_start + span * k / REPORTS if k < REPORTS else t_to
-        self.tf[tpl.F_REPORT] = t_start + span / REPORTS
+            if t >= due[0]:
+                if progress is not None:
+                    progress(t)
+                    reported[0] = t
+                # the first of the REPORTS equally spaced times after t (t_to at the end)
+                k = min(REPORTS, math.floor((t - t_start) / span * REPORTS) + 1) \
+                    if span > 0 else REPORTS
+                while k < REPORTS and t_start + span * k / REPORTS <= t:
+                    k += 1
+                due[0] = t_start + span * k / REPORTS if k < REPORTS else t_to
+            # and back to Python (a pending Ctrl-C or SIGTERM) about every REPORT_WALL_S of
+            # wall time, however long a 200th of the run takes: at the speed of the last
+            now = _time.perf_counter()
+            ahead = t + (t - last[0]) * REPORT_WALL_S / (now - last[1]) if now > last[1] \
+                else t
+            last[0], last[1] = t, now
+            self.tf[tpl.F_REPORT] = ahead if t < ahead < due[0] else due[0]
+        # the first report soon, to measure the speed
+        self.tf[tpl.F_REPORT] = t_start + span / (REPORTS * 64)
         self._on_report = report
         self.W.callbacks[1] = self._report_address
         wall0 = _time.perf_counter()
