@@ -30,9 +30,11 @@ _quiet = False
 def want_progress(requested=None, stream=None) -> bool:
     """True if a progress bar should be drawn on `stream` (default ``sys.stderr``).
 
-    `requested` False (quiet) always wins; None and True both mean "if the rule allows".
+    `requested` False (quiet) always wins, and so does a command's ``--quiet``
+    (:func:`set_quiet`) for every bar of the command; None and True both mean "if the rule
+    allows".
     """
-    if requested is not None and not requested:
+    if _quiet or (requested is not None and not requested):
         return False
     stream = sys.stderr if stream is None else stream
     try:

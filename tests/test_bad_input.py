@@ -531,6 +531,39 @@ def test_progress_rule(monkeypatch, tty, ci, requested, shown):
     assert cosim._want_progress(requested) is shown   # the co-simulation bars: same rule
 
 
+@pytest.mark.parametrize("requested", [None, True])
+def test_a_commands_quiet_silences_every_bar(monkeypatch, requested):
+    """A command's --quiet (set_quiet) wins over a bar asked for on a terminal: bars drawn by
+    code the command calls without a progress argument (the export's stability prediction)
+    stay silent too; the rule is back once the command ends."""
+    from ivdrem import _progress
+    monkeypatch.delenv("CI", raising=False)
+    monkeypatch.setattr(sys, "stderr", _Stream(True))
+    monkeypatch.setattr(_progress, "_quiet", False)
+    assert _progress.want_progress(requested) is True
+    _progress.set_quiet(True)
+    assert _progress.want_progress(requested) is False
+    _progress.set_quiet(False)
+    assert _progress.want_progress(requested) is True
+
+
+def test_fmu_export_takes_quiet(monkeypatch):
+    """`ivdrem fmu export ... --quiet` parses (the controller's export draws the stability
+    prediction's bar) and sets the process quiet for the command."""
+    from ivdrem import _progress
+    from ivdrem.cli import fmu as fcli
+    args = fcli._parser().parse_args(["export", "--controller", "-o", "x.fmu", "--quiet"])
+    assert args.quiet is True
+    seen = {}
+
+    def fake_fmu(argv):
+        seen["quiet"] = _progress._quiet
+        return 0
+    monkeypatch.setattr(fcli, "main_fmu", fake_fmu)
+    assert main(["fmu", "export", "--controller", "-o", "x.fmu", "--quiet"]) == 0
+    assert seen["quiet"] is True and _progress._quiet is False    # over with the command
+
+
 # ----------------------------------------------------------------------------- FMU
 _DOUBLE_FREE_HOST = r"""
 import ctypes, sys

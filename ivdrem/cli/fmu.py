@@ -57,6 +57,8 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--despite-prediction", action="store_true", dest="despite_prediction",
                    help="--controller: export even a sampled loop predicted unstable (by "
                         "default refused before anything is built)")
+    e.add_argument("--quiet", action="store_true",
+                   help="no progress bars (--controller: the stability prediction's)")
     return p
 
 
