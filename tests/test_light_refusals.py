@@ -57,6 +57,9 @@ CASES = {   # name: (argv with {placeholders}, what the one line says)
     "report, unknown --method": (["report", "--method", "bogus"], "--method 'bogus' is not a method"),
     "study, missing file": (["study", "{missing}"], "study file '{missing}' not found"),
     "study, FIFO": (["study", "{fifo}"], "is a FIFO (named pipe)"),
+    "cosim, bad --t-end": (["cosim", "--t-end", "-1"], "--t-end must be a finite number > 0"),
+    "cosim, bad --comm-step": (["cosim", "--comm-step", "0"], "--comm-step must be in (0, t_end]"),
+    "cosim, unknown --engine": (["cosim", "--engine", "bogus"], "argument --engine: invalid choice: 'bogus'"),
 }
 
 
@@ -135,3 +138,12 @@ def test_the_console_script_freezes_what_the_library_import_allocated():
             "assert gc.isenabled() and gc.get_freeze_count() > 1000, gc.get_freeze_count()\n")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr
+
+
+def test_cosim_checks_a_law_name_against_the_registry(tmp_path):
+    """cosim's --law is checked against the registered laws, read only then (the registry
+    imports python-control): an unknown name is refused listing every law."""
+    from ivdrem.laws import law_names
+    code, err, _ = _refuse(tmp_path, "cosim", "--law", "bogus")
+    assert code == 2 and "argument --law: invalid choice: 'bogus'" in err, err
+    assert all(repr(name) in err for name in law_names()), err

@@ -4,8 +4,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..fmu.export import DEFAULT_SUBSTEP
-
 
 def _model_names() -> list[str]:
     """The names ``ivdrem.models.get_model`` accepts, from the models package itself."""
@@ -14,6 +12,7 @@ def _model_names() -> list[str]:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from ..fmu.export import DEFAULT_SUBSTEP      # (SymPy: the fmu command's parser only)
     p = argparse.ArgumentParser(prog="ivdrem fmu", description="Plant FMU (FMI 2.0, ME + CS)")
     sub = p.add_subparsers(dest="command", required=True)
     e = sub.add_parser("export", help="export the robot plant as an FMU (generated C, compiled)",
@@ -102,8 +101,21 @@ def main_fmu(argv=None) -> int:
 
 
 # ----------------------------------------------------------------------------- cosim
+class _LawChoices:
+    """The registered laws as ``--law``'s choices, read from the registry only when a name
+    is checked or listed: the registry imports python-control, which an argument refused for
+    another reason does not need."""
+
+    def __contains__(self, name):
+        from ..laws import law_names
+        return name in law_names()
+
+    def __iter__(self):
+        from ..laws import law_names
+        return iter(law_names())
+
+
 def _cosim_parser() -> argparse.ArgumentParser:
-    from ivdrem.diagrams import LAWS
     p = argparse.ArgumentParser(
         prog="ivdrem cosim",
         description="Co-simulate the controller (ivdrem simulator) with the plant FMU "
@@ -114,8 +126,11 @@ def _cosim_parser() -> argparse.ArgumentParser:
     p.add_argument("--t-end", type=float, default=None,
                    help="horizon in s (default 40; --plant mujoco: the configuration's); a "
                         "multiple of the comm step")
-    p.add_argument("--law", default="iv-drem", choices=LAWS,
-                   help="composite term of the controller (default %(default)s)")
+    from . import LawNames
+    law = p.add_argument("--law", default="iv-drem", choices=_LawChoices(), metavar="LAW",
+                         help="composite term of the controller, one of: %(law_names)s "
+                              "(default %(default)s)")
+    law.law_names = LawNames()
     p.add_argument("--comm-step", type=float, default=1e-3, metavar="H",
                    help="largest communication step H in s; also runs H/2 and H/4 "
                         "(default %(default)g)")
@@ -159,18 +174,19 @@ def main_cosim(argv=None) -> int:
     from pathlib import Path
 
     from . import import_library
-    import_library()        # its parser lists the diagrams' laws (python-control)
-    try:
+    try:        # the arguments before python-control and SciPy are imported
         args = _cosim_parser().parse_args(argv)
     except SystemExit as exc:           # --help (0) or an argparse error (2, already printed)
         return int(exc.code or 0)
     prog = "ivdrem cosim"
     if args.plant == "mujoco":
+        import_library()
         from ivdrem.cli.plants import main_cosim_mujoco
         return main_cosim_mujoco(args)
     if args.t_end is None:
         args.t_end = 40.0
     if args.controller_fmu is not None:
+        import_library()
         from ivdrem.controller.fmu_loop import main_cosim_controller
         return main_cosim_controller(args)
     H = args.comm_step
@@ -181,6 +197,7 @@ def main_cosim(argv=None) -> int:
     if not (math.isfinite(H) and 0 < H <= args.t_end):
         print(f"{prog}: error: --comm-step must be in (0, t_end], got {H:g}", file=sys.stderr)
         return 2
+    import_library()
     from ivdrem._paths import user_path
     from ivdrem._progress import want_progress
     from ivdrem.sim import SimulationError
