@@ -84,6 +84,25 @@ def test_fmu_export_refuses_a_missing_config_before_python_control(tmp_path, pla
     assert not {"control", "scipy", "matplotlib"} & imported, sorted(imported & {"control", "scipy"})
 
 
+@pytest.mark.parametrize("option, value, said", [
+    ("--model", "{missing}.urdf", "URDF file '{missing}.urdf' not found"),
+    ("--model", "{fifo}.urdf", "URDF file '{fifo}.urdf' is a FIFO (named pipe), not a regular file"),
+    ("--config", "{missing}", "config file '{missing}' not found"),
+])
+def test_controller_export_refuses_its_input_files_before_python_control(tmp_path, places,
+                                                                         option, value, said):
+    """`fmu export --controller`: a missing or FIFO URDF file given as --model (a FIFO was
+    "not found" before, after the library's import) and a missing --config are refused
+    before python-control and SciPy; no FMU is written."""
+    os.mkfifo(places["fifo"] + ".urdf")
+    out = tmp_path / "x.fmu"
+    code, err, imported = _refuse(tmp_path, "fmu", "export", "--controller", option,
+                                  value.format(**places), "-o", str(out))
+    assert code == 2 and err.splitlines()[-1] == f"ivdrem fmu export: error: {said.format(**places)}", err
+    assert not {"control", "scipy", "matplotlib"} & imported, sorted(imported & {"control", "scipy"})
+    assert not out.exists()
+
+
 def test_the_help_still_lists_the_registered_laws(tmp_path):
     """The --laws help names the laws of the registry, read only when the help is printed."""
     from ivdrem.laws import law_names

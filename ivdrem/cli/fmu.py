@@ -61,10 +61,35 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _controller_inputs_refused(args) -> str | None:
+    """Why the controller export's input files cannot be read (a missing, unreadable or
+    non-TOML ``--config``; a ``--model`` URDF file that is missing or not a regular file),
+    or None: asked before the library is imported."""
+    from .._config_file import ConfigError, read_toml
+    from .._paths import not_a_regular_file, user_path
+    if args.config is not None:
+        try:
+            read_toml(user_path(args.config))
+        except ConfigError as exc:
+            return str(exc)
+    if args.model is not None and str(args.model).lower().endswith(".urdf"):
+        path = user_path(args.model)
+        kind = not_a_regular_file(path)
+        if kind is not None:
+            return f"URDF file '{path}' is {kind}, not a regular file"
+        if not path.exists():
+            return f"URDF file '{path}' not found"
+    return None
+
+
 def main_fmu(argv=None) -> int:
     """Entry point of ``ivdrem fmu``; ``argv`` excludes the leading ``fmu``. Returns exit code."""
     args = _parser().parse_args(argv)
     if args.command == "export" and args.controller:
+        refused = _controller_inputs_refused(args)     # before python-control and SciPy
+        if refused:
+            print(f"ivdrem fmu export: error: {refused}", file=sys.stderr)
+            return 2
         from . import import_library
         import_library()
         from ivdrem.controller.fmu_export import main_export_controller
