@@ -14,6 +14,7 @@ the generated source, so they reuse the same compiled module.
 from __future__ import annotations
 
 import functools
+import signal
 
 import numpy as np
 import pytest
@@ -147,3 +148,19 @@ def plant_fmu(tmp_path_factory):
     from ivdrem.fmu import export_fmu
     from ivdrem.models import two_link
     return export_fmu(two_link(), tmp_path_factory.mktemp("plant") / "Plant.fmu")
+
+
+@pytest.fixture
+def ctrl_c_delivered():
+    """Python's Ctrl-C handler for a test that sends itself SIGINT, also where the test
+    process was started with SIGINT ignored: a shell's background job (``( pytest ... & )``
+    in a script) inherits that, Python then installs no handler, and the SIGINT would be
+    dropped while the long run it is meant to stop goes on for hours (reproduced so)."""
+    before = signal.getsignal(signal.SIGINT)
+    if before in (signal.SIG_IGN, signal.SIG_DFL, None):
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        if before is not None:
+            signal.signal(signal.SIGINT, before)

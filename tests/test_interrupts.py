@@ -40,22 +40,6 @@ def _interrupt_after(seconds):
     return timer
 
 
-@pytest.fixture
-def ctrl_c_delivered():
-    """Python's Ctrl-C handler for the test, also where the test process was started with
-    SIGINT ignored: a shell's background job (``( pytest ... & )`` in a script) inherits
-    that, Python then installs no handler, and the SIGINT this test sends itself would be
-    dropped while the 1e4 s run it is meant to stop goes on for hours (reproduced so)."""
-    before = signal.getsignal(signal.SIGINT)
-    if before in (signal.SIG_IGN, signal.SIG_DFL, None):
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        yield
-    finally:
-        if before is not None:
-            signal.signal(signal.SIGINT, before)
-
-
 @pytest.mark.parametrize("case", ["compiled", "compiled-python-block", "reference"])
 def test_ctrl_c_inside_simulate_is_a_keyboard_interrupt(case, ctrl_c_delivered):
     """The compiled loop without Python blocks handles a pending Ctrl-C at its reports

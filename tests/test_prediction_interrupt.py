@@ -18,20 +18,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture
-def ctrl_c_delivered():
-    """Python's Ctrl-C handler for the test, also where the test process was started with
-    SIGINT ignored (a shell's background job)."""
-    before = signal.getsignal(signal.SIGINT)
-    if before in (signal.SIG_IGN, signal.SIG_DFL, None):
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        yield
-    finally:
-        if before is not None:
-            signal.signal(signal.SIGINT, before)
-
-
 #: another process that sends SIGINT to argv[1] after argv[2] seconds and prints when (a
 #: thread of this process would wait for the GIL, which the compiled loop holds)
 _KILLER = ("import os, signal, sys, time; time.sleep(float(sys.argv[2])); "
