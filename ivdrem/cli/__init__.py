@@ -179,13 +179,24 @@ def _cmd_report(args):
 
 
 class LawNames:
-    """The laws' names, joined by commas when a help text is printed (``%(law_names)s``
-    in an option's help): the registry (:mod:`ivdrem.laws`) imports python-control, which
-    parsing the arguments does not need."""
+    """The laws' names, read from the registry only when used: joined by commas when a help
+    text is printed (``%(law_names)s`` in an option's help), or as an option's ``choices``
+    (a name checked, or listed in argparse's error): the registry (:mod:`ivdrem.laws`)
+    imports python-control, which parsing the arguments does not need."""
+
+    @staticmethod
+    def _names():
+        from ..laws import law_names
+        return law_names()
 
     def __str__(self):
-        from ..laws import law_names
-        return ", ".join(law_names())
+        return ", ".join(self._names())
+
+    def __contains__(self, name):
+        return name in self._names()
+
+    def __iter__(self):
+        return iter(self._names())
 
 
 def build_parser():

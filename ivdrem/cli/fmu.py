@@ -126,20 +126,6 @@ def main_fmu(argv=None) -> int:
 
 
 # ----------------------------------------------------------------------------- cosim
-class _LawChoices:
-    """The registered laws as ``--law``'s choices, read from the registry only when a name
-    is checked or listed: the registry imports python-control, which an argument refused for
-    another reason does not need."""
-
-    def __contains__(self, name):
-        from ..laws import law_names
-        return name in law_names()
-
-    def __iter__(self):
-        from ..laws import law_names
-        return iter(law_names())
-
-
 def _cosim_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="ivdrem cosim",
@@ -152,7 +138,7 @@ def _cosim_parser() -> argparse.ArgumentParser:
                    help="horizon in s (default 40; --plant mujoco: the configuration's); a "
                         "multiple of the comm step")
     from . import LawNames
-    law = p.add_argument("--law", default="iv-drem", choices=_LawChoices(), metavar="LAW",
+    law = p.add_argument("--law", default="iv-drem", choices=LawNames(), metavar="LAW",
                          help="composite term of the controller, one of: %(law_names)s "
                               "(default %(default)s)")
     law.law_names = LawNames()
