@@ -40,7 +40,7 @@ from typing import Mapping
 import numpy as np
 from scipy.integrate import cumulative_trapezoid
 
-from .metrics import law_horizon_note, short_horizon_note
+from .metrics import gamma_choice_and_mixing, law_horizon_note, short_horizon_note
 
 __all__ = ["diagnose", "measured_label", "diagnose_run", "tau_d_decomposition", "observer_error_true_theta", "decay_exponent", "power_fit", "check_ka1", "check_pe",
            "check_ka2", "check_ka3", "check_prop2", "check_property42", "check_rate",
@@ -740,9 +740,7 @@ def diagnose(lawrun, config, model=None, *, theta=None, figure=None):
     checks, series, warnings = [], {"t": t}, []
 
     has_delta = _has(resp, "Delta")
-    stats = getattr(lawrun, "stats", None) or {}
-    choice = stats.get("gamma_choice") if isinstance(stats, Mapping) else None
-    mixing = (choice or {}).get("variant") or ivd.get("mixing", "paper")
+    choice, mixing = gamma_choice_and_mixing(lawrun, ivd)
     if has_delta:
         delta_all = np.atleast_2d(_sig(resp, "Delta"))       # one row, or one per channel
         # KA1 and (18) on the weakest channel (the smallest ∫Δ_i²) of a per-channel Δ_i

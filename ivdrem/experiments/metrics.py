@@ -355,6 +355,14 @@ def short_horizon_note(t_end, T, mixing, *, windowed=True):
 
 
 
+def gamma_choice_and_mixing(lawrun, iv_drem: Mapping):
+    """(γ "auto"'s choice the run recorded, or None; the mixing its Δ came from: the
+    choice's variant, else the configuration's [iv_drem] mixing)."""
+    stats = getattr(lawrun, "stats", None) or {}
+    choice = stats.get("gamma_choice") if isinstance(stats, Mapping) else None
+    return choice, (choice or {}).get("variant") or iv_drem.get("mixing", "paper")
+
+
 def law_horizon_note(lawrun, config) -> str:
     """:func:`short_horizon_note` of one law's run: the law's own window T (its
     configuration section's, as composite learning's (35), else [iv_drem]'s), the mixing its
@@ -367,9 +375,7 @@ def law_horizon_note(lawrun, config) -> str:
     ivd = (config or {}).get("iv_drem") or {}
     if "T" not in ivd:
         return ""           # runs given without their configuration: no window known
-    stats = getattr(lawrun, "stats", None) or {}
-    choice = stats.get("gamma_choice") if isinstance(stats, Mapping) else None
-    mixing = (choice or {}).get("variant") or ivd.get("mixing", "paper")
+    _, mixing = gamma_choice_and_mixing(lawrun, ivd)
     own = config.get(spec.section, {}) if spec is not None and spec.section else {}
     windowed = spec is not None and "T" in spec.defaults
     t_end = float(np.asarray(resp.time, dtype=float)[-1])
