@@ -128,15 +128,22 @@ class PortError(ValueError):
     """A named-port kernel that uses its ports in a way the engine cannot provide."""
 
 
-def flat_form(fn, role, layout):
+def flat_form(fn, role, layout, *, runtime_offsets=False):
     """`fn` (a named-port kernel) as a function of flat vectors ``(t, x, u, out, *params)``.
 
     `layout` is ``[(fields, ports)]`` for x, u and out (ports: [(name, size)]).  The
     result has real source (registered in linecache) so the compiled path can read and
     compile it like any kernel; one function per (kernel, layout), named
     ``<kernel>__ports_<hash>``.
+
+    With ``runtime_offsets`` the ports' bounds are arguments instead of literals: the
+    function is ``(t, x, u, out, *bounds, *params)``, `bounds` the cumulative port offsets
+    of x, u and out (``len(fields) + 1`` integers each, from 0 to the vector's size), read
+    into locals at the top; its source depends on the kernel, the role and the field names
+    only, so one compiled function serves every size (:func:`_bound_names`).  Constant
+    indices are still checked against `layout`'s sizes here.
     """
-    key = (fn, role, tuple((tuple(f), tuple(p)) for f, p in layout))
+    key = (fn, role, tuple((tuple(f), tuple(p)) for f, p in layout), runtime_offsets)
     if key in _flat_cache:
         return _flat_cache[key]
     src = textwrap.dedent(inspect.getsource(fn))
@@ -145,22 +152,37 @@ def flat_form(fn, role, layout):
     if not isinstance(fdef, ast.FunctionDef) or len(fdef.args.args) < 4:
         raise PortError(f"kernel {fn.__name__}: expected def {fn.__name__}(t, x, u, out, ...)")
     args = [a.arg for a in fdef.args.args]
-    where = {}                      # argument name -> {field: (start, stop)}
-    for arg, (fields, ports) in zip(args[1:4], layout):
+    taken = {n.id for n in ast.walk(fdef) if isinstance(n, ast.Name)}
+    bounds = (_bound_names(args[1:4], [f for f, _ in layout], taken | set(args))
+              if runtime_offsets else None)
+    where = {}                      # argument name -> {field: (start, stop, size, rank)}
+    for k, (arg, (fields, ports)) in enumerate(zip(args[1:4], layout)):
         offs, i = {}, 0
-        for f, (_, size) in zip(fields, ports):
-            offs[f] = (i, i + size)
+        for j, (f, (_, size)) in enumerate(zip(fields, ports)):
+            if runtime_offsets:     # the bounds' names (ast.Name), the size for the checks
+                offs[f] = (bounds[k][j], bounds[k][j + 1], size, j)
+            else:
+                offs[f] = (i, i + size, size, i)
             i += size
         where[arg] = offs
-    taken = {n.id for n in ast.walk(fdef) if isinstance(n, ast.Name)}
     used = {}                       # local name -> (argument, start, stop), in first-use order
 
     def port_of(node):
-        """(argument, start, stop) if `node` is ``<x|u|out>.<declared port>``, else None."""
+        """(argument, start, stop, size) if `node` is ``<x|u|out>.<declared port>``."""
         if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
                 and node.value.id in where and node.attr in where[node.value.id]):
-            return (node.value.id, *where[node.value.id][node.attr])
+            return (node.value.id, *where[node.value.id][node.attr][:3])
         return None
+
+    def const(v):                   # an offset: a literal, or a bound's local name
+        return ast.Name(v, ast.Load()) if isinstance(v, str) else ast.Constant(v)
+
+    def plus(a, idx):               # a + idx, without "0 +" for a literal 0
+        if isinstance(a, int) and isinstance(idx, ast.Constant):
+            return ast.Constant(a + idx.value)
+        if a == 0:
+            return idx
+        return ast.BinOp(const(a), ast.Add(), idx)
 
     class Rewrite(ast.NodeTransformer):
         # u.q[i] -> u[a + i] and u.q.shape -> (size,): no view at all (a view costs an
@@ -168,16 +190,18 @@ def flat_form(fn, role, layout):
         def visit_Subscript(self, node):
             port = port_of(node.value)
             if port is not None and not isinstance(node.slice, (ast.Slice, ast.Tuple)):
-                arg, a, b = port
+                arg, a, b, size = port
                 idx = self.visit(node.slice)
                 if isinstance(idx, ast.Constant) and isinstance(idx.value, int):
-                    k = idx.value + (b - a if idx.value < 0 else 0)
-                    if not 0 <= k < b - a:
+                    k = idx.value + (size if idx.value < 0 else 0)
+                    if not 0 <= k < size:
                         raise PortError(f"kernel {fn.__name__}: index {idx.value} out of "
-                                        f"range for {arg}.{node.value.attr} (size {b - a})")
-                    flat_idx = ast.Constant(a + k)
+                                        f"range for {arg}.{node.value.attr} (size {size})")
+                    # a negative index counts from the port's end, whatever its size
+                    flat_idx = (plus(a, ast.Constant(k)) if isinstance(a, int)
+                                else plus(b if idx.value < 0 else a, ast.Constant(idx.value)))
                 else:           # a port index must be >= 0 (documented)
-                    flat_idx = ast.BinOp(ast.Constant(a), ast.Add(), idx) if a else idx
+                    flat_idx = plus(a, idx)
                 return ast.copy_location(ast.Subscript(ast.Name(arg, ast.Load()), flat_idx,
                                                        node.ctx), node)
             return self.generic_visit(node)
@@ -185,8 +209,10 @@ def flat_form(fn, role, layout):
         def visit_Attribute(self, node):
             port = port_of(node.value)
             if port is not None and node.attr == "shape":
-                return ast.copy_location(ast.Tuple([ast.Constant(port[2] - port[1])],
-                                                   ast.Load()), node)
+                arg, a, b, size = port
+                n = ast.Constant(size) if isinstance(a, int) else ast.BinOp(
+                    const(b), ast.Sub(), const(a))
+                return ast.copy_location(ast.Tuple([n], ast.Load()), node)
             if isinstance(node.value, ast.Name) and node.value.id in where:
                 arg, field = node.value.id, node.attr
                 if field not in where[arg]:
@@ -197,7 +223,8 @@ def flat_form(fn, role, layout):
                 local = f"{arg}_{field}_view"
                 while local in taken and local not in used:
                     local += "_"
-                used.setdefault(local, (arg, *where[arg][field]))
+                a, b, _, rank = where[arg][field]
+                used.setdefault(local, (arg, a, b, rank))
                 return ast.copy_location(ast.Name(id=local, ctx=ast.Load()), node)
             return self.generic_visit(node)
 
@@ -209,9 +236,19 @@ def flat_form(fn, role, layout):
             return node
 
     body = [Rewrite().visit(stmt) for stmt in fdef.body]
-    order = sorted(used.items(), key=lambda kv: (args.index(kv[1][0]), kv[1][1]))
-    head = [ast.parse(f"{local} = {arg}[{a}:{b}]").body[0] for local, (arg, a, b) in order]
-    digest = hashlib.sha256(repr(key[1:]).encode() + src.encode()).hexdigest()[:12]
+    fields_key = tuple(tuple(f) for f, _ in layout)
+    if runtime_offsets and (fn, role, fields_key) in _flat_cache:
+        # the same source for every size: one function object, compiled once
+        flat = _flat_cache[key] = _flat_cache[(fn, role, fields_key)]
+        return flat
+    order = sorted(used.items(), key=lambda kv: (args.index(kv[1][0]), kv[1][3]))
+    head = [ast.parse(f"{local} = {arg}[{a}:{b}]").body[0] for local, (arg, a, b, _) in order]
+    if runtime_offsets:
+        fdef.args.args[4:4] = [ast.arg(n) for names in bounds for n in names]
+        digest_of = repr((role, fields_key, "runtime offsets"))
+    else:
+        digest_of = repr(key[1:3])
+    digest = hashlib.sha256(digest_of.encode() + src.encode()).hexdigest()[:12]
     fdef.name = f"{fn.__name__}__ports_{digest}"
     fdef.body = head + body
     fdef.decorator_list = []
@@ -229,7 +266,24 @@ def flat_form(fn, role, layout):
     flat.__qualname__ = fdef.name
     flat.named_kernel = fn          # not __wrapped__: inspect would show fn's source
     _flat_cache[key] = flat
+    if runtime_offsets:
+        _flat_cache[(fn, role, fields_key)] = flat
     return flat
+
+
+def _bound_names(args, fields, taken):
+    """[[name of bound j of argument k]]: ``len(fields[k]) + 1`` names per argument of
+    x, u, out, none of them a name the kernel uses."""
+    out = []
+    for arg, fs in zip(args, fields):
+        names = []
+        for j in range(len(fs) + 1):
+            name = f"{arg}_at_{j}"
+            while name in taken:
+                name += "_"
+            names.append(name)
+        out.append(names)
+    return out
 
 
 def _what(role, position):

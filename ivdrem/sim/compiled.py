@@ -23,7 +23,8 @@ import numpy as np
 
 from .. import __version__
 from ..blocks import _kernels
-from ..blocks._core import effective_params, flat_kernel, kernel_args
+from ..blocks import _ports
+from ..blocks._core import effective_params, flat_kernel, kernel_args, port_layout
 from . import _stepper_codes
 from ._diagram import LU_WORK_ROWS
 from .._progress import preparing
@@ -187,6 +188,193 @@ def _wrapper_module(b, role, kmod, fn_name, rel_exprs, npar):
     return f"ivdrem_wrapper_{_hash(body)}", body
 
 
+#: the layout of the wrappers' parameters in P, part of the tables' key: tables kept on
+#: disk by a version with another layout are never read as this one's
+WRAPPER_LAYOUT = "generic wrappers: header at the block's base, 1"
+
+#: a float64 header carries integers exactly up to here (sizes, offsets, int constants)
+_EXACT_INT = 2 ** 53
+
+
+class GenericSlots(NamedTuple):
+    """The parameter layout of a block whose wrapper is the same for every size
+    (:func:`generic_block`): a header of `size` float64 entries at P[header] (its sizes,
+    port bounds, parameter slots and scalar constants: :func:`_header`), then its
+    parameters; `args` the kernel arguments as :func:`_param_layout` gives them (a
+    ParamSlot, or a constant's value)."""
+    header: int
+    size: int
+    args: list
+
+
+def _selector_constants(spec):
+    """The constants a kernel passes as the variant code of a helper compiled per variant
+    (``mixing_values(variant, ...)``: ivdrem.blocks._kernels): they stay literals in the
+    wrapper, so numba compiles the block's variant alone (one wrapper per variant, not
+    per size)."""
+    helpers = [f for f in _ALLOWED_GLOBALS - {"np", "math", "model", "call_c"}
+               if hasattr(getattr(_kernels, f), "variants")]
+    if not helpers or not spec.constants:
+        return frozenset()
+    pattern = re.compile(rf"(?<![\w.])(?:{'|'.join(helpers)})\s*\(\s*(\w+)\s*,")
+    names = set()
+    for role in ("update", "output", "jacobian"):
+        fn = (spec.named_kernels or {}).get(role) or getattr(spec, role)
+        if fn is not None:
+            names.update(pattern.findall(_read_source(fn)))
+    return frozenset(names & spec.constants.keys())
+
+
+def generic_block(b):
+    """Whether block b's wrappers read its sizes, port offsets, parameter slots and
+    scalar constants at run time (one compiled wrapper for every arm): an ode block
+    without a robot model, declared with ivdrem's BlockSpec (not a foreign or sampled
+    block), whose scalar constants are int or float numbers.  A block with a model
+    imports its arm's model module, so its wrappers are per arm anyway and keep theirs
+    specialised (literal sizes, offsets and constants)."""
+    spec = b.spec
+    if (spec is None or spec.kind != "ode" or spec.model is not None
+            or isinstance(spec, foreign.ForeignSpec)
+            or getattr(b.sys, SAMPLED_ATTRIBUTE, None) is not None):
+        return False
+    selectors = _selector_constants(spec)
+    for name, v in spec.constants.items():
+        if name in selectors or np.ndim(v) != 0:
+            continue
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer,
+                                                                  np.floating)):
+            return False
+        if isinstance(v, (int, np.integer)) and abs(int(v)) >= _EXACT_INT:
+            return False
+    return True
+
+
+def _arg_kind(spec, name, v, selectors):
+    """How a generic block's kernel argument travels: "float", "vector", "matrix" (a
+    ParamSlot of P), "int" or "number" (a scalar constant in the header) or "literal" (a
+    selector constant, :func:`_selector_constants`)."""
+    if isinstance(v, ParamSlot):
+        return ("float", "vector", "matrix")[len(v.shape)]
+    if name in selectors:
+        return "literal"
+    return "int" if isinstance(v, (int, np.integer)) else "number"
+
+
+#: header entries per kind of argument: a slot's offset in the block's P and its shape
+_HEADER_ENTRIES = {"float": 1, "vector": 2, "matrix": 3, "int": 1, "number": 1, "literal": 0}
+
+
+def _port_counts(spec):
+    """(states, inputs, outputs) port counts of a named-port block (their bounds are in the
+    header), else (0, 0, 0)."""
+    if not spec.named_ports:
+        return 0, 0, 0
+    return len(spec.states), len(spec.inputs), len(spec.outputs)
+
+
+def _header(spec, args, base, selectors):
+    """(kinds, header values) of a generic block whose header starts at P[base], `args` its
+    kernel arguments (absolute ParamSlots, constants).  The header is, in order:
+    [length of the block's P (header and parameters), nx, nu, ny, the cumulative bounds
+    of its states, inputs and outputs (named ports: each from 0 to the vector's size),
+    then per argument: a float's offset; a vector's offset and length; a matrix's offset,
+    rows and columns (offsets relative to `base`); an int or float constant's value].
+    :func:`_generic_wrapper_module` reads it by the same rule."""
+    kinds = tuple(_arg_kind(spec, n, v, selectors) for n, v in zip(spec.param_names, args))
+    head = [0.0, float(spec.nstates), float(spec.ninputs), float(spec.noutputs)]
+    if spec.named_ports:
+        for ports in (spec.states, spec.inputs, spec.outputs):
+            head += [0.0] + [float(c) for c in np.cumsum([n for _, n in ports])]
+    for kind, v in zip(kinds, args):
+        if kind in ("float", "vector", "matrix"):
+            head += [float(v.offset - base), *(float(n) for n in v.shape)]
+        elif kind != "literal":
+            head.append(float(v))
+    end = max([base + len(head)] + [v.offset + v.size for v in args
+                                     if isinstance(v, ParamSlot)])
+    head[0] = float(end - base)
+    return kinds, head
+
+
+def _generic_wrapper_module(role, kmod, fn_name, kinds, ports, literals):
+    """(module name, source) of the C-callable wrapper of a generic block's kernel `role`
+    (:func:`generic_block`): the same text for every size, the block's header
+    (:func:`_header`) at its parameter pointer read at the top.  `kinds` the kernel
+    arguments' kinds, `ports` the (states, inputs, outputs) port counts of a named-port
+    kernel (None for a flat one: a jacobian kernel), `literals` the selector constants'
+    values."""
+    hlen = 4 + (sum(c + 1 for c in ports) if ports else 0) + sum(
+        _HEADER_ENTRIES[k] for k in kinds)
+    out_shape = {"output": "(ny,)", "update": "(nx,)", "jacobian": "(ny + nx, nx + nu)"}[role]
+    body = ["    h = carray(float_pointer(pp), (%d,))" % hlen,
+            "    nx, nu, ny = int(h[1]), int(h[2]), int(h[3])",
+            "    x = carray(float_pointer(xp), (nx,))",
+            "    u = carray(float_pointer(up), (nu,))",
+            f"    out = carray(float_pointer(outp), {out_shape})",
+            "    p = carray(float_pointer(pp), (int(h[0]),))"]
+    call, k = [], 4
+    if ports:
+        starts, at = [], k
+        for c in ports:                       # states, inputs, outputs bounds
+            starts.append(at)
+            at += c + 1
+        k = at
+        # the kernel's x, u and out: states, inputs and (update) states or (output) outputs
+        which = (0, 1, 0 if role == "update" else 2)
+        for w in which:
+            call += [f"int(h[{starts[w] + j}])" for j in range(ports[w] + 1)]
+    lits = iter(literals)
+    for i, kind in enumerate(kinds):
+        a = f"a{i}"
+        if kind == "float":
+            body.append(f"    {a} = p[int(h[{k}])]")
+        elif kind == "vector":
+            body.append(f"    {a} = p[int(h[{k}]):int(h[{k}]) + int(h[{k + 1}])]")
+        elif kind == "matrix":
+            body.append(f"    {a} = p[int(h[{k}]):int(h[{k}]) + int(h[{k + 1}]) * "
+                        f"int(h[{k + 2}])].reshape((int(h[{k + 1}]), int(h[{k + 2}])))")
+        elif kind == "int":
+            body.append(f"    {a} = int(h[{k}])")
+        elif kind == "number":
+            body.append(f"    {a} = h[{k}]")
+        else:
+            a = repr(next(lits))
+        k += _HEADER_ENTRIES[kind]
+        call.append(a)
+    if ports:                                 # many bounds: one per line
+        bound_lines = []
+        nb = sum(ports[w] + 1 for w in (0, 1, 0 if role == "update" else 2))
+        for j in range(nb):
+            body.append(f"    b{j} = {call[j]}")
+            bound_lines.append(f"b{j}")
+        call = bound_lines + call[nb:]
+    pargs = "".join(", " + a for a in call)
+    lines = [f"# Generated by ivdrem {__version__}: C-callable {role} kernel "
+             f"{kmod}.{fn_name}, for every size: sizes, port bounds, parameter slots and "
+             "constants read from the block's header in P. Do not edit.",
+             *GENERATED_HEADER, "from numba import cfunc, carray",
+             "from ivdrem._native_call import float_pointer",
+             f"from {kmod} import {fn_name} as kernel", "", "",
+             '@cfunc("int32(float64, int64, int64, int64, int64)", cache=True)',
+             "def wrapper(t, xp, up, outp, pp):", *body,
+             "    try:", f"        kernel(t, x, u, out{pargs})", "    except Exception:",
+             "        return 1",
+             "    return 0", ""]
+    src = "\n".join(lines)
+    return f"ivdrem_wrapper_{_hash(src)}", src
+
+
+def _generic_kernel(spec, role):
+    """The function a generic block's wrapper calls for `role`: a named-port kernel's
+    flat form with its port bounds as arguments (:func:`ivdrem.blocks._ports.flat_form`),
+    else the kernel itself."""
+    named = (spec.named_kernels or {}).get(role)
+    layout = port_layout(spec, role)
+    if named is None or layout is None:
+        return getattr(spec, role)
+    return _ports.flat_form(named, role, layout, runtime_offsets=True)
+
+
 class DiagramProgram:
     """What the compiled engine needs for one diagram: the modules to load (robot models,
     kernels, the kernels' C-callable wrappers) and the diagram's tables."""
@@ -231,6 +419,11 @@ def kernel_modules(plan, param_slots=None):
     their sources depend on the blocks' kernels, shapes and parameter layout only, not on
     the sparsity probe, the Jacobian program or the LU, so their compile can start first."""
     _check_kernels(plan)
+    # all parameters live in one flat float64 vector P (the values are not in the wrappers:
+    # changing a gain does not recompile); a generic block's sizes, port bounds, slots and
+    # scalar constants are in its header in P (one wrapper for every size), a model
+    # block's shapes and structural constants are literals in its wrappers
+    playout = _param_layout(plan)[0] if param_slots is None else param_slots
     deps = {}                      # module name -> source, in dependency order
     kernels = {}                   # (module, qualname, model key) -> (module, function)
     for b in plan.blocks:
@@ -245,7 +438,10 @@ def kernel_modules(plan, param_slots=None):
             fn = getattr(spec, role)
             if fn is None:
                 continue
-            kk = _kernel_key(spec, role)
+            generic = isinstance(playout[b.index], GenericSlots)
+            if generic:
+                fn = _generic_kernel(spec, role)
+            kk = (fn.__module__, fn.__qualname__, None) if generic else _kernel_key(spec, role)
             if kk not in kernels:
                 if isinstance(spec, foreign.ForeignSpec):
                     fname, src = spec.sources[role]
@@ -256,10 +452,6 @@ def kernel_modules(plan, param_slots=None):
                     kmod, ksrc = _kernel_module(fn, src, mmod)
                 deps.setdefault(kmod, ksrc)
                 kernels[kk] = kmod, fname
-    # all parameters live in one flat float64 vector P (shapes are baked into the wrappers,
-    # the values are not: changing a gain does not recompile); structural constants are
-    # literals in the wrappers
-    playout = _param_layout(plan)[0] if param_slots is None else param_slots
     # every kernel of every block gets a C-callable wrapper (its own cached module) and an
     # index into the workspace field `kernels`, which holds the wrappers' addresses
     wrappers, wrapper_nx = [], []
@@ -267,14 +459,29 @@ def kernel_modules(plan, param_slots=None):
     for b in plan.blocks:
         if b.spec.kind != "ode":
             continue
-        base, npar, rel = _relative_params(playout[b.index])
-        pbase[b.index] = base
+        layout = playout[b.index]
+        if isinstance(layout, GenericSlots):
+            pbase[b.index] = layout.header
+            selectors = _selector_constants(b.spec)
+            kinds, _ = _header(b.spec, layout.args, layout.header, selectors)
+            literals = [v for n, v in zip(b.spec.param_names, layout.args) if n in selectors
+                        and not isinstance(v, ParamSlot)]
+        else:
+            base, npar, rel = _relative_params(layout)
+            pbase[b.index] = base
         for role in ("output", "update", "jacobian"):
             fn = getattr(b.spec, role)
             if fn is None or (role == "update" and not b.sys.nstates):
                 continue
-            kmod, fname = kernels[_kernel_key(b.spec, role)]
-            wmod, wsrc = _wrapper_module(b, role, kmod, fname, rel, npar)
+            if isinstance(layout, GenericSlots):
+                gfn = _generic_kernel(b.spec, role)
+                kmod, fname = kernels[(gfn.__module__, gfn.__qualname__, None)]
+                wmod, wsrc = _generic_wrapper_module(
+                    role, kmod, fname, kinds,
+                    _port_counts(b.spec) if port_layout(b.spec, role) else None, literals)
+            else:
+                kmod, fname = kernels[_kernel_key(b.spec, role)]
+                wmod, wsrc = _wrapper_module(b, role, kmod, fname, rel, npar)
             deps.setdefault(wmod, wsrc)
             windex[(b.index, role)] = len(wrappers)
             wrappers.append((b.sys.name, role, wmod))
@@ -298,7 +505,7 @@ def tables_key(plan, modules):
     digest = structure_digest(plan)
     if digest is None:
         return None
-    layout = (sorted(modules.playout.items()), sorted(modules.pbase.items()),
+    layout = (WRAPPER_LAYOUT, sorted(modules.playout.items()), sorted(modules.pbase.items()),
               sorted(modules.windex.items()), list(modules.wrapper_nx))
     return (hashlib.sha256(f"{digest} {layout!r}".encode()).hexdigest(),
             kernel_code_ids(plan))
@@ -384,18 +591,32 @@ def python_blocks(plan):
             if isinstance(b.spec, foreign.ForeignSpec) and b.spec.runs == "python"]
 
 
-def _param_layout(plan):
+def _param_layout(plan, *, generic=True):
     """The kernels' parameters in one flat float64 vector P.
 
     Returns ({block index: [ParamSlot or constant]}, P): arrays and floats get a slot of P,
-    structural constants stay literals.
+    structural constants stay literals; a generic block (:func:`generic_block`) gets
+    :class:`GenericSlots`, its header (:func:`_header`) in P before its parameters
+    (``generic=False``: every block specialised, as before generic wrappers; for
+    benchmarks and tests comparing the two).
     """
     _check_kernels(plan)
     slots_by_block, values, off = {}, [], 0
     for b in plan.blocks:
         slots = []
         names = b.spec.param_names if b.spec.kind == "ode" else ("p",)
-        for name, v in zip(names, _param_values(plan, b)):
+        args = _param_values(plan, b)
+        generic = generic and generic_block(b)
+        if generic:         # the header's place, filled below when the slots are known
+            selectors = _selector_constants(b.spec)
+            pending = [ParamSlot(0, np.shape(v)) if not (name in b.spec.constants
+                                                         and np.ndim(v) == 0) else v
+                       for name, v in zip(names, args)]
+            header, hlen = off, len(_header(b.spec, pending, 0, selectors)[1])
+            hindex = len(values)
+            values.append(np.zeros(hlen))
+            off += hlen
+        for name, v in zip(names, args):
             # scalar constants are literals; array constants (e.g. an FMU's C addresses,
             # different in every process) travel in P so the source stays the same
             if b.spec.kind == "ode" and name in b.spec.constants and np.ndim(v) == 0:
@@ -408,6 +629,10 @@ def _param_layout(plan):
             slots.append(ParamSlot(off, tuple(int(n) for n in np.shape(v))))
             values.append(flat)
             off += flat.size
+        if generic:
+            kinds, head = _header(b.spec, slots, header, selectors)
+            values[hindex][:] = head
+            slots = GenericSlots(header, hlen, slots)
         slots_by_block[b.index] = slots
     P = np.concatenate(values) if values else np.zeros(0)
     return slots_by_block, P
