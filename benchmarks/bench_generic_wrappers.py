@@ -8,6 +8,10 @@ in one process on one arm's IV-DREM loop; the two write the same numbers, bit fo
 Usage::
 
     ./run python benchmarks/bench_generic_wrappers.py [--arm panda] [--seconds 0.02] [--reps 7]
+    ./run python benchmarks/bench_generic_wrappers.py --step [--arm panda] [--t 0.5]
+
+``--step`` instead times the whole loop's right-hand side, Jacobian and steps of the
+arm's simulation with each kind of wrapper (the two simulations take the same steps).
 
 Prints, per wrapper of the blocks without a robot model, the best CPU time (this thread's:
 a loaded machine's waiting is not counted) per call of each
@@ -64,13 +68,65 @@ def _inputs(b, rng):
     return x, u
 
 
+def step_rows(arm, t_at, reps, steps):
+    """(ms of a right-hand side, of a Jacobian, of a step) of arm's loop at t_at with
+    specialised and with generic wrappers: {generic: (rhs, jacobian, step)}, and whether the
+    two simulations stayed equal bit for bit."""
+    from ivdrem.sim import _stepper_codes, compiled
+    from ivdrem.sim.simulator import Simulator
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        d = _diagram(arm)
+        sims = {}
+        for generic in (False, True):
+            compiled.GENERIC_WRAPPERS = generic
+            try:
+                sims[generic] = Simulator(d, method="rodas5p", rtol=2e-4, atol=2e-6, h_max=5.0)
+            finally:
+                compiled.GENERIC_WRAPPERS = True
+            sims[generic].advance(t_at)
+    best = {g: [np.inf] * 3 for g in sims}
+    for _ in range(reps):
+        for g, sim in sims.items():
+            E, W, x, t = sim.engine, sim.W, sim.x.copy(), float(sim.t)
+            dx = np.zeros_like(x)
+            J = np.zeros(int(E.tables.lu_rowptr[-1]))
+            tmp = np.zeros_like(x)
+            c = time.thread_time()
+            for _ in range(10):
+                E.module.diagram_eval(W, E.P, _stepper_codes.RHS, t, x, dx)
+            best[g][0] = min(best[g][0], (time.thread_time() - c) / 10)
+            c = time.thread_time()
+            E.module.diagram_jacobian(W, E.P, t, x, J, tmp)
+            best[g][1] = min(best[g][1], time.thread_time() - c)
+            k0, c = int(sim.stats[0]), time.thread_time()
+            while int(sim.stats[0]) - k0 < steps:
+                sim.advance(sim.t + 0.01)
+            best[g][2] = min(best[g][2], (time.thread_time() - c) / (int(sim.stats[0]) - k0))
+    same = (sims[False].t == sims[True].t and np.array_equal(sims[False].x, sims[True].x))
+    return {g: [1e3 * v for v in b] for g, b in best.items()}, same
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--arm", default="panda")
     ap.add_argument("--seconds", type=float, default=0.02, help="per timing (default 0.02)")
     ap.add_argument("--reps", type=int, default=7)
     ap.add_argument("--blocks", default="", help="comma-separated block names (default: all)")
+    ap.add_argument("--step", action="store_true",
+                    help="time the loop's right-hand side, Jacobian and steps instead")
+    ap.add_argument("--t", type=float, default=0.5, help="--step: from this time (s)")
+    ap.add_argument("--steps", type=int, default=10, help="--step: steps per timing")
     a = ap.parse_args(argv)
+    if a.step:
+        best, same = step_rows(a.arm, a.t, a.reps, a.steps)
+        print(f"{a.arm} from t = {a.t} s: best of {a.reps}, ms (CPU time of this thread)")
+        print(f"{'':12s} {'specialised':>12s} {'generic':>10s} {'ratio':>7s}")
+        for k, what in enumerate(("rhs", "jacobian", "step")):
+            print(f"{what:12s} {best[False][k]:12.3f} {best[True][k]:10.3f} "
+                  f"{best[True][k] / best[False][k]:7.3f}")
+        print(f"the two simulations equal bit for bit: {same}")
+        return 0 if same else 1
     from ivdrem.sim import compiled
     from ivdrem.sim.plan import DiagramPlan
     with warnings.catch_warnings():

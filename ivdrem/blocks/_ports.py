@@ -138,10 +138,11 @@ def flat_form(fn, role, layout, *, runtime_offsets=False):
 
     With ``runtime_offsets`` the ports' bounds are arguments instead of literals: the
     function is ``(t, x, u, out, *bounds, *params)``, `bounds` the cumulative port offsets
-    of x, u and out (``len(fields) + 1`` integers each, from 0 to the vector's size), read
-    into locals at the top; its source depends on the kernel, the role and the field names
-    only, so one compiled function serves every size (:func:`_bound_names`).  Constant
-    indices are still checked against `layout`'s sizes here.
+    of x, u and out (``len(fields) + 1`` integers each, from 0 to the vector's size), and
+    every used port is a view ``u[lo:hi]`` made once at the top; its source depends on the
+    kernel, the role and the field names only, so one compiled function serves every size
+    (:func:`_bound_names`).  Constant indices are still checked against `layout`'s sizes
+    here.
     """
     key = (fn, role, tuple((tuple(f), tuple(p)) for f, p in layout), runtime_offsets)
     if key in _flat_cache:
@@ -174,19 +175,20 @@ def flat_form(fn, role, layout, *, runtime_offsets=False):
             return (node.value.id, *where[node.value.id][node.attr][:3])
         return None
 
-    def const(v):                   # an offset: a literal, or a bound's local name
-        return ast.Name(v, ast.Load()) if isinstance(v, str) else ast.Constant(v)
-
-    def plus(a, idx):               # a + idx, without "0 +" for a literal 0
-        if isinstance(a, int) and isinstance(idx, ast.Constant):
+    def plus(a, idx):               # a + idx for a literal offset a, without "0 +"
+        if isinstance(idx, ast.Constant):
             return ast.Constant(a + idx.value)
         if a == 0:
             return idx
-        return ast.BinOp(const(a), ast.Add(), idx)
+        return ast.BinOp(ast.Constant(a), ast.Add(), idx)
 
     class Rewrite(ast.NodeTransformer):
-        # u.q[i] -> u[a + i] and u.q.shape -> (size,): no view at all (a view costs an
-        # NRT incref/decref in numba); any other use of u.q -> a view made once at the top
+        # literal offsets: u.q[i] -> u[a + i] and u.q.shape -> (size,), no view at all (a
+        # view costs an NRT incref/decref in numba); any other use of u.q -> a view made
+        # once at the top.  Runtime offsets: every u.q -> that view (u[lo + i] would keep
+        # numba's negative-index wrap-around, which LLVM cannot drop for an offset it does
+        # not know is >= 0: the Panda's averaging 4-8x slower; a view's index i from a
+        # range is known >= 0)
         def visit_Subscript(self, node):
             port = port_of(node.value)
             if port is not None and not isinstance(node.slice, (ast.Slice, ast.Tuple)):
@@ -197,22 +199,21 @@ def flat_form(fn, role, layout, *, runtime_offsets=False):
                     if not 0 <= k < size:
                         raise PortError(f"kernel {fn.__name__}: index {idx.value} out of "
                                         f"range for {arg}.{node.value.attr} (size {size})")
-                    # a negative index counts from the port's end, whatever its size
-                    flat_idx = (plus(a, ast.Constant(k)) if isinstance(a, int)
-                                else plus(b if idx.value < 0 else a, ast.Constant(idx.value)))
+                    flat_idx = plus(a, ast.Constant(k)) if isinstance(a, int) else None
                 else:           # a port index must be >= 0 (documented)
-                    flat_idx = plus(a, idx)
+                    flat_idx = plus(a, idx) if isinstance(a, int) else None
+                if flat_idx is None:        # runtime offsets: the port's view
+                    node.slice = idx
+                    node.value = self.visit(node.value)
+                    return node
                 return ast.copy_location(ast.Subscript(ast.Name(arg, ast.Load()), flat_idx,
                                                        node.ctx), node)
             return self.generic_visit(node)
 
         def visit_Attribute(self, node):
             port = port_of(node.value)
-            if port is not None and node.attr == "shape":
-                arg, a, b, size = port
-                n = ast.Constant(size) if isinstance(a, int) else ast.BinOp(
-                    const(b), ast.Sub(), const(a))
-                return ast.copy_location(ast.Tuple([n], ast.Load()), node)
+            if port is not None and node.attr == "shape" and isinstance(port[1], int):
+                return ast.copy_location(ast.Tuple([ast.Constant(port[3])], ast.Load()), node)
             if isinstance(node.value, ast.Name) and node.value.id in where:
                 arg, field = node.value.id, node.attr
                 if field not in where[arg]:
@@ -245,7 +246,7 @@ def flat_form(fn, role, layout, *, runtime_offsets=False):
     head = [ast.parse(f"{local} = {arg}[{a}:{b}]").body[0] for local, (arg, a, b, _) in order]
     if runtime_offsets:
         fdef.args.args[4:4] = [ast.arg(n) for names in bounds for n in names]
-        digest_of = repr((role, fields_key, "runtime offsets"))
+        digest_of = repr((role, fields_key, "runtime offsets as views"))
     else:
         digest_of = repr(key[1:3])
     digest = hashlib.sha256(digest_of.encode() + src.encode()).hexdigest()[:12]

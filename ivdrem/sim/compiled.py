@@ -192,6 +192,10 @@ def _wrapper_module(b, role, kmod, fn_name, rel_exprs, npar):
 #: disk by a version with another layout are never read as this one's
 WRAPPER_LAYOUT = "generic wrappers: header at the block's base, 1"
 
+#: whether the blocks without a robot model get generic wrappers (:func:`generic_block`);
+#: False: every wrapper specialised to its block's sizes (benchmarks compare the two)
+GENERIC_WRAPPERS = True
+
 #: a float64 header carries integers exactly up to here (sizes, offsets, int constants)
 _EXACT_INT = 2 ** 53
 
@@ -296,13 +300,14 @@ def _header(spec, args, base, selectors):
     return kinds, head
 
 
-def _generic_wrapper_module(role, kmod, fn_name, kinds, ports, literals):
+def _generic_wrapper_module(role, kmod, fn_name, kinds, ports, literals, pass_bounds):
     """(module name, source) of the C-callable wrapper of a generic block's kernel `role`
     (:func:`generic_block`): the same text for every size, the block's header
     (:func:`_header`) at its parameter pointer read at the top.  `kinds` the kernel
     arguments' kinds, `ports` the (states, inputs, outputs) port counts of a named-port
-    kernel (None for a flat one: a jacobian kernel), `literals` the selector constants'
-    values."""
+    block (None for a flat one: no bounds in its header), `literals` the selector
+    constants' values; `pass_bounds`: the kernel takes the port bounds (a named-port
+    kernel's flat form, not a jacobian kernel)."""
     hlen = 4 + (sum(c + 1 for c in ports) if ports else 0) + sum(
         _HEADER_ENTRIES[k] for k in kinds)
     out_shape = {"output": "(ny,)", "update": "(nx,)", "jacobian": "(ny + nx, nx + nu)"}[role]
@@ -320,9 +325,9 @@ def _generic_wrapper_module(role, kmod, fn_name, kinds, ports, literals):
             at += c + 1
         k = at
         # the kernel's x, u and out: states, inputs and (update) states or (output) outputs
-        which = (0, 1, 0 if role == "update" else 2)
-        for w in which:
-            call += [f"int(h[{starts[w] + j}])" for j in range(ports[w] + 1)]
+        if pass_bounds:
+            for w in (0, 1, 0 if role == "update" else 2):
+                call += [f"int(h[{starts[w] + j}])" for j in range(ports[w] + 1)]
     lits = iter(literals)
     for i, kind in enumerate(kinds):
         a = f"a{i}"
@@ -341,7 +346,7 @@ def _generic_wrapper_module(role, kmod, fn_name, kinds, ports, literals):
             a = repr(next(lits))
         k += _HEADER_ENTRIES[kind]
         call.append(a)
-    if ports:                                 # many bounds: one per line
+    if ports and pass_bounds:                 # many bounds: one per line
         bound_lines = []
         nb = sum(ports[w] + 1 for w in (0, 1, 0 if role == "update" else 2))
         for j in range(nb):
@@ -478,7 +483,8 @@ def kernel_modules(plan, param_slots=None):
                 kmod, fname = kernels[(gfn.__module__, gfn.__qualname__, None)]
                 wmod, wsrc = _generic_wrapper_module(
                     role, kmod, fname, kinds,
-                    _port_counts(b.spec) if port_layout(b.spec, role) else None, literals)
+                    _port_counts(b.spec) if b.spec.named_ports else None, literals,
+                    pass_bounds=port_layout(b.spec, role) is not None)
             else:
                 kmod, fname = kernels[_kernel_key(b.spec, role)]
                 wmod, wsrc = _wrapper_module(b, role, kmod, fname, rel, npar)
@@ -591,14 +597,13 @@ def python_blocks(plan):
             if isinstance(b.spec, foreign.ForeignSpec) and b.spec.runs == "python"]
 
 
-def _param_layout(plan, *, generic=True):
+def _param_layout(plan, *, generic=None):
     """The kernels' parameters in one flat float64 vector P.
 
     Returns ({block index: [ParamSlot or constant]}, P): arrays and floats get a slot of P,
     structural constants stay literals; a generic block (:func:`generic_block`) gets
     :class:`GenericSlots`, its header (:func:`_header`) in P before its parameters
-    (``generic=False``: every block specialised, as before generic wrappers; for
-    benchmarks and tests comparing the two).
+    (``generic=False``: every block specialised; None: :data:`GENERIC_WRAPPERS`).
     """
     _check_kernels(plan)
     slots_by_block, values, off = {}, [], 0
@@ -606,8 +611,8 @@ def _param_layout(plan, *, generic=True):
         slots = []
         names = b.spec.param_names if b.spec.kind == "ode" else ("p",)
         args = _param_values(plan, b)
-        generic = generic and generic_block(b)
-        if generic:         # the header's place, filled below when the slots are known
+        header_first = (GENERIC_WRAPPERS if generic is None else generic) and generic_block(b)
+        if header_first:    # the header's place, filled below when the slots are known
             selectors = _selector_constants(b.spec)
             pending = [ParamSlot(0, np.shape(v)) if not (name in b.spec.constants
                                                          and np.ndim(v) == 0) else v
@@ -629,7 +634,7 @@ def _param_layout(plan, *, generic=True):
             slots.append(ParamSlot(off, tuple(int(n) for n in np.shape(v))))
             values.append(flat)
             off += flat.size
-        if generic:
+        if header_first:
             kinds, head = _header(b.spec, slots, header, selectors)
             values[hindex][:] = head
             slots = GenericSlots(header, hlen, slots)
