@@ -1,5 +1,6 @@
 """The compiled engine: the diagram as tables, its blocks' kernels as cached C-callable
-wrappers (numba ``cfunc``, one module per kernel and block shape, shared by every diagram
+wrappers (numba ``cfunc``, one module per kernel, for every size of a block without a
+robot model (:func:`generic_block`), per arm for a block with one; shared by every diagram
 that uses it), run by the C stepper (docs/simulation.md: "Blocks ivdrem did not write" and
 the layout of ``ivdrem/sim/``).  Generated modules live in :func:`cache_dir`, named by the
 hash of their source, with numba's machine code beside them.
