@@ -181,7 +181,8 @@ def main(argv=None):
                     best[generic] = min(best[generic], (time.thread_time() - c) / calls)
             rows.append((b.sys.name, role, best[False], best[True], same))
     print(f"{a.arm}: best of {a.reps} timings of about {a.seconds} s each, ns per call")
-    print(f"{'block':18s} {'role':9s} {'specialised':>12s} {'generic':>10s} {'ratio':>7s}  bit for bit")
+    print(f"{'block':18s} {'role':9s} {'specialised':>12s} {'generic':>10s} {'ratio':>7s}  "
+          "bit for bit")
     for name, role, s, g, same in rows:
         print(f"{name:18s} {role:9s} {1e9 * s:12.1f} {1e9 * g:10.1f} {g / s:7.3f}  {same}")
     tot_s, tot_g = sum(r[2] for r in rows), sum(r[3] for r in rows)

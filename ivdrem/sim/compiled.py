@@ -636,7 +636,7 @@ def _param_layout(plan, *, generic=None):
             values.append(flat)
             off += flat.size
         if header_first:
-            kinds, head = _header(b.spec, slots, header, selectors)
+            _, head = _header(b.spec, slots, header, selectors)
             values[hindex][:] = head
             slots = GenericSlots(header, hlen, slots)
         slots_by_block[b.index] = slots
