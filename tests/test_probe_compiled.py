@@ -298,3 +298,36 @@ def test_the_tables_of_the_compiled_probe_are_the_python_probes(monkeypatch, pla
     for name, a, c in zip(in_python._fields, in_python, through_wrappers):
         assert np.asarray(a).dtype == np.asarray(c).dtype, name
         assert np.array_equal(a, c), name
+
+
+def test_the_compile_child_gets_the_probes_wrappers_last(monkeypatch, planar_urdf):
+    """The engine gives its compile child the robot-model blocks' update and output
+    wrappers at the end of its list (this process compiles them for the probe first, the
+    child the others meanwhile), every other uncached wrapper before them, dearest first
+    as before; this process takes the list back from the end."""
+    import math
+    import sys
+    from ivdrem.sim import _compile_child, compiled
+    from ivdrem.sim.plan import DiagramPlan
+    plan, modules = _plan_modules(DiagramPlan.from_diagram(_planar_loop(planar_urdf)))
+    probe = jac.probe_wrappers(plan, modules)
+    assert len(probe) == 2 * len(ROBOT_BLOCKS)
+    assert len(set(probe)) == len(probe)
+    monkeypatch.setattr(_compile_child, "function_cached", lambda path, qualname: False)
+    monkeypatch.setattr(_compile_child, "enabled", lambda: True)
+    for name in [m for m in sys.modules if m.startswith("ivdrem_")]:
+        monkeypatch.delitem(sys.modules, name)
+    given = []
+
+    def no_child(names):
+        given.extend(names)
+        return _compile_child.Warmup()
+
+    monkeypatch.setattr(_compile_child, "start_modules", no_child)
+    plain = compiled.start_kernels(modules.deps, parent_busy=math.inf).later
+    ordered = compiled.start_kernels(modules.deps, parent_busy=math.inf, last=probe).later
+    assert set(probe) <= set(plain) and sorted(ordered) == sorted(plain)
+    k = len(plain) - len(probe)
+    assert set(ordered[k:]) == set(probe)
+    assert ordered[:k] == [n for n in plain if n not in set(probe)]
+    assert given[-len(probe):] == ordered[k:]       # the child's own list ends with them

@@ -31,7 +31,10 @@ Transport-delay outputs come from the history at t - T and max-hold outputs are 
 values, so both are constants here (their rows of dy/dx are empty).
 
 Sparsity is fixed when the diagram's tables are built: each block's kernels are probed
-(in Python, or compiled by numba for a large block without a robot model) at a few random
+(in Python; compiled by numba for a large block without a robot model; through the
+compiled C-callable wrappers the run uses for a robot-model block whose model is its C
+library in both paths, a URDF arm: the same values bit for bit, checked, and so the same
+pattern, :func:`wrapper_probe_applies`) at a few random
 points (random states, inputs and parameter values, so that a gain that is 0
 today, or a diagonal matrix parameter, does not hide an entry once it changes; parameter
 values are not part of the compiled code).  An entry is structural when a difference of
