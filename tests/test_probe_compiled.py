@@ -300,11 +300,11 @@ def test_the_tables_of_the_compiled_probe_are_the_python_probes(monkeypatch, pla
         assert np.array_equal(a, c), name
 
 
-def test_the_compile_child_gets_the_probes_wrappers_last(monkeypatch, planar_urdf):
+def test_the_compile_child_gets_the_probes_wrappers_first(monkeypatch, planar_urdf):
     """The engine gives its compile child the robot-model blocks' update and output
-    wrappers at the end of its list (this process compiles them for the probe first, the
-    child the others meanwhile), every other uncached wrapper before them, dearest first
-    as before; this process takes the list back from the end."""
+    wrappers at the head of its list, in the order the probe takes them (after the other
+    blocks: the child compiles them meanwhile), every other uncached wrapper after them,
+    dearest first as before."""
     import math
     import sys
     from ivdrem.sim import _compile_child, compiled
@@ -320,14 +320,26 @@ def test_the_compile_child_gets_the_probes_wrappers_last(monkeypatch, planar_urd
     given = []
 
     def no_child(names):
-        given.extend(names)
+        given.append(names)
         return _compile_child.Warmup()
 
     monkeypatch.setattr(_compile_child, "start_modules", no_child)
     plain = compiled.start_kernels(modules.deps, parent_busy=math.inf).later
-    ordered = compiled.start_kernels(modules.deps, parent_busy=math.inf, last=probe).later
+    ordered = compiled.start_kernels(modules.deps, parent_busy=math.inf, first=probe).later
     assert set(probe) <= set(plain) and sorted(ordered) == sorted(plain)
-    k = len(plain) - len(probe)
-    assert set(ordered[k:]) == set(probe)
-    assert ordered[:k] == [n for n in plain if n not in set(probe)]
-    assert given[-len(probe):] == ordered[k:]       # the child's own list ends with them
+    assert ordered[:len(probe)] == probe
+    assert ordered[len(probe):] == [n for n in plain if n not in set(probe)]
+    wrappers = [n for n in given[-1] if n.startswith("ivdrem_wrapper_")]
+    assert wrappers == ordered          # the child's own list: its imports, then these
+
+    # and the probe takes them after every other block
+    order = []
+    real = jac.cached_block_pattern
+
+    def record(spec, *a, **k):
+        order.append(k.get("compiled") is not None)
+        return real(spec, *a, **k)
+
+    monkeypatch.setattr(jac, "cached_block_pattern", record)
+    jac._local_patterns(plan, 0, modules)
+    assert order == sorted(order) and sum(order) == len(ROBOT_BLOCKS)

@@ -298,8 +298,10 @@ def wrapper_probe_applies(spec):
 def probe_wrappers(plan, modules):
     """The wrapper modules (of `modules`, ivdrem.sim.compiled.KernelModules) the probe of
     `plan`'s blocks imports (:func:`wrapper_probe_applies`), in the blocks' order: the
-    compiled engine gives them to its compile child last, so that this process compiles
-    them for the probe while the child compiles the others."""
+    compiled engine gives them to its compile child first, in this order (the order the
+    probe takes them in, after the other blocks, :func:`_local_patterns`), so that the
+    child compiles them while this process probes the other blocks, and the two processes
+    never compile the model's functions at the same time."""
     names = []
     for b in plan.blocks:
         if b.spec is None or b.spec.kind != "ode" or not wrapper_probe_applies(b.spec):
@@ -620,9 +622,14 @@ def _local_patterns(plan, seed, modules=None):
     inputs (probed once per process, cached_block_pattern), each checked against the
     block's declared direct feedthrough.  With the diagram's generated `modules`
     (ivdrem.sim.compiled.KernelModules), a block :func:`wrapper_probe_applies` to is
-    probed through its compiled wrappers (:func:`_wrapper_kernels`)."""
+    probed through its compiled wrappers (:func:`_wrapper_kernels`), after the other blocks
+    (a compile child started with them first has compiled them meanwhile); the patterns do
+    not depend on the order the blocks are probed in (each block's points are drawn from
+    its own seed)."""
     patterns = {}
-    for b in plan.blocks:
+    through_wrappers = {b.index: modules is not None and b.spec.kind == "ode"
+                        and wrapper_probe_applies(b.spec) for b in plan.blocks}
+    for b in sorted(plan.blocks, key=lambda b: through_wrappers[b.index]):
         spec = b.spec
         if spec.kind != "ode":
             continue
@@ -630,9 +637,7 @@ def _local_patterns(plan, seed, modules=None):
         if nx + nu == 0:
             continue
         args = kernel_args(spec, plan.block_params(b))
-        compiled = None
-        if modules is not None and wrapper_probe_applies(spec):
-            compiled = partial(_wrapper_kernels, b, modules)
+        compiled = partial(_wrapper_kernels, b, modules) if through_wrappers[b.index] else None
         pat = cached_block_pattern(spec, args, nx, nu, ny, seed=seed + b.index,
                                    compiled=compiled)
         direct_local = set(int(i) - b.u.start for i in b.direct_inputs)
@@ -650,7 +655,7 @@ def _local_patterns(plan, seed, modules=None):
                 "the block does not declare as direct feedthrough (BlockSpec.direct); the "
                 "right-hand side would read them before they are computed")
         patterns[b.index] = pat
-    return patterns
+    return {b.index: patterns[b.index] for b in plan.blocks if b.index in patterns}
 
 
 def _parameter_zeros(plan, patterns, *, seed=0, n_points=3):
