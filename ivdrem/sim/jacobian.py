@@ -280,8 +280,9 @@ def wrapper_probe_applies(spec):
     and depends on nothing a compile child changes.  There, the two paths compute the same
     values bit for bit: the model's functions are one machine code, and the kernels' own
     arithmetic (loops of +, -, *, /) is IEEE float64 in both (numba without fastmath
-    contracts nothing): checked at random points on every robot-model block of the UR5's,
-    the Panda's and a planar URDF arm's loops, both laws (tests/test_probe_compiled.py).
+    contracts nothing): checked at the probe's random points on every robot-model block
+    of the UR5's and a planar URDF arm's loops, both laws (tests/test_probe_compiled.py),
+    and of the Panda's (docs/performance.md).
     A model whose Python functions are not the compiled ones (a sympy model, the paper's
     2-link arm; a URDF arm without a C compiler, whose numba path compiles the rigid-body
     kernels) keeps the Python probe."""
