@@ -84,6 +84,8 @@ STAGES = [("ivdrem.cli.preflight", "check_runs", "preflight (the loop built and 
           # this version: the engine reads kept tables before it starts any compile
           ("ivdrem.sim.compiled", "kept_tables", "the tables (built, or read)"),
           ("ivdrem.sim.jacobian", "_local_patterns", "sparsity probe"),
+          # this version: the robot-model blocks' wrappers imported (compiled) for the probe
+          ("ivdrem.sim.jacobian", "_wrapper_kernels", "the probe's wrappers imported"),
           ("ivdrem.sim.jacobian", "JacobianProgram._build", "Jacobian program build"),
           ("ivdrem.sim.sparse_lu", "_grouped_symbolic_lu", "symbolic LU (orderings, search)"),
           ("ivdrem.sim.compiled", "_load_kernels", "kernels compiled and imported"),
