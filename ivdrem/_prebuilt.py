@@ -1,6 +1,7 @@
 """The prebuilt machine code: ivdrem's own numba functions compiled once at set-up, into a
 directory of the installation, and loaded from there by every run whose user cache does not
-hold them yet (docs/developers.md, "Caches"; made by ``python -m ivdrem.cli.prebuild``).
+hold them yet (docs/developers.md, "The prebuilt machine code"; made by
+``python -m ivdrem.cli.prebuild``).
 
 numba types do not carry array sizes, so the machine code of ivdrem's package functions
 (``blocks/_kernels.py``, ``models/_rigid_body_jit.py``, ...) does not depend on the arm: a
@@ -16,7 +17,7 @@ run on a small arm compiles exactly what the Panda's first run asks for.  Where 
 directory is ignored.  The directory is made complete elsewhere and renamed into place, so a
 directory that exists is whole.
 
-How numba is told (numba 0.59-0.68, checked against 0.68.1's ``numba/core/caching.py``): one
+How numba is told (written and tested against numba 0.68.1's ``numba/core/caching.py``): one
 place, :func:`numba_loaded`, run once when ``numba.core.caching`` is imported (the import hook
 of :func:`install_numba_hook`, set by ``ivdrem/__init__.py`` before anything imports numba):
 

@@ -1,5 +1,6 @@
 """``python -m ivdrem.cli.prebuild``: compile ivdrem's arm-independent machine code once, into
-the installation's prebuilt directory (``ivdrem._prebuilt``; docs/developers.md, "Caches").
+the installation's prebuilt directory (``ivdrem._prebuilt``; docs/developers.md, "The
+prebuilt machine code").
 
 numba types do not carry array sizes, so what a run compiles of ivdrem's own functions
 (the rigid-body kernels, the mixing, the blocks' helpers) is the same machine code on a
@@ -131,8 +132,10 @@ def prebuild(root=None, *, quiet=False, force=False, program=None) -> Path:
         except OSError:
             if not final.is_dir():
                 raise
-            shutil.rmtree(final)                   # --force: the old one goes
-            staging.rename(final)
+            if force:                              # --force: the old one goes
+                shutil.rmtree(final)
+                staging.rename(final)
+            # else another prebuild made it meanwhile: that one stays (a run may read it)
         _say(quiet, f"done in {time.perf_counter() - t0:.0f} s ({_size(final)})")
     finally:
         shutil.rmtree(work, ignore_errors=True)
