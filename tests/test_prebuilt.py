@@ -244,6 +244,11 @@ def test_the_set_up_stamps_the_prebuilt_and_does_not_redo_it(small_prebuilt, tmp
     os.utime(stamp, (0, 0))
     res = _run(tmp_path, blocked / "sub")
     assert res.stderr.count("warning: the prebuild failed") == 1, res.stderr
+    # IVDREM_PREBUILT_DIR set empty (no prebuilt wanted): nothing tried, nothing stamped
+    stamp.unlink()
+    res = _run(tmp_path, "")
+    assert res.returncode == 0 and res.stdout.strip() == "ran", res.stderr
+    assert "prebuil" not in res.stderr and not stamp.exists(), res.stderr
 
 
 # ------------------------------------------------------------------- the whole prebuilt
