@@ -8,7 +8,11 @@ numba's machine code, the models' code, the C libraries, the calibrations all st
 and once again warm; wall seconds and peak resident memory of the whole command
 (``/usr/bin/time -v``, children included), for this checkout and for ``--commit`` (default
 dca66b6, the code before this change) checked out into a temporary git worktree and run with
-this checkout's venv.  The two versions alternate.
+this checkout's venv.  The two versions alternate.  A version with the prebuilt machine code
+(``python -m ivdrem.cli.prebuild``, which ``./run``'s set-up runs) first makes it afresh for
+its own tree in a temporary folder (a row "prebuild": the set-up's extra cost), and its first
+run loads it (``IVDREM_PREBUILT_DIR``); a version without runs with none.  ``--compile-table``
+does the same (untimed).
 
 ``--gamma``: per arm, γ "auto" of IV-DREM from the reference estimate (no loop simulated,
 the default for the "eigen" and "channel" mixings) and from the calibration run over [0, 2T]
@@ -84,6 +88,8 @@ STAGES = [("ivdrem.cli.preflight", "check_runs", "preflight (the loop built and 
           # this version: the engine reads kept tables before it starts any compile
           ("ivdrem.sim.compiled", "kept_tables", "the tables (built, or read)"),
           ("ivdrem.sim.jacobian", "_local_patterns", "sparsity probe"),
+          # this version: the robot-model blocks' wrappers imported (compiled) for the probe
+          ("ivdrem.sim.jacobian", "_wrapper_kernels", "the probe's wrappers imported"),
           ("ivdrem.sim.jacobian", "JacobianProgram._build", "Jacobian program build"),
           ("ivdrem.sim.sparse_lu", "_grouped_symbolic_lu", "symbolic LU (orderings, search)"),
           ("ivdrem.sim.compiled", "_load_kernels", "kernels compiled and imported"),
@@ -177,12 +183,39 @@ run()
 """
 
 
-def compile_table(tree, label, cache, top=25):
-    """numba's compile time on a first run of the Panda command in `tree` (an empty
-    `cache`, one process): per function and per generated module (see the docstring)."""
+def make_prebuilt(tree, label, root):
+    """The prebuilt machine code of `tree` (``python -m ivdrem.cli.prebuild``, what ``./run``'s
+    set-up runs) made afresh in `root`, timed: its row, or None for a version without it."""
+    if not (Path(tree) / "ivdrem" / "cli" / "prebuild.py").exists():
+        return None
+    env = dict(os.environ, PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1")
+    for k in ("NUMBA_CACHE_DIR", "IVDREM_PREBUILT_DIR", "IVDREM_CACHE_DIR"):
+        env.pop(k, None)
+    cmd = [sys.executable, "-m", "ivdrem.cli.prebuild", "--dir", str(root), "--force",
+           "--quiet"]
+    wall, rss, rc, tail, cpu, _ = _timed(cmd, tree, env)
+    if rc != 0:
+        raise RuntimeError(f"{label}: the prebuild failed (exit {rc}):\n{tail}")
+    row = dict(version=label, run="prebuild", wall_s=wall, cpu_s=cpu, peak_MiB=rss, theta=None)
+    print(json.dumps(row, ensure_ascii=False), flush=True)
+    return row
+
+
+def _first_run_env(tree, cache, prebuilt):
+    """The environment of a first run of `tree`: an empty compile cache `cache`, the
+    prebuilt machine code in `prebuilt` (None: none at all), nothing else of the caller's."""
     env = dict(os.environ, IVDREM_CACHE_DIR=str(cache), PYTHONPATH=str(tree),
-               OPENBLAS_NUM_THREADS="1", IVDREM_COMPILE_CHILD="0")
-    env.pop("NUMBA_CACHE_DIR", None)
+               OPENBLAS_NUM_THREADS="1", IVDREM_PREBUILT_DIR=str(prebuilt or ""))
+    for k in ("NUMBA_CACHE_DIR", "IVDREM_PREBUILD_INTO"):
+        env.pop(k, None)
+    return env
+
+
+def compile_table(tree, label, cache, top=25, prebuilt=None):
+    """numba's compile time on a first run of the Panda command in `tree` (an empty
+    `cache`, one process; the prebuilt machine code in `prebuilt` when given): per function
+    and per generated module (see the docstring)."""
+    env = dict(_first_run_env(tree, cache, prebuilt), IVDREM_COMPILE_CHILD="0")
     cmd = [sys.executable, "-c", _COMPILE_RUNNER, "paper", "--config", "examples/panda.toml",
            "--t-end", "1", "--laws", "iv-drem", "--quiet"]
     out = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
@@ -234,12 +267,11 @@ def _stage_table(rows):
         print(f"{name:<46}" + "".join(f" {c:>24}" for c in cells))
 
 
-def first_run_rows(tree, label, t_end, cache, stages=False):
-    """The first run (empty cache) and the warm run of the Panda command in `tree`; with
-    `stages`, each run's set-up stages too (STAGES: seconds summed per stage)."""
-    env = dict(os.environ, IVDREM_CACHE_DIR=str(cache), PYTHONPATH=str(tree),
-               OPENBLAS_NUM_THREADS="1")
-    env.pop("NUMBA_CACHE_DIR", None)
+def first_run_rows(tree, label, t_end, cache, stages=False, prebuilt=None):
+    """The first run (empty cache; the prebuilt machine code in `prebuilt` when given) and
+    the warm run of the Panda command in `tree`; with `stages`, each run's set-up stages too
+    (STAGES: seconds summed per stage)."""
+    env = _first_run_env(tree, cache, prebuilt)
     head = ([sys.executable, "-c", _STAGE_RUNNER % (STAGES,)] if stages
             else [sys.executable, "-m", "ivdrem"])
     cmd = head + ["paper", "--config", "examples/panda.toml", "--t-end", f"{t_end:g}",
@@ -390,9 +422,12 @@ def main(argv=None):
         subprocess.run(["git", "worktree", "add", "--detach", str(before), a.commit], cwd=REPO,
                        check=True, capture_output=True)
         try:
-            out["compile_table"] = [
-                compile_table(tree, label, tmp / f"cache-{tree.name}")
-                for tree, label in ((before, f"before ({a.commit})"), (REPO, "after"))]
+            out["compile_table"] = []
+            for tree, label in ((before, f"before ({a.commit})"), (REPO, "after")):
+                pre = tmp / f"prebuilt-{tree.name}"
+                made = make_prebuilt(tree, label, pre)
+                out["compile_table"].append(compile_table(
+                    tree, label, tmp / f"cache-{tree.name}", prebuilt=pre if made else None))
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
                            capture_output=True)
@@ -405,16 +440,21 @@ def main(argv=None):
         try:
             rows = []
             for tree, label in ((before, f"before ({a.commit})"), (REPO, "after")):
+                # the set-up's prebuilt, made for the tree measured (a version without one
+                # runs with none)
+                pre = tmp / f"prebuilt-{tree.name}"
+                made = make_prebuilt(tree, label, pre)
+                rows += [made] if made else []
                 rows += first_run_rows(tree, label, a.t_end, tmp / f"cache-{tree.name}",
-                                       stages=a.stages)
+                                       stages=a.stages, prebuilt=pre if made else None)
             out["rows"] = rows
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
                            capture_output=True)
             shutil.rmtree(tmp, ignore_errors=True)
-        print(f"\n{'version':<22} {'run':<6} {'wall s':>8} {'CPU s':>7} {'peak MiB':>9}")
+        print(f"\n{'version':<22} {'run':<8} {'wall s':>8} {'CPU s':>7} {'peak MiB':>9}")
         for r in out["rows"]:
-            print(f"{r['version']:<22} {r['run']:<6} {r['wall_s']:>8.1f} {r['cpu_s']:>7.1f} "
+            print(f"{r['version']:<22} {r['run']:<8} {r['wall_s']:>8.1f} {r['cpu_s']:>7.1f} "
                   f"{r['peak_MiB']:>9.0f}")
         if a.stages:
             _stage_table(out["rows"])

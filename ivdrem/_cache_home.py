@@ -33,7 +33,11 @@ def numba_cache_dir() -> Path:
 def use_own_numba_cache() -> None:
     """Set ``NUMBA_CACHE_DIR`` to :func:`numba_cache_dir` unless the user set it (child
     processes, a study's workers, inherit it); if numba was imported first, tell its
-    configuration too (numba reads the variable once, at its import)."""
+    configuration too (numba reads the variable once, at its import).  And have numba read
+    the prebuilt machine code of ivdrem's own functions after that cache
+    (``ivdrem._prebuilt``: an import hook, numba is not imported here)."""
+    from ._prebuilt import install_numba_hook
+    install_numba_hook()
     if "NUMBA_CACHE_DIR" in os.environ:
         return
     where = str(numba_cache_dir())

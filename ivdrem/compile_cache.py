@@ -24,11 +24,13 @@ import numpy as np
 from . import __version__
 from ._atomic import write_text_atomic
 from ._cache_home import cache_dir   # noqa: F401 - one definition, read before numba loads
+from ._prebuilt import BUILD_ENV, guard_numba_index, prebuilt_module, sources_digest
 
 __all__ = ["cache_dir", "package_digest", "source_hash", "write_generated",
            "import_generated", "import_path", "compile_lock", "GENERATED_HEADER",
            "helpers_digest", "CacheFault", "CompileLockTimeout", "guard_numba_index",
-           "lock_wait_limit", "lock_holder", "LOCK_WAIT_S", "LOCK_NOTICE_S", "LOCK_WAIT_ENV"]
+           "lock_wait_limit", "lock_holder", "LOCK_WAIT_S", "LOCK_NOTICE_S", "LOCK_WAIT_ENV",
+           "prebuilt_module"]
 
 #: the package files every generated module imports its helpers from
 HELPER_FILES = ("blocks/_kernels.py", "_native_call.py")
@@ -71,9 +73,20 @@ def import_generated(cdir, name, src):
     """The module `name` of source `src`, written to `cdir` and imported (once per
     process); a module whose import failed is not left in sys.modules.  Imported under the
     module's lock (:func:`compile_lock`): another process importing it at the same time
-    waits, then loads the machine code this one compiled."""
+    waits, then loads the machine code this one compiled.
+
+    A module the prebuilt directory holds with the same text (``ivdrem._prebuilt``) is
+    imported from there, with its machine code, and nothing is written; while the prebuild
+    runs, modules are written into its staging directory instead of `cdir`."""
     if name in sys.modules:
         return sys.modules[name]
+    prebuilt = prebuilt_module(name, src)
+    if prebuilt is not None:
+        return import_path(name, prebuilt)
+    building = os.environ.get(BUILD_ENV)
+    if building:
+        cdir = Path(building) / "generated"
+        cdir.mkdir(parents=True, exist_ok=True)
     path = write_generated(cdir, name, src)
     with compile_lock(path):
         return import_path(name, path)
@@ -82,39 +95,6 @@ def import_generated(cdir, name, src):
 class CacheFault(OSError):
     """A compile cache that cannot serve (full, damaged, no compiler): the message names the
     cache and the remedy, in one line."""
-
-
-def guard_numba_index() -> None:
-    """Make a damaged numba cache index (a truncated or garbled ``.nbi``: a disk that filled
-    up, a copy cut short) a cache miss instead of a raw ``UnpicklingError`` deep inside a
-    run: the file is removed, one line on stderr names it, and numba compiles that function
-    again and writes a new index.  numba's own contract for a missing or stale index is the
-    same empty answer.  Wraps ``numba.core.caching.IndexDataCacheFile._load_index`` (a
-    private method, numba 0.59-0.61; tests/test_user_round_two.py garbles an index), once
-    per process."""
-    import pickle
-
-    from numba.core import caching
-    load = caching.IndexDataCacheFile._load_index
-    if getattr(load, "_ivdrem", False):
-        return
-
-    def _load_index(self):
-        try:
-            return load(self)
-        except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError,
-                ImportError, IndexError) as exc:
-            path = getattr(self, "_index_path", "?")
-            print(f"ivdrem: numba's cache index {path} was unreadable "
-                  f"({type(exc).__name__}); removed it, compiling that function again",
-                  file=sys.stderr, flush=True)
-            try:
-                os.unlink(path)
-            except OSError:
-                pass
-            return {}
-    _load_index._ivdrem = True
-    caching.IndexDataCacheFile._load_index = _load_index
 
 
 def import_path(name, path):
@@ -331,12 +311,4 @@ def package_digest():
     """sha256 of every Python and C source of the installed ivdrem package (read once per
     process): a result on disk is reused only by the exact code that computed it; None
     where the sources cannot be read (nothing is then kept)."""
-    h = hashlib.sha256(f"{__version__} {sys.version} {np.__version__}".encode())
-    try:
-        for f in sorted(PACKAGE_ROOT.rglob("*")):
-            if f.suffix in (".py", ".c", ".h") and "__pycache__" not in f.parts:
-                h.update(f.relative_to(PACKAGE_ROOT).as_posix().encode())
-                h.update(f.read_bytes())
-    except OSError:
-        return None
-    return h.hexdigest()
+    return sources_digest(f"{__version__} {sys.version} {np.__version__}")

@@ -221,7 +221,7 @@ def test_the_child_starts_before_the_probe_and_a_failing_probe_kills_it(monkeypa
     seen = _spy(monkeypatch)
     running = []
 
-    def failing_probe(plan):
+    def failing_probe(plan, **kw):
         running.extend(s[1].poll() is None for s in seen)   # the child, compiling now
         raise ValueError("the probe failed")
 

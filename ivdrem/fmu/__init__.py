@@ -3,15 +3,18 @@ co-simulation in one binary), see :mod:`ivdrem.fmu.export`; the FMU as a block o
 closed loop: :func:`fmu_plant` (:mod:`ivdrem.fmu.plant`); one FMU instance, shared by the
 plant block and the co-simulation: :class:`~ivdrem.fmu.instance.FmuInstance`.
 """
-from .export import DEFAULT_SUBSTEP, export_fmu, generate_sources
+from ._substep import DEFAULT_SUBSTEP
 
 __all__ = ["export_fmu", "generate_sources", "DEFAULT_SUBSTEP", "fmu_plant", "FmuInstance",
            "FmuError"]
 
 
 def __getattr__(name):
-    # imported on first use, so that fmpy loads only when needed
-    if name == "fmu_plant":
+    # imported on first use: fmpy and SymPy (the exporter's) load only when needed
+    if name in ("export_fmu", "generate_sources"):
+        from . import export
+        value = getattr(export, name)
+    elif name == "fmu_plant":
         from .plant import fmu_plant as value
     elif name in ("FmuInstance", "FmuError"):
         from . import instance

@@ -67,12 +67,11 @@ import sympy as sp
 
 from .._atomic import zip_tree_atomic
 from .._paths import check_replaceable
+from ._substep import DEFAULT_SUBSTEP     # one definition, read by the CLI without SymPy
 
 __all__ = ["export_fmu", "generate_sources", "fmi2_header_dir", "FMU_SOURCE_FILES",
            "DEFAULT_SUBSTEP"]
 
-#: Default bound of the co-simulation RK4 sub-step (parameter ``cs_substep``), seconds.
-DEFAULT_SUBSTEP = 1e-3
 
 #: C files compiled into the binary (listed in modelDescription.xml SourceFiles).
 FMU_SOURCE_FILES = ("fmi2_plant.c", "plant_model.c")

@@ -20,7 +20,7 @@ import sys
 import types
 from pathlib import Path
 
-from ..compile_cache import cache_dir, compile_lock, import_path
+from ..compile_cache import cache_dir, compile_lock, import_path, prebuilt_module
 
 _CHILD_ENV = "IVDREM_STEPPER_CHILD"
 _SWITCH_ENVS = ("IVDREM_COMPILE_CHILD", "IVDREM_STEPPER_PREFETCH")
@@ -38,8 +38,11 @@ def enabled() -> bool:
 
 def index_exists(cache) -> bool:
     """Whether numba's index file of a function's on-disk cache (a dispatcher's or a
-    ``cfunc``'s ``_cache``, a :class:`numba.core.caching.FunctionCache`) exists."""
-    return (Path(cache._cache_path) / cache._cache_file._index_name).exists()
+    ``cfunc``'s ``_cache``, a :class:`numba.core.caching.FunctionCache`) exists, in the
+    user's cache or in the prebuilt directory (``ivdrem._prebuilt``)."""
+    name = cache._cache_file._index_name
+    prebuilt = getattr(cache._impl.locator, "prebuilt_path", None)
+    return any((Path(d) / name).exists() for d in (cache._cache_path, prebuilt) if d)
 
 
 def function_cached(path, qualname) -> bool:
@@ -49,7 +52,10 @@ def function_cached(path, qualname) -> bool:
     internals moved, no cache possible) counts as cached."""
     try:
         from numba.core.caching import FunctionCache
-        code = compile(Path(path).read_text(), str(path), "exec")
+        text = Path(path).read_text()
+        if prebuilt_module(Path(path).stem, text) is not None:
+            return True            # imported from the prebuilt, with its machine code
+        code = compile(text, str(path), "exec")
         fcode = next(c for c in code.co_consts
                      if isinstance(c, types.CodeType) and c.co_name == qualname)
         return index_exists(FunctionCache(types.FunctionType(fcode, {})))
@@ -183,6 +189,8 @@ def _job(argv):
     cdir = cache_dir()       # the parent's, passed as IVDREM_CACHE_DIR
     for name in argv[1:]:
         path = Path(cdir) / f"{name}.py"
+        if prebuilt_module(name, path.read_text()) is not None:
+            continue               # the parent imports it from the prebuilt
         with compile_lock(path):   # a module the parent compiles too is compiled once
             import_path(name, path)
     return 0

@@ -33,7 +33,7 @@ from ..compile_cache import (GENERATED_HEADER, cache_dir, import_generated as _i
                     source_hash as _hash, write_generated as _write)
 from .errors import BLOCK_RAISED_MESSAGE, BlockError, CompileError  # noqa: F401
 from .jacobian import (JacobianProgram, helpers_cache_as_now, kernel_code_ids,
-                       structure_digest)
+                       probe_wrappers, structure_digest)
 from ..models._jit_module import model_module, module_source as _model_module  # noqa: F401
 from .sparse_lu import symbolic_lu
 from .tables import (build_tables, dense_to_sparse, load_tables, prune_kept_tables,
@@ -554,7 +554,7 @@ def diagram_tables(plan, modules, key=None):
     tables = kept_tables(key)
     if tables is not None:
         return tables
-    prog = JacobianProgram(plan)
+    prog = JacobianProgram(plan, modules=modules)
     slu = symbolic_lu(prog.pattern, plan.state_groups())
     tables = build_tables(plan, modules.playout, modules.pbase, modules.windex,
                           modules.wrapper_nx, prog, slu)
@@ -738,12 +738,14 @@ def _with_imports(names, deps):
     return [n for n, _ in deps if n in need and n not in named] + list(names)
 
 
-def _start_split(cdir, deps, parent_busy=0.0):
+def _start_split(cdir, deps, parent_busy=0.0, first=()):
     """(a child compiling about half the wrappers of deps that numba's cache does not hold,
     the wrappers this process imports last); deps: models, kernels and wrappers.  With
     `parent_busy` (:func:`_split`) ``math.inf`` the child gets every uncached wrapper, the
     dearest first, and this process takes the cheapest back when its other work is done
-    (:func:`_import_all`)."""
+    (:func:`_import_all`); the uncached wrappers of the list `first` head the child's list,
+    in that order (the sparsity probe runs them: this process waits for them, or
+    loads them, after probing the other blocks)."""
     if not _compile_child.enabled():
         return _compile_child.Warmup(), []
     # a process that has imported every module (a second simulate of a loop) has nothing
@@ -754,6 +756,8 @@ def _start_split(cdir, deps, parent_busy=0.0):
         _write(cdir, name, src)
     costs = _uncached_wrappers(cdir, deps)
     later = _split(costs, _CHILD_START_S, parent_busy)[1]
+    head = [n for n in first if n in set(later)]
+    later = head + [n for n in later if n not in set(head)]
     if sum(costs[n][0] + sum(costs[n][1].values()) for n in later) < _CHILD_MIN_S:
         return _compile_child.Warmup(), []
     return _compile_child.start_modules(_with_imports(later, deps)), later
@@ -795,14 +799,14 @@ class KernelCompile(NamedTuple):
         self.warmup.cancel()
 
 
-def start_kernels(deps, parent_busy=0.0):
+def start_kernels(deps, parent_busy=0.0, first=()):
     """Write the models, kernels and wrappers `deps` and start a child compiling the
     wrappers numba's cache does not hold (its share by :func:`_split`; ``math.inf``: all of
-    them, this process being busy first with work of unknown length); :meth:`KernelCompile.finish`
-    imports them."""
+    them, this process being busy first with work of unknown length; those of the list
+    `first` at the head of its list); :meth:`KernelCompile.finish` imports them."""
     cdir = cache_dir()
     cdir.mkdir(parents=True, exist_ok=True)
-    return KernelCompile(cdir, deps, *_start_split(cdir, deps, parent_busy))
+    return KernelCompile(cdir, deps, *_start_split(cdir, deps, parent_busy, list(first)))
 
 
 def _load_kernels(deps):
@@ -865,8 +869,11 @@ class CompiledEngine:
                 # cache as it stands now decides which blocks the probe reads from their
                 # Jacobian kernels (the child's compiles must not change the probe's way,
                 # docs/performance.md)
+                # (the robot-model blocks' update/output wrappers first: the probe runs
+                # them after probing the other blocks, docs/performance.md)
                 with helpers_cache_as_now():
-                    compiling = start_kernels(modules.deps, parent_busy=math.inf)
+                    compiling = start_kernels(modules.deps, parent_busy=math.inf,
+                                              first=probe_wrappers(plan, modules))
                     try:
                         tables = diagram_tables(plan, modules, key)
                     except BaseException:

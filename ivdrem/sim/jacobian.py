@@ -31,7 +31,10 @@ Transport-delay outputs come from the history at t - T and max-hold outputs are 
 values, so both are constants here (their rows of dy/dx are empty).
 
 Sparsity is fixed when the diagram's tables are built: each block's kernels are probed
-(in Python, or compiled by numba for a large block without a robot model) at a few random
+(in Python; compiled by numba for a large block without a robot model; through the
+compiled C-callable wrappers the run uses for a robot-model block whose model is its C
+library in both paths, a URDF arm: the same values bit for bit, checked, and so the same
+pattern, :func:`wrapper_probe_applies`) at a few random
 points (random states, inputs and parameter values, so that a gain that is 0
 today, or a diagonal matrix parameter, does not hide an entry once it changes; parameter
 values are not part of the compiled code).  An entry is structural when a difference of
@@ -55,10 +58,11 @@ from __future__ import annotations
 
 import hashlib
 import itertools
+import re
 import sys
 from collections import OrderedDict
 from contextlib import contextmanager
-from functools import lru_cache
+from functools import lru_cache, partial
 from pathlib import Path
 
 import numpy as np
@@ -70,7 +74,8 @@ from ..compile_cache import package_digest as _package_digest
 from ._compile_child import index_exists
 from .foreign import ForeignSpec
 
-__all__ = ["block_pattern", "JacobianProgram", "DeclarationError"]
+__all__ = ["block_pattern", "JacobianProgram", "DeclarationError", "probe_wrappers",
+           "wrapper_probe_applies"]
 
 # central-difference step factor eps^(1/3): truncation h^2 and rounding eps/h balance
 FD_STEP = float(np.finfo(float).eps ** (1.0 / 3.0))
@@ -110,12 +115,15 @@ def _value_key(v):
     return (a.dtype.str, a.shape, a.tobytes())
 
 
-def cached_block_pattern(spec, args, nx, nu, ny, *, seed=0):
+def cached_block_pattern(spec, args, nx, nu, ny, *, seed=0, compiled=None):
     """:func:`block_pattern`, probed once per process for the same kernels, model, sizes,
     seed and parameter values (the probe's inputs, so the pattern is the same bit for bit),
     and kept on disk for the next process when the kernels are ivdrem's own
     (:func:`_pattern_path`).  A block ivdrem did not write (a user's nlsys) is probed every
-    time: its functions may read state of their own that a key cannot see."""
+    time: its functions may read state of their own that a key cannot see.  `compiled`
+    (optional): called only if the block is probed, it gives the block's kernels as its
+    compiled wrappers (:func:`_wrapper_kernels`; the same pattern bit for bit, so the key
+    does not say which way it was probed)."""
     if isinstance(spec, ForeignSpec):
         return block_pattern(spec, args, nx, nu, ny, seed=seed)
     fkey = (_kernel_names((spec.update, spec.output)),
@@ -128,7 +136,8 @@ def cached_block_pattern(spec, args, nx, nu, ny, *, seed=0):
         path = _pattern_path(spec, rest)
         found, pat = _read_pattern(path, (ny + nx, nx + nu))
         if not found:
-            pat = block_pattern(spec, args, nx, nu, ny, seed=seed)
+            pat = block_pattern(spec, args, nx, nu, ny, seed=seed,
+                                kernels=None if compiled is None else compiled())
             _write_pattern(path, pat)
         _PATTERNS[key] = pat
         while len(_PATTERNS) > _PATTERNS_MAX:
@@ -260,6 +269,120 @@ def _kernel_probe_applies(spec):
     kernel at the pattern's entries, would change in its last bits."""
     return (getattr(spec, "jacobian", None) is not None and spec.model is None
             and not isinstance(spec, ForeignSpec) and not _compiles_first(spec.jacobian))
+
+
+def wrapper_probe_applies(spec):
+    """Whether the difference probe of `spec`'s block runs its compiled update and output
+    wrappers (:func:`_wrapper_kernels`) instead of its Python kernels: a block of ivdrem's
+    own kernels (module-level functions of the package) with a robot model whose functions
+    are its C library in both paths (a URDF arm with a C compiler: ctypes from Python, the
+    same symbols from numba, ivdrem.models._c_engine).  The rule is written once, here,
+    and depends on nothing a compile child changes.  There, the two paths compute the same
+    values bit for bit: the model's functions are one machine code, and the kernels' own
+    arithmetic (loops of +, -, *, /) is IEEE float64 in both (numba without fastmath
+    contracts nothing): checked at the probe's random points on every robot-model block
+    of the UR5's and a planar URDF arm's loops, both laws (tests/test_probe_compiled.py),
+    and of the Panda's (docs/performance.md).
+    A model whose Python functions are not the compiled ones (a sympy model, the paper's
+    2-link arm; a URDF arm without a C compiler, whose numba path compiles the rigid-body
+    kernels) keeps the Python probe."""
+    model = spec.model
+    from numba.core import config as numba_config
+    if (model is None or isinstance(spec, ForeignSpec) or numba_config.DISABLE_JIT
+            or not (_own_kernel(spec.update) and _own_kernel(spec.output))
+            or not callable(getattr(model, "engine_source", None))):
+        return False
+    from ..models import _c_engine
+    return _c_engine.load(model) is not None
+
+
+def probe_wrappers(plan, modules):
+    """The wrapper modules (of `modules`, ivdrem.sim.compiled.KernelModules) the probe of
+    `plan`'s blocks imports (:func:`wrapper_probe_applies`), in the blocks' order: the
+    compiled engine gives them to its compile child first, in this order (the order the
+    probe takes them in, after the other blocks, :func:`_local_patterns`), so that the
+    child compiles them while this process probes the other blocks, and the two processes
+    never compile the model's functions at the same time."""
+    names = []
+    for b in plan.blocks:
+        if b.spec is None or b.spec.kind != "ode" or not wrapper_probe_applies(b.spec):
+            continue
+        for role in ("output", "update") if b.sys.nstates else ("output",):
+            k = modules.windex.get((b.index, role))
+            if k is not None:
+                names.append(modules.wrappers[k][2])
+    return names
+
+
+class _WrapperRaised(ArithmeticError):
+    """A compiled wrapper returned non-zero: its kernel raised (an exception cannot cross
+    C).  The probe takes it as the Python kernel's exception: it tries another point."""
+
+
+def _wrapper_kernels(b, modules):
+    """(output, update) of block `b` as its compiled C-callable wrappers (numba ``cfunc``
+    ``int32(float64 t, int64 x, int64 u, int64 out, int64 p)``) called through ctypes,
+    with the Python kernels' signature ``(t, x, u, out, *args)``: `args` (the probe's
+    random parameter values) are written into the block's parameter slice p at the slots
+    of the layout `modules` hold (``modules.playout``, ``modules.pbase``; a constant is a
+    literal in the wrapper and is not written, nor varied by the probe).  The wrapper
+    modules are imported here, each under its compile lock
+    (``compile_cache.import_generated``): one a compile child has compiled is loaded, one
+    it is compiling is waited for, one it has not reached is compiled here (the child then
+    loads it).  A kernel that raised (non-zero return) raises :class:`_WrapperRaised`."""
+    from ..compile_cache import import_generated
+    sources = dict(modules.deps)
+    cdir = cache_dir()
+    nx = b.sys.nstates
+    slots = modules.playout[b.index]
+    base = modules.pbase[b.index]
+    spans = [(a.offset - base, a.size) for a in slots if hasattr(a, "offset")]
+    npar = max((lo + n for lo, n in spans), default=0)
+
+    def load(role):
+        wmod = modules.wrappers[modules.windex[(b.index, role)]][2]
+        for name in _generated_imports(wmod, sources):
+            import_generated(cdir, name, sources[name])
+        return import_generated(cdir, wmod, sources[wmod]).wrapper.ctypes
+
+    def kernel(wrapper):
+        held = [None, np.zeros(max(npar, 1))]       # the args last written, p
+
+        def call(t, x, u, out, *args):
+            kept = held[0]
+            if kept is None or any(v is not w for v, w in zip(kept, args)):
+                p = held[1]
+                for a, v in zip(slots, args):
+                    if hasattr(a, "offset"):
+                        lo = a.offset - base
+                        p[lo:lo + a.size] = np.asarray(v, dtype=float).reshape(-1)
+                held[0] = args
+            x = np.ascontiguousarray(x, dtype=float)
+            u = np.ascontiguousarray(u, dtype=float)
+            if out.dtype != np.float64 or not out.flags.c_contiguous:
+                raise TypeError("a wrapper writes a contiguous float64 buffer")
+            if wrapper(t, x.ctypes.data, u.ctypes.data, out.ctypes.data, held[1].ctypes.data):
+                raise _WrapperRaised(f"the compiled kernel of block '{b.sys.name}' raised")
+        return call
+
+    out = kernel(load("output"))
+    upd = kernel(load("update")) if nx else None
+    return out, upd
+
+
+def _generated_imports(name, sources):
+    """The generated modules (robot models, kernels) the generated module `name` imports,
+    recursively, in the order of `sources` (a dict in import order)."""
+    need, todo = set(), [name]
+    while todo:
+        for m in _GENERATED_IMPORT.findall(sources[todo.pop()]):
+            if m not in need:
+                need.add(m)
+                todo.append(m)
+    return [n for n in sources if n in need]
+
+
+_GENERATED_IMPORT = re.compile(r"^(?:from|import) (ivdrem_\w+)", flags=re.M)
 
 
 #: {helper: in numba's cache} read when :func:`helpers_cache_as_now` was entered, or None
@@ -395,7 +518,7 @@ def _jacobian_pattern(spec, args, nx, nu, ny, *, seed, n_points):
     return pat if good else None
 
 
-def block_pattern(spec, args, nx, nu, ny, *, seed=0, n_points=3):
+def block_pattern(spec, args, nx, nu, ny, *, seed=0, n_points=3, kernels=None):
     """Structural nonzeros of a block's local Jacobian, probed from its kernels.
 
     Returns a boolean array (ny + nx, nx + nu): rows are outputs then state derivatives,
@@ -404,20 +527,23 @@ def block_pattern(spec, args, nx, nu, ny, *, seed=0, n_points=3):
     it as dense within its declaration (correct, only slower), and the run itself reports
     the model's error.  A block with a Jacobian kernel of its own and no robot model gives
     its pattern from that kernel (:func:`_jacobian_pattern`); the others by differences of
-    their kernels, column by column.
+    their kernels, column by column (`kernels`, optional: the (output, update) kernels
+    to difference instead of the block's Python kernels, :func:`_wrapper_kernels`).
     """
     if _kernel_probe_applies(spec):
         pat = _jacobian_pattern(spec, args, nx, nu, ny, seed=seed, n_points=n_points)
         if pat is not None:
             return pat
-    return _difference_pattern(spec, args, nx, nu, ny, seed=seed, n_points=n_points)
+    return _difference_pattern(spec, args, nx, nu, ny, seed=seed, n_points=n_points,
+                               kernels=kernels)
 
 
-def _difference_pattern(spec, args, nx, nu, ny, *, seed, n_points):
-    """:func:`block_pattern` by central differences of the block's kernels, one column at
-    a time, at `n_points` random points: an entry is structural where a difference is not
-    exactly zero at any of them."""
-    out, upd = _probe_kernels(spec, args, nx, nu, ny)
+def _difference_pattern(spec, args, nx, nu, ny, *, seed, n_points, kernels=None):
+    """:func:`block_pattern` by central differences of the block's kernels (or of
+    `kernels`, (output, update) with the kernels' signature), one column at a time, at
+    `n_points` random points: an entry is structural where a difference is not exactly
+    zero at any of them."""
+    out, upd = _probe_kernels(spec, args, nx, nu, ny) if kernels is None else kernels
     rng = np.random.default_rng(seed)
     pat = np.zeros((ny + nx, nx + nu), dtype=bool)
     ev = _stacked_evaluation(out, upd, nx, ny)
@@ -492,12 +618,19 @@ def _color(rows_of_col):
     return [sorted(g) for g in groups]
 
 
-def _local_patterns(plan, seed):
+def _local_patterns(plan, seed, modules=None):
     """{block index: local pattern (ny + nx, nx + nu)} of the ode blocks with states or
     inputs (probed once per process, cached_block_pattern), each checked against the
-    block's declared direct feedthrough."""
+    block's declared direct feedthrough.  With the diagram's generated `modules`
+    (ivdrem.sim.compiled.KernelModules), a block :func:`wrapper_probe_applies` to is
+    probed through its compiled wrappers (:func:`_wrapper_kernels`), after the other blocks
+    (a compile child started with them first has compiled them meanwhile); the patterns do
+    not depend on the order the blocks are probed in (each block's points are drawn from
+    its own seed)."""
     patterns = {}
-    for b in plan.blocks:
+    through_wrappers = {b.index: modules is not None and b.spec.kind == "ode"
+                        and wrapper_probe_applies(b.spec) for b in plan.blocks}
+    for b in sorted(plan.blocks, key=lambda b: through_wrappers[b.index]):
         spec = b.spec
         if spec.kind != "ode":
             continue
@@ -505,7 +638,9 @@ def _local_patterns(plan, seed):
         if nx + nu == 0:
             continue
         args = kernel_args(spec, plan.block_params(b))
-        pat = cached_block_pattern(spec, args, nx, nu, ny, seed=seed + b.index)
+        compiled = partial(_wrapper_kernels, b, modules) if through_wrappers[b.index] else None
+        pat = cached_block_pattern(spec, args, nx, nu, ny, seed=seed + b.index,
+                                   compiled=compiled)
         direct_local = set(int(i) - b.u.start for i in b.direct_inputs)
         if pat is None:   # not probeable: dense, outputs only on states and direct inputs
             pat = np.ones((ny + nx, nx + nu), dtype=bool)
@@ -521,7 +656,7 @@ def _local_patterns(plan, seed):
                 "the block does not declare as direct feedthrough (BlockSpec.direct); the "
                 "right-hand side would read them before they are computed")
         patterns[b.index] = pat
-    return patterns
+    return {b.index: patterns[b.index] for b in plan.blocks if b.index in patterns}
 
 
 def _parameter_zeros(plan, patterns, *, seed=0, n_points=3):
@@ -783,8 +918,10 @@ class JacobianProgram:
           with states or inputs (also used for the max-hold probe's dependencies)
     """
 
-    def __init__(self, plan, *, seed=0):
-        patterns = _local_patterns(plan, seed)
+    def __init__(self, plan, *, seed=0, modules=None):
+        # modules (ivdrem.sim.compiled.KernelModules, optional): the robot-model blocks'
+        # compiled wrappers then probe their patterns (the same, bit for bit)
+        patterns = _local_patterns(plan, seed, modules)
         zeros = _parameter_zeros(plan, patterns, seed=seed)
         key = _program_key(plan, patterns, zeros)
         hit = _PROGRAMS.get(key)
