@@ -16,9 +16,10 @@ from ivdrem.blocks._kernels import MIXING_VARIANTS, mixing_derivatives, mixing_v
 
 
 def _fresh_env(tmp_path):
-    """An environment whose numba cache and ivdrem cache are empty directories."""
+    """An environment whose numba cache and ivdrem cache are empty directories, and no
+    prebuilt machine code (these tests count what a process compiles)."""
     env = dict(os.environ, IVDREM_CACHE_DIR=str(tmp_path / "cache"),
-               NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+               NUMBA_CACHE_DIR=str(tmp_path / "numba"), IVDREM_PREBUILT_DIR="")
     for k in ("IVDREM_STEPPER_CHILD", "IVDREM_COMPILE_CHILD", "IVDREM_STEPPER_PREFETCH"):
         env.pop(k, None)
     return env
