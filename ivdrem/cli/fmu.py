@@ -12,7 +12,7 @@ def _model_names() -> list[str]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from ..fmu._substep import DEFAULT_SUBSTEP
+    from ..fmu import DEFAULT_SUBSTEP
     p = argparse.ArgumentParser(prog="ivdrem fmu", description="Plant FMU (FMI 2.0, ME + CS)")
     sub = p.add_subparsers(dest="command", required=True)
     e = sub.add_parser("export", help="export the robot plant as an FMU (generated C, compiled)",

@@ -149,7 +149,7 @@ def loop_growth(controller, theta, t, *, theta_hat, disturbance=None, substep=No
     (spectral radius, the map's Jacobian).  The operating point is the arm on the
     reference holding the torque the reference needs, or ``at`` = (q, q̇, u): a state of
     the closed loop (u: the torque the plant holds over the step, delay 1)."""
-    from ..fmu._substep import DEFAULT_SUBSTEP
+    from ..fmu import DEFAULT_SUBSTEP
     model, h, n = controller.model, controller.h, controller.n
     substep = DEFAULT_SUBSTEP if substep is None else float(substep)
     theta = np.asarray(theta, dtype=float)
@@ -246,7 +246,7 @@ def closed_loop_prefix(model, law, theta, t_end, *, disturbance=None, substep=No
     its steps, None: on a terminal); False: step by step from Python (the check of the
     compiled loop).
     ``flags``: the C library's compiler flags (:data:`PREFIX_FLAGS`)."""
-    from ..fmu._substep import DEFAULT_SUBSTEP
+    from ..fmu import DEFAULT_SUBSTEP
     from .loop import ModelPlant
     from .sampled import SampledController
     cls = SampledController

@@ -3,7 +3,9 @@ co-simulation in one binary), see :mod:`ivdrem.fmu.export`; the FMU as a block o
 closed loop: :func:`fmu_plant` (:mod:`ivdrem.fmu.plant`); one FMU instance, shared by the
 plant block and the co-simulation: :class:`~ivdrem.fmu.instance.FmuInstance`.
 """
-from ._substep import DEFAULT_SUBSTEP
+#: Default bound of the co-simulation RK4 sub-step (parameter ``cs_substep``), seconds
+#: (defined here, not in the exporter: the command line's parser reads it without SymPy).
+DEFAULT_SUBSTEP = 1e-3
 
 __all__ = ["export_fmu", "generate_sources", "DEFAULT_SUBSTEP", "fmu_plant", "FmuInstance",
            "FmuError"]

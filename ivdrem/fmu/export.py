@@ -67,7 +67,7 @@ import sympy as sp
 
 from .._atomic import zip_tree_atomic
 from .._paths import check_replaceable
-from ._substep import DEFAULT_SUBSTEP     # one definition, read by the CLI without SymPy
+from . import DEFAULT_SUBSTEP             # one definition, in the package (no SymPy there)
 
 __all__ = ["export_fmu", "generate_sources", "fmi2_header_dir", "FMU_SOURCE_FILES",
            "DEFAULT_SUBSTEP"]

@@ -279,8 +279,8 @@ def wrapper_probe_applies(spec):
     same symbols from numba, ivdrem.models._c_engine).  The rule is written once, here,
     and depends on nothing a compile child changes.  There, the two paths compute the same
     values bit for bit: the model's functions are one machine code, and the kernels' own
-    arithmetic (loops of +, -, *, /) is IEEE float64 in both (numba without fastmath
-    contracts nothing): checked at the probe's random points on every robot-model block
+    arithmetic (loops of sums, differences, products and quotients) is IEEE float64 in
+    both (numba without fastmath contracts nothing): checked at the probe's random points on every robot-model block
     of the UR5's and a planar URDF arm's loops, both laws (tests/test_probe_compiled.py),
     and of the Panda's (docs/performance.md).
     A model whose Python functions are not the compiled ones (a sympy model, the paper's
