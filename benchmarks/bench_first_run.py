@@ -52,6 +52,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -376,6 +377,22 @@ def _calibration_args(cl, law, model, variant, exp):
                 disturbance=kw["disturbance"], replace=None, external_plant=False)
 
 
+@contextmanager
+def _old_tree(commit, prefix):
+    """(a temporary folder, `commit` checked out in a git worktree inside it), both removed
+    on leaving: the "before" version each comparison runs beside this checkout."""
+    tmp = Path(tempfile.mkdtemp(prefix=prefix))
+    before = tmp / "before"
+    subprocess.run(["git", "worktree", "add", "--detach", str(before), commit], cwd=REPO,
+                   check=True, capture_output=True)
+    try:
+        yield tmp, before
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
+                       capture_output=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rows", action="store_true", help="first run and warm run, before/after")
@@ -395,17 +412,9 @@ def main(argv=None):
     if a.gamma:
         out["gamma"] = gamma_rows([x for x in a.arms.split(",") if x])
     if a.warm:
-        tmp = Path(tempfile.mkdtemp(prefix="ivdrem-warm-"))
-        before = tmp / "before"
-        subprocess.run(["git", "worktree", "add", "--detach", str(before), a.commit], cwd=REPO,
-                       check=True, capture_output=True)
-        try:
+        with _old_tree(a.commit, "ivdrem-warm-") as (tmp, before):
             out["warm"] = warm_rows([(before, f"before ({a.commit})"), (REPO, "after")],
                                     a.t_end, a.warm, stages=a.stages)
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
-                           capture_output=True)
-            shutil.rmtree(tmp, ignore_errors=True)
         print(f"\n{'version':<22} {'runs':>4} {'wall s: median (range)':>24} "
               f"{'CPU s: median':>14} {'peak MiB':>9}")
         for label in dict.fromkeys(r["version"] for r in out["warm"]):
@@ -417,27 +426,15 @@ def main(argv=None):
         if a.stages:
             _stage_table(out["warm"])
     if a.compile_table:
-        tmp = Path(tempfile.mkdtemp(prefix="ivdrem-compile-table-"))
-        before = tmp / "before"
-        subprocess.run(["git", "worktree", "add", "--detach", str(before), a.commit], cwd=REPO,
-                       check=True, capture_output=True)
-        try:
+        with _old_tree(a.commit, "ivdrem-compile-table-") as (tmp, before):
             out["compile_table"] = []
             for tree, label in ((before, f"before ({a.commit})"), (REPO, "after")):
                 pre = tmp / f"prebuilt-{tree.name}"
                 made = make_prebuilt(tree, label, pre)
                 out["compile_table"].append(compile_table(
                     tree, label, tmp / f"cache-{tree.name}", prebuilt=pre if made else None))
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
-                           capture_output=True)
-            shutil.rmtree(tmp, ignore_errors=True)
     if a.rows:
-        tmp = Path(tempfile.mkdtemp(prefix="ivdrem-first-run-"))
-        before = tmp / "before"
-        subprocess.run(["git", "worktree", "add", "--detach", str(before), a.commit], cwd=REPO,
-                       check=True, capture_output=True)
-        try:
+        with _old_tree(a.commit, "ivdrem-first-run-") as (tmp, before):
             rows = []
             for tree, label in ((before, f"before ({a.commit})"), (REPO, "after")):
                 # the set-up's prebuilt, made for the tree measured (a version without one
@@ -448,10 +445,6 @@ def main(argv=None):
                 rows += first_run_rows(tree, label, a.t_end, tmp / f"cache-{tree.name}",
                                        stages=a.stages, prebuilt=pre if made else None)
             out["rows"] = rows
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(before)], cwd=REPO,
-                           capture_output=True)
-            shutil.rmtree(tmp, ignore_errors=True)
         print(f"\n{'version':<22} {'run':<8} {'wall s':>8} {'CPU s':>7} {'peak MiB':>9}")
         for r in out["rows"]:
             print(f"{r['version']:<22} {r['run']:<8} {r['wall_s']:>8.1f} {r['cpu_s']:>7.1f} "
